@@ -1,0 +1,74 @@
+#pragma once
+// Reading and writing clouds and meshes.
+//
+// Readers: PLY (ascii, binary_little_endian, binary_big_endian; any scalar
+// property type and order; unknown properties and elements skipped), PCD
+// (ascii, binary, binary_compressed), OBJ (with UVs and an MTL texture name),
+// OFF. Writers: binary PLY, ASCII PLY, OBJ. Every writer goes through a
+// temporary file that is renamed into place, so a failure never leaves a
+// half-written output.
+//
+// Every reader is total: malformed, truncated or hostile input raises
+// FormatError("NAME: problem"), never crashes (each has a libFuzzer target in
+// fuzz/). Non-finite coordinates are rejected with FormatError.
+#include <filesystem>
+#include <string>
+#include <string_view>
+
+#include "core/geometry.h"
+
+namespace station {
+
+namespace fs = std::filesystem;
+
+/// A mesh with per-corner texture coordinates, as read from OBJ.
+struct TexturedMesh {
+  Mesh mesh;
+  /// 3*F entries (corner order of mesh.faces), or empty when the file has none.
+  std::vector<Vec2f> corner_uv;
+  /// Absolute path of the diffuse texture (MTL map_Kd), empty when none.
+  fs::path texture;
+};
+
+// ---- parsers over in-memory bytes (used by the file readers and fuzzers) ----
+// `name` only labels error messages.
+
+/// PLY: vertices (x y z, optional nx ny nz, red green blue as uchar or float in [0,1]),
+/// faces (vertex_indices / vertex_index lists; polygons are fan-triangulated).
+Mesh parse_ply(std::string_view bytes, const std::string& name);
+/// PCD v0.5-0.7; fields x y z, optional normal_x/y/z and rgb/rgba (packed uint32).
+/// Points with a NaN coordinate (organised clouds' missing pixels) are dropped;
+/// infinite coordinates are an error.
+Cloud parse_pcd(std::string_view bytes, const std::string& name);
+/// OBJ: v (optionally with r g b after x y z), vt, vn, f (polygons, negative indices).
+/// `base_dir` resolves mtllib; the texture is only named, never loaded here.
+TexturedMesh parse_obj(std::string_view bytes, const std::string& name,
+                       const fs::path& base_dir = {});
+/// OFF (ascii; COFF colours honoured).
+Mesh parse_off(std::string_view bytes, const std::string& name);
+
+// ---- files -------------------------------------------------------------------
+
+/// Reads the whole file; IoError naming it when that fails.
+std::string read_file_bytes(const fs::path& path);
+
+/// Reads a point cloud (.ply, .pcd, .obj, .off: mesh vertices are taken as points).
+Cloud read_cloud(const fs::path& path);
+/// Reads a mesh (.ply, .obj, .off). A file without faces gives a mesh with no faces.
+Mesh read_mesh(const fs::path& path);
+/// Reads OBJ with its texture reference; other formats give no UVs.
+TexturedMesh read_textured_mesh(const fs::path& path);
+
+enum class PlyFormat { kBinaryLittleEndian, kAscii };
+
+/// Writes vertices (+normals, +colours as uchar) and faces. Atomic.
+void write_ply(const fs::path& path, const Mesh& mesh,
+               PlyFormat format = PlyFormat::kBinaryLittleEndian);
+void write_ply(const fs::path& path, const Cloud& cloud,
+               PlyFormat format = PlyFormat::kBinaryLittleEndian);
+/// Writes v (with r g b in [0,1] when coloured), vn, f. Atomic.
+void write_obj(const fs::path& path, const Mesh& mesh);
+/// Writes by extension: .ply (binary) or .obj.
+void write_mesh(const fs::path& path, const Mesh& mesh);
+
+}  // namespace station

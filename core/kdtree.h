@@ -1,0 +1,35 @@
+#pragma once
+// Nearest-neighbour index over a fixed set of 3-D points (nanoflann inside;
+// kept out of this header so including it stays cheap). Queries are const and
+// thread-safe.
+#include <memory>
+#include <utility>
+#include <vector>
+
+#include "core/geometry.h"
+
+namespace station {
+
+class PointIndex {
+ public:
+  /// Keeps a copy of the points. An empty set is allowed (queries return nothing).
+  explicit PointIndex(std::vector<Vec3f> points);
+  ~PointIndex();
+  PointIndex(PointIndex&&) noexcept;
+  PointIndex& operator=(PointIndex&&) noexcept;
+
+  std::size_t size() const;
+  const std::vector<Vec3f>& points() const;
+  /// Index and Euclidean distance of the nearest point; {-1, inf} when empty.
+  std::pair<int, float> nearest(const Vec3f& q) const;
+  /// The k nearest (fewer if the set is smaller), closest first: (index, distance).
+  std::vector<std::pair<int, float>> knn(const Vec3f& q, int k) const;
+  /// All points within `radius` (Euclidean), closest first.
+  std::vector<std::pair<int, float>> radius(const Vec3f& q, float radius) const;
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace station

@@ -1,0 +1,89 @@
+#pragma once
+// Device abstraction: range/colour scanners. Real back-ends (V4L2, libusb) and
+// the simulated scanner (sim/) implement the same interface; the capture loop
+// sees only this header.
+#include <cstdint>
+#include <map>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "core/geometry.h"
+
+namespace station {
+
+/// Pinhole intrinsics of a range or colour camera, in pixels.
+struct Intrinsics {
+  int width = 0, height = 0;
+  double fx = 0, fy = 0, cx = 0, cy = 0;
+  bool valid() const { return width > 0 && height > 0 && fx > 0 && fy > 0; }
+};
+
+/// One grab. A range camera fills `depth` (metres along the optical axis,
+/// row-major width*height, 0 = no return); a device that measures points
+/// directly fills `points` (scanner frame: x right, y down, z forward).
+/// `color` is optional row-major RGB, color_intrinsics.width*height*3 bytes,
+/// registered to the depth image when both have the same intrinsics.
+struct Frame {
+  Intrinsics intrinsics;
+  std::vector<float> depth;
+  Cloud points;
+  Intrinsics color_intrinsics;
+  std::vector<std::uint8_t> color;
+  double timestamp = 0;  ///< seconds since the Unix epoch
+  bool has_depth() const { return !depth.empty(); }
+  bool has_color() const { return !color.empty(); }
+};
+
+/// Turntable rotation axis in the scanner frame (metres; direction unit length,
+/// pointing up, from the table top towards the object; `point` lies on the table
+/// top). Positive angles turn the table counter-clockwise seen from above
+/// (right-handed about `direction`).
+struct TurntableAxis {
+  Vec3d point = Vec3d::Zero();
+  Vec3d direction = -Vec3d::UnitY();
+};
+
+struct ScannerCapabilities {
+  bool depth = false;   ///< delivers depth images
+  bool points = false;  ///< delivers points directly
+  bool color = false;   ///< delivers a colour image
+  Intrinsics intrinsics;
+  /// Bench calibration the device knows itself (the simulator does); real
+  /// devices leave it empty and the profile supplies it.
+  std::optional<TurntableAxis> axis;
+};
+
+/// Device options: key/value pairs from the URI query or the YAML profile.
+using DeviceOptions = std::map<std::string, std::string>;
+
+class Scanner {
+ public:
+  virtual ~Scanner() = default;
+  /// Connects to the device; DeviceError("URI: problem") when unplugged or busy.
+  virtual void open() = 0;
+  virtual void close() = 0;
+  /// Applies options (resolution, exposure...); unknown keys are a DeviceError.
+  virtual void configure(const DeviceOptions& options) = 0;
+  virtual ScannerCapabilities capabilities() const = 0;
+  /// Blocks until a frame is available; DeviceError on failure or time-out.
+  virtual Frame grab() = 0;
+  virtual std::string uri() const = 0;
+};
+
+class Turntable {
+ public:
+  virtual ~Turntable() = default;
+  virtual void open() = 0;
+  virtual void close() = 0;
+  /// Drives to the home (zero) position.
+  virtual void home() = 0;
+  /// Rotates to an absolute angle in degrees, [0, 360); blocks until there.
+  virtual void rotate_to(double degrees) = 0;
+  /// Current angle in degrees, as the device reports it.
+  virtual double angle() const = 0;
+  virtual int steps_per_revolution() const = 0;
+  virtual std::string uri() const = 0;
+};
+
+}  // namespace station

@@ -1,0 +1,50 @@
+#pragma once
+// Evaluation metrics between two clouds or meshes (`station eval A B`). Every
+// later stage is judged with these. Distances are in the inputs' units.
+#include <optional>
+#include <variant>
+
+#include "core/geometry.h"
+
+namespace station {
+
+struct EvalParams {
+  /// Points sampled uniformly (by area) on each mesh's faces; a cloud is used as is.
+  int mesh_samples = 200000;
+  /// Seed of the sampler: same inputs and seed, same result.
+  unsigned seed = 1;
+  /// Threads for the distance queries (0 = all cores).
+  int threads = 0;
+};
+
+struct DirectedStats {
+  double mean = 0, rms = 0, p95 = 0, max = 0;
+  std::size_t count = 0;
+};
+
+/// Either a cloud or a mesh.
+using Shape = std::variant<Cloud, Mesh>;
+
+struct EvalResult {
+  DirectedStats a_to_b, b_to_a;
+  double chamfer = 0;    ///< (a_to_b.mean + b_to_a.mean) / 2
+  double hausdorff = 0;  ///< max(a_to_b.max, b_to_a.max)
+  double p95 = 0;        ///< max(a_to_b.p95, b_to_a.p95)
+  /// Mean |n_a . n_b| over nearest pairs, both directions; empty when a side lacks normals
+  /// (a mesh always has them: face normals at the sample or closest point).
+  std::optional<double> normal_consistency;
+  /// Colour error e_col (methods.md): mean over A's points of |dR|+|dG|+|dB| in [0,1]
+  /// against B's colour at the nearest point; empty unless both carry colour.
+  std::optional<double> color_error;
+};
+
+/// Distances from A's points (or samples) to B's surface (B a mesh: exact point-to-
+/// triangle distance; B a cloud: nearest point), and the same from B to A.
+/// InvalidInput on an empty shape or non-finite coordinates.
+EvalResult evaluate(const Shape& a, const Shape& b, const EvalParams& params = {});
+
+/// Area-uniform samples on the faces, with face normals and (when the mesh has
+/// vertex colours) interpolated colours. Deterministic for a seed.
+Cloud sample_mesh(const Mesh& mesh, int count, unsigned seed);
+
+}  // namespace station

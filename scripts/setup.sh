@@ -1,0 +1,30 @@
+#!/usr/bin/env bash
+# Installs the Debian 12 packages the station needs, non-interactively and
+# idempotently: packages already present are skipped without touching apt.
+# Usage: scripts/setup.sh [--bench]   (--bench adds the anchor libraries for bench/)
+set -euo pipefail
+
+pkgs=(cmake g++ make pkg-config ccache
+      libeigen3-dev libnanoflann-dev libflann-dev
+      libpcl-dev libopencv-dev libusb-1.0-0-dev linux-libc-dev
+      libyaml-cpp-dev libcli11-dev libtbb-dev libgtest-dev)
+if [[ "${1:-}" == "--bench" ]]; then
+  pkgs+=(libcgal-dev libvtk9-dev python3-open3d)
+fi
+
+missing=()
+for p in "${pkgs[@]}"; do
+  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+done
+if ((${#missing[@]} == 0)); then
+  echo "setup: all ${#pkgs[@]} packages present"
+  exit 0
+fi
+
+SUDO=""
+if [[ $(id -u) -ne 0 ]]; then SUDO="sudo"; fi
+echo "setup: installing ${missing[*]}"
+export DEBIAN_FRONTEND=noninteractive
+$SUDO apt-get update -qq
+$SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+echo "setup: done"

@@ -1,0 +1,31 @@
+#pragma once
+// Shared test helpers: procedural shapes and temporary folders.
+#include <filesystem>
+#include <string>
+
+#include "core/geometry.h"
+
+namespace station::test {
+
+/// Icosphere of `radius` around `center`, subdivided `level` times (20 * 4^level faces),
+/// outward-facing counter-clockwise faces.
+Mesh icosphere(int level, double radius = 1.0, const Vec3f& center = Vec3f::Zero());
+/// Axis-aligned box [min, max] as 12 triangles, outward-facing.
+Mesh box(const Vec3f& min, const Vec3f& max);
+
+/// A fresh empty folder under the system temp dir, removed with the object.
+class TempDir {
+ public:
+  explicit TempDir(const std::string& tag = "station-test");
+  ~TempDir();
+  const std::filesystem::path& path() const { return path_; }
+  std::filesystem::path operator/(const std::string& name) const { return path_ / name; }
+
+ private:
+  std::filesystem::path path_;
+};
+
+/// Repository root (for bundled data).
+std::filesystem::path source_dir();
+
+}  // namespace station::test
