@@ -2,6 +2,7 @@
 // Device abstraction: range/colour scanners. Real back-ends (V4L2, libusb) and
 // the simulated scanner (sim/) implement the same interface; the capture loop
 // sees only this header.
+#include <Eigen/Core>
 #include <cstdint>
 #include <map>
 #include <optional>
@@ -31,6 +32,7 @@ struct Frame {
   Intrinsics color_intrinsics;
   std::vector<std::uint8_t> color;
   double timestamp = 0;  ///< seconds since the Unix epoch
+  std::optional<Eigen::Matrix4d> reference_pose;  ///< truth known to a simulator (object frame <- scanner frame)
   bool has_depth() const { return !depth.empty(); }
   bool has_color() const { return !color.empty(); }
 };
