@@ -1,0 +1,86 @@
+#include "core/kdtree.h"
+
+#include <cmath>
+#include <cstdint>
+#include <limits>
+
+#include <nanoflann.hpp>
+
+namespace station {
+
+namespace {
+
+// nanoflann reads the points through this adaptor; it borrows the vector owned
+// by PointIndex::Impl, which lives on the heap so moves never invalidate it.
+struct PointsAdaptor {
+  const std::vector<Vec3f>* pts;
+  std::size_t kdtree_get_point_count() const { return pts->size(); }
+  float kdtree_get_pt(std::size_t i, std::size_t dim) const { return (*pts)[i][int(dim)]; }
+  template <class Bbox>
+  bool kdtree_get_bbox(Bbox&) const {
+    return false;  // let nanoflann compute it
+  }
+};
+
+using Tree = nanoflann::KDTreeSingleIndexAdaptor<nanoflann::L2_Simple_Adaptor<float, PointsAdaptor>,
+                                                 PointsAdaptor, 3, std::uint32_t>;
+
+constexpr std::size_t kLeafSize = 16;
+
+}  // namespace
+
+struct PointIndex::Impl {
+  std::vector<Vec3f> points;
+  PointsAdaptor adaptor{&points};
+  std::unique_ptr<Tree> tree;  // null when the set is empty
+
+  explicit Impl(std::vector<Vec3f> p) : points(std::move(p)) {
+    adaptor.pts = &points;
+    if (!points.empty())
+      tree = std::make_unique<Tree>(3, adaptor, nanoflann::KDTreeSingleIndexAdaptorParams(kLeafSize));
+  }
+};
+
+PointIndex::PointIndex(std::vector<Vec3f> points) : impl_(std::make_unique<Impl>(std::move(points))) {}
+PointIndex::~PointIndex() = default;
+PointIndex::PointIndex(PointIndex&&) noexcept = default;
+PointIndex& PointIndex::operator=(PointIndex&&) noexcept = default;
+
+std::size_t PointIndex::size() const { return impl_->points.size(); }
+const std::vector<Vec3f>& PointIndex::points() const { return impl_->points; }
+
+std::pair<int, float> PointIndex::nearest(const Vec3f& q) const {
+  if (!impl_->tree) return {-1, std::numeric_limits<float>::infinity()};
+  std::uint32_t index = 0;
+  float dist_sq = 0;
+  impl_->tree->knnSearch(q.data(), 1, &index, &dist_sq);
+  return {int(index), std::sqrt(dist_sq)};
+}
+
+std::vector<std::pair<int, float>> PointIndex::knn(const Vec3f& q, int k) const {
+  std::vector<std::pair<int, float>> out;
+  if (!impl_->tree || k <= 0) return out;
+  const std::size_t n = std::min<std::size_t>(std::size_t(k), impl_->points.size());
+  std::vector<std::uint32_t> idx(n);
+  std::vector<float> dist_sq(n);
+  // knnSearch returns its results sorted by distance, closest first.
+  const std::size_t found = impl_->tree->knnSearch(q.data(), n, idx.data(), dist_sq.data());
+  out.reserve(found);
+  for (std::size_t i = 0; i < found; ++i) out.emplace_back(int(idx[i]), std::sqrt(dist_sq[i]));
+  return out;
+}
+
+std::vector<std::pair<int, float>> PointIndex::radius(const Vec3f& q, float radius) const {
+  std::vector<std::pair<int, float>> out;
+  if (!impl_->tree || !(radius >= 0)) return out;
+  std::vector<std::pair<std::uint32_t, float>> hits;
+  // L2_Simple_Adaptor works on squared distances, so the radius is squared too;
+  // nanoflann keeps only dist < r, the next float up makes the bound inclusive.
+  const float r_sq = std::nextafter(radius * radius, std::numeric_limits<float>::infinity());
+  impl_->tree->radiusSearch(q.data(), r_sq, hits, nanoflann::SearchParams(32, 0.f, true));
+  out.reserve(hits.size());
+  for (const auto& h : hits) out.emplace_back(int(h.first), std::sqrt(h.second));
+  return out;
+}
+
+}  // namespace station

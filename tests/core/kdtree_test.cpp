@@ -1,0 +1,129 @@
+#include "core/kdtree.h"
+
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <random>
+
+namespace station {
+namespace {
+
+std::vector<Vec3f> random_points(int n, unsigned seed, float scale = 1.f) {
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<float> u(-scale, scale);
+  std::vector<Vec3f> p(n);
+  for (auto& x : p) x = Vec3f(u(rng), u(rng), u(rng));
+  return p;
+}
+
+// Brute-force reference: every point with its distance, closest first.
+std::vector<std::pair<int, float>> brute_sorted(const std::vector<Vec3f>& pts, const Vec3f& q) {
+  std::vector<std::pair<int, float>> all;
+  for (int i = 0; i < int(pts.size()); ++i) all.emplace_back(i, (pts[i] - q).norm());
+  std::sort(all.begin(), all.end(), [](auto& a, auto& b) { return a.second < b.second; });
+  return all;
+}
+
+TEST(PointIndex, NearestMatchesBruteForce) {
+  const auto pts = random_points(3000, 1);
+  PointIndex index(pts);
+  EXPECT_EQ(index.size(), pts.size());
+  for (const Vec3f& q : random_points(300, 2, 1.5f)) {
+    const auto ref = brute_sorted(pts, q);
+    const auto [i, d] = index.nearest(q);
+    EXPECT_EQ(i, ref[0].first);
+    EXPECT_NEAR(d, ref[0].second, 1e-6f);
+  }
+}
+
+TEST(PointIndex, NearestOfAnIndexedPointIsItself) {
+  const auto pts = random_points(500, 3);
+  PointIndex index(pts);
+  for (int i = 0; i < int(pts.size()); ++i) {
+    const auto [j, d] = index.nearest(pts[i]);
+    EXPECT_EQ(j, i);
+    EXPECT_EQ(d, 0.f);
+  }
+}
+
+TEST(PointIndex, KnnOrderedAndMatchesBruteForce) {
+  const auto pts = random_points(2000, 4);
+  PointIndex index(pts);
+  for (const Vec3f& q : random_points(100, 5)) {
+    const auto ref = brute_sorted(pts, q);
+    const auto got = index.knn(q, 12);
+    ASSERT_EQ(got.size(), 12u);
+    for (std::size_t k = 0; k < got.size(); ++k) {
+      EXPECT_EQ(got[k].first, ref[k].first) << "rank " << k;
+      EXPECT_NEAR(got[k].second, ref[k].second, 1e-6f);
+      if (k > 0) {
+        EXPECT_LE(got[k - 1].second, got[k].second);
+      }
+    }
+  }
+}
+
+TEST(PointIndex, KnnReturnsFewerWhenSetIsSmall) {
+  const auto pts = random_points(5, 6);
+  PointIndex index(pts);
+  const auto got = index.knn(Vec3f::Zero(), 10);
+  ASSERT_EQ(got.size(), 5u);
+  const auto ref = brute_sorted(pts, Vec3f::Zero());
+  for (int k = 0; k < 5; ++k) EXPECT_EQ(got[k].first, ref[k].first);
+  EXPECT_TRUE(index.knn(Vec3f::Zero(), 0).empty());
+}
+
+TEST(PointIndex, RadiusMatchesBruteForce) {
+  const auto pts = random_points(3000, 7);
+  PointIndex index(pts);
+  for (const Vec3f& q : random_points(100, 8)) {
+    const float r = 0.25f;
+    const auto ref = brute_sorted(pts, q);
+    std::vector<std::pair<int, float>> expect;
+    for (const auto& e : ref)
+      if (e.second <= r) expect.push_back(e);
+    const auto got = index.radius(q, r);
+    ASSERT_EQ(got.size(), expect.size());
+    for (std::size_t k = 0; k < got.size(); ++k) {
+      EXPECT_EQ(got[k].first, expect[k].first);
+      EXPECT_NEAR(got[k].second, expect[k].second, 1e-6f);
+      EXPECT_LE(got[k].second, r);
+    }
+  }
+}
+
+TEST(PointIndex, RadiusIsInclusive) {
+  PointIndex index({Vec3f(0, 0, 0), Vec3f(1, 0, 0), Vec3f(3, 0, 0)});
+  const auto got = index.radius(Vec3f(0, 0, 0), 1.f);
+  ASSERT_EQ(got.size(), 2u);
+  EXPECT_EQ(got[0].first, 0);
+  EXPECT_EQ(got[1].first, 1);
+  EXPECT_EQ(got[1].second, 1.f);
+}
+
+TEST(PointIndex, EmptySet) {
+  PointIndex index(std::vector<Vec3f>{});
+  EXPECT_EQ(index.size(), 0u);
+  const auto [i, d] = index.nearest(Vec3f::Zero());
+  EXPECT_EQ(i, -1);
+  EXPECT_TRUE(std::isinf(d));
+  EXPECT_TRUE(index.knn(Vec3f::Zero(), 3).empty());
+  EXPECT_TRUE(index.radius(Vec3f::Zero(), 10.f).empty());
+}
+
+TEST(PointIndex, SurvivesMove) {
+  const auto pts = random_points(200, 9);
+  PointIndex a(pts);
+  PointIndex b(std::move(a));
+  const auto ref = brute_sorted(pts, Vec3f(0.1f, 0.2f, 0.3f));
+  EXPECT_EQ(b.nearest(Vec3f(0.1f, 0.2f, 0.3f)).first, ref[0].first);
+  PointIndex c(std::vector<Vec3f>{Vec3f::Zero()});
+  c = std::move(b);
+  EXPECT_EQ(c.size(), pts.size());
+  EXPECT_EQ(c.nearest(Vec3f(0.1f, 0.2f, 0.3f)).first, ref[0].first);
+  EXPECT_EQ(c.points()[7], pts[7]);
+}
+
+}  // namespace
+}  // namespace station
