@@ -27,7 +27,10 @@ namespace station {
 struct SyntheticParams {
   std::string mesh;             ///< [mesh] PLY/OBJ/OFF path; OBJ textures are sampled
   double scale = 1.0;           ///< [scale] multiplies mesh coordinates (e.g. 0.001 for mm files)
-  bool center = true;           ///< [center] put the mesh's xy bbox centre on the axis, bottom on the table
+  /// [center] 1: put the mesh's xy bbox centre on the axis and its lowest point on the
+  /// table; 0 (default): place the mesh frame as is (origin on the axis, z=0 on the
+  /// table, +z up), so the object frame of merged views is the mesh file's frame.
+  bool center = false;
   int width = 640;              ///< [width] pixels
   int height = 480;             ///< [height]
   double fov_deg = 50.0;        ///< [fov_deg] horizontal field of view

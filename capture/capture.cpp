@@ -1,0 +1,222 @@
+#include "capture/capture.h"
+
+#include <Eigen/Geometry>
+#include <chrono>
+#include <cmath>
+#include <thread>
+
+#include "core/error.h"
+
+namespace station {
+namespace {
+
+double wrap_degrees(double a) {
+  double w = std::fmod(a, 360.0);
+  if (w < 0) w += 360.0;
+  return w;
+}
+
+double plan_step(const CaptureParams& p) { return p.step_deg != 0 ? p.step_deg : 360.0 / p.views; }
+
+}  // namespace
+
+Cloud frame_to_cloud(const Frame& frame, double max_jump) {
+  Cloud out;
+  if (!frame.has_depth()) {
+    out.points.reserve(frame.points.size());
+    const bool n = frame.points.has_normals(), c = frame.points.has_colors();
+    for (std::size_t i = 0; i < frame.points.size(); ++i) {
+      const Vec3f& p = frame.points.points[i];
+      if (!p.allFinite()) continue;
+      out.points.push_back(p);
+      if (n) out.normals.push_back(frame.points.normals[i]);
+      if (c) out.colors.push_back(frame.points.colors[i]);
+    }
+    return out;
+  }
+  const Intrinsics& K = frame.intrinsics;
+  if (!K.valid()) throw InvalidInput("frame: depth image without valid intrinsics");
+  if (frame.depth.size() != std::size_t(K.width) * K.height)
+    throw InvalidInput("frame: depth image size does not match its intrinsics");
+  const int w = K.width, h = K.height;
+  auto depth_at = [&](int u, int v) -> float {
+    if (u < 0 || v < 0 || u >= w || v >= h) return 0.f;
+    float d = frame.depth[std::size_t(v) * w + u];
+    return std::isfinite(d) && d > 0 ? d : 0.f;
+  };
+  auto point_at = [&](int u, int v, float d) {
+    return Vec3f(float((u - K.cx) * d / K.fx), float((v - K.cy) * d / K.fy), d);
+  };
+  // Colour is used when the image is registered pixel for pixel with the depth.
+  const Intrinsics& C = frame.color_intrinsics;
+  const bool colour = frame.has_color() && C.width == w && C.height == h &&
+                      frame.color.size() == std::size_t(w) * h * 3;
+  for (int v = 0; v < h; ++v) {
+    for (int u = 0; u < w; ++u) {
+      const float d = depth_at(u, v);
+      if (d <= 0) continue;
+      const Vec3f p = point_at(u, v, d);
+      // Central differences where both neighbours are on the same surface,
+      // one-sided otherwise; none across a silhouette.
+      auto neighbour = [&](int du, int dv, Vec3f& q) {
+        const float dn = depth_at(u + du, v + dv);
+        if (dn <= 0 || std::abs(dn - d) > max_jump * d) return false;
+        q = point_at(u + du, v + dv, dn);
+        return true;
+      };
+      Vec3f l, r, t, b;
+      const bool hl = neighbour(-1, 0, l), hr = neighbour(1, 0, r);
+      const bool ht = neighbour(0, -1, t), hb = neighbour(0, 1, b);
+      Vec3f du = hl && hr ? Vec3f(r - l) : hr ? Vec3f(r - p) : hl ? Vec3f(p - l) : Vec3f::Zero();
+      Vec3f dv = ht && hb ? Vec3f(b - t) : hb ? Vec3f(b - p) : ht ? Vec3f(p - t) : Vec3f::Zero();
+      Vec3f n = du.cross(dv);
+      if (n.squaredNorm() > 0) {
+        n.normalize();
+        if (n.dot(p) > 0) n = -n;  // towards the sensor at the origin
+      } else {
+        n = -p.normalized();
+      }
+      out.points.push_back(p);
+      out.normals.push_back(n);
+      if (colour) {
+        const std::size_t k = (std::size_t(v) * w + u) * 3;
+        out.colors.push_back({frame.color[k], frame.color[k + 1], frame.color[k + 2]});
+      }
+    }
+  }
+  return out;
+}
+
+Eigen::Matrix4d table_from_scanner(const TurntableAxis& axis) {
+  const Vec3d z = axis.direction.normalized();
+  // The scanner sits at the origin of its own frame.
+  Vec3d x = -axis.point;
+  x -= x.dot(z) * z;
+  if (x.norm() < 1e-9) {  // scanner on the axis (looking straight down): any x will do
+    x = z.unitOrthogonal();
+  }
+  x.normalize();
+  const Vec3d y = z.cross(x);
+  Eigen::Matrix4d T = Eigen::Matrix4d::Identity();
+  T.block<1, 3>(0, 0) = x.transpose();
+  T.block<1, 3>(1, 0) = y.transpose();
+  T.block<1, 3>(2, 0) = z.transpose();
+  T.block<3, 1>(0, 3) = -(T.block<3, 3>(0, 0) * axis.point);
+  return T;
+}
+
+Eigen::Matrix4d turntable_pose(const TurntableAxis& axis, double angle_deg) {
+  Eigen::Matrix4d R = Eigen::Matrix4d::Identity();
+  R.block<3, 3>(0, 0) =
+      Eigen::AngleAxisd(-angle_deg * M_PI / 180.0, Vec3d::UnitZ()).toRotationMatrix();
+  return R * table_from_scanner(axis);
+}
+
+Cloud crop_to_volume(const Cloud& cloud, const TurntableAxis& axis, const WorkingVolume& vol) {
+  const Eigen::Matrix4f T = table_from_scanner(axis).cast<float>();
+  const Eigen::Matrix3f R = T.block<3, 3>(0, 0);
+  const Vec3f t = T.block<3, 1>(0, 3);
+  const float r2 = float(vol.radius * vol.radius);
+  Cloud out;
+  for (std::size_t i = 0; i < cloud.size(); ++i) {
+    const Vec3f q = R * cloud.points[i] + t;
+    if (q.z() < vol.table_clearance || q.z() > vol.max_height) continue;
+    if (q.head<2>().squaredNorm() > r2) continue;
+    out.points.push_back(cloud.points[i]);
+    if (cloud.has_normals()) out.normals.push_back(cloud.normals[i]);
+    if (cloud.has_colors()) out.colors.push_back(cloud.colors[i]);
+  }
+  return out;
+}
+
+CaptureResult run_capture(Scanner& scanner, Turntable& turntable, Session& session,
+                          const CaptureParams& params,
+                          const std::function<void(const CaptureProgress&)>& progress,
+                          const std::atomic<bool>* stop) {
+  if (params.views < 1) throw InvalidInput("capture: views must be at least 1");
+  const auto t0 = std::chrono::steady_clock::now();
+  const double step = plan_step(params);
+  SessionManifest& m = session.mutable_manifest();
+  CaptureResult result;
+  result.resumed_from = int(m.views.size());
+  if (result.resumed_from > 0) {
+    // A resumed scan continues its own recorded plan.
+    if (m.planned_views != params.views || std::abs(m.start_deg - params.start_deg) > 1e-9 ||
+        std::abs(m.step_deg - step) > 1e-9)
+      throw InvalidInput(session.dir().string() + ": the session was recorded with " +
+                         std::to_string(m.planned_views) + " views from " +
+                         std::to_string(m.start_deg) + " deg in steps of " +
+                         std::to_string(m.step_deg) + " deg; resume with the same plan");
+  } else {
+    m.planned_views = params.views;
+    m.start_deg = params.start_deg;
+    m.step_deg = step;
+  }
+  const ScannerCapabilities caps = scanner.capabilities();
+  std::optional<TurntableAxis> axis = params.axis ? params.axis : caps.axis;
+  if (axis) m.axis = axis;
+  if (caps.intrinsics.valid()) m.intrinsics = caps.intrinsics;
+  if (m.scanner.empty()) m.scanner = scanner.uri();
+  if (m.turntable.empty()) m.turntable = turntable.uri();
+  session.save();
+
+  if (result.resumed_from == 0) turntable.home();
+  for (int k = result.resumed_from; k < params.views; ++k) {
+    if (stop && stop->load()) {
+      result.interrupted = true;
+      break;
+    }
+    const double angle = wrap_degrees(params.start_deg + k * step);
+    turntable.rotate_to(angle);
+    if (params.settle_s > 0)
+      std::this_thread::sleep_for(std::chrono::duration<double>(params.settle_s));
+    const Frame frame = scanner.grab();
+    Cloud cloud = frame_to_cloud(frame, params.normal_max_depth_jump);
+    if (params.crop && axis) cloud = crop_to_volume(cloud, *axis, params.volume);
+    ViewRecord rec;
+    rec.angle_deg = turntable.angle();  // what the table reports, not what was asked
+    rec.reference_pose = frame.reference_pose;
+    rec.timestamp = frame.timestamp > 0 ? std::optional<double>(frame.timestamp) : std::nullopt;
+    const bool colour_image = frame.has_color() && frame.color_intrinsics.valid();
+    session.add_view(cloud, rec, colour_image ? frame.color : std::vector<std::uint8_t>{},
+                     frame.color_intrinsics.width, frame.color_intrinsics.height);
+    ++result.recorded;
+    result.points += cloud.size();
+    if (progress) progress({k, params.views, angle, cloud.size()});
+  }
+  result.seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  return result;
+}
+
+MergeResult merge_by_turntable(const Session& session) {
+  const SessionManifest& m = session.manifest();
+  if (!m.axis)
+    throw InvalidInput(session.dir().string() +
+                       ": the session has no turntable_axis; views cannot be merged by angle");
+  MergeResult out;
+  for (std::size_t i = 0; i < m.views.size(); ++i) {
+    if (!m.views[i].angle_deg) {
+      ++out.skipped_views;
+      continue;
+    }
+    Cloud view = session.load_view(i);
+    if (view.empty()) {
+      ++out.skipped_views;
+      continue;
+    }
+    transform_cloud(view, turntable_pose(*m.axis, *m.views[i].angle_deg));
+    const bool n = view.has_normals() && (out.cloud.empty() || out.cloud.has_normals());
+    const bool c = view.has_colors() && (out.cloud.empty() || out.cloud.has_colors());
+    // Attributes survive only when every merged view carries them.
+    if (!n) out.cloud.normals.clear();
+    if (!c) out.cloud.colors.clear();
+    out.cloud.points.insert(out.cloud.points.end(), view.points.begin(), view.points.end());
+    if (n) out.cloud.normals.insert(out.cloud.normals.end(), view.normals.begin(), view.normals.end());
+    if (c) out.cloud.colors.insert(out.cloud.colors.end(), view.colors.begin(), view.colors.end());
+    ++out.merged_views;
+  }
+  return out;
+}
+
+}  // namespace station

@@ -1,0 +1,458 @@
+#include "station/cli.h"
+
+#include <tbb/global_control.h>
+
+#include <CLI/CLI.hpp>
+#include <Eigen/Geometry>
+#include <atomic>
+#include <chrono>
+#include <csignal>
+#include <cstdio>
+#include <fstream>
+#include <iostream>
+#include <map>
+#include <memory>
+#include <sstream>
+
+#include "capture/capture.h"
+#include "capture/session.h"
+#include "core/error.h"
+#include "core/io.h"
+#include "drivers/registry.h"
+#include "reconstruct/eval.h"
+#include "sim/sim.h"
+#include "station/config.h"
+#include "station/json.h"
+#include "station/progress.h"
+
+#ifndef STATION_VERSION
+#define STATION_VERSION "dev"
+#endif
+
+namespace station {
+namespace {
+
+namespace fs = std::filesystem;
+
+std::atomic<bool> g_stop{false};
+extern "C" void on_sigint(int) { g_stop = true; }
+
+/// Options every subcommand takes.
+struct Common {
+  std::string config;
+  int threads = -1;
+  bool json = false;
+};
+
+void add_common(CLI::App* cmd, Common& c) {
+  cmd->add_option("--config", c.config, "YAML profile (default: config/default.yaml)");
+  cmd->add_option("--threads", c.threads, "worker threads (0 = all cores)")->check(CLI::NonNegativeNumber);
+  cmd->add_flag("--json", c.json, "print a one-line JSON summary on stdout");
+}
+
+StationConfig load_common(const Common& c) {
+  StationConfig cfg = load_config(c.config.empty() ? default_config_path() : fs::path(c.config));
+  if (c.threads >= 0) cfg.threads = c.threads;
+  return cfg;
+}
+
+std::unique_ptr<tbb::global_control> limit_threads(int threads) {
+  if (threads <= 0) return nullptr;
+  return std::make_unique<tbb::global_control>(tbb::global_control::max_allowed_parallelism,
+                                               std::size_t(threads));
+}
+
+double seconds_since(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+DeviceRegistry make_registry() {
+  DeviceRegistry reg;
+  register_sim_devices(reg);
+  return reg;
+}
+
+/// Writes the turntable-merged cloud of a session next to it, when it has an axis.
+JsonObject write_merged(const Session& session, const fs::path& out, bool quiet) {
+  JsonObject j;
+  if (!session.manifest().axis) {
+    if (!quiet)
+      std::fprintf(stderr, "note: %s has no turntable axis; merged cloud not written\n",
+                   session.dir().c_str());
+    return j.add_null("path");
+  }
+  MergeResult merged = merge_by_turntable(session);
+  if (merged.cloud.empty()) throw InvalidInput(session.dir().string() + ": no points in any view");
+  write_ply(out, merged.cloud);
+  return j.add("path", out.string())
+      .add("points", merged.cloud.size())
+      .add("views", merged.merged_views)
+      .add("skipped_views", merged.skipped_views)
+      .add("colours", merged.cloud.has_colors());
+}
+
+// ---- devices -------------------------------------------------------------------
+
+int cmd_devices(const Common& c) {
+  load_common(c);
+  DeviceRegistry reg = make_registry();
+  JsonObject j;
+  int n = 0;
+  for (const DeviceInfo& d : reg.list()) {
+    const char* kind = d.kind == DeviceKind::kScanner ? "scanner" : "turntable";
+    if (!c.json)
+      std::printf("%-10s %-40s %s%s\n", kind, d.uri.c_str(), d.description.c_str(),
+                  d.available ? "" : " (unavailable)");
+    j.add(d.uri, JsonObject().add("kind", kind).add("description", d.description).add("available", d.available));
+    ++n;
+  }
+  if (c.json) std::printf("%s\n", JsonObject().add("command", "devices").add("count", n).add("devices", j).str().c_str());
+  return 0;
+}
+
+// ---- scan / replay -------------------------------------------------------------
+
+struct ScanArgs {
+  std::string out = "out/scan";
+  bool resume = false;
+  int views = 0;
+  std::string scanner, turntable;
+  std::vector<std::string> set;
+};
+
+int capture_into(Session& session, Scanner& scanner, Turntable& turntable,
+                 const CaptureParams& params, const Common& c, const char* command,
+                 std::chrono::steady_clock::time_point t0) {
+  Progress bar(command, params.views, c.json);
+  std::signal(SIGINT, on_sigint);
+  CaptureResult res = run_capture(
+      scanner, turntable, session, params,
+      [&](const CaptureProgress& p) {
+        char note[96];
+        std::snprintf(note, sizeof note, "view %d at %.1f deg: %zu points", p.view, p.angle_deg, p.points);
+        bar.update(p.view + 1, note);
+      },
+      &g_stop);
+  std::signal(SIGINT, SIG_DFL);
+  scanner.close();
+  turntable.close();
+  if (res.interrupted) {
+    std::fprintf(stderr, "%s: interrupted after %zu views; continue with: station scan --resume -o %s\n",
+                 session.dir().c_str(), session.manifest().views.size(), session.dir().c_str());
+    return 130;
+  }
+  bar.finish();
+  const double t_capture = seconds_since(t0);
+  const auto t1 = std::chrono::steady_clock::now();
+  JsonObject merged = write_merged(session, session.dir() / "merged.ply", c.json);
+  JsonObject j;
+  j.add("command", command)
+      .add("session", session.dir().string())
+      .add("views", session.manifest().views.size())
+      .add("recorded", res.recorded)
+      .add("resumed_from", res.resumed_from)
+      .add("points", res.points)
+      .add("merged", merged)
+      .add("timings_s", JsonObject().add("capture", t_capture).add("merge", seconds_since(t1)));
+  if (c.json) {
+    std::printf("%s\n", j.str().c_str());
+  } else {
+    std::printf("%s: %zu views (%d new, %zu points) in %s\n", command,
+                session.manifest().views.size(), res.recorded, res.points, session.dir().c_str());
+    if (session.manifest().axis) std::printf("merged by turntable: %s\n", (session.dir() / "merged.ply").c_str());
+  }
+  return 0;
+}
+
+int cmd_scan(const Common& c, const ScanArgs& a) {
+  const auto t0 = std::chrono::steady_clock::now();
+  StationConfig cfg = load_common(c);
+  auto threads = limit_threads(cfg.threads);
+  for (const std::string& kv : a.set) {
+    const auto eq = kv.find('=');
+    if (eq == std::string::npos || eq == 0) throw InvalidInput("--set " + kv + ": expected key=value");
+    cfg.scanner_options[kv.substr(0, eq)] = kv.substr(eq + 1);
+  }
+  if (a.views > 0) cfg.capture.views = a.views;
+  std::string scanner_uri = a.scanner.empty() ? compose_uri(cfg.scanner_uri, cfg.scanner_options) : a.scanner;
+  std::string turntable_uri =
+      a.turntable.empty() ? compose_uri(cfg.turntable_uri, cfg.turntable_options) : a.turntable;
+  const fs::path dir = a.out;
+  std::optional<Session> session;
+  if (a.resume) {
+    session = Session::open(dir);
+    const SessionManifest& m = session->manifest();
+    // Resume with the devices and the plan the session was started with.
+    if (a.scanner.empty() && !m.scanner.empty()) scanner_uri = m.scanner;
+    if (a.turntable.empty() && !m.turntable.empty()) turntable_uri = m.turntable;
+    if (m.planned_views > 0) {
+      cfg.capture.views = m.planned_views;
+      cfg.capture.start_deg = m.start_deg;
+      cfg.capture.step_deg = m.step_deg;
+    }
+    if (int(m.views.size()) >= cfg.capture.views) {
+      if (!c.json) std::printf("%s: already complete (%zu views)\n", dir.c_str(), m.views.size());
+    }
+  }
+  DeviceRegistry reg = make_registry();
+  auto scanner = reg.make_scanner(scanner_uri);
+  auto turntable = reg.make_turntable(turntable_uri);
+  scanner->open();
+  turntable->open();
+  if (!session) {
+    SessionManifest m;
+    m.scanner = scanner_uri;
+    m.turntable = turntable_uri;
+    session = Session::create(dir, m);
+  }
+  return capture_into(*session, *scanner, *turntable, cfg.capture, c, "scan", t0);
+}
+
+int cmd_replay(const Common& c, const std::string& source, const std::string& out) {
+  const auto t0 = std::chrono::steady_clock::now();
+  StationConfig cfg = load_common(c);
+  auto threads = limit_threads(cfg.threads);
+  Session src = Session::open(source);
+  const SessionManifest& sm = src.manifest();
+  if (sm.views.empty()) throw InvalidInput(source + ": the session has no views to replay");
+  CaptureParams params = cfg.capture;
+  params.views = sm.planned_views > 0 ? sm.planned_views : int(sm.views.size());
+  params.start_deg = sm.planned_views > 0 ? sm.start_deg : 0;
+  params.step_deg = sm.planned_views > 0 ? sm.step_deg : 360.0 / params.views;
+  params.views = std::min<int>(params.views, int(sm.views.size()));
+  params.crop = false;  // a recording is replayed as it was recorded
+  params.axis = sm.axis;
+  DeviceRegistry reg = make_registry();
+  const std::string scanner_uri = compose_uri("sim:replay", {{"session", fs::absolute(source).string()}});
+  auto scanner = reg.make_scanner(scanner_uri);
+  auto turntable = reg.make_turntable("sim:turntable");
+  scanner->open();
+  turntable->open();
+  SessionManifest m;
+  m.scanner = scanner_uri;
+  m.turntable = "sim:turntable";
+  m.units = sm.units;
+  m.intrinsics = sm.intrinsics;
+  Session dst = Session::create(out, m);
+  return capture_into(dst, *scanner, *turntable, params, c, "replay", t0);
+}
+
+// ---- eval ----------------------------------------------------------------------
+
+Shape read_shape(const fs::path& p) {
+  Mesh m = read_mesh(p);
+  if (!m.faces.empty()) return m;
+  return m.as_cloud();
+}
+
+std::string stats_json(const DirectedStats& s, JsonObject& j) {
+  j.add("mean", s.mean).add("rms", s.rms).add("p95", s.p95).add("max", s.max).add("count", s.count);
+  return j.str();
+}
+
+int cmd_eval(const Common& c, const std::string& a, const std::string& b, int samples, unsigned seed) {
+  const auto t0 = std::chrono::steady_clock::now();
+  StationConfig cfg = load_common(c);
+  Shape sa = read_shape(a), sb = read_shape(b);
+  EvalParams params;
+  params.mesh_samples = samples;
+  params.seed = seed;
+  params.threads = cfg.threads;
+  EvalResult r = evaluate(sa, sb, params);
+  if (c.json) {
+    JsonObject ab, ba;
+    stats_json(r.a_to_b, ab);
+    stats_json(r.b_to_a, ba);
+    JsonObject j;
+    j.add("command", "eval").add("a", a).add("b", b).add("chamfer", r.chamfer)
+        .add("hausdorff", r.hausdorff).add("p95", r.p95).add("a_to_b", ab).add("b_to_a", ba);
+    if (r.normal_consistency) j.add("normal_consistency", *r.normal_consistency); else j.add_null("normal_consistency");
+    if (r.color_error) j.add("color_error", *r.color_error); else j.add_null("color_error");
+    j.add("timings_s", JsonObject().add("eval", seconds_since(t0)));
+    std::printf("%s\n", j.str().c_str());
+  } else {
+    std::printf("A: %s\nB: %s\n", a.c_str(), b.c_str());
+    std::printf("%-12s %12s %12s %12s %12s %10s\n", "direction", "mean", "rms", "p95", "max", "count");
+    auto row = [](const char* n, const DirectedStats& s) {
+      std::printf("%-12s %12.6g %12.6g %12.6g %12.6g %10zu\n", n, s.mean, s.rms, s.p95, s.max, s.count);
+    };
+    row("A->B", r.a_to_b);
+    row("B->A", r.b_to_a);
+    std::printf("chamfer (mean symmetric) %.6g\nhausdorff %.6g\np95 %.6g\n", r.chamfer, r.hausdorff, r.p95);
+    if (r.normal_consistency) std::printf("normal consistency %.4f\n", *r.normal_consistency);
+    else std::printf("normal consistency: n/a (normals missing)\n");
+    if (r.color_error) std::printf("colour error e_col %.6g\n", *r.color_error);
+    else std::printf("colour error: n/a (colours missing on one side)\n");
+  }
+  return 0;
+}
+
+// ---- import --------------------------------------------------------------------
+
+struct ImportArgs {
+  std::vector<std::string> files;
+  std::string out;
+  std::string stanford_conf;
+  double start = 0;
+  double step = 0;
+  bool has_step = false;
+  int every = 1;
+  std::string units = "m";
+};
+
+/// Stanford .conf "bmesh FILE tx ty tz qx qy qz qw" lines: p_world = R^T p_scan + t
+/// (checked numerically on the dragon data; see docs/session-format.md).
+std::map<std::string, Eigen::Matrix4d> read_stanford_conf(const fs::path& path) {
+  std::istringstream in(read_file_bytes(path));
+  std::map<std::string, Eigen::Matrix4d> poses;
+  std::string line;
+  int n = 0;
+  while (std::getline(in, line)) {
+    ++n;
+    std::istringstream ls(line);
+    std::string tag, file;
+    ls >> tag;
+    if (tag != "bmesh") continue;
+    double v[7];
+    ls >> file;
+    for (double& x : v) ls >> x;
+    if (!ls || file.empty()) throw FormatError(path.string() + ": line " + std::to_string(n) + ": expected bmesh FILE tx ty tz qx qy qz qw");
+    for (double x : v)
+      if (!std::isfinite(x)) throw FormatError(path.string() + ": line " + std::to_string(n) + ": non-finite number");
+    Eigen::Quaterniond q(v[6], v[3], v[4], v[5]);
+    if (q.norm() < 1e-12) throw FormatError(path.string() + ": line " + std::to_string(n) + ": zero quaternion");
+    q.normalize();
+    Eigen::Matrix4d T = Eigen::Matrix4d::Identity();
+    T.block<3, 3>(0, 0) = q.toRotationMatrix().transpose();
+    T.block<3, 1>(0, 3) = Vec3d(v[0], v[1], v[2]);
+    poses[file] = T;
+  }
+  return poses;
+}
+
+int cmd_import(const Common& c, const ImportArgs& a) {
+  const auto t0 = std::chrono::steady_clock::now();
+  load_common(c);
+  if (a.every < 1) throw InvalidInput("--every must be at least 1");
+  std::map<std::string, Eigen::Matrix4d> poses;
+  if (!a.stanford_conf.empty()) poses = read_stanford_conf(a.stanford_conf);
+  // Read everything first: a bad file aborts before anything is written.
+  std::vector<Cloud> clouds;
+  for (const std::string& f : a.files) {
+    Cloud cl = read_cloud(f);
+    if (a.every > 1) {
+      Cloud s;
+      for (std::size_t i = 0; i < cl.size(); i += a.every) {
+        s.points.push_back(cl.points[i]);
+        if (cl.has_normals()) s.normals.push_back(cl.normals[i]);
+        if (cl.has_colors()) s.colors.push_back(cl.colors[i]);
+      }
+      cl = std::move(s);
+    }
+    clouds.push_back(std::move(cl));
+  }
+  SessionManifest m;
+  m.scanner = "import";
+  m.units = a.units;
+  if (a.has_step) {
+    m.planned_views = int(a.files.size());
+    m.start_deg = a.start;
+    m.step_deg = a.step;
+  }
+  Session s = Session::create(a.out, m);
+  Progress bar("import", int(a.files.size()), c.json);
+  std::size_t total = 0;
+  for (std::size_t i = 0; i < a.files.size(); ++i) {
+    ViewRecord rec;
+    if (a.has_step) rec.angle_deg = std::fmod(a.start + a.step * double(i), 360.0);
+    const std::string name = fs::path(a.files[i]).filename().string();
+    auto it = poses.find(name);
+    if (it != poses.end()) rec.reference_pose = it->second;
+    else if (!poses.empty()) std::fprintf(stderr, "note: %s has no pose in %s\n", name.c_str(), a.stanford_conf.c_str());
+    s.add_view(clouds[i], rec);
+    total += clouds[i].size();
+    bar.update(int(i) + 1, name);
+  }
+  bar.finish();
+  if (c.json)
+    std::printf("%s\n", JsonObject().add("command", "import").add("session", a.out).add("views", a.files.size())
+                            .add("points", total).add("timings_s", JsonObject().add("import", seconds_since(t0))).str().c_str());
+  else
+    std::printf("import: %zu views, %zu points -> %s\n", a.files.size(), total, a.out.c_str());
+  return 0;
+}
+
+}  // namespace
+
+int run_cli(int argc, char** argv) {
+  CLI::App app{"station: capture-to-mesh station for turntable 3D-scanning benches"};
+  app.set_version_flag("--version", STATION_VERSION);
+  app.require_subcommand(1);
+
+  Common c_dev, c_scan, c_replay, c_eval, c_import;
+  auto* devices = app.add_subcommand("devices", "List the devices the station can drive");
+  add_common(devices, c_dev);
+
+  ScanArgs scan_args;
+  auto* scan = app.add_subcommand("scan", "Scan an object on the turntable into a session folder");
+  add_common(scan, c_scan);
+  scan->add_option("-o,--out", scan_args.out, "session folder to write (or resume)")->capture_default_str();
+  scan->add_flag("--resume", scan_args.resume, "continue an interrupted scan in --out");
+  scan->add_option("--views", scan_args.views, "views over 360 degrees (overrides the profile)")->check(CLI::Range(1, 3600));
+  scan->add_option("--scanner", scan_args.scanner, "scanner URI (overrides the profile)");
+  scan->add_option("--turntable", scan_args.turntable, "turntable URI (overrides the profile)");
+  scan->add_option("--set", scan_args.set, "scanner option key=value (repeatable), e.g. --set noise=0.001");
+
+  std::string replay_src, replay_out = "out/replay";
+  auto* replay = app.add_subcommand("replay", "Play a recorded session back through the simulated scanner");
+  add_common(replay, c_replay);
+  replay->add_option("session", replay_src, "recorded session folder")->required();
+  replay->add_option("-o,--out", replay_out, "session folder to write")->capture_default_str();
+
+  std::string eval_a, eval_b;
+  int eval_samples = 200000;
+  unsigned eval_seed = 1;
+  auto* eval = app.add_subcommand("eval", "Distances and colour error between two clouds or meshes");
+  add_common(eval, c_eval);
+  eval->add_option("a", eval_a, "result (cloud or mesh: .ply .pcd .obj .off)")->required();
+  eval->add_option("b", eval_b, "reference (cloud or mesh)")->required();
+  eval->add_option("--samples", eval_samples, "points sampled on each mesh")->capture_default_str()->check(CLI::Range(1, 100000000));
+  eval->add_option("--seed", eval_seed, "sampling seed")->capture_default_str();
+
+  ImportArgs import_args;
+  auto* import = app.add_subcommand("import", "Make a session from view files recorded elsewhere");
+  add_common(import, c_import);
+  import->add_option("files", import_args.files, "view files (.ply .pcd), in turntable order")->required();
+  import->add_option("-o,--out", import_args.out, "session folder to create")->required();
+  import->add_option("--stanford-conf", import_args.stanford_conf, "Stanford .conf with reference poses (bmesh lines)");
+  import->add_option("--start", import_args.start, "turntable angle of the first view, degrees");
+  auto* step_opt = import->add_option("--step", import_args.step, "turntable step between views, degrees (no angles without it)");
+  import->add_option("--every", import_args.every, "keep every N-th point (downsample)")->capture_default_str();
+  import->add_option("--units", import_args.units, "units of the files (recorded, not converted)")->check(CLI::IsMember({"m", "mm"}));
+
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& e) {
+    return app.exit(e) == 0 ? 0 : 2;
+  }
+  import_args.has_step = step_opt->count() > 0;
+  try {
+    if (*devices) return cmd_devices(c_dev);
+    if (*scan) return cmd_scan(c_scan, scan_args);
+    if (*replay) return cmd_replay(c_replay, replay_src, replay_out);
+    if (*eval) return cmd_eval(c_eval, eval_a, eval_b, eval_samples, eval_seed);
+    if (*import) return cmd_import(c_import, import_args);
+  } catch (const Error& e) {
+    std::fprintf(stderr, "station: %s\n", e.what());
+    return 1;
+  } catch (const std::bad_alloc&) {
+    std::fprintf(stderr, "station: out of memory\n");
+    return 1;
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "station: internal error: %s\n", e.what());
+    return 1;
+  }
+  return 2;
+}
+
+}  // namespace station

@@ -1,0 +1,3 @@
+#include "station/cli.h"
+
+int main(int argc, char** argv) { return station::run_cli(argc, argv); }

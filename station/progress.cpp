@@ -1,0 +1,39 @@
+#include "station/progress.h"
+
+#include <unistd.h>
+
+#include <cstdio>
+
+namespace station {
+
+Progress::Progress(std::string label, int total, bool quiet)
+    : label_(std::move(label)), total_(total), quiet_(quiet), tty_(::isatty(2) != 0),
+      start_(std::chrono::steady_clock::now()) {}
+
+Progress::~Progress() {
+  if (tty_ && !quiet_ && !finished_) std::fputc('\n', stderr);
+}
+
+void Progress::update(int done, const std::string& note) {
+  if (quiet_) return;
+  const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
+  if (tty_) {
+    const int width = 24;
+    const int filled = total_ > 0 ? done * width / total_ : 0;
+    std::fprintf(stderr, "\r%s [%.*s%*s] %d/%d %5.1fs %s\033[K", label_.c_str(), filled,
+                 "########################", width - filled, "", done, total_, s, note.c_str());
+  } else {
+    std::fprintf(stderr, "%s %d/%d (%.1fs) %s\n", label_.c_str(), done, total_, s, note.c_str());
+  }
+  std::fflush(stderr);
+}
+
+void Progress::finish(const std::string& note) {
+  if (quiet_ || finished_) return;
+  finished_ = true;
+  const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
+  if (tty_) std::fputc('\n', stderr);
+  std::fprintf(stderr, "%s done in %.1fs %s\n", label_.c_str(), s, note.c_str());
+}
+
+}  // namespace station
