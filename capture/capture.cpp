@@ -64,7 +64,7 @@ Cloud frame_to_cloud(const Frame& frame, double max_jump) {
         q = point_at(u + du, v + dv, dn);
         return true;
       };
-      Vec3f l, r, t, b;
+      Vec3f l = Vec3f::Zero(), r = l, t = l, b = l;
       const bool hl = neighbour(-1, 0, l), hr = neighbour(1, 0, r);
       const bool ht = neighbour(0, -1, t), hb = neighbour(0, 1, b);
       Vec3f du = hl && hr ? Vec3f(r - l) : hr ? Vec3f(r - p) : hl ? Vec3f(p - l) : Vec3f::Zero();

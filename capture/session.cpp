@@ -113,7 +113,6 @@ std::string pose_problem(const Eigen::Matrix4d& m) {
   return {};
 }
 
-
 // Unit vector along `v` without overflow; empty optional when v is zero or not finite.
 template <int N>
 std::optional<Eigen::Matrix<double, N, 1>> normalized_robust(const Eigen::Matrix<double, N, 1>& v) {

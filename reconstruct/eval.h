@@ -31,20 +31,33 @@ struct EvalResult {
   double hausdorff = 0;  ///< max(a_to_b.max, b_to_a.max)
   double p95 = 0;        ///< max(a_to_b.p95, b_to_a.p95)
   /// Mean |n_a . n_b| over nearest pairs, both directions; empty when a side lacks normals
-  /// (a mesh always has them: face normals at the sample or closest point).
+  /// (a mesh always has them: face normals at the sample or closest point). The two
+  /// directions' means are averaged; zero-length normals are left out.
   std::optional<double> normal_consistency;
-  /// Colour error e_col (methods.md): mean over A's points of |dR|+|dG|+|dB| in [0,1]
-  /// against B's colour at the nearest point; empty unless both carry colour.
+  /// Colour error e_col (methods.md, colour paper): mean of |dR|+|dG|+|dB| (channels in
+  /// [0,1]) against A's colour at the nearest point; empty unless both carry colour.
+  /// Directed, and taken over B's points (B's cloud points, or B's samples with their
+  /// interpolated colours), not A's: the paper evaluates "at every input point" the
+  /// reconstructed colour, so with A = the reconstruction and B = the reference input
+  /// (`station eval RESULT REFERENCE`) this is the paper's e_col. A's colour at a point:
+  /// a mesh's vertex colours interpolated at the closest point, a cloud's nearest point.
   std::optional<double> color_error;
 };
 
 /// Distances from A's points (or samples) to B's surface (B a mesh: exact point-to-
 /// triangle distance; B a cloud: nearest point), and the same from B to A.
-/// InvalidInput on an empty shape or non-finite coordinates.
+/// By convention A is the result being judged and B the reference (see color_error,
+/// the one directed metric). A mesh without faces is taken as the cloud of its
+/// vertices (with their normals and colours). p95 is the nearest-rank percentile.
+/// Results are identical for any params.threads.
+/// InvalidInput ("A: empty", "B: non-finite coordinates", ...) on an empty shape,
+/// non-finite coordinates, inconsistent attributes, a mesh of zero total area, or
+/// mesh_samples <= 0 / threads < 0.
 EvalResult evaluate(const Shape& a, const Shape& b, const EvalParams& params = {});
 
 /// Area-uniform samples on the faces, with face normals and (when the mesh has
 /// vertex colours) interpolated colours. Deterministic for a seed.
+/// InvalidInput on a mesh without faces or of zero area, or a negative count.
 Cloud sample_mesh(const Mesh& mesh, int count, unsigned seed);
 
 }  // namespace station
