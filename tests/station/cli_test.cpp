@@ -1,0 +1,175 @@
+// End-to-end tests of the `station` binary: the README's main job on the
+// bundled sample, the dragon import/replay, and bad input at the boundary.
+#include <gtest/gtest.h>
+#include <sys/wait.h>
+
+#include <array>
+#include <cstdio>
+#include <fstream>
+#include <regex>
+#include <string>
+
+#include "capture/session.h"
+#include "core/io.h"
+#include "test_util.h"
+
+namespace station {
+namespace {
+
+struct Run {
+  int code = -1;
+  std::string out;  // stdout + stderr
+};
+
+Run run(const std::string& args) {
+  const std::string cmd = std::string(STATION_BINARY) + " " + args + " 2>&1";
+  Run r;
+  FILE* p = ::popen(cmd.c_str(), "r");
+  if (!p) return r;
+  std::array<char, 4096> buf;
+  std::size_t n;
+  while ((n = std::fread(buf.data(), 1, buf.size(), p)) > 0) r.out.append(buf.data(), n);
+  const int status = ::pclose(p);
+  r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  return r;
+}
+
+double json_number(const std::string& json, const std::string& key) {
+  std::smatch m;
+  const std::regex re("\"" + key + "\":([-0-9.eE+]+)");
+  if (!std::regex_search(json, m, re)) return -1;
+  return std::stod(m[1]);
+}
+
+std::string repo(const std::string& rel) { return (test::source_dir() / rel).string(); }
+
+TEST(Cli, HelpListsSubcommands) {
+  const Run r = run("--help");
+  EXPECT_EQ(r.code, 0);
+  for (const char* s : {"devices", "scan", "replay", "eval", "import"})
+    EXPECT_NE(r.out.find(s), std::string::npos) << s;
+  for (const char* s : {"devices", "scan", "replay", "eval", "import"}) {
+    const Run h = run(std::string(s) + " --help");
+    EXPECT_EQ(h.code, 0) << s;
+    EXPECT_NE(h.out.find("--json"), std::string::npos) << s;
+    EXPECT_NE(h.out.find("--threads"), std::string::npos) << s;
+    EXPECT_NE(h.out.find("--config"), std::string::npos) << s;
+  }
+}
+
+TEST(Cli, DevicesListsTheSimulator) {
+  const Run r = run("devices");
+  EXPECT_EQ(r.code, 0);
+  EXPECT_NE(r.out.find("sim:synthetic"), std::string::npos);
+  EXPECT_NE(r.out.find("sim:turntable"), std::string::npos);
+  EXPECT_NE(run("devices --json").out.find("\"command\":\"devices\""), std::string::npos);
+}
+
+// The acceptance case: 12 simulated views of the bundled mustard bottle,
+// merged by turntable, within three times the configured depth noise of the mesh.
+TEST(Cli, ScanOfTheBundledSampleMatchesTheMesh) {
+  test::TempDir dir;
+  const std::string out = (dir / "scan").string();
+  const double noise = 0.0005;
+  const Run r = run("scan --config " + repo("config/default.yaml") + " -o " + out +
+                    " --views 12 --set noise=" + std::to_string(noise) + " --json");
+  ASSERT_EQ(r.code, 0) << r.out;
+  EXPECT_EQ(json_number(r.out, "views"), 12);
+  const SessionManifest m = read_manifest(out);
+  ASSERT_EQ(m.views.size(), 12u);
+  ASSERT_TRUE(m.axis.has_value());
+  ASSERT_TRUE(m.views[5].reference_pose.has_value());
+  EXPECT_FALSE(m.views[5].color_image.empty());
+  const Cloud merged = read_cloud(out + "/merged.ply");
+  EXPECT_GT(merged.size(), 50000u);
+  EXPECT_TRUE(merged.has_colors());
+
+  const Run e = run("eval " + out + "/merged.ply " + repo("data/mustard_bottle/textured.obj") +
+                    " --samples 100000 --json");
+  ASSERT_EQ(e.code, 0) << e.out;
+  const double chamfer = json_number(e.out, "chamfer");
+  RecordProperty("chamfer_m", std::to_string(chamfer));
+  EXPECT_GT(chamfer, 0);
+  EXPECT_LT(chamfer, 3 * noise) << e.out;
+}
+
+TEST(Cli, DragonImportsAndReplaysLikeALiveScanner) {
+  test::TempDir dir;
+  std::string files;
+  for (int a = 0; a < 360; a += 24) files += " " + repo("data/dragon_stand/dragonStandRight_" + std::to_string(a) + ".ply");
+  const std::string session = (dir / "dragon").string();
+  Run r = run("import" + files + " --step 24 --stanford-conf " +
+              repo("data/dragon_stand/dragonStandRight.conf") + " -o " + session + " --json");
+  ASSERT_EQ(r.code, 0) << r.out;
+  const SessionManifest m = read_manifest(session);
+  ASSERT_EQ(m.views.size(), 15u);
+  EXPECT_DOUBLE_EQ(*m.views[14].angle_deg, 336.0);
+  ASSERT_TRUE(m.views[1].reference_pose.has_value());
+  // Stanford's 24-degree pose is a rotation of about 24 degrees about y.
+  const Eigen::Matrix3d R = m.views[1].reference_pose->block<3, 3>(0, 0);
+  EXPECT_NEAR(std::acos((R.trace() - 1) / 2) * 180 / M_PI, 24.0, 0.5);
+
+  const std::string replayed = (dir / "replayed").string();
+  r = run("replay " + session + " -o " + replayed + " --json");
+  ASSERT_EQ(r.code, 0) << r.out;
+  const SessionManifest rm = read_manifest(replayed);
+  ASSERT_EQ(rm.views.size(), 15u);
+  for (std::size_t i = 0; i < 15; ++i) {
+    EXPECT_EQ(rm.views[i].points, m.views[i].points) << i;
+    EXPECT_NEAR(*rm.views[i].angle_deg, *m.views[i].angle_deg, 0.2) << i;
+  }
+}
+
+TEST(Cli, BadInputGivesOneLineErrorsNamingTheCulprit) {
+  test::TempDir dir;
+  Run r = run("eval " + (dir / "missing.ply").string() + " " + repo("data/mustard_bottle/textured.obj"));
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.out.find("missing.ply"), std::string::npos) << r.out;
+
+  {
+    std::ofstream bad((dir / "bad.ply").string());
+    bad << "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nend_header\n0 0 0\n1 1\n";
+  }
+  r = run("eval " + (dir / "bad.ply").string() + " " + (dir / "bad.ply").string());
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.out.find("bad.ply"), std::string::npos) << r.out;
+  EXPECT_EQ(std::count(r.out.begin(), r.out.end(), '\n'), 1) << r.out;
+
+  r = run("scan --scanner usb:nothing -o " + (dir / "x").string());
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.out.find("usb:nothing"), std::string::npos) << r.out;
+
+  r = run("scan --resume -o " + (dir / "nope").string());
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.out.find("nope"), std::string::npos) << r.out;
+
+  r = run("scan --config " + (dir / "none.yaml").string() + " -o " + (dir / "y").string());
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.out.find("none.yaml"), std::string::npos) << r.out;
+
+  r = run("scan -o /proc/station-cannot-write --views 1");
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.out.find("/proc/station-cannot-write"), std::string::npos) << r.out;
+
+  r = run("scan --views 0");
+  EXPECT_EQ(r.code, 2);
+}
+
+TEST(Cli, ExistingSessionIsNeverOverwritten) {
+  test::TempDir dir;
+  const std::string out = (dir / "s").string();
+  const std::string small = " --views 2 --set width=80 --set height=60";
+  ASSERT_EQ(run("scan -o " + out + small).code, 0);
+  const std::string manifest = read_file_bytes(out + "/session.yaml");
+  const Run again = run("scan -o " + out + small);
+  EXPECT_EQ(again.code, 1);
+  EXPECT_NE(again.out.find("--resume"), std::string::npos) << again.out;
+  EXPECT_EQ(read_file_bytes(out + "/session.yaml"), manifest);
+  // Resuming a complete session records nothing new.
+  const Run resumed = run("scan --resume -o " + out + " --json");
+  EXPECT_EQ(resumed.code, 0) << resumed.out;
+  EXPECT_EQ(json_number(resumed.out, "recorded"), 0);
+}
+
+}  // namespace
+}  // namespace station
