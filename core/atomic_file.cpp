@@ -1,0 +1,149 @@
+#include "core/atomic_file.h"
+
+#include <fcntl.h>
+#include <unistd.h>
+
+#include <atomic>
+#include <cerrno>
+#include <cstdio>
+#include <cstring>
+#include <streambuf>
+#include <string>
+#include <system_error>
+#include <vector>
+
+#include "core/error.h"
+
+namespace station {
+
+namespace {
+
+namespace fs = std::filesystem;
+
+/// A write-only streambuf over a POSIX descriptor. iostreams hide errno, and we
+/// need it (ENOSPC, EDQUOT, EFBIG...) for a useful message, so we do the
+/// write(2) calls ourselves and remember the first failure.
+class FdStreambuf : public std::streambuf {
+ public:
+  explicit FdStreambuf(int fd) : fd_(fd), buf_(1 << 16) { setp(buf_.data(), buf_.data() + buf_.size()); }
+  int error() const { return errno_; }
+
+ protected:
+  int_type overflow(int_type ch) override {
+    if (!flush_buffer()) return traits_type::eof();
+    if (!traits_type::eq_int_type(ch, traits_type::eof())) {
+      *pptr() = traits_type::to_char_type(ch);
+      pbump(1);
+    }
+    return traits_type::not_eof(ch);
+  }
+
+  int sync() override { return flush_buffer() ? 0 : -1; }
+
+  std::streamsize xsputn(const char* s, std::streamsize n) override {
+    // Large writes bypass the buffer.
+    if (n >= static_cast<std::streamsize>(buf_.size())) {
+      if (!flush_buffer() || !write_all(s, static_cast<std::size_t>(n))) return 0;
+      return n;
+    }
+    return std::streambuf::xsputn(s, n);
+  }
+
+ private:
+  bool flush_buffer() {
+    const std::size_t n = static_cast<std::size_t>(pptr() - pbase());
+    const bool ok = write_all(pbase(), n);
+    setp(buf_.data(), buf_.data() + buf_.size());
+    return ok;
+  }
+
+  bool write_all(const char* p, std::size_t n) {
+    if (errno_ != 0) return false;
+    while (n > 0) {
+      const ssize_t w = ::write(fd_, p, n);
+      if (w < 0) {
+        if (errno == EINTR) continue;
+        errno_ = errno;
+        return false;
+      }
+      if (w == 0) {  // should not happen for regular files; treat as a full disk
+        errno_ = ENOSPC;
+        return false;
+      }
+      p += w;
+      n -= static_cast<std::size_t>(w);
+    }
+    return true;
+  }
+
+  int fd_;
+  std::vector<char> buf_;
+  int errno_ = 0;
+};
+
+[[noreturn]] void fail(const fs::path& path, const std::string& problem, int err) {
+  std::string msg = path.string() + ": " + problem;
+  if (err != 0) msg += std::string(": ") + std::strerror(err);
+  throw IoError(msg);
+}
+
+/// Removes the temporary on every exit path unless released.
+struct TempGuard {
+  std::string path;
+  int fd = -1;
+  bool armed = true;
+  ~TempGuard() {
+    if (fd >= 0) ::close(fd);
+    if (armed) ::unlink(path.c_str());
+  }
+};
+
+}  // namespace
+
+void write_file_atomic(const fs::path& path, const std::function<void(std::ostream&)>& fill) {
+  if (path.empty()) throw IoError("(empty path): cannot write");
+  const fs::path dir = path.has_parent_path() ? path.parent_path() : fs::path(".");
+  std::error_code ec;
+  if (!fs::is_directory(dir, ec))
+    throw IoError(path.string() + ": cannot write: folder " + dir.string() + " does not exist");
+
+  static std::atomic<unsigned> counter{0};
+  const std::string tmp = path.string() + ".tmp-" + std::to_string(::getpid()) + "-" +
+                          std::to_string(counter.fetch_add(1));
+  // O_EXCL: never clobber (or follow a symlink at) a name someone else owns.
+  const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0666);
+  if (fd < 0) fail(path, "cannot create temporary file", errno);
+  TempGuard guard{tmp, fd};
+
+  {
+    FdStreambuf buf(fd);
+    std::ostream out(&buf);
+    // A throwing fill propagates as is; the guard removes the temporary and the
+    // old file stays untouched.
+    fill(out);
+    out.flush();
+    if (buf.error() != 0) fail(path, "write failed", buf.error());
+    if (!out) fail(path, "write failed (stream error)", 0);
+  }
+  if (::fsync(fd) != 0) fail(path, "fsync failed", errno);
+  const int fd_to_close = guard.fd;
+  guard.fd = -1;
+  if (::close(fd_to_close) != 0) fail(path, "close failed", errno);
+  if (::rename(tmp.c_str(), path.c_str()) != 0) fail(path, "cannot rename temporary into place", errno);
+  guard.armed = false;
+
+  // Make the rename itself durable; failure here is not worth an error (the data is written).
+  const int dfd = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+  if (dfd >= 0) {
+    ::fsync(dfd);
+    ::close(dfd);
+  }
+}
+
+void write_file_atomic(const fs::path& path, std::string_view bytes) {
+  write_file_atomic(path, [bytes](std::ostream& out) {
+    out.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
+  });
+}
+
+}  // namespace station

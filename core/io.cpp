@@ -1,0 +1,291 @@
+// File-level I/O: reading whole files, format dispatch, and the writers. The
+// format parsers live in ply_io.cpp, pcd_io.cpp, obj_io.cpp and off_io.cpp.
+#include "core/io.h"
+
+#include <fcntl.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <cctype>
+#include <cerrno>
+#include <charconv>
+#include <cstring>
+#include <string>
+#include <system_error>
+
+#include "core/atomic_file.h"
+#include "core/error.h"
+#include "core/io_detail.h"
+
+namespace station {
+
+namespace {
+
+[[noreturn]] void io_fail(const fs::path& path, const char* what, int err) {
+  throw IoError(path.string() + ": " + what + ": " + std::strerror(err));
+}
+
+enum class Format { kUnknown, kPly, kPcd, kObj, kOff };
+
+std::string lower_extension(const fs::path& path) {
+  std::string ext = path.extension().string();
+  std::transform(ext.begin(), ext.end(), ext.begin(),
+                 [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
+  return ext;
+}
+
+/// Guesses the format from the first bytes when the extension says nothing.
+Format sniff(std::string_view bytes) {
+  io_detail::LineReader lines(bytes.substr(0, 4096));
+  std::string_view line;
+  for (int i = 0; i < 64 && lines.next(line); ++i) {
+    line = io_detail::trim(line);
+    if (line.empty()) continue;
+    if (i == 0 && line == "ply") return Format::kPly;
+    if (line[0] == '#') continue;  // PCD, OBJ and OFF comments
+    const std::string_view word = line.substr(0, line.find_first_of(" \t"));
+    if (word == "VERSION" || word == "FIELDS" || word == "COLUMNS") return Format::kPcd;
+    if (word.size() >= 3 && word.substr(word.size() - 3) == "OFF" && word.size() <= 7) return Format::kOff;
+    if (word == "v" || word == "vn" || word == "vt" || word == "f" || word == "o" || word == "g" ||
+        word == "mtllib" || word == "usemtl" || word == "s")
+      return Format::kObj;
+    return Format::kUnknown;
+  }
+  return Format::kUnknown;
+}
+
+Format detect(const fs::path& path, std::string_view bytes) {
+  const std::string ext = lower_extension(path);
+  if (ext == ".ply") return Format::kPly;
+  if (ext == ".pcd") return Format::kPcd;
+  if (ext == ".obj") return Format::kObj;
+  if (ext == ".off") return Format::kOff;
+  return sniff(bytes);
+}
+
+[[noreturn]] void unknown_format(const fs::path& path) {
+  throw FormatError(path.string() + ": unknown file format (expected PLY, PCD, OBJ or OFF)");
+}
+
+fs::path folder_of(const fs::path& path) {
+  std::error_code ec;
+  fs::path abs = fs::absolute(path, ec);
+  return (ec ? path : abs).parent_path();
+}
+
+// ---- writing helpers ----------------------------------------------------------
+
+void put_le(std::string& out, const void* p, std::size_t n) {
+  out.append(static_cast<const char*>(p), n);  // little-endian host (checked in the readers)
+}
+
+/// Shortest text that reads back as the same float.
+void put_float(std::string& out, float v) {
+  char buf[32];
+  const auto r = std::to_chars(buf, buf + sizeof(buf), v);
+  out.append(buf, static_cast<std::size_t>(r.ptr - buf));
+}
+
+void put_int(std::string& out, long long v) {
+  char buf[24];
+  const auto r = std::to_chars(buf, buf + sizeof(buf), v);
+  out.append(buf, static_cast<std::size_t>(r.ptr - buf));
+}
+
+std::string ply_bytes(const std::vector<Vec3f>& pts, const std::vector<Vec3f>& normals,
+                      const std::vector<Rgb>& colors, const std::vector<Face>* faces,
+                      PlyFormat format) {
+  const bool binary = format == PlyFormat::kBinaryLittleEndian;
+  std::string out;
+  out += "ply\nformat ";
+  out += binary ? "binary_little_endian" : "ascii";
+  out += " 1.0\ncomment turntable station\nelement vertex " + std::to_string(pts.size()) +
+         "\nproperty float x\nproperty float y\nproperty float z\n";
+  if (!normals.empty()) out += "property float nx\nproperty float ny\nproperty float nz\n";
+  if (!colors.empty()) out += "property uchar red\nproperty uchar green\nproperty uchar blue\n";
+  if (faces)
+    out += "element face " + std::to_string(faces->size()) + "\nproperty list uchar int vertex_indices\n";
+  out += "end_header\n";
+
+  const std::size_t per_vertex = 12 + (normals.empty() ? 0 : 12) + (colors.empty() ? 0 : 3);
+  out.reserve(out.size() + pts.size() * (binary ? per_vertex : 3 * per_vertex) +
+              (faces ? faces->size() * (binary ? 13 : 30) : 0));
+  for (std::size_t i = 0; i < pts.size(); ++i) {
+    if (binary) {
+      put_le(out, pts[i].data(), 12);
+      if (!normals.empty()) put_le(out, normals[i].data(), 12);
+      if (!colors.empty()) {
+        const unsigned char c[3] = {colors[i].r, colors[i].g, colors[i].b};
+        put_le(out, c, 3);
+      }
+    } else {
+      for (int k = 0; k < 3; ++k) {
+        if (k) out += ' ';
+        put_float(out, pts[i][k]);
+      }
+      if (!normals.empty())
+        for (int k = 0; k < 3; ++k) {
+          out += ' ';
+          put_float(out, normals[i][k]);
+        }
+      if (!colors.empty()) {
+        for (int c : {int(colors[i].r), int(colors[i].g), int(colors[i].b)}) {
+          out += ' ';
+          put_int(out, c);
+        }
+      }
+      out += '\n';
+    }
+  }
+  if (faces) {
+    for (const Face& f : *faces) {
+      if (binary) {
+        out += static_cast<char>(3);
+        const std::int32_t idx[3] = {f[0], f[1], f[2]};
+        put_le(out, idx, 12);
+      } else {
+        out += '3';
+        for (int k = 0; k < 3; ++k) {
+          out += ' ';
+          put_int(out, f[k]);
+        }
+        out += '\n';
+      }
+    }
+  }
+  return out;
+}
+
+}  // namespace
+
+std::string read_file_bytes(const fs::path& path) {
+  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd < 0) io_fail(path, "cannot open", errno);
+  struct Closer {
+    int fd;
+    ~Closer() { ::close(fd); }
+  } closer{fd};
+  struct stat st {};
+  if (::fstat(fd, &st) != 0) io_fail(path, "cannot stat", errno);
+  if (S_ISDIR(st.st_mode)) io_fail(path, "cannot read", EISDIR);
+  std::string out;
+  if (S_ISREG(st.st_mode) && st.st_size > 0) out.reserve(static_cast<std::size_t>(st.st_size));
+  char buf[1 << 16];
+  while (true) {
+    const ssize_t n = ::read(fd, buf, sizeof(buf));
+    if (n < 0) {
+      if (errno == EINTR) continue;
+      io_fail(path, "cannot read", errno);
+    }
+    if (n == 0) break;
+    out.append(buf, static_cast<std::size_t>(n));
+  }
+  return out;
+}
+
+Cloud read_cloud(const fs::path& path) {
+  const std::string bytes = read_file_bytes(path);
+  const std::string name = path.string();
+  switch (detect(path, bytes)) {
+    case Format::kPly: return parse_ply(bytes, name).as_cloud();
+    case Format::kPcd: return parse_pcd(bytes, name);
+    case Format::kObj: return parse_obj(bytes, name).mesh.as_cloud();
+    case Format::kOff: return parse_off(bytes, name).as_cloud();
+    case Format::kUnknown: break;
+  }
+  unknown_format(path);
+}
+
+Mesh read_mesh(const fs::path& path) {
+  const std::string bytes = read_file_bytes(path);
+  const std::string name = path.string();
+  switch (detect(path, bytes)) {
+    case Format::kPly: return parse_ply(bytes, name);
+    case Format::kObj: return parse_obj(bytes, name).mesh;
+    case Format::kOff: return parse_off(bytes, name);
+    case Format::kPcd: {
+      // A point cloud is a mesh without faces.
+      Cloud c = parse_pcd(bytes, name);
+      Mesh m;
+      m.vertices = std::move(c.points);
+      m.normals = std::move(c.normals);
+      m.colors = std::move(c.colors);
+      return m;
+    }
+    case Format::kUnknown: break;
+  }
+  unknown_format(path);
+}
+
+TexturedMesh read_textured_mesh(const fs::path& path) {
+  const std::string bytes = read_file_bytes(path);
+  if (detect(path, bytes) == Format::kObj) return parse_obj(bytes, path.string(), folder_of(path));
+  TexturedMesh t;
+  t.mesh = read_mesh(path);
+  return t;
+}
+
+void write_ply(const fs::path& path, const Mesh& mesh, PlyFormat format) {
+  const std::string what = path.string();
+  mesh.check_consistent(what.c_str());
+  write_file_atomic(path, ply_bytes(mesh.vertices, mesh.normals, mesh.colors, &mesh.faces, format));
+}
+
+void write_ply(const fs::path& path, const Cloud& cloud, PlyFormat format) {
+  const std::string what = path.string();
+  cloud.check_consistent(what.c_str());
+  write_file_atomic(path, ply_bytes(cloud.points, cloud.normals, cloud.colors, nullptr, format));
+}
+
+void write_obj(const fs::path& path, const Mesh& mesh) {
+  const std::string what = path.string();
+  mesh.check_consistent(what.c_str());
+  std::string out = "# turntable station\n";
+  out.reserve(mesh.vertices.size() * 60 + mesh.faces.size() * 40);
+  for (std::size_t i = 0; i < mesh.vertices.size(); ++i) {
+    out += 'v';
+    for (int k = 0; k < 3; ++k) {
+      out += ' ';
+      put_float(out, mesh.vertices[i][k]);
+    }
+    if (mesh.has_colors()) {
+      const Rgb& c = mesh.colors[i];
+      for (int ch : {int(c.r), int(c.g), int(c.b)}) {
+        out += ' ';
+        put_float(out, static_cast<float>(ch) / 255.f);
+      }
+    }
+    out += '\n';
+  }
+  for (const Vec3f& n : mesh.normals) {
+    out += "vn";
+    for (int k = 0; k < 3; ++k) {
+      out += ' ';
+      put_float(out, n[k]);
+    }
+    out += '\n';
+  }
+  for (const Face& f : mesh.faces) {
+    out += 'f';
+    for (int k = 0; k < 3; ++k) {
+      out += ' ';
+      put_int(out, f[k] + 1LL);
+      if (mesh.has_normals()) {
+        out += "//";
+        put_int(out, f[k] + 1LL);
+      }
+    }
+    out += '\n';
+  }
+  write_file_atomic(path, out);
+}
+
+void write_mesh(const fs::path& path, const Mesh& mesh) {
+  const std::string ext = lower_extension(path);
+  if (ext == ".ply") return write_ply(path, mesh);
+  if (ext == ".obj") return write_obj(path, mesh);
+  throw InvalidInput(path.string() + ": cannot write meshes as '" + ext + "' (use .ply or .obj)");
+}
+
+}  // namespace station
