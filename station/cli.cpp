@@ -1,5 +1,6 @@
 #include "station/cli.h"
 
+#include <sys/resource.h>
 #include <tbb/global_control.h>
 
 #include <CLI/CLI.hpp>
@@ -62,6 +63,14 @@ std::unique_ptr<tbb::global_control> limit_threads(int threads) {
                                                std::size_t(threads));
 }
 
+/// Prints a --json summary line, with the process's peak resident memory.
+void print_summary(JsonObject j) {
+  rusage ru{};
+  ::getrusage(RUSAGE_SELF, &ru);
+  j.add("peak_rss_mb", double(ru.ru_maxrss) / 1024.0);
+  std::printf("%s\n", j.str().c_str());
+}
+
 double seconds_since(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
@@ -106,7 +115,7 @@ int cmd_devices(const Common& c) {
     j.add(d.uri, JsonObject().add("kind", kind).add("description", d.description).add("available", d.available));
     ++n;
   }
-  if (c.json) std::printf("%s\n", JsonObject().add("command", "devices").add("count", n).add("devices", j).str().c_str());
+  if (c.json) print_summary(JsonObject().add("command", "devices").add("count", n).add("devices", j));
   return 0;
 }
 
@@ -155,7 +164,7 @@ int capture_into(Session& session, Scanner& scanner, Turntable& turntable,
       .add("merged", merged)
       .add("timings_s", JsonObject().add("capture", t_capture).add("merge", seconds_since(t1)));
   if (c.json) {
-    std::printf("%s\n", j.str().c_str());
+    print_summary(j);
   } else {
     std::printf("%s: %zu views (%d new, %zu points) in %s\n", command,
                 session.manifest().views.size(), res.recorded, res.points, session.dir().c_str());
@@ -269,7 +278,7 @@ int cmd_eval(const Common& c, const std::string& a, const std::string& b, int sa
     if (r.normal_consistency) j.add("normal_consistency", *r.normal_consistency); else j.add_null("normal_consistency");
     if (r.color_error) j.add("color_error", *r.color_error); else j.add_null("color_error");
     j.add("timings_s", JsonObject().add("eval", seconds_since(t0)));
-    std::printf("%s\n", j.str().c_str());
+    print_summary(j);
   } else {
     std::printf("A: %s\nB: %s\n", a.c_str(), b.c_str());
     std::printf("%-12s %12s %12s %12s %12s %10s\n", "direction", "mean", "rms", "p95", "max", "count");
@@ -375,8 +384,8 @@ int cmd_import(const Common& c, const ImportArgs& a) {
   }
   bar.finish();
   if (c.json)
-    std::printf("%s\n", JsonObject().add("command", "import").add("session", a.out).add("views", a.files.size())
-                            .add("points", total).add("timings_s", JsonObject().add("import", seconds_since(t0))).str().c_str());
+    print_summary(JsonObject().add("command", "import").add("session", a.out).add("views", a.files.size())
+                      .add("points", total).add("timings_s", JsonObject().add("import", seconds_since(t0))));
   else
     std::printf("import: %zu views, %zu points -> %s\n", a.files.size(), total, a.out.c_str());
   return 0;
