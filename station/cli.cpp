@@ -20,6 +20,7 @@
 #include "core/error.h"
 #include "core/io.h"
 #include "drivers/registry.h"
+#include "drivers/v4l2_probe.h"
 #include "reconstruct/eval.h"
 #include "sim/sim.h"
 #include "station/config.h"
@@ -78,6 +79,7 @@ double seconds_since(std::chrono::steady_clock::time_point t0) {
 DeviceRegistry make_registry() {
   DeviceRegistry reg;
   register_sim_devices(reg);
+  register_v4l2_probe(reg, real_syscalls());
   return reg;
 }
 
