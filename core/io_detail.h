@@ -66,7 +66,7 @@ inline bool parse_int(std::string_view tok, long long& out) {
 class Tokenizer {
  public:
   Tokenizer(std::string_view text, long long first_line = 1)
-      : p_(text.data()), end_(text.data() + text.size()), line_(first_line) {}
+      : p_(text.data()), end_(text.data() + text.size()), line_(first_line), tok_line_(first_line) {}
 
   /// Next token anywhere (crossing line ends); false at the end of the text.
   bool next(std::string_view& tok) {
@@ -78,17 +78,19 @@ class Tokenizer {
     const char* s = p_;
     while (p_ < end_ && !is_space(*p_) && *p_ != '\n') ++p_;
     tok = std::string_view(s, static_cast<std::size_t>(p_ - s));
+    tok_line_ = line_;
     return true;
   }
 
-  /// Line of the last token returned.
-  long long line() const { return line_; }
+  /// Line of the last token returned (at the end of the text: still that line).
+  long long line() const { return tok_line_; }
   std::size_t remaining() const { return static_cast<std::size_t>(end_ - p_); }
 
  private:
   const char* p_;
   const char* end_;
   long long line_;
+  long long tok_line_;
 };
 
 /// Iterates over lines ("\n" or "\r\n"), counting them (1-based).

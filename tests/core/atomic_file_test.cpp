@@ -1,0 +1,129 @@
+#include "core/atomic_file.h"
+
+#include <gtest/gtest.h>
+#include <sys/resource.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <csignal>
+#include <fstream>
+#include <sstream>
+#include <stdexcept>
+
+#include "core/error.h"
+#include "test_util.h"
+
+namespace station {
+namespace {
+
+namespace fs = std::filesystem;
+
+std::string slurp(const fs::path& p) {
+  std::ifstream in(p, std::ios::binary);
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return ss.str();
+}
+
+std::size_t entries(const fs::path& dir) {
+  std::size_t n = 0;
+  for (auto it = fs::directory_iterator(dir); it != fs::directory_iterator(); ++it) ++n;
+  return n;
+}
+
+TEST(AtomicFile, WritesContentAndLeavesNoTemporary) {
+  test::TempDir dir;
+  const fs::path p = dir / "out.bin";
+  std::string bytes = "hello";
+  bytes.push_back('\0');
+  bytes += std::string(200000, 'x');  // larger than the internal buffer
+  write_file_atomic(p, bytes);
+  EXPECT_EQ(slurp(p), bytes);
+  EXPECT_EQ(entries(dir.path()), 1u);
+
+  write_file_atomic(p, [](std::ostream& out) { out << "second " << 42; });
+  EXPECT_EQ(slurp(p), "second 42");
+  EXPECT_EQ(entries(dir.path()), 1u);
+}
+
+TEST(AtomicFile, ThrowingFillKeepsOldFile) {
+  test::TempDir dir;
+  const fs::path p = dir / "keep.txt";
+  write_file_atomic(p, std::string_view("old content"));
+  EXPECT_THROW(write_file_atomic(p,
+                                 [](std::ostream& out) {
+                                   out << std::string(100000, 'n');
+                                   throw std::runtime_error("generator failed");
+                                 }),
+               std::runtime_error);
+  EXPECT_EQ(slurp(p), "old content");
+  EXPECT_EQ(entries(dir.path()), 1u);
+}
+
+TEST(AtomicFile, StreamFailureIsAnIoError) {
+  test::TempDir dir;
+  const fs::path p = dir / "bad.txt";
+  EXPECT_THROW(write_file_atomic(p, [](std::ostream& out) { out.setstate(std::ios::badbit); }),
+               IoError);
+  EXPECT_FALSE(fs::exists(p));
+  EXPECT_EQ(entries(dir.path()), 0u);
+}
+
+TEST(AtomicFile, MissingFolderIsAnIoErrorNamingIt) {
+  test::TempDir dir;
+  const fs::path p = dir / "no_such_folder" / "x.ply";
+  try {
+    write_file_atomic(p, std::string_view("data"));
+    FAIL() << "expected IoError";
+  } catch (const IoError& e) {
+    EXPECT_NE(std::string(e.what()).find((dir / "no_such_folder").string()), std::string::npos)
+        << e.what();
+  }
+  EXPECT_EQ(entries(dir.path()), 0u);
+}
+
+TEST(AtomicFile, RenameOntoFolderFailsCleanly) {
+  test::TempDir dir;
+  fs::create_directories(dir / "occupied" / "inner");
+  try {
+    write_file_atomic(dir / "occupied", std::string_view("data"));
+    FAIL() << "expected IoError";
+  } catch (const IoError& e) {
+    EXPECT_EQ(std::string(e.what()).rfind((dir / "occupied").string(), 0), 0u) << e.what();
+  }
+  EXPECT_EQ(entries(dir.path()), 1u);  // only the folder; the temporary is gone
+}
+
+TEST(AtomicFile, FullDiskIsDetected) {
+  // Simulate a full disk in a child process: a file-size limit makes write(2)
+  // fail with EFBIG once SIGXFSZ is ignored.
+  test::TempDir dir;
+  const fs::path p = dir / "big.bin";
+  const pid_t pid = fork();
+  ASSERT_GE(pid, 0);
+  if (pid == 0) {
+    std::signal(SIGXFSZ, SIG_IGN);
+    rlimit lim{4096, 4096};
+    setrlimit(RLIMIT_FSIZE, &lim);
+    int code = 1;
+    try {
+      write_file_atomic(p, std::string(1 << 20, 'z'));
+      code = 2;  // no error: wrong
+    } catch (const IoError& e) {
+      const std::string msg = e.what();
+      code = (msg.rfind(p.string(), 0) == 0 && msg.find("large") != std::string::npos) ? 0 : 3;
+    } catch (...) {
+      code = 4;
+    }
+    _exit(code);
+  }
+  int status = 0;
+  ASSERT_EQ(waitpid(pid, &status, 0), pid);
+  ASSERT_TRUE(WIFEXITED(status));
+  EXPECT_EQ(WEXITSTATUS(status), 0);
+  EXPECT_FALSE(fs::exists(p));
+  EXPECT_EQ(entries(dir.path()), 0u);
+}
+
+}  // namespace
+}  // namespace station
