@@ -133,7 +133,7 @@ class SyntheticScanner final : public Scanner {
         bench_(std::move(bench)) {}
 
   void open() override {
-    load_scene();
+    scene_ = load_scene(params_);
     frame_index_ = 0;
   }
 
@@ -145,13 +145,15 @@ class SyntheticScanner final : public Scanner {
     const SyntheticParams next = synthetic_params_from_options(merged, uri_.text);
     const bool placement_changed =
         next.mesh != params_.mesh || next.scale != params_.scale || next.center != params_.center;
+    if (scene_) {
+      // Load before committing, so a bad new mesh leaves the scanner as it was.
+      if (placement_changed)
+        scene_ = load_scene(next);
+      else
+        scene_->set_params(next);
+    }
     options_ = std::move(merged);
     params_ = next;
-    if (!scene_) return;
-    if (placement_changed)
-      load_scene();
-    else
-      scene_->set_params(params_);
   }
 
   ScannerCapabilities capabilities() const override {
@@ -175,19 +177,18 @@ class SyntheticScanner final : public Scanner {
   std::string uri() const override { return uri_.text; }
 
  private:
-  void load_scene() {
-    if (params_.mesh.empty())
+  std::unique_ptr<Scene> load_scene(const SyntheticParams& params) const {
+    if (params.mesh.empty())
       throw DeviceError(uri_.text + ": no mesh given (option 'mesh=FILE')");
-    const fs::path path = params_.mesh;
+    const fs::path path = params.mesh;
     std::error_code ec;
     if (!fs::is_regular_file(path, ec))
       throw DeviceError(uri_.text + ": mesh " + path.string() + ": no such file");
     try {
       TexturedMesh mesh = read_textured_mesh(path);
       Texture texture;
-      if (params_.color && !mesh.texture.empty() && !mesh.corner_uv.empty())
-        texture = load_texture(mesh.texture);
-      scene_ = std::make_unique<Scene>(std::move(mesh), std::move(texture), params_);
+      if (!mesh.texture.empty() && !mesh.corner_uv.empty()) texture = load_texture(mesh.texture);
+      return std::make_unique<Scene>(std::move(mesh), std::move(texture), params);
     } catch (const InvalidInput& e) {  // unusable geometry (no faces, bad indices)
       throw DeviceError(uri_.text + ": mesh " + path.string() + ": " + e.what());
     } catch (const DeviceError&) {
