@@ -169,21 +169,33 @@ Scene::Scene(TexturedMesh mesh, Texture texture, const SyntheticParams& params)
 
 void Scene::set_params(const SyntheticParams& params) {
   params_ = params;
-  const double target = params.target_height >= 0 ? params.target_height : mid_height_;
+  table_from_camera_ =
+      camera_in_table(params, params.target_height >= 0 ? params.target_height : mid_height_);
+}
+
+Eigen::Matrix4d camera_in_table(const SyntheticParams& params, double target_height) {
   const double elevation = params.elevation_deg * M_PI / 180.0;
-  // Camera on the table frame's +x side, `distance` from the axis horizontally,
-  // looking at the target on the axis with the given downward pitch.
-  const Vec3d centre(params.distance, 0, target + params.distance * std::tan(elevation));
-  const Vec3d z = (Vec3d(0, 0, target) - centre).normalized();
+  const Vec3d centre(params.distance, 0, target_height + params.distance * std::tan(elevation));
+  const Vec3d z = (Vec3d(0, 0, target_height) - centre).normalized();
   Vec3d x = z.cross(Vec3d::UnitZ());
   if (x.norm() < 1e-12) x = Vec3d::UnitY();  // looking straight down or up
   x.normalize();
-  const Vec3d y = z.cross(x);
-  table_from_camera_.setIdentity();
-  table_from_camera_.block<3, 1>(0, 0) = x;
-  table_from_camera_.block<3, 1>(0, 1) = y;
-  table_from_camera_.block<3, 1>(0, 2) = z;
-  table_from_camera_.block<3, 1>(0, 3) = centre;
+  const Vec3d y = z.cross(x);  // completes x right, y down, z forward
+  Eigen::Matrix4d T = Eigen::Matrix4d::Identity();
+  T.block<3, 1>(0, 0) = x;
+  T.block<3, 1>(0, 1) = y;
+  T.block<3, 1>(0, 2) = z;
+  T.block<3, 1>(0, 3) = centre;
+  return T;
+}
+
+TurntableAxis axis_in_camera(const Eigen::Matrix4d& table_from_camera) {
+  const Eigen::Matrix3d r = table_from_camera.topLeftCorner<3, 3>();
+  const Vec3d c = table_from_camera.topRightCorner<3, 1>();
+  TurntableAxis a;
+  a.point = r.transpose() * (Vec3d::Zero() - c);
+  a.direction = r.transpose() * Vec3d::UnitZ();
+  return a;
 }
 
 Intrinsics synthetic_intrinsics(const SyntheticParams& params) {
@@ -196,14 +208,7 @@ Intrinsics synthetic_intrinsics(const SyntheticParams& params) {
   return k;
 }
 
-TurntableAxis Scene::axis() const {
-  const Eigen::Matrix3d r = table_from_camera_.topLeftCorner<3, 3>();
-  const Vec3d c = table_from_camera_.topRightCorner<3, 1>();
-  TurntableAxis a;
-  a.point = r.transpose() * (Vec3d::Zero() - c);
-  a.direction = r.transpose() * Vec3d::UnitZ();
-  return a;
-}
+TurntableAxis Scene::axis() const { return axis_in_camera(table_from_camera_); }
 
 Eigen::Matrix4d Scene::object_from_camera(double angle_deg) const {
   Eigen::Matrix4d object_from_placed = Eigen::Matrix4d::Identity();

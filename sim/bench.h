@@ -77,6 +77,14 @@ double gaussian(std::uint64_t seed, std::uint64_t frame, std::uint64_t pixel, st
 /// ray ((u - cx) / fx, (v - cy) / fy, 1)).
 Intrinsics synthetic_intrinsics(const SyntheticParams& params);
 
+/// Camera pose in the table frame (p_table = T * p_camera): on the +x side,
+/// `distance` from the axis horizontally, pitched down by `elevation_deg`, looking
+/// at (0, 0, target_height) on the axis (so its centre is at height
+/// target_height + distance * tan(elevation)).
+Eigen::Matrix4d camera_in_table(const SyntheticParams& params, double target_height);
+/// The turntable axis (table frame z through the origin) in the camera frame.
+TurntableAxis axis_in_camera(const Eigen::Matrix4d& table_from_camera);
+
 /// Rotation about z by `degrees` as a 4x4 transform.
 Eigen::Matrix4d rotate_z_deg(double degrees);
 
@@ -108,6 +116,10 @@ class Scene {
 
   /// Renders the view at table angle `angle_deg` (depth, colour when enabled,
   /// intrinsics, reference pose). `frame_index` feeds the noise; timestamp is left 0.
+  /// Colour: the texture through the corner UVs when the mesh has both, else
+  /// interpolated vertex colours, else light grey (200); the disk is grey (128),
+  /// background black. Depth and colour see the same surfaces (max_range and
+  /// dropouts only blank depth).
   Frame render(double angle_deg, std::uint64_t frame_index) const;
 
  private:

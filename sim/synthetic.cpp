@@ -160,10 +160,14 @@ class SyntheticScanner final : public Scanner {
     ScannerCapabilities caps;
     caps.depth = true;
     caps.color = params_.color;
-    // Intrinsics depend on the options only; the axis needs the placed mesh
-    // (the camera aims at its mid-height), so it is known once open.
+    // Intrinsics depend on the options only. The axis depends on where the camera
+    // aims: known up front with an explicit target_height, else (mesh mid-height)
+    // once the mesh is loaded by open().
     caps.intrinsics = synthetic_intrinsics(params_);
-    if (scene_) caps.axis = scene_->axis();
+    if (scene_)
+      caps.axis = scene_->axis();
+    else if (params_.target_height >= 0)
+      caps.axis = axis_in_camera(camera_in_table(params_, params_.target_height));
     return caps;
   }
 

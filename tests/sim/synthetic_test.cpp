@@ -615,6 +615,22 @@ TEST_F(SyntheticSphere, ConfigureWhileOpen) {
   EXPECT_EQ(rig.scanner->grab().depth, f.depth);
 }
 
+TEST_F(SyntheticSphere, AxisKnownBeforeOpenWithAnExplicitTarget) {
+  DeviceRegistry reg = test::sim_registry();
+  auto automatic = reg.make_scanner("sim:synthetic?mesh=" + sphere().string());
+  EXPECT_FALSE(automatic->capabilities().axis);  // aims at the mesh's mid-height: needs the mesh
+  auto s = reg.make_scanner("sim:synthetic?target_height=0.05&mesh=" + sphere().string());
+  const auto before = s->capabilities().axis;
+  ASSERT_TRUE(before);
+  s->open();
+  automatic->open();
+  const auto after = s->capabilities().axis;
+  EXPECT_LT((before->point - after->point).norm(), 1e-15);
+  EXPECT_LT((before->direction - after->direction).norm(), 1e-15);
+  // Mid-height of this sphere is 0.05 too, up to float rounding.
+  EXPECT_LT((automatic->capabilities().axis->point - after->point).norm(), 1e-8);
+}
+
 TEST(SyntheticTiming, FullViewOfA330kFaceMesh) {
   test::TempDir dir("sim-test");
   const Mesh m = test::icosphere(7, 0.08, Vec3f(0, 0, 0.08f));
