@@ -16,14 +16,14 @@
 namespace station {
 namespace {
 
-struct Run {
+struct CmdResult {
   int code = -1;
   std::string out;  // stdout + stderr
 };
 
-Run run(const std::string& args) {
+CmdResult run(const std::string& args) {
   const std::string cmd = std::string(STATION_BINARY) + " " + args + " 2>&1";
-  Run r;
+  CmdResult r;
   FILE* p = ::popen(cmd.c_str(), "r");
   if (!p) return r;
   std::array<char, 4096> buf;
@@ -44,12 +44,12 @@ double json_number(const std::string& json, const std::string& key) {
 std::string repo(const std::string& rel) { return (test::source_dir() / rel).string(); }
 
 TEST(Cli, HelpListsSubcommands) {
-  const Run r = run("--help");
+  const CmdResult r = run("--help");
   EXPECT_EQ(r.code, 0);
   for (const char* s : {"devices", "scan", "replay", "eval", "import"})
     EXPECT_NE(r.out.find(s), std::string::npos) << s;
   for (const char* s : {"devices", "scan", "replay", "eval", "import"}) {
-    const Run h = run(std::string(s) + " --help");
+    const CmdResult h = run(std::string(s) + " --help");
     EXPECT_EQ(h.code, 0) << s;
     EXPECT_NE(h.out.find("--json"), std::string::npos) << s;
     EXPECT_NE(h.out.find("--threads"), std::string::npos) << s;
@@ -58,7 +58,7 @@ TEST(Cli, HelpListsSubcommands) {
 }
 
 TEST(Cli, DevicesListsTheSimulator) {
-  const Run r = run("devices");
+  const CmdResult r = run("devices");
   EXPECT_EQ(r.code, 0);
   EXPECT_NE(r.out.find("sim:synthetic"), std::string::npos);
   EXPECT_NE(r.out.find("sim:turntable"), std::string::npos);
@@ -71,7 +71,7 @@ TEST(Cli, ScanOfTheBundledSampleMatchesTheMesh) {
   test::TempDir dir;
   const std::string out = (dir / "scan").string();
   const double noise = 0.0005;
-  const Run r = run("scan --config " + repo("config/default.yaml") + " -o " + out +
+  const CmdResult r = run("scan --config " + repo("config/default.yaml") + " -o " + out +
                     " --views 12 --set noise=" + std::to_string(noise) + " --json");
   ASSERT_EQ(r.code, 0) << r.out;
   EXPECT_EQ(json_number(r.out, "views"), 12);
@@ -84,7 +84,7 @@ TEST(Cli, ScanOfTheBundledSampleMatchesTheMesh) {
   EXPECT_GT(merged.size(), 50000u);
   EXPECT_TRUE(merged.has_colors());
 
-  const Run e = run("eval " + out + "/merged.ply " + repo("data/mustard_bottle/textured.obj") +
+  const CmdResult e = run("eval " + out + "/merged.ply " + repo("data/mustard_bottle/textured.obj") +
                     " --samples 100000 --json");
   ASSERT_EQ(e.code, 0) << e.out;
   const double chamfer = json_number(e.out, "chamfer");
@@ -98,7 +98,7 @@ TEST(Cli, DragonImportsAndReplaysLikeALiveScanner) {
   std::string files;
   for (int a = 0; a < 360; a += 24) files += " " + repo("data/dragon_stand/dragonStandRight_" + std::to_string(a) + ".ply");
   const std::string session = (dir / "dragon").string();
-  Run r = run("import" + files + " --step 24 --stanford-conf " +
+  CmdResult r = run("import" + files + " --step 24 --stanford-conf " +
               repo("data/dragon_stand/dragonStandRight.conf") + " -o " + session + " --json");
   ASSERT_EQ(r.code, 0) << r.out;
   const SessionManifest m = read_manifest(session);
@@ -122,7 +122,7 @@ TEST(Cli, DragonImportsAndReplaysLikeALiveScanner) {
 
 TEST(Cli, BadInputGivesOneLineErrorsNamingTheCulprit) {
   test::TempDir dir;
-  Run r = run("eval " + (dir / "missing.ply").string() + " " + repo("data/mustard_bottle/textured.obj"));
+  CmdResult r = run("eval " + (dir / "missing.ply").string() + " " + repo("data/mustard_bottle/textured.obj"));
   EXPECT_EQ(r.code, 1);
   EXPECT_NE(r.out.find("missing.ply"), std::string::npos) << r.out;
 
@@ -161,12 +161,12 @@ TEST(Cli, ExistingSessionIsNeverOverwritten) {
   const std::string small = " --views 2 --set width=80 --set height=60";
   ASSERT_EQ(run("scan -o " + out + small).code, 0);
   const std::string manifest = read_file_bytes(out + "/session.yaml");
-  const Run again = run("scan -o " + out + small);
+  const CmdResult again = run("scan -o " + out + small);
   EXPECT_EQ(again.code, 1);
   EXPECT_NE(again.out.find("--resume"), std::string::npos) << again.out;
   EXPECT_EQ(read_file_bytes(out + "/session.yaml"), manifest);
   // Resuming a complete session records nothing new.
-  const Run resumed = run("scan --resume -o " + out + " --json");
+  const CmdResult resumed = run("scan --resume -o " + out + " --json");
   EXPECT_EQ(resumed.code, 0) << resumed.out;
   EXPECT_EQ(json_number(resumed.out, "recorded"), 0);
 }
