@@ -287,7 +287,9 @@ Cloud read_ascii(std::string_view data, const PcdHeader& h, const Layout& L, con
     first.push_back(ntok);
     ntok += f.count;
   }
-  // Each value takes at least one character and a separator.
+  if (h.points == 0) return Cloud{};
+  // Each value takes at least one character and a separator (this also bounds
+  // ntok, which sizes the token buffer below).
   if (ntok == 0 || h.points > (data.size() + 1) / 2 / ntok)
     format_error(name, "header declares " + std::to_string(h.points) + " points, more than the file holds");
   Cloud c;

@@ -508,6 +508,12 @@ TEST(IoPcd, MalformedInputsAreFormatErrors) {
                       "more than the file holds");
   expect_format_error(pcd, pcd_header("x y z", "4 4 4", "F F F", "1 1 1", 3000000000ull, 1, "binary") + "abc",
                       "header declares 3000000000");
+  // Huge COUNTs (found by the fuzzer: once sized a 2.6 GB token buffer).
+  const std::string counts = "FIELDS x y z a b\nCOUNT 1 1 1 16777216 16777216\n";
+  EXPECT_TRUE(parse_pcd(counts + "POINTS 0\nDATA ascii\n", "c.pcd").empty());
+  expect_format_error(pcd, counts + "POINTS 1\nDATA ascii\n1 2 3\n", "more than the file holds");
+  expect_format_error(pcd, counts + "POINTS 1\nDATA binary\n1 2 3\n", "header declares 1");
+  expect_format_error(pcd, "FIELDS x y z\nCOUNT 1 1 16777217\nPOINTS 0\nDATA ascii\n", "COUNT 16777217");
 }
 
 // ---- OBJ --------------------------------------------------------------------------
