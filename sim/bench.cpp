@@ -6,9 +6,6 @@
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
-#include <opencv2/core.hpp>
-#include <opencv2/imgcodecs.hpp>
-#include <opencv2/imgproc.hpp>
 
 #include "core/error.h"
 
@@ -73,50 +70,6 @@ Eigen::Matrix4d rotate_z_deg(double degrees) {
   return T;
 }
 
-// ---- texture -------------------------------------------------------------------
-
-Texture load_texture(const fs::path& path) {
-  cv::Mat bgr = cv::imread(path.string(), cv::IMREAD_COLOR);
-  if (bgr.empty()) throw IoError(path.string() + ": cannot read the texture image");
-  cv::Mat rgb;
-  cv::cvtColor(bgr, rgb, cv::COLOR_BGR2RGB);
-  Texture t;
-  t.width = rgb.cols;
-  t.height = rgb.rows;
-  t.rgb.resize(std::size_t(t.width) * t.height * 3);
-  for (int r = 0; r < t.height; ++r)
-    std::copy_n(rgb.ptr<std::uint8_t>(r), std::size_t(t.width) * 3,
-                t.rgb.data() + std::size_t(r) * t.width * 3);
-  return t;
-}
-
-Rgb sample_texture(const Texture& texture, double u, double v) {
-  if (texture.empty()) return {};
-  if (!std::isfinite(u)) u = 0;
-  if (!std::isfinite(v)) v = 0;
-  // Coordinates outside [0, 1] repeat (OBJ); inside, 0 and 1 are the image edges.
-  if (u < 0 || u > 1) u -= std::floor(u);
-  if (v < 0 || v > 1) v -= std::floor(v);
-  const int w = texture.width, h = texture.height;
-  const double x = u * w - 0.5, y = (1.0 - v) * h - 0.5;
-  const int x0 = int(std::floor(x)), y0 = int(std::floor(y));
-  const double ax = x - x0, ay = y - y0;
-  // Neighbours past the edge clamp to it: atlases must not bleed across seams.
-  auto cx = [w](int i) { return std::clamp(i, 0, w - 1); };
-  auto cy = [h](int j) { return std::clamp(j, 0, h - 1); };
-  const std::uint8_t* p00 = &texture.rgb[(std::size_t(cy(y0)) * w + cx(x0)) * 3];
-  const std::uint8_t* p10 = &texture.rgb[(std::size_t(cy(y0)) * w + cx(x0 + 1)) * 3];
-  const std::uint8_t* p01 = &texture.rgb[(std::size_t(cy(y0 + 1)) * w + cx(x0)) * 3];
-  const std::uint8_t* p11 = &texture.rgb[(std::size_t(cy(y0 + 1)) * w + cx(x0 + 1)) * 3];
-  std::uint8_t out[3];
-  for (int c = 0; c < 3; ++c) {
-    const double top = p00[c] + ax * (p10[c] - p00[c]);
-    const double bottom = p01[c] + ax * (p11[c] - p01[c]);
-    out[c] = std::uint8_t(std::clamp(std::lround(top + ay * (bottom - top)), 0L, 255L));
-  }
-  return {out[0], out[1], out[2]};
-}
-
 // ---- scene ---------------------------------------------------------------------
 
 namespace {
@@ -138,13 +91,6 @@ TexturedMesh place(TexturedMesh m, const SyntheticParams& params, Vec3d& offset)
     for (Vec3f& v : m.mesh.vertices) v = (v.cast<double>() + offset).cast<float>();
   }
   return m;
-}
-
-Rgb lerp3(const Rgb& a, const Rgb& b, const Rgb& c, double wa, double wb, double wc) {
-  auto ch = [&](std::uint8_t x, std::uint8_t y, std::uint8_t z) {
-    return std::uint8_t(std::clamp(std::lround(wa * x + wb * y + wc * z), 0L, 255L));
-  };
-  return {ch(a.r, b.r, c.r), ch(a.g, b.g, c.g), ch(a.b, b.b, c.b)};
 }
 
 }  // namespace
@@ -268,18 +214,9 @@ Frame Scene::render(double angle_deg, std::uint64_t frame_index) const {
         if (!p.color) continue;
         Rgb c = kDiskColor;
         if (hit) {
-          const double b1 = hit->u, b2 = hit->v, b0 = 1.0 - b1 - b2;
-          const Face& f = mesh_.mesh.faces[hit->face];
-          if (use_texture) {
-            const Vec2f* uv = &mesh_.corner_uv[3 * std::size_t(hit->face)];
-            c = sample_texture(texture_, b0 * uv[0].x() + b1 * uv[1].x() + b2 * uv[2].x(),
-                               b0 * uv[0].y() + b1 * uv[1].y() + b2 * uv[2].y());
-          } else if (use_vertex_colors) {
-            const auto& col3 = mesh_.mesh.colors;
-            c = lerp3(col3[f[0]], col3[f[1]], col3[f[2]], b0, b1, b2);
-          } else {
-            c = kDefaultColor;
-          }
+          c = use_texture || use_vertex_colors
+                  ? surface_color(mesh_, texture_, hit->face, hit->u, hit->v)
+                  : kDefaultColor;
         }
         std::uint8_t* out = &frame.color[pixel * 3];
         const std::uint8_t channels[3] = {c.r, c.g, c.b};

@@ -24,6 +24,7 @@
 
 #include "core/bvh.h"
 #include "core/io.h"
+#include "core/texture.h"
 #include "drivers/registry.h"
 #include "sim/sim.h"
 
@@ -52,18 +53,6 @@ class Bench {
 
 /// The bench of a context, created on first use (by whichever sim device comes first).
 std::shared_ptr<Bench> bench_of(DeviceContext& context);
-
-/// An RGB image, rows top to bottom.
-struct Texture {
-  int width = 0, height = 0;
-  std::vector<std::uint8_t> rgb;  ///< width * height * 3
-  bool empty() const { return width <= 0 || height <= 0; }
-};
-
-/// Bilinear texture lookup with wrap-around addressing. Texel (column i, row j)
-/// has its centre at u = (i + 0.5) / width, v = 1 - (j + 0.5) / height, i.e.
-/// row = (1 - v) * height, column = u * width (the OBJ convention).
-Rgb sample_texture(const Texture& texture, double u, double v);
 
 /// Counter-based random numbers: a pure function of (seed, frame, pixel,
 /// stream), so frames do not depend on thread count or scheduling.
@@ -131,10 +120,6 @@ class Scene {
   double mid_height_ = 0;
   Eigen::Matrix4d table_from_camera_ = Eigen::Matrix4d::Identity();
 };
-
-/// Loads a texture image with OpenCV (BGR -> RGB); IoError naming the path when it
-/// cannot be read or decoded.
-Texture load_texture(const fs::path& path);
 
 // ---- option parsing shared by the sim devices --------------------------------
 // Each throws DeviceError("URI: option 'KEY': ...") naming the URI and the key.

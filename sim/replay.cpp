@@ -11,9 +11,6 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
-#include <opencv2/core.hpp>
-#include <opencv2/imgcodecs.hpp>
-#include <opencv2/imgproc.hpp>
 
 #include "capture/session.h"
 #include "core/error.h"
@@ -124,26 +121,25 @@ class ReplayScanner final : public Scanner {
     return best;
   }
 
-  // Colour images are recorded as RGB rows; OpenCV hands back BGR.
+  // Colour images are recorded as PNG; frames carry RGB rows.
   void load_color(const fs::path& path, Frame& frame) const {
-    const cv::Mat bgr = cv::imread(path.string(), cv::IMREAD_COLOR);
-    if (bgr.empty())
-      throw DeviceError(uri_.text + ": " + path.string() + ": cannot read the colour image");
-    cv::Mat rgb;
-    cv::cvtColor(bgr, rgb, cv::COLOR_BGR2RGB);
-    frame.color.resize(std::size_t(rgb.cols) * rgb.rows * 3);
-    for (int r = 0; r < rgb.rows; ++r)
-      std::copy_n(rgb.ptr<std::uint8_t>(r), std::size_t(rgb.cols) * 3,
-                  frame.color.data() + std::size_t(r) * rgb.cols * 3);
+    Texture image;
+    try {
+      image = load_texture(path);
+    } catch (const IoError& e) {
+      throw DeviceError(uri_.text + ": " + e.what());
+    }
+    frame.color = std::move(image.rgb);
+    const int cols = image.width, rows = image.height;
     // Recorded intrinsics describe the colour image when the sizes agree;
     // otherwise only its size is known (no calibration is invented).
     const auto& k = session_->manifest().intrinsics;
-    if (k && k->width == rgb.cols && k->height == rgb.rows) {
+    if (k && k->width == cols && k->height == rows) {
       frame.color_intrinsics = *k;
     } else {
       frame.color_intrinsics = Intrinsics{};
-      frame.color_intrinsics.width = rgb.cols;
-      frame.color_intrinsics.height = rgb.rows;
+      frame.color_intrinsics.width = cols;
+      frame.color_intrinsics.height = rows;
     }
   }
 

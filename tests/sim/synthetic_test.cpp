@@ -415,7 +415,7 @@ TEST(SyntheticColour, ColourNoiseHasTheRequestedSigma) {
 }
 
 TEST(SyntheticColour, TextureSampling) {
-  sim::Texture t;
+  Texture t;
   t.width = 4;
   t.height = 2;
   // Row 0 (top): red red green green; row 1: blue blue white white.
@@ -428,20 +428,20 @@ TEST(SyntheticColour, TextureSampling) {
       t.rgb.push_back(px[r][c].b);
     }
   // Texel centres: u = (i + 0.5) / 4, v = 1 - (j + 0.5) / 2.
-  EXPECT_EQ(sim::sample_texture(t, 0.125, 0.75), Rgb({255, 0, 0}));
-  EXPECT_EQ(sim::sample_texture(t, 0.875, 0.75), Rgb({0, 255, 0}));
-  EXPECT_EQ(sim::sample_texture(t, 0.125, 0.25), Rgb({0, 0, 255}));
-  EXPECT_EQ(sim::sample_texture(t, 0.875, 0.25), Rgb({255, 255, 255}));
+  EXPECT_EQ(sample_texture(t, 0.125, 0.75), Rgb({255, 0, 0}));
+  EXPECT_EQ(sample_texture(t, 0.875, 0.75), Rgb({0, 255, 0}));
+  EXPECT_EQ(sample_texture(t, 0.125, 0.25), Rgb({0, 0, 255}));
+  EXPECT_EQ(sample_texture(t, 0.875, 0.25), Rgb({255, 255, 255}));
   // Corners clamp to the edge texels; outside [0, 1] repeats.
-  EXPECT_EQ(sim::sample_texture(t, 0.0, 1.0), Rgb({255, 0, 0}));
-  EXPECT_EQ(sim::sample_texture(t, 1.0, 0.0), Rgb({255, 255, 255}));
-  EXPECT_EQ(sim::sample_texture(t, 1.125, -0.75), Rgb({0, 0, 255}));
-  EXPECT_EQ(sim::sample_texture(t, -0.125, 1.75), Rgb({0, 255, 0}));
+  EXPECT_EQ(sample_texture(t, 0.0, 1.0), Rgb({255, 0, 0}));
+  EXPECT_EQ(sample_texture(t, 1.0, 0.0), Rgb({255, 255, 255}));
+  EXPECT_EQ(sample_texture(t, 1.125, -0.75), Rgb({0, 0, 255}));
+  EXPECT_EQ(sample_texture(t, -0.125, 1.75), Rgb({0, 255, 0}));
   // Bilinear halfway between red and green texels.
-  EXPECT_EQ(sim::sample_texture(t, 0.5, 0.75), Rgb({128, 128, 0}));
+  EXPECT_EQ(sample_texture(t, 0.5, 0.75), Rgb({128, 128, 0}));
   // Non-finite coordinates do not crash.
-  sim::sample_texture(t, std::nan(""), INFINITY);
-  EXPECT_EQ(sim::sample_texture(sim::Texture{}, 0.5, 0.5), Rgb{});
+  sample_texture(t, std::nan(""), INFINITY);
+  EXPECT_EQ(sample_texture(Texture{}, 0.5, 0.5), Rgb{});
 }
 
 TEST(SyntheticColour, ObjTextureIsSampledThroughUvs) {

@@ -1,0 +1,74 @@
+#include "core/texture.h"
+
+#include <algorithm>
+#include <cmath>
+#include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include "core/error.h"
+
+namespace station {
+
+Texture load_texture(const fs::path& path) {
+  cv::Mat bgr = cv::imread(path.string(), cv::IMREAD_COLOR);
+  if (bgr.empty()) throw IoError(path.string() + ": cannot read the texture image");
+  cv::Mat rgb;
+  cv::cvtColor(bgr, rgb, cv::COLOR_BGR2RGB);
+  Texture t;
+  t.width = rgb.cols;
+  t.height = rgb.rows;
+  t.rgb.resize(std::size_t(t.width) * t.height * 3);
+  for (int r = 0; r < t.height; ++r)
+    std::copy_n(rgb.ptr<std::uint8_t>(r), std::size_t(t.width) * 3,
+                t.rgb.data() + std::size_t(r) * t.width * 3);
+  return t;
+}
+
+Rgb sample_texture(const Texture& texture, double u, double v) {
+  if (texture.empty()) return {};
+  if (!std::isfinite(u)) u = 0;
+  if (!std::isfinite(v)) v = 0;
+  // Coordinates outside [0, 1] repeat (OBJ); inside, 0 and 1 are the image edges.
+  if (u < 0 || u > 1) u -= std::floor(u);
+  if (v < 0 || v > 1) v -= std::floor(v);
+  const int w = texture.width, h = texture.height;
+  const double x = u * w - 0.5, y = (1.0 - v) * h - 0.5;
+  const int x0 = int(std::floor(x)), y0 = int(std::floor(y));
+  const double ax = x - x0, ay = y - y0;
+  // Neighbours past the edge clamp to it: atlases must not bleed across seams.
+  auto cx = [w](int i) { return std::clamp(i, 0, w - 1); };
+  auto cy = [h](int j) { return std::clamp(j, 0, h - 1); };
+  const std::uint8_t* p00 = &texture.rgb[(std::size_t(cy(y0)) * w + cx(x0)) * 3];
+  const std::uint8_t* p10 = &texture.rgb[(std::size_t(cy(y0)) * w + cx(x0 + 1)) * 3];
+  const std::uint8_t* p01 = &texture.rgb[(std::size_t(cy(y0 + 1)) * w + cx(x0)) * 3];
+  const std::uint8_t* p11 = &texture.rgb[(std::size_t(cy(y0 + 1)) * w + cx(x0 + 1)) * 3];
+  std::uint8_t out[3];
+  for (int c = 0; c < 3; ++c) {
+    const double top = p00[c] + ax * (p10[c] - p00[c]);
+    const double bottom = p01[c] + ax * (p11[c] - p01[c]);
+    out[c] = std::uint8_t(std::clamp(std::lround(top + ay * (bottom - top)), 0L, 255L));
+  }
+  return {out[0], out[1], out[2]};
+}
+
+Rgb surface_color(const TexturedMesh& mesh, const Texture& texture, int face, double u,
+                  double v) {
+  const double w0 = 1.0 - u - v;
+  if (!texture.empty() && !mesh.corner_uv.empty()) {
+    const Vec2f* uv = &mesh.corner_uv[std::size_t(face) * 3];
+    return sample_texture(texture, w0 * uv[0].x() + u * uv[1].x() + v * uv[2].x(),
+                          w0 * uv[0].y() + u * uv[1].y() + v * uv[2].y());
+  }
+  if (mesh.mesh.has_colors()) {
+    const Face& f = mesh.mesh.faces[face];
+    const Rgb &a = mesh.mesh.colors[f[0]], &b = mesh.mesh.colors[f[1]], &c = mesh.mesh.colors[f[2]];
+    auto mix = [&](std::uint8_t x, std::uint8_t y, std::uint8_t z) {
+      return std::uint8_t(std::clamp(std::lround(w0 * x + u * y + v * z), 0L, 255L));
+    };
+    return {mix(a.r, b.r, c.r), mix(a.g, b.g, c.g), mix(a.b, b.b, c.b)};
+  }
+  return {};
+}
+
+}  // namespace station
