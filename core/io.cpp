@@ -197,33 +197,38 @@ Cloud read_cloud(const fs::path& path) {
   unknown_format(path);
 }
 
-Mesh read_mesh(const fs::path& path) {
-  const std::string bytes = read_file_bytes(path);
+namespace {
+
+// Any supported file as a textured mesh (clouds: no faces); the one dispatcher
+// behind read_mesh and read_textured_mesh.
+TexturedMesh parse_any_mesh(const fs::path& path, const std::string& bytes) {
   const std::string name = path.string();
+  TexturedMesh t;
   switch (detect(path, bytes)) {
-    case Format::kPly: return parse_ply(bytes, name);
-    case Format::kObj: return parse_obj(bytes, name).mesh;
-    case Format::kOff: return parse_off(bytes, name);
+    case Format::kPly: t.mesh = parse_ply(bytes, name); return t;
+    case Format::kObj: return parse_obj(bytes, name, folder_of(path));
+    case Format::kOff: t.mesh = parse_off(bytes, name); return t;
     case Format::kPcd: {
       // A point cloud is a mesh without faces.
       Cloud c = parse_pcd(bytes, name);
-      Mesh m;
-      m.vertices = std::move(c.points);
-      m.normals = std::move(c.normals);
-      m.colors = std::move(c.colors);
-      return m;
+      t.mesh.vertices = std::move(c.points);
+      t.mesh.normals = std::move(c.normals);
+      t.mesh.colors = std::move(c.colors);
+      return t;
     }
     case Format::kUnknown: break;
   }
   unknown_format(path);
 }
 
+}  // namespace
+
+Mesh read_mesh(const fs::path& path) {
+  return parse_any_mesh(path, read_file_bytes(path)).mesh;
+}
+
 TexturedMesh read_textured_mesh(const fs::path& path) {
-  const std::string bytes = read_file_bytes(path);
-  if (detect(path, bytes) == Format::kObj) return parse_obj(bytes, path.string(), folder_of(path));
-  TexturedMesh t;
-  t.mesh = read_mesh(path);
-  return t;
+  return parse_any_mesh(path, read_file_bytes(path));
 }
 
 void write_ply(const fs::path& path, const Mesh& mesh, PlyFormat format) {

@@ -61,7 +61,10 @@ std::vector<Vec3f> face_normals(const Mesh& mesh) {
 }
 
 // Area-uniform samples with float colours (kept unrounded for the colour error).
-Queries sample_surface(const Mesh& mesh, int count, unsigned seed, const std::string& what) {
+using SurfaceColor = std::function<Rgb(int, double, double)>;
+
+Queries sample_surface(const Mesh& mesh, int count, unsigned seed, const std::string& what,
+                       const SurfaceColor& surface_color = {}) {
   if (count < 0) throw InvalidInput(what + ": negative sample count");
   if (mesh.faces.empty()) throw InvalidInput(what + ": mesh has no faces");
   mesh.check_consistent(what.c_str());
@@ -80,7 +83,7 @@ Queries sample_surface(const Mesh& mesh, int count, unsigned seed, const std::st
     throw InvalidInput(what + ": mesh has zero or non-finite area");
 
   const std::vector<Vec3f> fn = face_normals(mesh);
-  const bool colored = mesh.has_colors();
+  const bool colored = surface_color || mesh.has_colors();
   Queries out;
   out.points.resize(count);
   out.normals.resize(count);
@@ -103,7 +106,9 @@ Queries sample_surface(const Mesh& mesh, int count, unsigned seed, const std::st
                      w2 * mesh.vertices[t[2]].cast<double>())
                         .cast<float>();
     out.normals[i] = fn[f];
-    if (colored)
+    if (surface_color)
+      out.colors[i] = to_unit_rgb(surface_color(int(f), w1, w2));
+    else if (colored)
       out.colors[i] = float(w0) * to_unit_rgb(mesh.colors[t[0]]) +
                       float(w1) * to_unit_rgb(mesh.colors[t[1]]) +
                       float(w2) * to_unit_rgb(mesh.colors[t[2]]);
@@ -131,12 +136,15 @@ struct Side {
   std::string name;
   const Mesh* mesh = nullptr;
   Cloud cloud;  // used when mesh is null
+  SurfaceColor surface_color;  // only with a mesh
 
   bool has_normals() const { return mesh || cloud.has_normals(); }
-  bool has_colors() const { return mesh ? mesh->has_colors() : cloud.has_colors(); }
+  bool has_colors() const {
+    return mesh ? bool(surface_color) || mesh->has_colors() : cloud.has_colors();
+  }
 };
 
-Side prepare(const Shape& shape, const std::string& name) {
+Side prepare(const Shape& shape, const std::string& name, const SurfaceColor& surface_color) {
   Side side;
   side.name = name;
   if (const Mesh* m = std::get_if<Mesh>(&shape)) {
@@ -145,6 +153,7 @@ Side prepare(const Shape& shape, const std::string& name) {
     if (!all_finite(m->vertices)) throw InvalidInput(name + ": non-finite coordinates");
     if (!m->faces.empty()) {
       side.mesh = m;
+      side.surface_color = surface_color;
     } else {
       side.cloud.points = m->vertices;
       side.cloud.normals = m->normals;
@@ -189,7 +198,9 @@ class Target {
       const ClosestPoint cp = bvh_->closest_point(q.cast<double>());
       h.distance = cp.distance;
       h.normal = normals_[cp.face];
-      if (!colors_.empty()) {
+      if (side_.surface_color) {
+        h.color = to_unit_rgb(side_.surface_color(cp.face, cp.u, cp.v));
+      } else if (!colors_.empty()) {
         const Face& t = side_.mesh->faces[cp.face];
         h.color = float(1 - cp.u - cp.v) * colors_[t[0]] + float(cp.u) * colors_[t[1]] +
                   float(cp.v) * colors_[t[2]];
@@ -288,8 +299,8 @@ Cloud sample_mesh(const Mesh& mesh, int count, unsigned seed) {
 EvalResult evaluate(const Shape& a, const Shape& b, const EvalParams& params) {
   if (params.mesh_samples <= 0) throw InvalidInput("eval: mesh_samples must be positive");
   if (params.threads < 0) throw InvalidInput("eval: threads must be >= 0");
-  const Side side_a = prepare(a, "A");
-  const Side side_b = prepare(b, "B");
+  const Side side_a = prepare(a, "A", params.a_surface_color);
+  const Side side_b = prepare(b, "B", params.b_surface_color);
 
   const int threads =
       params.threads > 0 ? params.threads : tbb::this_task_arena::max_concurrency();
@@ -301,7 +312,8 @@ EvalResult evaluate(const Shape& a, const Shape& b, const EvalParams& params) {
     // Sampling is sequential per mesh (one seeded stream); the four set-up jobs
     // are independent, so they overlap.
     auto queries_of = [&](const Side& s, Queries& q) {
-      q = s.mesh ? sample_surface(*s.mesh, params.mesh_samples, params.seed, s.name)
+      q = s.mesh ? sample_surface(*s.mesh, params.mesh_samples, params.seed, s.name,
+                                  s.surface_color)
                  : cloud_queries(s.cloud);
     };
     tbb::parallel_invoke([&] { queries_of(side_a, qa); }, [&] { queries_of(side_b, qb); },

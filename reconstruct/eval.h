@@ -1,6 +1,7 @@
 #pragma once
 // Evaluation metrics between two clouds or meshes (`station eval A B`). Every
 // later stage is judged with these. Distances are in the inputs' units.
+#include <functional>
 #include <optional>
 #include <variant>
 
@@ -15,6 +16,11 @@ struct EvalParams {
   unsigned seed = 1;
   /// Threads for the distance queries (0 = all cores).
   int threads = 0;
+  /// Colour of mesh A / mesh B at a surface point (face index, barycentrics u, v
+  /// with point = (1-u-v) a + u b + v c), e.g. from a texture (core/texture.h
+  /// surface_color). When set, it replaces the mesh's vertex colours and makes the
+  /// mesh count as coloured; ignored for clouds. Must be thread-safe.
+  std::function<Rgb(int face, double u, double v)> a_surface_color, b_surface_color;
 };
 
 struct DirectedStats {

@@ -19,6 +19,7 @@
 #include "capture/session.h"
 #include "core/error.h"
 #include "core/io.h"
+#include "core/texture.h"
 #include "drivers/registry.h"
 #include "drivers/v4l2_probe.h"
 #include "reconstruct/eval.h"
@@ -250,10 +251,27 @@ int cmd_replay(const Common& c, const std::string& source, const std::string& ou
 
 // ---- eval ----------------------------------------------------------------------
 
-Shape read_shape(const fs::path& p) {
-  Mesh m = read_mesh(p);
-  if (!m.faces.empty()) return m;
-  return m.as_cloud();
+/// An eval input: a cloud, or a mesh with its texture when it has one.
+struct EvalInput {
+  TexturedMesh textured;
+  Texture texture;
+  bool is_mesh = false;
+  Shape shape() const {
+    if (is_mesh) return textured.mesh;
+    return textured.mesh.as_cloud();
+  }
+  /// The texture as a surface colour, when there is one.
+  std::function<Rgb(int, double, double)> surface_color() const {
+    if (texture.empty() || textured.corner_uv.empty()) return {};
+    return [this](int f, double u, double v) { return station::surface_color(textured, texture, f, u, v); };
+  }
+};
+
+void read_eval_input(const fs::path& p, EvalInput& in) {
+  in.textured = read_textured_mesh(p);
+  in.is_mesh = !in.textured.mesh.faces.empty();
+  if (in.is_mesh && !in.textured.texture.empty() && !in.textured.corner_uv.empty())
+    in.texture = load_texture(in.textured.texture);
 }
 
 std::string stats_json(const DirectedStats& s, JsonObject& j) {
@@ -264,8 +282,13 @@ std::string stats_json(const DirectedStats& s, JsonObject& j) {
 int cmd_eval(const Common& c, const std::string& a, const std::string& b, int samples, unsigned seed) {
   const auto t0 = std::chrono::steady_clock::now();
   StationConfig cfg = load_common(c);
-  Shape sa = read_shape(a), sb = read_shape(b);
+  EvalInput ia, ib;
+  read_eval_input(a, ia);
+  read_eval_input(b, ib);
+  const Shape sa = ia.shape(), sb = ib.shape();
   EvalParams params;
+  params.a_surface_color = ia.surface_color();
+  params.b_surface_color = ib.surface_color();
   params.mesh_samples = samples;
   params.seed = seed;
   params.threads = cfg.threads;

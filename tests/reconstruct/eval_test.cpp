@@ -267,6 +267,39 @@ TEST(Evaluate, ColourInterpolatedAtTheClosestPoint) {
   EXPECT_LT(*r.color_error, 1.0 / 255);  // only the 8-bit rounding of two channels
 }
 
+TEST(Evaluate, SurfaceColourFunctionOverridesVertexColours) {
+  // A mesh B without vertex colours, coloured by a function of the surface point:
+  // red where x < 0, blue elsewhere (as a texture with a sharp boundary would be).
+  const Mesh b = square(0);
+  auto half = [&](int f, double u, double v) {
+    const Face& t = b.faces[f];
+    const Vec3f p = float(1 - u - v) * b.vertices[t[0]] + float(u) * b.vertices[t[1]] +
+                    float(v) * b.vertices[t[2]];
+    return p.x() < 0 ? Rgb{255, 0, 0} : Rgb{0, 0, 255};
+  };
+  Cloud a;  // a result whose colours follow the same boundary
+  for (int i = 0; i < 100; ++i)
+    for (int j = 0; j < 100; ++j) {
+      const float x = -0.995f + i * 0.02f, y = -0.995f + j * 0.02f;
+      a.points.push_back(Vec3f(x, y, 0));
+      a.colors.push_back(x < 0 ? Rgb{255, 0, 0} : Rgb{0, 0, 255});
+    }
+  EvalParams p = params_with(20000);
+  EXPECT_FALSE(evaluate(a, b, p).color_error.has_value());
+  p.b_surface_color = half;
+  const EvalResult r = evaluate(a, b, p);
+  ASSERT_TRUE(r.color_error.has_value());
+  // Only samples within half a grid step of the boundary can pick the other side.
+  EXPECT_LT(*r.color_error, 0.03);
+  // A result coloured all red is wrong on B's blue half: e_col = 2 * 1/2.
+  a.colors.assign(a.size(), Rgb{255, 0, 0});
+  EXPECT_NEAR(*evaluate(a, b, p).color_error, 1.0, 0.03);
+  // The function also colours mesh A at its closest points (swapped roles).
+  EvalParams q = params_with(20000);
+  q.a_surface_color = half;
+  EXPECT_NEAR(*evaluate(b, a, q).color_error, 1.0, 0.03);
+}
+
 TEST(Evaluate, ColourErrorAbsentWithoutColours) {
   const Mesh m = icosphere(2);
   EXPECT_FALSE(evaluate(m, m, params_with(1000)).color_error.has_value());

@@ -89,6 +89,10 @@ TEST(Cli, ScanOfTheBundledSampleMatchesTheMesh) {
   ASSERT_EQ(e.code, 0) << e.out;
   const double chamfer = json_number(e.out, "chamfer");
   RecordProperty("chamfer_m", std::to_string(chamfer));
+  // The reference is textured, so colour is compared too (sim colour noise sigma = 2/255).
+  const double e_col = json_number(e.out, "color_error");
+  EXPECT_GT(e_col, 0) << e.out;
+  EXPECT_LT(e_col, 0.15) << e.out;
   EXPECT_GT(chamfer, 0);
   EXPECT_LT(chamfer, 3 * noise) << e.out;
 }
