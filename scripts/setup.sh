@@ -9,7 +9,9 @@ pkgs=(cmake g++ make pkg-config ccache
       libpcl-dev libopencv-dev libusb-1.0-0-dev linux-libc-dev
       libyaml-cpp-dev libcli11-dev libtbb-dev libgtest-dev)
 if [[ "${1:-}" == "--bench" ]]; then
-  pkgs+=(libcgal-dev libvtk9-dev python3-open3d)
+  # Anchors of bench/: Open3D 0.16 (C++), Embree 3 (Open3D's ray caster, driven
+  # directly); PCL is in the base list already.
+  pkgs+=(libopen3d-dev libembree-dev)
 fi
 
 missing=()

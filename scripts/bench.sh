@@ -1,0 +1,12 @@
+#!/usr/bin/env bash
+# Installs the anchor libraries (scripts/setup.sh --bench), builds station_bench
+# in ./build-bench (Release, tests off) and runs it: our hot paths against
+# Embree/Open3D/PCL in one process, one table (docs/benchmarks.md).
+# Extra args go to station_bench (--threads N, --reps N, --generate, --only GROUP).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+scripts/setup.sh --bench
+cmake -S . -B build-bench -DCMAKE_BUILD_TYPE=Release \
+  -DSTATION_BUILD_BENCH=ON -DSTATION_BUILD_TESTS=OFF >/dev/null
+cmake --build build-bench -j"$(nproc)" --target station_bench >/dev/null
+build-bench/bin/station_bench "$@"
