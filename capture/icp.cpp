@@ -1,0 +1,322 @@
+#include "capture/icp.h"
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+#include <tbb/parallel_reduce.h>
+
+#include <Eigen/Eigenvalues>
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <unordered_map>
+
+#include "core/kdtree.h"
+
+namespace station {
+
+namespace {
+
+constexpr double kDeg = M_PI / 180.0;
+
+// Accumulated normal equations; reduced over threads in a fixed split order.
+struct Normal6 {
+  Matrix6d A = Matrix6d::Zero();
+  Vector6d b = Vector6d::Zero();
+  double sq_euclid = 0, sq_plane = 0;
+  std::size_t n = 0;
+  void add(const Normal6& o) {
+    A += o.A;
+    b += o.b;
+    sq_euclid += o.sq_euclid;
+    sq_plane += o.sq_plane;
+    n += o.n;
+  }
+};
+
+}  // namespace
+
+Eigen::Matrix4d motion_exp(const Vector6d& x) {
+  Eigen::Matrix4d T = Eigen::Matrix4d::Identity();
+  const Vec3d w = x.head<3>();
+  const double angle = w.norm();
+  if (angle > 0) T.block<3, 3>(0, 0) = Eigen::AngleAxisd(angle, w / angle).toRotationMatrix();
+  T.block<3, 1>(0, 3) = x.tail<3>();
+  return T;
+}
+
+Eigen::Matrix4d rigid_inverse(const Eigen::Matrix4d& T) {
+  Eigen::Matrix4d inv = Eigen::Matrix4d::Identity();
+  const Eigen::Matrix3d Rt = T.block<3, 3>(0, 0).transpose();
+  inv.block<3, 3>(0, 0) = Rt;
+  inv.block<3, 1>(0, 3) = -Rt * T.block<3, 1>(0, 3);
+  return inv;
+}
+
+double rotation_angle_deg(const Eigen::Matrix4d& T) {
+  const double c = std::clamp((T.block<3, 3>(0, 0).trace() - 1.0) / 2.0, -1.0, 1.0);
+  // acos loses precision near 0; use the sine part too.
+  const Eigen::Matrix3d R = T.block<3, 3>(0, 0);
+  const double s = 0.5 * Vec3d(R(2, 1) - R(1, 2), R(0, 2) - R(2, 0), R(1, 0) - R(0, 1)).norm();
+  return std::atan2(s, c) / kDeg;
+}
+
+std::vector<Vec3f> voxel_downsample(const std::vector<Vec3f>& points, double voxel_size) {
+  if (voxel_size <= 0) return points;
+  struct Acc {
+    Vec3d sum = Vec3d::Zero();
+    int n = 0;
+    std::size_t first = 0;  // first point index: gives a deterministic output order
+  };
+  std::unordered_map<std::uint64_t, Acc> cells;
+  cells.reserve(points.size() / 2 + 1);
+  const double inv = 1.0 / voxel_size;
+  for (std::size_t i = 0; i < points.size(); ++i) {
+    const Vec3f& p = points[i];
+    // 21 bits per axis (offset so negatives pack): +-1 km at 1 mm voxels.
+    const auto key_of = [&](float c) {
+      return std::uint64_t(std::int64_t(std::floor(c * inv)) + (1 << 20)) & 0x1fffff;
+    };
+    const std::uint64_t key = key_of(p.x()) | (key_of(p.y()) << 21) | (key_of(p.z()) << 42);
+    auto [it, fresh] = cells.try_emplace(key);
+    if (fresh) it->second.first = i;
+    it->second.sum += p.cast<double>();
+    ++it->second.n;
+  }
+  std::vector<std::pair<std::size_t, Vec3f>> out;
+  out.reserve(cells.size());
+  for (const auto& [key, acc] : cells) out.emplace_back(acc.first, (acc.sum / acc.n).cast<float>());
+  std::sort(out.begin(), out.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
+  std::vector<Vec3f> result;
+  result.reserve(out.size());
+  for (auto& [i, p] : out) result.push_back(p);
+  return result;
+}
+
+std::vector<std::size_t> statistical_inliers(const std::vector<Vec3f>& points, int k,
+                                             double std_ratio) {
+  std::vector<std::size_t> keep;
+  if (k <= 0 || points.size() <= std::size_t(k) + 1) {
+    keep.resize(points.size());
+    for (std::size_t i = 0; i < points.size(); ++i) keep[i] = i;
+    return keep;
+  }
+  const PointIndex index(points);
+  std::vector<double> mean_dist(points.size());
+  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, points.size(), 512),
+                    [&](const tbb::blocked_range<std::size_t>& r) {
+                      for (std::size_t i = r.begin(); i != r.end(); ++i) {
+                        const auto nn = index.knn(points[i], k + 1);  // includes the point itself
+                        double s = 0;
+                        for (std::size_t j = 1; j < nn.size(); ++j) s += nn[j].second;
+                        mean_dist[i] = nn.size() > 1 ? s / double(nn.size() - 1) : 0.0;
+                      }
+                    });
+  double mean = 0, sq = 0;
+  for (double d : mean_dist) mean += d;
+  mean /= double(points.size());
+  for (double d : mean_dist) sq += (d - mean) * (d - mean);
+  const double threshold = mean + std_ratio * std::sqrt(sq / double(points.size()));
+  for (std::size_t i = 0; i < points.size(); ++i)
+    if (mean_dist[i] <= threshold) keep.push_back(i);
+  return keep;
+}
+
+std::vector<Vec3f> pca_normals(const PointIndex& index, int k, const Vec3f& viewpoint) {
+  const std::vector<Vec3f>& pts = index.points();
+  std::vector<Vec3f> normals(pts.size(), Vec3f::Zero());
+  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, pts.size(), 256),
+                    [&](const tbb::blocked_range<std::size_t>& r) {
+                      for (std::size_t i = r.begin(); i != r.end(); ++i) {
+                        const auto nn = index.knn(pts[i], k);
+                        Vec3f n = (viewpoint - pts[i]).normalized();  // fallback: face the sensor
+                        if (nn.size() >= 3) {
+                          Vec3d c = Vec3d::Zero();
+                          for (const auto& [j, d] : nn) c += pts[j].cast<double>();
+                          c /= double(nn.size());
+                          Eigen::Matrix3d cov = Eigen::Matrix3d::Zero();
+                          for (const auto& [j, d] : nn) {
+                            const Vec3d q = pts[j].cast<double>() - c;
+                            cov += q * q.transpose();
+                          }
+                          Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es(cov);
+                          n = es.eigenvectors().col(0).cast<float>();
+                        }
+                        if (n.dot(viewpoint - pts[i]) < 0) n = -n;
+                        normals[i] = n;
+                      }
+                    });
+  return normals;
+}
+
+PreparedView prepare_view(const Cloud& cloud, const PrepareParams& params) {
+  PreparedView v;
+  // Non-finite points first: a NaN would poison the index and every sum.
+  Cloud finite;
+  for (std::size_t i = 0; i < cloud.size(); ++i) {
+    if (!cloud.points[i].allFinite()) continue;
+    finite.points.push_back(cloud.points[i]);
+    if (cloud.has_normals() && cloud.normals.size() == cloud.size())
+      finite.normals.push_back(cloud.normals[i]);
+    if (cloud.has_colors() && cloud.colors.size() == cloud.size())
+      finite.colors.push_back(cloud.colors[i]);
+  }
+  if (finite.normals.size() != finite.size()) finite.normals.clear();
+  if (finite.colors.size() != finite.size()) finite.colors.clear();
+  v.dropped_nonfinite = cloud.size() - finite.size();
+
+  const std::vector<std::size_t> keep =
+      statistical_inliers(finite.points, params.outlier_neighbors, params.outlier_std_ratio);
+  v.dropped_outliers = finite.size() - keep.size();
+  for (std::size_t i : keep) {
+    v.full.points.push_back(finite.points[i]);
+    if (finite.has_normals()) v.full.normals.push_back(finite.normals[i]);
+    if (finite.has_colors()) v.full.colors.push_back(finite.colors[i]);
+  }
+  v.points = voxel_downsample(v.full.points, params.voxel_size);
+  v.index = std::make_shared<PointIndex>(v.points);
+  v.normals = pca_normals(*v.index, params.normal_neighbors, Vec3f::Zero());
+  return v;
+}
+
+IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& target,
+                             const Eigen::Matrix4d& initial, const IcpParams& params) {
+  IcpResult res;
+  res.transform = initial;
+  if (source.points.empty() || target.points.empty() || !target.index) {
+    res.message = source.points.empty() ? "source view has no points" : "target view has no points";
+    return res;
+  }
+  if (!initial.allFinite()) {
+    res.message = "initial transform is not finite";
+    return res;
+  }
+  const std::vector<Vec3f>& tp = target.points;
+  const std::vector<Vec3f>& tn = target.normals;
+  const double cos_max = std::cos(params.max_normal_angle_deg * kDeg);
+  const bool symmetric = params.objective == IcpObjective::kSymmetric;
+  const bool point_to_point = params.objective == IcpObjective::kPointToPoint;
+  const double shrink = std::clamp(params.shrink, 0.05, 1.0);
+  const double d_end = params.max_distance_end;
+  double d_max = std::max(params.max_distance_start, d_end);
+  Eigen::Matrix4d T = initial;
+
+  // One pass of correspondences + normal equations at the current T and d_max.
+  const auto linearise = [&](const Eigen::Matrix4d& Tc, double dmax) {
+    const Eigen::Matrix3f R = Tc.block<3, 3>(0, 0).cast<float>();
+    const Vec3f t = Tc.block<3, 1>(0, 3).cast<float>();
+    const double huber = params.huber_fraction > 0 ? params.huber_fraction * dmax : 0.0;
+    const std::size_t grain = 256;
+    return tbb::parallel_reduce(
+        tbb::blocked_range<std::size_t>(0, source.points.size(), grain), Normal6{},
+        [&](const tbb::blocked_range<std::size_t>& r, Normal6 acc) {
+          for (std::size_t i = r.begin(); i != r.end(); ++i) {
+            const Vec3f p = R * source.points[i] + t;
+            const auto [j, dist] = target.index->nearest(p);
+            if (j < 0 || dist > dmax) continue;
+            const Vec3f& n = tn[j];
+            Vec3f ns = Vec3f::Zero();
+            if (!source.normals.empty()) {
+              ns = R * source.normals[i];
+              if (double(ns.dot(n)) < cos_max) continue;
+            }
+            const Vec3d pd = p.cast<double>();
+            // Symmetric objective: the mean of both normals cancels the
+            // first-order bias of either normal (Rusinkiewicz 2019).
+            const Vec3d nd = (symmetric && !source.normals.empty()) ? Vec3d((n + ns).normalized().cast<double>())
+                                                                   : Vec3d(n.cast<double>());
+            const double res_plane = nd.dot(pd - tp[j].cast<double>());
+            if (point_to_point) {
+              // Three residuals p - q with d/dx = [-[p]x, I].
+              const Vec3d r3 = pd - tp[j].cast<double>();
+              Eigen::Matrix<double, 3, 6> J3;
+              J3.block<3, 3>(0, 0) << 0, pd.z(), -pd.y(), -pd.z(), 0, pd.x(), pd.y(), -pd.x(), 0;
+              J3.block<3, 3>(0, 3).setIdentity();
+              const double a = r3.norm();
+              const double w = (huber > 0 && a > huber) ? huber / a : 1.0;
+              acc.A.noalias() += w * J3.transpose() * J3;
+              acc.b.noalias() += w * J3.transpose() * r3;
+            } else {
+              Vector6d J;
+              J.head<3>() = pd.cross(nd);
+              J.tail<3>() = nd;
+              // Huber weight: quadratic near zero, linear beyond the threshold.
+              const double a = std::abs(res_plane);
+              const double w = (huber > 0 && a > huber) ? huber / a : 1.0;
+              acc.A.noalias() += w * J * J.transpose();
+              acc.b.noalias() += w * J * res_plane;
+            }
+            acc.sq_euclid += double(dist) * double(dist);
+            acc.sq_plane += res_plane * res_plane;
+            ++acc.n;
+          }
+          return acc;
+        },
+        [](Normal6 a, const Normal6& b) {
+          a.add(b);
+          return a;
+        },
+        tbb::static_partitioner());
+  };
+
+  bool small_step = false;
+  for (int it = 0; it < params.max_iterations; ++it) {
+    const Normal6 sys = linearise(T, d_max);
+    res.iterations = it + 1;
+    if (sys.n < std::size_t(std::max(params.min_correspondences, 6))) {
+      res.message = "too few correspondences (" + std::to_string(sys.n) + " within " +
+                    std::to_string(d_max) + " m)";
+      res.correspondences = sys.n;
+      return res;
+    }
+    // A tiny ridge keeps a rank-deficient (degenerate) system solvable; the
+    // caller detects degeneracy from the Hessian itself.
+    const double ridge = 1e-9 * sys.A.trace() / 6.0;
+    const Vector6d x = (sys.A + ridge * Matrix6d::Identity()).ldlt().solve(-sys.b);
+    if (!x.allFinite()) {
+      res.message = "ill-posed point-to-plane system";
+      return res;
+    }
+    T = motion_exp(x) * T;
+    const bool tiny = x.head<3>().norm() < params.convergence_rotation &&
+                      x.tail<3>().norm() < params.convergence_translation;
+    const bool at_end = d_max <= d_end * (1 + 1e-9);
+    if (tiny && at_end) {
+      small_step = true;
+      break;
+    }
+    // Shrink only once the current distance has settled a little, so a coarse
+    // start still pulls the views together before the fine stage.
+    if (!at_end && (tiny || x.head<3>().norm() < 1e-3)) d_max = std::max(d_end, d_max * shrink);
+    else if (!at_end) d_max = std::max(d_end, d_max * std::sqrt(shrink));
+  }
+  res.transform = T;
+  // Final diagnostics at the fine distance.
+  const Normal6 fin = linearise(T, d_end);
+  res.correspondences = fin.n;
+  res.fitness = double(fin.n) / double(source.points.size());
+  res.inlier_rmse = fin.n ? std::sqrt(fin.sq_euclid / double(fin.n)) : 0.0;
+  res.plane_rmse = fin.n ? std::sqrt(fin.sq_plane / double(fin.n)) : 0.0;
+  res.hessian = fin.A;
+  if (fin.n < std::size_t(std::max(params.min_correspondences, 6))) {
+    res.message = "too few correspondences at the end (" + std::to_string(fin.n) + ")";
+  } else if (res.fitness < params.min_fitness) {
+    res.message = "overlap too small (fitness " + std::to_string(res.fitness) + " < " +
+                  std::to_string(params.min_fitness) + ")";
+  } else if (!small_step) {
+    // Iteration budget spent: accept when the last steps were already tiny at
+    // the fine distance, judged by the current system.
+    const double ridge = 1e-9 * fin.A.trace() / 6.0;
+    const Vector6d x = (fin.A + ridge * Matrix6d::Identity()).ldlt().solve(-fin.b);
+    if (x.allFinite() && x.head<3>().norm() < 1e-4 && x.tail<3>().norm() < 1e-5) {
+      res.converged = true;
+    } else {
+      res.message = "did not converge in " + std::to_string(params.max_iterations) + " iterations";
+    }
+  } else {
+    res.converged = true;
+  }
+  return res;
+}
+
+}  // namespace station

@@ -1,0 +1,134 @@
+#pragma once
+// Per-view preparation for registration and pairwise point-to-plane ICP.
+//
+// Preparation (`prepare_view`): non-finite points dropped, statistical outlier
+// removal (Rusu et al. 2008, "Towards 3D point cloud based object maps for
+// household environments", sec. 4), a voxel-grid downsampled copy for
+// registration only (voxel centroids), and PCA normals oriented towards the
+// sensor at the scanner-frame origin.
+//
+// ICP (`icp_point_to_plane`): Chen & Medioni 1992 point-to-plane error, each
+// step the linearised 6x6 normal equations (Low 2004, "Linear least-squares
+// optimization for point-to-plane ICP surface registration"), with a maximum
+// correspondence distance shrinking geometrically from a coarse to a fine value
+// (as in Rusinkiewicz & Levoy 2001's distance rejection), normal-compatibility
+// rejection, and a Huber weight. Correspondence search runs in parallel (TBB)
+// over a PointIndex of the target; results are deterministic for a given input.
+//
+// Guards: fewer than `min_correspondences` matches, or a final overlap (fitness)
+// below `min_fitness`, or a non-finite/ill-posed system, is reported as a
+// failure (`converged = false`, `message` says why), never as a pose that only
+// looks converged.
+#include <Eigen/Core>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "core/geometry.h"
+
+namespace station {
+
+class PointIndex;
+
+/// 6x6 matrices in the (rotation, translation) order used throughout
+/// registration: a small motion x = (w, v) moves a point p to p + w x p + v.
+using Matrix6d = Eigen::Matrix<double, 6, 6>;
+using Vector6d = Eigen::Matrix<double, 6, 1>;
+
+struct PrepareParams {
+  /// Voxel edge for the registration copy, metres; 0: no downsampling.
+  double voxel_size = 0.0;
+  /// Statistical outlier removal: neighbours per point (k), 0 disables it.
+  int outlier_neighbors = 16;
+  /// A point is an outlier when its mean distance to its k neighbours exceeds
+  /// mean + outlier_std_ratio * standard deviation over the view (Rusu's alpha).
+  double outlier_std_ratio = 3.0;
+  /// Neighbours for the PCA normal of each registration point.
+  int normal_neighbors = 16;
+};
+
+/// A view ready for registration. Scanner frame throughout.
+struct PreparedView {
+  Cloud full;                        ///< outliers and non-finite points removed (attributes kept)
+  std::vector<Vec3f> points;         ///< downsampled registration points, N
+  std::vector<Vec3f> normals;        ///< N unit normals facing the sensor (origin)
+  std::shared_ptr<PointIndex> index; ///< over `points`
+  std::size_t dropped_nonfinite = 0;
+  std::size_t dropped_outliers = 0;
+};
+
+/// Voxel-grid downsampling: one point per occupied voxel (the centroid of its
+/// points), in a deterministic order. `voxel_size` <= 0 returns the points as they are.
+std::vector<Vec3f> voxel_downsample(const std::vector<Vec3f>& points, double voxel_size);
+
+/// Indices of the points kept by statistical outlier removal (Rusu et al. 2008).
+std::vector<std::size_t> statistical_inliers(const std::vector<Vec3f>& points, int k,
+                                             double std_ratio);
+
+/// PCA normals (smallest eigenvector of the k-neighbour covariance), oriented
+/// towards `viewpoint` (the sensor; the scanner-frame origin for raw views).
+std::vector<Vec3f> pca_normals(const PointIndex& index, int k, const Vec3f& viewpoint);
+
+/// Runs the preparation above. Never throws on empty input: an empty view gives
+/// an empty PreparedView (the caller reports it).
+PreparedView prepare_view(const Cloud& cloud, const PrepareParams& params);
+
+/// Error minimised by ICP.
+enum class IcpObjective {
+  kPointToPlane,  ///< (p - q) . n_q (Chen & Medioni 1992)
+  kSymmetric,     ///< (p - q) . (n_p + n_q), linearised (Rusinkiewicz 2019, "A symmetric objective function for ICP")
+  kPointToPoint,  ///< |p - q|^2 (Besl & McKay 1992), same linearised solver
+};
+
+struct IcpParams {
+  IcpObjective objective = IcpObjective::kPointToPlane;
+  /// Maximum correspondence distance of the first iteration, metres.
+  double max_distance_start = 0.01;
+  /// Final maximum correspondence distance, metres (reached by shrinking).
+  double max_distance_end = 0.002;
+  /// Factor applied to the maximum distance after each iteration (in (0, 1]).
+  double shrink = 0.85;
+  int max_iterations = 60;
+  /// Stop (at the final distance) when an update is smaller than this (radians, metres).
+  double convergence_rotation = 1e-6;
+  double convergence_translation = 1e-6;
+  /// Correspondences whose normals differ by more than this are dropped, degrees.
+  double max_normal_angle_deg = 60.0;
+  /// Huber threshold on point-to-plane residuals, as a fraction of the current
+  /// maximum distance (robust weighting; 0 disables it).
+  double huber_fraction = 0.3;
+  /// Guards: at least this many correspondences ...
+  int min_correspondences = 50;
+  /// ... and at least this fraction of source points matched at the end.
+  double min_fitness = 0.15;
+};
+
+/// ICP outcome. `transform` maps source points onto the target:
+/// q_target = transform * p_source.
+struct IcpResult {
+  Eigen::Matrix4d transform = Eigen::Matrix4d::Identity();
+  bool converged = false;       ///< the guards passed and the update became small
+  int iterations = 0;
+  std::size_t correspondences = 0;  ///< inliers at max_distance_end
+  double fitness = 0;           ///< correspondences / source points
+  double inlier_rmse = 0;       ///< Euclidean distance of inlier pairs, metres
+  double plane_rmse = 0;        ///< point-to-plane distance of inlier pairs, metres
+  /// J^T J of the final point-to-plane system (rotation about the target-frame
+  /// origin, then translation); the information of the estimate for a pose graph.
+  Matrix6d hessian = Matrix6d::Zero();
+  std::string message;          ///< why it failed (empty when converged)
+};
+
+/// Point-to-plane ICP of `source` (points + normals) onto `target` (points,
+/// normals and index), starting from `initial` (target <- source).
+IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& target,
+                             const Eigen::Matrix4d& initial, const IcpParams& params = {});
+
+/// Rotation angle of a rigid transform's 3x3 block, degrees.
+double rotation_angle_deg(const Eigen::Matrix4d& T);
+/// exp of a small motion x = (w, v): [Rodrigues(w) | v].
+Eigen::Matrix4d motion_exp(const Vector6d& x);
+/// Inverse of a rigid transform.
+Eigen::Matrix4d rigid_inverse(const Eigen::Matrix4d& T);
+
+}  // namespace station

@@ -1,0 +1,59 @@
+#pragma once
+// Pose-graph optimisation over SE(3) (Lu & Milios 1997; the information-matrix
+// form of Choi, Zhou & Koltun 2015, "Robust reconstruction of indoor scenes",
+// sec. 4): nodes are view poses X_i (object <- scanner i), edges measured
+// relative motions Z_ij ~ X_i^-1 X_j with a 6x6 information matrix. Minimises
+//   sum_edges e_ij^T Omega_ij e_ij,   e_ij = log(X_i^-1 X_j Z_ij^-1)
+// (rotation part as an axis-angle vector, translation part as is: the small
+// motion of frame i that ICP's Hessian describes) by Gauss-Newton on left
+// perturbations X_i <- exp(delta_i) X_i, dense normal equations (a turntable
+// session has tens of views, so 6N unknowns solve in microseconds), Jacobians
+// by central differences. One node is held fixed (the gauge); nodes without
+// edges stay where they are.
+#include <Eigen/Core>
+#include <vector>
+
+#include "capture/icp.h"
+
+namespace station {
+
+struct PoseGraphEdge {
+  int from = 0;  ///< i
+  int to = 0;    ///< j
+  /// Z_ij: maps view j's scanner-frame points into view i's (an ICP result with
+  /// view i as target).
+  Eigen::Matrix4d measurement = Eigen::Matrix4d::Identity();
+  /// 6x6, rotation first, for a small motion of frame i about its origin.
+  Matrix6d information = Matrix6d::Identity();
+};
+
+struct PoseGraphParams {
+  int max_iterations = 20;
+  /// Stop when the largest node update is below this (radians / metres).
+  double tolerance = 1e-10;
+  int fixed_node = 0;  ///< gauge
+};
+
+struct PoseGraphResult {
+  std::vector<Eigen::Matrix4d> poses;
+  int iterations = 0;
+  double initial_cost = 0;
+  double final_cost = 0;
+  bool converged = false;
+  /// Per edge after optimisation: rotation (degrees) and translation (metres)
+  /// left between X_i^-1 X_j and the measurement.
+  std::vector<double> edge_rotation_deg;
+  std::vector<double> edge_translation;
+};
+
+/// Optimises `poses` (initial guess, one per node) against `edges`.
+/// InvalidInput on an edge naming a node out of range.
+PoseGraphResult optimize_pose_graph(std::vector<Eigen::Matrix4d> poses,
+                                    const std::vector<PoseGraphEdge>& edges,
+                                    const PoseGraphParams& params = {});
+
+/// e = (log R, t) of X_i^-1 X_j Z^-1 (the edge error above).
+Vector6d pose_graph_error(const Eigen::Matrix4d& Xi, const Eigen::Matrix4d& Xj,
+                          const Eigen::Matrix4d& Z);
+
+}  // namespace station

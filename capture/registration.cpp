@@ -1,0 +1,559 @@
+#include "capture/registration.h"
+
+#include <tbb/parallel_for.h>
+#include <yaml-cpp/yaml.h>
+
+#include <Eigen/Eigenvalues>
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <set>
+#include <sstream>
+
+#include "capture/capture.h"
+#include "capture/pose_graph.h"
+#include "core/atomic_file.h"
+#include "core/error.h"
+#include "core/kdtree.h"
+
+namespace station {
+
+const char* to_string(InitialPoseSource s) {
+  switch (s) {
+    case InitialPoseSource::kInitialPose: return "initial_pose";
+    case InitialPoseSource::kTurntableAxis: return "turntable_axis";
+    case InitialPoseSource::kEstimatedAxis: return "estimated_axis";
+    case InitialPoseSource::kNone: return "none";
+  }
+  return "none";
+}
+
+std::pair<double, double> relative_pose_error(const Eigen::Matrix4d& A0, const Eigen::Matrix4d& A,
+                                              const Eigen::Matrix4d& B0, const Eigen::Matrix4d& B) {
+  const Eigen::Matrix4d ra = rigid_inverse(A0) * A;
+  const Eigen::Matrix4d rb = rigid_inverse(B0) * B;
+  const double rot = rotation_angle_deg(rigid_inverse(ra) * rb);
+  const double trans = (ra.block<3, 1>(0, 3) - rb.block<3, 1>(0, 3)).norm();
+  return {rot, trans};
+}
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+double seconds_since(Clock::time_point t0) {
+  return std::chrono::duration<double>(Clock::now() - t0).count();
+}
+
+double median_of(std::vector<double> v) {
+  if (v.empty()) return 0;
+  std::sort(v.begin(), v.end());
+  const std::size_t n = v.size();
+  return n % 2 ? v[n / 2] : 0.5 * (v[n / 2 - 1] + v[n / 2]);
+}
+
+Eigen::Matrix3d skew(const Vec3d& a) {
+  Eigen::Matrix3d m;
+  m << 0, -a.z(), a.y(), a.z(), 0, -a.x(), -a.y(), a.x(), 0;
+  return m;
+}
+
+Vec3d centroid(const std::vector<Vec3f>& pts) {
+  Vec3d c = Vec3d::Zero();
+  for (const Vec3f& p : pts) c += p.cast<double>();
+  return pts.empty() ? c : Vec3d(c / double(pts.size()));
+}
+
+std::string view_name(const SessionManifest& m, std::size_t i) {
+  return "views[" + std::to_string(i) + "] (" + m.views[i].file + ")";
+}
+
+struct HessianAnalysis {
+  double ratio = 1;         // smallest / largest eigenvalue
+  bool about_axis = false;  // the weakest direction is a rotation about the axis
+};
+
+// The ICP Hessian is for motions about the target frame's origin, in radians
+// and metres; moved to the overlap's centroid and scaled by the object size,
+// its eigenvalues compare rotations and translations fairly.
+HessianAnalysis analyse_hessian(const Matrix6d& H, const Vec3d& c, double scale,
+                                const std::optional<Vec3d>& axis_dir) {
+  HessianAnalysis a;
+  Matrix6d A = Matrix6d::Identity();
+  A.block<3, 3>(3, 0) = skew(c);
+  Matrix6d D = Matrix6d::Identity();
+  D.block<3, 3>(0, 0) *= 1.0 / std::max(scale, 1e-9);
+  const Matrix6d Hn = D * A.transpose() * H * A * D;
+  Eigen::SelfAdjointEigenSolver<Matrix6d> es(Hn);
+  const double top = es.eigenvalues()(5);
+  if (!(top > 0)) return a;
+  a.ratio = std::max(0.0, es.eigenvalues()(0)) / top;
+  const Vector6d v = es.eigenvectors().col(0);
+  if (axis_dir) a.about_axis = std::abs(v.head<3>().dot(*axis_dir)) > 0.7 * v.norm();
+  return a;
+}
+
+struct Pair {
+  int from, to;
+  bool loop;
+};
+
+class Registrar {
+ public:
+  Registrar(const std::vector<Cloud>& clouds, const SessionManifest& m, const RegistrationParams& p,
+            const RegistrationCallback& cb)
+      : clouds_(clouds), m_(m), p_(p), cb_(cb) {}
+
+  RegistrationResult run() {
+    const auto t_total = Clock::now();
+    const std::size_t n = m_.views.size();
+    res_.poses.assign(n, Eigen::Matrix4d::Identity());
+    res_.views.resize(n);
+    auto t0 = Clock::now();
+    prepare();
+    res_.seconds_prepare = seconds_since(t0);
+    t0 = Clock::now();
+    initial_poses();
+    res_.seconds_initial = seconds_since(t0);
+    t0 = Clock::now();
+    refine();
+    res_.seconds_refine = seconds_since(t0);
+    t0 = Clock::now();
+    finish();
+    res_.seconds_merge = seconds_since(t0);
+    res_.seconds_total = seconds_since(t_total);
+    return std::move(res_);
+  }
+
+ private:
+  void report(const std::string& stage, int done, int total) {
+    if (cb_) cb_({stage, done, total});
+  }
+
+  void fail(std::size_t i, const std::string& why) {
+    usable_[i] = false;
+    res_.views[i].registered = false;
+    if (res_.views[i].message.empty()) res_.views[i].message = view_name(m_, i) + ": " + why;
+  }
+
+  void prepare() {
+    const std::size_t n = m_.views.size();
+    usable_.assign(n, true);
+    // Session size first (median view diagonal): the voxel and ICP distances follow it.
+    std::vector<double> diags;
+    for (std::size_t i = 0; i < n; ++i) {
+      std::vector<Vec3f> finite;
+      for (const Vec3f& q : clouds_[i].points)
+        if (q.allFinite()) finite.push_back(q);
+      if (!finite.empty()) diags.push_back(bounding_box(finite).diagonal());
+    }
+    diag_ = median_of(diags);
+    res_.diagonal = diag_;
+    PrepareParams pp;
+    pp.voxel_size = p_.voxel_rel * diag_;
+    pp.outlier_neighbors = p_.outlier_neighbors;
+    pp.outlier_std_ratio = p_.outlier_std_ratio;
+    pp.normal_neighbors = p_.normal_neighbors;
+    views_.resize(n);
+    for (std::size_t i = 0; i < n; ++i) {
+      views_[i] = prepare_view(clouds_[i], pp);
+      ViewDiagnostics& d = res_.views[i];
+      d.input_points = clouds_[i].size();
+      d.points = views_[i].full.size();
+      d.registration_points = views_[i].points.size();
+      if (clouds_[i].empty()) fail(i, "empty view");
+      else if (views_[i].full.empty()) fail(i, "no finite points");
+      else if (views_[i].points.size() < std::size_t(std::max(p_.icp.min_correspondences, 6)))
+        fail(i, "too few points (" + std::to_string(views_[i].points.size()) + ")");
+      report("prepare", int(i + 1), int(n));
+    }
+    if (std::none_of(usable_.begin(), usable_.end(), [](bool b) { return b; }))
+      throw InvalidInput("registration: no usable view (all empty or non-finite)");
+  }
+
+  // Runs ICP on each pair (view `to` onto view `from`) from the current poses
+  // or the given initial relative motions.
+  std::vector<IcpResult> run_pairs(const std::vector<Pair>& pairs,
+                                   const std::vector<Eigen::Matrix4d>& initial, double start,
+                                   double end, std::optional<IcpObjective> objective = {}) {
+    IcpParams ip = p_.icp;
+    if (objective) ip.objective = *objective;
+    ip.max_distance_start = start;
+    ip.max_distance_end = end;
+    std::vector<IcpResult> out(pairs.size());
+    tbb::parallel_for(std::size_t(0), pairs.size(), [&](std::size_t k) {
+      out[k] = icp_point_to_plane(views_[pairs[k].to], views_[pairs[k].from], initial[k], ip);
+    });
+    return out;
+  }
+
+  std::vector<int> ring() const {
+    std::vector<int> r;
+    for (std::size_t i = 0; i < usable_.size(); ++i)
+      if (usable_[i]) r.push_back(int(i));
+    return r;
+  }
+
+  bool has_angle(int i) const { return m_.views[i].angle_deg.has_value(); }
+
+  // Axis unknown, angles known: pairwise ICP of consecutive views from axis
+  // hypotheses, then the axis that best explains the converged pair motions.
+  void estimate_axis(const std::vector<int>& with_angle) {
+    const int m = int(with_angle.size());
+    if (m < 2) return;
+    Vec3d c = Vec3d::Zero();
+    for (int i : with_angle) c += centroid(views_[i].points);
+    c /= double(m);
+    std::vector<Pair> pairs;
+    for (int k = 0; k + 1 < m || (m > 2 && k + 1 == m); ++k)
+      pairs.push_back({with_angle[k], with_angle[(k + 1) % m], k + 1 == m});
+    const auto motions_for = [&](const TurntableAxis& axis, const std::vector<Pair>& ps) {
+      std::vector<Eigen::Matrix4d> init;
+      for (const Pair& pr : ps)
+        init.push_back(rigid_inverse(turntable_pose(axis, *m_.views[pr.from].angle_deg)) *
+                       turntable_pose(axis, *m_.views[pr.to].angle_deg));
+      return init;
+    };
+    // Direction hypotheses: the scanner's up (-y) first, then the other signed
+    // axes, scored on a few pairs by the overlap ICP reaches.
+    const Vec3d dirs[6] = {-Vec3d::UnitY(), Vec3d::UnitY(), -Vec3d::UnitZ(),
+                           Vec3d::UnitZ(),  -Vec3d::UnitX(), Vec3d::UnitX()};
+    std::vector<Pair> probe;
+    for (int k : {0, int(pairs.size()) / 3, 2 * int(pairs.size()) / 3})
+      if (std::none_of(probe.begin(), probe.end(), [&](const Pair& q) { return q.from == pairs[k].from; }))
+        probe.push_back(pairs[k]);
+    TurntableAxis best;
+    double best_score = -1;
+    const double start = p_.axis_search_start_rel * diag_;
+    const double end = p_.icp_end_rel * diag_;
+    for (const Vec3d& d : dirs) {
+      TurntableAxis axis;
+      axis.direction = d;
+      axis.point = c;
+      const auto r = run_pairs(probe, motions_for(axis, probe), start, end);
+      double score = 0;
+      for (const IcpResult& x : r) score += x.converged ? x.fitness : 0.0;
+      report("axis", 0, 1);
+      if (score > best_score + 1e-9) {
+        best_score = score;
+        best = axis;
+      }
+      if (best_score > 0.5 * double(probe.size())) break;  // clearly right: skip the rest
+    }
+    // Two fits: the second starts from the first fitted axis.
+    for (int pass = 0; pass < 2; ++pass) {
+      const auto r = run_pairs(pairs, motions_for(best, pairs), pass == 0 ? start : 2 * end, end);
+      std::vector<AxisMotion> motions(pairs.size());
+      for (std::size_t k = 0; k < pairs.size(); ++k) {
+        motions[k].transform = r[k].transform;
+        motions[k].angle_deg = *m_.views[pairs[k].to].angle_deg - *m_.views[pairs[k].from].angle_deg;
+        motions[k].weight = r[k].converged ? r[k].fitness : 0.0;
+      }
+      AxisFitParams fp;
+      fp.point_near = c;
+      AxisFitResult fit = fit_turntable_axis(motions, fp);
+      if (!fit.ok) break;
+      best = fit.axis;
+      res_.axis_fit = fit;
+      report("axis", pass + 1, 2);
+    }
+    if (res_.axis_fit) res_.axis = best;
+  }
+
+  void initial_poses() {
+    const std::size_t n = m_.views.size();
+    if (m_.axis) res_.axis = m_.axis;
+    std::vector<int> need_axis;
+    for (int i : ring())
+      if (!m_.views[i].initial_pose && has_angle(i)) need_axis.push_back(i);
+    if (!m_.axis && !need_axis.empty()) estimate_axis(need_axis);
+    for (std::size_t i = 0; i < n; ++i) {
+      ViewDiagnostics& d = res_.views[i];
+      const ViewRecord& v = m_.views[i];
+      if (v.initial_pose) {
+        res_.poses[i] = *v.initial_pose;
+        d.initial = InitialPoseSource::kInitialPose;
+      } else if (v.angle_deg && res_.axis) {
+        res_.poses[i] = turntable_pose(*res_.axis, *v.angle_deg);
+        d.initial = m_.axis ? InitialPoseSource::kTurntableAxis : InitialPoseSource::kEstimatedAxis;
+      } else if (usable_[i]) {
+        fail(i, v.angle_deg ? "turntable axis could not be estimated"
+                            : "no initial pose and no turntable angle (global registration not implemented)");
+      }
+    }
+  }
+
+  bool prior_usable(int i) const {
+    return res_.axis && has_angle(i) && res_.views[i].initial != InitialPoseSource::kInitialPose;
+  }
+
+  void refine() {
+    std::vector<int> r = ring();
+    const int m = int(r.size());
+    if (m < 2) return;
+    std::set<std::pair<int, int>> seen;
+    std::vector<Pair> pairs;
+    for (int k = 0; k < m; ++k)
+      for (int s = 1; s <= std::max(1, p_.neighbors); ++s) {
+        if (k + s >= m && !p_.loop_closure) continue;
+        const int a = r[k], b = r[(k + s) % m];
+        if (a == b || seen.count({std::min(a, b), std::max(a, b)})) continue;
+        seen.insert({std::min(a, b), std::max(a, b)});
+        pairs.push_back({a, b, k + s >= m});
+      }
+    const double end = p_.icp_end_rel * diag_;
+    const double sigma_floor = 0.05 * end;
+    std::optional<Vec3d> axis_dir;
+    if (res_.axis) axis_dir = res_.axis->direction.normalized();
+    std::vector<bool> has_edge(m_.views.size(), false);
+    for (int round = 0; round < std::max(1, p_.rounds); ++round) {
+      std::vector<Eigen::Matrix4d> init;
+      for (const Pair& pr : pairs) init.push_back(rigid_inverse(res_.poses[pr.from]) * res_.poses[pr.to]);
+      const double start = round == 0 ? p_.icp_start_rel * diag_ : 2 * end;
+      const bool last = round + 1 == std::max(1, p_.rounds);
+      const std::vector<IcpResult> icp =
+          run_pairs(pairs, init, std::max(start, end), end,
+                    last ? std::optional<IcpObjective>(p_.final_objective) : std::nullopt);
+      report("icp", round + 1, p_.rounds);
+
+      std::vector<PoseGraphEdge> edges;
+      std::vector<int> edge_pair;  // index into pairs, -1 for prior edges
+      const std::size_t first_diag = res_.pairs.size();
+      std::fill(has_edge.begin(), has_edge.end(), false);
+      for (std::size_t k = 0; k < pairs.size(); ++k) {
+        const IcpResult& x = icp[k];
+        PairDiagnostics pd;
+        pd.from = pairs[k].from;
+        pd.to = pairs[k].to;
+        pd.round = round;
+        pd.loop_closure = pairs[k].loop;
+        pd.converged = x.converged;
+        pd.fitness = x.fitness;
+        pd.inlier_rmse = x.inlier_rmse;
+        pd.correspondences = x.correspondences;
+        pd.iterations = x.iterations;
+        pd.message = x.message;
+        if (x.converged) {
+          const HessianAnalysis ha =
+              analyse_hessian(x.hessian, centroid(views_[pairs[k].from].points), 0.5 * diag_, axis_dir);
+          pd.eigen_ratio = ha.ratio;
+          pd.degenerate = ha.ratio < p_.degeneracy_ratio && ha.about_axis;
+          const double sigma = std::max(x.plane_rmse, sigma_floor);
+          PoseGraphEdge e;
+          e.from = pairs[k].from;
+          e.to = pairs[k].to;
+          e.measurement = x.transform;
+          e.information = x.hessian / (sigma * sigma);
+          edges.push_back(e);
+          edge_pair.push_back(int(k));
+        }
+        res_.pairs.push_back(pd);
+      }
+      // The turntable prior between consecutive views: weak, it matters only
+      // where the shape leaves a direction free.
+      if (p_.turntable_prior && res_.axis) {
+        Matrix6d info = Matrix6d::Zero();
+        const double sa = p_.prior_angle_sigma_deg * M_PI / 180.0;
+        const double st = p_.prior_translation_sigma_rel * diag_;
+        info.diagonal() << 1 / (sa * sa), 1 / (sa * sa), 1 / (sa * sa), 1 / (st * st), 1 / (st * st),
+            1 / (st * st);
+        for (int k = 0; k < m; ++k) {
+          const int a = r[k], b = r[(k + 1) % m];
+          if (a == b || (k + 1 == m && (!p_.loop_closure || m < 3))) continue;
+          if (!prior_usable(a) || !prior_usable(b)) continue;
+          PoseGraphEdge e;
+          e.from = a;
+          e.to = b;
+          e.measurement = rigid_inverse(turntable_pose(*res_.axis, *m_.views[a].angle_deg)) *
+                          turntable_pose(*res_.axis, *m_.views[b].angle_deg);
+          e.information = info;
+          edges.push_back(e);
+          edge_pair.push_back(-1);
+        }
+      }
+      PoseGraphParams gp;
+      gp.fixed_node = r.front();
+      PoseGraphResult g = optimize_pose_graph(res_.poses, edges, gp);
+      // Edges the optimised graph disagrees with strongly are wrong matches
+      // (a symmetric part aligned the wrong way): drop them and solve again.
+      std::vector<PoseGraphEdge> kept;
+      std::vector<int> kept_pair;
+      for (std::size_t e = 0; e < edges.size(); ++e) {
+        const bool bad = edge_pair[e] >= 0 &&
+                         (g.edge_rotation_deg[e] > 2.0 || g.edge_translation[e] > 3 * end);
+        if (bad) {
+          PairDiagnostics& pd = res_.pairs[first_diag + edge_pair[e]];
+          pd.converged = false;
+          pd.message = "inconsistent with the other pairs (" + std::to_string(g.edge_rotation_deg[e]) +
+                       " deg, " + std::to_string(g.edge_translation[e]) + " m)";
+          continue;
+        }
+        kept.push_back(edges[e]);
+        kept_pair.push_back(edge_pair[e]);
+      }
+      if (kept.size() != edges.size()) g = optimize_pose_graph(res_.poses, kept, gp);
+      res_.poses = g.poses;
+      for (std::size_t e = 0; e < kept.size(); ++e) {
+        if (kept_pair[e] < 0) continue;
+        PairDiagnostics& pd = res_.pairs[first_diag + kept_pair[e]];
+        pd.graph_rotation_deg = g.edge_rotation_deg[e];
+        pd.graph_translation = g.edge_translation[e];
+        has_edge[kept[e].from] = has_edge[kept[e].to] = true;
+      }
+      report("pose graph", round + 1, p_.rounds);
+    }
+    for (const PairDiagnostics& pd : res_.pairs)
+      if (pd.degenerate && pd.round == p_.rounds - 1) res_.degenerate = true;
+    if (res_.degenerate) {
+      res_.degeneracy_message =
+          "shape leaves the rotation about the turntable axis unconstrained (" +
+          std::string(p_.turntable_prior && res_.axis ? "held by the turntable angles"
+                                                      : "no turntable prior: rotation about it is arbitrary") +
+          ")";
+    }
+    for (int i : r)
+      if (!has_edge[i]) fail(i, "no overlap with its neighbouring views (every ICP pair failed)");
+  }
+
+  void finish() {
+    const std::size_t n = m_.views.size();
+    for (std::size_t i = 0; i < n; ++i) {
+      if (usable_[i]) res_.views[i].registered = true;
+      else res_.failed_views.push_back(int(i));
+    }
+    // Errors against the reference poses, relative to the first registered view with one.
+    int anchor = -1;
+    for (std::size_t i = 0; i < n && anchor < 0; ++i)
+      if (usable_[i] && m_.views[i].reference_pose) anchor = int(i);
+    std::vector<double> rot, trans;
+    if (anchor >= 0) {
+      for (std::size_t i = 0; i < n; ++i) {
+        if (!usable_[i] || !m_.views[i].reference_pose) continue;
+        const auto [er, et] = relative_pose_error(res_.poses[anchor], res_.poses[i],
+                                                  *m_.views[anchor].reference_pose,
+                                                  *m_.views[i].reference_pose);
+        res_.views[i].rotation_error_deg = er;
+        res_.views[i].translation_error = et;
+        rot.push_back(er);
+        trans.push_back(et);
+      }
+    }
+    res_.views_with_reference = int(rot.size());
+    if (!rot.empty()) {
+      res_.max_rotation_error_deg = *std::max_element(rot.begin(), rot.end());
+      res_.max_translation_error = *std::max_element(trans.begin(), trans.end());
+      res_.median_rotation_error_deg = median_of(rot);
+      res_.median_translation_error = median_of(trans);
+    }
+    // Merge: colours only when every merged view has them (a cloud's colours are all or none).
+    bool colors = true;
+    for (std::size_t i = 0; i < n; ++i)
+      if (usable_[i] && !views_[i].full.has_colors()) colors = false;
+    for (std::size_t i = 0; i < n; ++i) {
+      if (!usable_[i]) continue;
+      Cloud c = views_[i].full;
+      if (!colors) c.colors.clear();
+      if (!c.has_normals() && p_.merge_normals) {
+        const PointIndex index(c.points);
+        c.normals = pca_normals(index, p_.normal_neighbors, Vec3f::Zero());
+      } else if (c.has_normals()) {
+        // The view's own normals, turned to face the sensor (outwards for a single view).
+        for (std::size_t k = 0; k < c.size(); ++k)
+          if (c.normals[k].dot(-c.points[k]) < 0) c.normals[k] = -c.normals[k];
+      }
+      transform_cloud(c, res_.poses[i]);
+      if (!c.has_normals() && res_.merged.has_normals()) res_.merged.normals.clear();
+      res_.merged.points.insert(res_.merged.points.end(), c.points.begin(), c.points.end());
+      if (c.has_normals() && (res_.merged.normals.size() + c.size() == res_.merged.points.size()))
+        res_.merged.normals.insert(res_.merged.normals.end(), c.normals.begin(), c.normals.end());
+      else
+        res_.merged.normals.clear();
+      if (colors) res_.merged.colors.insert(res_.merged.colors.end(), c.colors.begin(), c.colors.end());
+      report("merge", int(i + 1), int(n));
+    }
+  }
+
+  const std::vector<Cloud>& clouds_;
+  const SessionManifest& m_;
+  const RegistrationParams& p_;
+  const RegistrationCallback& cb_;
+  RegistrationResult res_;
+  std::vector<PreparedView> views_;
+  std::vector<bool> usable_;
+  double diag_ = 0;
+};
+
+}  // namespace
+
+RegistrationResult register_views(const std::vector<Cloud>& clouds, const SessionManifest& manifest,
+                                  const RegistrationParams& params,
+                                  const RegistrationCallback& progress) {
+  if (clouds.size() != manifest.views.size())
+    throw InvalidInput("registration: " + std::to_string(clouds.size()) + " clouds for " +
+                       std::to_string(manifest.views.size()) + " views");
+  if (manifest.views.empty()) throw InvalidInput("registration: the session has no views");
+  return Registrar(clouds, manifest, params, progress).run();
+}
+
+RegistrationResult register_session(const Session& session, const RegistrationParams& params,
+                                    const RegistrationCallback& progress) {
+  const SessionManifest& m = session.manifest();
+  std::vector<Cloud> clouds(m.views.size());
+  std::vector<std::string> unreadable(m.views.size());
+  for (std::size_t i = 0; i < m.views.size(); ++i) {
+    try {
+      clouds[i] = session.load_view(i);
+    } catch (const Error& e) {
+      // An unreadable view is a failed view, not a failed session.
+      unreadable[i] = e.what();
+    }
+  }
+  RegistrationResult r = register_views(clouds, m, params, progress);
+  for (std::size_t i = 0; i < m.views.size(); ++i)
+    if (!unreadable[i].empty()) r.views[i].message = view_name(m, i) + ": " + unreadable[i];
+  return r;
+}
+
+std::string poses_to_yaml(const RegistrationResult& result, const SessionManifest& manifest) {
+  YAML::Emitter out;
+  out.SetDoublePrecision(17);
+  out << YAML::BeginMap;
+  out << YAML::Key << "format" << YAML::Value << "station-poses";
+  out << YAML::Key << "version" << YAML::Value << 1;
+  if (result.axis) {
+    out << YAML::Key << "turntable_axis" << YAML::Value << YAML::Flow << YAML::BeginMap;
+    out << YAML::Key << "point" << YAML::Value << YAML::Flow << YAML::BeginSeq << result.axis->point.x()
+        << result.axis->point.y() << result.axis->point.z() << YAML::EndSeq;
+    out << YAML::Key << "direction" << YAML::Value << YAML::Flow << YAML::BeginSeq
+        << result.axis->direction.x() << result.axis->direction.y() << result.axis->direction.z()
+        << YAML::EndSeq;
+    out << YAML::EndMap;
+  }
+  out << YAML::Key << "degenerate" << YAML::Value << result.degenerate;
+  out << YAML::Key << "views" << YAML::Value << YAML::BeginSeq;
+  for (std::size_t i = 0; i < result.poses.size(); ++i) {
+    const ViewDiagnostics& v = result.views[i];
+    out << YAML::BeginMap;
+    out << YAML::Key << "file" << YAML::Value << YAML::DoubleQuoted << manifest.views[i].file;
+    out << YAML::Key << "registered" << YAML::Value << v.registered;
+    out << YAML::Key << "initial" << YAML::Value << to_string(v.initial);
+    out << YAML::Key << "pose" << YAML::Value << YAML::Flow << YAML::BeginMap << YAML::Key << "matrix"
+        << YAML::Value << YAML::Flow << YAML::BeginSeq;
+    for (int r = 0; r < 4; ++r)
+      for (int c = 0; c < 4; ++c) out << result.poses[i](r, c);
+    out << YAML::EndSeq << YAML::EndMap;
+    if (!v.message.empty()) out << YAML::Key << "message" << YAML::Value << YAML::DoubleQuoted << v.message;
+    if (v.rotation_error_deg) out << YAML::Key << "rotation_error_deg" << YAML::Value << *v.rotation_error_deg;
+    if (v.translation_error) out << YAML::Key << "translation_error" << YAML::Value << *v.translation_error;
+    out << YAML::EndMap;
+  }
+  out << YAML::EndSeq << YAML::EndMap;
+  return std::string(out.c_str()) + "\n";
+}
+
+void write_poses_yaml(const std::filesystem::path& path, const RegistrationResult& result,
+                      const SessionManifest& manifest) {
+  write_file_atomic(path, poses_to_yaml(result, manifest));
+}
+
+}  // namespace station

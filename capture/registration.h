@@ -1,0 +1,159 @@
+#pragma once
+// Registration of a scan session into one cloud (issue #3; method and measured
+// accuracy in docs/registration.md).
+//
+// Pipeline (register_session):
+//  1. per view (capture/icp.h): non-finite points dropped, statistical outlier
+//     removal, a voxel-downsampled copy for registration, PCA normals facing
+//     the sensor;
+//  2. initial poses, per view in this order: the view's initial_pose; the
+//     turntable prior from its angle and the session's axis; its angle with the
+//     axis estimated from pairwise ICP of neighbouring views
+//     (capture/axis_calibration.h); views with none of these fail (global
+//     feature registration is not implemented yet);
+//  3. rounds of pairwise point-to-plane ICP between neighbouring views (ring
+//     order plus the loop closure last -> first, and optionally skip-one pairs),
+//     each followed by a pose-graph optimisation (capture/pose_graph.h) weighted
+//     by the ICP Hessians, with the turntable angles as weak prior edges;
+//  4. degeneracy about the turntable axis (a bottle, a vase) detected from the
+//     smallest eigenvector of each pair's ICP Hessian, and reported; the prior
+//     edges then hold the angle;
+//  5. merge: every registered view's full cloud (outliers removed) moved into
+//     the object frame, normals (the view's own or PCA) facing the sensor, that
+//     is outwards, colours kept.
+// Poses follow the session convention: object frame <- scanner frame.
+#include <Eigen/Core>
+#include <filesystem>
+#include <functional>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "capture/axis_calibration.h"
+#include "capture/icp.h"
+#include "capture/session.h"
+
+namespace station {
+
+/// Where a view's initial pose came from.
+enum class InitialPoseSource {
+  kInitialPose,    ///< the view's initial_pose
+  kTurntableAxis,  ///< angle + the session's axis
+  kEstimatedAxis,  ///< angle + an axis estimated from pairwise alignments
+  kNone,           ///< nothing usable (the view fails)
+};
+const char* to_string(InitialPoseSource s);
+
+struct RegistrationParams {
+  /// Lengths below are relative to the session size: the median bounding-box
+  /// diagonal of the views (scanner frame).
+  double voxel_rel = 0.004;           ///< voxel edge of the registration copy (0: no downsampling)
+  double icp_start_rel = 0.03;        ///< first ICP max correspondence distance, first round
+  double icp_end_rel = 0.004;         ///< final ICP max correspondence distance
+  double axis_search_start_rel = 0.1; ///< first max distance when searching the unknown axis
+  int outlier_neighbors = 16;         ///< statistical outlier removal k (0: off)
+  double outlier_std_ratio = 3.0;     ///< ... and its alpha
+  int normal_neighbors = 16;          ///< PCA normal neighbourhood
+  IcpParams icp;                      ///< iteration count, guards; distances are set from the above
+  /// Each view is paired with the next `neighbors` views in capture order
+  /// (1: ring only; 2: also skip-one pairs).
+  int neighbors = 2;
+  bool loop_closure = true;           ///< pair the last view with the first
+  int rounds = 3;                     ///< ICP + pose-graph rounds
+  /// Objective of the last round (the earlier ones use icp.objective): point-to-
+  /// point at the fine distance removes the bias PCA normals of sparse views
+  /// put into point-to-plane (measured on the dragon, docs/registration.md).
+  IcpObjective final_objective = IcpObjective::kPointToPoint;
+  /// Turntable prior edges between consecutive views (when angles and an axis
+  /// are known or estimated): the regulariser for degenerate shapes.
+  bool turntable_prior = true;
+  double prior_angle_sigma_deg = 2.0;        ///< trust in the commanded angles
+  double prior_translation_sigma_rel = 0.02; ///< trust in the axis position
+  /// A pair is degenerate when the smallest eigenvalue of its (scale-normalised)
+  /// ICP Hessian is below this fraction of the largest.
+  double degeneracy_ratio = 2e-3;
+  bool merge_normals = true;          ///< give the merged cloud normals (PCA when views have none)
+};
+
+struct RegistrationProgress {
+  std::string stage;  ///< "prepare", "axis", "icp", "pose graph", "merge"
+  int done = 0;
+  int total = 0;
+};
+
+/// One registered pair (view `to` aligned onto view `from`).
+struct PairDiagnostics {
+  int from = 0, to = 0;
+  int round = 0;
+  bool loop_closure = false;
+  bool converged = false;
+  double fitness = 0;
+  double inlier_rmse = 0;    ///< metres
+  std::size_t correspondences = 0;
+  int iterations = 0;
+  bool degenerate = false;   ///< rotation about the turntable axis unconstrained
+  double eigen_ratio = 0;    ///< smallest / largest eigenvalue of the normalised Hessian
+  double graph_rotation_deg = 0;  ///< disagreement with the optimised poses
+  double graph_translation = 0;   ///< metres
+  std::string message;       ///< why it failed
+};
+
+struct ViewDiagnostics {
+  std::size_t input_points = 0;
+  std::size_t points = 0;               ///< after non-finite and outlier removal
+  std::size_t registration_points = 0;  ///< downsampled copy
+  InitialPoseSource initial = InitialPoseSource::kNone;
+  bool registered = false;
+  std::string message;                  ///< why it failed ("views[3] (view_003.ply): ...")
+  /// Against reference_pose, both relative to the first registered view with a
+  /// reference (view 0 normally): angle of R_est^T R_ref, degrees, and |t_est - t_ref|, metres.
+  std::optional<double> rotation_error_deg;
+  std::optional<double> translation_error;
+};
+
+struct RegistrationResult {
+  std::vector<Eigen::Matrix4d> poses;   ///< per view, object <- scanner (the prior for failed views)
+  std::vector<ViewDiagnostics> views;
+  std::vector<PairDiagnostics> pairs;   ///< every pair of every round
+  std::vector<int> failed_views;
+  std::optional<TurntableAxis> axis;    ///< the session's or the estimated one
+  std::optional<AxisFitResult> axis_fit;  ///< when the axis was estimated
+  bool degenerate = false;              ///< some pair is degenerate about the axis
+  std::string degeneracy_message;
+  Cloud merged;
+  /// Over views with errors (see ViewDiagnostics); 0 when no reference.
+  int views_with_reference = 0;
+  double max_rotation_error_deg = 0, median_rotation_error_deg = 0;
+  double max_translation_error = 0, median_translation_error = 0;
+  double diagonal = 0;  ///< session size used for the relative lengths, metres
+  double seconds_prepare = 0, seconds_initial = 0, seconds_refine = 0, seconds_merge = 0,
+         seconds_total = 0;
+};
+
+using RegistrationCallback = std::function<void(const RegistrationProgress&)>;
+
+/// Registers every view of `session` (see the file comment). Views that cannot
+/// be read, are empty or all non-finite, or do not overlap their neighbours
+/// are listed in failed_views with a message naming them; the others are still
+/// registered and merged. InvalidInput only when fewer than one view is usable.
+RegistrationResult register_session(const Session& session, const RegistrationParams& params = {},
+                                    const RegistrationCallback& progress = {});
+
+/// The same on clouds in memory: `clouds[i]` is `manifest.views[i]`'s cloud.
+RegistrationResult register_views(const std::vector<Cloud>& clouds, const SessionManifest& manifest,
+                                  const RegistrationParams& params = {},
+                                  const RegistrationCallback& progress = {});
+
+/// YAML of the result: per view file, pose (the session's `matrix` form),
+/// registered or failed with its message, errors when known; the axis used.
+std::string poses_to_yaml(const RegistrationResult& result, const SessionManifest& manifest);
+/// Writes poses_to_yaml atomically.
+void write_poses_yaml(const std::filesystem::path& path, const RegistrationResult& result,
+                      const SessionManifest& manifest);
+
+/// Rotation (degrees) and translation (metres) between two poses, each taken
+/// relative to its own anchor: A0^-1 A against B0^-1 B.
+std::pair<double, double> relative_pose_error(const Eigen::Matrix4d& A0, const Eigen::Matrix4d& A,
+                                              const Eigen::Matrix4d& B0, const Eigen::Matrix4d& B);
+
+}  // namespace station
