@@ -207,7 +207,8 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
     const Vec3f t = Tc.block<3, 1>(0, 3).cast<float>();
     const double huber = params.huber_fraction > 0 ? params.huber_fraction * dmax : 0.0;
     const std::size_t grain = 256;
-    return tbb::parallel_reduce(
+    // Deterministic reduction: the same split and join order on every run.
+    return tbb::parallel_deterministic_reduce(
         tbb::blocked_range<std::size_t>(0, source.points.size(), grain), Normal6{},
         [&](const tbb::blocked_range<std::size_t>& r, Normal6 acc) {
           for (std::size_t i = r.begin(); i != r.end(); ++i) {
@@ -256,7 +257,7 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
           a.add(b);
           return a;
         },
-        tbb::static_partitioner());
+        tbb::simple_partitioner());
   };
 
   bool small_step = false;
