@@ -79,5 +79,56 @@ TEST(Registration, DragonWithAnglesButNoAxisMatchesStanford) {
   EXPECT_TRUE(r.merged.has_normals());
 }
 
+// Bad input: an empty view, a view of NaNs and a view that overlaps nothing
+// fail with messages naming them; the rest is registered, merged and written.
+TEST(Registration, BadViewsFailAloneAndAreNamed) {
+  std::vector<Cloud> all;
+  const SessionManifest dragon = dragon_manifest(all);
+  test::TempDir dir;
+  SessionManifest m;
+  m.scanner = "import";
+  Session session = Session::create(dir / "s", m);
+  for (int i = 0; i < 6; ++i) session.add_view(all[i], dragon.views[i]);
+  ViewRecord bad;
+  bad.angle_deg = 144;
+  session.add_view(Cloud{}, bad);  // empty
+  Cloud nans;
+  nans.points.assign(500, Vec3f(std::nanf(""), 0, 0));
+  bad.angle_deg = 168;
+  session.add_view(nans, bad);
+  Cloud far = all[7];  // the right shape 2 m away: no overlap with anything
+  for (Vec3f& p : far.points) p += Vec3f(2, 0, 0);
+  bad.angle_deg = 192;
+  session.add_view(far, bad);
+  const Session reopened = Session::open(session.dir());
+  std::vector<std::string> stages;
+  const RegistrationResult r =
+      register_session(reopened, {}, [&](const RegistrationProgress& p) { stages.push_back(p.stage); });
+  ASSERT_EQ(r.failed_views, (std::vector<int>{6, 7, 8}));
+  EXPECT_NE(r.views[6].message.find("views[6] (view_006.ply): empty view"), std::string::npos) << r.views[6].message;
+  EXPECT_NE(r.views[7].message.find("views[7]"), std::string::npos) << r.views[7].message;
+  // The PLY reader already refuses NaN coordinates: the view is unreadable.
+  EXPECT_NE(r.views[7].message.find("non-finite"), std::string::npos) << r.views[7].message;
+  EXPECT_NE(r.views[8].message.find("no overlap"), std::string::npos) << r.views[8].message;
+  for (int i = 0; i < 6; ++i) {
+    EXPECT_TRUE(r.views[i].registered) << i << ": " << r.views[i].message;
+    ASSERT_TRUE(r.views[i].rotation_error_deg.has_value());
+    EXPECT_LT(*r.views[i].rotation_error_deg, 1.0) << i;
+  }
+  EXPECT_GT(r.merged.size(), 20000u);
+  EXPECT_FALSE(stages.empty());
+  const auto poses = dir / "poses.yaml";
+  write_poses_yaml(poses, r, reopened.manifest());
+  const std::string yaml = read_file_bytes(poses);
+  EXPECT_NE(yaml.find("view_008.ply"), std::string::npos);
+  EXPECT_NE(yaml.find("registered: false"), std::string::npos);
+  EXPECT_NE(yaml.find("matrix"), std::string::npos);
+
+  // No usable view at all is an error, not an empty result.
+  SessionManifest none;
+  none.views.resize(1);
+  EXPECT_THROW(register_views({Cloud{}}, none), InvalidInput);
+}
+
 }  // namespace
 }  // namespace station
