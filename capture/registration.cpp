@@ -233,7 +233,7 @@ class Registrar {
       const auto r = run_pairs(probe, motions_for(axis, probe), start, end);
       double score = 0;
       for (const IcpResult& x : r) score += x.converged ? x.fitness : 0.0;
-      report("axis", 0, 1);
+      report("axis", 0, 2);
       if (score > best_score + 1e-9) {
         best_score = score;
         best = axis;

@@ -16,7 +16,10 @@
 #include <sstream>
 
 #include "capture/capture.h"
+#include "capture/axis_calibration.h"
+#include "capture/registration.h"
 #include "capture/session.h"
+#include "core/atomic_file.h"
 #include "core/error.h"
 #include "core/io.h"
 #include "core/texture.h"
@@ -416,6 +419,148 @@ int cmd_import(const Common& c, const ImportArgs& a) {
   return 0;
 }
 
+// ---- register / calibrate -------------------------------------------------------
+
+/// Registers a session with a progress bar; shared by `register` and `calibrate`.
+RegistrationResult register_with_progress(const Session& session, bool quiet) {
+  std::unique_ptr<Progress> bar;
+  std::string stage;
+  RegistrationResult r = register_session(session, {}, [&](const RegistrationProgress& p) {
+    if (p.stage != stage) {
+      if (bar) bar->finish();
+      stage = p.stage;
+      bar = std::make_unique<Progress>("register: " + stage, p.total, quiet);
+    }
+    bar->update(p.done);
+  });
+  if (bar) bar->finish();
+  for (int v : r.failed_views)
+    if (!quiet) std::fprintf(stderr, "warning: %s\n", r.views[v].message.c_str());
+  if (r.degenerate && !quiet) std::fprintf(stderr, "note: %s\n", r.degeneracy_message.c_str());
+  return r;
+}
+
+JsonObject registration_json(const RegistrationResult& r) {
+  JsonObject j;
+  j.add("views", r.views.size()).add("failed_views", r.failed_views.size()).add("degenerate", r.degenerate);
+  if (r.views_with_reference > 0)
+    j.add("reference", JsonObject()
+                           .add("views", r.views_with_reference)
+                           .add("max_rotation_deg", r.max_rotation_error_deg)
+                           .add("median_rotation_deg", r.median_rotation_error_deg)
+                           .add("max_translation_m", r.max_translation_error)
+                           .add("median_translation_m", r.median_translation_error));
+  JsonObject per_view;
+  for (std::size_t i = 0; i < r.views.size(); ++i) {
+    const ViewDiagnostics& v = r.views[i];
+    JsonObject o;
+    o.add("registered", v.registered).add("initial", to_string(v.initial)).add("points", v.points);
+    if (v.rotation_error_deg) o.add("rotation_error_deg", *v.rotation_error_deg);
+    if (v.translation_error) o.add("translation_error_m", *v.translation_error);
+    if (!v.message.empty()) o.add("message", v.message);
+    per_view.add(std::to_string(i), o);
+  }
+  j.add("per_view", per_view);
+  j.add("timings_s", JsonObject()
+                         .add("prepare", r.seconds_prepare)
+                         .add("initial", r.seconds_initial)
+                         .add("refine", r.seconds_refine)
+                         .add("merge", r.seconds_merge)
+                         .add("total", r.seconds_total));
+  return j;
+}
+
+void print_registration(const RegistrationResult& r) {
+  std::printf("%-5s %-10s %-14s %9s %12s %14s\n", "view", "status", "initial pose", "points",
+              "rot err deg", "trans err mm");
+  for (std::size_t i = 0; i < r.views.size(); ++i) {
+    const ViewDiagnostics& v = r.views[i];
+    char rot[32] = "-", tr[32] = "-";
+    if (v.rotation_error_deg) std::snprintf(rot, sizeof rot, "%.3f", *v.rotation_error_deg);
+    if (v.translation_error) std::snprintf(tr, sizeof tr, "%.3f", *v.translation_error * 1000);
+    std::printf("%-5zu %-10s %-14s %9zu %12s %14s\n", i, v.registered ? "ok" : "FAILED",
+                to_string(v.initial), v.points, rot, tr);
+  }
+  if (r.views_with_reference > 0)
+    std::printf("against reference poses (%d views, relative to view 0): rotation max %.3f deg, "
+                "median %.3f deg; translation max %.3f mm, median %.3f mm\n",
+                r.views_with_reference, r.max_rotation_error_deg, r.median_rotation_error_deg,
+                r.max_translation_error * 1000, r.median_translation_error * 1000);
+}
+
+int cmd_register(const Common& c, const std::string& session_dir, const std::string& out,
+                 const std::string& poses_out) {
+  StationConfig cfg = load_common(c);
+  auto threads = limit_threads(cfg.threads);
+  const Session session = Session::open(session_dir);
+  const RegistrationResult r = register_with_progress(session, c.json);
+  if (r.merged.empty()) throw InvalidInput(session_dir + ": no view could be registered");
+  write_ply(out, r.merged);
+  if (!poses_out.empty()) write_poses_yaml(poses_out, r, session.manifest());
+  if (c.json) {
+    JsonObject j = registration_json(r);
+    j.add("command", "register").add("session", session_dir).add("output", out)
+        .add("points", r.merged.size());
+    if (!poses_out.empty()) j.add("poses", poses_out);
+    print_summary(j);
+  } else {
+    print_registration(r);
+    std::printf("register: %zu of %zu views, %zu points -> %s\n", r.views.size() - r.failed_views.size(),
+                r.views.size(), r.merged.size(), out.c_str());
+  }
+  return r.failed_views.empty() ? 0 : 3;
+}
+
+int cmd_calibrate_turntable(const Common& c, const std::string& session_dir, const std::string& out) {
+  StationConfig cfg = load_common(c);
+  auto threads = limit_threads(cfg.threads);
+  const Session session = Session::open(session_dir);
+  const SessionManifest& m = session.manifest();
+  const RegistrationResult r = register_with_progress(session, c.json);
+  std::vector<Eigen::Matrix4d> poses;
+  std::vector<double> angles;
+  for (std::size_t i = 0; i < m.views.size(); ++i) {
+    if (!m.views[i].angle_deg || !r.views[i].registered) continue;
+    poses.push_back(r.poses[i]);
+    angles.push_back(*m.views[i].angle_deg);
+  }
+  if (poses.size() < 2)
+    throw InvalidInput(session_dir + ": fewer than two registered views with turntable angles");
+  AxisFitParams fp;
+  if (m.axis) fp.point_near = m.axis->point;
+  const AxisFitResult fit = calibrate_axis(poses, angles, fp);
+  if (!fit.ok) throw InvalidInput(session_dir + ": turntable axis not determined: " + fit.message);
+  // A profile fragment: copy its `capture.axis` into a bench profile.
+  char buf[512];
+  std::snprintf(buf, sizeof buf,
+                "# Turntable axis calibrated from %s (scanner frame, metres)\n"
+                "# rms residuals: angle %.4f deg, tilt %.4f deg, translation %.4f mm\n"
+                "capture:\n  axis:\n    point: [%.9g, %.9g, %.9g]\n    direction: [%.9g, %.9g, %.9g]\n",
+                session_dir.c_str(), fit.rms_angle_deg, fit.rms_tilt_deg, fit.rms_translation * 1000,
+                fit.axis.point.x(), fit.axis.point.y(), fit.axis.point.z(), fit.axis.direction.x(),
+                fit.axis.direction.y(), fit.axis.direction.z());
+  if (!out.empty()) write_file_atomic(out, std::string(buf));
+  if (c.json) {
+    print_summary(JsonObject()
+                      .add("command", "calibrate turntable")
+                      .add("session", session_dir)
+                      .add("point", std::vector<double>{fit.axis.point.x(), fit.axis.point.y(), fit.axis.point.z()})
+                      .add("direction", std::vector<double>{fit.axis.direction.x(), fit.axis.direction.y(), fit.axis.direction.z()})
+                      .add("rms_angle_deg", fit.rms_angle_deg)
+                      .add("rms_tilt_deg", fit.rms_tilt_deg)
+                      .add("rms_translation_m", fit.rms_translation)
+                      .add("views", poses.size()));
+  } else {
+    std::printf("%s", buf);
+    std::printf("%-5s %12s %10s %14s\n", "view", "angle deg", "tilt deg", "trans mm");
+    for (std::size_t i = 0; i < fit.residuals.size(); ++i)
+      std::printf("%-5zu %12.4f %10.4f %14.4f\n", i, fit.residuals[i].angle_deg, fit.residuals[i].tilt_deg,
+                  fit.residuals[i].translation * 1000);
+    if (!out.empty()) std::printf("written: %s\n", out.c_str());
+  }
+  return 0;
+}
+
 }  // namespace
 
 int run_cli(int argc, char** argv) {
@@ -464,6 +609,23 @@ int run_cli(int argc, char** argv) {
   import->add_option("--every", import_args.every, "keep every N-th point (downsample)")->capture_default_str();
   import->add_option("--units", import_args.units, "units of the files (recorded, not converted)")->check(CLI::IsMember({"m", "mm"}));
 
+  std::string reg_session, reg_out, reg_poses;
+  Common c_reg;
+  auto* reg = app.add_subcommand("register", "Align the views of a session and merge them into one cloud");
+  add_common(reg, c_reg);
+  reg->add_option("session", reg_session, "session folder")->required();
+  reg->add_option("-o,--out", reg_out, "merged cloud (.ply)")->required();
+  reg->add_option("--poses-out", reg_poses, "write the refined poses and diagnostics (YAML)");
+
+  std::string cal_session, cal_out;
+  Common c_cal;
+  auto* cal = app.add_subcommand("calibrate", "Calibrate bench devices from a recorded session");
+  auto* cal_tt = cal->add_subcommand("turntable", "Fit the turntable axis to a registered session");
+  cal->require_subcommand(1);
+  add_common(cal_tt, c_cal);
+  cal_tt->add_option("session", cal_session, "session folder (views with turntable angles)")->required();
+  cal_tt->add_option("-o,--out", cal_out, "write the axis as a profile fragment (capture.axis)");
+
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
@@ -476,6 +638,8 @@ int run_cli(int argc, char** argv) {
     if (*replay) return cmd_replay(c_replay, replay_src, replay_out);
     if (*eval) return cmd_eval(c_eval, eval_a, eval_b, eval_samples, eval_seed);
     if (*import) return cmd_import(c_import, import_args);
+    if (*reg) return cmd_register(c_reg, reg_session, reg_out, reg_poses);
+    if (*cal_tt) return cmd_calibrate_turntable(c_cal, cal_session, cal_out);
   } catch (const Error& e) {
     std::fprintf(stderr, "station: %s\n", e.what());
     return 1;

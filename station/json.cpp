@@ -41,6 +41,16 @@ JsonObject& JsonObject::add(const std::string& key, double v) {
 JsonObject& JsonObject::add(const std::string& key, long long v) { return raw(key, std::to_string(v)); }
 JsonObject& JsonObject::add(const std::string& key, bool v) { return raw(key, v ? "true" : "false"); }
 JsonObject& JsonObject::add(const std::string& key, const JsonObject& v) { return raw(key, v.str()); }
+JsonObject& JsonObject::add(const std::string& key, const std::vector<double>& values) {
+  std::string s = "[";
+  for (std::size_t i = 0; i < values.size(); ++i) {
+    char buf[32];
+    if (std::isfinite(values[i])) std::snprintf(buf, sizeof buf, "%.9g", values[i]);
+    else std::snprintf(buf, sizeof buf, "null");
+    s += (i ? "," : "") + std::string(buf);
+  }
+  return raw(key, s + "]");
+}
 JsonObject& JsonObject::add_null(const std::string& key) { return raw(key, "null"); }
 
 std::string JsonObject::str() const {

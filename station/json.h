@@ -15,6 +15,7 @@ class JsonObject {
   JsonObject& add(const std::string& key, std::size_t value) { return add(key, (long long)value); }
   JsonObject& add(const std::string& key, bool value);
   JsonObject& add(const std::string& key, const JsonObject& value);
+  JsonObject& add(const std::string& key, const std::vector<double>& values);  ///< a number array
   JsonObject& add_null(const std::string& key);
   std::string str() const;
 

@@ -23,6 +23,9 @@ void Progress::update(int done, const std::string& note) {
     std::fprintf(stderr, "\r%s [%.*s%*s] %d/%d %5.1fs %s\033[K", label_.c_str(), filled,
                  "########################", width - filled, "", done, total_, s, note.c_str());
   } else {
+    // Logs get a line at most every two seconds (and the last step), not one per step.
+    if (done < total_ && s - last_line_s_ < 2.0) return;
+    last_line_s_ = s;
     std::fprintf(stderr, "%s %d/%d (%.1fs) %s\n", label_.c_str(), done, total_, s, note.c_str());
   }
   std::fflush(stderr);

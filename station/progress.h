@@ -20,6 +20,7 @@ class Progress {
   int total_;
   bool quiet_, tty_, finished_ = false;
   std::chrono::steady_clock::time_point start_;
+  double last_line_s_ = -1e9;  ///< when the last plain line was printed (not a terminal)
 };
 
 }  // namespace station

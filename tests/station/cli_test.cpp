@@ -113,6 +113,26 @@ TEST(Cli, DragonImportsAndReplaysLikeALiveScanner) {
   const Eigen::Matrix3d R = m.views[1].reference_pose->block<3, 3>(0, 0);
   EXPECT_NEAR(std::acos((R.trace() - 1) / 2) * 180 / M_PI, 24.0, 0.5);
 
+  // Registration with the angles but not the axis, measured against Stanford's poses
+  // (docs/registration.md: the 0.5 degree target is not reached yet).
+  const std::string merged = (dir / "merged.ply").string(), poses = (dir / "poses.yaml").string();
+  r = run("register " + session + " -o " + merged + " --poses-out " + poses + " --json");
+  ASSERT_EQ(r.code, 0) << r.out;
+  EXPECT_LT(json_number(r.out, "max_rotation_deg"), 0.7) << r.out;
+  EXPECT_LT(json_number(r.out, "median_rotation_deg"), 0.4) << r.out;
+  EXPECT_GT(read_cloud(merged).size(), 80000u);
+  EXPECT_NE(read_file_bytes(poses).find("view_014.ply"), std::string::npos);
+  // The turntable axis from the registered views: the dragon turns about the scanner's y.
+  const std::string axis = (dir / "axis.yaml").string();
+  r = run("calibrate turntable " + session + " -o " + axis + " --json");
+  ASSERT_EQ(r.code, 0) << r.out;
+  std::smatch dm;
+  ASSERT_TRUE(std::regex_search(r.out, dm, std::regex("\"direction\":\\[([^,]+),([^,]+),([^\\]]+)\\]")))
+      << r.out;
+  EXPECT_GT(std::abs(std::stod(dm[2])), 0.999) << r.out;
+  EXPECT_LT(json_number(r.out, "rms_tilt_deg"), 0.5) << r.out;
+  EXPECT_NE(read_file_bytes(axis).find("direction:"), std::string::npos);
+
   const std::string replayed = (dir / "replayed").string();
   r = run("replay " + session + " -o " + replayed + " --json");
   ASSERT_EQ(r.code, 0) << r.out;
