@@ -1,0 +1,411 @@
+#include "reconstruct/wlop.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdint>
+#include <limits>
+#include <random>
+#include <string>
+
+#include <tbb/blocked_range.h>
+#include <tbb/enumerable_thread_specific.h>
+#include <tbb/parallel_for.h>
+#include <tbb/task_arena.h>
+
+#include "core/error.h"
+#include "core/kdtree.h"
+#include "reconstruct/normals.h"
+#include "reconstruct/radius_grid.h"
+#include "reconstruct/wlop_kernels.h"
+
+namespace station {
+
+namespace {
+
+using detail::KernelShape;
+using detail::KernelSums;
+using detail::RadiusGrid;
+using Clock = std::chrono::steady_clock;
+
+double seconds_since(Clock::time_point t0) {
+  return std::chrono::duration<double>(Clock::now() - t0).count();
+}
+
+// Pairs closer than this (relative to h) are left out of E1: alpha = theta / r is
+// singular at r = 0, and every initial x_i sits exactly on its input point.
+constexpr double kCoincident = 1e-9;
+// Below this |sum n_l| / k_h the normals around x_i cancel (a thin sheet, noise
+// on a needle) and c_i of eq. 10 would sit on x_i: plain E1 is used there.
+constexpr double kMinNormalAgreement = 0.2;
+// Simple normals (eqs. 11-12) use at most this many of a point's neighbours
+// within h, evenly strided: a plane fit needs far fewer than a dense cloud holds.
+constexpr int kSimpleNormalPoints = 64;
+constexpr int kGrain = 64;
+
+// theta of eq. 8 as a function of the squared distance, with the cut-off at h.
+struct Kernel {
+  double h, h2, inv_s2, eps2;
+  explicit Kernel(double radius)
+      : h(radius), h2(radius * radius), inv_s2(16.0 / (radius * radius)),
+        eps2(kCoincident * kCoincident * radius * radius) {}
+  double theta(double r2) const { return std::exp(-r2 * inv_s2); }
+  KernelShape shape() const { return KernelShape{h2, inv_s2, eps2}; }
+};
+
+// The points of a grid strictly within h of a query: sorted positions and
+// offsets p - q. Buffers grow to the largest neighbourhood seen and stay.
+struct Neighbours {
+  std::vector<int> pos;
+  std::vector<double> dx, dy, dz, r2;
+  int n = 0;
+  void fit(std::size_t m) {
+    if (pos.size() < m) {
+      const std::size_t cap = std::max(m, 2 * pos.size());
+      pos.resize(cap);
+      dx.resize(cap);
+      dy.resize(cap);
+      dz.resize(cap);
+      r2.resize(cap);
+    }
+  }
+};
+
+// Collects the grid's points within h of q, in the grid's fixed run order.
+// Every candidate is written and only the ones inside are kept (no branch).
+void gather(const RadiusGrid& grid, const Vec3d& q, double h2, Neighbours& nb) {
+  nb.n = 0;
+  const double *xs = grid.xs(), *ys = grid.ys(), *zs = grid.zs();
+  grid.for_each_run(q, [&](int b, int e) {
+    nb.fit(std::size_t(nb.n + (e - b)));
+    int n = nb.n;
+    int* pos = nb.pos.data();
+    double *dx = nb.dx.data(), *dy = nb.dy.data(), *dz = nb.dz.data(), *r2 = nb.r2.data();
+    for (int p = b; p < e; ++p) {
+      const double x = xs[p] - q.x(), y = ys[p] - q.y(), z = zs[p] - q.z();
+      const double d2 = x * x + y * y + z * z;
+      pos[n] = p;
+      dx[n] = x;
+      dy[n] = y;
+      dz[n] = z;
+      r2[n] = d2;
+      n += d2 < h2;
+    }
+    nb.n = n;
+  });
+}
+
+struct Scratch {
+  Neighbours input, projected;
+  std::vector<Vec3d> points;  // simple normals' neighbourhood
+  // Edge variant.
+  std::vector<int> order, bucket_start;
+  std::vector<double> axial, lateral2, copy_sum;
+  std::vector<int> u_slot, u_copy;
+  std::vector<double> u_x, u_y, u_z, u_r2;
+};
+
+class Consolidator {
+ public:
+  Consolidator(const Cloud& input, const WlopParams& params, WlopResult& result)
+      : input_(input), params_(params), result_(result), ni_(result.output_points),
+        dbb_(result.bbox_diagonal) {}
+
+  void run();
+
+ private:
+  void setup();
+  void iterate(bool last);
+  void colours();
+  void normals();
+
+  // E1 of eq. 2 at q from its input neighbours; false when no weight.
+  bool plain_e1(const Vec3d& q, Vec3d& e1) const;
+  // E1 of eq. 19 (edge variant); false when it falls back or has no weight.
+  bool edge_e1(const Vec3d& q, const Neighbours& nb, Scratch& s, Vec3d& e1, int& copies) const;
+
+  const Cloud& input_;
+  const WlopParams& params_;
+  WlopResult& result_;
+
+  std::size_t ni_ = 0;
+  double dbb_ = 0;
+  std::size_t nj_ = 0;
+  Kernel kernel_{1.0};
+  std::vector<Vec3d> p_;            // input, double
+  RadiusGrid input_grid_, x_grid_;  // input: built once; projected: every iteration
+  std::vector<double> inv_v_;       // 1 / v_j by input-grid sorted position
+  std::vector<double> v_;           // v_j by sorted position (edge variant)
+  std::vector<Vec3f> edge_n_, edge_m_;  // simple / PCA normals by sorted position
+  std::vector<Vec3d> x_, x_next_;   // projected set
+  std::vector<double> w_;           // w_i by projected-grid sorted position
+  std::vector<int> copies_;         // edge variant: K per point (-1: plain E1)
+  std::vector<char> isolated_;
+  tbb::enumerable_thread_specific<Scratch> scratch_;
+};
+
+void Consolidator::run() {
+  const auto t0 = Clock::now();
+  const int threads =
+      params_.threads == 0 ? tbb::this_task_arena::max_concurrency() : params_.threads;
+  tbb::task_arena arena(threads);
+  arena.execute([&] {
+    auto t = Clock::now();
+    setup();
+    result_.seconds_setup = seconds_since(t);
+    t = Clock::now();
+    for (int k = 0; k < params_.iterations; ++k) iterate(k + 1 == params_.iterations);
+    result_.iterations = params_.iterations;
+    result_.seconds_iterations = seconds_since(t);
+    t = Clock::now();
+    result_.positions = x_;
+    result_.cloud.points.resize(ni_);
+    for (std::size_t i = 0; i < ni_; ++i) result_.cloud.points[i] = x_[i].cast<float>();
+    if (input_.has_colors()) colours();
+    if (params_.estimate_normals) normals();
+    result_.seconds_attributes = seconds_since(t);
+  });
+  result_.seconds = seconds_since(t0);
+}
+
+void Consolidator::setup() {
+  nj_ = input_.size();
+  p_.resize(nj_);
+  for (std::size_t j = 0; j < nj_; ++j) p_[j] = input_.points[j].cast<double>();
+  const double h = params_.radius > 0 ? params_.radius : 4.0 * dbb_ / std::sqrt(double(nj_));
+  kernel_ = Kernel(h);
+  result_.radius = h;
+
+  input_grid_.build(p_.data(), nj_, h);
+  const bool edge = params_.method == WlopMethod::kEdgeWlop;
+  const bool input_normals = edge && params_.edge_normals == EdgeNormals::kInput && input_.has_normals();
+  inv_v_.assign(nj_ + RadiusGrid::kPad, 1.0);
+  if (edge) {
+    v_.assign(nj_, 1.0);
+    edge_n_.assign(nj_, Vec3f::Zero());
+    edge_m_.assign(nj_, Vec3f::Zero());
+  }
+  // Input densities v_j (eq. 6) and, for the edge variant, the simple normals
+  // (eqs. 11-12) with PCA normals that only serve to orient them.
+  tbb::parallel_for(tbb::blocked_range<int>(0, int(nj_), kGrain), [&](const tbb::blocked_range<int>& r) {
+    Scratch& s = scratch_.local();
+    const int* ids = input_grid_.ids().data();
+    const KernelShape shape = kernel_.shape();
+    for (int sp = r.begin(); sp < r.end(); ++sp) {
+      const Vec3d& q = p_[ids[sp]];
+      // The sum includes p_j itself (theta(0) = 1), which is eq. 6's "1 +".
+      const double v = detail::density_sum(input_grid_, q, shape).w;
+      inv_v_[sp] = 1.0 / v;
+      if (!edge) continue;
+      gather(input_grid_, q, kernel_.h2, s.input);
+      const Neighbours& nb = s.input;
+      v_[sp] = v;
+      if (input_normals) {
+        edge_n_[sp] = input_.normals[ids[sp]].normalized();
+        continue;
+      }
+      const int stride = (nb.n + kSimpleNormalPoints - 1) / kSimpleNormalPoints;
+      s.points.clear();
+      for (int k = 0; k < nb.n; k += std::max(stride, 1))
+        s.points.emplace_back(nb.dx[k], nb.dy[k], nb.dz[k]);
+      const Vec3d m = pca_normal(s.points.data(), int(s.points.size()));
+      Vec3d n = simple_normal(s.points.data(), int(s.points.size()));
+      if (n.dot(m) < 0) n = -n;
+      edge_n_[sp] = n.cast<float>();
+      edge_m_[sp] = m.cast<float>();
+    }
+  });
+
+  // Initial projected set: a seeded random subset of the input.
+  const std::vector<int> subset = initial_subset(nj_, ni_, params_.seed);
+  x_.resize(ni_);
+  for (std::size_t i = 0; i < ni_; ++i) x_[i] = p_[subset[i]];
+  x_next_.resize(ni_);
+  w_.assign(ni_ + RadiusGrid::kPad, 1.0);
+  isolated_.assign(ni_, 0);
+  copies_.assign(ni_, 0);
+}
+
+bool Consolidator::plain_e1(const Vec3d& q, Vec3d& e1) const {
+  // Sums of (p_j - q) rather than p_j: the same E1, without cancellation.
+  const KernelSums s = detail::attraction_sum(input_grid_, inv_v_.data(), q, kernel_.shape());
+  if (!(s.w > 0)) return false;
+  e1 = q + s.d / s.w;
+  return true;
+}
+
+bool Consolidator::edge_e1(const Vec3d& q, const Neighbours& nb, Scratch& s, Vec3d& e1,
+                           int& copies) const {
+  return false;  // TODO
+}
+
+void Consolidator::iterate(bool last) {
+  x_grid_.build(x_.data(), ni_, kernel_.h);
+  const int* xids = x_grid_.ids().data();
+  const KernelShape shape = kernel_.shape();
+  // w_i of eq. 7 from the current iterate, stored by sorted position (the sum
+  // includes x_i itself, which is the "1 +").
+  tbb::parallel_for(tbb::blocked_range<int>(0, int(ni_), kGrain), [&](const tbb::blocked_range<int>& r) {
+    for (int sp = r.begin(); sp < r.end(); ++sp)
+      w_[sp] = detail::density_sum(x_grid_, x_[xids[sp]], shape).w;
+  });
+  const bool edge = params_.method == WlopMethod::kEdgeWlop;
+  // Eq. 1 for every point from the previous iterate (Jacobi), in the projected
+  // grid's order so that neighbouring points run one after another.
+  tbb::parallel_for(tbb::blocked_range<int>(0, int(ni_), kGrain), [&](const tbb::blocked_range<int>& r) {
+    Scratch& s = scratch_.local();
+    for (int sp = r.begin(); sp < r.end(); ++sp) {
+      const int i = xids[sp];
+      const Vec3d& q = x_[i];
+      Vec3d e1;
+      int copies = -1;
+      bool ok = false;
+      if (edge) {
+        gather(input_grid_, q, kernel_.h2, s.input);
+        ok = edge_e1(q, s.input, s, e1, copies);
+      }
+      if (!ok) ok = plain_e1(q, e1);
+      copies_[i] = copies;
+      if (!ok) {  // no input point within h: E1 and E2 are undefined; stay
+        x_next_[i] = q;
+        isolated_[i] = 1;
+        continue;
+      }
+      isolated_[i] = 0;
+      // E2 of eq. 3 with beta = -theta (eta(r) / r = -1); the signs cancel. The
+      // sums are over x_r - x_i, so E2 = -d / w.
+      const KernelSums e2 = detail::repulsion_sum(x_grid_, w_.data(), q, shape, sp);
+      Vec3d next = e1;
+      if (e2.w > 0) next -= params_.mu * e2.d / e2.w;
+      x_next_[i] = next;
+    }
+  });
+  x_.swap(x_next_);
+  if (last) {
+    result_.isolated_points = std::size_t(std::count(isolated_.begin(), isolated_.end(), 1));
+    if (edge) {
+      std::size_t fallbacks = 0, total = 0, counted = 0;
+      for (std::size_t i = 0; i < ni_; ++i) {
+        if (isolated_[i]) continue;
+        if (copies_[i] < 0) {
+          ++fallbacks;
+        } else {
+          total += std::size_t(copies_[i]);
+          ++counted;
+        }
+      }
+      result_.plain_fallbacks = fallbacks;
+      result_.mean_copies = counted ? double(total) / double(counted) : 0.0;
+    }
+  }
+}
+
+void Consolidator::colours() {
+  const std::vector<Vec3d>& x = x_;
+  std::vector<Rgb>& out = result_.cloud.colors;
+  out.assign(ni_, Rgb{});
+  const int* ids = input_grid_.ids().data();
+  std::vector<char> missing(ni_, 0);
+  // The weights of E1 (alpha_ij / v_j); a coincident input point, singular in
+  // E1, is given the weight of one at 1e-9 h so that its colour dominates.
+  tbb::parallel_for(tbb::blocked_range<int>(0, int(ni_), kGrain), [&](const tbb::blocked_range<int>& r) {
+    Scratch& s = scratch_.local();
+    for (int i = r.begin(); i < r.end(); ++i) {
+      gather(input_grid_, x[i], kernel_.h2, s.input);
+      const Neighbours& nb = s.input;
+      double sw = 0, sr = 0, sg = 0, sb = 0;
+      for (int k = 0; k < nb.n; ++k) {
+        const double r2 = std::max(nb.r2[k], kernel_.eps2);
+        const double a = kernel_.theta(r2) / std::sqrt(r2) * inv_v_[nb.pos[k]];
+        const Rgb& c = input_.colors[ids[nb.pos[k]]];
+        sw += a;
+        sr += a * c.r;
+        sg += a * c.g;
+        sb += a * c.b;
+      }
+      if (!(sw > 0)) {
+        missing[i] = 1;
+        continue;
+      }
+      auto channel = [&](double v) {
+        return std::uint8_t(std::clamp(std::lround(v / sw), 0l, 255l));
+      };
+      out[i] = Rgb{channel(sr), channel(sg), channel(sb)};
+    }
+  });
+  if (std::find(missing.begin(), missing.end(), 1) == missing.end()) return;
+  const PointIndex index(input_.points);
+  for (std::size_t i = 0; i < ni_; ++i)
+    if (missing[i]) out[i] = input_.colors[index.nearest(result_.cloud.points[i]).first];
+}
+
+void Consolidator::normals() {
+  const int k = std::min<int>(params_.normal_neighbours, int(ni_));
+  std::vector<Vec3f>& n = result_.cloud.normals;
+  if (k < 3) {
+    n.assign(ni_, Vec3f::Zero());
+    return;
+  }
+  n = estimate_normals(result_.cloud.points, k, 0);
+  if (input_.has_normals())
+    orient_normals_to(result_.cloud.points, n, input_.points, input_.normals, 8, 0);
+  else
+    orient_normals_mst(result_.cloud.points, n, k);
+}
+
+void validate(const Cloud& input, const WlopParams& p) {
+  auto fail = [](const std::string& what) { throw InvalidInput("consolidate: " + what); };
+  if (input.empty()) fail("empty input");
+  input.check_consistent("consolidate input");
+  if (!all_finite(input.points)) fail("input has non-finite coordinates");
+  if (p.target_points == 0 && !(p.ratio > 0 && p.ratio <= 1)) fail("ratio must be in (0, 1]");
+  if (p.iterations < 0) fail("iterations must be >= 0");
+  if (!(p.radius >= 0) || !std::isfinite(p.radius)) fail("radius must be >= 0 and finite");
+  if (!(p.mu >= 0 && p.mu < 0.5)) fail("mu must be in [0, 0.5)");
+  if (p.threads < 0) fail("threads must be >= 0");
+  if (!(p.inversion_radius > 0.25) || !std::isfinite(p.inversion_radius))
+    fail("inversion_radius must be > 0.25 (units of d_bb)");
+  if (p.shift_divisions < 1) fail("shift_divisions must be >= 1");
+  if (p.max_copies < 1) fail("max_copies must be >= 1");
+  if (p.normal_neighbours < 3) fail("normal_neighbours must be >= 3");
+}
+
+}  // namespace
+
+std::vector<int> initial_subset(std::size_t n, std::size_t count, unsigned seed) {
+  count = std::min(count, n);
+  std::vector<int> pool(n);
+  for (std::size_t i = 0; i < n; ++i) pool[i] = int(i);
+  std::mt19937_64 rng(seed);
+  // Partial Fisher-Yates with a plain modulo (bias < 2^-40 for any n we hold);
+  // std::uniform_int_distribution would differ between standard libraries.
+  for (std::size_t i = 0; i < count; ++i) {
+    const std::size_t j = i + std::size_t(rng() % std::uint64_t(n - i));
+    std::swap(pool[i], pool[j]);
+  }
+  pool.resize(count);
+  std::sort(pool.begin(), pool.end());
+  return pool;
+}
+
+WlopResult consolidate(const Cloud& input, const WlopParams& params) {
+  validate(input, params);
+  WlopResult result;
+  result.input_points = input.size();
+  const Aabb box = bounding_box(input.points);
+  result.bbox_diagonal = (box.max.cast<double>() - box.min.cast<double>()).norm();
+  if (!(result.bbox_diagonal > 0))
+    throw InvalidInput("consolidate: all input points coincide (zero bounding box)");
+  result.requested_points =
+      params.target_points > 0
+          ? params.target_points
+          : std::max<std::size_t>(1, std::size_t(std::llround(params.ratio * double(input.size()))));
+  result.clamped = result.requested_points > input.size();
+  result.output_points = std::min(result.requested_points, input.size());
+
+  Consolidator c(input, params, result);
+  c.run();
+  return result;
+}
+
+}  // namespace station

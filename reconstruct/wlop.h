@@ -1,0 +1,165 @@
+#pragma once
+// Consolidation (`station consolidate`): turns a merged, uneven, noisy cloud into
+// a thinner, even set of points on the surface.
+//
+// Method (../shared/docs/methods.md section 1; equation numbers are those of the
+// paper ../shared/seeds/edge-preserving-wlop_awano.txt, Awano 2013, which restates
+// WLOP, Huang et al. 2009, as eqs. 1-9):
+//
+//   x_i <- E1 + mu E2                                                     (eq. 1)
+//   E1 = sum_j p_j (alpha_ij / v_j) / sum_j (alpha_ij / v_j)              (eq. 2)
+//   E2 = sum_r (x_i - x_r) w_r beta_ir / sum_r w_r beta_ir                (eq. 3)
+//   alpha_ij = theta(|x_i - p_j|) / |x_i - p_j|                           (eq. 4)
+//   beta_ir = theta(|x_i - x_r|) eta(|x_i - x_r|) / |x_i - x_r|           (eq. 5)
+//   v_j = 1 + sum_{j' != j} theta(|p_j - p_j'|)     input density, once   (eq. 6)
+//   w_i = 1 + sum_{r != i} theta(|x_i - x_r|)       every iteration       (eq. 7)
+//   theta(r) = exp(-r^2 / (h/4)^2)                                        (eq. 8)
+//   eta(r) = -r                                                           (eq. 9)
+//
+// Every sum runs over the points strictly within h (theta(h) = e^-16 ~ 1e-7):
+// fixed-radius queries on a grid over the input built once and a grid over the
+// projected set rebuilt each iteration. Updates are Jacobi style (every x_i from
+// the previous iterate) and each point's sums run in a fixed order, so the output
+// depends on the input, the parameters and the seed only, not on the thread count.
+// All arithmetic is double.
+//
+// Conventions the equations leave open (docs/consolidation.md says why):
+// - A pair closer than 1e-9 h is left out of E1 (alpha is singular there; the
+//   initial x_i coincide with input points).
+// - A point with no input point within h keeps its position for that iteration
+//   (neither E1 nor E2 is defined for it); WlopResult::isolated_points counts them.
+// - Without projected neighbours E2 = 0.
+//
+// Edge-preserving variant (Awano 2013, section 3), for each x_i and iteration:
+//   c_i = x_i + d_bb sum_l n_l / (2 k_h)                                  (eq. 10)
+//   n_l: the "simple normal" of input point p_l (eqs. 11-12): the plane through
+//   the centroid of p_l's neighbours within h that minimises the sum of absolute
+//   distances (an L1 fit; eq. 11 as printed has no square or absolute value and
+//   would be constant; the paper contrasts it with PCA, the squared version).
+//   Their signs are made consistent around x_i through PCA normals.
+//   Inversion f(p, c, r): the point at distance 2r - |p - c| from c along the ray
+//   c -> p (eq. 13 gives it relative to c; it is its own inverse).
+//   Upsampling (eqs. 14-15): copy t = 0, 1, ... of the neighbours is shifted by
+//   t l (l along c_i -> x_i, |l| = R / m) and inverted with radius R + t |l| / 2,
+//   until the copies put at least k_h points within h of x'_i = f(x_i, c_i, R).
+//   (Eq. 15 prints (1 + |l|/2) R; R + t|l|/2 keeps each point's inverted distance
+//   from c_i, so the copies only differ in lateral scale and stack on x'_i.)
+//   E1' (eqs. 16-18) is E1 taken over the copies around x'_i; E1 = f(E1', c_i, R) (eq. 19).
+#include <cstddef>
+#include <vector>
+
+#include "core/geometry.h"
+
+namespace station {
+
+enum class WlopMethod {
+  kWlop,      ///< WLOP, eqs. 1-9
+  kEdgeWlop,  ///< edge-preserving WLOP: E1 through spherical inversion, eqs. 10-19
+};
+
+/// Normals that place the inversion centre c_i (eq. 10) of the edge variant.
+enum class EdgeNormals {
+  kSimple,  ///< eqs. 11-12 on the input (L1 plane fits), whatever the input carries
+  kInput,   ///< the input's normals (assumed consistently oriented) when it has them, else kSimple
+};
+
+/// Density weights v'_s of the inverted, upsampled neighbourhood (eq. 18).
+enum class InvertedDensity {
+  /// v'_s = 1 + (v_j - 1) sum_t 1/sigma_t(j): the input density of the point p_j that
+  /// u_s copies, divided by the area scale sigma_t of the inversion of copy t
+  /// (summed over the copies that overlap there). O(k_h) per point and iteration.
+  kJacobian,
+  /// Eq. 18 literally, over all pairs of the upsampled set. O(k_h^2) per point and
+  /// iteration: tens of times slower; kept to check kJacobian against.
+  kExact,
+};
+
+struct WlopParams {
+  WlopMethod method = WlopMethod::kWlop;
+  /// |I|, the number of output points. 0: round(ratio * |J|) (at least 1).
+  /// More than the input holds: clamped to |J| (the whole input is projected;
+  /// WlopResult::clamped says so).
+  std::size_t target_points = 0;
+  /// |I| / |J| when target_points is 0; in (0, 1].
+  double ratio = 0.2;
+  /// k, iterations of eq. 1 (>= 0). 35 is CGAL's default for
+  /// wlop_simplify_and_regularize_point_set and what the benchmark compares at;
+  /// the paper runs 100 "to be sure of convergence".
+  int iterations = 35;
+  /// h, the support radius of theta (absolute, input units). 0: 4 d_bb / sqrt(|J|),
+  /// which is the paper's 4 sqrt(d_bb / |J|) for its d_bb = 1 (it normalises the
+  /// model), made scale-invariant.
+  double radius = 0;
+  /// mu, weight of the repulsion E2 (eq. 1); in [0, 0.5) per Huang et al.
+  double mu = 0.45;
+  /// Seed of the random initial subset (see initial_subset).
+  unsigned seed = 1;
+  /// Worker threads (0 = all cores). The output does not depend on it.
+  int threads = 0;
+
+  // ---- edge variant (method == kEdgeWlop) ----
+  /// R, the inversion radius, in units of d_bb (relative, > 0.25). Eq. 10 puts c_i
+  /// d_bb |mean n| / 2 from x_i, so f is a bijection on the neighbourhood only for
+  /// 2R > |p - c_i|, a bound set by d_bb, not h; 1 gives a lateral magnification
+  /// (2R - |x_i - c_i|) / |x_i - c_i| of 3 on flat parts, about 5 on a right-angled edge.
+  double inversion_radius = 1.0;
+  /// m: the shift per copy is |l| = R / m (eq. 15; the paper finds m > 10 equivalent).
+  int shift_divisions = 20;
+  /// Upper bound on the number of copies K (eq. 14) when k'_h stays below k_h.
+  int max_copies = 64;
+  EdgeNormals edge_normals = EdgeNormals::kSimple;
+  InvertedDensity inverted_density = InvertedDensity::kJacobian;
+
+  // ---- output attributes ----
+  /// Estimate output normals (PCA over the normal_neighbours nearest output points)
+  /// and orient them outwards (see orient_normals in reconstruct/normals.h).
+  bool estimate_normals = true;
+  int normal_neighbours = 12;
+};
+
+struct WlopResult {
+  /// |I| points (float). Colours when the input has them: each the E1-weighted
+  /// (alpha_ij / v_j) mean of the input colours within h of the final point,
+  /// rounded (the nearest input point's colour when none is within h). Normals
+  /// when params.estimate_normals.
+  Cloud cloud;
+  /// The same points in double (|I| x 3), as computed.
+  std::vector<Vec3d> positions;
+
+  std::size_t input_points = 0;      ///< |J|
+  std::size_t requested_points = 0;  ///< |I| asked for (target_points or ratio * |J|)
+  bool clamped = false;              ///< requested more than |J|; |I| = |J|
+  std::size_t output_points = 0;     ///< |I|
+  int iterations = 0;                ///< iterations run
+  double radius = 0;                 ///< h used (absolute)
+  double bbox_diagonal = 0;          ///< d_bb of the input
+  /// Points left where they were in the last iteration for want of input points
+  /// within h.
+  std::size_t isolated_points = 0;
+  /// Edge variant, last iteration: mean number of copies K per point, and the
+  /// points that fell back to plain E1 (normals cancelling, |sum n_l| < 0.2 k_h).
+  double mean_copies = 0;
+  std::size_t plain_fallbacks = 0;
+
+  double seconds = 0;             ///< whole call
+  double seconds_setup = 0;       ///< input grid, densities v_j (and simple normals)
+  double seconds_iterations = 0;  ///< the k iterations
+  double seconds_attributes = 0;  ///< colours and normals
+};
+
+/// Consolidates `input` (|J| points; colours and normals optional) into
+/// |I| points by WLOP or its edge-preserving variant. See the file comment.
+/// InvalidInput on an empty cloud, non-finite coordinates, inconsistent
+/// attributes, a zero-size bounding box (all points identical), or a bad
+/// parameter (ratio outside (0, 1], iterations < 0, radius < 0 or non-finite,
+/// mu outside [0, 0.5), threads < 0, inversion_radius <= 0.25,
+/// shift_divisions < 1, max_copies < 1, normal_neighbours < 3).
+WlopResult consolidate(const Cloud& input, const WlopParams& params = {});
+
+/// The initial projected set: `count` distinct indices into an n-point input,
+/// drawn by a partial Fisher-Yates shuffle driven by std::mt19937_64(seed) and
+/// returned sorted. Same n, count and seed, same subset, on any platform.
+/// count is clamped to n.
+std::vector<int> initial_subset(std::size_t n, std::size_t count, unsigned seed);
+
+}  // namespace station

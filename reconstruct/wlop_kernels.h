@@ -1,0 +1,39 @@
+#pragma once
+// Internal to reconstruct/: the inner sums of WLOP (methods.md section 1) over a
+// RadiusGrid's points within h of a query, in double precision, eight lanes at
+// a time. theta(r) = exp(-r^2 / (h/4)^2) (eq. 8). The lanes are summed in a fixed
+// order, so a result depends on the grid and the query alone (not on the CPU's
+// vector width: every ISA runs the same eight-lane arithmetic).
+#include "core/geometry.h"
+#include "reconstruct/radius_grid.h"
+
+namespace station::detail {
+
+/// A weighted sum over neighbours p: w = sum a_p, d = sum a_p (p - q).
+struct KernelSums {
+  double w = 0;
+  Vec3d d = Vec3d::Zero();
+};
+
+/// Shared constants of one radius h.
+struct KernelShape {
+  double h2 = 0;      ///< h^2: only points with |p - q|^2 < h^2 count
+  double inv_s2 = 0;  ///< 1 / (h/4)^2
+  double eps2 = 0;    ///< attraction leaves out |p - q|^2 <= eps2 (alpha is singular at 0)
+};
+
+/// w = sum theta(|p - q|) over all grid points within h (q itself included when in
+/// the grid). d is left zero. Eqs. 6-7 with the self term as the "1 +".
+KernelSums density_sum(const RadiusGrid& grid, const Vec3d& q, const KernelShape& k);
+
+/// a_p = theta(r) / r * weight[p] (weight by sorted position; eq. 2's alpha_ij / v_j
+/// with weight = 1 / v_j), over eps2 < r^2 < h^2.
+KernelSums attraction_sum(const RadiusGrid& grid, const double* weight, const Vec3d& q,
+                          const KernelShape& k);
+
+/// a_p = theta(r) * weight[p] (eq. 3's w_r |beta_ir| with weight = w_r) over r^2 < h^2,
+/// leaving out sorted position `self`.
+KernelSums repulsion_sum(const RadiusGrid& grid, const double* weight, const Vec3d& q,
+                         const KernelShape& k, int self);
+
+}  // namespace station::detail
