@@ -1,0 +1,22 @@
+#pragma once
+// Abstract implicit function f: R^3 -> R, the interface mesh extraction
+// (reconstruct/marching_cubes.h) works on. Sign convention of the station:
+// f < 0 inside, f > 0 outside, f = 0 on the surface, like a signed distance;
+// grad f then points outwards.
+#include "core/geometry.h"
+
+namespace station {
+
+class ImplicitFunction {
+ public:
+  virtual ~ImplicitFunction() = default;
+  /// f(x). Must be thread-safe (called concurrently during extraction).
+  virtual double value(const Vec3d& x) const = 0;
+  /// grad f(x) (not necessarily unit). Thread-safe.
+  virtual Vec3d gradient(const Vec3d& x) const = 0;
+  /// Whether f is backed by data near x (default: everywhere). Extraction can drop
+  /// the surface where it is not (MarchingCubesOptions::untrusted).
+  virtual bool trusted(const Vec3d& x) const { return true; }
+};
+
+}  // namespace station

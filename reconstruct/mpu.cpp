@@ -1,0 +1,591 @@
+#include "reconstruct/mpu.h"
+
+#include <tbb/parallel_for.h>
+#include <tbb/task_arena.h>
+
+#include <Eigen/Dense>
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <string>
+
+#include "core/error.h"
+#include "core/kdtree.h"
+
+namespace station {
+namespace {
+
+constexpr double kPi = 3.14159265358979323846;
+
+// Quadratic B-spline b2(t), support |t| < 3/2.
+double bspline2(double t) {
+  t = std::abs(t);
+  if (t < 0.5) return 0.75 - t * t;
+  if (t < 1.5) return 0.5 * (1.5 - t) * (1.5 - t);
+  return 0;
+}
+// d b2 / dt for t >= 0.
+double bspline2_deriv(double t) {
+  if (t < 0.5) return -2 * t;
+  if (t < 1.5) return -(1.5 - t);
+  return 0;
+}
+
+// w = h(u, v) over the plane through `origin` with normal n; Q = w - h, so Q > 0 on
+// the side n points to (outside).
+struct Bivariate {
+  Vec3d origin = Vec3d::Zero(), u = Vec3d::UnitX(), v = Vec3d::UnitY(), n = Vec3d::UnitZ();
+  double c[6] = {0, 0, 0, 0, 0, 0};  // c0 u^2 + c1 uv + c2 v^2 + c3 u + c4 v + c5
+  double eval(const Vec3d& x, Vec3d* g) const {
+    const Vec3d d = x - origin;
+    const double a = d.dot(u), b = d.dot(v), w = d.dot(n);
+    const double h = c[0] * a * a + c[1] * a * b + c[2] * b * b + c[3] * a + c[4] * b + c[5];
+    if (g) {
+      const double ha = 2 * c[0] * a + c[1] * b + c[3];
+      const double hb = c[1] * a + 2 * c[2] * b + c[4];
+      *g = n - ha * u - hb * v;
+    }
+    return w - h;
+  }
+};
+
+// Q(x) = a . phi(y), y = (x - origin) / scale, phi = [y0^2, y1^2, y2^2, y0y1, y1y2,
+// y2y0, y0, y1, y2, 1]; scaling by the ball radius keeps the normal equations
+// conditioned.
+struct Quadric {
+  Vec3d origin = Vec3d::Zero();
+  double inv_scale = 1;
+  double a[10] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
+  static void basis(const Vec3d& y, double* phi) {
+    phi[0] = y[0] * y[0]; phi[1] = y[1] * y[1]; phi[2] = y[2] * y[2];
+    phi[3] = y[0] * y[1]; phi[4] = y[1] * y[2]; phi[5] = y[2] * y[0];
+    phi[6] = y[0]; phi[7] = y[1]; phi[8] = y[2]; phi[9] = 1;
+  }
+  // d phi / d y_k for k = 0..2 (rows).
+  static void basis_grad(const Vec3d& y, double (*dphi)[10]) {
+    for (int k = 0; k < 3; ++k)
+      for (int j = 0; j < 10; ++j) dphi[k][j] = 0;
+    dphi[0][0] = 2 * y[0]; dphi[1][1] = 2 * y[1]; dphi[2][2] = 2 * y[2];
+    dphi[0][3] = y[1]; dphi[1][3] = y[0];
+    dphi[1][4] = y[2]; dphi[2][4] = y[1];
+    dphi[2][5] = y[0]; dphi[0][5] = y[2];
+    dphi[0][6] = 1; dphi[1][7] = 1; dphi[2][8] = 1;
+  }
+  double eval(const Vec3d& x, Vec3d* g) const {
+    const Vec3d y = (x - origin) * inv_scale;
+    const double q = a[0] * y[0] * y[0] + a[1] * y[1] * y[1] + a[2] * y[2] * y[2] +
+                     a[3] * y[0] * y[1] + a[4] * y[1] * y[2] + a[5] * y[2] * y[0] +
+                     a[6] * y[0] + a[7] * y[1] + a[8] * y[2] + a[9];
+    if (g) {
+      *g = Vec3d(2 * a[0] * y[0] + a[3] * y[1] + a[5] * y[2] + a[6],
+                 2 * a[1] * y[1] + a[3] * y[0] + a[4] * y[2] + a[7],
+                 2 * a[2] * y[2] + a[4] * y[1] + a[5] * y[0] + a[8]) *
+           inv_scale;
+    }
+    return q;
+  }
+};
+
+struct LocalFit {
+  MpuFitType type = MpuFitType::kBivariate;
+  Quadric quadric;
+  Bivariate piece[3];
+  int pieces = 1;
+  bool take_max = true;  // convex feature: intersection of the pieces' insides
+  double eval(const Vec3d& x, Vec3d* g) const {
+    if (type == MpuFitType::kQuadric) return quadric.eval(x, g);
+    Vec3d gb;
+    double best = piece[0].eval(x, g ? &gb : nullptr);
+    Vec3d best_g = gb;
+    for (int i = 1; i < pieces; ++i) {
+      const double q = piece[i].eval(x, g ? &gb : nullptr);
+      if (take_max ? q > best : q < best) best = q, best_g = gb;
+    }
+    if (g) *g = best_g;
+    return best;
+  }
+};
+
+struct Node {
+  Vec3d center;
+  double half = 0;    // half the cell side
+  double radius = 0;  // support radius R (leaves)
+  double reach = 0;   // max distance from center to any point of a descendant leaf's ball
+  int first_child = -1;
+  int fit = -1;
+  int depth = 0;
+};
+
+}  // namespace
+
+struct MpuSurface::Impl {
+  MpuParams params;
+  MpuDiagnostics diag;
+  Vec3d center = Vec3d::Zero();  // world -> normalised: (x - center) * scale
+  double scale = 1;
+  Aabb bounds;
+  std::vector<Vec3f> world_points;
+  std::vector<Vec3f> points;  // normalised
+  std::vector<Vec3d> normals;
+  std::unique_ptr<PointIndex> index;  // over `points`
+  std::vector<Node> nodes;
+  std::vector<LocalFit> fits;
+  double trust_radius = 0;  // normalised
+
+  // Accumulates sum w Q, sum w, and (when grads) their gradients, in normalised units.
+  void accumulate(const Vec3d& y, double& swq, double& sw, Vec3d* gwq, Vec3d* gw) const {
+    int stack[64 * 8];
+    int top = 0;
+    stack[top++] = 0;
+    while (top > 0) {
+      const Node& nd = nodes[stack[--top]];
+      const Vec3d d = y - nd.center;
+      const double r = d.norm();
+      if (nd.first_child < 0) {
+        if (r >= nd.radius) continue;
+        const double t = 1.5 * r / nd.radius;
+        const double w = bspline2(t);
+        if (w <= 0) continue;
+        const LocalFit& f = fits[nd.fit];
+        if (gwq) {
+          Vec3d gq;
+          const double q = f.eval(y, &gq);
+          const Vec3d gwt = r > 0 ? Vec3d(bspline2_deriv(t) * 1.5 / nd.radius / r * d) : Vec3d::Zero();
+          swq += w * q;
+          sw += w;
+          *gwq += gwt * q + w * gq;
+          *gw += gwt;
+        } else {
+          swq += w * f.eval(y, nullptr);
+          sw += w;
+        }
+      } else {
+        if (r >= nd.reach) continue;
+        for (int c = 7; c >= 0; --c) stack[top++] = nd.first_child + c;
+      }
+    }
+  }
+
+  double eval(const Vec3d& x, Vec3d* grad) const {
+    const Vec3d y = (x - center) * scale;
+    double swq = 0, sw = 0;
+    Vec3d gwq = Vec3d::Zero(), gw = Vec3d::Zero();
+    accumulate(y, swq, sw, grad ? &gwq : nullptr, grad ? &gw : nullptr);
+    if (sw <= 1e-300) {
+      // Beyond every support: a positive (outside) distance-like value.
+      const Vec3d d = y - nodes[0].center;
+      const double r = d.norm();
+      if (grad) *grad = r > 0 ? Vec3d(d / r) : Vec3d::UnitZ();
+      return r / scale;
+    }
+    // Gradient in the normalised frame equals the world one (f_world = f_norm / scale).
+    if (grad) *grad = (gwq * sw - swq * gw) / (sw * sw);
+    return swq / sw / scale;
+  }
+};
+
+namespace {
+
+struct CellFit {
+  LocalFit fit;
+  double error = 0;
+  double radius = 0;
+  bool grew = false;
+};
+
+// Weighted least-squares bivariate quadratic over the plane (q, n).
+Bivariate fit_bivariate(const MpuSurface::Impl& s, const std::vector<int>& ids,
+                        const std::vector<double>& w, const Vec3d& n, double R) {
+  Bivariate b;
+  double W = 0;
+  Vec3d q = Vec3d::Zero();
+  for (std::size_t i = 0; i < ids.size(); ++i) {
+    q += w[i] * s.points[ids[i]].cast<double>();
+    W += w[i];
+  }
+  b.origin = q / W;
+  b.n = n;
+  // Any tangent frame; built from the normal's smallest component for stability.
+  Vec3d t = std::abs(n.x()) < 0.6 ? Vec3d::UnitX() : (std::abs(n.y()) < 0.6 ? Vec3d::UnitY() : Vec3d::UnitZ());
+  b.u = (t - t.dot(n) * n).normalized();
+  b.v = n.cross(b.u);
+  Eigen::Matrix<double, 6, 6> A = Eigen::Matrix<double, 6, 6>::Zero();
+  Eigen::Matrix<double, 6, 1> rhs = Eigen::Matrix<double, 6, 1>::Zero();
+  for (std::size_t i = 0; i < ids.size(); ++i) {
+    const Vec3d d = (s.points[ids[i]].cast<double>() - b.origin) / R;
+    const double a = d.dot(b.u), bb = d.dot(b.v), h = d.dot(n);
+    Eigen::Matrix<double, 6, 1> phi;
+    phi << a * a, a * bb, bb * bb, a, bb, 1;
+    A += w[i] * phi * phi.transpose();
+    rhs += w[i] * h * phi;
+  }
+  // Small ridge on the curved and slope terms: a collinear or tiny neighbourhood
+  // leaves them undetermined; zero (a plane) is the safe default.
+  const double ridge = 1e-6 * (A.trace() + 1e-300);
+  for (int k = 0; k < 5; ++k) A(k, k) += ridge;
+  const Eigen::Matrix<double, 6, 1> c = A.ldlt().solve(rhs);
+  b.c[0] = c[0] / R; b.c[1] = c[1] / R; b.c[2] = c[2] / R;
+  b.c[3] = c[3]; b.c[4] = c[4]; b.c[5] = c[5] * R;
+  for (double& v : b.c)
+    if (!std::isfinite(v)) v = 0;
+  return b;
+}
+
+Quadric fit_quadric(const MpuSurface::Impl& s, const std::vector<int>& ids,
+                    const std::vector<double>& w, const Vec3d& o, double half, double R) {
+  Quadric Q;
+  Q.origin = o;
+  Q.inv_scale = 1 / R;
+  using M10 = Eigen::Matrix<double, 10, 10>;
+  using V10 = Eigen::Matrix<double, 10, 1>;
+  M10 A = M10::Zero();
+  V10 rhs = V10::Zero();
+  double W = 0;
+  for (double x : w) W += x;
+  const double gw = s.params.quadric_normal_weight * R;  // residual scale of normal rows
+  double phi[10], dphi[3][10];
+  for (std::size_t i = 0; i < ids.size(); ++i) {
+    const Vec3d y = (s.points[ids[i]].cast<double>() - o) / R;
+    const double wi = w[i] / W;
+    Quadric::basis(y, phi);
+    Eigen::Map<V10> p(phi);
+    A += wi * p * p.transpose();
+    Quadric::basis_grad(y, dphi);
+    const Vec3d& n = s.normals[ids[i]];
+    for (int k = 0; k < 3; ++k) {
+      // grad_x Q = grad_y Q / R; residual (grad_x Q - n) * gw.
+      Eigen::Map<V10> g(dphi[k]);
+      const double sc = gw / R;
+      A += wi * sc * sc * g * g.transpose();
+      rhs += wi * sc * gw * n[k] * g;
+    }
+  }
+  // Auxiliary points (Ohtake section 3.2): cell corners and centre whose signed
+  // distance d to the 6 nearest points' tangent planes agrees in sign.
+  std::vector<std::pair<Vec3d, double>> aux;
+  for (int c = 0; c < 9; ++c) {
+    const Vec3d q = c == 8 ? o : Vec3d(o + half * Vec3d(c & 1 ? 1 : -1, c & 2 ? 1 : -1, c & 4 ? 1 : -1));
+    const auto nn = s.index->knn(q.cast<float>(), 6);
+    int pos = 0, neg = 0;
+    double sum = 0;
+    for (const auto& [id, dist] : nn) {
+      const double d = (q - s.points[id].cast<double>()).dot(s.normals[id]);
+      (d > 0 ? pos : neg) += 1;
+      sum += d;
+    }
+    if (!nn.empty() && (pos == 0 || neg == 0)) aux.emplace_back(q, sum / nn.size());
+  }
+  for (const auto& [q, d] : aux) {
+    Quadric::basis((q - o) / R, phi);
+    Eigen::Map<V10> p(phi);
+    const double wa = 1.0 / aux.size();
+    A += wa * p * p.transpose();
+    rhs += wa * d * p;
+  }
+  const double ridge = 1e-9 * (A.trace() + 1e-300);
+  for (int k = 0; k < 10; ++k) A(k, k) += ridge;
+  const V10 a = A.ldlt().solve(rhs);
+  for (int k = 0; k < 10; ++k) Q.a[k] = std::isfinite(a[k]) ? a[k] : 0;
+  return Q;
+}
+
+double taubin_error(const MpuSurface::Impl& s, const std::vector<int>& ids, const LocalFit& f) {
+  double err = 0;
+  Vec3d g;
+  for (int id : ids) {
+    const double q = f.eval(s.points[id].cast<double>(), &g);
+    err = std::max(err, std::abs(q) / std::max(g.norm(), 1e-12));
+  }
+  return err;
+}
+
+// Sharp feature (Ohtake section 3.3): cluster the normals around 2 or 3 seeds, fit a
+// bivariate quadratic per cluster, combine by max (convex) or min (concave).
+bool fit_sharp(const MpuSurface::Impl& s, const std::vector<int>& ids, const std::vector<double>& w,
+               const Vec3d& mean_n, double R, LocalFit& out) {
+  const MpuParams& p = s.params;
+  const double sharp_cos = std::cos(p.sharp_angle_deg * kPi / 180);
+  const double tight_cos = std::cos(p.cluster_angle_deg * kPi / 180);
+  // Seeds: the normal furthest from the mean, then the one furthest from the seeds.
+  std::vector<Vec3d> seeds;
+  auto furthest = [&](auto&& score) {
+    int best = -1;
+    double bs = 2;
+    for (std::size_t i = 0; i < ids.size(); ++i) {
+      const double sc = score(s.normals[ids[i]]);
+      if (sc < bs) bs = sc, best = int(i);
+    }
+    return std::make_pair(best, bs);
+  };
+  seeds.push_back(s.normals[ids[furthest([&](const Vec3d& n) { return n.dot(mean_n); }).first]]);
+  auto [i2, c2] = furthest([&](const Vec3d& n) { return n.dot(seeds[0]); });
+  if (c2 > sharp_cos) return false;  // normals do not spread enough for an edge
+  seeds.push_back(s.normals[ids[i2]]);
+  auto [i3, c3] = furthest([&](const Vec3d& n) { return std::max(n.dot(seeds[0]), n.dot(seeds[1])); });
+  if (c3 < tight_cos) seeds.push_back(s.normals[ids[i3]]);
+  const int k = int(seeds.size());
+  std::vector<int> label(ids.size());
+  for (int it = 0; it < 5; ++it) {
+    std::vector<Vec3d> sum(k, Vec3d::Zero());
+    for (std::size_t i = 0; i < ids.size(); ++i) {
+      int best = 0;
+      for (int c = 1; c < k; ++c)
+        if (s.normals[ids[i]].dot(seeds[c]) > s.normals[ids[i]].dot(seeds[best])) best = c;
+      label[i] = best;
+      sum[best] += s.normals[ids[i]];
+    }
+    for (int c = 0; c < k; ++c)
+      if (sum[c].norm() > 0) seeds[c] = sum[c].normalized();
+  }
+  std::vector<std::vector<int>> cid(k);
+  std::vector<std::vector<double>> cw(k);
+  for (std::size_t i = 0; i < ids.size(); ++i) {
+    if (s.normals[ids[i]].dot(seeds[label[i]]) < tight_cos) return false;  // not a clean cluster
+    cid[label[i]].push_back(ids[i]);
+    cw[label[i]].push_back(std::max(w[i], 1e-6));
+  }
+  for (int c = 0; c < k; ++c)
+    if (cid[c].size() < 6) return false;
+  out.pieces = k;
+  out.type = k == 2 ? MpuFitType::kEdge : MpuFitType::kCorner;
+  for (int c = 0; c < k; ++c) out.piece[c] = fit_bivariate(s, cid[c], cw[c], seeds[c], R);
+  // Convex when each cluster's centroid lies inside (Q < 0) the other pieces.
+  int convex = 0, concave = 0;
+  for (int a = 0; a < k; ++a)
+    for (int b = 0; b < k; ++b)
+      if (a != b) (out.piece[a].eval(out.piece[b].origin, nullptr) < 0 ? convex : concave) += 1;
+  if (convex && concave) return false;  // saddle-like corner: leave it to the quadric
+  out.take_max = convex > 0;
+  return true;
+}
+
+CellFit fit_cell(const MpuSurface::Impl& s, const Vec3d& o, double half) {
+  const MpuParams& p = s.params;
+  CellFit cf;
+  double R = p.alpha * 2 * half * std::sqrt(3.0);
+  auto nn = s.index->radius(o.cast<float>(), float(R));
+  while (int(nn.size()) < p.n_min) {
+    R += p.lambda * R;
+    cf.grew = true;
+    nn = s.index->radius(o.cast<float>(), float(R));
+  }
+  cf.radius = R;
+  std::vector<int> ids(nn.size());
+  std::vector<double> w(nn.size());
+  Vec3d mean_n = Vec3d::Zero();
+  for (std::size_t i = 0; i < nn.size(); ++i) {
+    ids[i] = nn[i].first;
+    // Points on the ball's rim would get weight 0; keep a floor so a grown ball's
+    // outermost points still count.
+    w[i] = std::max(bspline2(1.5 * nn[i].second / R), 1e-3);
+    mean_n += w[i] * s.normals[ids[i]];
+  }
+  // Normals spread (or cancel): general quadric; otherwise a height function.
+  bool agree = mean_n.norm() > 1e-9;
+  if (agree) {
+    mean_n.normalize();
+    for (int id : ids)
+      if (s.normals[id].dot(mean_n) <= p.bivariate_min_cos) {
+        agree = false;
+        break;
+      }
+  }
+  if (agree) {
+    cf.fit.type = MpuFitType::kBivariate;
+    cf.fit.piece[0] = fit_bivariate(s, ids, w, mean_n, R);
+    cf.error = taubin_error(s, ids, cf.fit);
+  }
+  if (p.sharp_features && (!agree || cf.error > p.epsilon0) && mean_n.norm() > 0.5) {
+    LocalFit sharp;
+    if (fit_sharp(s, ids, w, mean_n, R, sharp)) {
+      const double e = taubin_error(s, ids, sharp);
+      if (!agree || e < cf.error) cf.fit = sharp, cf.error = e, agree = true;
+    }
+  }
+  if (!agree) {
+    cf.fit.type = MpuFitType::kQuadric;
+    cf.fit.quadric = fit_quadric(s, ids, w, o, half, R);
+    cf.error = taubin_error(s, ids, cf.fit);
+  }
+  return cf;
+}
+
+int arena_threads(int threads) {
+  return threads == 0 ? tbb::this_task_arena::max_concurrency() : threads;
+}
+
+}  // namespace
+
+MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
+  const auto t0 = std::chrono::steady_clock::now();
+  cloud.check_consistent("fit_mpu input");
+  if (!cloud.has_normals())
+    throw InvalidInput(
+        "fit_mpu: the cloud has no normals; MPU needs outward normals (estimate and orient "
+        "them first: reconstruct/normals.h estimate_normals + orient_normals_mst)");
+  if (!(params.alpha > 0.5) || !(params.lambda > 0) || params.n_min < 6 || !(params.epsilon0 > 0) ||
+      params.max_depth < 0 || params.max_depth > 20 || params.threads < 0 || !(params.root_margin >= 0) ||
+      !(params.trust_factor > 0))
+    throw InvalidInput(
+        "fit_mpu: parameters out of range (alpha > 0.5, lambda > 0, n_min >= 6, epsilon0 > 0, "
+        "0 <= max_depth <= 20, threads >= 0, root_margin >= 0, trust_factor > 0)");
+  if (!all_finite(cloud.points)) throw InvalidInput("fit_mpu: non-finite point coordinates");
+
+  auto impl = std::make_shared<MpuSurface::Impl>();
+  MpuSurface::Impl& s = *impl;
+  s.params = params;
+  s.diag.input_points = cloud.size();
+  for (std::size_t i = 0; i < cloud.size(); ++i) {
+    const Vec3d n = cloud.normals[i].cast<double>();
+    const double len = n.norm();
+    if (!std::isfinite(len) || len < 1e-6) {
+      ++s.diag.dropped_points;
+      continue;
+    }
+    s.world_points.push_back(cloud.points[i]);
+    s.normals.push_back(n / len);
+  }
+  if (int(s.world_points.size()) < params.n_min)
+    throw InvalidInput("fit_mpu: " + std::to_string(s.world_points.size()) +
+                       " points with usable normals; at least n_min = " + std::to_string(params.n_min) +
+                       " needed");
+  s.bounds = bounding_box(s.world_points);
+  const double side = (s.bounds.max - s.bounds.min).cast<double>().maxCoeff();
+  if (!(side > 0)) throw InvalidInput("fit_mpu: all points are equal");
+  // Unit-diagonal bounding cube: side 1/sqrt(3).
+  s.center = s.bounds.center().cast<double>();
+  s.scale = 1 / (side * std::sqrt(3.0));
+  s.points.reserve(s.world_points.size());
+  for (const Vec3f& p : s.world_points) s.points.push_back(((p.cast<double>() - s.center) * s.scale).cast<float>());
+  s.index = std::make_unique<PointIndex>(s.points);
+
+  tbb::task_arena arena(arena_threads(params.threads));
+  arena.execute([&] {
+    // Mean spacing from every point's nearest neighbour (trust measure).
+    std::vector<double> nnd(s.points.size());
+    tbb::parallel_for(std::size_t(0), s.points.size(), [&](std::size_t i) {
+      const auto k = s.index->knn(s.points[i], 2);
+      nnd[i] = k.size() > 1 ? k[1].second : 0;
+    });
+    double sum = 0;
+    for (double d : nnd) sum += d;
+    const double spacing = sum / nnd.size();
+    s.trust_radius = params.trust_factor * std::max(spacing, 1e-9);
+    s.diag.mean_spacing = spacing / s.scale;
+
+    // Breadth-first build: each level's cells are fitted in parallel into their own
+    // slots, then children are appended in cell order: deterministic for any thread count.
+    Node root;
+    root.center = Vec3d::Zero();
+    root.half = 0.5 / std::sqrt(3.0) * (1 + params.root_margin);
+    s.nodes.push_back(root);
+    std::vector<int> frontier{0};
+    s.diag.leaves_by_depth.assign(params.max_depth + 1, 0);
+    for (int depth = 0; !frontier.empty(); ++depth) {
+      std::vector<CellFit> fits(frontier.size());
+      tbb::parallel_for(std::size_t(0), frontier.size(), [&](std::size_t i) {
+        const Node& nd = s.nodes[frontier[i]];
+        fits[i] = fit_cell(s, nd.center, nd.half);
+      });
+      std::vector<int> next;
+      for (std::size_t i = 0; i < frontier.size(); ++i) {
+        const int id = frontier[i];
+        const CellFit& cf = fits[i];
+        // A grown ball already holds only the n_min nearest points: splitting
+        // would fit the same points again, so it stays a leaf.
+        const bool split = cf.error > params.epsilon0 && !cf.grew && depth < params.max_depth;
+        if (split) {
+          const int first = int(s.nodes.size());
+          s.nodes[id].first_child = first;
+          const Node parent = s.nodes[id];
+          for (int c = 0; c < 8; ++c) {
+            Node ch;
+            ch.half = parent.half / 2;
+            ch.center = parent.center + ch.half * Vec3d(c & 1 ? 1 : -1, c & 2 ? 1 : -1, c & 4 ? 1 : -1);
+            ch.depth = depth + 1;
+            s.nodes.push_back(ch);
+            next.push_back(first + c);
+          }
+        } else {
+          Node& nd = s.nodes[id];
+          nd.radius = cf.radius;
+          nd.fit = int(s.fits.size());
+          s.fits.push_back(cf.fit);
+          ++s.diag.leaves;
+          ++s.diag.leaves_by_type[int(cf.fit.type)];
+          ++s.diag.leaves_by_depth[depth];
+          if (cf.grew) ++s.diag.grown_leaves;
+          if (cf.error > params.epsilon0) ++s.diag.unconverged_leaves;
+          s.diag.max_leaf_error = std::max(s.diag.max_leaf_error, cf.error);
+        }
+      }
+      frontier.swap(next);
+    }
+  });
+  // Reach, bottom-up (children always follow their parent in `nodes`).
+  for (int i = int(s.nodes.size()) - 1; i >= 0; --i) {
+    Node& nd = s.nodes[i];
+    if (nd.first_child < 0) {
+      nd.reach = nd.radius;
+    } else {
+      nd.reach = 0;
+      for (int c = 0; c < 8; ++c) {
+        const Node& ch = s.nodes[nd.first_child + c];
+        nd.reach = std::max(nd.reach, ch.reach + (ch.center - nd.center).norm());
+      }
+    }
+  }
+  s.diag.cells = s.nodes.size();
+  while (s.diag.leaves_by_depth.size() > 1 && s.diag.leaves_by_depth.back() == 0) s.diag.leaves_by_depth.pop_back();
+  s.diag.fit_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  MpuSurface out;
+  out.impl_ = std::move(impl);
+  return out;
+}
+
+double MpuSurface::value(const Vec3d& x) const { return impl_->eval(x, nullptr); }
+Vec3d MpuSurface::gradient(const Vec3d& x) const {
+  Vec3d g;
+  impl_->eval(x, &g);
+  return g;
+}
+double MpuSurface::value_gradient(const Vec3d& x, Vec3d& grad) const { return impl_->eval(x, &grad); }
+
+std::vector<double> MpuSurface::values(const std::vector<Vec3d>& xs) const {
+  std::vector<double> out(xs.size());
+  tbb::task_arena arena(arena_threads(impl_->params.threads));
+  arena.execute([&] {
+    tbb::parallel_for(std::size_t(0), xs.size(), [&](std::size_t i) { out[i] = value(xs[i]); });
+  });
+  return out;
+}
+std::vector<Vec3d> MpuSurface::gradients(const std::vector<Vec3d>& xs) const {
+  std::vector<Vec3d> out(xs.size());
+  tbb::task_arena arena(arena_threads(impl_->params.threads));
+  arena.execute([&] {
+    tbb::parallel_for(std::size_t(0), xs.size(), [&](std::size_t i) { out[i] = gradient(xs[i]); });
+  });
+  return out;
+}
+
+double MpuSurface::weight_sum(const Vec3d& x) const {
+  double swq = 0, sw = 0;
+  impl_->accumulate((x - impl_->center) * impl_->scale, swq, sw, nullptr, nullptr);
+  return sw;
+}
+double MpuSurface::nearest_point_distance(const Vec3d& x) const {
+  const auto [id, d] = impl_->index->nearest(((x - impl_->center) * impl_->scale).cast<float>());
+  return id < 0 ? std::numeric_limits<double>::infinity() : d / impl_->scale;
+}
+bool MpuSurface::trusted(const Vec3d& x) const {
+  const auto [id, d] = impl_->index->nearest(((x - impl_->center) * impl_->scale).cast<float>());
+  return id >= 0 && d <= impl_->trust_radius;
+}
+Vec3d MpuSurface::center() const { return impl_->center; }
+double MpuSurface::scale() const { return impl_->scale; }
+Aabb MpuSurface::bounds() const { return impl_->bounds; }
+const std::vector<Vec3f>& MpuSurface::points() const { return impl_->world_points; }
+const MpuDiagnostics& MpuSurface::diagnostics() const { return impl_->diag; }
+const MpuParams& MpuSurface::params() const { return impl_->params; }
+
+}  // namespace station

@@ -1,0 +1,136 @@
+#pragma once
+// Multi-level Partition of Unity implicit surface (Ohtake, Belyaev, Alexa, Turk,
+// Seidel 2003, "Multi-level partition of unity implicits"; summarised in
+// shared/seeds/colour-mpu_fujimoto.txt section 2.2 and shared/docs/methods.md
+// section 2). An adaptive octree of local quadratic fits Q_k blended as
+//
+//   f(x) = sum_k w_k(x) Q_k(x) / sum_k w_k(x),  w_k(x) = b2(3 |x - o_k| / (2 R_k))   (MPU eq. 1)
+//
+// with b2 the quadratic B-spline (support |t| < 3/2, so w_k vanishes outside the
+// ball of radius R_k around the cell centre o_k).
+//
+// Sign convention: f < 0 inside, f > 0 outside (as a signed distance; the DMC
+// paper's convention; the colour paper uses the opposite). Input normals must
+// point outwards. f is returned in the input's units (approximately a signed
+// distance near the surface); internally everything is fitted in the normalised
+// frame where the points' bounding cube has diagonal 1.
+#include <array>
+#include <memory>
+#include <vector>
+
+#include "core/geometry.h"
+#include "reconstruct/implicit.h"
+
+namespace station {
+
+/// Local shape function of a leaf cell (Ohtake 2003, section 3).
+enum class MpuFitType {
+  kBivariate,  ///< height function w = h(u, v) over the tangent plane (normals agree)
+  kQuadric,    ///< general 3-D quadric with auxiliary off-surface points (normals spread)
+  kEdge,       ///< max/min of two bivariate quadratics (sharp edge, two normal clusters)
+  kCorner,     ///< max/min of three bivariate quadratics (sharp corner, three clusters)
+};
+
+struct MpuParams {
+  /// alpha: support radius R = alpha * (cell diagonal). Paper: 0.75.
+  double alpha = 0.75;
+  /// lambda: a ball with fewer than n_min points is grown R <- R + lambda R until it
+  /// holds n_min. Paper: 0.1.
+  double lambda = 0.1;
+  /// N_min: points needed in a cell's ball. Paper: 15.
+  int n_min = 15;
+  /// epsilon_0: Taubin error max |Q(p)| / |grad Q(p)| over the ball's points above
+  /// which a cell is subdivided; relative to the normalised size (bounding-cube
+  /// diagonal 1). Paper: 1e-4.
+  double epsilon0 = 1e-4;
+  /// Deepest octree level (root = 0); a cell there is kept whatever its error.
+  int max_depth = 10;
+  /// Bivariate fit when every ball normal n_i has n_i . n_mean > this (paper: angle
+  /// below pi/2, i.e. 0); else a general quadric (or a sharp fit).
+  double bivariate_min_cos = 0.0;
+  /// Weight of the normal constraints grad Q(p_i) = n_i in the quadric fit, as a
+  /// length relative to R (the residual |grad Q - n| is scaled by this * R). Not in
+  /// the paper (which uses auxiliary points only); keeps Q from degenerating where
+  /// no auxiliary point qualifies.
+  double quadric_normal_weight = 0.1;
+  /// Sharp-feature fits (Ohtake section 3.3): the ball's normals are clustered when
+  /// two of them differ by more than sharp_angle_deg; each cluster must lie within
+  /// cluster_angle_deg of its mean.
+  bool sharp_features = true;
+  double sharp_angle_deg = 60.0;
+  double cluster_angle_deg = 20.0;
+  /// Margin of the root cell around the points' bounding cube (fraction of its side),
+  /// so that the surface can close just outside the data.
+  double root_margin = 0.1;
+  /// "Where there is no data": x is trusted when its nearest input point lies within
+  /// trust_factor x the mean point spacing (mean nearest-neighbour distance).
+  double trust_factor = 4.0;
+  /// Threads for the build and batched evaluation (0 = all cores). The result does
+  /// not depend on it.
+  int threads = 0;
+};
+
+/// Per-build diagnostics (cf. the colour paper's Table 3).
+struct MpuDiagnostics {
+  std::size_t input_points = 0;
+  std::size_t dropped_points = 0;  ///< zero or non-finite normals (left out of the fit)
+  std::size_t cells = 0;           ///< octree nodes, internal and leaves
+  std::size_t leaves = 0;
+  std::array<std::size_t, 4> leaves_by_type{};  ///< indexed by MpuFitType
+  std::vector<std::size_t> leaves_by_depth;     ///< [depth]
+  std::size_t grown_leaves = 0;     ///< leaves whose ball had to grow to reach n_min
+  std::size_t unconverged_leaves = 0;  ///< leaves at max_depth with error > epsilon0
+  double max_leaf_error = 0;       ///< largest Taubin error among the leaves (normalised)
+  double mean_spacing = 0;         ///< mean nearest-neighbour distance (input units)
+  double fit_seconds = 0;
+};
+
+/// The fitted MPU function. Cheap to copy (shares immutable state); every query is
+/// const and thread-safe. Queries take and return input (world) units.
+class MpuSurface : public ImplicitFunction {
+ public:
+  /// f(x) (MPU eq. 1), in input units. Visits only the leaves whose support ball
+  /// holds x (octree walk). Outside every support (far beyond the data): the distance
+  /// to the root cell's centre, positive.
+  double value(const Vec3d& x) const override;
+  /// grad f(x), analytic: (sum(grad w Q + w grad Q) W - sum(w Q) grad W) / W^2.
+  Vec3d gradient(const Vec3d& x) const override;
+  /// f and grad f from one walk.
+  double value_gradient(const Vec3d& x, Vec3d& grad) const;
+  /// Batched versions (parallel, same results as one by one).
+  std::vector<double> values(const std::vector<Vec3d>& xs) const;
+  std::vector<Vec3d> gradients(const std::vector<Vec3d>& xs) const;
+
+  /// sum_k w_k(x): zero outside every support ball.
+  double weight_sum(const Vec3d& x) const;
+  /// Distance from x to the nearest input point (input units).
+  double nearest_point_distance(const Vec3d& x) const;
+  /// nearest_point_distance(x) <= trust_factor * mean spacing (MpuParams).
+  bool trusted(const Vec3d& x) const override;
+
+  /// Normalised frame: y = (x - center()) * scale(); the bounding cube of the input
+  /// points has diagonal 1 there, and epsilon0 is measured in it.
+  Vec3d center() const;
+  double scale() const;
+  /// Bounding box of the input points (input units) and the points themselves.
+  Aabb bounds() const;
+  const std::vector<Vec3f>& points() const;
+  const MpuDiagnostics& diagnostics() const;
+  const MpuParams& params() const;
+
+  struct Impl;
+
+ private:
+  friend MpuSurface fit_mpu(const Cloud&, const MpuParams&);
+  std::shared_ptr<const Impl> impl_;
+};
+
+/// Fits the MPU implicit to points with outward unit normals (methods.md section 2).
+/// Deterministic: the same input gives the same surface for any params.threads.
+/// Points whose normal is zero or non-finite are left out (counted in the
+/// diagnostics). InvalidInput when the cloud has no normals ("estimate and orient
+/// them first: reconstruct/normals.h"), has non-finite coordinates, fewer than
+/// n_min usable points, all points equal, or when a parameter is out of range.
+MpuSurface fit_mpu(const Cloud& points_with_normals, const MpuParams& params = {});
+
+}  // namespace station

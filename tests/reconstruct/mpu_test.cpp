@@ -1,0 +1,248 @@
+#include "reconstruct/mpu.h"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <random>
+#include <map>
+#include <set>
+
+#include "core/error.h"
+#include "reconstruct/eval.h"
+#include "reconstruct/marching_cubes.h"
+#include "test_util.h"
+
+namespace station {
+namespace {
+
+// Points on a sphere (Fibonacci spiral) with outward normals.
+Cloud sphere_cloud(int n, double r) {
+  Cloud c;
+  const double golden = M_PI * (3 - std::sqrt(5.0));
+  for (int i = 0; i < n; ++i) {
+    const double z = 1 - 2 * (i + 0.5) / n, rr = std::sqrt(1 - z * z);
+    const Vec3d d(rr * std::cos(golden * i), rr * std::sin(golden * i), z);
+    c.points.push_back((r * d).cast<float>());
+    c.normals.push_back(d.cast<float>());
+  }
+  return c;
+}
+
+// Torus around z (major R, minor r), seeded uniform angles.
+Cloud torus_cloud(int n, double R, double r, unsigned seed) {
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<double> u(0, 2 * M_PI);
+  Cloud c;
+  for (int i = 0; i < n; ++i) {
+    const double a = u(rng), b = u(rng);
+    const Vec3d nrm(std::cos(b) * std::cos(a), std::cos(b) * std::sin(a), std::sin(b));
+    const Vec3d p = Vec3d(R * std::cos(a), R * std::sin(a), 0) + r * nrm;
+    c.points.push_back(p.cast<float>());
+    c.normals.push_back(nrm.cast<float>());
+  }
+  return c;
+}
+double torus_distance(const Vec3d& p, double R, double r) {
+  const double q = std::hypot(p.x(), p.y()) - R;
+  return std::abs(std::hypot(q, p.z()) - r);
+}
+
+double max_abs_f_normalised(const MpuSurface& s, const Cloud& c) {
+  double worst = 0;
+  for (const Vec3f& p : c.points) worst = std::max(worst, std::abs(s.value(p.cast<double>())) * s.scale());
+  return worst;
+}
+
+// Every undirected edge shared by exactly two faces.
+void expect_closed(const Mesh& m) {
+  std::map<std::pair<int, int>, int> count;
+  for (const Face& f : m.faces)
+    for (int t = 0; t < 3; ++t) ++count[std::minmax(f[t], f[(t + 1) % 3])];
+  int bad = 0;
+  for (const auto& [e, n] : count) bad += n != 2;
+  EXPECT_EQ(bad, 0);
+}
+
+void expect_finite(const Mesh& m) {
+  ASSERT_TRUE(all_finite(m.vertices));
+  ASSERT_TRUE(all_finite(m.normals));
+}
+
+TEST(Mpu, SphereFitsTheSamplesAndMeshesAccurately) {
+  const Cloud c = sphere_cloud(3000, 1.0);
+  const MpuSurface s = fit_mpu(c);
+  EXPECT_LT(max_abs_f_normalised(s, c), s.params().epsilon0);
+  // Sign convention: negative inside, positive outside; gradient outward.
+  EXPECT_LT(s.value(Vec3d::Zero()), 0);
+  EXPECT_GT(s.value(Vec3d(1.3, 0, 0)), 0);
+  EXPECT_GT(s.gradient(Vec3d(0, 0.99, 0)).normalized().dot(Vec3d::UnitY()), 0.99);
+  MarchingCubesStats st;
+  const Mesh m = extract_marching_cubes(s, 64, {}, &st);
+  expect_finite(m);
+  double mean = 0;
+  for (const Vec3f& v : m.vertices) mean += std::abs(v.cast<double>().norm() - 1.0);
+  mean /= m.vertices.size();
+  const double diag = s.bounds().diagonal();
+  EXPECT_LT(mean, 0.002 * diag) << "mean distance " << mean;
+  EXPECT_GT(m.faces.size(), 5000u);
+}
+
+TEST(Mpu, GradientMatchesFiniteDifferencesAndBatchesAgree) {
+  const Cloud c = torus_cloud(4000, 1.0, 0.35, 3);
+  const MpuSurface s = fit_mpu(c);
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<double> u(-1.3, 1.3);
+  std::vector<Vec3d> xs;
+  for (int i = 0; i < 50; ++i) xs.emplace_back(u(rng), u(rng), 0.3 * u(rng));
+  const auto vals = s.values(xs);
+  const auto grads = s.gradients(xs);
+  for (std::size_t i = 0; i < xs.size(); ++i) {
+    EXPECT_EQ(vals[i], s.value(xs[i]));
+    const double e = 1e-6;
+    Vec3d fd;
+    for (int a = 0; a < 3; ++a) {
+      Vec3d d = Vec3d::Zero();
+      d[a] = e;
+      fd[a] = (s.value(xs[i] + d) - s.value(xs[i] - d)) / (2 * e);
+    }
+    EXPECT_LT((fd - grads[i]).norm(), 1e-4 * std::max(1.0, fd.norm())) << i;
+  }
+}
+
+TEST(Mpu, TorusMeshIsCloseAndGenusOne) {
+  const Cloud c = torus_cloud(6000, 1.0, 0.35, 1);
+  const MpuSurface s = fit_mpu(c);
+  EXPECT_LT(max_abs_f_normalised(s, c), s.params().epsilon0);
+  const Mesh m = extract_marching_cubes(s, 64);
+  expect_finite(m);
+  double mean = 0;
+  for (const Vec3f& v : m.vertices) mean += torus_distance(v.cast<double>(), 1.0, 0.35);
+  mean /= m.vertices.size();
+  EXPECT_LT(mean, 0.002 * s.bounds().diagonal());
+  std::set<std::pair<int, int>> edges;
+  for (const Face& f : m.faces)
+    for (int t = 0; t < 3; ++t) edges.insert(std::minmax(f[t], f[(t + 1) % 3]));
+  EXPECT_EQ(int(m.vertices.size()) - int(edges.size()) + int(m.faces.size()), 0);
+  const auto& d = s.diagnostics();
+  EXPECT_EQ(d.leaves, d.leaves_by_type[0] + d.leaves_by_type[1] + d.leaves_by_type[2] + d.leaves_by_type[3]);
+}
+
+TEST(Mpu, DeterministicAcrossThreads) {
+  const Cloud c = torus_cloud(3000, 1.0, 0.35, 2);
+  MpuParams p1, p2;
+  p1.threads = 1;
+  p2.threads = 2;
+  const MpuSurface a = fit_mpu(c, p1), b = fit_mpu(c, p2);
+  EXPECT_EQ(a.diagnostics().cells, b.diagnostics().cells);
+  for (int i = 0; i < 200; ++i) {
+    const Vec3d x = c.points[i * 7].cast<double>() * 1.1;
+    EXPECT_EQ(a.value(x), b.value(x));
+  }
+}
+
+TEST(Mpu, ScaleInvariant) {
+  for (double scale : {1e-3, 1e3}) {
+    Cloud c = sphere_cloud(2000, 1.0);
+    for (Vec3f& p : c.points) p = (p.cast<double>() * scale).cast<float>();
+    const MpuSurface s = fit_mpu(c);
+    EXPECT_LT(max_abs_f_normalised(s, c), s.params().epsilon0) << scale;
+    EXPECT_NEAR(s.value(Vec3d::Zero()) / scale, -1.0, 0.05) << scale;
+  }
+}
+
+TEST(Mpu, UntrustedRegionsCanBeLeftOpen) {
+  // A sphere seen from above only (z > 0): the bottom half has no data.
+  Cloud full = sphere_cloud(4000, 1.0), c;
+  for (std::size_t i = 0; i < full.size(); ++i)
+    if (full.points[i].z() > 0.f) c.points.push_back(full.points[i]), c.normals.push_back(full.normals[i]);
+  const MpuSurface s = fit_mpu(c);
+  EXPECT_TRUE(s.trusted(Vec3d(0, 0, 1)));
+  EXPECT_FALSE(s.trusted(Vec3d(0, 0, -1)));
+  EXPECT_GT(s.weight_sum(Vec3d(0, 0, 1)), 0);
+  MarchingCubesOptions opt;
+  const Mesh closed = extract_marching_cubes(s, 40, opt);
+  {
+    SCOPED_TRACE("closed");
+    expect_closed(closed);
+  }
+  opt.untrusted = UntrustedRegions::kLeaveOpen;
+  MarchingCubesStats st;
+  const Mesh open = extract_marching_cubes(s, 40, opt, &st);
+  expect_finite(closed);
+  expect_finite(open);
+  EXPECT_GT(st.dropped_faces, 0u);
+  EXPECT_LT(open.faces.size(), closed.faces.size());
+  // What is left lies near the data.
+  double far = 0;
+  for (const Vec3f& v : open.vertices) far = std::max(far, s.nearest_point_distance(v.cast<double>()));
+  EXPECT_LT(far, s.params().trust_factor * s.diagnostics().mean_spacing + st.cell_size);
+}
+
+TEST(Mpu, BadInput) {
+  Cloud c = sphere_cloud(100, 1.0);
+  Cloud no_normals = c;
+  no_normals.normals.clear();
+  EXPECT_THROW(fit_mpu(no_normals), InvalidInput);
+  Cloud three = sphere_cloud(3, 1.0);
+  EXPECT_THROW(fit_mpu(three), InvalidInput);
+  Cloud same;
+  for (int i = 0; i < 50; ++i) same.points.emplace_back(1, 2, 3), same.normals.emplace_back(0, 0, 1);
+  EXPECT_THROW(fit_mpu(same), InvalidInput);
+  Cloud nan = c;
+  nan.points[5].x() = std::nanf("");
+  EXPECT_THROW(fit_mpu(nan), InvalidInput);
+  MpuParams bad;
+  bad.alpha = 0.1;
+  EXPECT_THROW(fit_mpu(c, bad), InvalidInput);
+  // Zero normals are dropped, not fatal.
+  Cloud zeros = sphere_cloud(500, 1.0);
+  zeros.normals[3] = Vec3f::Zero();
+  EXPECT_EQ(fit_mpu(zeros).diagnostics().dropped_points, 1u);
+}
+
+TEST(Mpu, DegenerateCloudsGiveFiniteOutput) {
+  // Every point duplicated.
+  Cloud dup = sphere_cloud(800, 1.0);
+  const Cloud orig = dup;
+  dup.points.insert(dup.points.end(), orig.points.begin(), orig.points.end());
+  dup.normals.insert(dup.normals.end(), orig.normals.begin(), orig.normals.end());
+  const MpuSurface sd = fit_mpu(dup);
+  EXPECT_LT(max_abs_f_normalised(sd, dup), 10 * sd.params().epsilon0);
+  // A planar patch and a line of points.
+  Cloud plane, line;
+  std::mt19937 rng(4);
+  std::uniform_real_distribution<float> u(-1, 1);
+  for (int i = 0; i < 400; ++i) {
+    plane.points.emplace_back(u(rng), u(rng), 0.f);
+    plane.normals.emplace_back(0.f, 0.f, 1.f);
+    line.points.emplace_back(u(rng), 0.f, 0.f);
+    line.normals.emplace_back(0.f, 0.f, 1.f);
+  }
+  for (const Cloud* c : {&plane, &line}) {
+    const MpuSurface s = fit_mpu(*c);
+    EXPECT_TRUE(std::isfinite(s.value(Vec3d(0.1, 0.2, 0.3))));
+    EXPECT_TRUE(s.gradient(Vec3d(0.1, 0.2, 0.3)).allFinite());
+    EXPECT_LT(std::abs(s.value(Vec3d(0.1, 0, 0))), 1e-3);
+    const Mesh m = extract_marching_cubes(s, 24);
+    expect_finite(m);
+    EXPECT_FALSE(m.faces.empty());
+  }
+}
+
+TEST(Mpu, CubeKeepsItsCorners) {
+  const Mesh box = test::box(Vec3f(-1, -1, -1), Vec3f(1, 1, 1));
+  const Cloud c = sample_mesh(box, 12000, 3);
+  const MpuSurface s = fit_mpu(c);
+  const auto& d = s.diagnostics();
+  EXPECT_GT(d.leaves_by_type[int(MpuFitType::kEdge)] + d.leaves_by_type[int(MpuFitType::kCorner)], 0u);
+  EXPECT_LT(max_abs_f_normalised(s, c), s.params().epsilon0 * 10);
+  // The corner stays on the surface (a smooth fit would round it off).
+  const double diag = s.bounds().diagonal();
+  for (const Vec3d& corner : {Vec3d(1, 1, 1), Vec3d(-1, 1, -1), Vec3d(1, -1, -1)})
+    EXPECT_LT(std::abs(s.value(corner)), 0.002 * diag) << corner.transpose();
+  const Mesh m = extract_marching_cubes(s, 48);
+  expect_finite(m);
+}
+
+}  // namespace
+}  // namespace station
