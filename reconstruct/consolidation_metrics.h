@@ -50,7 +50,9 @@ struct Segment {
 /// stored with split vertices along creases work too. Boundary and non-manifold edges,
 /// and edges of zero-area faces, are never sharp. Faces are assumed consistently
 /// oriented. Sorted by (smaller, larger) merged vertex index: deterministic.
-std::vector<Segment> sharp_edges(const Mesh& mesh, double angle_degrees = 40);
+/// The default, 30 degrees, lies inside the range (25 to 60 degrees) over which the
+/// number of sharp edges of the fandisk CAD part barely changes (728 to 699).
+std::vector<Segment> sharp_edges(const Mesh& mesh, double angle_degrees = 30);
 
 struct EdgeError {
   double mean = 0;        ///< mean distance to the reference of the points counted
@@ -62,6 +64,6 @@ struct EdgeError {
 /// angle_degrees). count = 0 (and mean = 0) when no point is that close.
 /// InvalidInput as mean_distance_to_mesh, or on radius <= 0.
 EdgeError edge_error(const std::vector<Vec3f>& points, const Mesh& reference, double radius,
-                     double angle_degrees = 40, int threads = 0);
+                     double angle_degrees = 30, int threads = 0);
 
 }  // namespace station

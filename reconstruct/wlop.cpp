@@ -40,7 +40,7 @@ constexpr double kCoincident = 1e-9;
 constexpr double kMinNormalAgreement = 0.2;
 // Simple normals (eqs. 11-12) use at most this many of a point's neighbours
 // within h, evenly strided: a plane fit needs far fewer than a dense cloud holds.
-constexpr int kSimpleNormalPoints = 64;
+constexpr int kSimpleNormalPoints = 32;
 constexpr int kGrain = 64;
 
 // theta of eq. 8 as a function of the squared distance, with the cut-off at h.
@@ -95,14 +95,28 @@ void gather(const RadiusGrid& grid, const Vec3d& q, double h2, Neighbours& nb) {
   });
 }
 
+// Growable arrays with RadiusGrid::kPad spare (zeroed) entries for vector loops.
+struct Padded {
+  std::vector<double> v;
+  double* fit(std::size_t n) {
+    if (v.size() < n + RadiusGrid::kPad) v.resize(std::max(n + RadiusGrid::kPad, 2 * v.size()), 0.0);
+    return v.data();
+  }
+  double* data() { return v.data(); }
+};
+
 struct Scratch {
   Neighbours input, projected;
   std::vector<Vec3d> points;  // simple normals' neighbourhood
-  // Edge variant.
-  std::vector<int> order, bucket_start;
-  std::vector<double> axial, lateral2, copy_sum;
-  std::vector<int> u_slot, u_copy;
-  std::vector<double> u_x, u_y, u_z, u_r2;
+  // Edge variant. Per neighbour slot, in order of lateral offset (bucketed):
+  // axial offset z, lateral offset^2 and vector, v_j, (n_j . axis)^2, weight 1/v'.
+  std::vector<int> key, bucket;
+  std::vector<double> axial, lateral2;
+  Padded z, l2, lx, ly, lz, v, cos2, w;
+  // The upsampled, inverted neighbourhood U (eq. 14) as offsets from x'_i, copy
+  // after copy; entry i of copy t belongs to slot i.
+  Padded ux, uy, uz, ur2, uw;
+  std::vector<int> copy_size;
 };
 
 class Consolidator {
@@ -122,7 +136,8 @@ class Consolidator {
   // E1 of eq. 2 at q from its input neighbours; false when no weight.
   bool plain_e1(const Vec3d& q, Vec3d& e1) const;
   // E1 of eq. 19 (edge variant); false when it falls back or has no weight.
-  bool edge_e1(const Vec3d& q, const Neighbours& nb, Scratch& s, Vec3d& e1, int& copies) const;
+  bool edge_e1(const Vec3d& q, const Neighbours& nb, Scratch& s, Vec3d& e1, int& copies,
+               Vec3d& axis) const;
 
   const Cloud& input_;
   const WlopParams& params_;
@@ -136,7 +151,13 @@ class Consolidator {
   RadiusGrid input_grid_, x_grid_;  // input: built once; projected: every iteration
   std::vector<double> inv_v_;       // 1 / v_j by input-grid sorted position
   std::vector<double> v_;           // v_j by sorted position (edge variant)
-  std::vector<Vec3f> edge_n_, edge_m_;  // simple / PCA normals by sorted position
+  // Edge variant, by input-grid sorted position: the simple normal n (eqs. 11-12)
+  // with the sign of the PCA normal m, which only serves to orient it.
+  struct EdgeNormal {
+    double n[3], m[3];
+  };
+  std::vector<EdgeNormal> edge_normals_;
+  bool oriented_ = false;  // n are the input's (oriented) normals
   std::vector<Vec3d> x_, x_next_;   // projected set
   std::vector<double> w_;           // w_i by projected-grid sorted position
   std::vector<int> copies_;         // edge variant: K per point (-1: plain E1)
@@ -179,11 +200,11 @@ void Consolidator::setup() {
   input_grid_.build(p_.data(), nj_, h);
   const bool edge = params_.method == WlopMethod::kEdgeWlop;
   const bool input_normals = edge && params_.edge_normals == EdgeNormals::kInput && input_.has_normals();
+  oriented_ = input_normals;
   inv_v_.assign(nj_ + RadiusGrid::kPad, 1.0);
   if (edge) {
     v_.assign(nj_, 1.0);
-    edge_n_.assign(nj_, Vec3f::Zero());
-    edge_m_.assign(nj_, Vec3f::Zero());
+    edge_normals_.assign(nj_, EdgeNormal{{0, 0, 0}, {0, 0, 0}});
   }
   // Input densities v_j (eq. 6) and, for the edge variant, the simple normals
   // (eqs. 11-12) with PCA normals that only serve to orient them.
@@ -201,7 +222,8 @@ void Consolidator::setup() {
       const Neighbours& nb = s.input;
       v_[sp] = v;
       if (input_normals) {
-        edge_n_[sp] = input_.normals[ids[sp]].normalized();
+        const Vec3d n = input_.normals[ids[sp]].cast<double>().normalized();  // zero stays zero
+        edge_normals_[sp] = EdgeNormal{{n.x(), n.y(), n.z()}, {n.x(), n.y(), n.z()}};
         continue;
       }
       const int stride = (nb.n + kSimpleNormalPoints - 1) / kSimpleNormalPoints;
@@ -209,10 +231,9 @@ void Consolidator::setup() {
       for (int k = 0; k < nb.n; k += std::max(stride, 1))
         s.points.emplace_back(nb.dx[k], nb.dy[k], nb.dz[k]);
       const Vec3d m = pca_normal(s.points.data(), int(s.points.size()));
-      Vec3d n = simple_normal(s.points.data(), int(s.points.size()));
+      Vec3d n = simple_normal(s.points.data(), int(s.points.size()), 4);
       if (n.dot(m) < 0) n = -n;
-      edge_n_[sp] = n.cast<float>();
-      edge_m_[sp] = m.cast<float>();
+      edge_normals_[sp] = EdgeNormal{{n.x(), n.y(), n.z()}, {m.x(), m.y(), m.z()}};
     }
   });
 
@@ -235,8 +256,167 @@ bool Consolidator::plain_e1(const Vec3d& q, Vec3d& e1) const {
 }
 
 bool Consolidator::edge_e1(const Vec3d& q, const Neighbours& nb, Scratch& s, Vec3d& e1,
-                           int& copies) const {
-  return false;  // TODO
+                           int& copies, Vec3d& axis) const {
+  const int kh = nb.n;
+  if (kh == 0) return false;
+  const double h = kernel_.h, h2 = kernel_.h2;
+
+  // Eq. 10: c_i from the mean simple normal. Signs are made consistent through
+  // the PCA normals (smooth across edges, unlike the simple ones), relative to
+  // the one of the input point nearest x_i.
+  int nearest = 0;
+  double best = nb.r2[0];
+  for (int k = 1; k < kh; ++k) {
+    const bool closer = nb.r2[k] < best;  // branch-free: the comparisons are unpredictable
+    best = closer ? nb.r2[k] : best;
+    nearest = closer ? k : nearest;
+  }
+  const double* ref = edge_normals_[nb.pos[nearest]].m;
+  double nx = 0, ny = 0, nz = 0;
+  for (int k = 0; k < kh; ++k) {
+    const EdgeNormal& en = edge_normals_[nb.pos[k]];
+    const double dot = en.m[0] * ref[0] + en.m[1] * ref[1] + en.m[2] * ref[2];
+    const double sign = oriented_ || dot >= 0 ? 1.0 : -1.0;
+    nx += sign * en.n[0];
+    ny += sign * en.n[1];
+    nz += sign * en.n[2];
+  }
+  const Vec3d sum(nx, ny, nz);
+  const double agreement = sum.norm();
+  if (!(agreement >= kMinNormalAgreement * kh)) return false;  // normals cancel: plain E1
+  const Vec3d a = -sum / agreement;           // unit axis, from c_i towards x_i
+  axis = a;
+  const double D = dbb_ * agreement / (2.0 * kh);  // |x_i - c_i|
+  // R must keep 2R - |p - c_i| > 0 over the neighbourhood (f stays a bijection).
+  const double R = std::max(params_.inversion_radius * dbb_, D + h);
+  const double Q = 2 * R - D;  // |x'_i - c_i|
+  const double shift = R / params_.shift_divisions;  // |l| (eq. 15)
+
+  // Per neighbour: axial offset z (along a) and lateral offset^2; slots sorted
+  // into buckets of equal lateral area, so that each copy handles a prefix.
+  constexpr int kBuckets = 32;
+  const double per_bucket = kBuckets / h2;
+  s.key.resize(kh);
+  s.axial.resize(kh);
+  s.lateral2.resize(kh);
+  s.bucket.assign(kBuckets + 1, 0);
+  for (int k = 0; k < kh; ++k) {
+    const double z = nb.dx[k] * a.x() + nb.dy[k] * a.y() + nb.dz[k] * a.z();
+    const double l2 = std::max(nb.r2[k] - z * z, 0.0);
+    s.axial[k] = z;
+    s.lateral2[k] = l2;
+    s.key[k] = std::min(int(l2 * per_bucket), kBuckets - 1);
+    ++s.bucket[s.key[k] + 1];
+  }
+  for (int b = 0; b < kBuckets; ++b) s.bucket[b + 1] += s.bucket[b];
+  double *sz = s.z.fit(kh), *sl2 = s.l2.fit(kh), *slx = s.lx.fit(kh), *sly = s.ly.fit(kh),
+         *slz = s.lz.fit(kh), *sv = s.v.fit(kh), *sc2 = s.cos2.fit(kh);
+  {
+    int fill[kBuckets];
+    for (int b = 0; b < kBuckets; ++b) fill[b] = s.bucket[b];
+    for (int k = 0; k < kh; ++k) {
+      const int o = fill[s.key[k]]++;
+      const double z = s.axial[k];
+      sz[o] = z;
+      sl2[o] = s.lateral2[k];
+      slx[o] = nb.dx[k] - z * a.x();
+      sly[o] = nb.dy[k] - z * a.y();
+      slz[o] = nb.dz[k] - z * a.z();
+      const int sp = nb.pos[k];
+      sv[o] = v_[sp];
+      const double* n = edge_normals_[sp].n;
+      const double c = n[0] * a.x() + n[1] * a.y() + n[2] * a.z();
+      sc2[o] = std::min(c * c, 1.0);
+    }
+  }
+
+  // Eqs. 14-15: copies t = 0, 1, ... of the neighbours, shifted by t l and inverted
+  // with radius R + t |l| / 2, until k'_h >= k_h. Each copy takes the slots whose
+  // lateral offset can land within h of x'_i (2h for the exact eq. 18, which
+  // needs the neighbours of those too).
+  const bool exact = params_.inverted_density == InvertedDensity::kExact;
+  const double keep = exact ? 2 * h : h, keep2 = keep * keep;
+  const double e_max = h2 / std::max(D - h, h);  // bound on |p - c| minus axial distance
+  s.copy_size.clear();
+  int total = 0, count = 0, widest = 0;
+  for (int t = 0; t < params_.max_copies; ++t) {
+    const double Dt = D + t * shift;
+    // The lateral scale of this copy is at least g_lo over the neighbourhood.
+    const double g_lo = (Q - h - e_max) / (Dt + h + e_max);
+    const double bound2 = keep2 / (g_lo * g_lo);
+    const int nb_buckets = std::min(kBuckets, int(std::ceil(bound2 * per_bucket)));
+    const int n = s.bucket[nb_buckets];
+    double *ux = s.ux.fit(total + n) + total, *uy = s.uy.fit(total + n) + total,
+           *uz = s.uz.fit(total + n) + total, *ur2 = s.ur2.fit(total + n) + total;
+    s.uw.fit(total + n);
+    detail::invert_copy(sz, sl2, slx, sly, slz, n, Dt, Q, a, ux, uy, uz, ur2);
+    for (int i = 0; i < n; ++i) count += ur2[i] < h2;
+    s.copy_size.push_back(n);
+    total += n;
+    widest = std::max(widest, n);
+    if (count >= kh) break;
+  }
+  const int K = int(s.copy_size.size());
+  copies = K;
+
+  // Eq. 18: density weights 1 / v'_s of U.
+  double* uw = s.uw.data();
+  if (exact) {
+    const double *ux = s.ux.data(), *uy = s.uy.data(), *uz = s.uz.data(), *ur2 = s.ur2.data();
+    for (int i = 0; i < total; ++i) {
+      uw[i] = 0;
+      if (ur2[i] >= h2) continue;
+      double v = 1;
+      for (int j = 0; j < total; ++j) {
+        if (j == i || ur2[j] >= keep2) continue;
+        const double dx = ux[i] - ux[j], dy = uy[i] - uy[j], dz = uz[i] - uz[j];
+        const double d2 = dx * dx + dy * dy + dz * dz;
+        if (d2 < h2) v += kernel_.theta(d2);
+      }
+      uw[i] = 1.0 / v;
+    }
+  } else {
+    // The input density v_j carried into the inverted space: a surface element with
+    // normal n at lateral scale g is stretched by sigma = g sqrt(1 + (g^2 - 1)(n.a)^2)
+    // (f's Jacobian is -1 along the ray and g across it), so copy t holds density
+    // rho / sigma_t there, and the K copies overlap: v' - 1 = (v_j - 1) sum_t 1/sigma_t.
+    // g_t taken on the axis; the sum tabulated over (n.a)^2 and interpolated.
+    constexpr int kTable = 9;
+    double table[kTable];
+    for (int c = 0; c < kTable; ++c) {
+      const double c2 = double(c) / (kTable - 1);
+      double sum_t = 0;
+      for (int t = 0; t < K; ++t) {
+        const double g = Q / (D + t * shift);
+        sum_t += 1.0 / (g * std::sqrt(1.0 + (g * g - 1.0) * c2));
+      }
+      table[c] = sum_t;
+    }
+    double* sw = s.w.fit(widest);
+    for (int o = 0; o < widest; ++o) {
+      const double f = sc2[o] * (kTable - 1);
+      const int c = std::min(int(f), kTable - 2);
+      const double S = table[c] + (f - c) * (table[c + 1] - table[c]);
+      sw[o] = 1.0 / (1.0 + (sv[o] - 1.0) * S);
+    }
+    for (int t = 0, off = 0; t < K; off += s.copy_size[t++])
+      std::copy(sw, sw + s.copy_size[t], uw + off);
+  }
+  // Eqs. 16-17: E1' over U, as an offset e from x'_i (points beyond h are masked).
+  const KernelSums sums = detail::attraction_sum(s.ux.data(), s.uy.data(), s.uz.data(),
+                                                 s.ur2.data(), uw, total, kernel_.shape());
+  if (!(sums.w > 0)) return false;
+  const Vec3d e = sums.d / sums.w;
+  // Eq. 19: E1 = f(E1', c_i, R), relative to x_i without cancellation:
+  // E1' - c_i = (Q + e_a) a + e_perp, |.| = Q + e_a + eps.
+  const double ea = e.dot(a);
+  const Vec3d ep = e - ea * a;
+  const double ep2 = ep.squaredNorm();
+  const double dw = std::sqrt((Q + ea) * (Q + ea) + ep2);
+  const double eps = ep2 / (dw + Q + ea);
+  const double back = D - ea - eps;  // 2R - |E1' - c_i|
+  e1 = q + (-ea - eps - back * eps / dw) * a + (back / dw) * ep;
+  return true;
 }
 
 void Consolidator::iterate(bool last) {
@@ -257,12 +437,12 @@ void Consolidator::iterate(bool last) {
     for (int sp = r.begin(); sp < r.end(); ++sp) {
       const int i = xids[sp];
       const Vec3d& q = x_[i];
-      Vec3d e1;
+      Vec3d e1, axis = Vec3d::Zero();
       int copies = -1;
       bool ok = false;
       if (edge) {
         gather(input_grid_, q, kernel_.h2, s.input);
-        ok = edge_e1(q, s.input, s, e1, copies);
+        ok = edge_e1(q, s.input, s, e1, copies, axis);
       }
       if (!ok) ok = plain_e1(q, e1);
       copies_[i] = copies;
@@ -276,7 +456,13 @@ void Consolidator::iterate(bool last) {
       // sums are over x_r - x_i, so E2 = -d / w.
       const KernelSums e2 = detail::repulsion_sum(x_grid_, w_.data(), q, shape, sp);
       Vec3d next = e1;
-      if (e2.w > 0) next -= params_.mu * e2.d / e2.w;
+      if (e2.w > 0) {
+        Vec3d step = -params_.mu * e2.d / e2.w;
+        // Edge variant: E2 without its part along the inversion axis (see the header).
+        if (copies >= 0 && params_.edge_repulsion == EdgeRepulsion::kTangential)
+          step -= step.dot(axis) * axis;
+        next += step;
+      }
       x_next_[i] = next;
     }
   });

@@ -38,7 +38,7 @@ enum class Mode { kDensity, kAttraction, kRepulsion };
 // full precision, against four from the bit-level guess. Only ever inlined into
 // the AVX-512 kernels.
 __attribute__((target("avx512f"))) inline Lanes<8>::V rsqrt14(Lanes<8>::V x) {
-  return (Lanes<8>::V)_mm512_rsqrt14_pd((__m512d)x);
+  return (Lanes<8>::V)_mm512_maskz_rsqrt14_pd(__mmask8(0xFF), (__m512d)x);
 }
 #endif
 
@@ -146,6 +146,58 @@ struct Kernels {
     }
   }
 
+  // Attraction over contiguous arrays of offsets (the edge variant's inverted
+  // neighbourhood): the same lane arithmetic as block().
+  static STATION_INLINE KernelSums array_attraction(const double* dx, const double* dy,
+                                                    const double* dz, const double* r2s,
+                                                    const double* weight, int n,
+                                                    const KernelShape& k) {
+    Acc acc;
+    V lane;
+    for (int l = 0; l < W; ++l) lane[l] = l;
+    for (int p = 0; p < n; p += W) {
+      const V r2 = load(r2s + p);
+      U inside = negative(r2 - k.h2) & negative(k.eps2 - r2) & negative(lane - double(n - p));
+      V a = exp_nonpositive(r2 * -k.inv_s2) * rsqrt_positive(r2) * load(weight + p);
+      a = keep(a, inside);
+      acc.w += a;
+      acc.x += a * load(dx + p);
+      acc.y += a * load(dy + p);
+      acc.z += a * load(dz + p);
+    }
+    KernelSums out;
+    out.w = lane_sum(acc.w);
+    out.d = Vec3d(lane_sum(acc.x), lane_sum(acc.y), lane_sum(acc.z));
+    return out;
+  }
+
+  // See invert_copy in the header. With A = Dt + z the shifted axial distance from
+  // c_i and d = |p + t l - c_i|: e = d - A = l2 / (d + A) (no cancellation), the
+  // inverted distance from c_i is rho = Q - z - e, the lateral scale g = rho / d and
+  // the axial offset from x'_i is -z - e - g e.
+  static STATION_INLINE void invert_copy(const double* zs, const double* l2s, const double* lxs,
+                                         const double* lys, const double* lzs, int n, double Dt,
+                                         double Q, const Vec3d& a, double* ux, double* uy,
+                                         double* uz, double* r2) {
+    for (int p = 0; p < n; p += W) {
+      const V z = load(zs + p), l2 = load(l2s + p);
+      const V A = Dt + z;
+      const V dd = A * A + l2;
+      const V inv_d = rsqrt_positive(dd);
+      const V d = dd * inv_d;
+      const V e = l2 / (d + A);
+      const V g = (Q - z - e) * inv_d;
+      const V ax = -z - e - g * e;
+      const V ox = ax * a.x() + g * load(lxs + p), oy = ax * a.y() + g * load(lys + p),
+              oz = ax * a.z() + g * load(lzs + p);
+      const V d2 = ax * ax + g * g * l2;
+      std::memcpy(ux + p, &ox, sizeof ox);
+      std::memcpy(uy + p, &oy, sizeof oy);
+      std::memcpy(uz + p, &oz, sizeof oz);
+      std::memcpy(r2 + p, &d2, sizeof d2);
+    }
+  }
+
   template <Mode mode>
   static STATION_INLINE KernelSums sums(const RadiusGrid& grid, const double* weight, const Vec3d& q,
                                         const KernelShape& k, int self) {
@@ -172,6 +224,10 @@ struct Table {
   KernelSums (*density)(const RadiusGrid&, const Vec3d&, const KernelShape&);
   KernelSums (*attraction)(const RadiusGrid&, const double*, const Vec3d&, const KernelShape&);
   KernelSums (*repulsion)(const RadiusGrid&, const double*, const Vec3d&, const KernelShape&, int);
+  KernelSums (*array_attraction)(const double*, const double*, const double*, const double*,
+                                 const double*, int, const KernelShape&);
+  void (*invert_copy)(const double*, const double*, const double*, const double*, const double*,
+                      int, double, double, const Vec3d&, double*, double*, double*, double*);
 };
 
 #define STATION_KERNEL_TABLE(NAME, W, TARGET)                                                    \
@@ -186,7 +242,17 @@ struct Table {
                                      const KernelShape& k, int self) {                          \
     return Kernels<W>::template sums<Mode::kRepulsion>(g, w, q, k, self);                       \
   }                                                                                             \
-  const Table NAME##_table{NAME##_density, NAME##_attraction, NAME##_repulsion};
+  TARGET KernelSums NAME##_array(const double* dx, const double* dy, const double* dz,           \
+                                 const double* r2, const double* w, int n, const KernelShape& k) { \
+    return Kernels<W>::array_attraction(dx, dy, dz, r2, w, n, k);                               \
+  }                                                                                             \
+  TARGET void NAME##_invert(const double* z, const double* l2, const double* lx, const double* ly, \
+                            const double* lz, int n, double Dt, double Q, const Vec3d& a,       \
+                            double* ux, double* uy, double* uz, double* r2) {                   \
+    Kernels<W>::invert_copy(z, l2, lx, ly, lz, n, Dt, Q, a, ux, uy, uz, r2);                    \
+  }                                                                                             \
+  const Table NAME##_table{NAME##_density, NAME##_attraction, NAME##_repulsion, NAME##_array,  \
+                           NAME##_invert};
 
 STATION_KERNEL_TABLE(base, 2, )
 #ifdef STATION_X86_DISPATCH
@@ -208,8 +274,19 @@ const Table& table() {
 
 }  // namespace
 
+KernelSums attraction_sum(const double* dx, const double* dy, const double* dz, const double* r2,
+                          const double* weight, int n, const KernelShape& k) {
+  return table().array_attraction(dx, dy, dz, r2, weight, n, k);
+}
+
 KernelSums density_sum(const RadiusGrid& grid, const Vec3d& q, const KernelShape& k) {
   return table().density(grid, q, k);
+}
+
+void invert_copy(const double* z, const double* l2, const double* lx, const double* ly,
+                 const double* lz, int n, double Dt, double Q, const Vec3d& a, double* ux,
+                 double* uy, double* uz, double* r2) {
+  table().invert_copy(z, l2, lx, ly, lz, n, Dt, Q, a, ux, uy, uz, r2);
 }
 
 KernelSums attraction_sum(const RadiusGrid& grid, const double* weight, const Vec3d& q,

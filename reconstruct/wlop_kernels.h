@@ -36,4 +36,21 @@ KernelSums attraction_sum(const RadiusGrid& grid, const double* weight, const Ve
 KernelSums repulsion_sum(const RadiusGrid& grid, const double* weight, const Vec3d& q,
                          const KernelShape& k, int self);
 
+/// The attraction sum over n points given as offsets (dx, dy, dz) from q with
+/// squared lengths r2, in contiguous arrays: a_p = theta(r) / r * weight[p] over
+/// eps2 < r^2 < h^2. Each array must hold n + RadiusGrid::kPad readable entries.
+KernelSums attraction_sum(const double* dx, const double* dy, const double* dz, const double* r2,
+                          const double* weight, int n, const KernelShape& k);
+
+/// One copy of the edge variant's upsampling (eqs. 13-15) for n neighbour slots of
+/// x_i: slot k sits at axial offset z[k] (along the unit axis a from c_i to x_i),
+/// squared lateral offset l2[k] and lateral offset vector (lx, ly, lz)[k] from x_i.
+/// The copy is shifted so that x_i lies Dt from c_i and inverted with the radius that
+/// keeps x'_i at Q from c_i. Writes each slot's offset from x'_i to (ux, uy, uz) and
+/// its squared length to r2 (n entries). Inputs need n + kPad readable entries,
+/// outputs n + kPad writable ones.
+void invert_copy(const double* z, const double* l2, const double* lx, const double* ly,
+                 const double* lz, int n, double Dt, double Q, const Vec3d& a, double* ux,
+                 double* uy, double* uz, double* r2);
+
 }  // namespace station::detail

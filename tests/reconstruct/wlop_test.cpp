@@ -3,10 +3,12 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <iostream>
 #include <limits>
 #include <random>
 
 #include "core/error.h"
+#include "core/io.h"
 #include "reconstruct/consolidation_metrics.h"
 #include "reconstruct/eval.h"
 #include "test_util.h"
@@ -227,6 +229,212 @@ TEST(Wlop, InitialSubsetIsSeededDistinctAndSorted) {
   EXPECT_GE(a.front(), 0);
   EXPECT_LT(a.back(), 1000);
   EXPECT_EQ(initial_subset(10, 50, 1).size(), 10u);
+}
+
+// ---- edge-preserving variant -----------------------------------------------------
+
+using Vec2d = Eigen::Vector2d;
+
+WlopParams edge(std::size_t target, double radius, int iterations) {
+  WlopParams p = plain(target, radius, iterations);
+  p.method = WlopMethod::kEdgeWlop;
+  return p;
+}
+
+TEST(EdgeWlop, SharperThanWlopOnANoisyCube) {
+  const Mesh cube = test::box(Vec3f(-1, -1, -1), Vec3f(1, 1, 1));
+  const Cloud in = noisy_uneven_sample(cube, 25000, 0.005, 21);
+  const WlopResult w = consolidate(in, plain(4000, 0, 35));
+  const WlopResult e = consolidate(in, edge(4000, 0, 35));
+  ASSERT_EQ(e.cloud.size(), 4000u);
+  EXPECT_GT(e.mean_copies, 1.0);
+  EXPECT_EQ(e.plain_fallbacks, 0u);
+  const EdgeError ew = edge_error(w.cloud.points, cube, 2 * w.radius);
+  const EdgeError ee = edge_error(e.cloud.points, cube, 2 * e.radius);
+  ASSERT_GT(ew.count, 300u);
+  ASSERT_GT(ee.count, 300u);
+  EXPECT_LT(ee.mean, 0.75 * ew.mean) << ew.mean << " vs " << ee.mean;
+  EXPECT_LT(mean_distance_to_mesh(e.cloud.points, cube), mean_distance_to_mesh(in.points, cube));
+  for (const Vec3d& p : e.positions) ASSERT_TRUE(p.allFinite());
+}
+
+TEST(EdgeWlop, SharperThanWlopOnFandisk) {
+  // Hoppe's fandisk (tests/data/consolidation/README.md), 20k points sampled
+  // unevenly with 0.3 % noise, consolidated to 4000 at the default h.
+  const Mesh fandisk = read_mesh(test::source_dir() / "tests/data/consolidation/fandisk.off");
+  const double dbb = bounding_box(fandisk.vertices).diagonal();
+  const Cloud in = noisy_uneven_sample(fandisk, 20000, 0.003 * dbb, 23);
+  const WlopResult w = consolidate(in, plain(4000, 0, 35));
+  const WlopResult e = consolidate(in, edge(4000, 0, 35));
+  const EdgeError ew = edge_error(w.cloud.points, fandisk, 2 * w.radius);
+  const EdgeError ee = edge_error(e.cloud.points, fandisk, 2 * e.radius);
+  ASSERT_GT(ee.count, 1000u);
+  EXPECT_LT(ee.mean, 0.75 * ew.mean) << ew.mean << " vs " << ee.mean;
+  const double acc_in = mean_distance_to_mesh(in.points, fandisk);
+  EXPECT_LT(mean_distance_to_mesh(e.cloud.points, fandisk), acc_in);
+  const double u_in = surface_uniformity(in.points, fandisk);
+  const double u_w = surface_uniformity(w.cloud.points, fandisk);
+  const double u_e = surface_uniformity(e.cloud.points, fandisk);
+  EXPECT_GT(u_w, u_in + 0.1) << u_in << " -> " << u_w;
+  EXPECT_GT(u_e, u_in + 0.1) << u_in << " -> " << u_e;
+}
+
+// Two half-planes meeting at a convex crease along z (the x = y = 0 line) with
+// the given opening angle (degrees), uniformly sampled; distance helpers.
+struct Crease {
+  Vec2d dir_b;
+  Cloud cloud;
+  explicit Crease(double angle, int n, unsigned seed) {
+    const double t = (180 - angle) * M_PI / 180;
+    dir_b = Vec2d(-std::cos(t), -std::sin(t));
+    std::mt19937 rng(seed);
+    std::uniform_real_distribution<double> u(0, 1);
+    for (int i = 0; i < n; ++i) {
+      const double s = u(rng), z = u(rng) - 0.5;
+      const Vec2d q = i % 2 ? Vec2d(-s, 0) : Vec2d(s * dir_b);
+      cloud.points.push_back(Vec3f(float(q.x()), float(q.y()), float(z)));
+    }
+  }
+  double distance(const Vec3d& p) const {
+    const Vec2d q(p.x(), p.y());
+    const double da = q.x() <= 0 ? std::abs(q.y()) : q.norm();
+    const double db = (q - dir_b * std::max(0.0, q.dot(dir_b))).norm();
+    return std::min(da, db);
+  }
+  // Mean distance to the surface of the points within `reach` of the crease line
+  // (and away from the open ends).
+  double crease_error(const std::vector<Vec3d>& pts, double reach) const {
+    double sum = 0;
+    int n = 0;
+    for (const Vec3d& p : pts)
+      if (std::abs(p.z()) < 0.35 && Vec2d(p.x(), p.y()).norm() < reach) {
+        sum += distance(p);
+        ++n;
+      }
+    EXPECT_GT(n, 10);
+    return sum / std::max(n, 1);
+  }
+};
+
+TEST(EdgeWlop, TangentialRepulsionKeepsACreaseSharp) {
+  const Crease crease(90, 16000, 25);
+  const double h = 0.08;
+  const WlopResult w = consolidate(crease.cloud, plain(3200, h, 35));
+  WlopParams params = edge(3200, h, 35);
+  const WlopResult tangential = consolidate(crease.cloud, params);
+  params.edge_repulsion = EdgeRepulsion::kFull;
+  const WlopResult full = consolidate(crease.cloud, params);
+  const double e_w = crease.crease_error(w.positions, h / 4);
+  const double e_t = crease.crease_error(tangential.positions, h / 4);
+  const double e_f = crease.crease_error(full.positions, h / 4);
+  std::cout << "crease error: wlop " << e_w << ", edge tangential " << e_t << ", edge full " << e_f << "\n";
+  EXPECT_LT(e_t, e_w) << e_w << " " << e_t << " " << e_f;
+  EXPECT_LT(e_t, 0.5 * e_f) << e_w << " " << e_t << " " << e_f;
+}
+
+TEST(EdgeWlop, IdenticalAcrossThreadCounts) {
+  const Mesh cube = test::box(Vec3f(-1, -1, -1), Vec3f(1, 1, 1));
+  const Cloud in = noisy_uneven_sample(cube, 6000, 0.005, 27);
+  WlopParams params = edge(1200, 0, 6);
+  params.threads = 1;
+  const WlopResult a = consolidate(in, params);
+  params.threads = 2;
+  const WlopResult b = consolidate(in, params);
+  for (std::size_t i = 0; i < a.positions.size(); ++i) ASSERT_EQ(a.positions[i], b.positions[i]);
+}
+
+TEST(EdgeWlop, JacobianDensityAgreesWithExactEq18) {
+  const Mesh cube = test::box(Vec3f(-1, -1, -1), Vec3f(1, 1, 1));
+  const Cloud in = noisy_uneven_sample(cube, 5000, 0.002, 29);
+  // One step from the same start: the same copies, and E1 moved by the weights
+  // alone, which differ only where the density model is off.
+  WlopParams params = edge(1000, 0, 1);
+  params.mu = 0;
+  const WlopResult jacobian = consolidate(in, params);
+  params.inverted_density = InvertedDensity::kExact;
+  const WlopResult exact = consolidate(in, params);
+  EXPECT_DOUBLE_EQ(exact.mean_copies, jacobian.mean_copies);
+  const std::vector<int> start = initial_subset(in.size(), 1000, params.seed);
+  double diff = 0, moved = 0;
+  for (std::size_t i = 0; i < exact.positions.size(); ++i) {
+    diff += (exact.positions[i] - jacobian.positions[i]).norm();
+    moved += (exact.positions[i] - in.points[start[i]].cast<double>()).norm();
+  }
+  EXPECT_LT(diff, 0.15 * moved) << diff / 1000 << " vs moves of " << moved / 1000;
+  // And over a full run both keep the cube's edges about as well.
+  params = edge(1000, 0, 20);
+  const WlopResult j20 = consolidate(in, params);
+  params.inverted_density = InvertedDensity::kExact;
+  const WlopResult e20 = consolidate(in, params);
+  const EdgeError ee = edge_error(e20.cloud.points, cube, 2 * e20.radius);
+  const EdgeError ej = edge_error(j20.cloud.points, cube, 2 * j20.radius);
+  EXPECT_NEAR(ee.mean, ej.mean, 0.2 * ee.mean);
+}
+
+TEST(EdgeWlop, UsesInputNormalsWhenAsked) {
+  Cloud in = uneven_sphere(6000, 0.005, 31);
+  for (const Vec3f& p : in.points) in.normals.push_back(p.normalized());
+  WlopParams params = edge(1200, 0, 10);
+  params.edge_normals = EdgeNormals::kInput;
+  const WlopResult r = consolidate(in, params);
+  EXPECT_LT(mean_sphere_distance(r.cloud.points), mean_sphere_distance(in.points));
+  EXPECT_EQ(r.plain_fallbacks, 0u);
+  // Without normals kInput falls back to the simple normals.
+  in.normals.clear();
+  const WlopResult s = consolidate(in, params);
+  EXPECT_LT(mean_sphere_distance(s.cloud.points), mean_sphere_distance(in.points));
+}
+
+// ---- attributes ---------------------------------------------------------------------
+
+TEST(WlopAttributes, ColoursAreCarried) {
+  Cloud in = uneven_sphere(8000, 0.005, 33);
+  for (const Vec3f& p : in.points)
+    in.colors.push_back(p.z() > 0 ? Rgb{200, 30, 10} : Rgb{10, 40, 220});
+  for (WlopMethod method : {WlopMethod::kWlop, WlopMethod::kEdgeWlop}) {
+    WlopParams params = plain(1600, 0, 20);
+    params.method = method;
+    const WlopResult r = consolidate(in, params);
+    ASSERT_EQ(r.cloud.colors.size(), r.cloud.size());
+    int checked = 0;
+    for (std::size_t i = 0; i < r.cloud.size(); ++i) {
+      const float z = r.cloud.points[i].z();
+      if (std::abs(z) < 1.5f * float(r.radius)) continue;  // a blend of both near z = 0
+      const Rgb expected = z > 0 ? Rgb{200, 30, 10} : Rgb{10, 40, 220};
+      EXPECT_EQ(r.cloud.colors[i], expected) << i;
+      ++checked;
+    }
+    EXPECT_GT(checked, 1000);
+  }
+}
+
+TEST(WlopAttributes, NormalsPointOutwards) {
+  Cloud in = uneven_sphere(8000, 0.005, 35);
+  for (Vec3f& p : in.points) p += Vec3f(0.3f, -0.2f, 5.f);  // off the origin
+  const Vec3f centre(0.3f, -0.2f, 5.f);
+  WlopParams params = plain(1600, 0, 20);
+  params.estimate_normals = true;
+  const WlopResult r = consolidate(in, params);  // no input normals: MST orientation
+  ASSERT_EQ(r.cloud.normals.size(), r.cloud.size());
+  for (std::size_t i = 0; i < r.cloud.size(); ++i) {
+    EXPECT_NEAR(r.cloud.normals[i].norm(), 1.f, 1e-4f);
+    EXPECT_GT(r.cloud.normals[i].dot(r.cloud.points[i] - centre), 0.8f) << i;
+  }
+  // With input normals, each output normal follows the nearby ones.
+  for (const Vec3f& p : in.points) in.normals.push_back((p - centre).normalized());
+  const WlopResult o = consolidate(in, params);
+  for (std::size_t i = 0; i < o.cloud.size(); ++i)
+    EXPECT_GT(o.cloud.normals[i].dot(o.cloud.points[i] - centre), 0.8f) << i;
+}
+
+TEST(WlopAttributes, NormalsPointOutwardsOnACube) {
+  const Mesh cube = test::box(Vec3f(-1, -1, -1), Vec3f(1, 1, 1));
+  const Cloud in = noisy_uneven_sample(cube, 12000, 0.003, 37);
+  WlopParams params = edge(2000, 0, 20);
+  params.estimate_normals = true;
+  const WlopResult r = consolidate(in, params);
+  for (std::size_t i = 0; i < r.cloud.size(); ++i)
+    EXPECT_GT(r.cloud.normals[i].dot(r.cloud.points[i]), 0.f) << i;
 }
 
 // ---- bad input --------------------------------------------------------------------
