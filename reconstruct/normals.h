@@ -21,8 +21,9 @@ Vec3d pca_normal(const Vec3d* points, int n);
 /// through the centroid with the least sum of absolute distances. Eq. 11 prints
 /// neither a square (that would be PCA, which the paper contrasts it with) nor an
 /// absolute value (without one the sum is identically zero); we read it as the L1
-/// fit, which at a sharp edge follows the face holding most of the points instead
-/// of the bisector PCA tilts towards. Solved by iteratively reweighted PCA
+/// fit, which at a sharp edge leans further than PCA towards the face holding most
+/// of the points (not all the way: the plane is held to the centroid, q_j). Solved
+/// by iteratively reweighted PCA
 /// (weights 1 / max(|n . y_l|, 1e-3 rms spread)) from the PCA normal, `iterations`
 /// times. Arbitrary sign; zero as pca_normal.
 Vec3d simple_normal(const Vec3d* points, int n, int iterations = 6);
