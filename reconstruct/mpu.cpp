@@ -191,11 +191,12 @@ struct CellFit {
   double error = 0;
   double radius = 0;
   bool grew = false;
+  int points = 0;  // in the ball before any growth
 };
 
 // Weighted least-squares bivariate quadratic over the plane (q, n).
 Bivariate fit_bivariate(const MpuSurface::Impl& s, const std::vector<int>& ids,
-                        const std::vector<double>& w, const Vec3d& n, double R) {
+                        const std::vector<double>& w, const Vec3d& n, double R, double curvature_ridge = 1e-6) {
   Bivariate b;
   double W = 0;
   Vec3d q = Vec3d::Zero();
@@ -222,7 +223,7 @@ Bivariate fit_bivariate(const MpuSurface::Impl& s, const std::vector<int>& ids,
   // Small ridge on the curved and slope terms: a collinear or tiny neighbourhood
   // leaves them undetermined; zero (a plane) is the safe default.
   const double ridge = 1e-6 * (A.trace() + 1e-300);
-  for (int k = 0; k < 5; ++k) A(k, k) += ridge;
+  for (int k = 0; k < 5; ++k) A(k, k) += k < 3 ? curvature_ridge * (A.trace() + 1e-300) : ridge;
   const Eigen::Matrix<double, 6, 1> c = A.ldlt().solve(rhs);
   b.c[0] = c[0] / R; b.c[1] = c[1] / R; b.c[2] = c[2] / R;
   b.c[3] = c[3]; b.c[4] = c[4]; b.c[5] = c[5] * R;
@@ -364,6 +365,7 @@ CellFit fit_cell(const MpuSurface::Impl& s, const Vec3d& o, double half) {
   CellFit cf;
   double R = p.alpha * 2 * half * std::sqrt(3.0);
   auto nn = s.index->radius(o.cast<float>(), float(R));
+  cf.points = int(nn.size());
   while (int(nn.size()) < p.n_min) {
     R += p.lambda * R;
     cf.grew = true;
@@ -373,39 +375,41 @@ CellFit fit_cell(const MpuSurface::Impl& s, const Vec3d& o, double half) {
   std::vector<int> ids(nn.size());
   std::vector<double> w(nn.size());
   Vec3d mean_n = Vec3d::Zero();
+  double wsum = 0;
   for (std::size_t i = 0; i < nn.size(); ++i) {
     ids[i] = nn[i].first;
     // Points on the ball's rim would get weight 0; keep a floor so a grown ball's
     // outermost points still count.
     w[i] = std::max(bspline2(1.5 * nn[i].second / R), 1e-3);
     mean_n += w[i] * s.normals[ids[i]];
+    wsum += w[i];
   }
   // Normals spread (or cancel): general quadric; otherwise a height function.
   bool agree = mean_n.norm() > 1e-9;
   if (agree) {
-    mean_n.normalize();
     for (int id : ids)
-      if (s.normals[id].dot(mean_n) <= p.bivariate_min_cos) {
+      if (s.normals[id].dot(mean_n.normalized()) <= p.bivariate_min_cos) {
         agree = false;
         break;
       }
   }
   if (agree) {
     cf.fit.type = MpuFitType::kBivariate;
-    cf.fit.piece[0] = fit_bivariate(s, ids, w, mean_n, R);
-    cf.error = taubin_error(s, ids, cf.fit);
-  }
-  if (p.sharp_features && (!agree || cf.error > p.epsilon0) && mean_n.norm() > 0.5) {
-    LocalFit sharp;
-    if (fit_sharp(s, ids, w, mean_n, R, sharp)) {
-      const double e = taubin_error(s, ids, sharp);
-      if (!agree || e < cf.error) cf.fit = sharp, cf.error = e, agree = true;
-    }
-  }
-  if (!agree) {
+    cf.fit.piece[0] = fit_bivariate(s, ids, w, mean_n.normalized(), R, cf.grew ? p.grown_curvature_ridge : 1e-6);
+  } else {
     cf.fit.type = MpuFitType::kQuadric;
     cf.fit.quadric = fit_quadric(s, ids, w, o, half, R);
-    cf.error = taubin_error(s, ids, cf.fit);
+  }
+  cf.error = taubin_error(s, ids, cf.fit);
+  // A sharp fit replaces the smooth one only when it meets the tolerance or is much
+  // better: wide balls on smooth but curved parts (grown cells) also spread their
+  // normals, and a spurious crease there is worse than a smooth misfit.
+  if (p.sharp_features && cf.error > p.epsilon0 && mean_n.norm() > 0.3 * wsum) {
+    LocalFit sharp;
+    if (fit_sharp(s, ids, w, mean_n.normalized(), R, sharp)) {
+      const double e = taubin_error(s, ids, sharp);
+      if (e <= p.epsilon0 || e < 0.25 * cf.error) cf.fit = sharp, cf.error = e;
+    }
   }
   return cf;
 }
@@ -423,11 +427,11 @@ MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
     throw InvalidInput(
         "fit_mpu: the cloud has no normals; MPU needs outward normals (estimate and orient "
         "them first: reconstruct/normals.h estimate_normals + orient_normals_mst)");
-  if (!(params.alpha > 0.5) || !(params.lambda > 0) || params.n_min < 6 || !(params.epsilon0 > 0) ||
+  if (!(params.alpha > 0.5) || !(params.lambda > 0) || params.n_min < 6 || params.split_min_points < 0 || !(params.epsilon0 > 0) ||
       params.max_depth < 0 || params.max_depth > 20 || params.threads < 0 || !(params.root_margin >= 0) ||
       !(params.trust_factor > 0))
     throw InvalidInput(
-        "fit_mpu: parameters out of range (alpha > 0.5, lambda > 0, n_min >= 6, epsilon0 > 0, "
+        "fit_mpu: parameters out of range (alpha > 0.5, lambda > 0, n_min >= 6, split_min_points >= 0, epsilon0 > 0, "
         "0 <= max_depth <= 20, threads >= 0, root_margin >= 0, trust_factor > 0)");
   if (!all_finite(cloud.points)) throw InvalidInput("fit_mpu: non-finite point coordinates");
 
@@ -493,7 +497,8 @@ MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
         const CellFit& cf = fits[i];
         // A grown ball already holds only the n_min nearest points: splitting
         // would fit the same points again, so it stays a leaf.
-        const bool split = cf.error > params.epsilon0 && !cf.grew && depth < params.max_depth;
+        const bool split = cf.error > params.epsilon0 && !cf.grew && cf.points >= params.split_min_points &&
+                           depth < params.max_depth;
         if (split) {
           const int first = int(s.nodes.size());
           s.nodes[id].first_child = first;
