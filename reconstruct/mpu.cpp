@@ -279,7 +279,7 @@ Quadric fit_quadric(const MpuSurface::Impl& s, const std::vector<int>& ids,
   for (const auto& [q, d] : aux) {
     Quadric::basis((q - o) / R, phi);
     Eigen::Map<V10> p(phi);
-    const double wa = 1.0 / aux.size();
+    const double wa = s.params.quadric_aux_weight / aux.size();
     A += wa * p * p.transpose();
     rhs += wa * d * p;
   }

@@ -141,12 +141,21 @@ TEST(Mpu, DeterministicAcrossThreads) {
 }
 
 TEST(Mpu, ScaleInvariant) {
-  for (double scale : {1e-3, 1e3}) {
+  // The same sphere at 1, 1e-3 and 1e3: same fit in the normalised frame, so f / scale
+  // agrees (up to float rounding of the input).
+  std::vector<double> probes;
+  for (double scale : {1.0, 1e-3, 1e3}) {
     Cloud c = sphere_cloud(2000, 1.0);
     for (Vec3f& p : c.points) p = (p.cast<double>() * scale).cast<float>();
     const MpuSurface s = fit_mpu(c);
     EXPECT_LT(max_abs_f_normalised(s, c), s.params().epsilon0) << scale;
-    EXPECT_NEAR(s.value(Vec3d::Zero()) / scale, -1.0, 0.05) << scale;
+    for (const Vec3d& x : {Vec3d(0, 0, 0), Vec3d(0.5, 0.2, -0.1), Vec3d(0.9, 0.3, 0.3)})
+      probes.push_back(s.value(x * scale) / scale);
+  }
+  for (int i = 0; i < 3; ++i) {
+    EXPECT_LT(probes[i], 0);
+    EXPECT_NEAR(probes[i], probes[3 + i], 1e-4);
+    EXPECT_NEAR(probes[i], probes[6 + i], 1e-4);
   }
 }
 
@@ -242,6 +251,31 @@ TEST(Mpu, CubeKeepsItsCorners) {
     EXPECT_LT(std::abs(s.value(corner)), 0.002 * diag) << corner.transpose();
   const Mesh m = extract_marching_cubes(s, 48);
   expect_finite(m);
+}
+
+TEST(Mpu, LongBoxKeepsItsEdges) {
+  const Mesh box = test::box(Vec3f(-2, -0.5f, -0.5f), Vec3f(2, 0.5f, 0.5f));
+  const Cloud c = sample_mesh(box, 20000, 5);
+  const MpuSurface s = fit_mpu(c);
+  const auto& d = s.diagnostics();
+  EXPECT_GT(d.leaves_by_type[int(MpuFitType::kEdge)], 0u);
+  const double diag = s.bounds().diagonal();
+  for (const Vec3d& edge_point : {Vec3d(0.3, 0.5, 0.5), Vec3d(-0.7, -0.5, 0.5), Vec3d(1.1, 0.5, -0.5)})
+    EXPECT_LT(std::abs(s.value(edge_point)), 0.002 * diag) << edge_point.transpose();
+  // A point just outside the edge, on the bisector, is outside (a rounded edge would
+  // also say so, but a much smaller value).
+  EXPECT_GT(s.value(Vec3d(0.3, 0.52, 0.52)), 0.01);
+}
+
+TEST(Mpu, FewPointsSpreadNormalsUseTheQuadric) {
+  // 40 points on a small sphere: the root ball holds both sides, normals spread, and
+  // a general quadric (which contains the sphere) fits exactly.
+  const Cloud c = sphere_cloud(40, 0.3);
+  const MpuSurface s = fit_mpu(c);
+  EXPECT_GT(s.diagnostics().leaves_by_type[int(MpuFitType::kQuadric)], 0u);
+  EXPECT_LT(max_abs_f_normalised(s, c), s.params().epsilon0);
+  EXPECT_LT(s.value(Vec3d::Zero()), 0);
+  EXPECT_GT(s.value(Vec3d(0.5, 0, 0)), 0);
 }
 
 }  // namespace
