@@ -26,6 +26,10 @@
 #include "drivers/registry.h"
 #include "drivers/v4l2_probe.h"
 #include "reconstruct/eval.h"
+#include "reconstruct/marching_cubes.h"
+#include "reconstruct/mpu.h"
+#include "reconstruct/normals.h"
+#include "reconstruct/wlop.h"
 #include "sim/sim.h"
 #include "station/config.h"
 #include "station/json.h"
@@ -561,6 +565,137 @@ int cmd_calibrate_turntable(const Common& c, const std::string& session_dir, con
   return 0;
 }
 
+// ---- consolidate -----------------------------------------------------------------
+
+struct ConsolidateArgs {
+  std::string in, out;
+  std::size_t points = 0;
+  double ratio = 0.2;
+  std::string method = "wlop";
+  int iterations = 35;
+  double radius = 0;
+  unsigned seed = 1;
+};
+
+int cmd_consolidate(const Common& c, const ConsolidateArgs& a) {
+  const auto t0 = std::chrono::steady_clock::now();
+  StationConfig cfg = load_common(c);
+  const Cloud input = read_cloud(a.in);
+  const double t_read = seconds_since(t0);
+  WlopParams p;
+  p.method = a.method == "edge-wlop" ? WlopMethod::kEdgeWlop : WlopMethod::kWlop;
+  p.target_points = a.points;
+  p.ratio = a.ratio;
+  p.iterations = a.iterations;
+  p.radius = a.radius;
+  p.seed = a.seed;
+  p.threads = cfg.threads;
+  if (!c.json)
+    std::fprintf(stderr, "consolidate: %s, %zu points, %s, %d iterations...\n", a.in.c_str(),
+                 input.size(), a.method.c_str(), a.iterations);
+  const WlopResult r = consolidate(input, p);
+  write_ply(a.out, r.cloud);
+  if (c.json) {
+    print_summary(JsonObject()
+                      .add("command", "consolidate")
+                      .add("input", a.in)
+                      .add("output", a.out)
+                      .add("method", a.method)
+                      .add("input_points", r.input_points)
+                      .add("output_points", r.cloud.size())
+                      .add("clamped", r.clamped)
+                      .add("iterations", r.iterations)
+                      .add("radius", r.radius)
+                      .add("isolated_points", r.isolated_points)
+                      .add("timings_s", JsonObject()
+                                            .add("read", t_read)
+                                            .add("setup", r.seconds_setup)
+                                            .add("iterations", r.seconds_iterations)
+                                            .add("attributes", r.seconds_attributes)
+                                            .add("total", seconds_since(t0))));
+  } else {
+    std::printf("consolidate: %zu -> %zu points (%s, %d iterations, h = %.6g) in %.2fs -> %s\n",
+                r.input_points, r.cloud.size(), a.method.c_str(), r.iterations, r.radius,
+                r.seconds, a.out.c_str());
+    if (r.clamped)
+      std::printf("note: asked for %zu points but the input has %zu; all were projected\n",
+                  r.requested_points, r.input_points);
+  }
+  return 0;
+}
+
+// ---- reconstruct ----------------------------------------------------------------
+
+struct ReconstructArgs {
+  std::string in, out;
+  int resolution = 128;
+  std::string holes = "close";
+  double epsilon = 1e-4;
+};
+
+int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
+  const auto t0 = std::chrono::steady_clock::now();
+  StationConfig cfg = load_common(c);
+  Cloud input = read_cloud(a.in);
+  const double t_read = seconds_since(t0);
+  bool estimated = false;
+  if (!input.has_normals()) {
+    // MPU needs oriented normals: estimate them (PCA) and orient them consistently.
+    if (!c.json) std::fprintf(stderr, "note: %s has no normals; estimating them (PCA, MST orientation)\n", a.in.c_str());
+    input.normals = estimate_normals(input.points, 12, cfg.threads);
+    orient_normals_mst(input.points, input.normals, 12);
+    estimated = true;
+  }
+  MpuParams mp;
+  mp.epsilon0 = a.epsilon;
+  mp.threads = cfg.threads;
+  if (!c.json) std::fprintf(stderr, "reconstruct: fitting MPU to %zu points...\n", input.size());
+  const auto t1 = std::chrono::steady_clock::now();
+  const MpuSurface surface = fit_mpu(input, mp);
+  const double t_fit = seconds_since(t1);
+  MarchingCubesOptions mo;
+  mo.untrusted = a.holes == "open" ? UntrustedRegions::kLeaveOpen : UntrustedRegions::kClose;
+  mo.threads = cfg.threads;
+  MarchingCubesStats stats;
+  if (!c.json) std::fprintf(stderr, "reconstruct: marching cubes at resolution %d...\n", a.resolution);
+  const auto t2 = std::chrono::steady_clock::now();
+  const Mesh mesh = extract_marching_cubes(surface, a.resolution, mo, &stats);
+  const double t_extract = seconds_since(t2);
+  if (mesh.faces.empty()) throw InvalidInput(a.in + ": the reconstructed surface is empty");
+  write_mesh(a.out, mesh);
+  const MpuDiagnostics& d = surface.diagnostics();
+  if (c.json) {
+    print_summary(JsonObject()
+                      .add("command", "reconstruct")
+                      .add("input", a.in)
+                      .add("output", a.out)
+                      .add("points", input.size())
+                      .add("normals_estimated", estimated)
+                      .add("vertices", mesh.vertices.size())
+                      .add("faces", mesh.faces.size())
+                      .add("leaves", d.leaves)
+                      .add("leaves_by_type", JsonObject()
+                                                 .add("bivariate", d.leaves_by_type[0])
+                                                 .add("quadric", d.leaves_by_type[1])
+                                                 .add("edge", d.leaves_by_type[2])
+                                                 .add("corner", d.leaves_by_type[3]))
+                      .add("unconverged_leaves", d.unconverged_leaves)
+                      .add("cell_size", stats.cell_size)
+                      .add("timings_s", JsonObject()
+                                            .add("read", t_read)
+                                            .add("fit", t_fit)
+                                            .add("extract", t_extract)
+                                            .add("total", seconds_since(t0))));
+  } else {
+    std::printf("MPU: %zu leaves (bivariate %zu, quadric %zu, edge %zu, corner %zu), fit %.2fs\n",
+                d.leaves, d.leaves_by_type[0], d.leaves_by_type[1], d.leaves_by_type[2],
+                d.leaves_by_type[3], t_fit);
+    std::printf("reconstruct: %zu vertices, %zu faces (cell %.4g, extract %.2fs) -> %s\n",
+                mesh.vertices.size(), mesh.faces.size(), stats.cell_size, t_extract, a.out.c_str());
+  }
+  return 0;
+}
+
 }  // namespace
 
 int run_cli(int argc, char** argv) {
@@ -626,6 +761,35 @@ int run_cli(int argc, char** argv) {
   cal_tt->add_option("session", cal_session, "session folder (views with turntable angles)")->required();
   cal_tt->add_option("-o,--out", cal_out, "write the axis as a profile fragment (capture.axis)");
 
+  ConsolidateArgs cons_args;
+  Common c_cons;
+  auto* cons = app.add_subcommand("consolidate", "Thin and even out a cloud by WLOP (or edge-preserving WLOP)");
+  add_common(cons, c_cons);
+  cons->add_option("input", cons_args.in, "input cloud (.ply .pcd .obj .off)")->required();
+  cons->add_option("-o,--out", cons_args.out, "output cloud (.ply)")->required();
+  auto* pts = cons->add_option("--points", cons_args.points, "output point count |I|");
+  cons->add_option("--ratio", cons_args.ratio, "output points as a fraction of the input (when --points is not given)")
+      ->capture_default_str()->check(CLI::Range(1e-9, 1.0))->excludes(pts);
+  cons->add_option("--method", cons_args.method, "wlop or edge-wlop (keeps sharp edges)")
+      ->capture_default_str()->check(CLI::IsMember({"wlop", "edge-wlop"}));
+  cons->add_option("--iterations", cons_args.iterations, "iterations k")->capture_default_str()->check(CLI::NonNegativeNumber);
+  cons->add_option("--radius", cons_args.radius, "support radius h in input units (0 = 4 d_bb / sqrt(|J|))")
+      ->capture_default_str()->check(CLI::NonNegativeNumber);
+  cons->add_option("--seed", cons_args.seed, "seed of the initial subset")->capture_default_str();
+
+  ReconstructArgs rec_args;
+  Common c_rec;
+  auto* rec = app.add_subcommand("reconstruct", "Fit an MPU implicit surface to a cloud and mesh it (marching cubes)");
+  add_common(rec, c_rec);
+  rec->add_option("input", rec_args.in, "cloud with normals (estimated when missing)")->required();
+  rec->add_option("-o,--out", rec_args.out, "mesh (.ply or .obj)")->required();
+  rec->add_option("--resolution", rec_args.resolution, "grid cells along the longest side")
+      ->capture_default_str()->check(CLI::Range(4, 4096));
+  rec->add_option("--holes", rec_args.holes, "where there is no data: close (smooth, watertight) or open")
+      ->capture_default_str()->check(CLI::IsMember({"close", "open"}));
+  rec->add_option("--epsilon", rec_args.epsilon, "MPU fit tolerance epsilon_0 (relative to the unit-diagonal box)")
+      ->capture_default_str()->check(CLI::Range(1e-7, 1e-1));
+
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
@@ -638,6 +802,8 @@ int run_cli(int argc, char** argv) {
     if (*replay) return cmd_replay(c_replay, replay_src, replay_out);
     if (*eval) return cmd_eval(c_eval, eval_a, eval_b, eval_samples, eval_seed);
     if (*import) return cmd_import(c_import, import_args);
+    if (*cons) return cmd_consolidate(c_cons, cons_args);
+    if (*rec) return cmd_reconstruct(c_rec, rec_args);
     if (*reg) return cmd_register(c_reg, reg_session, reg_out, reg_poses);
     if (*cal_tt) return cmd_calibrate_turntable(c_cal, cal_session, cal_out);
   } catch (const Error& e) {
