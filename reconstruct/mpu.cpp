@@ -372,6 +372,14 @@ CellFit fit_cell(const MpuSurface::Impl& s, const Vec3d& o, double half) {
     nn = s.index->radius(o.cast<float>(), float(R));
   }
   cf.radius = R;
+  // Coarse cells hold most of the cloud; a deterministic stride sample (over the
+  // distance-sorted list, so it spans the ball) keeps their fit cost bounded.
+  if (p.max_fit_points > 0 && int(nn.size()) > p.max_fit_points) {
+    const double stride = double(nn.size()) / p.max_fit_points;
+    std::vector<std::pair<int, float>> sub(p.max_fit_points);
+    for (int i = 0; i < p.max_fit_points; ++i) sub[i] = nn[std::size_t(i * stride)];
+    nn.swap(sub);
+  }
   std::vector<int> ids(nn.size());
   std::vector<double> w(nn.size());
   Vec3d mean_n = Vec3d::Zero();
@@ -427,11 +435,11 @@ MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
     throw InvalidInput(
         "fit_mpu: the cloud has no normals; MPU needs outward normals (estimate and orient "
         "them first: reconstruct/normals.h estimate_normals + orient_normals_mst)");
-  if (!(params.alpha > 0.5) || !(params.lambda > 0) || params.n_min < 6 || params.split_min_points < 0 || !(params.epsilon0 > 0) ||
+  if (!(params.alpha > 0.5) || !(params.lambda > 0) || params.n_min < 6 || (params.max_fit_points != 0 && params.max_fit_points < params.n_min) || params.split_min_points < 0 || !(params.epsilon0 > 0) ||
       params.max_depth < 0 || params.max_depth > 20 || params.threads < 0 || !(params.root_margin >= 0) ||
       !(params.trust_factor > 0))
     throw InvalidInput(
-        "fit_mpu: parameters out of range (alpha > 0.5, lambda > 0, n_min >= 6, split_min_points >= 0, epsilon0 > 0, "
+        "fit_mpu: parameters out of range (alpha > 0.5, lambda > 0, n_min >= 6, max_fit_points 0 or >= n_min, split_min_points >= 0, epsilon0 > 0, "
         "0 <= max_depth <= 20, threads >= 0, root_margin >= 0, trust_factor > 0)");
   if (!all_finite(cloud.points)) throw InvalidInput("fit_mpu: non-finite point coordinates");
 
