@@ -25,6 +25,7 @@
 #include "core/texture.h"
 #include "drivers/registry.h"
 #include "drivers/v4l2_probe.h"
+#include "reconstruct/color_transfer.h"
 #include "reconstruct/eval.h"
 #include "reconstruct/marching_cubes.h"
 #include "reconstruct/mpu.h"
@@ -631,6 +632,7 @@ struct ReconstructArgs {
   int resolution = 128;
   std::string holes = "close";
   double epsilon = 1e-4;
+  bool no_colour = false;
 };
 
 int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
@@ -659,9 +661,12 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
   MarchingCubesStats stats;
   if (!c.json) std::fprintf(stderr, "reconstruct: marching cubes at resolution %d...\n", a.resolution);
   const auto t2 = std::chrono::steady_clock::now();
-  const Mesh mesh = extract_marching_cubes(surface, a.resolution, mo, &stats);
+  Mesh mesh = extract_marching_cubes(surface, a.resolution, mo, &stats);
   const double t_extract = seconds_since(t2);
   if (mesh.faces.empty()) throw InvalidInput(a.in + ": the reconstructed surface is empty");
+  const auto t3 = std::chrono::steady_clock::now();
+  const bool colour = input.has_colors() && !a.no_colour;
+  if (colour) transfer_colors(mesh, input, {4, cfg.threads});
   write_mesh(a.out, mesh);
   const MpuDiagnostics& d = surface.diagnostics();
   if (c.json) {
@@ -681,10 +686,12 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
                                                  .add("corner", d.leaves_by_type[3]))
                       .add("unconverged_leaves", d.unconverged_leaves)
                       .add("cell_size", stats.cell_size)
+                      .add("colours", colour)
                       .add("timings_s", JsonObject()
                                             .add("read", t_read)
                                             .add("fit", t_fit)
                                             .add("extract", t_extract)
+                                            .add("colour", colour ? seconds_since(t3) : 0.0)
                                             .add("total", seconds_since(t0))));
   } else {
     std::printf("MPU: %zu leaves (bivariate %zu, quadric %zu, edge %zu, corner %zu), fit %.2fs\n",
@@ -789,6 +796,7 @@ int run_cli(int argc, char** argv) {
       ->capture_default_str()->check(CLI::IsMember({"close", "open"}));
   rec->add_option("--epsilon", rec_args.epsilon, "MPU fit tolerance epsilon_0 (relative to the unit-diagonal box)")
       ->capture_default_str()->check(CLI::Range(1e-7, 1e-1));
+  rec->add_flag("--no-colour", rec_args.no_colour, "do not colour the mesh from the input's colours");
 
   try {
     app.parse(argc, argv);

@@ -93,6 +93,21 @@ TEST(Cli, ScanOfTheBundledSampleMatchesTheMesh) {
   const double e_col = json_number(e.out, "color_error");
   EXPECT_GT(e_col, 0) << e.out;
   EXPECT_LT(e_col, 0.15) << e.out;
+
+  // The rest of today's pipeline: consolidate, reconstruct a coloured mesh, measure it.
+  const std::string thin = out + "/thin.ply", mesh = out + "/mesh.ply";
+  CmdResult c = run("consolidate " + out + "/merged.ply -o " + thin + " --points 20000 --json");
+  ASSERT_EQ(c.code, 0) << c.out;
+  EXPECT_EQ(read_cloud(thin).size(), 20000u);
+  c = run("reconstruct " + thin + " -o " + mesh + " --resolution 96 --json");
+  ASSERT_EQ(c.code, 0) << c.out;
+  const Mesh reconstructed = read_mesh(mesh);
+  EXPECT_GT(reconstructed.faces.size(), 10000u);
+  EXPECT_TRUE(reconstructed.has_colors());
+  c = run("eval " + mesh + " " + repo("data/mustard_bottle/textured.obj") + " --samples 100000 --json");
+  ASSERT_EQ(c.code, 0) << c.out;
+  EXPECT_LT(json_number(c.out, "chamfer"), 0.002) << c.out;
+  EXPECT_LT(json_number(c.out, "color_error"), 0.2) << c.out;
   EXPECT_GT(chamfer, 0);
   EXPECT_LT(chamfer, 3 * noise) << e.out;
 }
