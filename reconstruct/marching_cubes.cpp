@@ -183,7 +183,7 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
   if (!opt.seeds.empty()) {
     for (const Vec3f& p : opt.seeds) {
       const Vec3d g = (p.cast<double>() - lo) / h;
-      if (!g.allFinite()) continue;
+      if (!g.allFinite() || (g.array() < 0).any() || g.x() >= n[0] || g.y() >= n[1] || g.z() >= n[2]) continue;
       push(int(std::floor(g.x())), int(std::floor(g.y())), int(std::floor(g.z())), frontier);
     }
   } else {
