@@ -11,6 +11,7 @@
 
 #include "core/error.h"
 #include "core/kdtree.h"
+#include "reconstruct/normals.h"
 
 namespace station {
 namespace {
@@ -554,6 +555,55 @@ MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
   MpuSurface out;
   out.impl_ = std::move(impl);
   return out;
+}
+
+double suggest_epsilon0(const Cloud& cloud, int k, double factor) {
+  if (k < 10 || !(factor > 0)) throw InvalidInput("suggest_epsilon0: k >= 10 and factor > 0 needed");
+  if (int(cloud.size()) < k) throw InvalidInput("suggest_epsilon0: fewer than k points");
+  if (!all_finite(cloud.points)) throw InvalidInput("suggest_epsilon0: non-finite point coordinates");
+  const Aabb box = bounding_box(cloud.points);
+  const double side = (box.max - box.min).cast<double>().maxCoeff();
+  if (!(side > 0)) throw InvalidInput("suggest_epsilon0: all points are equal");
+  const double scale = 1 / (side * std::sqrt(3.0));
+  const PointIndex index(cloud.points);
+  const std::size_t n = std::min<std::size_t>(cloud.size(), 20000);
+  const double stride = double(cloud.size()) / n;
+  std::vector<double> rms(n);
+  tbb::parallel_for(std::size_t(0), n, [&](std::size_t i) {
+    const auto nn = index.knn(cloud.points[std::size_t(i * stride)], k);
+    std::vector<Vec3d> pts;
+    Vec3d mean = Vec3d::Zero();
+    for (const auto& [id, d] : nn) pts.push_back(cloud.points[id].cast<double>()), mean += pts.back();
+    mean /= pts.size();
+    const Vec3d nrm = pca_normal(pts.data(), int(pts.size()));
+    // Residual of a quadratic height fit over the PCA plane: a plane's residual would
+    // mistake curvature for noise.
+    const Vec3d t = std::abs(nrm.x()) < 0.6 ? Vec3d::UnitX() : Vec3d::UnitY();
+    const Vec3d u = (t - t.dot(nrm) * nrm).normalized(), v = nrm.cross(u);
+    double spread = 1e-300;
+    for (const Vec3d& p : pts) spread = std::max(spread, (p - mean).norm());
+    Eigen::Matrix<double, 6, 6> A = Eigen::Matrix<double, 6, 6>::Zero();
+    Eigen::Matrix<double, 6, 1> b = Eigen::Matrix<double, 6, 1>::Zero();
+    std::vector<Eigen::Matrix<double, 6, 1>> rows;
+    std::vector<double> hs;
+    for (const Vec3d& p : pts) {
+      const Vec3d d = (p - mean) / spread;
+      Eigen::Matrix<double, 6, 1> phi;
+      phi << d.dot(u) * d.dot(u), d.dot(u) * d.dot(v), d.dot(v) * d.dot(v), d.dot(u), d.dot(v), 1;
+      A += phi * phi.transpose();
+      b += d.dot(nrm) * phi;
+      rows.push_back(phi);
+      hs.push_back(d.dot(nrm));
+    }
+    A.diagonal().array() += 1e-9 * A.trace();
+    const Eigen::Matrix<double, 6, 1> c = A.ldlt().solve(b);
+    double ss = 0;
+    for (std::size_t j = 0; j < rows.size(); ++j) ss += std::pow(rows[j].dot(c) - hs[j], 2);
+    ss *= spread * spread * double(pts.size()) / std::max<double>(1, double(pts.size()) - 6);  // unbiased
+    rms[i] = std::sqrt(ss / pts.size());
+  });
+  std::nth_element(rms.begin(), rms.begin() + n / 2, rms.end());
+  return std::max(1e-4, factor * rms[n / 2] * scale);
 }
 
 double MpuSurface::value(const Vec3d& x) const { return impl_->eval(x, nullptr); }

@@ -152,4 +152,13 @@ class MpuSurface : public ImplicitFunction {
 /// n_min usable points, all points equal, or when a parameter is out of range.
 MpuSurface fit_mpu(const Cloud& points_with_normals, const MpuParams& params = {});
 
+/// An epsilon0 suited to the cloud's noise: factor x the median, over up to 20000
+/// evenly spread points, of the RMS residual of a quadratic height fit (over the PCA
+/// plane) to a point's k nearest neighbours, in the normalised frame of fit_mpu;
+/// never below 1e-4
+/// (the paper's value, right for clean data). docs/mpu.md: with 0.5 % noise, epsilon0
+/// near the noise level gives one clean surface where 1e-4 gives hundreds of bubbles.
+/// InvalidInput on fewer than k points or non-finite coordinates.
+double suggest_epsilon0(const Cloud& cloud, int k = 20, double factor = 3.0);
+
 }  // namespace station

@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <functional>
 #include <random>
 #include <map>
 #include <set>
@@ -265,6 +266,30 @@ TEST(Mpu, LongBoxKeepsItsEdges) {
   // A point just outside the edge, on the bisector, is outside (a rounded edge would
   // also say so, but a much smaller value).
   EXPECT_GT(s.value(Vec3d(0.3, 0.52, 0.52)), 0.01);
+}
+
+TEST(Mpu, SuggestedEpsilonFollowsTheNoise) {
+  EXPECT_EQ(suggest_epsilon0(sphere_cloud(5000, 1.0)), 1e-4);
+  Cloud noisy = sphere_cloud(20000, 1.0);
+  std::mt19937 rng(9);
+  std::normal_distribution<float> g(0, 0.01f);
+  for (std::size_t i = 0; i < noisy.size(); ++i) noisy.points[i] += g(rng) * noisy.normals[i];
+  const double eps = suggest_epsilon0(noisy);
+  const double sigma_normalised = 0.01 / (2 * std::sqrt(3.0));
+  EXPECT_GT(eps, 1.5 * sigma_normalised);
+  EXPECT_LT(eps, 4.5 * sigma_normalised);
+  // ... and with it the noisy sphere meshes as one piece.
+  MpuParams p;
+  p.epsilon0 = eps;
+  const Mesh m = extract_marching_cubes(fit_mpu(noisy, p), 48);
+  std::vector<int> parent(m.vertices.size());
+  for (std::size_t i = 0; i < parent.size(); ++i) parent[i] = int(i);
+  std::function<int(int)> find = [&](int x) { return parent[x] == x ? x : parent[x] = find(parent[x]); };
+  for (const Face& f : m.faces) parent[find(f[1])] = find(f[0]), parent[find(f[2])] = find(f[0]);
+  int components = 0;
+  for (std::size_t i = 0; i < parent.size(); ++i) components += find(int(i)) == int(i);
+  EXPECT_EQ(components, 1);
+  EXPECT_THROW(suggest_epsilon0(sphere_cloud(5, 1.0)), InvalidInput);
 }
 
 TEST(Mpu, FewPointsSpreadNormalsUseTheQuadric) {
