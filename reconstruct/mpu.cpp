@@ -575,7 +575,13 @@ double suggest_epsilon0(const Cloud& cloud, int k, double factor) {
     Vec3d mean = Vec3d::Zero();
     for (const auto& [id, d] : nn) pts.push_back(cloud.points[id].cast<double>()), mean += pts.back();
     mean /= pts.size();
-    const Vec3d nrm = pca_normal(pts.data(), int(pts.size()));
+    // The given normals when there are any: with noise above the point spacing a
+    // neighbourhood is a noise blob whose thinnest (PCA) direction underestimates it.
+    Vec3d nrm = Vec3d::Zero();
+    if (cloud.has_normals())
+      for (const auto& [id, d] : nn) nrm += cloud.normals[id].cast<double>();
+    nrm = nrm.norm() > 1e-9 ? Vec3d(nrm.normalized()) : pca_normal(pts.data(), int(pts.size()));
+    if (nrm.norm() < 0.5) nrm = Vec3d::UnitZ();
     // Residual of a quadratic height fit over the PCA plane: a plane's residual would
     // mistake curvature for noise.
     const Vec3d t = std::abs(nrm.x()) < 0.6 ? Vec3d::UnitX() : Vec3d::UnitY();

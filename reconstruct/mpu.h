@@ -153,12 +153,13 @@ class MpuSurface : public ImplicitFunction {
 MpuSurface fit_mpu(const Cloud& points_with_normals, const MpuParams& params = {});
 
 /// An epsilon0 suited to the cloud's noise: factor x the median, over up to 20000
-/// evenly spread points, of the RMS residual of a quadratic height fit (over the PCA
-/// plane) to a point's k nearest neighbours, in the normalised frame of fit_mpu;
+/// evenly spread points, of the RMS residual of a quadratic height fit (over the plane
+/// normal to the neighbours' mean normal, or their PCA plane without normals) to a
+/// point's k nearest neighbours, in the normalised frame of fit_mpu;
 /// never below 1e-4
 /// (the paper's value, right for clean data). docs/mpu.md: with 0.5 % noise, epsilon0
 /// near the noise level gives one clean surface where 1e-4 gives hundreds of bubbles.
 /// InvalidInput on fewer than k points or non-finite coordinates.
-double suggest_epsilon0(const Cloud& cloud, int k = 20, double factor = 3.0);
+double suggest_epsilon0(const Cloud& cloud, int k = 50, double factor = 4.0);
 
 }  // namespace station
