@@ -53,11 +53,14 @@ class RadiusGrid {
     const Vec3d c = (q - origin_).cwiseProduct(inv_cell_);  // q in cell units
     const int z0 = cell_index(c.z() - reach_[2], 2), z1 = cell_index(c.z() + reach_[2], 2);
     const int y0 = cell_index(c.y() - reach_[1], 1), y1 = cell_index(c.y() + reach_[1], 1);
+    // Squared gaps from q to each row's slab in y and in z (at most 5 each).
+    double gy[8], gz[8];
+    for (int iy = y0; iy <= y1; ++iy) gy[iy - y0] = gap(c.y(), iy, 1);
+    for (int iz = z0; iz <= z1; ++iz) gz[iz - z0] = gap(c.z(), iz, 2);
     for (int iz = z0; iz <= z1; ++iz) {
-      const double gz = gap(c.z(), iz, 2);
-      if (gz > r2) continue;
+      if (gz[iz - z0] > r2) continue;
       for (int iy = y0; iy <= y1; ++iy) {
-        const double gyz = gz + gap(c.y(), iy, 1);
+        const double gyz = gz[iz - z0] + gy[iy - y0];
         if (gyz > r2) continue;
         // The row's cells along x that the ball reaches at this (y, z) gap.
         const double rx = std::sqrt(r2 - gyz) * inv_cell_[0];
@@ -83,10 +86,11 @@ class RadiusGrid {
   // Cell containing coordinate v (cell units) along axis a, clamped to the grid.
   // Clamping in double first keeps far-away queries from overflowing int; a ball
   // that misses the grid gives an empty loop (or rows whose gap exceeds r).
+  // (Truncation is floor here: negative values clamp to 0 anyway, and std::floor
+  // is a library call on the x86-64 baseline.)
   int cell_index(double v, int a) const {
-    const double f = std::floor(v);
-    if (!(f > 0)) return 0;
-    return f >= n_[a] ? n_[a] - 1 : int(f);
+    if (!(v > 0)) return 0;
+    return v >= n_[a] ? n_[a] - 1 : int(v);
   }
   // Squared distance (world units) from coordinate c (cell units) to cell slab i
   // along axis a.

@@ -59,7 +59,9 @@ struct Neighbours {
   std::vector<int> pos;
   std::vector<double> dx, dy, dz, r2;
   int n = 0;
+  // Room for m entries plus RadiusGrid::kPad for vector loops reading past the end.
   void fit(std::size_t m) {
+    m += RadiusGrid::kPad;
     if (pos.size() < m) {
       const std::size_t cap = std::max(m, 2 * pos.size());
       pos.resize(cap);
@@ -108,15 +110,11 @@ struct Padded {
 struct Scratch {
   Neighbours input, projected;
   std::vector<Vec3d> points;  // simple normals' neighbourhood
-  // Edge variant. Per neighbour slot, in order of lateral offset (bucketed):
-  // axial offset z, lateral offset^2 and vector, v_j, (n_j . axis)^2, weight 1/v'.
-  std::vector<int> key, bucket;
-  std::vector<double> axial, lateral2;
-  Padded z, l2, lx, ly, lz, v, cos2, w;
-  // The upsampled, inverted neighbourhood U (eq. 14) as offsets from x'_i, copy
-  // after copy; entry i of copy t belongs to slot i.
+  // Edge variant: per neighbour, its simple normal, v_j and the weight 1/v'; the
+  // upsampled, inverted neighbourhood U (eq. 14) as offsets from x'_i, one block of
+  // k_h entries per copy (entry k of each block is neighbour k).
+  Padded nx, ny, nz, v, w;
   Padded ux, uy, uz, ur2, uw;
-  std::vector<int> copy_size;
 };
 
 class Consolidator {
@@ -154,7 +152,7 @@ class Consolidator {
   // Edge variant, by input-grid sorted position: the simple normal n (eqs. 11-12)
   // with the sign of the PCA normal m, which only serves to orient it.
   struct EdgeNormal {
-    double n[3], m[3];
+    float n[3], m[3];
   };
   std::vector<EdgeNormal> edge_normals_;
   bool oriented_ = false;  // n are the input's (oriented) normals
@@ -202,6 +200,7 @@ void Consolidator::setup() {
   const bool input_normals = edge && params_.edge_normals == EdgeNormals::kInput && input_.has_normals();
   oriented_ = input_normals;
   inv_v_.assign(nj_ + RadiusGrid::kPad, 1.0);
+  const bool uniform = params_.input_density == InputDensity::kUniform;
   if (edge) {
     v_.assign(nj_, 1.0);
     edge_normals_.assign(nj_, EdgeNormal{{0, 0, 0}, {0, 0, 0}});
@@ -215,14 +214,14 @@ void Consolidator::setup() {
     for (int sp = r.begin(); sp < r.end(); ++sp) {
       const Vec3d& q = p_[ids[sp]];
       // The sum includes p_j itself (theta(0) = 1), which is eq. 6's "1 +".
-      const double v = detail::density_sum(input_grid_, q, shape).w;
+      const double v = uniform ? 1.0 : detail::density_sum(input_grid_, q, shape).w;
       inv_v_[sp] = 1.0 / v;
       if (!edge) continue;
       gather(input_grid_, q, kernel_.h2, s.input);
       const Neighbours& nb = s.input;
       v_[sp] = v;
       if (input_normals) {
-        const Vec3d n = input_.normals[ids[sp]].cast<double>().normalized();  // zero stays zero
+        const Vec3f n = input_.normals[ids[sp]].normalized();  // zero stays zero
         edge_normals_[sp] = EdgeNormal{{n.x(), n.y(), n.z()}, {n.x(), n.y(), n.z()}};
         continue;
       }
@@ -233,7 +232,8 @@ void Consolidator::setup() {
       const Vec3d m = pca_normal(s.points.data(), int(s.points.size()));
       Vec3d n = simple_normal(s.points.data(), int(s.points.size()), 4);
       if (n.dot(m) < 0) n = -n;
-      edge_normals_[sp] = EdgeNormal{{n.x(), n.y(), n.z()}, {m.x(), m.y(), m.z()}};
+      edge_normals_[sp] = EdgeNormal{{float(n.x()), float(n.y()), float(n.z())},
+                                     {float(m.x()), float(m.y()), float(m.z())}};
     }
   });
 
@@ -271,104 +271,62 @@ bool Consolidator::edge_e1(const Vec3d& q, const Neighbours& nb, Scratch& s, Vec
     best = closer ? nb.r2[k] : best;
     nearest = closer ? k : nearest;
   }
-  const double* ref = edge_normals_[nb.pos[nearest]].m;
+  const float* ref = edge_normals_[nb.pos[nearest]].m;
+  double *snx = s.nx.fit(kh), *sny = s.ny.fit(kh), *snz = s.nz.fit(kh), *sv = s.v.fit(kh);
   double nx = 0, ny = 0, nz = 0;
   for (int k = 0; k < kh; ++k) {
-    const EdgeNormal& en = edge_normals_[nb.pos[k]];
-    const double dot = en.m[0] * ref[0] + en.m[1] * ref[1] + en.m[2] * ref[2];
+    const int sp = nb.pos[k];
+    const EdgeNormal& en = edge_normals_[sp];
+    const float dot = en.m[0] * ref[0] + en.m[1] * ref[1] + en.m[2] * ref[2];
     const double sign = oriented_ || dot >= 0 ? 1.0 : -1.0;
-    nx += sign * en.n[0];
-    ny += sign * en.n[1];
-    nz += sign * en.n[2];
+    snx[k] = sign * en.n[0];
+    sny[k] = sign * en.n[1];
+    snz[k] = sign * en.n[2];
+    nx += snx[k];
+    ny += sny[k];
+    nz += snz[k];
+    sv[k] = v_[sp];
   }
   const Vec3d sum(nx, ny, nz);
   const double agreement = sum.norm();
   if (!(agreement >= kMinNormalAgreement * kh)) return false;  // normals cancel: plain E1
-  const Vec3d a = -sum / agreement;           // unit axis, from c_i towards x_i
+  const Vec3d a = -sum / agreement;                // unit axis, from c_i towards x_i
   axis = a;
   const double D = dbb_ * agreement / (2.0 * kh);  // |x_i - c_i|
   // R must keep 2R - |p - c_i| > 0 over the neighbourhood (f stays a bijection).
   const double R = std::max(params_.inversion_radius * dbb_, D + h);
-  const double Q = 2 * R - D;  // |x'_i - c_i|
+  const double Q = 2 * R - D;                        // |x'_i - c_i|
   const double shift = R / params_.shift_divisions;  // |l| (eq. 15)
 
-  // Per neighbour: axial offset z (along a) and lateral offset^2; slots sorted
-  // into buckets of equal lateral area, so that each copy handles a prefix.
-  constexpr int kBuckets = 32;
-  const double per_bucket = kBuckets / h2;
-  s.key.resize(kh);
-  s.axial.resize(kh);
-  s.lateral2.resize(kh);
-  s.bucket.assign(kBuckets + 1, 0);
-  for (int k = 0; k < kh; ++k) {
-    const double z = nb.dx[k] * a.x() + nb.dy[k] * a.y() + nb.dz[k] * a.z();
-    const double l2 = std::max(nb.r2[k] - z * z, 0.0);
-    s.axial[k] = z;
-    s.lateral2[k] = l2;
-    s.key[k] = std::min(int(l2 * per_bucket), kBuckets - 1);
-    ++s.bucket[s.key[k] + 1];
-  }
-  for (int b = 0; b < kBuckets; ++b) s.bucket[b + 1] += s.bucket[b];
-  double *sz = s.z.fit(kh), *sl2 = s.l2.fit(kh), *slx = s.lx.fit(kh), *sly = s.ly.fit(kh),
-         *slz = s.lz.fit(kh), *sv = s.v.fit(kh), *sc2 = s.cos2.fit(kh);
-  {
-    int fill[kBuckets];
-    for (int b = 0; b < kBuckets; ++b) fill[b] = s.bucket[b];
-    for (int k = 0; k < kh; ++k) {
-      const int o = fill[s.key[k]]++;
-      const double z = s.axial[k];
-      sz[o] = z;
-      sl2[o] = s.lateral2[k];
-      slx[o] = nb.dx[k] - z * a.x();
-      sly[o] = nb.dy[k] - z * a.y();
-      slz[o] = nb.dz[k] - z * a.z();
-      const int sp = nb.pos[k];
-      sv[o] = v_[sp];
-      const double* n = edge_normals_[sp].n;
-      const double c = n[0] * a.x() + n[1] * a.y() + n[2] * a.z();
-      sc2[o] = std::min(c * c, 1.0);
-    }
-  }
-
   // Eqs. 14-15: copies t = 0, 1, ... of the neighbours, shifted by t l and inverted
-  // with radius R + t |l| / 2, until k'_h >= k_h. Each copy takes the slots whose
-  // lateral offset can land within h of x'_i (2h for the exact eq. 18, which
-  // needs the neighbours of those too).
-  const bool exact = params_.inverted_density == InvertedDensity::kExact;
-  const double keep = exact ? 2 * h : h, keep2 = keep * keep;
-  const double e_max = h2 / std::max(D - h, h);  // bound on |p - c| minus axial distance
-  s.copy_size.clear();
-  int total = 0, count = 0, widest = 0;
-  for (int t = 0; t < params_.max_copies; ++t) {
-    const double Dt = D + t * shift;
-    // The lateral scale of this copy is at least g_lo over the neighbourhood.
-    const double g_lo = (Q - h - e_max) / (Dt + h + e_max);
-    const double bound2 = keep2 / (g_lo * g_lo);
-    const int nb_buckets = std::min(kBuckets, int(std::ceil(bound2 * per_bucket)));
-    const int n = s.bucket[nb_buckets];
-    double *ux = s.ux.fit(total + n) + total, *uy = s.uy.fit(total + n) + total,
-           *uz = s.uz.fit(total + n) + total, *ur2 = s.ur2.fit(total + n) + total;
-    s.uw.fit(total + n);
-    detail::invert_copy(sz, sl2, slx, sly, slz, n, Dt, Q, a, ux, uy, uz, ur2);
-    for (int i = 0; i < n; ++i) count += ur2[i] < h2;
-    s.copy_size.push_back(n);
-    total += n;
-    widest = std::max(widest, n);
-    if (count >= kh) break;
+  // with radius R + t |l| / 2, until k'_h >= k_h (or max_copies). Every neighbour
+  // goes into every copy; the ones that land beyond h of x'_i weigh nothing in E1'.
+  int K = 0, count = 0;
+  while (K < params_.max_copies && count < kh) {
+    const std::size_t end = std::size_t(K + 1) * kh, off = std::size_t(K) * kh;
+    double *ux = s.ux.fit(end), *uy = s.uy.fit(end), *uz = s.uz.fit(end), *ur2 = s.ur2.fit(end);
+    if (params_.inverted_density == InvertedDensity::kExact) s.uw.fit(end);
+    count += detail::invert_copy(nb.dx.data(), nb.dy.data(), nb.dz.data(), nb.r2.data(), kh,
+                                 D + K * shift, Q, a, h2, ux + off, uy + off, uz + off, ur2 + off);
+    ++K;
   }
-  const int K = int(s.copy_size.size());
   copies = K;
+  const int total = K * kh;
 
   // Eq. 18: density weights 1 / v'_s of U.
   double* uw = s.uw.data();
+  const bool exact = params_.inverted_density == InvertedDensity::kExact;
   if (exact) {
+    // Literally: over the points of U within h of u_s (only those of U within h
+    // of x'_i weigh anything in E1').
     const double *ux = s.ux.data(), *uy = s.uy.data(), *uz = s.uz.data(), *ur2 = s.ur2.data();
+    const double reach2 = 4 * h2;  // a neighbour of a point within h of x'_i is within 2h
     for (int i = 0; i < total; ++i) {
       uw[i] = 0;
       if (ur2[i] >= h2) continue;
       double v = 1;
       for (int j = 0; j < total; ++j) {
-        if (j == i || ur2[j] >= keep2) continue;
+        if (j == i || ur2[j] >= reach2) continue;
         const double dx = ux[i] - ux[j], dy = uy[i] - uy[j], dz = uz[i] - uz[j];
         const double d2 = dx * dx + dy * dy + dz * dz;
         if (d2 < h2) v += kernel_.theta(d2);
@@ -392,19 +350,27 @@ bool Consolidator::edge_e1(const Vec3d& q, const Neighbours& nb, Scratch& s, Vec
       }
       table[c] = sum_t;
     }
-    double* sw = s.w.fit(widest);
-    for (int o = 0; o < widest; ++o) {
-      const double f = sc2[o] * (kTable - 1);
-      const int c = std::min(int(f), kTable - 2);
-      const double S = table[c] + (f - c) * (table[c + 1] - table[c]);
-      sw[o] = 1.0 / (1.0 + (sv[o] - 1.0) * S);
+    double* sw = s.w.fit(kh);
+    for (int k = 0; k < kh; ++k) {
+      const double c = snx[k] * a.x() + sny[k] * a.y() + snz[k] * a.z();
+      const double f = std::min(c * c, 1.0) * (kTable - 1);
+      const int i = std::min(int(f), kTable - 2);
+      const double S = table[i] + (f - i) * (table[i + 1] - table[i]);
+      sw[k] = 1.0 / (1.0 + (sv[k] - 1.0) * S);
     }
-    for (int t = 0, off = 0; t < K; off += s.copy_size[t++])
-      std::copy(sw, sw + s.copy_size[t], uw + off);
   }
-  // Eqs. 16-17: E1' over U, as an offset e from x'_i (points beyond h are masked).
-  const KernelSums sums = detail::attraction_sum(s.ux.data(), s.uy.data(), s.uz.data(),
-                                                 s.ur2.data(), uw, total, kernel_.shape());
+  // Eqs. 16-17: E1' over U, as an offset e from x'_i (points beyond h are masked),
+  // copy by copy (the Jacobian weights are per neighbour, the same in every copy).
+  KernelSums sums;
+  for (int t = 0; t < K; ++t) {
+    const std::size_t off = std::size_t(t) * kh;
+    const double* weight = exact ? uw + off : s.w.data();
+    const KernelSums part = detail::attraction_sum(s.ux.data() + off, s.uy.data() + off,
+                                                   s.uz.data() + off, s.ur2.data() + off,
+                                                   weight, kh, kernel_.shape());
+    sums.w += part.w;
+    sums.d += part.d;
+  }
   if (!(sums.w > 0)) return false;
   const Vec3d e = sums.d / sums.w;
   // Eq. 19: E1 = f(E1', c_i, R), relative to x_i without cancellation:

@@ -20,8 +20,11 @@
 // fixed-radius queries on a grid over the input built once and a grid over the
 // projected set rebuilt each iteration. Updates are Jacobi style (every x_i from
 // the previous iterate) and each point's sums run in a fixed order, so the output
-// depends on the input, the parameters and the seed only, not on the thread count.
-// All arithmetic is double.
+// depends on the input, the parameters and the seed only, not on the thread count
+// (on one machine: the vector width the kernels pick, AVX-512, AVX2 or SSE2, and
+// fused multiply-adds can change the last bits between CPUs). Positions, kernels
+// and sums are double; theta and 1/r come from our own vector exp and rsqrt
+// (about 1 ulp).
 //
 // Conventions the equations leave open (docs/consolidation.md says why):
 // - A pair closer than 1e-9 h is left out of E1 (alpha is singular there; the
@@ -32,11 +35,12 @@
 //
 // Edge-preserving variant (Awano 2013, section 3), for each x_i and iteration:
 //   c_i = x_i + d_bb sum_l n_l / (2 k_h)                                  (eq. 10)
-//   n_l: the "simple normal" of input point p_l (eqs. 11-12): the plane through
-//   the centroid of p_l's neighbours within h that minimises the sum of absolute
-//   distances (an L1 fit; eq. 11 as printed has no square or absolute value and
-//   would be constant; the paper contrasts it with PCA, the squared version).
-//   Their signs are made consistent around x_i through PCA normals.
+//   n_l: the "simple normal" of input point p_l (eqs. 11-12; simple_normal in
+//   reconstruct/normals.h): the plane through the centroid of p_l's neighbours
+//   within h (at most 32 of them, evenly strided) with the least sum of absolute
+//   distances. Signs are made consistent around x_i through the PCA normals
+//   (smooth across edges): each n_l is flipped to agree with the PCA normal of the
+//   input point nearest x_i. Where the n_l cancel (|sum| < 0.2 k_h) plain E1 is used.
 //   Inversion f(p, c, r): the point at distance 2r - |p - c| from c along the ray
 //   c -> p (eq. 13 gives it relative to c; it is its own inverse).
 //   Upsampling (eqs. 14-15): copy t = 0, 1, ... of the neighbours is shifted by
@@ -58,6 +62,15 @@ namespace station {
 enum class WlopMethod {
   kWlop,      ///< WLOP, eqs. 1-9
   kEdgeWlop,  ///< edge-preserving WLOP: E1 through spherical inversion, eqs. 10-19
+};
+
+/// The input density weights v_j of E1 (eq. 6).
+enum class InputDensity {
+  kComputed,  ///< eq. 6, computed once for every input point: O(|J| k) setup
+  /// v_j = 1 for all j (plain LOP attraction): what CGAL's WLOP does unless asked for
+  /// require_uniform_sampling. Skips the setup sum, which dominates when the input
+  /// is dense relative to h (1M points at a 100k-point radius: ~4400 neighbours each).
+  kUniform,
 };
 
 /// Normals that place the inversion centre c_i (eq. 10) of the edge variant.
@@ -110,6 +123,7 @@ struct WlopParams {
   double radius = 0;
   /// mu, weight of the repulsion E2 (eq. 1); in [0, 0.5) per Huang et al.
   double mu = 0.45;
+  InputDensity input_density = InputDensity::kComputed;
   /// Seed of the random initial subset (see initial_subset).
   unsigned seed = 1;
   /// Worker threads (0 = all cores). The output does not depend on it.
@@ -135,17 +149,21 @@ struct WlopParams {
   EdgeRepulsion edge_repulsion = EdgeRepulsion::kTangential;
 
   // ---- output attributes ----
-  /// Estimate output normals (PCA over the normal_neighbours nearest output points)
-  /// and orient them outwards (see orient_normals in reconstruct/normals.h).
+  /// Estimate output normals (PCA over the normal_neighbours nearest output points,
+  /// itself included) and orient them: to agree with the input's normals when it has
+  /// them (orient_normals_to, 8 nearest input points), else by propagation over a
+  /// minimum spanning tree from the highest point, made to point up
+  /// (orient_normals_mst): outwards for a closed object. reconstruct/normals.h.
   bool estimate_normals = true;
   int normal_neighbours = 12;
 };
 
 struct WlopResult {
-  /// |I| points (float). Colours when the input has them: each the E1-weighted
-  /// (alpha_ij / v_j) mean of the input colours within h of the final point,
-  /// rounded (the nearest input point's colour when none is within h). Normals
-  /// when params.estimate_normals.
+  /// |I| points (float), in the order of initial_subset. Colours when the input has
+  /// them: each the mean of the input colours within h of the final point weighted
+  /// like plain E1 (alpha_ij / v_j, for both methods), in 8-bit sRGB, rounded (the
+  /// nearest input point's colour when none is within h). Normals when
+  /// params.estimate_normals: unit, oriented outwards.
   Cloud cloud;
   /// The same points in double (|I| x 3), as computed.
   std::vector<Vec3d> positions;

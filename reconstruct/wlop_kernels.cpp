@@ -171,31 +171,41 @@ struct Kernels {
     return out;
   }
 
-  // See invert_copy in the header. With A = Dt + z the shifted axial distance from
-  // c_i and d = |p + t l - c_i|: e = d - A = l2 / (d + A) (no cancellation), the
-  // inverted distance from c_i is rho = Q - z - e, the lateral scale g = rho / d and
-  // the axial offset from x'_i is -z - e - g e.
-  static STATION_INLINE void invert_copy(const double* zs, const double* l2s, const double* lxs,
-                                         const double* lys, const double* lzs, int n, double Dt,
-                                         double Q, const Vec3d& a, double* ux, double* uy,
-                                         double* uz, double* r2) {
+  // See invert_copy in the header. With z the axial and l2 the squared lateral
+  // offset of a neighbour, A = Dt + z its shifted axial distance from c_i and
+  // d = |p + t l - c_i|: e = d - A, the inverted distance from c_i is Q - z - e,
+  // the lateral scale g = (Q - z - e) / d and the axial offset from x'_i is
+  // -z - e - g e; the lateral offset, g (p - x_i - z a). (d - A loses about
+  // eps * A / e of e's relative precision, absolute error ~1e-16 A: no need for the
+  // division of l2 / (d + A).)
+  static STATION_INLINE int invert_copy(const double* dxs, const double* dys, const double* dzs,
+                                        const double* r2s, int n, double Dt, double Q,
+                                        const Vec3d& a, double h2, double* ux, double* uy,
+                                        double* uz, double* ur2) {
+    V lane;
+    for (int l = 0; l < W; ++l) lane[l] = l;
+    V inside{};
     for (int p = 0; p < n; p += W) {
-      const V z = load(zs + p), l2 = load(l2s + p);
+      const V dx = load(dxs + p), dy = load(dys + p), dz = load(dzs + p);
+      const V z = dx * a.x() + dy * a.y() + dz * a.z();
+      V l2 = load(r2s + p) - z * z;
+      l2 = keep(l2, ~negative(l2));  // rounding can make it slightly negative
       const V A = Dt + z;
       const V dd = A * A + l2;
       const V inv_d = rsqrt_positive(dd);
-      const V d = dd * inv_d;
-      const V e = l2 / (d + A);
+      const V e = dd * inv_d - A;
       const V g = (Q - z - e) * inv_d;
       const V ax = -z - e - g * e;
-      const V ox = ax * a.x() + g * load(lxs + p), oy = ax * a.y() + g * load(lys + p),
-              oz = ax * a.z() + g * load(lzs + p);
+      const V along = ax - g * z;  // the axial part of g (p - x_i) is g z
+      const V ox = along * a.x() + g * dx, oy = along * a.y() + g * dy, oz = along * a.z() + g * dz;
       const V d2 = ax * ax + g * g * l2;
       std::memcpy(ux + p, &ox, sizeof ox);
       std::memcpy(uy + p, &oy, sizeof oy);
       std::memcpy(uz + p, &oz, sizeof oz);
-      std::memcpy(r2 + p, &d2, sizeof d2);
+      std::memcpy(ur2 + p, &d2, sizeof d2);
+      inside += keep(splat(1.0), negative(d2 - h2) & negative(lane - double(n - p)));
     }
+    return int(lane_sum(inside));
   }
 
   template <Mode mode>
@@ -226,8 +236,8 @@ struct Table {
   KernelSums (*repulsion)(const RadiusGrid&, const double*, const Vec3d&, const KernelShape&, int);
   KernelSums (*array_attraction)(const double*, const double*, const double*, const double*,
                                  const double*, int, const KernelShape&);
-  void (*invert_copy)(const double*, const double*, const double*, const double*, const double*,
-                      int, double, double, const Vec3d&, double*, double*, double*, double*);
+  int (*invert_copy)(const double*, const double*, const double*, const double*, int, double,
+                     double, const Vec3d&, double, double*, double*, double*, double*);
 };
 
 #define STATION_KERNEL_TABLE(NAME, W, TARGET)                                                    \
@@ -246,10 +256,10 @@ struct Table {
                                  const double* r2, const double* w, int n, const KernelShape& k) { \
     return Kernels<W>::array_attraction(dx, dy, dz, r2, w, n, k);                               \
   }                                                                                             \
-  TARGET void NAME##_invert(const double* z, const double* l2, const double* lx, const double* ly, \
-                            const double* lz, int n, double Dt, double Q, const Vec3d& a,       \
-                            double* ux, double* uy, double* uz, double* r2) {                   \
-    Kernels<W>::invert_copy(z, l2, lx, ly, lz, n, Dt, Q, a, ux, uy, uz, r2);                    \
+  TARGET int NAME##_invert(const double* dx, const double* dy, const double* dz, const double* r2, \
+                           int n, double Dt, double Q, const Vec3d& a, double h2, double* ux,   \
+                           double* uy, double* uz, double* ur2) {                               \
+    return Kernels<W>::invert_copy(dx, dy, dz, r2, n, Dt, Q, a, h2, ux, uy, uz, ur2);           \
   }                                                                                             \
   const Table NAME##_table{NAME##_density, NAME##_attraction, NAME##_repulsion, NAME##_array,  \
                            NAME##_invert};
@@ -283,10 +293,10 @@ KernelSums density_sum(const RadiusGrid& grid, const Vec3d& q, const KernelShape
   return table().density(grid, q, k);
 }
 
-void invert_copy(const double* z, const double* l2, const double* lx, const double* ly,
-                 const double* lz, int n, double Dt, double Q, const Vec3d& a, double* ux,
-                 double* uy, double* uz, double* r2) {
-  table().invert_copy(z, l2, lx, ly, lz, n, Dt, Q, a, ux, uy, uz, r2);
+int invert_copy(const double* dx, const double* dy, const double* dz, const double* r2, int n,
+                double Dt, double Q, const Vec3d& a, double h2, double* ux, double* uy,
+                double* uz, double* ur2) {
+  return table().invert_copy(dx, dy, dz, r2, n, Dt, Q, a, h2, ux, uy, uz, ur2);
 }
 
 KernelSums attraction_sum(const RadiusGrid& grid, const double* weight, const Vec3d& q,

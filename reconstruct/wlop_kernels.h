@@ -42,15 +42,14 @@ KernelSums repulsion_sum(const RadiusGrid& grid, const double* weight, const Vec
 KernelSums attraction_sum(const double* dx, const double* dy, const double* dz, const double* r2,
                           const double* weight, int n, const KernelShape& k);
 
-/// One copy of the edge variant's upsampling (eqs. 13-15) for n neighbour slots of
-/// x_i: slot k sits at axial offset z[k] (along the unit axis a from c_i to x_i),
-/// squared lateral offset l2[k] and lateral offset vector (lx, ly, lz)[k] from x_i.
-/// The copy is shifted so that x_i lies Dt from c_i and inverted with the radius that
-/// keeps x'_i at Q from c_i. Writes each slot's offset from x'_i to (ux, uy, uz) and
-/// its squared length to r2 (n entries). Inputs need n + kPad readable entries,
-/// outputs n + kPad writable ones.
-void invert_copy(const double* z, const double* l2, const double* lx, const double* ly,
-                 const double* lz, int n, double Dt, double Q, const Vec3d& a, double* ux,
-                 double* uy, double* uz, double* r2);
+/// One copy of the edge variant's upsampling (eqs. 13-15) for the n neighbours of
+/// x_i at offsets (dx, dy, dz) (squared lengths r2): with a the unit axis from c_i
+/// to x_i, the copy is shifted so that x_i lies Dt from c_i and inverted with the
+/// radius that keeps x'_i at Q from c_i. Writes each neighbour's offset from x'_i
+/// to (ux, uy, uz) and its squared length to ur2, and returns how many of those
+/// are below h2. Inputs need n + kPad readable entries, outputs n + kPad writable.
+int invert_copy(const double* dx, const double* dy, const double* dz, const double* r2, int n,
+                double Dt, double Q, const Vec3d& a, double h2, double* ux, double* uy,
+                double* uz, double* ur2);
 
 }  // namespace station::detail

@@ -71,7 +71,7 @@ WlopParams plain(std::size_t target, double radius, int iterations) {
 // in index order, with the header's conventions (strictly within h; E1 leaves out
 // pairs closer than 1e-9 h; a point with no input point within h stays).
 std::vector<Vec3d> reference_wlop(const std::vector<Vec3d>& p, std::vector<Vec3d> x, double h,
-                                  double mu, int iterations) {
+                                  double mu, int iterations, bool input_density = true) {
   const double s2 = (h / 4) * (h / 4);
   auto theta = [&](double r) { return std::exp(-r * r / s2); };
   auto eta = [](double r) { return -r; };
@@ -79,7 +79,7 @@ std::vector<Vec3d> reference_wlop(const std::vector<Vec3d>& p, std::vector<Vec3d
   for (std::size_t j = 0; j < p.size(); ++j)
     for (std::size_t k = 0; k < p.size(); ++k) {
       const double r = (p[j] - p[k]).norm();
-      if (k != j && r < h) v[j] += theta(r);
+      if (k != j && r < h && input_density) v[j] += theta(r);
     }
   for (int it = 0; it < iterations; ++it) {
     std::vector<double> w(x.size(), 1.0);
@@ -147,6 +147,25 @@ TEST(Wlop, MatchesAllPairsReference) {
   EXPECT_GT(moved, 0.01);  // the points did move: the comparison means something
   for (std::size_t i = 0; i < ref.size(); ++i)
     EXPECT_EQ(r.cloud.points[i], r.positions[i].cast<float>());
+}
+
+TEST(Wlop, UniformInputDensityMatchesReference) {
+  const Cloud in = uneven_sphere(1500, 0.01, 4);
+  WlopParams params = plain(400, 0.3, 10);
+  params.input_density = InputDensity::kUniform;
+  const WlopResult r = consolidate(in, params);
+  std::vector<Vec3d> p, x0;
+  for (const Vec3f& q : in.points) p.push_back(q.cast<double>());
+  for (int j : initial_subset(p.size(), 400, params.seed)) x0.push_back(p[j]);
+  const std::vector<Vec3d> ref = reference_wlop(p, x0, 0.3, params.mu, 10, false);
+  const std::vector<Vec3d> weighted = reference_wlop(p, x0, 0.3, params.mu, 10, true);
+  double worst = 0, apart = 0;
+  for (std::size_t i = 0; i < ref.size(); ++i) {
+    worst = std::max(worst, (r.positions[i] - ref[i]).norm());
+    apart = std::max(apart, (weighted[i] - ref[i]).norm());
+  }
+  EXPECT_LT(worst, 1e-9);
+  EXPECT_GT(apart, 1e-4);  // v_j matters on this uneven input
 }
 
 TEST(Wlop, IdenticalAcrossRunsAndThreadCounts) {
