@@ -631,7 +631,7 @@ struct ReconstructArgs {
   std::string in, out;
   int resolution = 128;
   std::string holes = "close";
-  double epsilon = 1e-4;
+  double epsilon = 0;  ///< 0: from the cloud's noise level (suggest_epsilon0)
   bool no_colour = false;
 };
 
@@ -649,7 +649,8 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
     estimated = true;
   }
   MpuParams mp;
-  mp.epsilon0 = a.epsilon;
+  // The paper's 1e-4 suits clean data only; noisy scans get a tolerance from their noise.
+  mp.epsilon0 = a.epsilon > 0 ? a.epsilon : std::max(mp.epsilon0, suggest_epsilon0(input));
   mp.threads = cfg.threads;
   if (!c.json) std::fprintf(stderr, "reconstruct: fitting MPU to %zu points...\n", input.size());
   const auto t1 = std::chrono::steady_clock::now();
@@ -685,6 +686,7 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
                                                  .add("edge", d.leaves_by_type[2])
                                                  .add("corner", d.leaves_by_type[3]))
                       .add("unconverged_leaves", d.unconverged_leaves)
+                      .add("epsilon0", mp.epsilon0)
                       .add("cell_size", stats.cell_size)
                       .add("colours", colour)
                       .add("timings_s", JsonObject()
@@ -794,8 +796,10 @@ int run_cli(int argc, char** argv) {
       ->capture_default_str()->check(CLI::Range(4, 4096));
   rec->add_option("--holes", rec_args.holes, "where there is no data: close (smooth, watertight) or open")
       ->capture_default_str()->check(CLI::IsMember({"close", "open"}));
-  rec->add_option("--epsilon", rec_args.epsilon, "MPU fit tolerance epsilon_0 (relative to the unit-diagonal box)")
-      ->capture_default_str()->check(CLI::Range(1e-7, 1e-1));
+  rec->add_option("--epsilon", rec_args.epsilon,
+                  "MPU fit tolerance epsilon_0, relative to the unit-diagonal box (default: from the "
+                  "cloud's noise level, at least the paper's 1e-4)")
+      ->check(CLI::Range(1e-7, 1e-1));
   rec->add_flag("--no-colour", rec_args.no_colour, "do not colour the mesh from the input's colours");
 
   try {
