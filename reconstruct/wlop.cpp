@@ -337,27 +337,11 @@ bool Consolidator::edge_e1(const Vec3d& q, const Neighbours& nb, Scratch& s, Vec
     // The input density v_j carried into the inverted space: a surface element with
     // normal n at lateral scale g is stretched by sigma = g sqrt(1 + (g^2 - 1)(n.a)^2)
     // (f's Jacobian is -1 along the ray and g across it), so copy t holds density
-    // rho / sigma_t there, and the K copies overlap: v' - 1 = (v_j - 1) sum_t 1/sigma_t.
-    // g_t taken on the axis; the sum tabulated over (n.a)^2 and interpolated.
-    constexpr int kTable = 9;
-    double table[kTable];
-    for (int c = 0; c < kTable; ++c) {
-      const double c2 = double(c) / (kTable - 1);
-      double sum_t = 0;
-      for (int t = 0; t < K; ++t) {
-        const double g = Q / (D + t * shift);
-        sum_t += 1.0 / (g * std::sqrt(1.0 + (g * g - 1.0) * c2));
-      }
-      table[c] = sum_t;
-    }
-    double* sw = s.w.fit(kh);
-    for (int k = 0; k < kh; ++k) {
-      const double c = snx[k] * a.x() + sny[k] * a.y() + snz[k] * a.z();
-      const double f = std::min(c * c, 1.0) * (kTable - 1);
-      const int i = std::min(int(f), kTable - 2);
-      const double S = table[i] + (f - i) * (table[i + 1] - table[i]);
-      sw[k] = 1.0 / (1.0 + (sv[k] - 1.0) * S);
-    }
+    // rho / sigma_t there, and the K copies overlap: v' - 1 = (v_j - 1) sum_t 1/sigma_t,
+    // with g_t taken on the axis.
+    double g[64];
+    for (int t = 0; t < K; ++t) g[t] = Q / (D + t * shift);
+    detail::edge_weights(snx, sny, snz, sv, kh, a, g, K, s.w.fit(kh));
   }
   // Eqs. 16-17: E1' over U, as an offset e from x'_i (points beyond h are masked),
   // copy by copy (the Jacobian weights are per neighbour, the same in every copy).
@@ -518,7 +502,7 @@ void validate(const Cloud& input, const WlopParams& p) {
   if (!(p.inversion_radius > 0.25) || !std::isfinite(p.inversion_radius))
     fail("inversion_radius must be > 0.25 (units of d_bb)");
   if (p.shift_divisions < 1) fail("shift_divisions must be >= 1");
-  if (p.max_copies < 1) fail("max_copies must be >= 1");
+  if (p.max_copies < 1 || p.max_copies > 64) fail("max_copies must be in [1, 64]");
   if (p.normal_neighbours < 3) fail("normal_neighbours must be >= 3");
 }
 

@@ -142,7 +142,7 @@ struct WlopParams {
   double inversion_radius = 0.6;
   /// m: the shift per copy is |l| = R / m (eq. 15; the paper finds m > 10 equivalent).
   int shift_divisions = 20;
-  /// Upper bound on the number of copies K (eq. 14) when k'_h stays below k_h.
+  /// Upper bound on the number of copies K (eq. 14) when k'_h stays below k_h; in [1, 64].
   int max_copies = 64;
   EdgeNormals edge_normals = EdgeNormals::kSimple;
   InvertedDensity inverted_density = InvertedDensity::kJacobian;
@@ -195,7 +195,7 @@ struct WlopResult {
 /// attributes, a zero-size bounding box (all points identical), or a bad
 /// parameter (ratio outside (0, 1], iterations < 0, radius < 0 or non-finite,
 /// mu outside [0, 0.5), threads < 0, inversion_radius <= 0.25,
-/// shift_divisions < 1, max_copies < 1, normal_neighbours < 3).
+/// shift_divisions < 1, max_copies outside [1, 64], normal_neighbours < 3).
 WlopResult consolidate(const Cloud& input, const WlopParams& params = {});
 
 /// The initial projected set: `count` distinct indices into an n-point input,

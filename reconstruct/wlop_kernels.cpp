@@ -208,6 +208,20 @@ struct Kernels {
     return int(lane_sum(inside));
   }
 
+  static STATION_INLINE void edge_weights(const double* nxs, const double* nys, const double* nzs,
+                                          const double* vs, int n, const Vec3d& a, const double* g,
+                                          int K, double* w) {
+    for (int p = 0; p < n; p += W) {
+      const V c = load(nxs + p) * a.x() + load(nys + p) * a.y() + load(nzs + p) * a.z();
+      const V c2 = c * c;
+      V S{};
+      // 1 / (g sqrt(1 + (g^2 - 1) c^2)) = rsqrt(g^2 (1 + (g^2 - 1) c^2))
+      for (int t = 0; t < K; ++t) S += rsqrt_positive(g[t] * g[t] * (1.0 + (g[t] * g[t] - 1.0) * c2));
+      const V out = 1.0 / (1.0 + (load(vs + p) - 1.0) * S);
+      std::memcpy(w + p, &out, sizeof out);
+    }
+  }
+
   template <Mode mode>
   static STATION_INLINE KernelSums sums(const RadiusGrid& grid, const double* weight, const Vec3d& q,
                                         const KernelShape& k, int self) {
@@ -238,6 +252,8 @@ struct Table {
                                  const double*, int, const KernelShape&);
   int (*invert_copy)(const double*, const double*, const double*, const double*, int, double,
                      double, const Vec3d&, double, double*, double*, double*, double*);
+  void (*edge_weights)(const double*, const double*, const double*, const double*, int,
+                       const Vec3d&, const double*, int, double*);
 };
 
 #define STATION_KERNEL_TABLE(NAME, W, TARGET)                                                    \
@@ -261,8 +277,13 @@ struct Table {
                            double* uy, double* uz, double* ur2) {                               \
     return Kernels<W>::invert_copy(dx, dy, dz, r2, n, Dt, Q, a, h2, ux, uy, uz, ur2);           \
   }                                                                                             \
+  TARGET void NAME##_weights(const double* nx, const double* ny, const double* nz,              \
+                             const double* v, int n, const Vec3d& a, const double* g, int K,     \
+                             double* w) {                                                        \
+    Kernels<W>::edge_weights(nx, ny, nz, v, n, a, g, K, w);                                     \
+  }                                                                                             \
   const Table NAME##_table{NAME##_density, NAME##_attraction, NAME##_repulsion, NAME##_array,  \
-                           NAME##_invert};
+                           NAME##_invert, NAME##_weights};
 
 STATION_KERNEL_TABLE(base, 2, )
 #ifdef STATION_X86_DISPATCH
@@ -291,6 +312,11 @@ KernelSums attraction_sum(const double* dx, const double* dy, const double* dz, 
 
 KernelSums density_sum(const RadiusGrid& grid, const Vec3d& q, const KernelShape& k) {
   return table().density(grid, q, k);
+}
+
+void edge_weights(const double* nx, const double* ny, const double* nz, const double* v, int n,
+                  const Vec3d& a, const double* g, int K, double* w) {
+  table().edge_weights(nx, ny, nz, v, n, a, g, K, w);
 }
 
 int invert_copy(const double* dx, const double* dy, const double* dz, const double* r2, int n,

@@ -52,4 +52,11 @@ int invert_copy(const double* dx, const double* dy, const double* dz, const doub
                 double Dt, double Q, const Vec3d& a, double h2, double* ux, double* uy,
                 double* uz, double* ur2);
 
+/// The edge variant's density weights 1 / v'_k = 1 / (1 + (v_k - 1) S_k) for n
+/// neighbours with (unit, any sign) normals (nx, ny, nz) and input densities v, where
+/// S_k = sum_t 1 / (g_t sqrt(1 + (g_t^2 - 1) (n_k . a)^2)) over the copies' lateral
+/// scales g (K of them). Arrays need n + kPad entries (w: writable).
+void edge_weights(const double* nx, const double* ny, const double* nz, const double* v, int n,
+                  const Vec3d& a, const double* g, int K, double* w);
+
 }  // namespace station::detail
