@@ -97,7 +97,8 @@ void gather(const RadiusGrid& grid, const Vec3d& q, double h2, Neighbours& nb) {
   });
 }
 
-// Growable arrays with RadiusGrid::kPad spare (zeroed) entries for vector loops.
+// Growable arrays with RadiusGrid::kPad spare readable entries for vector loops
+// (which mask the lanes past the end).
 struct Padded {
   std::vector<double> v;
   double* fit(std::size_t n) {
@@ -108,7 +109,7 @@ struct Padded {
 };
 
 struct Scratch {
-  Neighbours input, projected;
+  Neighbours input;
   std::vector<Vec3d> points;  // simple normals' neighbourhood
   // Edge variant: per neighbour, its simple normal, v_j and the weight 1/v'; the
   // upsampled, inverted neighbourhood U (eq. 14) as offsets from x'_i, one block of
@@ -217,14 +218,14 @@ void Consolidator::setup() {
       const double v = uniform ? 1.0 : detail::density_sum(input_grid_, q, shape).w;
       inv_v_[sp] = 1.0 / v;
       if (!edge) continue;
-      gather(input_grid_, q, kernel_.h2, s.input);
-      const Neighbours& nb = s.input;
       v_[sp] = v;
       if (input_normals) {
         const Vec3f n = input_.normals[ids[sp]].normalized();  // zero stays zero
         edge_normals_[sp] = EdgeNormal{{n.x(), n.y(), n.z()}, {n.x(), n.y(), n.z()}};
         continue;
       }
+      gather(input_grid_, q, kernel_.h2, s.input);
+      const Neighbours& nb = s.input;
       const int stride = (nb.n + kSimpleNormalPoints - 1) / kSimpleNormalPoints;
       s.points.clear();
       for (int k = 0; k < nb.n; k += std::max(stride, 1))
