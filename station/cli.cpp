@@ -466,6 +466,19 @@ JsonObject registration_json(const RegistrationResult& r) {
     per_view.add(std::to_string(i), o);
   }
   j.add("per_view", per_view);
+  // Pairs of the last round (earlier rounds refine the same pairs).
+  JsonObject per_pair;
+  const int last_round = r.pairs.empty() ? 0 : r.pairs.back().round;
+  for (const PairDiagnostics& p : r.pairs) {
+    if (p.round != last_round) continue;
+    JsonObject o;
+    o.add("converged", p.converged).add("fitness", p.fitness).add("inlier_rmse_m", p.inlier_rmse)
+        .add("correspondences", p.correspondences).add("iterations", p.iterations)
+        .add("loop_closure", p.loop_closure).add("degenerate", p.degenerate);
+    if (!p.message.empty()) o.add("message", p.message);
+    per_pair.add(std::to_string(p.from) + "-" + std::to_string(p.to), o);
+  }
+  j.add("per_pair", per_pair);
   j.add("timings_s", JsonObject()
                          .add("prepare", r.seconds_prepare)
                          .add("initial", r.seconds_initial)

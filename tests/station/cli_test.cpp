@@ -135,6 +135,7 @@ TEST(Cli, DragonImportsAndReplaysLikeALiveScanner) {
   ASSERT_EQ(r.code, 0) << r.out;
   EXPECT_LT(json_number(r.out, "max_rotation_deg"), 0.7) << r.out;
   EXPECT_LT(json_number(r.out, "median_rotation_deg"), 0.4) << r.out;
+  EXPECT_NE(r.out.find("\"14-0\":{\"converged\":true"), std::string::npos) << r.out;  // loop closure
   EXPECT_GT(read_cloud(merged).size(), 80000u);
   EXPECT_NE(read_file_bytes(poses).find("view_014.ply"), std::string::npos);
   // The turntable axis from the registered views: the dragon turns about the scanner's y.
