@@ -12,6 +12,7 @@
 #include <unordered_map>
 
 #include "core/kdtree.h"
+#include "core/normals.h"
 
 namespace station {
 
@@ -130,18 +131,11 @@ std::vector<Vec3f> pca_normals(const PointIndex& index, int k, const Vec3f& view
                       for (std::size_t i = r.begin(); i != r.end(); ++i) {
                         const auto nn = index.knn(pts[i], k);
                         Vec3f n = (viewpoint - pts[i]).normalized();  // fallback: face the sensor
-                        if (nn.size() >= 3) {
-                          Vec3d c = Vec3d::Zero();
-                          for (const auto& [j, d] : nn) c += pts[j].cast<double>();
-                          c /= double(nn.size());
-                          Eigen::Matrix3d cov = Eigen::Matrix3d::Zero();
-                          for (const auto& [j, d] : nn) {
-                            const Vec3d q = pts[j].cast<double>() - c;
-                            cov += q * q.transpose();
-                          }
-                          Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es(cov);
-                          n = es.eigenvectors().col(0).cast<float>();
-                        }
+                        std::vector<Vec3d> local;
+                        local.reserve(nn.size());
+                        for (const auto& [j, d] : nn) local.push_back(pts[j].cast<double>());
+                        const Vec3d pca = pca_normal(local.data(), int(local.size()));
+                        if (pca.squaredNorm() > 0) n = pca.cast<float>();
                         if (n.dot(viewpoint - pts[i]) < 0) n = -n;
                         normals[i] = n;
                       }

@@ -11,7 +11,7 @@
 
 #include "core/error.h"
 #include "core/kdtree.h"
-#include "reconstruct/normals.h"
+#include "core/normals.h"
 
 namespace station {
 namespace {
@@ -435,7 +435,7 @@ MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
   if (!cloud.has_normals())
     throw InvalidInput(
         "fit_mpu: the cloud has no normals; MPU needs outward normals (estimate and orient "
-        "them first: reconstruct/normals.h estimate_normals + orient_normals_mst)");
+        "them first: core/normals.h estimate_normals + orient_normals_mst)");
   if (!(params.alpha > 0.5) || !(params.lambda > 0) || params.n_min < 6 || (params.max_fit_points != 0 && params.max_fit_points < params.n_min) || params.split_min_points < 0 || !(params.epsilon0 > 0) ||
       params.max_depth < 0 || params.max_depth > 20 || params.threads < 0 || !(params.root_margin >= 0) ||
       !(params.trust_factor > 0))

@@ -148,7 +148,7 @@ class MpuSurface : public ImplicitFunction {
 /// Deterministic: the same input gives the same surface for any params.threads.
 /// Points whose normal is zero or non-finite are left out (counted in the
 /// diagnostics). InvalidInput when the cloud has no normals ("estimate and orient
-/// them first: reconstruct/normals.h"), has non-finite coordinates, fewer than
+/// them first: core/normals.h"), has non-finite coordinates, fewer than
 /// n_min usable points, all points equal, or when a parameter is out of range.
 MpuSurface fit_mpu(const Cloud& points_with_normals, const MpuParams& params = {});
 

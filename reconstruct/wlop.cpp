@@ -15,7 +15,7 @@
 
 #include "core/error.h"
 #include "core/kdtree.h"
-#include "reconstruct/normals.h"
+#include "core/normals.h"
 #include "reconstruct/radius_grid.h"
 #include "reconstruct/wlop_kernels.h"
 

@@ -36,7 +36,7 @@
 // Edge-preserving variant (Awano 2013, section 3), for each x_i and iteration:
 //   c_i = x_i + d_bb sum_l n_l / (2 k_h)                                  (eq. 10)
 //   n_l: the "simple normal" of input point p_l (eqs. 11-12; simple_normal in
-//   reconstruct/normals.h): the plane through the centroid of p_l's neighbours
+//   core/normals.h): the plane through the centroid of p_l's neighbours
 //   within h (at most 32 of them, evenly strided) with the least sum of absolute
 //   distances. Signs are made consistent around x_i through the PCA normals
 //   (smooth across edges): each n_l is flipped to agree with the PCA normal of the
@@ -153,7 +153,7 @@ struct WlopParams {
   /// itself included) and orient them: to agree with the input's normals when it has
   /// them (orient_normals_to, 8 nearest input points), else by propagation over a
   /// minimum spanning tree from the highest point, made to point up
-  /// (orient_normals_mst): outwards for a closed object. reconstruct/normals.h.
+  /// (orient_normals_mst): outwards for a closed object. core/normals.h.
   bool estimate_normals = true;
   int normal_neighbours = 12;
 };

@@ -1,4 +1,4 @@
-#include "reconstruct/normals.h"
+#include "core/normals.h"
 
 #include <gtest/gtest.h>
 
