@@ -29,7 +29,7 @@
 #include "reconstruct/eval.h"
 #include "reconstruct/marching_cubes.h"
 #include "reconstruct/mpu.h"
-#include "reconstruct/normals.h"
+#include "core/normals.h"
 #include "reconstruct/wlop.h"
 #include "sim/sim.h"
 #include "station/config.h"
