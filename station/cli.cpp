@@ -34,6 +34,7 @@
 #include "sim/sim.h"
 #include "station/config.h"
 #include "station/json.h"
+#include "station/pipeline.h"
 #include "station/progress.h"
 
 #ifndef STATION_VERSION
@@ -61,8 +62,9 @@ void add_common(CLI::App* cmd, Common& c) {
   cmd->add_flag("--json", c.json, "print a one-line JSON summary on stdout");
 }
 
-StationConfig load_common(const Common& c) {
-  StationConfig cfg = load_config(c.config.empty() ? default_config_path() : fs::path(c.config));
+StationConfig load_common(const Common& c, const std::vector<std::string>& overrides = {}) {
+  StationConfig cfg =
+      load_config(c.config.empty() ? default_config_path() : fs::path(c.config), overrides);
   if (c.threads >= 0) cfg.threads = c.threads;
   return cfg;
 }
@@ -138,7 +140,87 @@ struct ScanArgs {
   int views = 0;
   std::string scanner, turntable;
   std::vector<std::string> set;
+  bool run = false;  ///< go on with `station run` into <session>/run
 };
+
+// ---- run ------------------------------------------------------------------------
+
+struct RunArgs {
+  std::string in, out;
+  bool resume = false, quiet = false, no_report = false;
+  std::vector<std::string> set;
+  std::string surface, hole, extractor;
+};
+
+/// Profile overrides from --set and the shorthand options.
+std::vector<std::string> run_overrides(const RunArgs& a) {
+  std::vector<std::string> o = a.set;
+  if (!a.surface.empty()) o.push_back("reconstruct.surface=" + a.surface);
+  if (!a.hole.empty()) o.push_back("reconstruct.hole=" + a.hole);
+  if (!a.extractor.empty()) o.push_back("reconstruct.extractor=" + a.extractor);
+  return o;
+}
+
+int run_job(const StationConfig& cfg, const Common& c, const RunArgs& a) {
+  RunRequest req;
+  req.input = a.in;
+  req.out_dir = a.out;
+  req.resume = a.resume;
+  req.quiet = a.quiet || c.json;
+  req.report = !a.no_report;
+  req.stop = &g_stop;
+  g_stop = false;
+  std::signal(SIGINT, on_sigint);
+  RunResult r;
+  try {
+    r = run_pipeline(cfg, req);
+  } catch (const IoError& e) {
+    std::signal(SIGINT, SIG_DFL);
+    // A failed write (full disk...) leaves every finished stage's output in place.
+    throw IoError(std::string(e.what()) + "; finished stages in " + a.out +
+                  " are intact: free space and rerun with --resume");
+  }
+  std::signal(SIGINT, SIG_DFL);
+  if (r.interrupted) {
+    std::fprintf(stderr, "run: interrupted after %zu stages; continue with: station run %s -o %s --resume\n",
+                 r.stages.size(), a.in.c_str(), a.out.c_str());
+    return 130;
+  }
+  if (c.json) {
+    JsonObject stages;
+    for (const StageRecord& s : r.stages) {
+      JsonObject st;
+      st.add("seconds", s.seconds).add("peak_rss_mb", s.peak_rss_mb).add("reused", s.reused).add("output", s.output);
+      JsonObject figs;
+      for (const auto& [k, v] : s.figures) figs.add(k, v);
+      st.add("figures", figs);
+      stages.add(s.name, st);
+    }
+    print_summary(JsonObject()
+                      .add("command", "run")
+                      .add("input", a.in)
+                      .add("out", a.out)
+                      .add("mesh", r.mesh.string())
+                      .add("report", r.report.string())
+                      .add("stages", stages));
+  } else if (!a.quiet) {
+    double total = 0;
+    std::printf("%-12s %9s %10s %7s\n", "stage", "time s", "peak MiB", "reused");
+    for (const StageRecord& s : r.stages) {
+      std::printf("%-12s %9.2f %10.0f %7s\n", s.name.c_str(), s.seconds, s.peak_rss_mb, s.reused ? "yes" : "no");
+      total += s.seconds;
+    }
+    std::printf("%-12s %9.2f\n", "total", total);
+    std::printf("mesh: %s\n", r.mesh.c_str());
+    if (!r.report.empty()) std::printf("report: %s\n", r.report.c_str());
+  }
+  return 0;
+}
+
+int cmd_run(const Common& c, const RunArgs& a) {
+  StationConfig cfg = load_common(c, run_overrides(a));
+  return run_job(cfg, c, a);
+}
 
 int capture_into(Session& session, Scanner& scanner, Turntable& turntable,
                  const CaptureParams& params, const Common& c, const char* command,
@@ -186,11 +268,17 @@ int capture_into(Session& session, Scanner& scanner, Turntable& turntable,
 
 int cmd_scan(const Common& c, const ScanArgs& a) {
   const auto t0 = std::chrono::steady_clock::now();
-  StationConfig cfg = load_common(c);
-  auto threads = limit_threads(cfg.threads);
+  // --set section.key=value overrides the profile; a plain key=value is a scanner option.
+  std::vector<std::string> profile_set, scanner_set;
   for (const std::string& kv : a.set) {
     const auto eq = kv.find('=');
     if (eq == std::string::npos || eq == 0) throw InvalidInput("--set " + kv + ": expected key=value");
+    (kv.substr(0, eq).find('.') != std::string::npos ? profile_set : scanner_set).push_back(kv);
+  }
+  StationConfig cfg = load_common(c, profile_set);
+  auto threads = limit_threads(cfg.threads);
+  for (const std::string& kv : scanner_set) {
+    const auto eq = kv.find('=');
     cfg.scanner_options[kv.substr(0, eq)] = kv.substr(eq + 1);
   }
   if (a.views > 0) cfg.capture.views = a.views;
@@ -225,7 +313,13 @@ int cmd_scan(const Common& c, const ScanArgs& a) {
     m.turntable = turntable_uri;
     session = Session::create(dir, m);
   }
-  return capture_into(*session, *scanner, *turntable, cfg.capture, c, "scan", t0);
+  const int code = capture_into(*session, *scanner, *turntable, cfg.capture, c, "scan", t0);
+  if (code != 0 || !a.run) return code;
+  RunArgs ra;
+  ra.in = dir.string();
+  ra.out = (dir / "run").string();
+  ra.resume = fs::exists(dir / "run" / "run.yaml");
+  return run_job(cfg, c, ra);
 }
 
 int cmd_replay(const Common& c, const std::string& source, const std::string& out) {
@@ -737,7 +831,26 @@ int run_cli(int argc, char** argv) {
   scan->add_option("--views", scan_args.views, "views over 360 degrees (overrides the profile)")->check(CLI::Range(1, 3600));
   scan->add_option("--scanner", scan_args.scanner, "scanner URI (overrides the profile)");
   scan->add_option("--turntable", scan_args.turntable, "turntable URI (overrides the profile)");
-  scan->add_option("--set", scan_args.set, "scanner option key=value (repeatable), e.g. --set noise=0.001");
+  scan->add_option("--set", scan_args.set,
+                   "scanner option key=value, or profile key section.key=value (repeatable), e.g. --set noise=0.001");
+  scan->add_flag("--run", scan_args.run, "then run the whole job (station run) into <out>/run");
+
+  RunArgs run_args;
+  Common c_run;
+  auto* runc = app.add_subcommand("run", "The whole job: register, consolidate, reconstruct a coloured mesh, report");
+  add_common(runc, c_run);
+  runc->add_option("input", run_args.in, "session folder (or session.yaml) or a cloud file")->required();
+  runc->add_option("-o,--out", run_args.out, "run folder: every stage's output, mesh.ply, report.html")->required();
+  runc->add_flag("--resume", run_args.resume,
+                 "continue a run in --out: finished stages whose inputs and parameters are unchanged are kept");
+  runc->add_option("--set", run_args.set, "profile override section.key=value (repeatable), e.g. --set reconstruct.resolution=192");
+  runc->add_option("--surface", run_args.surface, "surface method (reconstruct.surface)")->check(CLI::IsMember({"mpu", "sdm"}));
+  runc->add_option("--hole", run_args.hole,
+                   "unseen underside: close (smooth, watertight) or keep (left open where there is no data)")
+      ->check(CLI::IsMember({"close", "keep"}));
+  runc->add_option("--extractor", run_args.extractor, "mesh extraction (reconstruct.extractor)")->check(CLI::IsMember({"mc", "dmc"}));
+  runc->add_flag("--quiet", run_args.quiet, "no progress output");
+  runc->add_flag("--no-report", run_args.no_report, "do not write report.html");
 
   std::string replay_src, replay_out = "out/replay";
   auto* replay = app.add_subcommand("replay", "Play a recorded session back through the simulated scanner");
@@ -824,6 +937,7 @@ int run_cli(int argc, char** argv) {
   try {
     if (*devices) return cmd_devices(c_dev);
     if (*scan) return cmd_scan(c_scan, scan_args);
+    if (*runc) return cmd_run(c_run, run_args);
     if (*replay) return cmd_replay(c_replay, replay_src, replay_out);
     if (*eval) return cmd_eval(c_eval, eval_a, eval_b, eval_samples, eval_seed);
     if (*import) return cmd_import(c_import, import_args);

@@ -81,6 +81,85 @@ void read_device(const Reader& r, const YAML::Node& node, const std::string& whe
   }
 }
 
+/// "a.b.c=value" -> root[a][b][c] = value (a scalar; validated with the rest).
+void apply_override(YAML::Node& root, const std::string& kv) {
+  const auto eq = kv.find('=');
+  if (eq == std::string::npos || eq == 0) throw InvalidInput("--set " + kv + ": expected section.key=value");
+  const std::string key = kv.substr(0, eq), value = kv.substr(eq + 1);
+  std::vector<std::string> parts;
+  std::size_t start = 0;
+  while (true) {
+    const auto dot = key.find('.', start);
+    parts.push_back(key.substr(start, dot == std::string::npos ? std::string::npos : dot - start));
+    if (parts.back().empty()) throw InvalidInput("--set " + kv + ": empty key part");
+    if (dot == std::string::npos) break;
+    start = dot + 1;
+  }
+  if (root.IsNull()) root = YAML::Node(YAML::NodeType::Map);
+  std::vector<YAML::Node> chain{root};
+  for (std::size_t i = 0; i + 1 < parts.size(); ++i) {
+    YAML::Node next = chain.back()[parts[i]];
+    if (!next.IsDefined() || next.IsNull()) {
+      chain.back()[parts[i]] = YAML::Node(YAML::NodeType::Map);
+      next = chain.back()[parts[i]];
+    } else if (!next.IsMap()) {
+      throw InvalidInput("--set " + kv + ": " + parts[i] + " is not a section");
+    }
+    chain.push_back(next);
+  }
+  chain.back()[parts.back()] = value;
+}
+
+void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
+  if (const YAML::Node n = root["register"]) {
+    r.check_keys(n, "register", {"neighbors", "rounds", "loop_closure", "voxel_rel"});
+    if (n["neighbors"]) p.reg.neighbors = r.integer(n["neighbors"], "register.neighbors");
+    if (p.reg.neighbors < 1 || p.reg.neighbors > 8) r.fail("register.neighbors", "must be 1..8");
+    if (n["rounds"]) p.reg.rounds = r.integer(n["rounds"], "register.rounds");
+    if (p.reg.rounds < 1 || p.reg.rounds > 20) r.fail("register.rounds", "must be 1..20");
+    if (n["loop_closure"]) p.reg.loop_closure = r.boolean(n["loop_closure"], "register.loop_closure");
+    if (n["voxel_rel"]) p.reg.voxel_rel = r.number(n["voxel_rel"], "register.voxel_rel");
+    if (p.reg.voxel_rel < 0 || p.reg.voxel_rel > 0.1) r.fail("register.voxel_rel", "must be 0..0.1");
+  }
+  if (const YAML::Node n = root["consolidate"]) {
+    r.check_keys(n, "consolidate", {"enabled", "method", "points", "ratio", "iterations", "seed"});
+    auto& c = p.consolidate;
+    if (n["enabled"]) c.enabled = r.boolean(n["enabled"], "consolidate.enabled");
+    if (n["method"]) c.method = r.text(n["method"], "consolidate.method");
+    if (c.method != "wlop" && c.method != "edge-wlop") r.fail("consolidate.method", "must be wlop or edge-wlop");
+    if (n["points"]) {
+      const int v = r.integer(n["points"], "consolidate.points");
+      if (v < 0) r.fail("consolidate.points", "must not be negative");
+      c.points = std::size_t(v);
+    }
+    if (n["ratio"]) c.ratio = r.number(n["ratio"], "consolidate.ratio");
+    if (!(c.ratio > 0 && c.ratio <= 1)) r.fail("consolidate.ratio", "must be in (0, 1]");
+    if (n["iterations"]) c.iterations = r.integer(n["iterations"], "consolidate.iterations");
+    if (c.iterations < 1 || c.iterations > 1000) r.fail("consolidate.iterations", "must be 1..1000");
+    if (n["seed"]) c.seed = unsigned(r.integer(n["seed"], "consolidate.seed"));
+  }
+  if (const YAML::Node n = root["reconstruct"]) {
+    r.check_keys(n, "reconstruct", {"surface", "resolution", "epsilon0", "extractor", "hole", "colour"});
+    auto& c = p.reconstruct;
+    if (n["surface"]) c.surface = r.text(n["surface"], "reconstruct.surface");
+    if (c.surface != "mpu" && c.surface != "sdm") r.fail("reconstruct.surface", "must be mpu or sdm");
+    if (n["resolution"]) c.resolution = r.integer(n["resolution"], "reconstruct.resolution");
+    if (c.resolution < 8 || c.resolution > 4096) r.fail("reconstruct.resolution", "must be 8..4096");
+    if (n["epsilon0"]) c.epsilon0 = r.number(n["epsilon0"], "reconstruct.epsilon0");
+    if (c.epsilon0 < 0 || c.epsilon0 > 0.1) r.fail("reconstruct.epsilon0", "must be 0 (automatic) .. 0.1");
+    if (n["extractor"]) c.extractor = r.text(n["extractor"], "reconstruct.extractor");
+    if (c.extractor != "mc" && c.extractor != "dmc") r.fail("reconstruct.extractor", "must be mc or dmc");
+    if (n["hole"]) c.hole = r.text(n["hole"], "reconstruct.hole");
+    if (c.hole != "close" && c.hole != "keep") r.fail("reconstruct.hole", "must be close or keep");
+    if (n["colour"]) c.colour = r.boolean(n["colour"], "reconstruct.colour");
+  }
+  if (const YAML::Node n = root["sdm"]) {
+    r.check_keys(n, "sdm", {"level"});
+    if (n["level"]) p.sdm.level = r.integer(n["level"], "sdm.level");
+    if (p.sdm.level < 0 || p.sdm.level > 7) r.fail("sdm.level", "must be 0..7");
+  }
+}
+
 }  // namespace
 
 std::string compose_uri(const std::string& uri, const DeviceOptions& options) {
@@ -110,22 +189,26 @@ fs::path default_config_path() {
   return fs::exists(p) ? p : fs::path();
 }
 
-StationConfig load_config(const fs::path& path) {
+StationConfig load_config(const fs::path& path, const std::vector<std::string>& overrides) {
   StationConfig cfg;
-  if (path.empty()) return cfg;
   cfg.source = path;
-  Reader r{path.string()};
+  Reader r{path.empty() ? std::string("built-in profile") : path.string()};
   YAML::Node root;
-  try {
-    if (!fs::exists(path)) throw IoError(path.string() + ": cannot open: no such file");
-    root = YAML::LoadFile(path.string());
-  } catch (const YAML::ParserException& e) {
-    throw FormatError(path.string() + ": line " + std::to_string(e.mark.line + 1) + ": " + e.msg);
-  } catch (const YAML::BadFile&) {
-    throw IoError(path.string() + ": cannot read");
+  if (!path.empty()) {
+    try {
+      if (!fs::exists(path)) throw IoError(path.string() + ": cannot open: no such file");
+      root = YAML::LoadFile(path.string());
+    } catch (const YAML::ParserException& e) {
+      throw FormatError(path.string() + ": line " + std::to_string(e.mark.line + 1) + ": " + e.msg);
+    } catch (const YAML::BadFile&) {
+      throw IoError(path.string() + ": cannot read");
+    }
   }
+  for (const std::string& kv : overrides) apply_override(root, kv);
   if (root.IsNull()) return cfg;
-  r.check_keys(root, "", {"scanner", "turntable", "capture", "threads"});
+  r.check_keys(root, "", {"scanner", "turntable", "capture", "register", "consolidate", "reconstruct",
+                          "sdm", "threads"});
+  read_pipeline(r, root, cfg.pipeline);
   const fs::path base = fs::absolute(path).parent_path();
   if (root["scanner"]) read_device(r, root["scanner"], "scanner", base, cfg.scanner_uri, cfg.scanner_options);
   if (root["turntable"])

@@ -2,11 +2,42 @@
 // Station profiles (config/*.yaml). Every key is documented in config/default.yaml.
 #include <filesystem>
 #include <string>
+#include <vector>
 
 #include "capture/capture.h"
 #include "drivers/scanner.h"
 
 namespace station {
+
+/// Parameters of `station run`'s stages (profile sections register, consolidate,
+/// reconstruct, sdm; documented in config/default.yaml).
+struct PipelineConfig {
+  struct Register {
+    int neighbors = 2;          ///< pair each view with the next N views
+    int rounds = 3;             ///< ICP + pose-graph rounds
+    bool loop_closure = true;   ///< pair the last view with the first
+    double voxel_rel = 0.004;   ///< registration copy voxel, relative to the view size
+  } reg;
+  struct Consolidate {
+    bool enabled = true;
+    std::string method = "wlop";  ///< wlop | edge-wlop
+    std::size_t points = 20000;   ///< output points (0: ratio x input)
+    double ratio = 0.2;
+    int iterations = 35;
+    unsigned seed = 1;
+  } consolidate;
+  struct Reconstruct {
+    std::string surface = "mpu";    ///< mpu | sdm
+    int resolution = 128;           ///< cells along the longest side
+    double epsilon0 = 0;            ///< MPU tolerance; 0 = from the cloud's noise
+    std::string extractor = "mc";   ///< mc | dmc
+    std::string hole = "close";     ///< close | keep (the unseen underside)
+    bool colour = true;             ///< colour the mesh when the cloud has colours
+  } reconstruct;
+  struct Sdm {
+    int level = 5;  ///< icosphere template subdivision level
+  } sdm;
+};
 
 struct StationConfig {
   std::string scanner_uri = "sim:synthetic";
@@ -14,13 +45,17 @@ struct StationConfig {
   std::string turntable_uri = "sim:turntable";
   DeviceOptions turntable_options;
   CaptureParams capture;
+  PipelineConfig pipeline;
   int threads = 0;  ///< 0 = all cores
   std::filesystem::path source;  ///< the profile file, empty for built-in defaults
 };
 
 /// Reads a profile. Relative paths in the `mesh` and `session` device options
 /// resolve against the profile's folder. FormatError("FILE: key: problem").
-StationConfig load_config(const std::filesystem::path& path);
+/// `overrides` are "section.key=value" (e.g. "reconstruct.resolution=192"), applied
+/// to the profile before it is validated, so they obey the same checks.
+StationConfig load_config(const std::filesystem::path& path,
+                          const std::vector<std::string>& overrides = {});
 
 /// The profile used when --config is not given: config/default.yaml of the
 /// source tree the binary was built from, if it is there; else built-in defaults.

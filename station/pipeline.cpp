@@ -1,0 +1,537 @@
+#include "station/pipeline.h"
+
+#include <tbb/global_control.h>
+#include <yaml-cpp/yaml.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <fstream>
+#include <memory>
+#include <optional>
+#include <sstream>
+
+#include "capture/registration.h"
+#include "capture/session.h"
+#include "core/atomic_file.h"
+#include "core/error.h"
+#include "core/io.h"
+#include "core/normals.h"
+#include "reconstruct/color_transfer.h"
+#include "reconstruct/marching_cubes.h"
+#include "reconstruct/mpu.h"
+#include "reconstruct/wlop.h"
+#include "station/progress.h"
+#include "station/render.h"
+#include "station/report.h"
+
+namespace station {
+
+namespace fs = std::filesystem;
+
+std::string hash_hex(const std::string& bytes) {
+  std::uint64_t h = 1469598103934665603ull;
+  for (unsigned char c : bytes) {
+    h ^= c;
+    h *= 1099511628211ull;
+  }
+  char buf[17];
+  std::snprintf(buf, sizeof buf, "%016llx", (unsigned long long)h);
+  return buf;
+}
+
+std::string hash_file(const fs::path& path) { return hash_hex(read_file_bytes(path)); }
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+constexpr int kStateVersion = 1;
+constexpr const char* kStateFile = "run.yaml";
+
+double seconds_since(Clock::time_point t0) {
+  return std::chrono::duration<double>(Clock::now() - t0).count();
+}
+
+/// Peak RSS of the process since the last reset (/proc/self/status VmHWM), MiB.
+double peak_rss_mb() {
+  std::ifstream in("/proc/self/status");
+  std::string line;
+  while (std::getline(in, line))
+    if (line.rfind("VmHWM:", 0) == 0) return std::stod(line.substr(6)) / 1024.0;
+  return -1;
+}
+/// Resets the high-water mark to the current RSS (Linux >= 4.0; ignored if not allowed).
+void reset_peak_rss() {
+  std::ofstream out("/proc/self/clear_refs");
+  if (out) out << "5";
+}
+
+// ---- run.yaml ---------------------------------------------------------------------
+
+struct RunState {
+  std::string input;
+  std::vector<StageRecord> stages;
+  const StageRecord* find(const std::string& name) const {
+    for (const StageRecord& s : stages)
+      if (s.name == name) return &s;
+    return nullptr;
+  }
+};
+
+std::string state_yaml(const RunState& st) {
+  YAML::Emitter e;
+  e.SetDoublePrecision(17);
+  e << YAML::BeginMap << YAML::Key << "version" << YAML::Value << kStateVersion;
+  e << YAML::Key << "input" << YAML::Value << st.input;
+  e << YAML::Key << "stages" << YAML::Value << YAML::BeginSeq;
+  for (const StageRecord& s : st.stages) {
+    e << YAML::BeginMap;
+    e << YAML::Key << "name" << YAML::Value << s.name;
+    e << YAML::Key << "key" << YAML::Value << s.key;
+    e << YAML::Key << "output" << YAML::Value << s.output;
+    e << YAML::Key << "output_hash" << YAML::Value << s.output_hash;
+    e << YAML::Key << "seconds" << YAML::Value << s.seconds;
+    e << YAML::Key << "peak_rss_mb" << YAML::Value << s.peak_rss_mb;
+    e << YAML::Key << "figures" << YAML::Value << YAML::BeginMap;
+    for (const auto& [k, v] : s.figures) e << YAML::Key << k << YAML::Value << v;
+    e << YAML::EndMap;
+    if (!s.per_view.empty()) e << YAML::Key << "per_view" << YAML::Value << YAML::Flow << s.per_view;
+    if (!s.poses.empty()) {
+      e << YAML::Key << "poses" << YAML::Value << YAML::BeginSeq;
+      for (const auto& p : s.poses) e << YAML::Flow << p;
+      e << YAML::EndSeq;
+    }
+    e << YAML::EndMap;
+  }
+  e << YAML::EndSeq << YAML::EndMap;
+  return std::string(e.c_str()) + "\n";
+}
+
+RunState read_state(const fs::path& file) {
+  RunState st;
+  try {
+    const YAML::Node root = YAML::LoadFile(file.string());
+    if (!root.IsMap() || !root["version"] || root["version"].as<int>() != kStateVersion)
+      throw FormatError(file.string() + ": not a run state of version " + std::to_string(kStateVersion));
+    st.input = root["input"].as<std::string>("");
+    for (const YAML::Node& n : root["stages"]) {
+      StageRecord s;
+      s.name = n["name"].as<std::string>();
+      s.key = n["key"].as<std::string>();
+      s.output = n["output"].as<std::string>();
+      s.output_hash = n["output_hash"].as<std::string>();
+      s.seconds = n["seconds"].as<double>(0);
+      s.peak_rss_mb = n["peak_rss_mb"].as<double>(-1);
+      if (n["figures"])
+        for (const auto& kv : n["figures"]) s.figures[kv.first.as<std::string>()] = kv.second.as<double>();
+      if (n["per_view"]) s.per_view = n["per_view"].as<std::vector<double>>();
+      if (n["poses"])
+        for (const YAML::Node& p : n["poses"]) s.poses.push_back(p.as<std::vector<double>>());
+      st.stages.push_back(std::move(s));
+    }
+  } catch (const YAML::Exception& e) {
+    throw FormatError(file.string() + ": unreadable run state (" + e.msg +
+                      "); remove it to start the run afresh");
+  }
+  return st;
+}
+
+// ---- inputs -----------------------------------------------------------------------
+
+bool is_session(const fs::path& p) {
+  if (fs::is_directory(p)) return fs::exists(p / "session.yaml");
+  return p.filename() == "session.yaml";
+}
+
+/// Key of the input: the manifest and every view file, or the cloud file.
+std::string input_key(const fs::path& input, bool session) {
+  if (!session) return hash_file(input);
+  const fs::path dir = fs::is_directory(input) ? input : input.parent_path();
+  const SessionManifest m = read_manifest(dir);
+  std::string all = read_file_bytes(dir / "session.yaml");
+  for (const ViewRecord& v : m.views) all += hash_file(dir / v.file);
+  return hash_hex(all);
+}
+
+std::string fmt(const char* f, double v) {
+  char buf[64];
+  std::snprintf(buf, sizeof buf, f, v);
+  return buf;
+}
+
+/// Parameters of a stage as text: part of its key.
+std::string register_params(const PipelineConfig& p) {
+  std::ostringstream s;
+  s << "register/neighbors=" << p.reg.neighbors << ";rounds=" << p.reg.rounds
+    << ";loop=" << p.reg.loop_closure << ";voxel=" << fmt("%.17g", p.reg.voxel_rel);
+  return s.str();
+}
+std::string consolidate_params(const PipelineConfig& p) {
+  const auto& c = p.consolidate;
+  std::ostringstream s;
+  s << "consolidate/method=" << c.method << ";points=" << c.points << ";ratio=" << fmt("%.17g", c.ratio)
+    << ";iterations=" << c.iterations << ";seed=" << c.seed;
+  return s.str();
+}
+std::string surface_params(const PipelineConfig& p) {
+  const auto& c = p.reconstruct;
+  std::ostringstream s;
+  s << "surface/" << c.surface << ";resolution=" << c.resolution << ";epsilon0=" << fmt("%.17g", c.epsilon0)
+    << ";extractor=" << c.extractor << ";hole=" << c.hole << ";colour=" << c.colour;
+  if (c.surface == "sdm") s << ";level=" << p.sdm.level;
+  return s.str();
+}
+
+// ---- the report ---------------------------------------------------------------
+
+Rgb palette(std::size_t i) {
+  static const Rgb colours[] = {{228, 26, 28},  {55, 126, 184}, {77, 175, 74},   {152, 78, 163},
+                                {255, 127, 0},  {166, 86, 40},  {247, 129, 191}, {102, 102, 102},
+                                {23, 190, 207}, {188, 189, 34}, {31, 119, 180},  {140, 86, 75}};
+  return colours[i % (sizeof colours / sizeof colours[0])];
+}
+
+Cloud thin(const Cloud& c, std::size_t max_points) {
+  if (c.size() <= max_points) return c;
+  Cloud out;
+  const double step = double(c.size()) / max_points;
+  for (std::size_t k = 0; k < max_points; ++k) {
+    const std::size_t i = std::size_t(k * step);
+    out.points.push_back(c.points[i]);
+    if (c.has_normals()) out.normals.push_back(c.normals[i]);
+    if (c.has_colors()) out.colors.push_back(c.colors[i]);
+  }
+  return out;
+}
+
+std::string seconds_text(double s) { return fmt(s < 10 ? "%.2f" : "%.1f", s); }
+
+void write_report(const fs::path& out_dir, const fs::path& input, bool session, const RunResult& run,
+                  const fs::path& report_path) {
+  std::vector<ReportSection> sections;
+  {
+    ReportSection s;
+    s.title = "Stages";
+    s.text = "Input: " + input.string() + ". Run folder: " + out_dir.string() +
+             ". Stages marked 'reused' were taken from an earlier run with the same inputs and parameters.";
+    ReportTable t;
+    t.header = {"stage", "output", "time (s)", "peak memory (MiB)", "reused", "figures"};
+    double total = 0;
+    for (const StageRecord& r : run.stages) {
+      std::string figs;
+      for (const auto& [k, v] : r.figures) figs += (figs.empty() ? "" : ", ") + k + " " + fmt("%.6g", v);
+      t.rows.push_back({r.name, r.output, seconds_text(r.seconds),
+                        r.peak_rss_mb >= 0 ? fmt("%.0f", r.peak_rss_mb) : "-", r.reused ? "yes" : "no", figs});
+      total += r.seconds;
+    }
+    t.rows.push_back({"total", "", seconds_text(total), "", "", ""});
+    s.tables.push_back(t);
+    sections.push_back(s);
+  }
+  const StageRecord* reg = nullptr;
+  for (const StageRecord& r : run.stages)
+    if (r.name == "register") reg = &r;
+  if (session && reg) {
+    const fs::path dir = fs::is_directory(input) ? input : input.parent_path();
+    const Session ses = Session::open(dir);
+    ReportSection s;
+    s.title = "Views and registration";
+    s.text = "Every view placed by its registered pose, seen from above and from the front, one colour per view "
+             "(coverage: gaps show what the scanner never saw). Below: each view's residual after registration "
+             "(mean inlier RMS of its final-round pairs; red above 3x the median).";
+    Cloud all;
+    std::vector<Rgb> colours;
+    const std::size_t per_view = std::max<std::size_t>(2000, 120000 / std::max<std::size_t>(1, ses.manifest().views.size()));
+    for (std::size_t i = 0; i < ses.manifest().views.size() && i < reg->poses.size(); ++i) {
+      Cloud v;
+      try {
+        v = thin(ses.load_view(i), per_view);
+      } catch (const std::exception&) {
+        continue;  // a failed view is reported by the register stage already
+      }
+      Eigen::Matrix4d T;
+      for (int k = 0; k < 16; ++k) T(k / 4, k % 4) = reg->poses[i][k];
+      transform_cloud(v, T);
+      for (const Vec3f& p : v.points) {
+        if (!p.allFinite()) continue;
+        all.points.push_back(p);
+        colours.push_back(palette(i));
+      }
+    }
+    if (!all.empty()) {
+      RenderOptions o;
+      o.shade = false;
+      o.point_size = 1;
+      const Aabb box = bounding_box(all.points);
+      Aabb flat = box;  // seen from above only the footprint matters
+      flat.min.z() = flat.max.z() = box.center().z();
+      s.figures.push_back({"views from above", encode_png(render_points(all, view_from_above(flat, 360), o, &colours))});
+      s.figures.push_back({"views from the front", encode_png(render_points(all, view_from_side(0, box, 360), o, &colours))});
+    }
+    std::vector<std::string> labels;
+    for (std::size_t i = 0; i < reg->per_view.size(); ++i) labels.push_back(std::to_string(i));
+    std::vector<double> sorted = reg->per_view;
+    std::sort(sorted.begin(), sorted.end());
+    const double median = sorted.empty() ? 0 : sorted[sorted.size() / 2];
+    s.svg = svg_bar_chart(reg->per_view, labels, "mm", 3 * median);
+    sections.push_back(s);
+  }
+  for (const StageRecord& r : run.stages) {
+    if (r.name != "consolidate") continue;
+    const Cloud c = thin(read_cloud(out_dir / r.output), 150000);
+    ReportSection s;
+    s.title = "Consolidated cloud";
+    s.text = std::to_string(c.size()) + " points shown.";
+    RenderOptions o;
+    o.point_size = 2;
+    const Aabb box = bounding_box(c.points);
+    s.figures.push_back({"front", encode_png(render_points(c, view_from_side(0, box, 360), o))});
+    s.figures.push_back({"side", encode_png(render_points(c, view_from_side(1, box, 360), o))});
+    sections.push_back(s);
+  }
+  if (!run.mesh.empty() && fs::exists(run.mesh)) {
+    const Mesh m = read_mesh(run.mesh);
+    const Aabb box = bounding_box(m.vertices);
+    ReportSection s;
+    s.title = "Mesh";
+    s.text = std::to_string(m.vertices.size()) + " vertices, " + std::to_string(m.faces.size()) + " faces. " +
+             run.mesh.filename().string() + ", from four sides" + (m.has_colors() ? ", with and without colour." : ".");
+    const char* names[] = {"front", "left", "back", "right"};
+    for (int q = 0; q < 4; ++q) {
+      RenderOptions o;
+      if (m.has_colors())
+        s.figures.push_back({std::string(names[q]) + ", colour", encode_png(render_mesh(m, view_from_side(q, box, 300), o))});
+      o.use_colors = false;
+      s.figures.push_back({std::string(names[q]) + ", shape", encode_png(render_mesh(m, view_from_side(q, box, 300), o))});
+    }
+    sections.push_back(s);
+  }
+  write_file_atomic(report_path, report_html("Station run: " + input.filename().string(), sections));
+}
+
+// ---- the stages -------------------------------------------------------------------
+
+class Runner {
+ public:
+  Runner(const StationConfig& cfg, const RunRequest& req) : cfg_(cfg), req_(req) {}
+
+  RunResult run() {
+    if (req_.input.empty() || !fs::exists(req_.input))
+      throw IoError(req_.input.string() + ": no such session or cloud");
+    session_ = is_session(req_.input);
+    result_.session = session_;
+    std::error_code ec;
+    fs::create_directories(req_.out_dir, ec);
+    if (ec || !fs::is_directory(req_.out_dir))
+      throw IoError(req_.out_dir.string() + ": cannot create the run folder" + (ec ? ": " + ec.message() : ""));
+    const fs::path state_file = req_.out_dir / kStateFile;
+    if (fs::exists(state_file)) {
+      if (!req_.resume)
+        throw InvalidInput(req_.out_dir.string() +
+                           ": holds an earlier run; add --resume to continue it, or choose another folder");
+      old_ = read_state(state_file);
+    }
+    state_.input = fs::absolute(req_.input).lexically_normal().string();
+    auto threads = cfg_.threads > 0 ? std::make_unique<tbb::global_control>(
+                                          tbb::global_control::max_allowed_parallelism, std::size_t(cfg_.threads))
+                                    : nullptr;
+    say("run: hashing the input " + req_.input.string());
+    std::string key = input_key(req_.input, session_);
+    fs::path cloud_file = req_.input;
+    const int total = (session_ ? 1 : 0) + (cfg_.pipeline.consolidate.enabled ? 1 : 0) + 1;
+    int index = 0;
+    if (session_) {
+      key = hash_hex(key + register_params(cfg_.pipeline));
+      stage(++index, total, "register", key, "merged.ply", [&](StageRecord& r) { do_register(r); });
+      cloud_file = req_.out_dir / "merged.ply";
+      if (stopped()) return finish_interrupted();
+    }
+    if (cfg_.pipeline.consolidate.enabled) {
+      key = hash_hex(key + consolidate_params(cfg_.pipeline));
+      stage(++index, total, "consolidate", key, "consolidated.ply",
+            [&](StageRecord& r) { do_consolidate(r, cloud_file); });
+      cloud_file = req_.out_dir / "consolidated.ply";
+      if (stopped()) return finish_interrupted();
+    }
+    key = hash_hex(key + surface_params(cfg_.pipeline));
+    stage(++index, total, "surface", key, "mesh.ply", [&](StageRecord& r) { do_surface(r, cloud_file); });
+    result_.mesh = req_.out_dir / "mesh.ply";
+    if (req_.report) {
+      say("run: writing the report");
+      result_.report = req_.out_dir / "report.html";
+      write_report(req_.out_dir, req_.input, session_, result_, result_.report);
+    }
+    return result_;
+  }
+
+ private:
+  bool stopped() const { return req_.stop && req_.stop->load(); }
+  RunResult finish_interrupted() {
+    result_.interrupted = true;
+    return result_;
+  }
+  void say(const std::string& line) const {
+    if (!req_.quiet) std::fprintf(stderr, "%s\n", line.c_str());
+  }
+
+  template <class F>
+  void stage(int index, int total, const std::string& name, const std::string& key, const std::string& output,
+             F&& work) {
+    const fs::path out = req_.out_dir / output;
+    if (const StageRecord* old = old_.find(name); old && old->key == key && old->output == output && fs::exists(out)) {
+      if (hash_file(out) == old->output_hash) {
+        StageRecord r = *old;
+        r.reused = true;
+        say("[" + std::to_string(index) + "/" + std::to_string(total) + "] " + name + ": unchanged, kept " +
+            out.string());
+        record(r);
+        return;
+      }
+      say("[" + std::to_string(index) + "/" + std::to_string(total) + "] " + name + ": " + out.string() +
+          " was altered since the last run; redoing it");
+    }
+    say("[" + std::to_string(index) + "/" + std::to_string(total) + "] " + name + "...");
+    StageRecord r;
+    r.name = name;
+    r.key = key;
+    r.output = output;
+    reset_peak_rss();
+    const auto t0 = Clock::now();
+    work(r);
+    r.seconds = seconds_since(t0);
+    r.peak_rss_mb = peak_rss_mb();
+    r.output_hash = hash_file(out);
+    record(r);
+    say("[" + std::to_string(index) + "/" + std::to_string(total) + "] " + name + ": done in " +
+        seconds_text(r.seconds) + " s -> " + out.string());
+  }
+
+  /// Adds the stage to the result and rewrites run.yaml (the commit point of the stage).
+  void record(const StageRecord& r) {
+    result_.stages.push_back(r);
+    state_.stages.push_back(r);
+    write_file_atomic(req_.out_dir / kStateFile, state_yaml(state_));
+  }
+
+  void do_register(StageRecord& r) {
+    const fs::path dir = fs::is_directory(req_.input) ? req_.input : req_.input.parent_path();
+    const Session session = Session::open(dir);
+    RegistrationParams p;
+    p.neighbors = cfg_.pipeline.reg.neighbors;
+    p.rounds = cfg_.pipeline.reg.rounds;
+    p.loop_closure = cfg_.pipeline.reg.loop_closure;
+    p.voxel_rel = cfg_.pipeline.reg.voxel_rel;
+    std::unique_ptr<Progress> bar;
+    std::string sub;
+    const RegistrationResult reg = register_session(session, p, [&](const RegistrationProgress& pr) {
+      if (pr.stage != sub) {
+        if (bar) bar->finish();
+        sub = pr.stage;
+        bar = std::make_unique<Progress>("  register: " + sub, pr.total, req_.quiet);
+      }
+      bar->update(pr.done);
+    });
+    if (bar) bar->finish();
+    for (int v : reg.failed_views) say("warning: " + reg.views[v].message);
+    if (reg.degenerate) say("note: " + reg.degeneracy_message);
+    if (reg.merged.empty()) throw InvalidInput(dir.string() + ": no view could be registered");
+    write_ply(req_.out_dir / "merged.ply", reg.merged);
+    r.figures["views"] = double(reg.views.size());
+    r.figures["failed_views"] = double(reg.failed_views.size());
+    r.figures["points"] = double(reg.merged.size());
+    r.figures["degenerate"] = reg.degenerate ? 1 : 0;
+    if (reg.views_with_reference > 0) {
+      r.figures["max_rotation_error_deg"] = reg.max_rotation_error_deg;
+      r.figures["max_translation_error_mm"] = reg.max_translation_error * 1000;
+    }
+    // Residual per view: mean inlier RMS of the final round's pairs that involve it.
+    int last_round = 0;
+    for (const PairDiagnostics& pd : reg.pairs) last_round = std::max(last_round, pd.round);
+    std::vector<double> sum(reg.views.size(), 0);
+    std::vector<int> count(reg.views.size(), 0);
+    for (const PairDiagnostics& pd : reg.pairs) {
+      if (pd.round != last_round || !pd.converged) continue;
+      for (int v : {pd.from, pd.to})
+        if (v >= 0 && v < int(sum.size())) {
+          sum[v] += pd.inlier_rmse * 1000;
+          ++count[v];
+        }
+    }
+    for (std::size_t i = 0; i < sum.size(); ++i)
+      r.per_view.push_back(count[i] ? sum[i] / count[i] : std::nan(""));
+    for (const Eigen::Matrix4d& T : reg.poses) {
+      std::vector<double> row(16);
+      for (int k = 0; k < 16; ++k) row[k] = T(k / 4, k % 4);
+      r.poses.push_back(row);
+    }
+  }
+
+  void do_consolidate(StageRecord& r, const fs::path& in) {
+    const Cloud input = read_cloud(in);
+    if (input.empty()) throw InvalidInput(in.string() + ": empty cloud");
+    const auto& c = cfg_.pipeline.consolidate;
+    WlopParams p;
+    p.method = c.method == "edge-wlop" ? WlopMethod::kEdgeWlop : WlopMethod::kWlop;
+    p.target_points = c.points;
+    p.ratio = c.ratio;
+    p.iterations = c.iterations;
+    p.seed = c.seed;
+    p.threads = cfg_.threads;
+    const WlopResult w = consolidate(input, p);
+    write_ply(req_.out_dir / "consolidated.ply", w.cloud);
+    r.figures["input_points"] = double(w.input_points);
+    r.figures["points"] = double(w.cloud.size());
+    r.figures["radius"] = w.radius;
+  }
+
+  void do_surface(StageRecord& r, const fs::path& in) {
+    const auto& c = cfg_.pipeline.reconstruct;
+    if (c.surface == "sdm")
+      throw InvalidInput("reconstruct.surface: sdm is not available yet in `station run` (use mpu)");
+    Cloud input = read_cloud(in);
+    if (input.empty()) throw InvalidInput(in.string() + ": empty cloud");
+    if (!input.has_normals()) {
+      say("  note: " + in.string() + " has no normals; estimating them (PCA, MST orientation)");
+      input.normals = estimate_normals(input.points, 12, cfg_.threads);
+      orient_normals_mst(input.points, input.normals, 12);
+    }
+    MpuParams mp;
+    mp.epsilon0 = c.epsilon0 > 0 ? c.epsilon0 : std::max(mp.epsilon0, suggest_epsilon0(input));
+    mp.threads = cfg_.threads;
+    say("  surface: MPU on " + std::to_string(input.size()) + " points (epsilon0 " + fmt("%.3g", mp.epsilon0) + ")");
+    const MpuSurface surface = fit_mpu(input, mp);
+    MarchingCubesOptions mo;
+    mo.untrusted = c.hole == "keep" ? UntrustedRegions::kLeaveOpen : UntrustedRegions::kClose;
+    mo.threads = cfg_.threads;
+    MarchingCubesStats stats;
+    say("  surface: extracting at resolution " + std::to_string(c.resolution));
+    Mesh mesh = extract_marching_cubes(surface, c.resolution, mo, &stats);
+    if (mesh.faces.empty()) throw InvalidInput(in.string() + ": the reconstructed surface is empty");
+    const bool colour = c.colour && input.has_colors();
+    if (colour) transfer_colors(mesh, input, {4, cfg_.threads});
+    else if (c.colour) say("  note: " + in.string() + " has no colours; the mesh is left uncoloured");
+    write_ply(req_.out_dir / "mesh.ply", mesh);
+    const MpuDiagnostics& d = surface.diagnostics();
+    r.figures["leaves"] = double(d.leaves);
+    r.figures["epsilon0"] = mp.epsilon0;
+    r.figures["cell_size"] = stats.cell_size;
+    r.figures["vertices"] = double(mesh.vertices.size());
+    r.figures["faces"] = double(mesh.faces.size());
+    r.figures["coloured"] = colour ? 1 : 0;
+  }
+
+  const StationConfig& cfg_;
+  const RunRequest& req_;
+  bool session_ = false;
+  RunState old_, state_;
+  RunResult result_;
+};
+
+}  // namespace
+
+RunResult run_pipeline(const StationConfig& config, const RunRequest& request) {
+  return Runner(config, request).run();
+}
+
+}  // namespace station

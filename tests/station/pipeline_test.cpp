@@ -1,0 +1,231 @@
+// `station run` as a library: stages, resume, changed parameters, a failed
+// write, the report. The session is a small simulated scan of the bundled sample.
+#include <gtest/gtest.h>
+#include <sys/resource.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <atomic>
+#include <csignal>
+#include <cstdlib>
+#include <fstream>
+#include <regex>
+
+#include "core/error.h"
+#include "core/io.h"
+#include "station/config.h"
+#include "station/pipeline.h"
+#include "test_util.h"
+
+namespace station {
+namespace {
+
+namespace fs = std::filesystem;
+
+/// One small session for the whole file (6 views at 200x150 of the mustard bottle).
+class PipelineTest : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    dir_ = new test::TempDir("station-pipeline");
+    const std::string cmd = std::string(STATION_BINARY) + " scan --config " +
+                            (test::source_dir() / "config/default.yaml").string() + " -o " +
+                            (dir_->path() / "session").string() +
+                            " --views 6 --set width=200 --set height=150 --json > /dev/null 2>&1";
+    ASSERT_EQ(std::system(cmd.c_str()), 0) << cmd;
+  }
+  static void TearDownTestSuite() {
+    delete dir_;
+    dir_ = nullptr;
+  }
+  static fs::path session() { return dir_->path() / "session"; }
+
+  static StationConfig config(const std::vector<std::string>& extra = {}) {
+    std::vector<std::string> overrides{"consolidate.points=3000", "consolidate.iterations=15",
+                                       "reconstruct.resolution=40"};
+    overrides.insert(overrides.end(), extra.begin(), extra.end());  // later ones win
+    return load_config(test::source_dir() / "config/default.yaml", overrides);
+  }
+  static RunRequest request(const fs::path& out, bool resume = false) {
+    RunRequest r;
+    r.input = session();
+    r.out_dir = out;
+    r.resume = resume;
+    r.quiet = true;
+    return r;
+  }
+  static test::TempDir* dir_;
+};
+test::TempDir* PipelineTest::dir_ = nullptr;
+
+std::vector<std::string> names(const RunResult& r) {
+  std::vector<std::string> n;
+  for (const StageRecord& s : r.stages) n.push_back(s.name + (s.reused ? "*" : ""));
+  return n;
+}
+
+TEST_F(PipelineTest, RunsEveryStageAndWritesAColouredMeshAndAReport) {
+  test::TempDir out("station-run");
+  const RunResult r = run_pipeline(config(), request(out.path()));
+  EXPECT_EQ(names(r), (std::vector<std::string>{"register", "consolidate", "surface"}));
+  ASSERT_TRUE(fs::exists(r.mesh));
+  const Mesh m = read_mesh(r.mesh);
+  EXPECT_GT(m.faces.size(), 500u);
+  EXPECT_TRUE(m.has_colors());
+  ASSERT_TRUE(fs::exists(r.report));
+  const std::string html = read_file_bytes(r.report);
+  // Self-contained: pictures inline, nothing fetched.
+  EXPECT_EQ(html.rfind("<!DOCTYPE html>", 0), 0u);
+  std::size_t imgs = 0;
+  for (std::size_t p = html.find("data:image/png;base64,"); p != std::string::npos;
+       p = html.find("data:image/png;base64,", p + 1))
+    ++imgs;
+  EXPECT_GE(imgs, 10u);  // coverage x2, cloud x2, mesh 4 sides x2
+  EXPECT_EQ(html.find("http://"), html.find("http://www.w3.org/2000/svg"));  // only the SVG namespace
+  EXPECT_EQ(html.find("https://"), std::string::npos);
+  EXPECT_NE(html.find("<svg"), std::string::npos);  // residuals per view
+  EXPECT_TRUE(fs::exists(out.path() / "run.yaml"));
+}
+
+TEST_F(PipelineTest, InterruptedRunResumesToTheSameMesh) {
+  test::TempDir a("station-run-a"), b("station-run-b");
+  const RunResult whole = run_pipeline(config(), request(a.path()));
+
+  std::atomic<bool> stop{true};  // as if Ctrl-C came during the first stage
+  RunRequest first = request(b.path());
+  first.stop = &stop;
+  const RunResult cut = run_pipeline(config(), first);
+  EXPECT_TRUE(cut.interrupted);
+  EXPECT_EQ(names(cut), (std::vector<std::string>{"register"}));
+  EXPECT_FALSE(fs::exists(b.path() / "mesh.ply"));
+
+  // Without --resume an earlier run is not touched.
+  EXPECT_THROW(run_pipeline(config(), request(b.path())), InvalidInput);
+
+  const RunResult resumed = run_pipeline(config(), request(b.path(), true));
+  EXPECT_EQ(names(resumed), (std::vector<std::string>{"register*", "consolidate", "surface"}));
+  EXPECT_EQ(hash_file(whole.mesh), hash_file(resumed.mesh));
+  EXPECT_EQ(hash_file(a.path() / "consolidated.ply"), hash_file(b.path() / "consolidated.ply"));
+}
+
+TEST_F(PipelineTest, OnlyStagesWhoseParametersOrInputsChangedAreRedone) {
+  test::TempDir out("station-run");
+  run_pipeline(config(), request(out.path()));
+  // Same everything: nothing redone.
+  EXPECT_EQ(names(run_pipeline(config(), request(out.path(), true))),
+            (std::vector<std::string>{"register*", "consolidate*", "surface*"}));
+  // A surface parameter: only the surface.
+  const RunResult finer = run_pipeline(config({"reconstruct.resolution=48"}), request(out.path(), true));
+  EXPECT_EQ(names(finer), (std::vector<std::string>{"register*", "consolidate*", "surface"}));
+  // An output altered by hand is redone.
+  { std::ofstream(out.path() / "consolidated.ply", std::ios::app) << "x"; }
+  EXPECT_EQ(names(run_pipeline(config({"reconstruct.resolution=48"}), request(out.path(), true))),
+            (std::vector<std::string>{"register*", "consolidate", "surface*"}));
+}
+
+TEST_F(PipelineTest, AFailedWriteLeavesEarlierOutputsIntact) {
+  test::TempDir out("station-run");
+  run_pipeline(config(), request(out.path()));
+  const std::string merged = hash_file(out.path() / "merged.ply");
+  const std::string cons = hash_file(out.path() / "consolidated.ply");
+  const std::string mesh = hash_file(out.path() / "mesh.ply");
+  const std::size_t files = std::distance(fs::directory_iterator(out.path()), fs::directory_iterator());
+  // A child resumes with a new resolution on a "full disk": files may not grow past 64 KiB,
+  // so the new mesh cannot be written (run.yaml, a few KiB, still can).
+  const pid_t pid = fork();
+  ASSERT_GE(pid, 0);
+  if (pid == 0) {
+    std::signal(SIGXFSZ, SIG_IGN);
+    rlimit lim{64 << 10, 64 << 10};
+    setrlimit(RLIMIT_FSIZE, &lim);
+    int code = 1;
+    try {
+      run_pipeline(config({"reconstruct.resolution=56"}), request(out.path(), true));
+      code = 2;
+    } catch (const IoError& e) {
+      code = std::string(e.what()).find("mesh.ply") != std::string::npos ? 0 : 3;
+    } catch (...) {
+      code = 4;
+    }
+    _exit(code);
+  }
+  int status = 0;
+  ASSERT_EQ(waitpid(pid, &status, 0), pid);
+  ASSERT_TRUE(WIFEXITED(status));
+  EXPECT_EQ(WEXITSTATUS(status), 0);
+  EXPECT_EQ(hash_file(out.path() / "merged.ply"), merged);
+  EXPECT_EQ(hash_file(out.path() / "consolidated.ply"), cons);
+  EXPECT_EQ(hash_file(out.path() / "mesh.ply"), mesh);
+  EXPECT_EQ(std::size_t(std::distance(fs::directory_iterator(out.path()), fs::directory_iterator())), files)
+      << "no temporary file left behind";
+  // And the run can go on once there is space: the new surface is made.
+  const RunResult again = run_pipeline(config({"reconstruct.resolution=56"}), request(out.path(), true));
+  EXPECT_EQ(names(again), (std::vector<std::string>{"register*", "consolidate*", "surface"}));
+}
+
+TEST_F(PipelineTest, ACloudRunsWithoutRegistration) {
+  test::TempDir out("station-run");
+  RunRequest r = request(out.path());
+  r.input = session() / "merged.ply";
+  r.report = false;
+  const RunResult res = run_pipeline(config(), r);
+  EXPECT_EQ(names(res), (std::vector<std::string>{"consolidate", "surface"}));
+  EXPECT_FALSE(res.session);
+  EXPECT_TRUE(res.report.empty());
+}
+
+TEST(Pipeline, MissingInputAndBadStateAreClearErrors) {
+  test::TempDir out("station-run");
+  RunRequest r;
+  r.input = out.path() / "nothing.ply";
+  r.out_dir = out.path() / "run";
+  r.quiet = true;
+  try {
+    run_pipeline(StationConfig{}, r);
+    FAIL();
+  } catch (const IoError& e) {
+    EXPECT_NE(std::string(e.what()).find("nothing.ply"), std::string::npos);
+  }
+  // A corrupt run.yaml is named, and not overwritten.
+  Cloud c;
+  c.points = {{0, 0, 0}, {1, 0, 0}, {0, 1, 0}};
+  write_ply(out.path() / "c.ply", c);
+  fs::create_directories(out.path() / "run");
+  { std::ofstream(out.path() / "run" / "run.yaml") << "version: [1\n"; }
+  r.input = out.path() / "c.ply";
+  r.resume = true;
+  try {
+    run_pipeline(StationConfig{}, r);
+    FAIL();
+  } catch (const FormatError& e) {
+    EXPECT_NE(std::string(e.what()).find("run.yaml"), std::string::npos);
+  }
+  EXPECT_EQ(read_file_bytes(out.path() / "run" / "run.yaml"), "version: [1\n");
+}
+
+TEST(Profile, OverridesAreValidatedLikeTheFileAndNameTheKey) {
+  const fs::path profile = test::source_dir() / "config/default.yaml";
+  const StationConfig cfg = load_config(profile, {"reconstruct.resolution=77", "consolidate.method=edge-wlop"});
+  EXPECT_EQ(cfg.pipeline.reconstruct.resolution, 77);
+  EXPECT_EQ(cfg.pipeline.consolidate.method, "edge-wlop");
+  auto message = [&](const std::string& kv) {
+    try {
+      load_config(profile, {kv});
+    } catch (const Error& e) {
+      return std::string(e.what());
+    }
+    return std::string("no error");
+  };
+  EXPECT_NE(message("reconstruct.resolutoin=5").find("reconstruct.resolutoin: unknown key"), std::string::npos);
+  EXPECT_NE(message("reconstruct.resolution=2").find("reconstruct.resolution: must be 8..4096"), std::string::npos);
+  EXPECT_NE(message("reconstruct.hole=maybe").find("reconstruct.hole"), std::string::npos);
+  EXPECT_NE(message("consolidate.ratio=abc").find("consolidate.ratio: not a number"), std::string::npos);
+  EXPECT_NE(message("nosuch.key=1").find("nosuch: unknown key"), std::string::npos);
+  EXPECT_NE(message("resolution").find("expected section.key=value"), std::string::npos);
+  // The default profile documents every key it accepts, and loads as is.
+  const StationConfig d = load_config(profile);
+  EXPECT_EQ(d.pipeline.reconstruct.resolution, 128);
+  EXPECT_EQ(d.pipeline.consolidate.points, 20000u);
+}
+
+}  // namespace
+}  // namespace station
