@@ -8,6 +8,7 @@
 #include <atomic>
 #include <chrono>
 #include <csignal>
+#include <unistd.h>
 #include <cstdio>
 #include <fstream>
 #include <iostream>
@@ -47,7 +48,17 @@ namespace {
 namespace fs = std::filesystem;
 
 std::atomic<bool> g_stop{false};
-extern "C" void on_sigint(int) { g_stop = true; }
+/// First Ctrl-C: stop after the step in progress (a view, a stage); second: abort now.
+extern "C" void on_sigint(int) {
+  if (g_stop) {
+    std::signal(SIGINT, SIG_DFL);
+    std::raise(SIGINT);
+    return;
+  }
+  g_stop = true;
+  static const char msg[] = "\nstopping after the step in progress (Ctrl-C again to abort now)\n";
+  [[maybe_unused]] auto n = ::write(2, msg, sizeof msg - 1);
+}
 
 /// Options every subcommand takes.
 struct Common {
