@@ -1,0 +1,693 @@
+#include "reconstruct/colour_function.h"
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+#include <tbb/task_arena.h>
+
+#include <Eigen/Dense>
+#include <Eigen/Sparse>
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <string>
+
+#include "core/error.h"
+#include "core/kdtree.h"
+#include "core/normals.h"
+
+namespace station {
+namespace {
+
+constexpr int kChannels = 3;
+constexpr double kRange[kChannels] = {100, 255, 255};  // r_L, r_a, r_b (eq. 4)
+// RBF systems up to this size are factorised densely; larger ones (n_max raised, or a
+// grown/max-depth ball) use a sparse Cholesky: psi has compact support 0.4 R_k.
+constexpr int kDenseMax = 400;
+// Ridge on the RBF matrices' diagonal (psi(0) = 1): keeps duplicated points with
+// different colours solvable; interpolation error at the nodes ~ 1e-6 * |lambda|.
+constexpr double kRbfRidge = 1e-6;
+
+// Quadratic B-spline b2(t), support |t| < 3/2 (as reconstruct/mpu.cpp).
+double bspline2(double t) {
+  t = std::abs(t);
+  if (t < 0.5) return 0.75 - t * t;
+  if (t < 1.5) return 0.5 * (1.5 - t) * (1.5 - t);
+  return 0;
+}
+
+double psi(double r, double support) {
+  const double t = 1 - r / support;
+  return t > 0 ? t * t : 0;
+}
+
+// An RBF interpolant sum_i lambda_i psi(|d - node_i|) + q0 + q1 a + q2 b over a subset of
+// a leaf's nodes, `cols` columns (3 colour channels, or boundary functions).
+// A constant part (too few points for an RBF) has no ids and only q0.
+struct RbfPart {
+  std::vector<int> ids;        // indices into the leaf's nodes
+  std::vector<double> lambda;  // ids.size() x cols, row-major
+  std::vector<double> poly;    // 3 x cols, row-major (1, a, b)
+  int cols = 0;
+};
+
+struct Leaf {
+  ColourCellType type = ColourCellType::kA;
+  Vec3d o = Vec3d::Zero(), u = Vec3d::UnitX(), v = Vec3d::UnitY();
+  double inv_r = 1;  // 1 / R_k: local coordinates d = (y - o) / R_k
+  // Type A: per channel c0 a^2 + c1 ab + c2 b^2 + c3 a + c4 b + c5, (a, b) = (d.u, d.v).
+  double coef[kChannels][6] = {};
+  // Type B.
+  double rbf_support = 0.4;          // in local units
+  std::vector<Vec3d> nodes;          // local coordinates of the ball's points
+  std::vector<RbfPart> clusters;     // colour per cluster (cols = 3)
+  RbfPart boundary;                  // cols = 1 (two clusters: b >= 0 -> cluster 0) or k
+
+  Lab eval(const Vec3d& y) const {
+    const Vec3d d = (y - o) * inv_r;
+    const double a = d.dot(u), b = d.dot(v);
+    Lab out{};
+    if (type == ColourCellType::kA) {
+      const double basis[6] = {a * a, a * b, b * b, a, b, 1};
+      for (int c = 0; c < kChannels; ++c) {
+        double s = 0;
+        for (int j = 0; j < 6; ++j) s += coef[c][j] * basis[j];
+        out[c] = s;
+      }
+      return out;
+    }
+    thread_local std::vector<double> ps;
+    ps.resize(nodes.size());
+    for (std::size_t i = 0; i < nodes.size(); ++i) ps[i] = psi((d - nodes[i]).norm(), rbf_support);
+    auto value = [&](const RbfPart& part, int col) {
+      double s = part.poly[col] + part.poly[part.cols + col] * a + part.poly[2 * part.cols + col] * b;
+      for (std::size_t i = 0; i < part.ids.size(); ++i) {
+        const double p = ps[part.ids[i]];
+        if (p > 0) s += part.lambda[i * part.cols + col] * p;
+      }
+      return s;
+    };
+    int chosen = 0;
+    if (boundary.cols == 1) {
+      chosen = value(boundary, 0) >= 0 ? 0 : 1;
+    } else {
+      double best = -1e300;
+      for (int k = 0; k < boundary.cols; ++k) {
+        const double bk = value(boundary, k);
+        if (bk > best) best = bk, chosen = k;
+      }
+    }
+    for (int c = 0; c < kChannels; ++c) out[c] = value(clusters[chosen], c);
+    return out;
+  }
+};
+
+struct Node {
+  Vec3d center;
+  double half = 0;
+  double radius = 0;  // leaves: support radius R_k
+  double reach = 0;
+  int first_child = -1;
+  int leaf = -1;
+  int depth = 0;
+};
+
+int arena_threads(int threads) {
+  return threads == 0 ? tbb::this_task_arena::max_concurrency() : threads;
+}
+
+}  // namespace
+
+struct ColourFunction::Impl {
+  ColourParams params;
+  ColourDiagnostics diag;
+  Vec3d center = Vec3d::Zero();
+  double scale = 1;
+  double diagonal = 1;  // world units, of the points' bounding cube
+  std::vector<Vec3f> points;  // normalised
+  std::vector<Vec3d> normals;  // empty when the input has none
+  std::vector<Lab> labs;
+  std::unique_ptr<PointIndex> index;
+  std::vector<Node> nodes;
+  std::vector<Leaf> leaves;
+
+  // sum_k w_k(y) Q_k(y) and sum_k w_k(y); optionally the leaf of largest weight.
+  void accumulate(const Vec3d& y, Lab& swq, double& sw, int* dominant) const {
+    int stack[64 * 8];
+    int top = 0;
+    stack[top++] = 0;
+    double best_w = 0;
+    while (top > 0) {
+      const Node& nd = nodes[stack[--top]];
+      const double r = (y - nd.center).norm();
+      if (nd.first_child < 0) {
+        if (r >= nd.radius) continue;
+        const double w = bspline2(1.5 * r / nd.radius);
+        if (w <= 0) continue;
+        if (dominant) {
+          if (w > best_w) best_w = w, *dominant = nd.leaf;
+          continue;
+        }
+        const Lab q = leaves[nd.leaf].eval(y);
+        for (int c = 0; c < kChannels; ++c) swq[c] += w * q[c];
+        sw += w;
+      } else {
+        if (r >= nd.reach) continue;
+        for (int c = 7; c >= 0; --c) stack[top++] = nd.first_child + c;
+      }
+    }
+  }
+
+  Lab eval(const Vec3d& x) const {
+    const Vec3d y = (x - center) * scale;
+    Lab swq{};
+    double sw = 0;
+    accumulate(y, swq, sw, nullptr);
+    if (!(sw > 1e-300)) return labs[index->nearest(y.cast<float>()).first];
+    for (double& c : swq) c /= sw;
+    if (!std::isfinite(swq[0]) || !std::isfinite(swq[1]) || !std::isfinite(swq[2]))
+      return labs[index->nearest(y.cast<float>()).first];
+    return swq;
+  }
+};
+
+namespace {
+
+using Impl = ColourFunction::Impl;
+
+struct CellResult {
+  bool split = false;
+  bool grew = false;
+  bool converged = true;
+  bool rejected_b = false;
+  bool fallback_a = false;
+  int constant_clusters = 0;
+  Leaf leaf;
+  double radius = 0;
+};
+
+// Tangent frame of a ball: the weighted mean normal (paper's w^(k)), or the points' PCA
+// normal without normals or when they cancel.
+void tangent_frame(const Impl& s, const std::vector<int>& ids, const std::vector<double>& w, Leaf& leaf) {
+  Vec3d n = Vec3d::Zero();
+  if (!s.normals.empty())
+    for (std::size_t i = 0; i < ids.size(); ++i) n += w[i] * s.normals[ids[i]];
+  if (n.norm() > 1e-9) {
+    n.normalize();
+  } else {
+    std::vector<Vec3d> pts(ids.size());
+    for (std::size_t i = 0; i < ids.size(); ++i) pts[i] = s.points[ids[i]].cast<double>();
+    n = ids.size() >= 3 ? pca_normal(pts.data(), int(pts.size())) : Vec3d::UnitZ();
+    if (!(n.norm() > 0.5) || !n.allFinite()) n = Vec3d::UnitZ();
+  }
+  const Vec3d t = std::abs(n.x()) < 0.6 ? Vec3d::UnitX() : Vec3d::UnitY();
+  leaf.u = (t - t.dot(n) * n).normalized();
+  leaf.v = n.cross(leaf.u);
+}
+
+// Weighted least-squares bivariate quadratic per channel (Type A). Returns the weighted
+// RMS residual (CIE76).
+double fit_type_a(const Impl& s, const std::vector<int>& ids, const std::vector<double>& w, Leaf& leaf) {
+  leaf.type = ColourCellType::kA;
+  using Mat6 = Eigen::Matrix<double, 6, 6>;
+  Mat6 A = Mat6::Zero();
+  Eigen::Matrix<double, 6, kChannels> B = Eigen::Matrix<double, 6, kChannels>::Zero();
+  for (std::size_t i = 0; i < ids.size(); ++i) {
+    const Vec3d d = (s.points[ids[i]].cast<double>() - leaf.o) * leaf.inv_r;
+    const double a = d.dot(leaf.u), b = d.dot(leaf.v);
+    Eigen::Matrix<double, 6, 1> phi;
+    phi << a * a, a * b, b * b, a, b, 1;
+    A.noalias() += w[i] * phi * phi.transpose();
+    for (int c = 0; c < kChannels; ++c) B.col(c) += w[i] * s.labs[ids[i]][c] * phi;
+  }
+  // Few or collinear points: a ridge on the higher terms pulls them to zero (towards a
+  // plane, then a constant) instead of letting them blow up.
+  const double tr = A.trace();
+  const double ridge = ids.size() < 12 ? 1e-3 : 1e-8;
+  for (int j = 0; j < 5; ++j) A(j, j) += ridge * tr + 1e-300;
+  A(5, 5) += 1e-12 * tr + 1e-300;
+  const Eigen::Matrix<double, 6, kChannels> X = A.ldlt().solve(B);
+  bool finite = X.allFinite();
+  for (int c = 0; c < kChannels; ++c)
+    for (int j = 0; j < 6; ++j) leaf.coef[c][j] = finite ? X(j, c) : (j == 5 ? 0.0 : 0.0);
+  if (!finite) {
+    // Weighted mean colour.
+    double ws = 0;
+    Lab m{};
+    for (std::size_t i = 0; i < ids.size(); ++i) {
+      ws += w[i];
+      for (int c = 0; c < kChannels; ++c) m[c] += w[i] * s.labs[ids[i]][c];
+    }
+    for (int c = 0; c < kChannels; ++c) leaf.coef[c][5] = m[c] / std::max(ws, 1e-300);
+  }
+  double se = 0, ws = 0;
+  for (std::size_t i = 0; i < ids.size(); ++i) {
+    const Lab q = leaf.eval(s.points[ids[i]].cast<double>());
+    se += w[i] * std::pow(delta_e(q, s.labs[ids[i]]), 2);
+    ws += w[i];
+  }
+  return std::sqrt(se / std::max(ws, 1e-300));
+}
+
+// Interpolates rhs (ids.size() x cols) at the nodes `ids` with psi + (1, a, b).
+bool solve_rbf(const Leaf& leaf, const std::vector<int>& ids, const Eigen::MatrixXd& rhs, RbfPart& out) {
+  const int n = int(ids.size());
+  const int cols = int(rhs.cols());
+  Eigen::MatrixXd P(n, 3);
+  for (int i = 0; i < n; ++i) {
+    const Vec3d& p = leaf.nodes[ids[i]];
+    P(i, 0) = 1;
+    P(i, 1) = p.dot(leaf.u);
+    P(i, 2) = p.dot(leaf.v);
+  }
+  Eigen::MatrixXd Xp, Xh;  // B^-1 P, B^-1 h
+  if (n <= kDenseMax) {
+    Eigen::MatrixXd B(n, n);
+    for (int i = 0; i < n; ++i) {
+      B(i, i) = 1 + kRbfRidge;
+      for (int j = 0; j < i; ++j) B(i, j) = B(j, i) = psi((leaf.nodes[ids[i]] - leaf.nodes[ids[j]]).norm(), leaf.rbf_support);
+    }
+    Eigen::LLT<Eigen::MatrixXd> llt(B);
+    if (llt.info() != Eigen::Success) return false;
+    Xp = llt.solve(P);
+    Xh = llt.solve(rhs);
+  } else {
+    std::vector<Eigen::Triplet<double>> trip;
+    for (int i = 0; i < n; ++i) {
+      trip.emplace_back(i, i, 1 + kRbfRidge);
+      for (int j = 0; j < i; ++j) {
+        const double v = psi((leaf.nodes[ids[i]] - leaf.nodes[ids[j]]).norm(), leaf.rbf_support);
+        if (v > 0) trip.emplace_back(i, j, v), trip.emplace_back(j, i, v);
+      }
+    }
+    Eigen::SparseMatrix<double> B(n, n);
+    B.setFromTriplets(trip.begin(), trip.end());
+    Eigen::SimplicialLLT<Eigen::SparseMatrix<double>> llt(B);
+    if (llt.info() != Eigen::Success) return false;
+    Xp = llt.solve(P);
+    Xh = llt.solve(rhs);
+  }
+  // Schur complement on the polynomial: (P^T B^-1 P) q = P^T B^-1 h; minimum-norm q when
+  // the nodes are collinear in the tangent plane.
+  const Eigen::Matrix3d S = P.transpose() * Xp;
+  const Eigen::MatrixXd q = S.completeOrthogonalDecomposition().solve(P.transpose() * Xh);
+  const Eigen::MatrixXd lambda = Xh - Xp * q;
+  if (!q.allFinite() || !lambda.allFinite()) return false;
+  out.ids = ids;
+  out.cols = cols;
+  out.lambda.resize(std::size_t(n) * cols);
+  for (int i = 0; i < n; ++i)
+    for (int c = 0; c < cols; ++c) out.lambda[std::size_t(i) * cols + c] = lambda(i, c);
+  out.poly.resize(3 * std::size_t(cols));
+  for (int j = 0; j < 3; ++j)
+    for (int c = 0; c < cols; ++c) out.poly[j * cols + c] = q(j, c);
+  return true;
+}
+
+// Colour clusters of a ball (eq. 7, or farthest-point seeds for multi_colour); labels
+// per point. Returns the number of clusters.
+int cluster_colours(const Impl& s, const std::vector<int>& ids, int far_i, int far_j, std::vector<int>& label) {
+  const ColourParams& p = s.params;
+  std::vector<Lab> seeds{s.labs[ids[far_i]], s.labs[ids[far_j]]};
+  if (p.multi_colour) {
+    std::vector<double> dmin(ids.size());
+    for (std::size_t i = 0; i < ids.size(); ++i)
+      dmin[i] = std::min(delta_e(s.labs[ids[i]], seeds[0]), delta_e(s.labs[ids[i]], seeds[1]));
+    while (int(seeds.size()) < p.max_clusters) {
+      const std::size_t far = std::max_element(dmin.begin(), dmin.end()) - dmin.begin();
+      if (!(dmin[far] > p.gamma)) break;
+      seeds.push_back(s.labs[ids[far]]);
+      for (std::size_t i = 0; i < ids.size(); ++i) dmin[i] = std::min(dmin[i], delta_e(s.labs[ids[i]], seeds.back()));
+    }
+  }
+  label.assign(ids.size(), 0);
+  for (std::size_t i = 0; i < ids.size(); ++i) {
+    double best = delta_e(s.labs[ids[i]], seeds[0]);
+    for (int k = 1; k < int(seeds.size()); ++k) {
+      const double d = delta_e(s.labs[ids[i]], seeds[k]);
+      if (d < best) best = d, label[i] = k;  // ties stay with the earlier seed (eq. 7: <=)
+    }
+  }
+  return int(seeds.size());
+}
+
+// Noise test (option b): drops clusters that are too small (reassigning their points to
+// the nearest remaining cluster mean) and checks the pairwise separation. False: Type A.
+bool noise_check(const Impl& s, const std::vector<int>& ids, std::vector<int>& label, int& k) {
+  const ColourParams& p = s.params;
+  const double min_size = std::max<double>(p.min_rbf_points, p.noise_min_fraction * double(ids.size()));
+  for (;;) {
+    std::vector<int> count(k, 0);
+    std::vector<Lab> mean(k, Lab{});
+    for (std::size_t i = 0; i < ids.size(); ++i) {
+      ++count[label[i]];
+      for (int c = 0; c < kChannels; ++c) mean[label[i]][c] += s.labs[ids[i]][c];
+    }
+    for (int j = 0; j < k; ++j)
+      for (int c = 0; c < kChannels; ++c) mean[j][c] /= std::max(count[j], 1);
+    const int smallest = int(std::min_element(count.begin(), count.end()) - count.begin());
+    if (count[smallest] < min_size) {
+      if (k <= 2) return false;
+      // Drop it: relabel to the nearest other mean, renumber.
+      for (std::size_t i = 0; i < ids.size(); ++i) {
+        int best = -1;
+        double bd = 1e300;
+        for (int j = 0; j < k; ++j) {
+          if (j == smallest) continue;
+          const double d = delta_e(s.labs[ids[i]], mean[j]);
+          if (d < bd) bd = d, best = j;
+        }
+        label[i] = best > smallest ? best - 1 : best;
+      }
+      --k;
+      continue;
+    }
+    std::vector<double> spread(k, 0);
+    for (std::size_t i = 0; i < ids.size(); ++i) spread[label[i]] += std::pow(delta_e(s.labs[ids[i]], mean[label[i]]), 2);
+    for (int j = 0; j < k; ++j) spread[j] = std::sqrt(spread[j] / count[j]);
+    for (int a = 0; a < k; ++a)
+      for (int b = a + 1; b < k; ++b)
+        if (!(delta_e(mean[a], mean[b]) > p.noise_separation * (spread[a] + spread[b]))) return false;
+    return true;
+  }
+}
+
+bool fit_type_b(const Impl& s, const std::vector<int>& ids, const std::vector<int>& label, int k, CellResult& cr) {
+  Leaf& leaf = cr.leaf;
+  leaf.type = ColourCellType::kB;
+  leaf.rbf_support = s.params.rbf_radius_factor;
+  leaf.nodes.resize(ids.size());
+  for (std::size_t i = 0; i < ids.size(); ++i) leaf.nodes[i] = (s.points[ids[i]].cast<double>() - leaf.o) * leaf.inv_r;
+  leaf.clusters.assign(k, RbfPart{});
+  for (int j = 0; j < k; ++j) {
+    std::vector<int> sel;
+    for (std::size_t i = 0; i < ids.size(); ++i)
+      if (label[i] == j) sel.push_back(int(i));
+    if (int(sel.size()) < std::max(s.params.min_rbf_points, 4)) {
+      // Too few for an RBF with a linear polynomial: the cluster's mean colour.
+      RbfPart& part = leaf.clusters[j];
+      part.cols = kChannels;
+      part.poly.assign(3 * kChannels, 0);
+      for (int i : sel)
+        for (int c = 0; c < kChannels; ++c) part.poly[c] += s.labs[ids[i]][c] / double(std::max<std::size_t>(sel.size(), 1));
+      ++cr.constant_clusters;
+      continue;
+    }
+    Eigen::MatrixXd rhs(sel.size(), kChannels);
+    for (std::size_t i = 0; i < sel.size(); ++i)
+      for (int c = 0; c < kChannels; ++c) rhs(i, c) = s.labs[ids[sel[i]]][c];
+    if (!solve_rbf(leaf, sel, rhs, leaf.clusters[j])) return false;
+  }
+  // Boundary function(s), targets +1 / -1 (eq. 11-12); one-vs-rest for k > 2.
+  const int cols = k == 2 ? 1 : k;
+  Eigen::MatrixXd rhs(ids.size(), cols);
+  for (std::size_t i = 0; i < ids.size(); ++i)
+    for (int c = 0; c < cols; ++c) rhs(i, c) = label[i] == c ? 1.0 : -1.0;
+  std::vector<int> all(ids.size());
+  for (std::size_t i = 0; i < ids.size(); ++i) all[i] = int(i);
+  return solve_rbf(leaf, all, rhs, leaf.boundary);
+}
+
+CellResult fit_cell(const Impl& s, const Vec3d& o, double half, int depth) {
+  const ColourParams& p = s.params;
+  CellResult cr;
+  const double R0 = p.alpha * 2 * half * std::sqrt(3.0);
+  auto nn = s.index->radius(o.cast<float>(), float(R0));
+  if (int(nn.size()) > p.n_max && depth < p.max_depth) {
+    cr.split = true;
+    return cr;
+  }
+  double R = R0;
+  if (int(nn.size()) < p.n_min) {
+    cr.grew = true;
+    // Jump straight to the growth step that reaches the n_min-th nearest point.
+    const auto kn = s.index->knn(o.cast<float>(), p.n_min);
+    const double need = kn.empty() ? R0 : double(kn.back().second);
+    int m = std::max(0, int(std::ceil((need / R0 - 1) / p.lambda)) - 1);
+    do {
+      R = R0 * (1 + m * p.lambda);
+      nn = s.index->radius(o.cast<float>(), float(R));
+      ++m;
+    } while (int(nn.size()) < std::min<int>(p.n_min, int(s.points.size())));
+  }
+  cr.radius = R;
+  Leaf& leaf = cr.leaf;
+  leaf.o = o;
+  leaf.inv_r = 1 / R;
+  std::vector<int> ids(nn.size());
+  std::vector<double> w(nn.size());
+  for (std::size_t i = 0; i < nn.size(); ++i) {
+    ids[i] = nn[i].first;
+    w[i] = std::max(bspline2(1.5 * nn[i].second / R), 1e-3);
+  }
+  tangent_frame(s, ids, w, leaf);
+
+  // Colour-difference test (eq. 5).
+  if (p.type_b) {
+    double dmax = -1;
+    int fi = 0, fj = 0;
+    for (std::size_t i = 0; i < ids.size(); ++i)
+      for (std::size_t j = i + 1; j < ids.size(); ++j) {
+        const double d = delta_e(s.labs[ids[i]], s.labs[ids[j]]);
+        if (d > dmax) dmax = d, fi = int(i), fj = int(j);
+      }
+    if (dmax > p.gamma) {
+      std::vector<int> label;
+      int k = cluster_colours(s, ids, fi, fj, label);
+      bool ok = true;
+      if (p.noise_robust && !noise_check(s, ids, label, k)) {
+        ok = false;
+        cr.rejected_b = true;
+      }
+      if (ok) {
+        CellResult trial = cr;
+        if (fit_type_b(s, ids, label, k, trial)) return trial;
+        cr.fallback_a = true;
+      }
+    }
+  }
+  // Type A with the accuracy test (eq. 4) over the points within alpha * d; phi(p) is
+  // approximated by w_k(p) (docs/colour.md: same-depth weights sum to ~1.02).
+  const double rms = fit_type_a(s, ids, w, leaf);
+  double err = 0;
+  for (std::size_t i = 0; i < ids.size(); ++i) {
+    if (nn[i].second >= R0) continue;
+    const Lab q = leaf.eval(s.points[ids[i]].cast<double>());
+    const double phi = bspline2(1.5 * nn[i].second / R);
+    for (int c = 0; c < kChannels; ++c) err = std::max(err, std::abs(q[c] - s.labs[ids[i]][c]) / kRange[c] * phi);
+  }
+  cr.converged = err < p.epsilon_col || (p.noise_robust && rms <= p.noise_accept_rms);
+  if (!cr.converged && !cr.grew && depth < p.max_depth) cr.split = true;
+  return cr;
+}
+
+}  // namespace
+
+ColourFunction fit_colour(const Cloud& cloud, const ColourParams& params) {
+  const auto t0 = std::chrono::steady_clock::now();
+  cloud.check_consistent("colour_function input");
+  if (!cloud.has_colors()) throw InvalidInput("colour_function: the cloud has no colours");
+  if (cloud.empty()) throw InvalidInput("colour_function: empty cloud");
+  const ColourParams& p = params;
+  if (!(p.alpha > 0.5) || !(p.lambda > 0) || p.n_min < 1 || p.n_max < p.n_min || !(p.gamma > 0) ||
+      !(p.epsilon_col > 0) || !(p.rbf_radius_factor > 0) || p.max_depth < 0 || p.max_depth > 20 ||
+      p.threads < 0 || !(p.root_margin >= 0) || p.min_rbf_points < 0 || p.max_clusters < 2 ||
+      p.max_clusters > 16 || !(p.noise_min_fraction >= 0 && p.noise_min_fraction < 0.5) ||
+      !(p.noise_separation >= 0) || !(p.noise_accept_rms >= 0))
+    throw InvalidInput(
+        "colour_function: parameters out of range (alpha > 0.5, lambda > 0, 1 <= n_min <= n_max, gamma > 0, "
+        "epsilon_col > 0, rbf_radius_factor > 0, 0 <= max_depth <= 20, threads >= 0, root_margin >= 0, "
+        "min_rbf_points >= 0, 2 <= max_clusters <= 16, 0 <= noise_min_fraction < 0.5, noise_separation >= 0, "
+        "noise_accept_rms >= 0)");
+  if (!all_finite(cloud.points)) throw InvalidInput("colour_function: non-finite point coordinates");
+
+  auto impl = std::make_shared<Impl>();
+  Impl& s = *impl;
+  s.params = p;
+  s.diag.input_points = cloud.size();
+  const Aabb box = bounding_box(cloud.points);
+  const double side = (box.max - box.min).cast<double>().maxCoeff();
+  if (!(side > 0)) throw InvalidInput("colour_function: all points are equal");
+  // MPU's normalised frame (fit_mpu): the points' bounding cube has diagonal 1.
+  s.center = box.center().cast<double>();
+  s.scale = 1 / (side * std::sqrt(3.0));
+  s.diagonal = side * std::sqrt(3.0);
+  s.points.reserve(cloud.size());
+  for (const Vec3f& q : cloud.points) s.points.push_back(((q.cast<double>() - s.center) * s.scale).cast<float>());
+  if (cloud.has_normals()) {
+    s.normals.resize(cloud.size());
+    for (std::size_t i = 0; i < cloud.size(); ++i) {
+      const Vec3d n = cloud.normals[i].cast<double>();
+      const double len = n.norm();
+      s.normals[i] = std::isfinite(len) && len > 1e-9 ? Vec3d(n / len) : Vec3d::Zero();
+    }
+  }
+  s.labs.resize(cloud.size());
+  for (std::size_t i = 0; i < cloud.size(); ++i) s.labs[i] = rgb_to_lab(cloud.colors[i]);
+  s.index = std::make_unique<PointIndex>(s.points);
+
+  tbb::task_arena arena(arena_threads(p.threads));
+  arena.execute([&] {
+    // Breadth-first, level by level: cells fitted in parallel into their own slots,
+    // children appended in cell order (deterministic for any thread count).
+    Node root;
+    root.center = Vec3d::Zero();
+    root.half = 0.5 / std::sqrt(3.0) * (1 + p.root_margin);
+    s.nodes.push_back(root);
+    std::vector<int> frontier{0};
+    for (int depth = 0; !frontier.empty(); ++depth) {
+      std::vector<CellResult> res(frontier.size());
+      tbb::parallel_for(tbb::blocked_range<std::size_t>(0, frontier.size(), 1), [&](const auto& range) {
+        for (std::size_t i = range.begin(); i != range.end(); ++i) {
+          const Node& nd = s.nodes[frontier[i]];
+          res[i] = fit_cell(s, nd.center, nd.half, depth);
+        }
+      });
+      std::vector<int> next;
+      for (std::size_t i = 0; i < frontier.size(); ++i) {
+        const int id = frontier[i];
+        CellResult& cr = res[i];
+        if (cr.split) {
+          const int first = int(s.nodes.size());
+          s.nodes[id].first_child = first;
+          const Node parent = s.nodes[id];
+          for (int c = 0; c < 8; ++c) {
+            Node ch;
+            ch.half = parent.half / 2;
+            ch.center = parent.center + ch.half * Vec3d(c & 1 ? 1 : -1, c & 2 ? 1 : -1, c & 4 ? 1 : -1);
+            ch.depth = depth + 1;
+            s.nodes.push_back(ch);
+            next.push_back(first + c);
+          }
+          continue;
+        }
+        Node& nd = s.nodes[id];
+        nd.radius = cr.radius;
+        nd.leaf = int(s.leaves.size());
+        const int type = int(cr.leaf.type);
+        if (cr.leaf.type == ColourCellType::kB && cr.leaf.clusters.size() > 2) ++s.diag.multi_colour_leaves;
+        s.leaves.push_back(std::move(cr.leaf));
+        ++s.diag.leaves;
+        ++s.diag.leaves_by_type[type];
+        if (s.diag.leaves_by_depth.size() <= std::size_t(depth)) s.diag.leaves_by_depth.resize(depth + 1);
+        ++s.diag.leaves_by_depth[depth][type];
+        if (cr.grew) ++s.diag.grown_leaves;
+        if (type == 0 && !cr.converged) ++s.diag.unconverged_leaves;
+        s.diag.constant_clusters += cr.constant_clusters;
+        s.diag.rejected_type_b += cr.rejected_b;
+        s.diag.fallback_type_a += cr.fallback_a;
+      }
+      frontier.swap(next);
+    }
+  });
+  for (int i = int(s.nodes.size()) - 1; i >= 0; --i) {
+    Node& nd = s.nodes[i];
+    if (nd.first_child < 0) {
+      nd.reach = nd.radius;
+    } else {
+      nd.reach = 0;
+      for (int c = 0; c < 8; ++c) {
+        const Node& ch = s.nodes[nd.first_child + c];
+        nd.reach = std::max(nd.reach, ch.reach + (ch.center - nd.center).norm());
+      }
+    }
+  }
+  s.diag.cells = s.nodes.size();
+  s.diag.fit_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  ColourFunction out;
+  out.impl_ = impl;
+  const auto t1 = std::chrono::steady_clock::now();
+  impl->diag.e_col = out.e_col(cloud, p.threads);
+  impl->diag.e_col_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t1).count();
+  return out;
+}
+
+Lab ColourFunction::lab(const Vec3d& x_in) const {
+  if (!impl_) throw InvalidInput("colour_function: not fitted");
+  Vec3d x = x_in;
+  if (surface_ && x.allFinite()) {
+    const double tol = 1e-6 * impl_->diagonal;
+    Vec3d y = x;
+    for (int it = 0; it < projection_steps_; ++it) {
+      const double f = surface_->value(y);
+      const Vec3d g = surface_->gradient(y);
+      const double g2 = g.squaredNorm();
+      if (!std::isfinite(f) || !(g2 > 1e-20) || !g.allFinite()) break;
+      const Vec3d step = f * g / g2;
+      y -= step;
+      if (step.norm() < tol) break;
+    }
+    // A projection that runs away (far from any surface) is not used.
+    if (y.allFinite() && (y - x).norm() < 0.25 * impl_->diagonal) x = y;
+  }
+  if (!x.allFinite()) return {0, 0, 0};
+  return impl_->eval(x);
+}
+
+std::array<double, 3> ColourFunction::srgb(const Vec3d& x) const { return lab_to_srgb(lab(x)); }
+Rgb ColourFunction::rgb(const Vec3d& x) const { return lab_to_rgb(lab(x)); }
+
+std::vector<Rgb> ColourFunction::rgbs(const std::vector<Vec3f>& xs) const {
+  std::vector<Rgb> out(xs.size());
+  tbb::task_arena arena(arena_threads(impl_ ? impl_->params.threads : 0));
+  arena.execute([&] {
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, xs.size(), 256), [&](const auto& r) {
+      for (std::size_t i = r.begin(); i != r.end(); ++i) out[i] = rgb(xs[i].cast<double>());
+    });
+  });
+  return out;
+}
+
+void ColourFunction::set_surface(const ImplicitFunction* surface, int steps) {
+  surface_ = surface;
+  projection_steps_ = std::max(1, steps);
+}
+
+ColourCellType ColourFunction::dominant_type(const Vec3d& x) const {
+  if (!impl_) return ColourCellType::kA;
+  Lab swq{};
+  double sw = 0;
+  int leaf = -1;
+  impl_->accumulate((x - impl_->center) * impl_->scale, swq, sw, &leaf);
+  return leaf < 0 ? ColourCellType::kA : impl_->leaves[leaf].type;
+}
+
+double ColourFunction::e_col(const Cloud& coloured, int threads) const {
+  coloured.check_consistent("e_col cloud");
+  if (!coloured.has_colors() || coloured.empty()) throw InvalidInput("e_col: the cloud has no colours");
+  std::vector<double> err(coloured.size());
+  tbb::task_arena arena(arena_threads(threads));
+  arena.execute([&] {
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, coloured.size(), 256), [&](const auto& r) {
+      for (std::size_t i = r.begin(); i != r.end(); ++i) {
+        const auto f = srgb(coloured.points[i].cast<double>());
+        // The paper converts the point's L*a*b* back to RGB: the identity to rounding.
+        const auto c = lab_to_srgb(rgb_to_lab(coloured.colors[i]));
+        err[i] = std::abs(f[0] - c[0]) + std::abs(f[1] - c[1]) + std::abs(f[2] - c[2]);
+      }
+    });
+  });
+  double sum = 0;
+  for (double e : err) sum += e;  // fixed order: deterministic
+  return sum / double(err.size());
+}
+
+const ColourDiagnostics& ColourFunction::diagnostics() const {
+  if (!impl_) throw InvalidInput("colour_function: not fitted");
+  return impl_->diag;
+}
+const ColourParams& ColourFunction::params() const {
+  if (!impl_) throw InvalidInput("colour_function: not fitted");
+  return impl_->params;
+}
+
+void colour_mesh(Mesh& mesh, const ColourFunction& f, int threads) {
+  mesh.colors.assign(mesh.vertices.size(), Rgb{});
+  tbb::task_arena arena(arena_threads(threads));
+  arena.execute([&] {
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, mesh.vertices.size(), 256), [&](const auto& r) {
+      for (std::size_t i = r.begin(); i != r.end(); ++i) mesh.colors[i] = f.rgb(mesh.vertices[i].cast<double>());
+    });
+  });
+}
+
+}  // namespace station
