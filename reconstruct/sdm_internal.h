@@ -1,0 +1,28 @@
+#pragma once
+// Internals of the SDM shared by sdm.cpp, sdm_topology.cpp and sdm_parameterise.cpp
+// (not a public header).
+#include <vector>
+
+#include "core/geometry.h"
+#include "reconstruct/sdm.h"
+
+namespace station::sdm_detail {
+
+/// Vertex-to-vertex (1-ring) and vertex-to-face adjacency in CSR form.
+struct Adjacency {
+  std::vector<int> ring_start, ring;  // neighbours of v: ring[ring_start[v] .. ring_start[v+1])
+  std::vector<int> vf_start, vf;      // faces at v
+};
+Adjacency build_adjacency(int vertex_count, const std::vector<Face>& faces);
+
+/// Squared distance from p to triangle (a, b, c).
+float point_triangle_dist2(const Vec3f& p, const Vec3f& a, const Vec3f& b, const Vec3f& c);
+
+/// Runs both phases on `initial` (already placed) against `target` (unit outward
+/// normals present, finite). Vertices with pinned[v] != 0 never move. Fills the
+/// diagnostics it measures; the caller's fields (normals_estimated...) are kept.
+SdmResult run_sdm(const Mesh& initial, const Cloud& target, const SdmParams& params,
+                  const std::vector<Landmark>& landmarks, const std::vector<char>& pinned,
+                  const SdmProgress& progress, SdmDiagnostics diagnostics);
+
+}  // namespace station::sdm_detail

@@ -1,0 +1,358 @@
+// SDM helpers: mesh topology, the icosphere template, fold and self-intersection
+// counts, landmark files.
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <cstdio>
+#include <fstream>
+#include <map>
+#include <numeric>
+#include <sstream>
+#include <unordered_map>
+
+#include <Eigen/Geometry>
+
+#include "core/error.h"
+#include "reconstruct/sdm.h"
+#include "reconstruct/sdm_internal.h"
+
+namespace station {
+
+namespace sdm_detail {
+
+Adjacency build_adjacency(int n, const std::vector<Face>& faces) {
+  Adjacency a;
+  a.vf_start.assign(n + 1, 0);
+  for (const Face& f : faces)
+    for (int k = 0; k < 3; ++k) ++a.vf_start[f[k] + 1];
+  for (int v = 0; v < n; ++v) a.vf_start[v + 1] += a.vf_start[v];
+  a.vf.resize(a.vf_start[n]);
+  std::vector<int> fill(a.vf_start.begin(), a.vf_start.end() - 1);
+  for (int fi = 0; fi < int(faces.size()); ++fi)
+    for (int k = 0; k < 3; ++k) a.vf[fill[faces[fi][k]]++] = fi;
+  // Rings: the other vertices of the faces at v, sorted and unique.
+  std::vector<std::vector<int>> rings(n);
+  for (int v = 0; v < n; ++v) {
+    auto& r = rings[v];
+    for (int j = a.vf_start[v]; j < a.vf_start[v + 1]; ++j)
+      for (int k = 0; k < 3; ++k)
+        if (faces[a.vf[j]][k] != v) r.push_back(faces[a.vf[j]][k]);
+    std::sort(r.begin(), r.end());
+    r.erase(std::unique(r.begin(), r.end()), r.end());
+  }
+  a.ring_start.assign(n + 1, 0);
+  for (int v = 0; v < n; ++v) a.ring_start[v + 1] = a.ring_start[v] + int(rings[v].size());
+  a.ring.reserve(a.ring_start[n]);
+  for (auto& r : rings) a.ring.insert(a.ring.end(), r.begin(), r.end());
+  return a;
+}
+
+float point_triangle_dist2(const Vec3f& p, const Vec3f& a, const Vec3f& b, const Vec3f& c) {
+  // Closest point by Voronoi regions of the triangle (vertex, edge, face).
+  const Vec3f ab = b - a, ac = c - a, ap = p - a;
+  const float d1 = ab.dot(ap), d2 = ac.dot(ap);
+  if (d1 <= 0 && d2 <= 0) return ap.squaredNorm();
+  const Vec3f bp = p - b;
+  const float d3 = ab.dot(bp), d4 = ac.dot(bp);
+  if (d3 >= 0 && d4 <= d3) return bp.squaredNorm();
+  const float vc = d1 * d4 - d3 * d2;
+  if (vc <= 0 && d1 >= 0 && d3 <= 0) {
+    const float v = d1 / (d1 - d3);
+    return (ap - v * ab).squaredNorm();
+  }
+  const Vec3f cp = p - c;
+  const float d5 = ab.dot(cp), d6 = ac.dot(cp);
+  if (d6 >= 0 && d5 <= d6) return cp.squaredNorm();
+  const float vb = d5 * d2 - d1 * d6;
+  if (vb <= 0 && d2 >= 0 && d6 <= 0) {
+    const float w = d2 / (d2 - d6);
+    return (ap - w * ac).squaredNorm();
+  }
+  const float va = d3 * d6 - d5 * d4;
+  if (va <= 0 && (d4 - d3) >= 0 && (d5 - d6) >= 0) {
+    const float w = (d4 - d3) / ((d4 - d3) + (d5 - d6));
+    return (bp - w * (c - b)).squaredNorm();
+  }
+  const float denom = va + vb + vc;
+  if (!(std::abs(denom) > 0)) {  // degenerate triangle: nearest of its edges
+    auto seg = [&](const Vec3f& s, const Vec3f& e) {
+      const Vec3f d = e - s;
+      const float l2 = d.squaredNorm();
+      const float t = l2 > 0 ? std::clamp((p - s).dot(d) / l2, 0.f, 1.f) : 0.f;
+      return (p - s - t * d).squaredNorm();
+    };
+    return std::min({seg(a, b), seg(b, c), seg(c, a)});
+  }
+  const float v = vb / denom, w = vc / denom;
+  return (ap - v * ab - w * ac).squaredNorm();
+}
+
+}  // namespace sdm_detail
+
+int MeshTopology::genus() const {
+  if (!closed_manifold() || components != 1 || misoriented_edges != 0 || unused_vertices != 0)
+    return -1;
+  return (2 - euler) / 2;
+}
+
+MeshTopology mesh_topology(const Mesh& mesh) {
+  mesh.check_consistent("mesh");
+  MeshTopology t;
+  const int n = int(mesh.vertices.size());
+  t.vertices = n;
+  t.faces = int(mesh.faces.size());
+  // Undirected edge -> (face count, sum of directions: +1 when a face runs it a->b, a<b).
+  std::unordered_map<std::uint64_t, std::pair<int, int>> edges;
+  edges.reserve(mesh.faces.size() * 2);
+  std::vector<int> parent(t.faces);
+  std::iota(parent.begin(), parent.end(), 0);
+  auto find = [&](int x) {
+    while (parent[x] != x) x = parent[x] = parent[parent[x]];
+    return x;
+  };
+  std::unordered_map<std::uint64_t, int> edge_face;
+  std::vector<char> used(n, 0);
+  for (int fi = 0; fi < t.faces; ++fi) {
+    const Face& f = mesh.faces[fi];
+    for (int k = 0; k < 3; ++k) {
+      used[f[k]] = 1;
+      const int a = f[k], b = f[(k + 1) % 3];
+      const std::uint64_t key = (std::uint64_t(std::min(a, b)) << 32) | std::uint32_t(std::max(a, b));
+      auto& e = edges[key];
+      ++e.first;
+      e.second += a < b ? 1 : -1;
+      auto it = edge_face.find(key);
+      if (it == edge_face.end())
+        edge_face[key] = fi;
+      else
+        parent[find(fi)] = find(it->second);
+    }
+  }
+  t.edges = int(edges.size());
+  for (const auto& [key, e] : edges) {
+    if (e.first == 1) ++t.boundary_edges;
+    if (e.first >= 3) ++t.nonmanifold_edges;
+    if (e.first == 2 && e.second != 0) ++t.misoriented_edges;
+  }
+  for (int fi = 0; fi < t.faces; ++fi)
+    if (find(fi) == fi) ++t.components;
+  for (int v = 0; v < n; ++v)
+    if (!used[v]) ++t.unused_vertices;
+  t.euler = t.vertices - t.edges + t.faces;
+  // Vertex fans: the faces at v, linked through shared edges at v, must be one fan.
+  const auto adj = sdm_detail::build_adjacency(n, mesh.faces);
+  for (int v = 0; v < n; ++v) {
+    const int b = adj.vf_start[v], e = adj.vf_start[v + 1];
+    if (e - b == 0) continue;
+    std::vector<int> par(e - b);
+    std::iota(par.begin(), par.end(), 0);
+    auto fnd = [&](int x) {
+      while (par[x] != x) x = par[x] = par[par[x]];
+      return x;
+    };
+    std::map<int, int> other;  // ring vertex -> first local face holding it
+    for (int j = b; j < e; ++j) {
+      const Face& f = mesh.faces[adj.vf[j]];
+      for (int k = 0; k < 3; ++k) {
+        if (f[k] == v) continue;
+        auto it = other.find(f[k]);
+        if (it == other.end())
+          other[f[k]] = j - b;
+        else
+          par[fnd(j - b)] = fnd(it->second);
+      }
+    }
+    int roots = 0;
+    for (int j = 0; j < e - b; ++j)
+      if (fnd(j) == j) ++roots;
+    if (roots != 1) ++t.nonmanifold_vertices;
+  }
+  return t;
+}
+
+Mesh make_icosphere_template(int level) {
+  if (level < 0 || level > 7)
+    throw InvalidInput("icosphere: level " + std::to_string(level) + " outside 0..7");
+  const float g = (1.f + std::sqrt(5.f)) / 2.f;
+  std::vector<Vec3f> v = {{-1, g, 0}, {1, g, 0},  {-1, -g, 0}, {1, -g, 0},
+                          {0, -1, g}, {0, 1, g},  {0, -1, -g}, {0, 1, -g},
+                          {g, 0, -1}, {g, 0, 1},  {-g, 0, -1}, {-g, 0, 1}};
+  for (auto& p : v) p.normalize();
+  std::vector<Face> f = {{0, 11, 5}, {0, 5, 1},  {0, 1, 7},   {0, 7, 10}, {0, 10, 11},
+                         {1, 5, 9},  {5, 11, 4}, {11, 10, 2}, {10, 7, 6}, {7, 1, 8},
+                         {3, 9, 4},  {3, 4, 2},  {3, 2, 6},   {3, 6, 8},  {3, 8, 9},
+                         {4, 9, 5},  {2, 4, 11}, {6, 2, 10},  {8, 6, 7},  {9, 8, 1}};
+  for (int l = 0; l < level; ++l) {
+    std::unordered_map<std::uint64_t, int> mid;
+    auto midpoint = [&](int a, int b) {
+      const std::uint64_t key = (std::uint64_t(std::min(a, b)) << 32) | std::uint32_t(std::max(a, b));
+      auto it = mid.find(key);
+      if (it != mid.end()) return it->second;
+      v.push_back((v[a] + v[b]).normalized());
+      return mid[key] = int(v.size()) - 1;
+    };
+    std::vector<Face> nf;
+    nf.reserve(f.size() * 4);
+    for (const Face& fc : f) {
+      const int a = midpoint(fc[0], fc[1]), b = midpoint(fc[1], fc[2]), c = midpoint(fc[2], fc[0]);
+      nf.push_back({fc[0], a, c});
+      nf.push_back({fc[1], b, a});
+      nf.push_back({fc[2], c, b});
+      nf.push_back({a, b, c});
+    }
+    f.swap(nf);
+  }
+  Mesh m;
+  m.vertices = std::move(v);
+  m.faces = std::move(f);
+  m.normals = m.vertices;
+  return m;
+}
+
+int count_folded_faces(const Mesh& mesh) {
+  const int nf = int(mesh.faces.size());
+  std::vector<Vec3f> fn(nf);
+  int bad = 0;
+  std::unordered_map<std::uint64_t, std::array<int, 2>> edge_faces;
+  edge_faces.reserve(nf * 2);
+  for (int fi = 0; fi < nf; ++fi) {
+    const Face& f = mesh.faces[fi];
+    const Vec3f n = (mesh.vertices[f[1]] - mesh.vertices[f[0]])
+                        .cross(mesh.vertices[f[2]] - mesh.vertices[f[0]]);
+    const float len = n.norm();
+    fn[fi] = len > 0 ? Vec3f(n / len) : Vec3f::Zero();
+    for (int k = 0; k < 3; ++k) {
+      const int a = f[k], b = f[(k + 1) % 3];
+      const std::uint64_t key = (std::uint64_t(std::min(a, b)) << 32) | std::uint32_t(std::max(a, b));
+      auto it = edge_faces.find(key);
+      if (it == edge_faces.end())
+        edge_faces[key] = {fi, -1};
+      else
+        it->second[1] = fi;
+    }
+  }
+  std::vector<Vec3f> sum(nf, Vec3f::Zero());
+  for (const auto& [key, e] : edge_faces) {
+    if (e[1] < 0) continue;
+    sum[e[0]] += fn[e[1]];
+    sum[e[1]] += fn[e[0]];
+  }
+  for (int fi = 0; fi < nf; ++fi)
+    if (fn[fi].isZero() || fn[fi].dot(sum[fi]) < 0) ++bad;
+  return bad;
+}
+
+namespace {
+
+// Segment [s, e] crosses triangle (a, b, c) strictly inside (Moller-Trumbore, with a
+// small tolerance so that touching at shared vertices does not count).
+bool segment_hits_triangle(const Vec3d& s, const Vec3d& e, const Vec3d& a, const Vec3d& b,
+                           const Vec3d& c) {
+  const Vec3d d = e - s, e1 = b - a, e2 = c - a;
+  const Vec3d p = d.cross(e2);
+  const double det = e1.dot(p);
+  const double scale = e1.norm() * e2.norm() * d.norm();
+  if (std::abs(det) <= 1e-12 * scale) return false;  // parallel (coplanar not counted)
+  const double inv = 1.0 / det;
+  const Vec3d t0 = s - a;
+  const double u = t0.dot(p) * inv;
+  if (u < 1e-7 || u > 1 - 1e-7) return false;
+  const Vec3d q = t0.cross(e1);
+  const double v = d.dot(q) * inv;
+  if (v < 1e-7 || u + v > 1 - 1e-7) return false;
+  const double t = e2.dot(q) * inv;
+  return t > 1e-7 && t < 1 - 1e-7;
+}
+
+}  // namespace
+
+int count_self_intersections(const Mesh& mesh) {
+  const int nf = int(mesh.faces.size());
+  if (nf == 0) return 0;
+  const Aabb box = bounding_box(mesh.vertices);
+  double edge = 0;
+  for (const Face& f : mesh.faces) edge += (mesh.vertices[f[0]] - mesh.vertices[f[1]]).norm();
+  edge /= nf;
+  const Vec3f ext = box.max - box.min;
+  const double cell = std::max({edge * 2.0, double(ext.maxCoeff()) / 256.0, 1e-12});
+  const int nx = std::max(1, int(ext.x() / cell) + 1), ny = std::max(1, int(ext.y() / cell) + 1),
+            nz = std::max(1, int(ext.z() / cell) + 1);
+  auto cell_of = [&](double x, double lo, int n) {
+    return std::clamp(int((x - lo) / cell), 0, n - 1);
+  };
+  std::unordered_map<std::int64_t, std::vector<int>> grid;
+  std::vector<Vec3d> V(mesh.vertices.size());
+  for (std::size_t i = 0; i < V.size(); ++i) V[i] = mesh.vertices[i].cast<double>();
+  for (int fi = 0; fi < nf; ++fi) {
+    const Face& f = mesh.faces[fi];
+    Vec3d lo = V[f[0]].cwiseMin(V[f[1]]).cwiseMin(V[f[2]]);
+    Vec3d hi = V[f[0]].cwiseMax(V[f[1]]).cwiseMax(V[f[2]]);
+    const int x0 = cell_of(lo.x(), box.min.x(), nx), x1 = cell_of(hi.x(), box.min.x(), nx);
+    const int y0 = cell_of(lo.y(), box.min.y(), ny), y1 = cell_of(hi.y(), box.min.y(), ny);
+    const int z0 = cell_of(lo.z(), box.min.z(), nz), z1 = cell_of(hi.z(), box.min.z(), nz);
+    for (int z = z0; z <= z1; ++z)
+      for (int y = y0; y <= y1; ++y)
+        for (int x = x0; x <= x1; ++x)
+          grid[(std::int64_t(z) * ny + y) * nx + x].push_back(fi);
+  }
+  std::vector<std::uint64_t> pairs;
+  for (const auto& [key, list] : grid)
+    for (std::size_t i = 0; i < list.size(); ++i)
+      for (std::size_t j = i + 1; j < list.size(); ++j)
+        pairs.push_back((std::uint64_t(std::min(list[i], list[j])) << 32) |
+                        std::uint32_t(std::max(list[i], list[j])));
+  std::sort(pairs.begin(), pairs.end());
+  pairs.erase(std::unique(pairs.begin(), pairs.end()), pairs.end());
+  int count = 0;
+  for (std::uint64_t key : pairs) {
+    const Face& A = mesh.faces[key >> 32];
+    const Face& B = mesh.faces[key & 0xffffffffu];
+    int shared = 0, sa = -1, sb = -1;
+    for (int i = 0; i < 3; ++i)
+      for (int j = 0; j < 3; ++j)
+        if (A[i] == B[j]) ++shared, sa = i, sb = j;
+    if (shared >= 2) continue;
+    bool hit = false;
+    if (shared == 0) {
+      for (int k = 0; k < 3 && !hit; ++k)
+        hit = segment_hits_triangle(V[A[k]], V[A[(k + 1) % 3]], V[B[0]], V[B[1]], V[B[2]]) ||
+              segment_hits_triangle(V[B[k]], V[B[(k + 1) % 3]], V[A[0]], V[A[1]], V[A[2]]);
+    } else {
+      hit = segment_hits_triangle(V[A[(sa + 1) % 3]], V[A[(sa + 2) % 3]], V[B[0]], V[B[1]], V[B[2]]) ||
+            segment_hits_triangle(V[B[(sb + 1) % 3]], V[B[(sb + 2) % 3]], V[A[0]], V[A[1]], V[A[2]]);
+    }
+    if (hit) ++count;
+  }
+  return count;
+}
+
+std::vector<Landmark> read_landmarks(const std::string& path) {
+  std::ifstream in(path);
+  if (!in) throw IoError(path + ": cannot open");
+  std::vector<Landmark> out;
+  std::string line;
+  int line_no = 0;
+  while (std::getline(in, line)) {
+    ++line_no;
+    const auto first = line.find_first_not_of(" \t\r");
+    if (first == std::string::npos || line[first] == '#') continue;
+    std::istringstream s(line);
+    Landmark l;
+    long long idx = 0;
+    double x, y, z;
+    std::string extra;
+    if (!(s >> idx >> x >> y >> z) || (s >> extra))
+      throw FormatError(path + ":" + std::to_string(line_no) +
+                        ": expected \"vertex_index x y z\"");
+    if (idx < 0 || idx > std::numeric_limits<int>::max() || !std::isfinite(x) ||
+        !std::isfinite(y) || !std::isfinite(z))
+      throw FormatError(path + ":" + std::to_string(line_no) +
+                        ": negative vertex index or non-finite coordinate");
+    l.vertex = int(idx);
+    l.point = Vec3f(float(x), float(y), float(z));
+    out.push_back(l);
+  }
+  return out;
+}
+
+}  // namespace station
