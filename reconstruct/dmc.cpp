@@ -1,0 +1,679 @@
+#include "reconstruct/dmc.h"
+
+#include <tbb/parallel_for.h>
+#include <tbb/task_arena.h>
+
+#include <Eigen/Eigenvalues>
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <cmath>
+#include <unordered_map>
+#include <unordered_set>
+
+#include "core/error.h"
+#include "reconstruct/mc_tables.h"
+#include "reconstruct/mpu.h"
+
+namespace station {
+namespace {
+
+// Lattice point / cell key: 21 bits per axis (as in marching_cubes.cpp).
+using Key = std::uint64_t;
+Key key(std::int64_t i, std::int64_t j, std::int64_t k) { return Key(i) | Key(j) << 21 | Key(k) << 42; }
+int ki(Key k) { return int(k & 0x1FFFFF); }
+int kj(Key k) { return int(k >> 21 & 0x1FFFFF); }
+int kk(Key k) { return int(k >> 42 & 0x1FFFFF); }
+Key corner_key(Key cell, int q) { return key(ki(cell) + (q & 1), kj(cell) + (q >> 1 & 1), kk(cell) + (q >> 2 & 1)); }
+
+enum : std::uint8_t { kFixed = 1, kSearched = 2, kBary = 4, kGap = 8, kCorner = 16, kEdge = 32 };
+
+struct Node {
+  Vec3d pos;
+  double val;  // f(pos) - iso; NaN stored as outside
+  std::uint8_t flags;
+};
+
+struct Crossing {
+  Vec3d pos;
+  Vec3d normal;  // unit, or zero where the gradient is not usable
+};
+
+// Where a lattice point moves (feature step).
+struct Proposal {
+  Key node;
+  int priority;  // 1 corner, 0 edge
+  Key cell;
+  Vec3d pos;
+};
+
+class Dmc {
+ public:
+  Dmc(const ImplicitFunction& f, const Aabb& box, int resolution, const DmcOptions& opt)
+      : f_(f), opt_(opt), arena_(opt.threads == 0 ? tbb::this_task_arena::max_concurrency() : opt.threads) {
+    lo_ = box.min.cast<double>();
+    const Vec3d ext = (box.max - box.min).cast<double>();
+    h_ = ext.maxCoeff() / resolution;
+    for (int a = 0; a < 3; ++a) n_[a] = std::max(1, int(std::ceil(ext[a] / h_ - 1e-9)));
+    const double s = opt.search_step > 0 ? opt.search_step : h_ / 5;
+    m_ = std::clamp(int(std::lround(h_ / s)), 1, 16);
+    st_.cell_size = h_;
+    st_.search_step = h_ / m_;
+  }
+
+  Mesh run(DmcStats* stats) {
+    std::vector<Key> start = seed_cells();
+    std::unordered_set<Key> surface;
+    traverse(start, !opt_.seeds.empty(), surface);
+
+    std::vector<Key> moved;
+    if (opt_.barycentre || opt_.thin_gaps) moved = barycentre_step(surface);
+    if (!moved.empty()) update_surface(moved, surface);
+
+    if (opt_.features) {
+      compute_crossings(surface);
+      std::vector<Key> fmoved = feature_step(surface);
+      if (!fmoved.empty()) {
+        update_surface(fmoved, surface);
+        // Crossings on the edges of moved points are stale.
+        for (Key p : fmoved)
+          for (int a = 0; a < 3; ++a) {
+            crossings_.erase(p * 3 + a);
+            const int i = ki(p), j = kj(p), k = kk(p);
+            const int d[3] = {i - (a == 0), j - (a == 1), k - (a == 2)};
+            if (d[0] >= 0 && d[1] >= 0 && d[2] >= 0) crossings_.erase(key(d[0], d[1], d[2]) * 3 + a);
+          }
+      }
+    }
+    compute_crossings(surface);
+    Mesh mesh = build_mesh(surface);
+    if (stats) *stats = st_;
+    return mesh;
+  }
+
+ private:
+  // ---------------------------------------------------------------- evaluation
+  double g(const Vec3d& x) const { return f_.value(x) - opt_.iso; }
+  Vec3d upos(Key p) const { return lo_ + h_ * Vec3d(ki(p), kj(p), kk(p)); }
+  bool on_boundary(Key p) const {
+    const int i = ki(p), j = kj(p), k = kk(p);
+    return i == 0 || j == 0 || k == 0 || i == n_[0] || j == n_[1] || k == n_[2];
+  }
+  bool node_in_grid(int i, int j, int k) const {
+    return i >= 0 && j >= 0 && k >= 0 && i <= n_[0] && j <= n_[1] && k <= n_[2];
+  }
+  bool cell_in_grid(int i, int j, int k) const {
+    return i >= 0 && j >= 0 && k >= 0 && i < n_[0] && j < n_[1] && k < n_[2];
+  }
+
+  template <class Fn>
+  void parallel(std::size_t count, Fn&& fn) {
+    arena_.execute([&] { tbb::parallel_for(std::size_t(0), count, fn); });
+  }
+
+  // Evaluates the missing lattice points of `keys` (undeformed positions) in parallel.
+  void ensure(std::vector<Key>& keys) {
+    std::sort(keys.begin(), keys.end());
+    keys.erase(std::unique(keys.begin(), keys.end()), keys.end());
+    keys.erase(std::remove_if(keys.begin(), keys.end(), [&](Key k) { return nodes_.count(k) > 0; }), keys.end());
+    std::vector<double> v(keys.size());
+    parallel(keys.size(), [&](std::size_t i) {
+      double x = g(upos(keys[i]));
+      if (!std::isfinite(x)) x = h_;  // NaN counts as outside
+      if (opt_.close_at_box && on_boundary(keys[i])) x = std::max(x, 0.5 * h_);
+      v[i] = x;
+    });
+    for (std::size_t i = 0; i < keys.size(); ++i)
+      nodes_.emplace(keys[i], Node{upos(keys[i]), v[i], std::uint8_t(on_boundary(keys[i]) ? kFixed : 0)});
+    st_.evaluations += keys.size();
+  }
+  double val(Key p) const { return nodes_.at(p).val; }
+  int config(Key c) const {
+    int cfg = 0;
+    for (int q = 0; q < 8; ++q)
+      if (val(corner_key(c, q)) < 0) cfg |= 1 << q;
+    return cfg;
+  }
+
+  // ---------------------------------------------------------------- traversal
+  std::vector<Key> seed_cells() {
+    std::vector<Key> cells;
+    std::unordered_set<Key> seen;
+    auto push = [&](int i, int j, int k) {
+      if (cell_in_grid(i, j, k) && seen.insert(key(i, j, k)).second) cells.push_back(key(i, j, k));
+    };
+    if (!opt_.seeds.empty()) {
+      for (const Vec3f& p : opt_.seeds) {
+        const Vec3d q = (p.cast<double>() - lo_) / h_;
+        if (!q.allFinite() || (q.array() < 0).any() || q.x() >= n_[0] || q.y() >= n_[1] || q.z() >= n_[2]) continue;
+        push(int(std::floor(q.x())), int(std::floor(q.y())), int(std::floor(q.z())));
+      }
+      return cells;
+    }
+    const int step = opt_.coarse_step > 0 ? opt_.coarse_step : std::max(1, std::max({n_[0], n_[1], n_[2]}) / 32);
+    std::vector<Key> keys;
+    for (int k = 0; k <= n_[2]; k += step)
+      for (int j = 0; j <= n_[1]; j += step)
+        for (int i = 0; i <= n_[0]; ++i) keys.push_back(key(i, j, k));
+    ensure(keys);
+    for (int k = 0; k <= n_[2]; k += step)
+      for (int j = 0; j <= n_[1]; j += step)
+        for (int i = 0; i < n_[0]; ++i)
+          if ((val(key(i, j, k)) < 0) != (val(key(i + 1, j, k)) < 0))
+            for (int dj = -1; dj <= 0; ++dj)
+              for (int dk = -1; dk <= 0; ++dk) push(i, j + dj, k + dk);
+    return cells;
+  }
+
+  // Surface tracking from `frontier` (cells); crossed cells are added to `surface`,
+  // cells already in it are not revisited. probe_first: a seed cell the surface misses
+  // probes its 26 neighbours once.
+  void traverse(std::vector<Key> frontier, bool probe_first, std::unordered_set<Key>& surface) {
+    std::unordered_set<Key> visited(frontier.begin(), frontier.end());
+    bool first = probe_first;
+    while (!frontier.empty()) {
+      std::vector<Key> keys;
+      keys.reserve(frontier.size() * 8);
+      for (Key c : frontier)
+        for (int q = 0; q < 8; ++q) keys.push_back(corner_key(c, q));
+      ensure(keys);
+      st_.cells_visited += frontier.size();
+      std::vector<Key> next;
+      auto push = [&](int i, int j, int k) {
+        if (!cell_in_grid(i, j, k)) return;
+        const Key c = key(i, j, k);
+        if (surface.count(c) || !visited.insert(c).second) return;
+        next.push_back(c);
+      };
+      for (Key c : frontier) {
+        const int i = ki(c), j = kj(c), k = kk(c);
+        const int cfg = config(c);
+        if (cfg == 0 || cfg == 255) {
+          surface.erase(c);
+          if (first)
+            for (int q = 0; q < 27; ++q)
+              if (q != 13) push(i + q % 3 - 1, j + q / 3 % 3 - 1, k + q / 9 - 1);
+          continue;
+        }
+        surface.insert(c);
+        for (int a = 0; a < 3; ++a)
+          for (int side = 0; side < 2; ++side) {
+            int in = 0;
+            for (int q = 0; q < 8; ++q)
+              if ((q >> a & 1) == side && (cfg >> q & 1)) ++in;
+            if (in == 0 || in == 4) continue;
+            int d[3] = {0, 0, 0};
+            d[a] = side ? 1 : -1;
+            push(i + d[0], j + d[1], k + d[2]);
+          }
+      }
+      frontier.swap(next);
+      first = false;
+    }
+  }
+
+  // After lattice points moved: only the cells having one as a corner can change; they
+  // are re-examined and the walk continues from them into cells not yet known.
+  void update_surface(const std::vector<Key>& moved, std::unordered_set<Key>& surface) {
+    std::vector<Key> cells;
+    for (Key p : moved)
+      for (int q = 0; q < 8; ++q) {
+        const int i = ki(p) - (q & 1), j = kj(p) - (q >> 1 & 1), k = kk(p) - (q >> 2 & 1);
+        if (cell_in_grid(i, j, k)) cells.push_back(key(i, j, k));
+      }
+    std::sort(cells.begin(), cells.end());
+    cells.erase(std::unique(cells.begin(), cells.end()), cells.end());
+    for (Key c : cells) surface.erase(c);
+    traverse(cells, false, surface);
+  }
+
+  // ---------------------------------------------------------------- step 1
+  // Samples Omega of lattice point p at step h/m; returns true and the new position and
+  // value when samples of the wanted sign (inside when want_inside) exist: their
+  // centroid, or, where the centroid itself has the wrong sign (a non-convex part), the
+  // wanted sample nearest to it.
+  bool search(Key p, bool want_inside, Vec3d& pos, double& value) const {
+    const Vec3d c0 = upos(p);
+    const double step = h_ / m_;
+    Vec3d sum = Vec3d::Zero();
+    int count = 0;
+    std::vector<std::pair<Vec3d, double>> hits;
+    for (int a = 0; a < m_; ++a)
+      for (int b = 0; b < m_; ++b)
+        for (int c = 0; c < m_; ++c) {
+          const Vec3d x = c0 + Vec3d((a + 0.5) * step - 0.5 * h_, (b + 0.5) * step - 0.5 * h_,
+                                     (c + 0.5) * step - 0.5 * h_);
+          double v = g(x);
+          if (!std::isfinite(v)) v = h_;
+          if ((v < 0) == want_inside) {
+            sum += x;
+            ++count;
+            hits.emplace_back(x, v);
+          }
+        }
+    if (count == 0) return false;
+    pos = sum / count;
+    double v = g(pos);
+    if (!std::isfinite(v)) v = h_;
+    if ((v < 0) != want_inside) {
+      std::size_t best = 0;
+      for (std::size_t i = 1; i < hits.size(); ++i)
+        if ((hits[i].first - pos).squaredNorm() < (hits[best].first - pos).squaredNorm()) best = i;
+      pos = hits[best].first;
+      v = hits[best].second;
+    }
+    value = v;
+    return true;
+  }
+
+  // The paper's flood with pruning: candidates are the corners of the crossed cells (and
+  // later the neighbours of moved points). A candidate outside (inside, for thin gaps)
+  // is searched only when the surface may pass through its Omega (|f| / |grad f| within
+  // 1.3 h) and the part beyond that surface is thin: a probe one h past the nearest
+  // surface point along -grad f (+grad f) is back on the candidate's side.
+  std::vector<Key> barycentre_step(const std::unordered_set<Key>& surface) {
+    const double band = 1.3 * h_;
+    std::vector<Key> cand;
+    for (Key c : surface)
+      for (int q = 0; q < 8; ++q) cand.push_back(corner_key(c, q));
+    std::sort(cand.begin(), cand.end());
+    cand.erase(std::unique(cand.begin(), cand.end()), cand.end());
+    std::vector<Key> moved_all;
+    bool first_wave = true;
+    // Flood waves: neighbours of points moved into a thin part are searched only when
+    // outside, those of points moved into a thin gap only when inside.
+    std::unordered_set<Key> near_bary, near_gap;
+    while (!cand.empty()) {
+      // Keep the lattice points that may move.
+      std::vector<Key> keep;
+      for (Key p : cand) {
+        const Node& nd = nodes_.at(p);
+        if (nd.flags & (kFixed | kSearched)) continue;
+        const bool inside = nd.val < 0;
+        if (inside ? !opt_.thin_gaps : !opt_.barycentre) continue;
+        if (!first_wave && !(inside ? near_gap.count(p) : near_bary.count(p))) continue;
+        keep.push_back(p);
+      }
+      // Gradient test and thin probe, in parallel.
+      std::vector<char> go(keep.size(), 0);
+      std::vector<char> probed(keep.size(), 0);
+      parallel(keep.size(), [&](std::size_t i) {
+        const Node& nd = nodes_.at(keep[i]);
+        const Vec3d gr = f_.gradient(nd.pos);
+        const double gn = gr.norm();
+        if (!(gn > 0) || !std::isfinite(gn)) {
+          go[i] = 1;  // no usable gradient: search
+          return;
+        }
+        const double d = std::abs(nd.val) / gn;
+        if (d > band) return;
+        if (!first_wave) {
+          go[i] = 1;  // neighbour of a moved point near the surface: the paper's flood
+          return;
+        }
+        probed[i] = 1;
+        const double sgn = nd.val < 0 ? -1.0 : 1.0;  // outside: probe towards -grad
+        const Vec3d x = nd.pos - sgn * (d + h_) * gr / gn;
+        double v = g(x);
+        if (!std::isfinite(v)) v = h_;
+        go[i] = (v < 0) == (nd.val < 0);  // back on the same side: the part is thin
+      });
+      st_.gradient_evaluations += keep.size();
+      std::vector<Key> todo;
+      for (std::size_t i = 0; i < keep.size(); ++i) {
+        st_.probed += probed[i];
+        st_.evaluations += probed[i];
+        if (go[i]) todo.push_back(keep[i]);
+      }
+      std::vector<char> ok(todo.size(), 0);
+      std::vector<Vec3d> pos(todo.size());
+      std::vector<double> value(todo.size());
+      parallel(todo.size(), [&](std::size_t i) {
+        ok[i] = search(todo[i], !(nodes_.at(todo[i]).val < 0), pos[i], value[i]);
+      });
+      st_.searched += todo.size();
+      st_.evaluations += todo.size() * (std::size_t(m_) * m_ * m_);
+      std::vector<Key> moved;
+      for (std::size_t i = 0; i < todo.size(); ++i) {
+        Node& nd = nodes_.at(todo[i]);
+        nd.flags |= kSearched;
+        if (!ok[i]) continue;
+        st_.evaluations += 1;
+        const bool was_inside = nd.val < 0;
+        nd.pos = pos[i];
+        nd.val = value[i];
+        nd.flags |= was_inside ? kGap : kBary;
+        ++(was_inside ? st_.moved_gap : st_.moved_barycentre);
+        moved.push_back(todo[i]);
+      }
+      for (Key p : keep) nodes_.at(p).flags |= kSearched;
+      // Next wave: the 26 neighbours of the moved points.
+      std::vector<Key> next;
+      near_bary.clear();
+      near_gap.clear();
+      for (Key p : moved) {
+        auto& near = nodes_.at(p).flags & kGap ? near_gap : near_bary;
+        for (int q = 0; q < 27; ++q) {
+          const int i = ki(p) + q % 3 - 1, j = kj(p) + q / 3 % 3 - 1, k = kk(p) + q / 9 - 1;
+          if (q != 13 && node_in_grid(i, j, k)) {
+            next.push_back(key(i, j, k));
+            near.insert(key(i, j, k));
+          }
+        }
+      }
+      std::vector<Key> fresh = next;
+      ensure(fresh);
+      std::sort(next.begin(), next.end());
+      next.erase(std::unique(next.begin(), next.end()), next.end());
+      moved_all.insert(moved_all.end(), moved.begin(), moved.end());
+      cand.swap(next);
+      first_wave = false;
+    }
+    return moved_all;
+  }
+
+  // ---------------------------------------------------------------- crossings
+  Crossing crossing(Key a_key, int axis) const {
+    const Key b_key = key(ki(a_key) + (axis == 0), kj(a_key) + (axis == 1), kk(a_key) + (axis == 2));
+    const Node& a = nodes_.at(a_key);
+    const Node& b = nodes_.at(b_key);
+    double fa = a.val, fb = b.val;
+    double lo = 0, hi = 1, t = fa / (fa - fb);
+    // Illinois regula falsi on f along the deformed edge, keeping the bracket.
+    int side = 0;
+    for (int it = 0; it < opt_.refine_steps; ++it) {
+      const double v = g(a.pos + t * (b.pos - a.pos));
+      if (!std::isfinite(v) || v == 0) break;
+      if ((v < 0) == (a.val < 0)) {
+        lo = t;
+        fa = v;
+        if (side == -1) fb *= 0.5;
+        side = -1;
+      } else {
+        hi = t;
+        fb = v;
+        if (side == 1) fa *= 0.5;
+        side = 1;
+      }
+      t = lo + (hi - lo) * fa / (fa - fb);
+      if (!(t >= lo && t <= hi)) t = 0.5 * (lo + hi);
+    }
+    // Kept off the lattice points so no triangle collapses.
+    t = std::clamp(t, 1e-3, 1 - 1e-3);
+    Crossing c;
+    c.pos = a.pos + t * (b.pos - a.pos);
+    const Vec3d gr = f_.gradient(c.pos);
+    const double len = gr.norm();
+    c.normal = len > 0 && std::isfinite(len) ? Vec3d(gr / len) : Vec3d::Zero();
+    return c;
+  }
+
+  // Crossings (and normals) of every crossed edge of the surface cells not yet known.
+  void compute_crossings(const std::unordered_set<Key>& surface) {
+    const auto& ec = mc::edge_corners();
+    std::vector<Key> edges;
+    for (Key c : surface)
+      for (int e = 0; e < 12; ++e) {
+        const Key a = corner_key(c, ec[e][0]), b = corner_key(c, ec[e][1]);
+        if ((val(a) < 0) == (val(b) < 0)) continue;
+        const Key ek = a * 3 + e / 4;
+        if (!crossings_.count(ek)) edges.push_back(ek);
+      }
+    std::sort(edges.begin(), edges.end());
+    edges.erase(std::unique(edges.begin(), edges.end()), edges.end());
+    std::vector<Crossing> out(edges.size());
+    parallel(edges.size(), [&](std::size_t i) { out[i] = crossing(edges[i] / 3, int(edges[i] % 3)); });
+    st_.evaluations += edges.size() * std::size_t(opt_.refine_steps);
+    st_.gradient_evaluations += edges.size();
+    for (std::size_t i = 0; i < edges.size(); ++i) crossings_.emplace(edges[i], out[i]);
+  }
+
+  // ---------------------------------------------------------------- step 2
+  // Per crossed cell: sharp edge / corner from the crossing normals; proposals for the
+  // lattice points to move.
+  void detect(Key c, std::vector<Proposal>& out) const {
+    const auto& ec = mc::edge_corners();
+    Vec3d pts[12], nrm[12];
+    int n = 0;
+    for (int e = 0; e < 12; ++e) {
+      const Key a = corner_key(c, ec[e][0]), b = corner_key(c, ec[e][1]);
+      if ((val(a) < 0) == (val(b) < 0)) continue;
+      const Crossing& x = crossings_.at(a * 3 + e / 4);
+      if (x.normal.squaredNorm() == 0) return;  // no usable normal: leave the cell alone
+      pts[n] = x.pos;
+      nrm[n] = x.normal;
+      ++n;
+    }
+    if (n < 3) return;
+    // The pair of normals farthest apart that are not (anti)parallel: a thin sheet's two
+    // sides face opposite ways but make no edge.
+    double theta = 1;
+    int a0 = -1, a1 = -1;
+    for (int i = 0; i < n; ++i)
+      for (int j = i + 1; j < n; ++j) {
+        const double d = nrm[i].dot(nrm[j]);
+        if (d < theta && nrm[i].cross(nrm[j]).norm() > 0.1) theta = d, a0 = i, a1 = j;
+      }
+    if (a0 < 0 || theta >= opt_.theta_sharp) return;
+    const Vec3d ne = nrm[a0].cross(nrm[a1]).normalized();
+    double phi = 0;
+    for (int i = 0; i < n; ++i)
+      if (i != a0 && i != a1) phi = std::max(phi, std::abs(nrm[i].dot(ne)));
+    bool corner = phi > opt_.phi_corner;
+    // Quadric of the tangent planes, minimised around the mass point with small
+    // eigenvalues truncated (dual contouring's QEF): robust to near-parallel planes.
+    Eigen::Matrix3d A = Eigen::Matrix3d::Zero();
+    Vec3d b = Vec3d::Zero(), mass = Vec3d::Zero();
+    Vec3d nsum = Vec3d::Zero();
+    for (int i = 0; i < n; ++i) {
+      A += nrm[i] * nrm[i].transpose();
+      b += nrm[i] * nrm[i].dot(pts[i]);
+      mass += pts[i];
+      nsum += nrm[i];
+    }
+    mass /= n;
+    Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es(A);
+    const Vec3d ev = es.eigenvalues();  // ascending
+    const Eigen::Matrix3d V = es.eigenvectors();
+    const double tol = 0.1 * ev[2];
+    if (corner && ev[0] < tol) corner = false;  // only two independent planes: an edge
+    const Vec3d r = b - A * mass;
+    Vec3d x = mass;
+    for (int k = corner ? 0 : 1; k < 3; ++k)
+      if (ev[k] >= tol) x += V.col(k) * (V.col(k).dot(r) / ev[k]);
+    if (!x.allFinite()) return;
+    const int ci = ki(c), cj = kj(c), ck = kk(c);
+    // Tiny step into the solid so the moved point is inside and the surface passes
+    // through it (not around it).
+    const Vec3d inward = -(corner ? nsum : Vec3d(nrm[a0] + nrm[a1])).normalized() * (1e-3 * h_);
+    if (corner) {
+      const Vec3d q = (x - lo_) / h_;
+      const int r0 = int(std::lround(q.x())), r1 = int(std::lround(q.y())), r2 = int(std::lround(q.z()));
+      if (r0 < ci - 1 || r0 > ci + 2 || r1 < cj - 1 || r1 > cj + 2 || r2 < ck - 1 || r2 > ck + 2) return;
+      if (!node_in_grid(r0, r1, r2)) return;
+      out.push_back({key(r0, r1, r2), 1, c, x + inward});
+      return;
+    }
+    // Edge: the line through x along the smallest eigenvector; each corner of the cell
+    // whose Omega the line crosses moves to the middle of that crossing.
+    const Vec3d dir = V.col(0);
+    for (int qc = 0; qc < 8; ++qc) {
+      const Key p = corner_key(c, qc);
+      const Vec3d cen = upos(p);
+      double t0 = -1e300, t1 = 1e300;
+      bool hit = true;
+      for (int a = 0; a < 3 && hit; ++a) {
+        const double lo = cen[a] - 0.5 * h_, hi = cen[a] + 0.5 * h_;
+        if (std::abs(dir[a]) < 1e-12) {
+          if (x[a] < lo || x[a] >= hi) hit = false;
+          continue;
+        }
+        double u0 = (lo - x[a]) / dir[a], u1 = (hi - x[a]) / dir[a];
+        if (u0 > u1) std::swap(u0, u1);
+        t0 = std::max(t0, u0);
+        t1 = std::min(t1, u1);
+      }
+      if (!hit || t1 - t0 < 0.05 * h_) continue;
+      out.push_back({p, 0, c, x + dir * (0.5 * (t0 + t1)) + inward});
+    }
+  }
+
+  std::vector<Key> feature_step(const std::unordered_set<Key>& surface) {
+    std::vector<Key> cells(surface.begin(), surface.end());
+    std::sort(cells.begin(), cells.end());
+    std::vector<std::vector<Proposal>> props(cells.size());
+    parallel(cells.size(), [&](std::size_t i) { detect(cells[i], props[i]); });
+    std::vector<Proposal> all;
+    for (auto& v : props) all.insert(all.end(), v.begin(), v.end());
+    std::sort(all.begin(), all.end(), [](const Proposal& a, const Proposal& b) {
+      if (a.node != b.node) return a.node < b.node;
+      if (a.priority != b.priority) return a.priority > b.priority;
+      return a.cell < b.cell;
+    });
+    std::vector<Proposal> chosen;
+    for (std::size_t i = 0; i < all.size(); ++i) {
+      if (i > 0 && all[i].node == all[i - 1].node) continue;
+      chosen.push_back(all[i]);
+    }
+    // Lattice points not yet evaluated (a corner found just beyond the crossed cells).
+    std::vector<Key> keys;
+    for (const Proposal& p : chosen) keys.push_back(p.node);
+    ensure(keys);
+    std::vector<Proposal> apply;
+    for (const Proposal& p : chosen) {
+      const Node& nd = nodes_.at(p.node);
+      if (nd.flags & (kFixed | kBary | kGap)) continue;
+      // Stay inside Omega (the nudge may cross its border).
+      Proposal q = p;
+      const Vec3d cen = upos(p.node);
+      for (int a = 0; a < 3; ++a)
+        q.pos[a] = std::clamp(q.pos[a], cen[a] - 0.5 * h_, std::nextafter(cen[a] + 0.5 * h_, cen[a]));
+      apply.push_back(q);
+    }
+    std::vector<double> v(apply.size());
+    parallel(apply.size(), [&](std::size_t i) {
+      double x = g(apply[i].pos);
+      v[i] = std::isfinite(x) ? x : h_;
+    });
+    st_.evaluations += apply.size();
+    std::vector<Key> moved;
+    for (std::size_t i = 0; i < apply.size(); ++i) {
+      Node& nd = nodes_.at(apply[i].node);
+      nd.pos = apply[i].pos;
+      nd.val = v[i];
+      nd.flags |= apply[i].priority ? kCorner : kEdge;
+      ++(apply[i].priority ? st_.moved_corner : st_.moved_edge);
+      moved.push_back(apply[i].node);
+    }
+    return moved;
+  }
+
+  // ---------------------------------------------------------------- step 3
+  Mesh build_mesh(const std::unordered_set<Key>& surface_set) {
+    std::vector<Key> surface(surface_set.begin(), surface_set.end());
+    std::sort(surface.begin(), surface.end());
+    st_.surface_cells = surface.size();
+    const auto& table = mc::triangle_table();
+    const auto& ec = mc::edge_corners();
+    std::unordered_map<Key, int> vid;
+    std::vector<Key> edges;
+    Mesh mesh;
+    for (Key c : surface) {
+      const int cfg = config(c);
+      for (const auto& tri : table[cfg]) {
+        Face face;
+        for (int t = 0; t < 3; ++t) {
+          const Key ek = corner_key(c, ec[tri[t]][0]) * 3 + tri[t] / 4;
+          const auto [it, added] = vid.emplace(ek, int(edges.size()));
+          if (added) edges.push_back(ek);
+          face[t] = it->second;
+        }
+        mesh.faces.push_back(face);
+      }
+    }
+    mesh.vertices.resize(edges.size());
+    if (opt_.normals) mesh.normals.resize(edges.size());
+    for (std::size_t v = 0; v < edges.size(); ++v) {
+      const Crossing& x = crossings_.at(edges[v]);
+      mesh.vertices[v] = x.pos.cast<float>();
+      if (opt_.normals) mesh.normals[v] = x.normal.cast<float>();
+    }
+    for (const Face& fc : mesh.faces) {
+      const Vec3f e1 = mesh.vertices[fc[1]] - mesh.vertices[fc[0]];
+      const Vec3f e2 = mesh.vertices[fc[2]] - mesh.vertices[fc[0]];
+      if (!(e1.cross(e2).norm() > 0)) ++st_.degenerate_faces;
+    }
+    if (opt_.untrusted == UntrustedRegions::kLeaveOpen && !mesh.faces.empty()) drop_untrusted(mesh);
+    return mesh;
+  }
+
+  void drop_untrusted(Mesh& mesh) {
+    std::vector<char> keep(mesh.faces.size());
+    parallel(mesh.faces.size(), [&](std::size_t fi) {
+      const Face& fc = mesh.faces[fi];
+      const Vec3d centroid = (mesh.vertices[fc[0]] + mesh.vertices[fc[1]] + mesh.vertices[fc[2]]).cast<double>() / 3;
+      keep[fi] = f_.trusted(centroid);
+    });
+    std::vector<int> remap(mesh.vertices.size(), -1);
+    Mesh out;
+    for (std::size_t fi = 0; fi < mesh.faces.size(); ++fi) {
+      if (!keep[fi]) {
+        ++st_.dropped_faces;
+        continue;
+      }
+      Face fc = mesh.faces[fi];
+      for (int t = 0; t < 3; ++t) {
+        int& r = remap[fc[t]];
+        if (r < 0) {
+          r = int(out.vertices.size());
+          out.vertices.push_back(mesh.vertices[fc[t]]);
+          if (opt_.normals) out.normals.push_back(mesh.normals[fc[t]]);
+        }
+        fc[t] = r;
+      }
+      out.faces.push_back(fc);
+    }
+    mesh = std::move(out);
+  }
+
+  const ImplicitFunction& f_;
+  const DmcOptions& opt_;
+  tbb::task_arena arena_;
+  Vec3d lo_;
+  double h_ = 0;
+  int n_[3] = {1, 1, 1};
+  int m_ = 5;
+  DmcStats st_;
+  std::unordered_map<Key, Node> nodes_;
+  std::unordered_map<Key, Crossing> crossings_;
+};
+
+}  // namespace
+
+Mesh extract_dmc(const ImplicitFunction& f, const Aabb& box, int resolution, const DmcOptions& opt,
+                 DmcStats* stats) {
+  if (!box.valid() || !all_finite({box.min, box.max})) throw InvalidInput("extract_dmc: invalid bounding box");
+  if (resolution < 1 || resolution > (1 << 20))
+    throw InvalidInput("extract_dmc: resolution must be in [1, 2^20]");
+  if (!((box.max - box.min).maxCoeff() > 0)) throw InvalidInput("extract_dmc: degenerate bounding box");
+  if (opt.threads < 0) throw InvalidInput("extract_dmc: threads must be >= 0");
+  if (!(opt.search_step >= 0) || !std::isfinite(opt.search_step))
+    throw InvalidInput("extract_dmc: search_step must be >= 0 (0 = h / 5)");
+  if (opt.refine_steps < 0 || opt.refine_steps > 64) throw InvalidInput("extract_dmc: refine_steps must be in [0, 64]");
+  if (!(opt.theta_sharp >= -1 && opt.theta_sharp <= 1) || !(opt.phi_corner >= 0 && opt.phi_corner <= 1))
+    throw InvalidInput("extract_dmc: theta_sharp must be in [-1, 1] and phi_corner in [0, 1]");
+  if (!std::isfinite(opt.iso)) throw InvalidInput("extract_dmc: iso must be finite");
+  Dmc dmc(f, box, resolution, opt);
+  return dmc.run(stats);
+}
+
+Mesh extract_dmc(const MpuSurface& surface, int resolution, DmcOptions options, DmcStats* stats) {
+  Aabb box = surface.bounds();
+  const float pad = 0.05f * (box.max - box.min).maxCoeff();
+  box.min.array() -= pad;
+  box.max.array() += pad;
+  options.seeds = surface.points();
+  options.close_at_box = true;
+  return extract_dmc(static_cast<const ImplicitFunction&>(surface), box, resolution, options, stats);
+}
+
+}  // namespace station

@@ -1,0 +1,75 @@
+#pragma once
+// Deformed Marching Cubes (Fujimoto, Moriya & Nakayama 2007; docs/dmc.md): the sparse
+// marching cubes of reconstruct/marching_cubes.h on a lattice whose points may move,
+// each inside its own box Omega = p + h*[-0.5, 0.5)^3, so cells never fold and the MC
+// case table still applies:
+//   1. barycentre step: lattice points next to a part thinner than the lattice move to
+//      the centroid of the inside samples (step s) of their box, so the part keeps
+//      lattice points inside (and, beyond the paper, points inside a thin slot of outside
+//      move to the centroid of the outside samples, so the slot stays open);
+//   2. feature step: sharp edges and corners found from the crossings and normals of
+//      each cell (Kobbelt et al. 2001) pull the nearest lattice points onto them;
+//   3. marching cubes on the deformed lattice, crossings refined on f along the
+//      deformed edges.
+// Lattice values are f at the moved positions. Sparse (hash map of the lattice points
+// near the surface), parallel (TBB), deterministic for any thread count.
+#include <cstddef>
+
+#include "core/geometry.h"
+#include "reconstruct/implicit.h"
+#include "reconstruct/marching_cubes.h"
+
+namespace station {
+
+class MpuSurface;
+
+/// Everything MarchingCubesOptions has (iso, seeds, coarse_step, normals, untrusted,
+/// close_at_box, threads; same meaning), plus the DMC steps. A MarchingCubesOptions
+/// converts: `DmcOptions d; static_cast<MarchingCubesOptions&>(d) = mc_options;`.
+struct DmcOptions : MarchingCubesOptions {
+  /// Barycentre search step s in input units; 0 = h / 5. Rounded so that h / s samples
+  /// fit each axis of Omega (at most 16).
+  double search_step = 0;
+  /// Sharp edge when the smallest dot product of two crossing normals of a cell is below.
+  double theta_sharp = 0.9;
+  /// Corner when a third normal's |dot| with the edge direction is above.
+  double phi_corner = 0.7;
+  /// Step 1: move lattice points into thin inside parts.
+  bool barycentre = true;
+  /// Beyond the paper: move lattice points into thin gaps of outside (slots).
+  bool thin_gaps = true;
+  /// Step 2: move lattice points onto sharp edges and corners.
+  bool features = true;
+  /// Regula-falsi (Illinois) steps on f refining each crossing after linear interpolation.
+  int refine_steps = 2;
+};
+
+struct DmcStats : MarchingCubesStats {
+  std::size_t gradient_evaluations = 0;  ///< f.gradient calls (search pruning, normals)
+  std::size_t probed = 0;            ///< lattice points given the thin-part probe
+  std::size_t searched = 0;          ///< lattice points whose Omega was sampled at step s
+  std::size_t moved_barycentre = 0;  ///< moved into thin inside parts (step 1)
+  std::size_t moved_gap = 0;         ///< moved into thin outside gaps (beyond the paper)
+  std::size_t moved_corner = 0;      ///< moved onto corners (step 2)
+  std::size_t moved_edge = 0;        ///< moved onto sharp edges (step 2)
+  std::size_t degenerate_faces = 0;  ///< zero-area faces in the output (expected 0)
+  double search_step = 0;            ///< s actually used, input units
+};
+
+/// Triangle mesh of {f = iso} inside `box` on a lattice of `resolution` cells along the
+/// box's longest side, by Deformed Marching Cubes. Same conventions as
+/// extract_marching_cubes (cell size, seeds/scan lines, close_at_box, untrusted regions,
+/// counter-clockwise faces seen from outside, one vertex per crossed lattice edge); the
+/// lattice points of the box's outermost layer never move. f returning NaN counts as
+/// outside. InvalidInput on an invalid box, resolution outside [1, 2^20], threads < 0,
+/// search_step < 0, refine_steps < 0, or thresholds outside [-1, 1].
+Mesh extract_dmc(const ImplicitFunction& f, const Aabb& box, int resolution,
+                 const DmcOptions& options = {}, DmcStats* stats = nullptr);
+
+/// The MPU surface's mesh with the conventions of extract_marching_cubes(MpuSurface):
+/// box = input bounds grown by 5 % of the longest side, seeds = the input points,
+/// close_at_box set.
+Mesh extract_dmc(const MpuSurface& surface, int resolution, DmcOptions options = {},
+                 DmcStats* stats = nullptr);
+
+}  // namespace station
