@@ -5,7 +5,7 @@
 
 #include "drivers/fabscan_turntable.h"
 #include "drivers/horus_turntable.h"
-#include "drivers/v4l2_probe.h"
+#include "drivers/v4l2_camera.h"
 
 namespace station {
 
@@ -52,7 +52,7 @@ void register_serial_turntables(DeviceRegistry& registry) {
 }
 
 void register_v4l2_cameras(DeviceRegistry& registry, std::shared_ptr<SysCalls> sys) {
-  register_v4l2_probe(registry, std::move(sys));
+  register_v4l2_camera(registry, std::move(sys));
 }
 
 void register_real_devices(DeviceRegistry& registry) {

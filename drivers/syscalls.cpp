@@ -3,6 +3,7 @@
 #include <fcntl.h>
 #include <poll.h>
 #include <sys/ioctl.h>
+#include <sys/mman.h>
 #include <unistd.h>
 
 #include <cerrno>
@@ -27,6 +28,12 @@ class RealSysCalls final : public SysCalls {
     return keep(::poll(&p, 1, timeout_ms));
   }
   int last_error() const override { return error_; }
+  void* mmap(void* addr, size_t length, int prot, int flags, int fd, off_t offset) override {
+    void* p = ::mmap(addr, length, prot, flags, fd, offset);
+    if (p == MAP_FAILED) error_ = errno;
+    return p;
+  }
+  int munmap(void* addr, size_t length) override { return keep(::munmap(addr, length)); }
 
  private:
   template <typename T>

@@ -2,6 +2,7 @@
 // The system-call seam for real device back-ends: drivers call these instead
 // of ::open/::ioctl/..., so tests inject a fake kernel (scripted ioctl replies,
 // unplug mid-stream) and CI exercises drivers without hardware.
+#include <sys/mman.h>
 #include <sys/types.h>
 
 #include <memory>
@@ -20,6 +21,16 @@ class SysCalls {
   virtual int poll_in(int fd, int timeout_ms) = 0;
   /// errno of the last failing call on this thread.
   virtual int last_error() const = 0;
+  /// mmap(2)/munmap(2) for streaming buffers. Not pure so older fakes that do
+  /// not stream still compile: the defaults fail (MAP_FAILED / -1).
+  virtual void* mmap(void* addr, size_t length, int prot, int flags, int fd, off_t offset) {
+    (void)addr, (void)length, (void)prot, (void)flags, (void)fd, (void)offset;
+    return MAP_FAILED;
+  }
+  virtual int munmap(void* addr, size_t length) {
+    (void)addr, (void)length;
+    return -1;
+  }
 };
 
 /// The real kernel.
