@@ -44,7 +44,19 @@ Cloud frame_to_cloud(const Frame& frame, double max_jump) {
     float d = frame.depth[std::size_t(v) * w + u];
     return std::isfinite(d) && d > 0 ? d : 0.f;
   };
+  // Rays of the pixels, undistorted once per frame when the lens has distortion
+  // (the depth is along the optical axis: point = (x d, y d, d)).
+  std::vector<Eigen::Vector2f> rays;
+  if (K.distorted()) {
+    rays.resize(std::size_t(w) * h);
+    for (int v = 0; v < h; ++v)
+      for (int u = 0; u < w; ++u) rays[std::size_t(v) * w + u] = pixel_to_ray(K, u, v).cast<float>();
+  }
   auto point_at = [&](int u, int v, float d) {
+    if (!rays.empty()) {
+      const Eigen::Vector2f& r = rays[std::size_t(v) * w + u];
+      return Vec3f(r.x() * d, r.y() * d, d);
+    }
     return Vec3f(float((u - K.cx) * d / K.fx), float((v - K.cy) * d / K.fy), d);
   };
   // Colour is used when the image is registered pixel for pixel with the depth.

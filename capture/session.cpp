@@ -295,6 +295,11 @@ class ManifestReader {
     in.cy = number(required(n, "cy", path), path + ".cy");
     if (in.fx <= 0) fail(path + ".fx", "must be positive");
     if (in.fy <= 0) fail(path + ".fy", "must be positive");
+    if (const YAML::Node d = n["distortion"]; !absent(d)) {
+      if (!d.IsSequence() || d.size() != 5) fail(path + ".distortion", "expected [k1, k2, p1, p2, k3]");
+      for (std::size_t i = 0; i < 5; ++i)
+        in.distortion[i] = number(d[i], path + ".distortion[" + std::to_string(i) + "]");
+    }
     return in;
   }
 
@@ -460,6 +465,11 @@ std::string manifest_to_yaml(const SessionManifest& m) {
     emit_number(out, in.cx);
     out << YAML::Key << "cy" << YAML::Value;
     emit_number(out, in.cy);
+    if (in.distorted()) {
+      out << YAML::Key << "distortion" << YAML::Value << YAML::Flow << YAML::BeginSeq;
+      for (double d : in.distortion) emit_number(out, d);
+      out << YAML::EndSeq;
+    }
     out << YAML::EndMap;
   }
   if (m.axis) {

@@ -3,6 +3,7 @@
 // the simulated scanner (sim/) implement the same interface; the capture loop
 // sees only this header.
 #include <Eigen/Core>
+#include <array>
 #include <cstdint>
 #include <map>
 #include <optional>
@@ -13,12 +14,27 @@
 
 namespace station {
 
-/// Pinhole intrinsics of a range or colour camera, in pixels.
+/// Pinhole intrinsics of a range or colour camera, in pixels, with Brown-Conrady
+/// lens distortion in OpenCV's order and convention (k1, k2, p1, p2, k3): a ray
+/// with normalised coordinates (x, y) = (X/Z, Y/Z) lands on pixel
+/// (fx x_d + cx, fy y_d + cy), where (x_d, y_d) is (x, y) distorted.
 struct Intrinsics {
   int width = 0, height = 0;
   double fx = 0, fy = 0, cx = 0, cy = 0;
+  std::array<double, 5> distortion{};  ///< k1, k2, p1, p2, k3; all zero = none
   bool valid() const { return width > 0 && height > 0 && fx > 0 && fy > 0; }
+  bool distorted() const {
+    for (double d : distortion)
+      if (d != 0) return true;
+    return false;
+  }
 };
+
+/// Normalised undistorted ray (x, y) = (X/Z, Y/Z) of pixel (u, v): inverts the
+/// distortion by fixed-point iteration (exact to ~1e-12 for ordinary lenses).
+Eigen::Vector2d pixel_to_ray(const Intrinsics& k, double u, double v);
+/// Pixel of the ray (x, y) = (X/Z, Y/Z), distortion applied.
+Eigen::Vector2d ray_to_pixel(const Intrinsics& k, double x, double y);
 
 /// One grab. A range camera fills `depth` (metres along the optical axis,
 /// row-major width*height, 0 = no return); a device that measures points

@@ -36,6 +36,7 @@
 #include "station/config.h"
 #include "station/json.h"
 #include "station/pipeline.h"
+#include "capture/camera_calibration.h"
 #include "station/progress.h"
 
 #ifndef STATION_VERSION
@@ -684,6 +685,46 @@ int cmd_calibrate_turntable(const Common& c, const std::string& session_dir, con
   return 0;
 }
 
+std::string fmt_double(double v) {
+  char buf[32];
+  std::snprintf(buf, sizeof buf, "%.4f", v);
+  return buf;
+}
+
+int cmd_calibrate_camera(const Common& c, const std::vector<std::string>& images, const std::string& board,
+                         double square, const std::string& out) {
+  ChessboardSpec spec;
+  spec.square = square;
+  if (std::sscanf(board.c_str(), "%dx%d", &spec.inner_cols, &spec.inner_rows) != 2)
+    throw InvalidInput("--board " + board + ": expected COLSxROWS, e.g. 9x6");
+  std::vector<fs::path> files(images.begin(), images.end());
+  if (!c.json) std::fprintf(stderr, "calibrate camera: finding the chessboard in %zu images...\n", files.size());
+  const CameraCalibration cal = calibrate_camera(files, spec);
+  const std::string fragment = camera_profile_fragment(cal, std::to_string(files.size()) + " images");
+  if (!out.empty()) write_file_atomic(out, fragment);
+  const Intrinsics& k = cal.intrinsics;
+  if (c.json) {
+    std::vector<double> per;
+    for (const CameraImageResult& r : cal.images) per.push_back(r.used ? r.rms_px : -1);
+    print_summary(JsonObject()
+                      .add("command", "calibrate camera")
+                      .add("images", cal.images.size())
+                      .add("used_images", cal.used_images)
+                      .add("rms_px", cal.rms_px)
+                      .add("per_image_rms_px", per)
+                      .add("intrinsics", std::vector<double>{double(k.width), double(k.height), k.fx, k.fy, k.cx, k.cy})
+                      .add("distortion", std::vector<double>(k.distortion.begin(), k.distortion.end())));
+  } else {
+    std::printf("%s", fragment.c_str());
+    std::printf("%-40s %8s %s\n", "image", "rms px", "");
+    for (const CameraImageResult& r : cal.images)
+      std::printf("%-40s %8s %s\n", r.file.c_str(), r.used ? fmt_double(r.rms_px).c_str() : "-",
+                  r.used ? (r.rms_px > 3 * cal.rms_px ? "<- suspicious" : "") : r.message.c_str());
+    if (!out.empty()) std::printf("written: %s\n", out.c_str());
+  }
+  return 0;
+}
+
 // ---- consolidate -----------------------------------------------------------------
 
 struct ConsolidateArgs {
@@ -900,12 +941,22 @@ int run_cli(int argc, char** argv) {
 
   std::string cal_session, cal_out;
   Common c_cal;
-  auto* cal = app.add_subcommand("calibrate", "Calibrate bench devices from a recorded session");
+  auto* cal = app.add_subcommand("calibrate", "Calibrate bench devices: the camera (chessboard images) or the turntable axis (a session)");
   auto* cal_tt = cal->add_subcommand("turntable", "Fit the turntable axis to a registered session");
   cal->require_subcommand(1);
   add_common(cal_tt, c_cal);
   cal_tt->add_option("session", cal_session, "session folder (views with turntable angles)")->required();
   cal_tt->add_option("-o,--out", cal_out, "write the axis as a profile fragment (capture.axis)");
+  std::vector<std::string> cam_images;
+  std::string cam_board = "9x6", cam_out;
+  double cam_square = 0.025;
+  Common c_cam;
+  auto* cal_cam = cal->add_subcommand("camera", "Intrinsics and lens distortion from chessboard images");
+  add_common(cal_cam, c_cam);
+  cal_cam->add_option("images", cam_images, "PNG/JPEG images of a chessboard, 3 or more")->required();
+  cal_cam->add_option("--board", cam_board, "inner corners COLSxROWS")->capture_default_str();
+  cal_cam->add_option("--square", cam_square, "square side, metres")->capture_default_str()->check(CLI::PositiveNumber);
+  cal_cam->add_option("-o,--out", cam_out, "write the result as a profile fragment (scanner.options)");
 
   ConsolidateArgs cons_args;
   Common c_cons;
@@ -956,6 +1007,7 @@ int run_cli(int argc, char** argv) {
     if (*rec) return cmd_reconstruct(c_rec, rec_args);
     if (*reg) return cmd_register(c_reg, reg_session, reg_out, reg_poses);
     if (*cal_tt) return cmd_calibrate_turntable(c_cal, cal_session, cal_out);
+    if (*cal_cam) return cmd_calibrate_camera(c_cam, cam_images, cam_board, cam_square, cam_out);
   } catch (const Error& e) {
     std::fprintf(stderr, "station: %s\n", e.what());
     return 1;

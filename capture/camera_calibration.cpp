@@ -1,0 +1,101 @@
+#include "capture/camera_calibration.h"
+
+#include <opencv2/calib3d.hpp>
+#include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include <cmath>
+#include <cstdio>
+
+#include "core/error.h"
+
+namespace station {
+
+namespace fs = std::filesystem;
+
+CameraCalibration calibrate_camera(const std::vector<fs::path>& images, const ChessboardSpec& board) {
+  if (board.inner_cols < 2 || board.inner_rows < 2 || !(board.square > 0))
+    throw InvalidInput("chessboard: needs at least 2x2 inner corners and a positive square size");
+  CameraCalibration out;
+  std::vector<std::vector<cv::Point3f>> object_points;
+  std::vector<std::vector<cv::Point2f>> image_points;
+  std::vector<int> index_of;  // calibration entry -> out.images index
+  cv::Size size;
+  std::vector<cv::Point3f> grid;
+  for (int r = 0; r < board.inner_rows; ++r)
+    for (int c = 0; c < board.inner_cols; ++c)
+      grid.emplace_back(float(c * board.square), float(r * board.square), 0.f);
+  for (const fs::path& file : images) {
+    CameraImageResult res;
+    res.file = file.string();
+    if (!fs::exists(file)) throw IoError(file.string() + ": cannot open: no such file");
+    const cv::Mat img = cv::imread(file.string(), cv::IMREAD_GRAYSCALE);
+    if (img.empty()) throw FormatError(file.string() + ": not a readable image");
+    if (size.width == 0) size = img.size();
+    if (img.size() != size)
+      throw InvalidInput(file.string() + ": image size " + std::to_string(img.cols) + "x" +
+                         std::to_string(img.rows) + " differs from the first image's");
+    std::vector<cv::Point2f> corners;
+    const bool found = cv::findChessboardCorners(
+        img, cv::Size(board.inner_cols, board.inner_rows), corners,
+        cv::CALIB_CB_ADAPTIVE_THRESH | cv::CALIB_CB_NORMALIZE_IMAGE);
+    if (!found) {
+      res.message = "chessboard not found";
+    } else {
+      cv::cornerSubPix(img, corners, cv::Size(5, 5), cv::Size(-1, -1),
+                       cv::TermCriteria(cv::TermCriteria::EPS + cv::TermCriteria::COUNT, 50, 1e-4));
+      res.used = true;
+      object_points.push_back(grid);
+      image_points.push_back(corners);
+      index_of.push_back(int(out.images.size()));
+    }
+    out.images.push_back(res);
+  }
+  out.used_images = int(image_points.size());
+  if (out.used_images < 3)
+    throw InvalidInput("calibrate camera: the chessboard (" + std::to_string(board.inner_cols) + "x" +
+                       std::to_string(board.inner_rows) + " inner corners) was found in " +
+                       std::to_string(out.used_images) + " of " + std::to_string(images.size()) +
+                       " images; at least 3 are needed");
+  cv::Mat K, dist;
+  std::vector<cv::Mat> rvecs, tvecs;
+  out.rms_px = cv::calibrateCamera(object_points, image_points, size, K, dist, rvecs, tvecs);
+  if (!std::isfinite(out.rms_px)) throw InvalidInput("calibrate camera: the calibration did not converge");
+  Intrinsics& in = out.intrinsics;
+  in.width = size.width;
+  in.height = size.height;
+  in.fx = K.at<double>(0, 0);
+  in.fy = K.at<double>(1, 1);
+  in.cx = K.at<double>(0, 2);
+  in.cy = K.at<double>(1, 2);
+  for (int i = 0; i < 5 && i < int(dist.total()); ++i) in.distortion[i] = dist.at<double>(i);
+  for (std::size_t k = 0; k < image_points.size(); ++k) {
+    std::vector<cv::Point2f> projected;
+    cv::projectPoints(object_points[k], rvecs[k], tvecs[k], K, dist, projected);
+    double sum = 0;
+    for (std::size_t j = 0; j < projected.size(); ++j) {
+      const cv::Point2f d = projected[j] - image_points[k][j];
+      sum += d.dot(d);
+    }
+    out.images[index_of[k]].rms_px = std::sqrt(sum / projected.size());
+  }
+  return out;
+}
+
+std::string camera_profile_fragment(const CameraCalibration& c, const std::string& source) {
+  const Intrinsics& k = c.intrinsics;
+  char buf[1024];
+  std::snprintf(buf, sizeof buf,
+                "# Camera calibrated from %s: %d of %zu images, reprojection RMS %.4f px\n"
+                "scanner:\n  options:\n"
+                "    width: \"%d\"\n    height: \"%d\"\n"
+                "    fx: \"%.10g\"\n    fy: \"%.10g\"\n    cx: \"%.10g\"\n    cy: \"%.10g\"\n"
+                "    distortion: \"%.10g,%.10g,%.10g,%.10g,%.10g\"   # k1,k2,p1,p2,k3 (OpenCV order)\n",
+                source.c_str(), c.used_images, c.images.size(), c.rms_px, k.width, k.height, k.fx, k.fy,
+                k.cx, k.cy, k.distortion[0], k.distortion[1], k.distortion[2], k.distortion[3],
+                k.distortion[4]);
+  return buf;
+}
+
+}  // namespace station
