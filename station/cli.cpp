@@ -36,6 +36,7 @@
 #include "station/config.h"
 #include "station/json.h"
 #include "station/pipeline.h"
+#include "drivers/real_devices.h"
 #include "capture/camera_calibration.h"
 #include "station/progress.h"
 
@@ -102,7 +103,7 @@ double seconds_since(std::chrono::steady_clock::time_point t0) {
 DeviceRegistry make_registry() {
   DeviceRegistry reg;
   register_sim_devices(reg);
-  register_v4l2_probe(reg, real_syscalls());
+  register_real_devices(reg);  // serial turntables, V4L2 cameras (drivers/real_devices.h)
   return reg;
 }
 
