@@ -139,7 +139,7 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
     if (n["seed"]) c.seed = unsigned(r.integer(n["seed"], "consolidate.seed"));
   }
   if (const YAML::Node n = root["reconstruct"]) {
-    r.check_keys(n, "reconstruct", {"surface", "resolution", "epsilon0", "extractor", "hole", "colour"});
+    r.check_keys(n, "reconstruct", {"surface", "resolution", "epsilon0", "extractor", "hole", "colour", "min_component"});
     auto& c = p.reconstruct;
     if (n["surface"]) c.surface = r.text(n["surface"], "reconstruct.surface");
     if (c.surface != "mpu" && c.surface != "sdm") r.fail("reconstruct.surface", "must be mpu or sdm");
@@ -152,6 +152,8 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
     if (n["hole"]) c.hole = r.text(n["hole"], "reconstruct.hole");
     if (c.hole != "close" && c.hole != "keep") r.fail("reconstruct.hole", "must be close or keep");
     if (n["colour"]) c.colour = r.boolean(n["colour"], "reconstruct.colour");
+    if (n["min_component"]) c.min_component = r.number(n["min_component"], "reconstruct.min_component");
+    if (c.min_component < 0 || c.min_component > 1) r.fail("reconstruct.min_component", "must be 0..1");
   }
   if (const YAML::Node n = root["sdm"]) {
     r.check_keys(n, "sdm", {"level"});

@@ -33,6 +33,7 @@ struct PipelineConfig {
     std::string extractor = "mc";   ///< mc | dmc
     std::string hole = "close";     ///< close | keep (the unseen underside)
     bool colour = true;             ///< colour the mesh when the cloud has colours
+    double min_component = 0.01;    ///< drop pieces below this fraction of the largest's area
   } reconstruct;
   struct Sdm {
     int level = 5;  ///< icosphere template subdivision level

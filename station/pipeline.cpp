@@ -20,6 +20,7 @@
 #include "core/normals.h"
 #include "reconstruct/color_transfer.h"
 #include "reconstruct/marching_cubes.h"
+#include "reconstruct/mesh_clean.h"
 #include "reconstruct/mpu.h"
 #include "reconstruct/wlop.h"
 #include "station/progress.h"
@@ -178,7 +179,8 @@ std::string surface_params(const PipelineConfig& p) {
   const auto& c = p.reconstruct;
   std::ostringstream s;
   s << "surface/" << c.surface << ";resolution=" << c.resolution << ";epsilon0=" << fmt("%.17g", c.epsilon0)
-    << ";extractor=" << c.extractor << ";hole=" << c.hole << ";colour=" << c.colour;
+    << ";extractor=" << c.extractor << ";hole=" << c.hole << ";colour=" << c.colour
+    << ";min_component=" << fmt("%.17g", c.min_component);
   if (c.surface == "sdm") s << ";level=" << p.sdm.level;
   return s.str();
 }
@@ -508,6 +510,11 @@ class Runner {
     say("  surface: extracting at resolution " + std::to_string(c.resolution));
     Mesh mesh = extract_marching_cubes(surface, c.resolution, mo, &stats);
     if (mesh.faces.empty()) throw InvalidInput(in.string() + ": the reconstructed surface is empty");
+    const ComponentFilterStats pieces = remove_small_components(mesh, c.min_component);
+    if (pieces.removed_components > 0)
+      say("  surface: removed " + std::to_string(pieces.removed_components) + " small pieces (" +
+          std::to_string(pieces.removed_faces) + " faces)");
+    r.figures["removed_pieces"] = double(pieces.removed_components);
     const bool colour = c.colour && input.has_colors();
     if (colour) transfer_colors(mesh, input, {4, cfg_.threads});
     else if (c.colour) say("  note: " + in.string() + " has no colours; the mesh is left uncoloured");

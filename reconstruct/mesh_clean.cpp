@@ -1,0 +1,89 @@
+#include "reconstruct/mesh_clean.h"
+
+#include <Eigen/Geometry>
+
+#include <numeric>
+#include <string>
+#include <vector>
+
+#include "core/error.h"
+
+namespace station {
+
+namespace {
+struct UnionFind {
+  std::vector<int> parent;
+  explicit UnionFind(std::size_t n) : parent(n) { std::iota(parent.begin(), parent.end(), 0); }
+  int find(int x) {
+    while (parent[x] != x) x = parent[x] = parent[parent[x]];
+    return x;
+  }
+  void unite(int a, int b) {
+    a = find(a);
+    b = find(b);
+    if (a != b) parent[std::max(a, b)] = std::min(a, b);
+  }
+};
+}  // namespace
+
+ComponentFilterStats remove_small_components(Mesh& mesh, double min_area_fraction) {
+  mesh.check_consistent();
+  if (!(min_area_fraction >= 0 && min_area_fraction <= 1))
+    throw InvalidInput("remove_small_components: fraction " + std::to_string(min_area_fraction) +
+                       " outside [0, 1]");
+  ComponentFilterStats st;
+  if (mesh.faces.empty()) return st;
+  const std::size_t nv = mesh.vertices.size();
+  UnionFind uf(nv);
+  for (const Face& f : mesh.faces) {
+    uf.unite(f[0], f[1]);
+    uf.unite(f[0], f[2]);
+  }
+  std::vector<double> area(nv, 0.0);
+  for (const Face& f : mesh.faces) {
+    const Vec3d a = mesh.vertices[f[0]].cast<double>();
+    const double A =
+        0.5 * (mesh.vertices[f[1]].cast<double>() - a).cross(mesh.vertices[f[2]].cast<double>() - a).norm();
+    area[uf.find(f[0])] += std::isfinite(A) ? A : 0.0;
+  }
+  std::vector<char> has_face(nv, 0);
+  for (const Face& f : mesh.faces) has_face[uf.find(f[0])] = 1;
+  for (std::size_t r = 0; r < nv; ++r)
+    if (has_face[r] && uf.find(int(r)) == int(r)) {
+      ++st.components;
+      st.largest_area = std::max(st.largest_area, area[r]);
+    }
+  const double min_area = min_area_fraction * st.largest_area;
+  std::vector<char> keep_root(nv, 1);
+  for (std::size_t r = 0; r < nv; ++r)
+    if (has_face[r] && uf.find(int(r)) == int(r) && area[r] < min_area) {
+      keep_root[r] = 0;
+      ++st.removed_components;
+    }
+  if (st.removed_components == 0) return st;
+  std::vector<Face> faces;
+  faces.reserve(mesh.faces.size());
+  std::vector<int> remap(nv, -1);
+  for (const Face& f : mesh.faces) {
+    if (!keep_root[uf.find(f[0])]) {
+      ++st.removed_faces;
+      continue;
+    }
+    faces.push_back(f);
+    for (int k = 0; k < 3; ++k) remap[f[k]] = 0;
+  }
+  Mesh out;
+  for (std::size_t v = 0; v < nv; ++v) {
+    if (remap[v] < 0) continue;
+    remap[v] = int(out.vertices.size());
+    out.vertices.push_back(mesh.vertices[v]);
+    if (mesh.has_normals()) out.normals.push_back(mesh.normals[v]);
+    if (mesh.has_colors()) out.colors.push_back(mesh.colors[v]);
+  }
+  for (Face& f : faces) f = Face(remap[f[0]], remap[f[1]], remap[f[2]]);
+  out.faces = std::move(faces);
+  mesh = std::move(out);
+  return st;
+}
+
+}  // namespace station

@@ -1,0 +1,23 @@
+#pragma once
+// Mesh clean-up after extraction: small disconnected pieces (spurious bubbles
+// of an implicit fitted to noisy data, specks from stray points) are removed.
+#include <cstddef>
+
+#include "core/geometry.h"
+
+namespace station {
+
+struct ComponentFilterStats {
+  std::size_t components = 0;          ///< connected pieces before (faces sharing vertices)
+  std::size_t removed_components = 0;
+  std::size_t removed_faces = 0;
+  double largest_area = 0;
+};
+
+/// Drops every connected piece whose area is below `min_area_fraction` x the
+/// largest piece's area (0 keeps everything), then drops unreferenced vertices
+/// (normals and colours follow). Face order and orientation are kept.
+/// InvalidInput on an inconsistent mesh or a fraction outside [0, 1].
+ComponentFilterStats remove_small_components(Mesh& mesh, double min_area_fraction);
+
+}  // namespace station

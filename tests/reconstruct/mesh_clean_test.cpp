@@ -1,0 +1,63 @@
+#include <gtest/gtest.h>
+
+#include "core/error.h"
+#include "reconstruct/mesh_clean.h"
+#include "test_util.h"
+
+namespace station {
+namespace {
+
+Mesh join(Mesh a, const Mesh& b) {
+  const int off = int(a.vertices.size());
+  a.vertices.insert(a.vertices.end(), b.vertices.begin(), b.vertices.end());
+  a.normals.insert(a.normals.end(), b.normals.begin(), b.normals.end());
+  a.colors.insert(a.colors.end(), b.colors.begin(), b.colors.end());
+  for (Face f : b.faces) a.faces.push_back(f + Face::Constant(off));
+  return a;
+}
+
+Mesh painted(Mesh m, Rgb c) {
+  m.colors.assign(m.vertices.size(), c);
+  m.normals = vertex_normals(m);
+  return m;
+}
+
+TEST(RemoveSmallComponents, DropsSpecksAndKeepsTheObjectWithItsAttributes) {
+  const Mesh big = painted(test::icosphere(3, 1.0), {200, 10, 10});
+  const Mesh speck = painted(test::icosphere(1, 0.05, Vec3f(3, 0, 0)), {0, 0, 255});
+  const Mesh medium = painted(test::icosphere(2, 0.5, Vec3f(-3, 0, 0)), {0, 255, 0});
+  Mesh m = join(join(speck, big), medium);  // the speck first: indices must be remapped
+  const ComponentFilterStats st = remove_small_components(m, 0.01);
+  EXPECT_EQ(st.components, 3u);
+  EXPECT_EQ(st.removed_components, 1u);
+  EXPECT_EQ(st.removed_faces, speck.faces.size());
+  EXPECT_EQ(m.faces.size(), big.faces.size() + medium.faces.size());
+  EXPECT_EQ(m.vertices.size(), big.vertices.size() + medium.vertices.size());
+  ASSERT_NO_THROW(m.check_consistent());
+  for (std::size_t i = 0; i < m.vertices.size(); ++i) {
+    // No speck vertex survives; colours still belong to their vertices.
+    EXPECT_LT(m.vertices[i].x(), 2.5f);
+    if (m.vertices[i].x() < -2) EXPECT_EQ(m.colors[i].g, 255);
+    else EXPECT_EQ(m.colors[i].r, 200);
+  }
+  // A larger threshold removes the medium sphere too (area 0.25 of the big one).
+  Mesh m2 = join(big, medium);
+  EXPECT_EQ(remove_small_components(m2, 0.3).removed_components, 1u);
+  EXPECT_EQ(m2.faces.size(), big.faces.size());
+  // 0 keeps everything.
+  Mesh m3 = join(big, speck);
+  EXPECT_EQ(remove_small_components(m3, 0).removed_components, 0u);
+  EXPECT_EQ(m3.faces.size(), big.faces.size() + speck.faces.size());
+}
+
+TEST(RemoveSmallComponents, EmptyAndBadInput) {
+  Mesh empty;
+  EXPECT_EQ(remove_small_components(empty, 0.1).components, 0u);
+  Mesh m = test::icosphere(1);
+  EXPECT_THROW(remove_small_components(m, 1.5), InvalidInput);
+  m.faces.push_back({0, 1, 99999});
+  EXPECT_THROW(remove_small_components(m, 0.1), InvalidInput);
+}
+
+}  // namespace
+}  // namespace station
