@@ -36,6 +36,7 @@
 #include "station/config.h"
 #include "station/json.h"
 #include "station/pipeline.h"
+#include "reconstruct/mesh_clean.h"
 #include "drivers/real_devices.h"
 #include "capture/camera_calibration.h"
 #include "station/progress.h"
@@ -793,6 +794,7 @@ struct ReconstructArgs {
   std::string holes = "close";
   double epsilon = 0;  ///< 0: from the cloud's noise level (suggest_epsilon0)
   bool no_colour = false;
+  double min_component = 0.01;
 };
 
 int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
@@ -825,6 +827,10 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
   Mesh mesh = extract_marching_cubes(surface, a.resolution, mo, &stats);
   const double t_extract = seconds_since(t2);
   if (mesh.faces.empty()) throw InvalidInput(a.in + ": the reconstructed surface is empty");
+  const ComponentFilterStats pieces = remove_small_components(mesh, a.min_component);
+  if (pieces.removed_components > 0 && !c.json)
+    std::fprintf(stderr, "reconstruct: removed %zu small pieces (%zu faces)\n", pieces.removed_components,
+                 pieces.removed_faces);
   const auto t3 = std::chrono::steady_clock::now();
   const bool colour = input.has_colors() && !a.no_colour;
   if (colour) transfer_colors(mesh, input, {4, cfg.threads});
@@ -846,6 +852,7 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
                                                  .add("edge", d.leaves_by_type[2])
                                                  .add("corner", d.leaves_by_type[3]))
                       .add("unconverged_leaves", d.unconverged_leaves)
+                      .add("removed_pieces", pieces.removed_components)
                       .add("epsilon0", mp.epsilon0)
                       .add("cell_size", stats.cell_size)
                       .add("colours", colour)
@@ -990,6 +997,9 @@ int run_cli(int argc, char** argv) {
                   "cloud's noise level, at least the paper's 1e-4)")
       ->check(CLI::Range(1e-7, 1e-1));
   rec->add_flag("--no-colour", rec_args.no_colour, "do not colour the mesh from the input's colours");
+  rec->add_option("--min-component", rec_args.min_component,
+                  "drop mesh pieces smaller than this fraction of the largest piece's area (0 keeps all)")
+      ->capture_default_str()->check(CLI::Range(0.0, 1.0));
 
   try {
     app.parse(argc, argv);
