@@ -35,6 +35,10 @@ double bspline2(double t) {
   return 0;
 }
 
+double delta_e2(const Lab& a, const Lab& b) {
+  return (a[0] - b[0]) * (a[0] - b[0]) + (a[1] - b[1]) * (a[1] - b[1]) + (a[2] - b[2]) * (a[2] - b[2]);
+}
+
 double psi(double r, double support) {
   const double t = 1 - r / support;
   return t > 0 ? t * t : 0;
@@ -140,7 +144,7 @@ struct ColourFunction::Impl {
       const Node& nd = nodes[stack[--top]];
       const double r = (y - nd.center).norm();
       if (nd.first_child < 0) {
-        if (r >= nd.radius) continue;
+        if (nd.leaf < 0 || r >= nd.radius) continue;
         const double w = bspline2(1.5 * r / nd.radius);
         if (w <= 0) continue;
         if (dominant) {
@@ -176,6 +180,7 @@ using Impl = ColourFunction::Impl;
 
 struct CellResult {
   bool split = false;
+  bool empty = false;
   bool grew = false;
   bool converged = true;
   bool rejected_b = false;
@@ -416,6 +421,13 @@ CellResult fit_cell(const Impl& s, const Vec3d& o, double half, int depth) {
     cr.split = true;
     return cr;
   }
+  if (nn.empty()) {
+    // No data within the cell's support: no leaf (docs/colour.md). MPU grows such balls
+    // to extrapolate the shape; colour is only asked for near the data, and a ball grown
+    // from the inside of an object can swallow the whole cloud.
+    cr.empty = true;
+    return cr;
+  }
   double R = R0;
   if (int(nn.size()) < p.n_min) {
     cr.grew = true;
@@ -429,6 +441,9 @@ CellResult fit_cell(const Impl& s, const Vec3d& o, double half, int depth) {
       ++m;
     } while (int(nn.size()) < std::min<int>(p.n_min, int(s.points.size())));
   }
+  // A grown ball can take in many points at once (points at equal distances): fit the
+  // nearest ones only (nn is sorted by distance).
+  if (int(nn.size()) > std::max(p.n_max, p.n_min)) nn.resize(std::max(p.n_max, p.n_min));
   cr.radius = R;
   Leaf& leaf = cr.leaf;
   leaf.o = o;
@@ -443,14 +458,22 @@ CellResult fit_cell(const Impl& s, const Vec3d& o, double half, int depth) {
 
   // Colour-difference test (eq. 5).
   if (p.type_b) {
+    // Every colour within gamma / 2 of the first: no pair exceeds gamma (triangle
+    // inequality), skip the quadratic search.
+    double dfirst = 0;
+    for (std::size_t i = 1; i < ids.size(); ++i) dfirst = std::max(dfirst, delta_e2(s.labs[ids[0]], s.labs[ids[i]]));
     double dmax = -1;
     int fi = 0, fj = 0;
-    for (std::size_t i = 0; i < ids.size(); ++i)
-      for (std::size_t j = i + 1; j < ids.size(); ++j) {
-        const double d = delta_e(s.labs[ids[i]], s.labs[ids[j]]);
-        if (d > dmax) dmax = d, fi = int(i), fj = int(j);
+    if (dfirst > 0.25 * p.gamma * p.gamma) {
+      for (std::size_t i = 0; i < ids.size(); ++i) {
+        const Lab& ci = s.labs[ids[i]];
+        for (std::size_t j = i + 1; j < ids.size(); ++j) {
+          const double d = delta_e2(ci, s.labs[ids[j]]);
+          if (d > dmax) dmax = d, fi = int(i), fj = int(j);
+        }
       }
-    if (dmax > p.gamma) {
+    }
+    if (dmax > p.gamma * p.gamma) {
       std::vector<int> label;
       int k = cluster_colours(s, ids, fi, fj, label);
       bool ok = true;
@@ -561,6 +584,11 @@ ColourFunction fit_colour(const Cloud& cloud, const ColourParams& params) {
           continue;
         }
         Node& nd = s.nodes[id];
+        if (cr.empty) {
+          nd.radius = 0;  // a leaf without a function: never visited
+          ++s.diag.empty_cells;
+          continue;
+        }
         nd.radius = cr.radius;
         nd.leaf = int(s.leaves.size());
         const int type = int(cr.leaf.type);

@@ -71,7 +71,7 @@ struct ColourParams {
   bool noise_robust = false;
   double noise_min_fraction = 0.1;
   double noise_separation = 2.0;
-  double noise_accept_rms = 8.0;
+  double noise_accept_rms = 14.0;
 
   /// Threads for the build and batched evaluation (0 = all cores). The result does not
   /// depend on it.
@@ -85,6 +85,7 @@ struct ColourDiagnostics {
   std::size_t input_points = 0;
   std::size_t cells = 0;   ///< octree nodes, internal and leaves
   std::size_t leaves = 0;
+  std::size_t empty_cells = 0;  ///< cells without a point in their ball: no local function
   std::array<std::size_t, 2> leaves_by_type{};              ///< [ColourCellType]
   std::vector<std::array<std::size_t, 2>> leaves_by_depth;  ///< [depth][type]
   std::size_t grown_leaves = 0;       ///< ball grown to n_min (not split further)
