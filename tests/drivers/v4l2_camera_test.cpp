@@ -245,6 +245,18 @@ TEST(V4l2Camera, BusyDeviceIsNamed) {
             std::string("v4l2:/dev/video2?") + kK + ": /dev/video2: busy (another program has it open)");
 }
 
+TEST(V4l2Camera, SecondStationOnAStreamingNodeIsBusy) {
+  // V4L2 lets a second process open the node; the format change is what fails.
+  Rig r;
+  auto first = r.camera(std::string("v4l2:/dev/video2?") + kK);
+  first->open();
+  auto second = r.camera(std::string("v4l2:/dev/video2?") + kK);
+  const std::string m = message([&] { second->open(); });
+  EXPECT_NE(m.find("/dev/video2: busy (another program has it open)"), std::string::npos) << m;
+  EXPECT_EQ(r.k->fds.size(), 1u);  // the second one closed its descriptor
+  first->grab();
+}
+
 TEST(V4l2Camera, EagainIsRetriedUntilAFrameArrives) {
   Rig r;
   r.k->nodes["/dev/video2"].eagain_before_each_frame = 5;
