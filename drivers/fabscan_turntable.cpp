@@ -49,11 +49,11 @@ void FabScanTurntable::send(const std::string& bytes) { port_->write(bytes, opt_
 void FabScanTurntable::ping(int timeout_ms) {
   int other = -1;
   if (!try_ping(timeout_ms, other))
-    throw DeviceError(uri_ + ": no pong (211) to ping (210) within " + std::to_string(timeout_ms) +
-                      " ms" +
-                      (other >= 0 ? " (got byte " + std::to_string(other) +
-                                        "; not a FabScan board or wrong baud rate?)"
-                                  : std::string()));
+    throw DeviceError(
+        uri_ + ": no pong (211) to ping (210) within " + std::to_string(timeout_ms) + " ms" +
+        (other >= 0
+             ? " (got byte " + std::to_string(other) + "; not a FabScan board or wrong baud rate?)"
+             : std::string()));
 }
 
 bool FabScanTurntable::try_ping(int timeout_ms, int& other) {
@@ -83,17 +83,16 @@ void FabScanTurntable::open() {
     int other = -1;
     while (!try_ping(slice, other)) {
       if (std::chrono::steady_clock::now() >= deadline)
-        throw DeviceError(uri_ + ": no FabScan board answered the ping (210 -> 211) within " +
-                          std::to_string(opt_.connect_timeout_ms) + " ms" +
-                          (other >= 0 ? " (got byte " + std::to_string(other) +
-                                            "; wrong firmware or baud rate?)"
-                                      : std::string()));
+        throw DeviceError(
+            uri_ + ": no FabScan board answered the ping (210 -> 211) within " +
+            std::to_string(opt_.connect_timeout_ms) + " ms" +
+            (other >= 0 ? " (got byte " + std::to_string(other) + "; wrong firmware or baud rate?)"
+                        : std::string()));
     }
     const unsigned char dir =
         opt_.stepper.direction > 0 ? fabscan::kDirectionCcw : fabscan::kDirectionCw;
-    send(std::string{static_cast<char>(fabscan::kSelectStepper),
-                     static_cast<char>(opt_.stepper_id), static_cast<char>(fabscan::kStepperOn),
-                     static_cast<char>(dir)});
+    send(std::string{static_cast<char>(fabscan::kSelectStepper), static_cast<char>(opt_.stepper_id),
+                     static_cast<char>(fabscan::kStepperOn), static_cast<char>(dir)});
     open_ = true;
     ping(opt_.timeout_ms);  // the board took the setup bytes
   } catch (...) {
@@ -108,8 +107,8 @@ void FabScanTurntable::close() {
   if (!open_) return;
   open_ = false;
   try {
-    send(std::string{static_cast<char>(fabscan::kSelectStepper),
-                     static_cast<char>(opt_.stepper_id), static_cast<char>(fabscan::kStepperOff)});
+    send(std::string{static_cast<char>(fabscan::kSelectStepper), static_cast<char>(opt_.stepper_id),
+                     static_cast<char>(fabscan::kStepperOff)});
   } catch (const DeviceError&) {
   }
   port_->close();
@@ -125,9 +124,8 @@ void FabScanTurntable::rotate_to(double degrees) {
   while (todo > 0) {
     const int chunk = static_cast<int>(std::min<long long>(todo, 255));
     // Select the stepper each time: the laser stepper may have been selected since.
-    send(std::string{static_cast<char>(fabscan::kSelectStepper),
-                     static_cast<char>(opt_.stepper_id), static_cast<char>(fabscan::kPerformStep),
-                     static_cast<char>(chunk)});
+    send(std::string{static_cast<char>(fabscan::kSelectStepper), static_cast<char>(opt_.stepper_id),
+                     static_cast<char>(fabscan::kPerformStep), static_cast<char>(chunk)});
     ping(opt_.timeout_ms + static_cast<int>(std::ceil(chunk * opt_.step_ms)));
     position_steps_ = (position_steps_ + chunk) % per_rev;
     todo -= chunk;

@@ -23,7 +23,8 @@ std::string format_number(double v) {
 std::string printable(const std::string& s) {
   std::string out;
   for (unsigned char c : s) {
-    if (c >= 32 && c < 127) out.push_back(static_cast<char>(c));
+    if (c >= 32 && c < 127)
+      out.push_back(static_cast<char>(c));
     else {
       char b[8];
       std::snprintf(b, sizeof b, "\\x%02x", c);
@@ -76,15 +77,19 @@ std::string horus_handshake(SerialPort& port, LineReader& reader, const std::str
   }
   if (last.empty() && !reader.pending().empty()) last = reader.pending();
   throw DeviceError(who + ": no Horus banner within " + std::to_string(timeout_ms) + " ms" +
-                    (last.empty() ? std::string(" (no answer; is it the right port?)")
-                                  : " (got '" + printable(last) +
-                                        "'; wrong firmware or baud rate?)"));
+                    (last.empty()
+                         ? std::string(" (no answer; is it the right port?)")
+                         : " (got '" + printable(last) + "'; wrong firmware or baud rate?)"));
 }
 
 HorusTurntable::HorusTurntable(const std::string& uri, const std::string& path,
                                HorusOptions options, std::unique_ptr<SerialPort> port,
                                Sleeper sleep)
-    : uri_(uri), path_(path), opt_(options), port_(std::move(port)), sleep_(std::move(sleep)),
+    : uri_(uri),
+      path_(path),
+      opt_(options),
+      port_(std::move(port)),
+      sleep_(std::move(sleep)),
       reader_(*port_) {}
 
 HorusTurntable::~HorusTurntable() {
@@ -139,11 +144,10 @@ void HorusTurntable::command(const std::string& gcode, int timeout_ms) {
                           .count();
     std::string line;
     if (left <= 0 || !reader_.read_line(line, static_cast<int>(left)))
-      throw DeviceError(uri_ + ": no answer to '" + gcode + "' within " +
-                        std::to_string(timeout_ms) + " ms" +
-                        (reader_.pending().empty()
-                             ? std::string()
-                             : " (got '" + printable(reader_.pending()) + "')"));
+      throw DeviceError(
+          uri_ + ": no answer to '" + gcode + "' within " + std::to_string(timeout_ms) + " ms" +
+          (reader_.pending().empty() ? std::string()
+                                     : " (got '" + printable(reader_.pending()) + "')"));
     if (line == "ok") return;
     if (line.rfind("error", 0) == 0 || line.rfind("ALARM", 0) == 0)
       throw DeviceError(uri_ + ": board answered '" + printable(line) + "' to '" + gcode + "'");

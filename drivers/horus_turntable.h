@@ -28,8 +28,8 @@ namespace station {
 struct HorusOptions {
   StepperConfig stepper;
   int baud = 115200;
-  double speed = 200;         ///< degrees per second (G1F)
-  double acceleration = 0;    ///< degrees per second^2 ($120); 0: leave the board's
+  double speed = 200;       ///< degrees per second (G1F)
+  double acceleration = 0;  ///< degrees per second^2 ($120); 0: leave the board's
   int timeout_ms = 2000;
   int banner_timeout_ms = 5000;
   int settle_ms = 100;

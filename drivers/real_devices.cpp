@@ -25,8 +25,8 @@ void register_serial_turntables(DeviceRegistry& registry) {
   registry.add_turntable(
       "horus:",
       [](const DeviceUri& uri, DeviceContext&) -> std::unique_ptr<Turntable> {
-        return std::make_unique<HorusTurntable>(uri.text, uri.path, horus_options(uri.options, uri.text),
-                                                make_posix_serial_port());
+        return std::make_unique<HorusTurntable>(
+            uri.text, uri.path, horus_options(uri.options, uri.text), make_posix_serial_port());
       },
       [] {
         std::vector<DeviceInfo> out;

@@ -93,7 +93,8 @@ class PosixSerialPort final : public SerialPort {
       if (n < 0 && errno != EAGAIN)
         throw DeviceError(path_ + ": write failed (unplugged?): " + errno_text(errno));
       const int left = remaining_ms(deadline);
-      if (left <= 0) throw DeviceError(path_ + ": write timed out after " + std::to_string(timeout_ms) + " ms");
+      if (left <= 0)
+        throw DeviceError(path_ + ": write timed out after " + std::to_string(timeout_ms) + " ms");
       pollfd p{fd_, POLLOUT, 0};
       const int r = ::poll(&p, 1, left);
       if (r < 0 && errno != EINTR) throw DeviceError(path_ + ": poll failed: " + errno_text(errno));
@@ -142,7 +143,8 @@ class PosixSerialPort final : public SerialPort {
     return static_cast<int>(std::max<long long>(0, left.count()));
   }
   void require_open() const {
-    if (fd_ < 0) throw DeviceError((path_.empty() ? std::string("serial port") : path_) + ": not open");
+    if (fd_ < 0)
+      throw DeviceError((path_.empty() ? std::string("serial port") : path_) + ": not open");
   }
   int fd_ = -1;
   std::string path_;
@@ -152,18 +154,30 @@ class PosixSerialPort final : public SerialPort {
 
 unsigned baud_to_speed(int baud) {
   switch (baud) {
-    case 9600: return B9600;
-    case 19200: return B19200;
-    case 38400: return B38400;
-    case 57600: return B57600;
-    case 115200: return B115200;
-    case 230400: return B230400;
-    case 460800: return B460800;
-    case 500000: return B500000;
-    case 921600: return B921600;
-    case 1000000: return B1000000;
-    case 2000000: return B2000000;
-    case 4000000: return B4000000;
+    case 9600:
+      return B9600;
+    case 19200:
+      return B19200;
+    case 38400:
+      return B38400;
+    case 57600:
+      return B57600;
+    case 115200:
+      return B115200;
+    case 230400:
+      return B230400;
+    case 460800:
+      return B460800;
+    case 500000:
+      return B500000;
+    case 921600:
+      return B921600;
+    case 1000000:
+      return B1000000;
+    case 2000000:
+      return B2000000;
+    case 4000000:
+      return B4000000;
     default:
       throw InvalidInput("baud rate " + std::to_string(baud) +
                          " not supported (use 9600, 19200, 38400, 57600, 115200, 230400, ...)");

@@ -12,15 +12,13 @@ namespace station {
 /// `steps`: boards differ (gearing, 200 vs 400 step motors) and a wrong guess
 /// silently scales every angle.
 struct StepperConfig {
-  int steps = 0;       ///< [steps] full motor steps per table revolution (gearing included); required
+  int steps = 0;  ///< [steps] full motor steps per table revolution (gearing included); required
   int microsteps = 1;  ///< [microsteps] driver microstepping (1, 2, 4, 8, 16, 32...)
   /// [direction] +1 ("ccw"): a positive motor move turns the table counter-clockwise
   /// seen from above (the station's positive angle); -1 ("cw"): the motor is
   /// wired the other way round.
   int direction = 1;
-  long long microsteps_per_revolution() const {
-    return static_cast<long long>(steps) * microsteps;
-  }
+  long long microsteps_per_revolution() const { return static_cast<long long>(steps) * microsteps; }
   /// Nearest reachable angle, in degrees (not wrapped).
   double quantize_degrees(double degrees) const;
 };

@@ -95,7 +95,8 @@ void mjpeg_to_rgb(const std::uint8_t* data, std::size_t size, int width, int hei
   } catch (const cv::Exception&) {
     bgr.release();
   }
-  if (bgr.empty()) throw DeviceError(who + ": MJPEG frame does not decode (" + std::to_string(size) + " bytes)");
+  if (bgr.empty())
+    throw DeviceError(who + ": MJPEG frame does not decode (" + std::to_string(size) + " bytes)");
   if (bgr.cols != width || bgr.rows != height)
     throw DeviceError(who + ": MJPEG frame is " + std::to_string(bgr.cols) + "x" +
                       std::to_string(bgr.rows) + ", expected " + std::to_string(width) + "x" +
@@ -184,24 +185,29 @@ void V4l2Stream::start(const Settings& s) {
     if (e == ENOENT || e == ENODEV || e == ENXIO)
       throw DeviceError(who_ + ": " + path_ + ": no such device (unplugged?)");
     if (e == EACCES || e == EPERM)
-      throw DeviceError(who_ + ": " + path_ + ": permission denied (is the user in the video group?)");
+      throw DeviceError(who_ + ": " + path_ +
+                        ": permission denied (is the user in the video group?)");
     throw DeviceError(who_ + ": " + path_ + ": cannot open: " + errno_text(e));
   }
   fd_ = fd;
   try {
     auto fail = [&](const std::string& what) -> DeviceError {
       const int e = sys_->last_error();
-      if (e == EBUSY) return DeviceError(who_ + ": " + path_ + ": busy (another program has it open)");
-      if (e == ENODEV || e == EIO) return DeviceError(who_ + ": " + path_ + ": " + what + " failed (unplugged?)");
+      if (e == EBUSY)
+        return DeviceError(who_ + ": " + path_ + ": busy (another program has it open)");
+      if (e == ENODEV || e == EIO)
+        return DeviceError(who_ + ": " + path_ + ": " + what + " failed (unplugged?)");
       return DeviceError(who_ + ": " + path_ + ": " + what + " failed: " + errno_text(e));
     };
     v4l2_capability cap;
     std::memset(&cap, 0, sizeof cap);
-    if (sys_->ioctl(fd, VIDIOC_QUERYCAP, &cap) < 0) throw fail("VIDIOC_QUERYCAP (not a V4L2 device?)");
+    if (sys_->ioctl(fd, VIDIOC_QUERYCAP, &cap) < 0)
+      throw fail("VIDIOC_QUERYCAP (not a V4L2 device?)");
     const std::uint32_t caps =
         (cap.capabilities & V4L2_CAP_DEVICE_CAPS) ? cap.device_caps : cap.capabilities;
     if (!(caps & V4L2_CAP_VIDEO_CAPTURE))
-      throw DeviceError(who_ + ": " + path_ + ": not a video capture node (a metadata or output node?)");
+      throw DeviceError(who_ + ": " + path_ +
+                        ": not a video capture node (a metadata or output node?)");
     if (!(caps & V4L2_CAP_STREAMING))
       throw DeviceError(who_ + ": " + path_ + ": does not support streaming I/O");
 
@@ -238,15 +244,16 @@ void V4l2Stream::start(const Settings& s) {
     fmt.fmt.pix.bytesperline = 0;
     if (sys_->ioctl(fd, VIDIOC_S_FMT, &fmt) < 0) throw fail("VIDIOC_S_FMT " + fourcc_text(want));
     if (fmt.fmt.pix.pixelformat != want)
-      throw DeviceError(who_ + ": " + path_ + ": driver switched format " + fourcc_text(want) + " to " +
-                        fourcc_text(fmt.fmt.pix.pixelformat));
+      throw DeviceError(who_ + ": " + path_ + ": driver switched format " + fourcc_text(want) +
+                        " to " + fourcc_text(fmt.fmt.pix.pixelformat));
     fourcc_ = want;
     width_ = static_cast<int>(fmt.fmt.pix.width);
     height_ = static_cast<int>(fmt.fmt.pix.height);
     if (width_ <= 0 || height_ <= 0 || width_ > 16384 || height_ > 16384)
-      throw DeviceError(who_ + ": " + path_ + ": driver reports a bad size " + std::to_string(width_) +
-                        "x" + std::to_string(height_));
-    const int min_stride = fourcc_ == V4L2_PIX_FMT_MJPEG || fourcc_ == V4L2_PIX_FMT_JPEG ? 0 : 2 * width_;
+      throw DeviceError(who_ + ": " + path_ + ": driver reports a bad size " +
+                        std::to_string(width_) + "x" + std::to_string(height_));
+    const int min_stride =
+        fourcc_ == V4L2_PIX_FMT_MJPEG || fourcc_ == V4L2_PIX_FMT_JPEG ? 0 : 2 * width_;
     stride_ = std::max<int>(static_cast<int>(fmt.fmt.pix.bytesperline), min_stride);
 
     if (s.exposure) {
@@ -291,8 +298,8 @@ void V4l2Stream::set_control(std::uint32_t id, int value, const char* name) {
   c.id = id;
   c.value = value;
   if (sys_->ioctl(fd_, VIDIOC_S_CTRL, &c) < 0)
-    throw DeviceError(who_ + ": " + path_ + ": cannot set " + name + " to " + std::to_string(value) +
-                      ": " + errno_text(sys_->last_error()));
+    throw DeviceError(who_ + ": " + path_ + ": cannot set " + name + " to " +
+                      std::to_string(value) + ": " + errno_text(sys_->last_error()));
 }
 
 void V4l2Stream::stop() {
@@ -319,8 +326,9 @@ void V4l2Stream::requeue() {
   held_ = -1;
   if (sys_->ioctl(fd_, VIDIOC_QBUF, &b) < 0) {
     const int e = sys_->last_error();
-    throw DeviceError(who_ + ": " + path_ + ": VIDIOC_QBUF failed" +
-                      (e == ENODEV || e == EIO ? std::string(" (unplugged?)") : ": " + errno_text(e)));
+    throw DeviceError(
+        who_ + ": " + path_ + ": VIDIOC_QBUF failed" +
+        (e == ENODEV || e == EIO ? std::string(" (unplugged?)") : ": " + errno_text(e)));
   }
 }
 
@@ -359,7 +367,8 @@ V4l2Stream::Raw V4l2Stream::next_frame() {
       throw DeviceError(who_ + ": " + path_ + ": VIDIOC_DQBUF failed: " + errno_text(e));
     }
     if (b.index >= buffers_.size())
-      throw DeviceError(who_ + ": " + path_ + ": driver returned unknown buffer " + std::to_string(b.index));
+      throw DeviceError(who_ + ": " + path_ + ": driver returned unknown buffer " +
+                        std::to_string(b.index));
     held_ = static_cast<int>(b.index);
     const std::size_t used = b.bytesused ? b.bytesused : buffers_[b.index].length;
     const bool compressed = fourcc_ == V4L2_PIX_FMT_MJPEG || fourcc_ == V4L2_PIX_FMT_JPEG;
@@ -388,7 +397,8 @@ bool V4l2NodeInfo::has_color() const {
   return std::any_of(formats.begin(), formats.end(), is_color);
 }
 
-std::vector<V4l2NodeInfo> describe_v4l2_nodes(SysCalls& sys, const std::vector<std::string>& paths) {
+std::vector<V4l2NodeInfo> describe_v4l2_nodes(SysCalls& sys,
+                                              const std::vector<std::string>& paths) {
   std::vector<V4l2NodeInfo> out;
   for (const auto& path : paths) {
     const int fd = sys.open(path.c_str(), O_RDWR | O_NONBLOCK);
@@ -437,14 +447,15 @@ void V4l2Camera::parse() {
   const std::string& who = uri_.text;
   const DeviceOptions& o = uri_.options;
   reject_unknown_options(
-      o,
-      {"format", "width", "height", "buffers", "timeout_ms", "exposure", "white_balance",
-       "depth_scale", "fx", "fy", "cx", "cy", "color", "color_format", "color_width",
-       "color_height", "color_fx", "color_fy", "color_cx", "color_cy", "extrinsics", "card"},
+      o, {"format",        "width",        "height",      "buffers",      "timeout_ms", "exposure",
+          "white_balance", "depth_scale",  "fx",          "fy",           "cx",         "cy",
+          "color",         "color_format", "color_width", "color_height", "color_fx",   "color_fy",
+          "color_cx",      "color_cy",     "extrinsics",  "card"},
       who);
   auto p = std::make_unique<Parsed>();
   p->path = uri_.path;
-  if (p->path.empty()) throw DeviceError(who + ": no device path (e.g. v4l2:/dev/video0 or v4l2:auto)");
+  if (p->path.empty())
+    throw DeviceError(who + ": no device path (e.g. v4l2:/dev/video0 or v4l2:auto)");
   auto fill = [&](V4l2Stream::Settings& s, const std::string& prefix) {
     if (o.count(prefix + "format")) s.format = o.at(prefix + "format");
     if (s.format != "auto") parse_fourcc(s.format, who);
@@ -465,8 +476,8 @@ void V4l2Camera::parse() {
     for (auto key : keys) n += o.count(prefix + key) ? 1 : 0;
     if (n == 0) return false;
     if (n != 4)
-      throw DeviceError(who + ": give all of " + prefix + "fx, " + prefix + "fy, " + prefix + "cx, " +
-                        prefix + "cy or none");
+      throw DeviceError(who + ": give all of " + prefix + "fx, " + prefix + "fy, " + prefix +
+                        "cx, " + prefix + "cy or none");
     k.fx = option_number(o, prefix + "fx", 0, 1e-6, 1e7, who);
     k.fy = option_number(o, prefix + "fy", 0, 1e-6, 1e7, who);
     k.cx = option_number(o, prefix + "cx", 0, -1e7, 1e7, who);
@@ -486,12 +497,14 @@ void V4l2Camera::parse() {
       char* end = nullptr;
       const double v = std::strtod(item.c_str(), &end);
       if (n >= 12 || item.empty() || *end != '\0' || !std::isfinite(v))
-        throw DeviceError(who + ": option extrinsics: expected 12 comma-separated numbers (3x4 [R|t])");
+        throw DeviceError(who +
+                          ": option extrinsics: expected 12 comma-separated numbers (3x4 [R|t])");
       m[n++] = v;
     }
     if (n != 12)
-      throw DeviceError(who + ": option extrinsics: expected 12 comma-separated numbers (3x4 [R|t]), got " +
-                        std::to_string(n));
+      throw DeviceError(
+          who + ": option extrinsics: expected 12 comma-separated numbers (3x4 [R|t]), got " +
+          std::to_string(n));
     p->extrinsics = m;
   }
   p_ = std::move(p);
@@ -523,9 +536,10 @@ void V4l2Camera::open() {
       if (!color && n.has_color() && (!depth || n.path != depth->path)) color = &n;
     }
     if (!depth && !color)
-      throw DeviceError(who + ": no V4L2 node with a Z16, Y16, YUYV or MJPG capture format" +
-                        (p_->card.empty() ? std::string() : " on a card matching '" + p_->card + "'") +
-                        " (found " + std::to_string(nodes.size()) + " capture nodes)");
+      throw DeviceError(
+          who + ": no V4L2 node with a Z16, Y16, YUYV or MJPG capture format" +
+          (p_->card.empty() ? std::string() : " on a card matching '" + p_->card + "'") +
+          " (found " + std::to_string(nodes.size()) + " capture nodes)");
     main_path = depth ? depth->path : color->path;
     if (depth && color && color_path.empty()) color_path = color->path;
   }
@@ -535,8 +549,8 @@ void V4l2Camera::open() {
     main_is_depth_ = is_depth(main_->fourcc());
     auto check_k = [&](const Intrinsics& k, const V4l2Stream& s, const char* prefix) {
       if (k.width != s.width() || k.height != s.height())
-        throw DeviceError(who + ": " + prefix + "intrinsics are for " + std::to_string(k.width) + "x" +
-                          std::to_string(k.height) + " but the node delivers " +
+        throw DeviceError(who + ": " + prefix + "intrinsics are for " + std::to_string(k.width) +
+                          "x" + std::to_string(k.height) + " but the node delivers " +
                           std::to_string(s.width()) + "x" + std::to_string(s.height()));
     };
     if (p_->has_k) {
@@ -546,12 +560,13 @@ void V4l2Camera::open() {
       check_k(p_->k, *main_, "");
     }
     if (main_is_depth_ && !p_->has_k)
-      throw DeviceError(who + ": depth node needs intrinsics fx, fy, cx, cy in the profile or URI "
-                              "(plain V4L2 does not report them)");
+      throw DeviceError(who +
+                        ": depth node needs intrinsics fx, fy, cx, cy in the profile or URI "
+                        "(plain V4L2 does not report them)");
     if (!color_path.empty()) {
       if (!main_is_depth_)
-        throw DeviceError(who + ": option color pairs a colour node with a depth node, but " + main_path +
-                          " delivers " + fourcc_text(main_->fourcc()));
+        throw DeviceError(who + ": option color pairs a colour node with a depth node, but " +
+                          main_path + " delivers " + fourcc_text(main_->fourcc()));
       color_ = std::make_unique<V4l2Stream>(sys_, color_path, who);
       color_->start(p_->color);
       if (!is_color(color_->fourcc()))
@@ -563,7 +578,8 @@ void V4l2Camera::open() {
         check_k(p_->color_k, *color_, "color_");
       }
       if (p_->extrinsics && !p_->has_color_k)
-        throw DeviceError(who + ": extrinsics need the colour intrinsics color_fx, color_fy, color_cx, color_cy");
+        throw DeviceError(
+            who + ": extrinsics need the colour intrinsics color_fx, color_fy, color_cx, color_cy");
     } else if (p_->extrinsics) {
       throw DeviceError(who + ": option extrinsics needs a colour node (option color)");
     }
@@ -580,9 +596,9 @@ void V4l2Camera::close() {
 
 ScannerCapabilities V4l2Camera::capabilities() const {
   ScannerCapabilities c;
-  const bool depth = main_ ? main_is_depth_
-                           : (p_->main.format == "Z16" || p_->main.format == "Y16" ||
-                              !p_->color_path.empty());
+  const bool depth =
+      main_ ? main_is_depth_
+            : (p_->main.format == "Z16" || p_->main.format == "Y16" || !p_->color_path.empty());
   c.depth = depth;
   c.color = main_ ? (!main_is_depth_ || color_ != nullptr) : (!depth || !p_->color_path.empty());
   if (depth && p_->has_k) c.intrinsics = p_->k;
@@ -618,10 +634,12 @@ Frame V4l2Camera::grab() {
       f.color_intrinsics = p_->k;
     } else {
       f.color = std::move(rgb);
-      f.color_intrinsics = p_->has_color_k ? p_->color_k : Intrinsics{c.width, c.height, 0, 0, 0, 0};
+      f.color_intrinsics =
+          p_->has_color_k ? p_->color_k : Intrinsics{c.width, c.height, 0, 0, 0, 0};
     }
   }
-  f.timestamp = std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
+  f.timestamp =
+      std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
   return f;
 }
 

@@ -70,7 +70,8 @@ TEST(FabScanTurntable, MovesInChunksOfAtMost255StepsAndConfirmsWithAPing) {
 }
 
 TEST(FabScanTurntable, StepsPerRevolutionComeFromTheProfile) {
-  Bench b(DeviceOptions{{"steps", "400"}, {"microsteps", "4"}});  // 1600 per turn, not the usual 3200
+  Bench b(
+      DeviceOptions{{"steps", "400"}, {"microsteps", "4"}});  // 1600 per turn, not the usual 3200
   b.table->open();
   b.table->rotate_to(90);
   EXPECT_EQ(b.sim.steps, 400);
@@ -87,7 +88,7 @@ TEST(FabScanTurntable, ClockwiseWiring) {
   b.table->open();
   EXPECT_EQ(b.sim.direction, -1);
   b.table->rotate_to(90);
-  EXPECT_EQ(b.sim.steps, -800);  // motor turned the other way ...
+  EXPECT_EQ(b.sim.steps, -800);              // motor turned the other way ...
   EXPECT_DOUBLE_EQ(b.table->angle(), 90.0);  // ... so the table turned +90
 }
 
@@ -118,9 +119,13 @@ TEST(FabScanTurntable, MoveNotConfirmedWhenUnpluggedMidMove) {
 }
 
 TEST(FabScanTurntable, OptionsChecked) {
-  EXPECT_NE(message([] { fabscan_options({{"microsteps", "16"}}, "fabscan:/x"); }).find("'steps'"),
+  EXPECT_NE(message([] {
+              fabscan_options({{"microsteps", "16"}}, "fabscan:/x");
+            }).find("'steps'"),
             std::string::npos);
-  EXPECT_NE(message([] { fabscan_options({{"steps", "0"}}, "fabscan:/x"); }).find("steps=0"),
+  EXPECT_NE(message([] {
+              fabscan_options({{"steps", "0"}}, "fabscan:/x");
+            }).find("steps=0"),
             std::string::npos);
 }
 

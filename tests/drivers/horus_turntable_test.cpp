@@ -16,13 +16,14 @@ struct Bench {
   ScriptedPort* port = nullptr;
   std::vector<double> sleeps;
   std::unique_ptr<HorusTurntable> table;
-  explicit Bench(const DeviceOptions& o = {{"steps", "200"}, {"microsteps", "16"}, {"speed", "45"}}) {
+  explicit Bench(const DeviceOptions& o = {
+                     {"steps", "200"}, {"microsteps", "16"}, {"speed", "45"}}) {
     auto p = std::make_unique<ScriptedPort>(sim);
     port = p.get();
     const std::string uri = "horus:/dev/ttyUSB7";
-    table = std::make_unique<HorusTurntable>(uri, "/dev/ttyUSB7", horus_options(o, uri),
-                                             std::move(p),
-                                             [this](double s) { sleeps.push_back(s); });
+    table =
+        std::make_unique<HorusTurntable>(uri, "/dev/ttyUSB7", horus_options(o, uri), std::move(p),
+                                         [this](double s) { sleeps.push_back(s); });
   }
 };
 
@@ -57,7 +58,7 @@ TEST(HorusTurntable, AbsoluteMovesGoForwardAndWaitTheMoveTime) {
   EXPECT_DOUBLE_EQ(b.table->angle(), 90.0);
   ASSERT_EQ(b.sleeps.size(), 1u);
   EXPECT_NEAR(b.sleeps[0], 90.0 / 45.0 + 0.1, 1e-9);  // move time at 45 deg/s + settle
-  b.table->rotate_to(45);  // forwards through 360: motor at 405 degrees
+  b.table->rotate_to(45);                             // forwards through 360: motor at 405 degrees
   EXPECT_EQ(b.sim.commands.back(), "G1X405");
   EXPECT_DOUBLE_EQ(b.table->angle(), 45.0);
   EXPECT_NEAR(b.sleeps[1], 315.0 / 45.0 + 0.1, 1e-9);
@@ -98,16 +99,21 @@ TEST(HorusTurntable, HomeReturnsForwardsToTheOriginAndResetsIt) {
 TEST(HorusTurntable, StepsAreRequiredAndOptionsChecked) {
   EXPECT_NE(message([] { horus_options({}, "horus:/dev/ttyUSB0"); }).find("'steps'"),
             std::string::npos);
-  EXPECT_NE(message([] { horus_options({{"steps", "200"}, {"speeed", "3"}}, "horus:/dev/ttyUSB0"); })
-                .find("unknown option 'speeed'"),
+  EXPECT_NE(message([] {
+              horus_options({{"steps", "200"}, {"speeed", "3"}}, "horus:/dev/ttyUSB0");
+            }).find("unknown option 'speeed'"),
             std::string::npos);
-  EXPECT_NE(message([] { horus_options({{"steps", "abc"}}, "horus:/x"); }).find("steps=abc"),
+  EXPECT_NE(message([] {
+              horus_options({{"steps", "abc"}}, "horus:/x");
+            }).find("steps=abc"),
             std::string::npos);
-  EXPECT_NE(message([] { horus_options({{"steps", "200"}, {"direction", "up"}}, "horus:/x"); })
-                .find("direction=up"),
+  EXPECT_NE(message([] {
+              horus_options({{"steps", "200"}, {"direction", "up"}}, "horus:/x");
+            }).find("direction=up"),
             std::string::npos);
-  EXPECT_NE(message([] { horus_options({{"steps", "200"}, {"baud", "1234"}}, "horus:/x"); })
-                .find("1234"),
+  EXPECT_NE(message([] {
+              horus_options({{"steps", "200"}, {"baud", "1234"}}, "horus:/x");
+            }).find("1234"),
             std::string::npos);
 }
 

@@ -22,12 +22,15 @@ TEST(RealDevices, SerialTurntablesByUri) {
   auto horus = reg.make_turntable("horus:/dev/ttyUSB-station-test?steps=200&microsteps=16");
   EXPECT_EQ(horus->uri(), "horus:/dev/ttyUSB-station-test?steps=200&microsteps=16");
   EXPECT_EQ(horus->steps_per_revolution(), 3200);
-  EXPECT_EQ(message([&] { horus->open(); }), "/dev/ttyUSB-station-test: no such serial port (unplugged?)");
+  EXPECT_EQ(message([&] { horus->open(); }),
+            "/dev/ttyUSB-station-test: no such serial port (unplugged?)");
   auto fab = reg.make_turntable("fabscan:/dev/ttyACM-station-test?steps=400&microsteps=8");
   EXPECT_EQ(fab->steps_per_revolution(), 3200);
-  EXPECT_NE(message([&] { reg.make_turntable("fabscan:/dev/ttyACM0"); }).find("'steps'"), std::string::npos);
-  EXPECT_NE(message([&] { reg.make_scanner("horus:/dev/ttyUSB0?steps=200"); }).find("unknown scanner"),
+  EXPECT_NE(message([&] { reg.make_turntable("fabscan:/dev/ttyACM0"); }).find("'steps'"),
             std::string::npos);
+  EXPECT_NE(
+      message([&] { reg.make_scanner("horus:/dev/ttyUSB0?steps=200"); }).find("unknown scanner"),
+      std::string::npos);
 }
 
 TEST(RealDevices, ListsWithoutOpeningSerialPorts) {

@@ -47,8 +47,8 @@ class FabScanSim : public BoardSim {
   int pong_byte = 211;
   int selected = -1;
   bool motor_on = false;
-  int direction = 0;          ///< +1 after 204 (ccw), -1 after 203 (cw)
-  long long steps = 0;        ///< signed microsteps of stepper 10
+  int direction = 0;            ///< +1 after 204 (ccw), -1 after 203 (cw)
+  long long steps = 0;          ///< signed microsteps of stepper 10
   std::vector<int> step_bytes;  ///< arguments of each 202
   std::string feed(const std::string& in) override;
 
@@ -72,7 +72,7 @@ class ScriptedPort : public SerialPort {
   // Fault injection.
   bool fail_open = false;
   int unplug_after_writes = -1;  ///< reads fail after this many writes
-  std::string extra_input;        ///< queued before the first read (garbage)
+  std::string extra_input;       ///< queued before the first read (garbage)
   int baud = 0;
   int writes = 0;
   std::string written;

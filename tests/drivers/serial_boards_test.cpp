@@ -65,11 +65,20 @@ std::string FabScanSim::feed(const std::string& in) {
       case 202:
         pending_ = b;
         break;
-      case 205: motor_on = true; break;
-      case 206: motor_on = false; break;
-      case 203: direction = -1; break;
-      case 204: direction = 1; break;
-      default: break;
+      case 205:
+        motor_on = true;
+        break;
+      case 206:
+        motor_on = false;
+        break;
+      case 203:
+        direction = -1;
+        break;
+      case 204:
+        direction = 1;
+        break;
+      default:
+        break;
     }
   }
   return out;

@@ -31,11 +31,11 @@ TEST(SerialPty, HorusOverRealTermios) {
   {
     PtyBoard board(sim);
     const std::string uri = "horus:" + board.slave_path();
-    HorusTurntable table(uri, board.slave_path(),
-                         horus_options({{"steps", "200"}, {"microsteps", "16"}, {"speed", "1e4"},
-                                        {"settle_ms", "0"}},
-                                       uri),
-                         make_posix_serial_port());
+    HorusTurntable table(
+        uri, board.slave_path(),
+        horus_options(
+            {{"steps", "200"}, {"microsteps", "16"}, {"speed", "1e4"}, {"settle_ms", "0"}}, uri),
+        make_posix_serial_port());
     table.open();
     table.rotate_to(45);
     table.rotate_to(135);

@@ -67,8 +67,9 @@ struct Rig {
     m.formats = {};
   }
   std::unique_ptr<V4l2Camera> camera(const std::string& uri) {
-    return std::make_unique<V4l2Camera>(k, parse_device_uri(uri),
-                                        std::vector<std::string>{"/dev/video2", "/dev/video3", "/dev/video4"});
+    return std::make_unique<V4l2Camera>(
+        k, parse_device_uri(uri),
+        std::vector<std::string>{"/dev/video2", "/dev/video3", "/dev/video4"});
   }
 };
 
@@ -98,8 +99,8 @@ TEST(V4l2Conversions, YuyvBt601) {
 }
 
 TEST(V4l2Conversions, MjpegDecodesToRgbOrder) {
-  cv::Mat bgr(8, 16, CV_8UC3, cv::Scalar(0, 0, 255));            // red (BGR order)
-  bgr(cv::Rect(8, 0, 8, 8)).setTo(cv::Scalar(255, 0, 0));         // right half blue
+  cv::Mat bgr(8, 16, CV_8UC3, cv::Scalar(0, 0, 255));      // red (BGR order)
+  bgr(cv::Rect(8, 0, 8, 8)).setTo(cv::Scalar(255, 0, 0));  // right half blue
   std::vector<std::uint8_t> jpeg;
   cv::imencode(".jpg", bgr, jpeg, {cv::IMWRITE_JPEG_QUALITY, 95});
   std::vector<std::uint8_t> rgb;
@@ -110,8 +111,9 @@ TEST(V4l2Conversions, MjpegDecodesToRgbOrder) {
   EXPECT_LT(rgb[left + 2], 60);
   EXPECT_LT(rgb[right + 0], 60);
   EXPECT_GT(rgb[right + 2], 200);
-  EXPECT_NE(message([&] { mjpeg_to_rgb(jpeg.data(), jpeg.size(), 32, 8, "cam", rgb); })
-                .find("cam: MJPEG frame is 16x8, expected 32x8"),
+  EXPECT_NE(message([&] {
+              mjpeg_to_rgb(jpeg.data(), jpeg.size(), 32, 8, "cam", rgb);
+            }).find("cam: MJPEG frame is 16x8, expected 32x8"),
             std::string::npos);
   const std::uint8_t junk[] = {1, 2, 3, 4, 5};
   EXPECT_NE(message([&] { mjpeg_to_rgb(junk, 5, 16, 8, "cam", rgb); }).find("does not decode"),
@@ -141,9 +143,9 @@ TEST(V4l2Conversions, RegistrationShiftsByTheBaseline) {
   const std::array<double, 12> m{1, 0, 0, -0.1, 0, 1, 0, 0, 0, 0, 1, 0};
   const auto out = register_color_to_depth(depth, k, rgb, k, m);
   EXPECT_EQ(out[(40 + 25) * 3], (25 - 10) * 5);
-  EXPECT_EQ(out[(40 + 10) * 3], 0);       // u - 10 = 0: colour column 0 has value 0
-  EXPECT_EQ(out[5 * 3], 0);               // no depth
-  EXPECT_EQ(out[(40 + 3) * 3], 0);        // falls left of the colour image
+  EXPECT_EQ(out[(40 + 10) * 3], 0);  // u - 10 = 0: colour column 0 has value 0
+  EXPECT_EQ(out[5 * 3], 0);          // no depth
+  EXPECT_EQ(out[(40 + 3) * 3], 0);   // falls left of the colour image
   EXPECT_EQ(out[(40 + 39) * 3], 29 * 5);
 }
 
@@ -181,8 +183,8 @@ TEST(V4l2Camera, ColourNodePrefersYuyvAndSetsFixedExposureAndWhiteBalance) {
   EXPECT_FALSE(f0.has_depth());
   ASSERT_EQ(f0.color.size(), 4u * 3 * 3);
   EXPECT_EQ(f0.color_intrinsics.width, 4);
-  EXPECT_EQ(f0.color[0], 0);    // Y = 16: black
-  EXPECT_EQ(f1.color[7], 23);   // Y = 36: 1.164 * 20 = 23
+  EXPECT_EQ(f0.color[0], 0);   // Y = 16: black
+  EXPECT_EQ(f1.color[7], 23);  // Y = 36: 1.164 * 20 = 23
   const auto& n = r.k->nodes["/dev/video4"];
   EXPECT_EQ(n.fourcc, V4L2_PIX_FMT_YUYV);
   EXPECT_EQ(n.controls.at(V4L2_CID_EXPOSURE_AUTO), V4L2_EXPOSURE_MANUAL);
@@ -234,15 +236,17 @@ TEST(V4l2Camera, AutoPicksNodesByFormatNotNumber) {
   EXPECT_TRUE(f.has_depth());
   EXPECT_TRUE(f.has_color());  // /dev/video4 paired, the metadata node skipped
   EXPECT_EQ(f.color_intrinsics.width, 4);
-  EXPECT_NE(message([&] { r.camera("v4l2:auto?card=Kinect")->open(); }).find("card matching 'Kinect'"),
-            std::string::npos);
+  EXPECT_NE(
+      message([&] { r.camera("v4l2:auto?card=Kinect")->open(); }).find("card matching 'Kinect'"),
+      std::string::npos);
 }
 
 TEST(V4l2Camera, BusyDeviceIsNamed) {
   Rig r;
   r.k->nodes["/dev/video2"].open_errno = EBUSY;
-  EXPECT_EQ(message([&] { r.camera(std::string("v4l2:/dev/video2?") + kK)->open(); }),
-            std::string("v4l2:/dev/video2?") + kK + ": /dev/video2: busy (another program has it open)");
+  EXPECT_EQ(
+      message([&] { r.camera(std::string("v4l2:/dev/video2?") + kK)->open(); }),
+      std::string("v4l2:/dev/video2?") + kK + ": /dev/video2: busy (another program has it open)");
 }
 
 TEST(V4l2Camera, SecondStationOnAStreamingNodeIsBusy) {
@@ -272,7 +276,8 @@ TEST(V4l2Camera, SilentDeviceTimesOut) {
   auto cam = r.camera(std::string("v4l2:/dev/video2?timeout_ms=50&") + kK);
   cam->open();
   cam->grab();
-  EXPECT_NE(message([&] { cam->grab(); }).find("/dev/video2: no frame within 50 ms"), std::string::npos);
+  EXPECT_NE(message([&] { cam->grab(); }).find("/dev/video2: no frame within 50 ms"),
+            std::string::npos);
 }
 
 TEST(V4l2Camera, UnplugMidStreamIsADeviceError) {
@@ -291,10 +296,13 @@ TEST(V4l2Camera, UnplugMidStreamIsADeviceError) {
 
 TEST(V4l2Camera, ClearErrorsForBadSetups) {
   Rig r;
-  EXPECT_NE(message([&] { r.camera("v4l2:/dev/video2")->open(); }).find("needs intrinsics fx, fy, cx, cy"),
+  EXPECT_NE(message([&] {
+              r.camera("v4l2:/dev/video2")->open();
+            }).find("needs intrinsics fx, fy, cx, cy"),
             std::string::npos);
-  EXPECT_NE(message([&] { r.camera("v4l2:/dev/video4?format=Z16")->open(); })
-                .find("format Z16 not offered (offers MJPG, YUYV)"),
+  EXPECT_NE(message([&] {
+              r.camera("v4l2:/dev/video4?format=Z16")->open();
+            }).find("format Z16 not offered (offers MJPG, YUYV)"),
             std::string::npos);
   EXPECT_NE(message([&] { r.camera("v4l2:/dev/video3")->open(); }).find("not a video capture node"),
             std::string::npos);
@@ -302,13 +310,16 @@ TEST(V4l2Camera, ClearErrorsForBadSetups) {
             std::string::npos);
   EXPECT_NE(message([&] { r.camera("v4l2:/dev/video2?fx=1")->open(); }).find("give all of fx"),
             std::string::npos);
-  EXPECT_NE(message([&] { r.camera(std::string("v4l2:/dev/video2?width=640&") + kK)->open(); })
-                .find("intrinsics are for 640x3 but the node delivers 4x3"),
+  EXPECT_NE(message([&] {
+              r.camera(std::string("v4l2:/dev/video2?width=640&") + kK)->open();
+            }).find("intrinsics are for 640x3 but the node delivers 4x3"),
             std::string::npos);
-  EXPECT_NE(message([&] { r.camera("v4l2:/dev/video2?extrinsics=1,2,3"); }).find("12 comma-separated"),
-            std::string::npos);
-  EXPECT_NE(message([&] { r.camera("v4l2:/dev/video2?exposre=3"); }).find("unknown option 'exposre'"),
-            std::string::npos);
+  EXPECT_NE(
+      message([&] { r.camera("v4l2:/dev/video2?extrinsics=1,2,3"); }).find("12 comma-separated"),
+      std::string::npos);
+  EXPECT_NE(
+      message([&] { r.camera("v4l2:/dev/video2?exposre=3"); }).find("unknown option 'exposre'"),
+      std::string::npos);
   EXPECT_NE(message([&] { r.camera("v4l2:/dev/video2")->grab(); }).find("grab before open"),
             std::string::npos);
   EXPECT_TRUE(r.k->fds.empty());

@@ -6,8 +6,8 @@
 #include <linux/videodev2.h>
 #include <sys/mman.h>
 
-#include <cerrno>
 #include <algorithm>
+#include <cerrno>
 #include <cstring>
 #include <deque>
 #include <functional>
@@ -41,9 +41,7 @@ class FakeV4l2Kernel : public SysCalls {
     bool streaming = false;
     int delivered = 0, eagain_left = 0;
     int streamoffs = 0, qbufs = 0;
-    int bytesperline() const {
-      return (fourcc == V4L2_PIX_FMT_MJPEG ? 0 : 2 * width + pad);
-    }
+    int bytesperline() const { return (fourcc == V4L2_PIX_FMT_MJPEG ? 0 : 2 * width + pad); }
   };
   std::map<std::string, Node> nodes;
   std::map<int, std::string> fds;
@@ -100,7 +98,8 @@ class FakeV4l2Kernel : public SysCalls {
       }
       case VIDIOC_ENUM_FMT: {
         auto* d = static_cast<v4l2_fmtdesc*>(arg);
-        if (d->type != V4L2_BUF_TYPE_VIDEO_CAPTURE || d->index >= n->formats.size()) return fail(EINVAL);
+        if (d->type != V4L2_BUF_TYPE_VIDEO_CAPTURE || d->index >= n->formats.size())
+          return fail(EINVAL);
         d->pixelformat = n->formats[d->index];
         return 0;
       }
@@ -131,7 +130,8 @@ class FakeV4l2Kernel : public SysCalls {
       case VIDIOC_REQBUFS: {
         auto* r = static_cast<v4l2_requestbuffers*>(arg);
         if (r->memory != V4L2_MEMORY_MMAP) return fail(EINVAL);
-        n->mem.assign(std::min<std::uint32_t>(r->count, 3), std::vector<std::uint8_t>(frame_size(*n)));
+        n->mem.assign(std::min<std::uint32_t>(r->count, 3),
+                      std::vector<std::uint8_t>(frame_size(*n)));
         r->count = static_cast<std::uint32_t>(n->mem.size());
         return 0;
       }
@@ -145,7 +145,8 @@ class FakeV4l2Kernel : public SysCalls {
       case VIDIOC_QBUF: {
         auto* b = static_cast<v4l2_buffer*>(arg);
         if (b->index >= n->mem.size()) return fail(EINVAL);
-        if (n->frames_before_unplug >= 0 && n->delivered >= n->frames_before_unplug) return fail(ENODEV);
+        if (n->frames_before_unplug >= 0 && n->delivered >= n->frames_before_unplug)
+          return fail(ENODEV);
         n->queued.push_back(static_cast<int>(b->index));
         ++n->qbufs;
         return 0;
@@ -153,7 +154,8 @@ class FakeV4l2Kernel : public SysCalls {
       case VIDIOC_DQBUF: {
         auto* b = static_cast<v4l2_buffer*>(arg);
         if (!n->streaming) return fail(EINVAL);
-        if (n->frames_before_unplug >= 0 && n->delivered >= n->frames_before_unplug) return fail(ENODEV);
+        if (n->frames_before_unplug >= 0 && n->delivered >= n->frames_before_unplug)
+          return fail(ENODEV);
         if (n->eagain_left > 0) {
           --n->eagain_left;
           return fail(EAGAIN);

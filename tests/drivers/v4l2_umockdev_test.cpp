@@ -14,10 +14,9 @@
 // so DQBUF answers EAGAIN while nothing is queued or due.
 #include <dlfcn.h>
 #include <fcntl.h>
+#include <gtest/gtest.h>
 #include <linux/videodev2.h>
 #include <unistd.h>
-
-#include <gtest/gtest.h>
 
 #include <cerrno>
 #include <cstdlib>
@@ -136,7 +135,8 @@ struct Camera {
         r->count = static_cast<std::uint32_t>(buffers);
         // The mmap'ed memory is the node's backing file: make it long enough.
         const int fd = ::open(node_file.c_str(), O_RDWR);
-        if (fd < 0 || ::ftruncate(fd, static_cast<off_t>(buffers * buffer_size)) < 0) return err = EIO, -1;
+        if (fd < 0 || ::ftruncate(fd, static_cast<off_t>(buffers * buffer_size)) < 0)
+          return err = EIO, -1;
         ::close(fd);
         return 0;
       }
@@ -156,7 +156,8 @@ struct Camera {
       case VIDIOC_DQBUF: {
         auto* b = reinterpret_cast<v4l2_buffer*>(a);
         if (!streaming) return err = EINVAL, -1;
-        if (frames_before_silence >= 0 && delivered >= frames_before_silence) return err = EAGAIN, -1;
+        if (frames_before_silence >= 0 && delivered >= frames_before_silence)
+          return err = EAGAIN, -1;
         if (eagain_left > 0) return --eagain_left, err = EAGAIN, -1;
         if (queued.empty()) return err = EAGAIN, -1;
         const std::uint32_t i = queued.front();
@@ -169,9 +170,9 @@ struct Camera {
             frame[2 * (y * width + x) + 1] = v >> 8;
           }
         const int fd = ::open(node_file.c_str(), O_RDWR);
-        const bool written =
-            fd >= 0 && ::pwrite(fd, frame.data(), frame.size(), static_cast<off_t>(i * buffer_size)) ==
-                           static_cast<ssize_t>(frame.size());
+        const bool written = fd >= 0 && ::pwrite(fd, frame.data(), frame.size(),
+                                                 static_cast<off_t>(i * buffer_size)) ==
+                                            static_cast<ssize_t>(frame.size());
         if (fd >= 0) ::close(fd);
         if (!written) return err = EIO, -1;
         b->index = i;
@@ -253,8 +254,8 @@ class Umockdev4l2 : public ::testing::Test {
     if (testbed_) um_.object_unref(testbed_);
   }
   std::unique_ptr<V4l2Camera> camera(const std::string& query) {
-    return std::make_unique<V4l2Camera>(real_syscalls(),
-                                        parse_device_uri("v4l2:/dev/video0?fx=3&fy=3&cx=1.5&cy=1" + query));
+    return std::make_unique<V4l2Camera>(
+        real_syscalls(), parse_device_uri("v4l2:/dev/video0?fx=3&fy=3&cx=1.5&cy=1" + query));
   }
   Umockdev um_;
   Camera cam_;

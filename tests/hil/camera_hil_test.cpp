@@ -68,13 +68,15 @@ TEST(HilCamera, GrabsFramesOfTheNegotiatedFormatAtARegularRate) {
     stamps.push_back(f.timestamp);
     if (caps.depth) {
       ASSERT_EQ(f.depth.size(), static_cast<std::size_t>(f.intrinsics.width) * f.intrinsics.height);
-      const auto valid = std::count_if(f.depth.begin(), f.depth.end(), [](float d) { return d > 0; });
-      const bool finite = std::all_of(f.depth.begin(), f.depth.end(), [](float d) { return std::isfinite(d); });
+      const auto valid =
+          std::count_if(f.depth.begin(), f.depth.end(), [](float d) { return d > 0; });
+      const bool finite =
+          std::all_of(f.depth.begin(), f.depth.end(), [](float d) { return std::isfinite(d); });
       EXPECT_TRUE(finite);
       if (i == n - 1) {
         EXPECT_GT(valid, 0) << "every depth pixel is 0 (covered lens, or wrong depth_scale?)";
-        std::printf("[ HIL      ] depth %dx%d, %.0f%% valid\n", f.intrinsics.width, f.intrinsics.height,
-                    100.0 * valid / f.depth.size());
+        std::printf("[ HIL      ] depth %dx%d, %.0f%% valid\n", f.intrinsics.width,
+                    f.intrinsics.height, 100.0 * valid / f.depth.size());
       }
     }
     if (caps.color) {
@@ -90,7 +92,8 @@ TEST(HilCamera, GrabsFramesOfTheNegotiatedFormatAtARegularRate) {
     worst = std::max(worst, stamps[i] - stamps[i - 1]);
   }
   const double fps = (stamps.size() - 1) / std::max(1e-9, stamps.back() - stamps.front());
-  std::printf("[ HIL      ] %zu frames, %.1f fps, longest gap %.0f ms\n", stamps.size(), fps, worst * 1000);
+  std::printf("[ HIL      ] %zu frames, %.1f fps, longest gap %.0f ms\n", stamps.size(), fps,
+              worst * 1000);
   EXPECT_LT(worst, 1.0);
 }
 

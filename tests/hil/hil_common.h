@@ -26,8 +26,8 @@ inline bool serial_probing_allowed() {
 }  // namespace station::hil
 
 /// Skips the test (or fails it under HIL_REQUIRE=1) with `why`.
-#define HIL_ABSENT(why)                                                          \
-  do {                                                                           \
-    if (::station::hil::required()) FAIL() << "HIL_REQUIRE=1: " << (why);       \
-    GTEST_SKIP() << (why);                                                       \
+#define HIL_ABSENT(why)                                                   \
+  do {                                                                    \
+    if (::station::hil::required()) FAIL() << "HIL_REQUIRE=1: " << (why); \
+    GTEST_SKIP() << (why);                                                \
   } while (0)

@@ -37,13 +37,16 @@ std::vector<std::string> ports() {
 /// Steps from HIL_STEPS / HIL_MICROSTEPS / HIL_DIRECTION (defaults: the Ciclop's
 /// 200-step motor at 1/16 microstepping, for the smoke test only).
 std::string stepper_query() {
-  return "steps=" + hil::env("HIL_STEPS", "200") + "&microsteps=" + hil::env("HIL_MICROSTEPS", "16") +
+  return "steps=" + hil::env("HIL_STEPS", "200") +
+         "&microsteps=" + hil::env("HIL_MICROSTEPS", "16") +
          "&direction=" + hil::env("HIL_DIRECTION", "ccw");
 }
 
 std::string find_horus(std::string& why) {
   if (!hil::serial_probing_allowed()) {
-    why = "serial probing off (set HIL=1, HIL_REQUIRE=1 or HIL_SERIAL_PORTS to probe for a Horus board)";
+    why =
+        "serial probing off (set HIL=1, HIL_REQUIRE=1 or HIL_SERIAL_PORTS to probe for a Horus "
+        "board)";
     return "";
   }
   for (const auto& p : ports()) {
@@ -63,13 +66,16 @@ std::string find_horus(std::string& why) {
 
 std::string find_fabscan(std::string& why) {
   if (!hil::serial_probing_allowed()) {
-    why = "serial probing off (set HIL=1, HIL_REQUIRE=1 or HIL_SERIAL_PORTS to probe for a FabScan board)";
+    why =
+        "serial probing off (set HIL=1, HIL_REQUIRE=1 or HIL_SERIAL_PORTS to probe for a FabScan "
+        "board)";
     return "";
   }
   for (const auto& p : ports()) {
     const std::string uri = "fabscan:" + p + "?" + stepper_query() + "&connect_timeout_ms=3000";
     try {
-      FabScanTurntable t(uri, p, fabscan_options(parse_device_uri(uri).options, uri), make_posix_serial_port());
+      FabScanTurntable t(uri, p, fabscan_options(parse_device_uri(uri).options, uri),
+                         make_posix_serial_port());
       t.open();
       t.close();
       return uri;
@@ -144,7 +150,8 @@ TEST(HilBench, RecordsAShortSession) {
   ASSERT_EQ(again.manifest().views.size(), 3u);
   for (std::size_t i = 0; i < 3; ++i) {
     ASSERT_TRUE(again.manifest().views[i].angle_deg.has_value());
-    EXPECT_NEAR(*again.manifest().views[i].angle_deg, 120.0 * i, 360.0 / table->steps_per_revolution());
+    EXPECT_NEAR(*again.manifest().views[i].angle_deg, 120.0 * i,
+                360.0 / table->steps_per_revolution());
   }
   std::printf("[ HIL      ] session: %zu points in %.1f s\n", r.points, r.seconds);
   table->home();
