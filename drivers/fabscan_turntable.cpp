@@ -48,15 +48,23 @@ void FabScanTurntable::send(const std::string& bytes) { port_->write(bytes, opt_
 
 void FabScanTurntable::ping(int timeout_ms) {
   int other = -1;
-  if (!try_ping(timeout_ms, other))
-    throw DeviceError(
-        uri_ + ": no pong (211) to ping (210) within " + std::to_string(timeout_ms) + " ms" +
-        (other >= 0
-             ? " (got byte " + std::to_string(other) + "; not a FabScan board or wrong baud rate?)"
-             : std::string()));
+  if (try_ping(timeout_ms, other)) return;
+  // Its pong may still come and be taken for the next one's: the link is out
+  // of step, so close it; open() resyncs.
+  open_ = false;
+  port_->close();
+  throw DeviceError(
+      uri_ + ": no pong (211) to ping (210) within " + std::to_string(timeout_ms) + " ms" +
+      (other >= 0
+           ? " (got byte " + std::to_string(other) + "; not a FabScan board or wrong baud rate?)"
+           : std::string()) +
+      "; port closed, open() again to resynchronise");
 }
 
 bool FabScanTurntable::try_ping(int timeout_ms, int& other) {
+  // Bytes already here are stale (boot noise): only the answer to this ping counts.
+  port_->discard_input();
+  reader_.clear();
   send(std::string(1, static_cast<char>(fabscan::kPing)));
   const auto deadline = std::chrono::steady_clock::now() + std::chrono::milliseconds(timeout_ms);
   for (;;) {
@@ -93,6 +101,8 @@ void FabScanTurntable::open() {
         opt_.stepper.direction > 0 ? fabscan::kDirectionCcw : fabscan::kDirectionCw;
     send(std::string{static_cast<char>(fabscan::kSelectStepper), static_cast<char>(opt_.stepper_id),
                      static_cast<char>(fabscan::kStepperOn), static_cast<char>(dir)});
+    // Pings sent while the board booted may still be answered: wait for quiet.
+    reader_.drain(100, 1000);
     open_ = true;
     ping(opt_.timeout_ms);  // the board took the setup bytes
   } catch (...) {

@@ -63,7 +63,8 @@ class FabScanTurntable final : public Turntable {
   int steps_per_revolution() const override;
   std::string uri() const override { return uri_; }
 
-  /// Ping -> pong within `timeout_ms`; DeviceError otherwise.
+  /// Ping -> pong within `timeout_ms`; DeviceError otherwise, and the port is
+  /// closed (a late pong would confirm the next move too early).
   void ping(int timeout_ms);
 
  private:

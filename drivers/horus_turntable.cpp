@@ -143,11 +143,17 @@ void HorusTurntable::command(const std::string& gcode, int timeout_ms) {
                           deadline - std::chrono::steady_clock::now())
                           .count();
     std::string line;
-    if (left <= 0 || !reader_.read_line(line, static_cast<int>(left)))
-      throw DeviceError(
-          uri_ + ": no answer to '" + gcode + "' within " + std::to_string(timeout_ms) + " ms" +
-          (reader_.pending().empty() ? std::string()
-                                     : " (got '" + printable(reader_.pending()) + "')"));
+    if (left <= 0 || !reader_.read_line(line, static_cast<int>(left))) {
+      // The late "ok" could be taken for the next command's answer: the link
+      // is out of step, so close it; open() resets the board and resyncs.
+      const std::string got = reader_.pending();
+      open_ = false;
+      port_->close();
+      throw DeviceError(uri_ + ": no answer to '" + gcode + "' within " +
+                        std::to_string(timeout_ms) + " ms" +
+                        (got.empty() ? std::string() : " (got '" + printable(got) + "')") +
+                        "; port closed, open() again to resynchronise");
+    }
     if (line == "ok") return;
     if (line.rfind("error", 0) == 0 || line.rfind("ALARM", 0) == 0)
       throw DeviceError(uri_ + ": board answered '" + printable(line) + "' to '" + gcode + "'");

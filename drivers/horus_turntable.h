@@ -59,7 +59,9 @@ class HorusTurntable final : public Turntable {
   int steps_per_revolution() const override;
   std::string uri() const override { return uri_; }
 
-  /// Sends one command and waits for "ok"; DeviceError on "error..." or time-out.
+  /// Sends one command and waits for "ok"; DeviceError on "error..." or
+  /// time-out. After a time-out the port is closed (a late "ok" would be taken
+  /// for the next command's answer); open() resets the board and resyncs.
   void command(const std::string& gcode, int timeout_ms);
 
  private:

@@ -206,6 +206,14 @@ bool LineReader::read_line(std::string& line, int timeout_ms) {
   }
 }
 
+void LineReader::drain(int quiet_ms, int max_ms) {
+  pending_.clear();
+  port_.discard_input();
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::milliseconds(max_ms);
+  while (std::chrono::steady_clock::now() < deadline)
+    if (port_.read_some(256, quiet_ms).empty()) break;
+}
+
 int LineReader::read_byte(int timeout_ms) {
   if (pending_.empty()) {
     pending_ = port_.read_some(256, timeout_ms);

@@ -49,6 +49,10 @@ class LineReader {
   /// The next byte, or -1 on time-out.
   int read_byte(int timeout_ms);
   void clear() { pending_.clear(); }
+  /// Drops everything buffered and whatever arrives until the line has been
+  /// quiet for `quiet_ms` (at most `max_ms` in all): late answers to a command
+  /// that timed out must not be taken for answers to the next one.
+  void drain(int quiet_ms, int max_ms);
   const std::string& pending() const { return pending_; }
 
  private:

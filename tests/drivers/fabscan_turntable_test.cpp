@@ -118,6 +118,21 @@ TEST(FabScanTurntable, MoveNotConfirmedWhenUnpluggedMidMove) {
   EXPECT_DOUBLE_EQ(b.table->angle(), 0.0);
 }
 
+TEST(FabScanTurntable, MoveNotConfirmedInTimeClosesThePort) {
+  Bench b;
+  b.table->open();
+  b.sim.answers_ping = false;  // the table jams: no pong after the steps
+  const std::string m = message([&] { b.table->rotate_to(90); });
+  EXPECT_NE(m.find("no pong (211) to ping (210) within"), std::string::npos) << m;
+  EXPECT_NE(m.find("port closed"), std::string::npos) << m;
+  EXPECT_DOUBLE_EQ(b.table->angle(), 0.0);
+  EXPECT_FALSE(b.port->is_open());
+  b.sim.answers_ping = true;
+  b.table->open();
+  b.table->rotate_to(45);
+  EXPECT_DOUBLE_EQ(b.table->angle(), 45.0);
+}
+
 TEST(FabScanTurntable, OptionsChecked) {
   EXPECT_NE(message([] {
               fabscan_options({{"microsteps", "16"}}, "fabscan:/x");

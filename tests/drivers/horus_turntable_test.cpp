@@ -146,13 +146,23 @@ TEST(HorusTurntable, ErrorAnswerNamesTheCommand) {
   EXPECT_DOUBLE_EQ(b.table->angle(), 0.0);  // not reached
 }
 
-TEST(HorusTurntable, SilentBoardTimesOut) {
+TEST(HorusTurntable, SilentBoardTimesOutAndClosesUntilReopened) {
   Bench b;
   b.sim.answers = {{"G1X", ""}};
   b.table->open();
   const std::string m = message([&] { b.table->rotate_to(90); });
-  EXPECT_NE(m.find("no answer to 'G1X90' within 2000 ms"), std::string::npos) << m;
+  EXPECT_NE(
+      m.find("no answer to 'G1X90' within 2000 ms; port closed, open() again to resynchronise"),
+      std::string::npos)
+      << m;
   EXPECT_DOUBLE_EQ(b.table->angle(), 0.0);
+  EXPECT_FALSE(b.port->is_open());  // a late "ok" must not answer the next command
+  EXPECT_NE(message([&] { b.table->rotate_to(90); }).find("before open"), std::string::npos);
+  b.sim.answers.clear();
+  b.table->open();  // Ctrl-X, banner, fresh origin
+  b.table->rotate_to(90);
+  EXPECT_EQ(b.sim.commands.back(), "G1X90");
+  EXPECT_DOUBLE_EQ(b.table->angle(), 90.0);
 }
 
 TEST(HorusTurntable, UnplugMidScanKeepsTheLastReachedAngle) {
