@@ -81,7 +81,11 @@ struct Leaf {
     }
     thread_local std::vector<double> ps;
     ps.resize(nodes.size());
-    for (std::size_t i = 0; i < nodes.size(); ++i) ps[i] = psi((d - nodes[i]).norm(), rbf_support);
+    const double s2 = rbf_support * rbf_support;
+    for (std::size_t i = 0; i < nodes.size(); ++i) {
+      const double r2 = (d - nodes[i]).squaredNorm();
+      ps[i] = r2 < s2 ? psi(std::sqrt(r2), rbf_support) : 0.0;
+    }
     auto value = [&](const RbfPart& part, int col) {
       double s = part.poly[col] + part.poly[part.cols + col] * a + part.poly[2 * part.cols + col] * b;
       for (std::size_t i = 0; i < part.ids.size(); ++i) {

@@ -345,7 +345,7 @@ TEST(ColourFunction, MustardBottleTextureRegression) {
     }
     return out;
   };
-  const Cloud c = sample(35000, 1), held = sample(10000, 2);
+  const Cloud c = sample(20000, 1), held = sample(10000, 2);
   ColourParams p;
   p.threads = 2;
   const ColourFunction f = fit_colour(c, p);
@@ -355,14 +355,16 @@ TEST(ColourFunction, MustardBottleTextureRegression) {
   const ColourFunction fa = fit_colour(c, a_only);
   const ColourDiagnostics& d = f.diagnostics();
   const double held_ab = f.e_col(held), held_a = fa.e_col(held);
-  std::printf("mustard 35k: A %zu B %zu (unconverged A %zu), fit %.3f s; e_col input %.3g (A only %.3g), held-out %.3g (A only %.3g)\n",
+  std::printf("mustard 20k: A %zu B %zu (unconverged A %zu), fit %.3f s; e_col input %.3g (A only %.3g), held-out %.3g (A only %.3g)\n",
               d.leaves_by_type[0], d.leaves_by_type[1], d.unconverged_leaves, d.fit_seconds, d.e_col,
               fa.diagnostics().e_col, held_ab, held_a);
-  // Measured: e_col 7.9e-3 on the input points (Type A only: 3.5e-2), 0.061 on held-out
-  // points (the label's print is finer than the 35k-point sampling).
-  EXPECT_LT(d.e_col, 1e-2);
+  // Measured (20k points): e_col 9.9e-3 on the input points (Type A only: 4.1e-2),
+  // 0.072 on held-out points (Type A only 0.084; the label's print is finer than the
+  // sampling). Thresholds a bit above.
+  EXPECT_LT(d.e_col, 0.012);
   EXPECT_LT(d.e_col, 0.5 * fa.diagnostics().e_col);
-  EXPECT_LT(held_ab, 0.07);
+  EXPECT_LT(held_ab, 0.08);
+  EXPECT_LT(held_ab, held_a);
 }
 
 // The Stanford dragon (all 15 turntable scans of the team's data set, merged with
