@@ -212,6 +212,10 @@ std::string seconds_text(double s) { return fmt(s < 10 ? "%.2f" : "%.1f", s); }
 void write_report(const fs::path& out_dir, const fs::path& input, bool session, const RunResult& run,
                   const fs::path& report_path) {
   std::vector<ReportSection> sections;
+  Vec3d up = Vec3d::UnitZ();
+  for (const StageRecord& r : run.stages)
+    if (r.name == "register" && r.figures.count("up_x"))
+      up = Vec3d(r.figures.at("up_x"), r.figures.at("up_y"), r.figures.at("up_z"));
   {
     ReportSection s;
     s.title = "Stages";
@@ -266,10 +270,12 @@ void write_report(const fs::path& out_dir, const fs::path& input, bool session, 
       o.shade = false;
       o.point_size = 1;
       const Aabb box = bounding_box(all.points);
-      Aabb flat = box;  // seen from above only the footprint matters
-      flat.min.z() = flat.max.z() = box.center().z();
-      s.figures.push_back({"views from above", encode_png(render_points(all, view_from_above(flat, 360), o, &colours))});
-      s.figures.push_back({"views from the front", encode_png(render_points(all, view_from_side(0, box, 360), o, &colours))});
+      // Seen from above only the footprint matters: drop the extent along up.
+      const Vec3f c = box.center(), u = up.cast<float>();
+      Aabb flat;
+      for (const Vec3f& p : all.points) flat.extend(p - (p - c).dot(u) * u);
+      s.figures.push_back({"views from above", encode_png(render_points(all, view_from_above(flat, 360, up), o, &colours))});
+      s.figures.push_back({"views from the front", encode_png(render_points(all, view_from_side(0, box, 360, up), o, &colours))});
     }
     std::vector<std::string> labels;
     for (std::size_t i = 0; i < reg->per_view.size(); ++i) labels.push_back(std::to_string(i));
@@ -288,8 +294,8 @@ void write_report(const fs::path& out_dir, const fs::path& input, bool session, 
     RenderOptions o;
     o.point_size = 2;
     const Aabb box = bounding_box(c.points);
-    s.figures.push_back({"front", encode_png(render_points(c, view_from_side(0, box, 360), o))});
-    s.figures.push_back({"side", encode_png(render_points(c, view_from_side(1, box, 360), o))});
+    s.figures.push_back({"front", encode_png(render_points(c, view_from_side(0, box, 360, up), o))});
+    s.figures.push_back({"side", encode_png(render_points(c, view_from_side(1, box, 360, up), o))});
     sections.push_back(s);
   }
   if (!run.mesh.empty() && fs::exists(run.mesh)) {
@@ -303,9 +309,9 @@ void write_report(const fs::path& out_dir, const fs::path& input, bool session, 
     for (int q = 0; q < 4; ++q) {
       RenderOptions o;
       if (m.has_colors())
-        s.figures.push_back({std::string(names[q]) + ", colour", encode_png(render_mesh(m, view_from_side(q, box, 300), o))});
+        s.figures.push_back({std::string(names[q]) + ", colour", encode_png(render_mesh(m, view_from_side(q, box, 300, up), o))});
       o.use_colors = false;
-      s.figures.push_back({std::string(names[q]) + ", shape", encode_png(render_mesh(m, view_from_side(q, box, 300), o))});
+      s.figures.push_back({std::string(names[q]) + ", shape", encode_png(render_mesh(m, view_from_side(q, box, 300, up), o))});
     }
     sections.push_back(s);
   }
@@ -462,6 +468,15 @@ class Runner {
     }
     for (std::size_t i = 0; i < sum.size(); ++i)
       r.per_view.push_back(count[i] ? sum[i] / count[i] : std::nan(""));
+    if (reg.axis && !reg.poses.empty()) {
+      // The object's up (the turntable axis) in the object frame, for the report's views.
+      int first = 0;
+      while (first + 1 < int(reg.views.size()) && !reg.views[first].registered) ++first;
+      const Vec3d up = reg.poses[first].topLeftCorner<3, 3>() * reg.axis->direction;
+      r.figures["up_x"] = up.x();
+      r.figures["up_y"] = up.y();
+      r.figures["up_z"] = up.z();
+    }
     for (const Eigen::Matrix4d& T : reg.poses) {
       std::vector<double> row(16);
       for (int k = 0; k < 16; ++k) row[k] = T(k / 4, k % 4);

@@ -66,20 +66,36 @@ Aabb box_of(const RenderView& v, const std::vector<Vec3f>& points) {
 
 }  // namespace
 
-RenderView view_from_side(int quarter_turns, const Aabb& box, int size) {
+namespace {
+/// A horizontal frame (front, left) for an up direction: front is +x made
+/// orthogonal to up (or +y when up is along x).
+void horizontal_frame(const Vec3d& up_in, Vec3d& up, Vec3d& front, Vec3d& left) {
+  up = up_in.norm() > 0 ? up_in.normalized() : Vec3d::UnitZ();
+  front = Vec3d::UnitX() - up.x() * up;
+  if (front.norm() < 0.3) front = Vec3d::UnitY() - up.y() * up;
+  front.normalize();
+  left = up.cross(front);
+}
+}  // namespace
+
+RenderView view_from_side(int quarter_turns, const Aabb& box, int size, const Vec3d& up_dir) {
   RenderView v;
+  Vec3d up, front, left;
+  horizontal_frame(up_dir, up, front, left);
   const double a = quarter_turns * M_PI / 2;
-  v.toward_eye = Vec3d(std::cos(a), std::sin(a), 0.25).normalized();
-  v.up = Vec3d::UnitZ();
+  v.toward_eye = (std::cos(a) * front + std::sin(a) * left + 0.25 * up).normalized();
+  v.up = up;
   v.box = box;
   v.width = v.height = size;
   return v;
 }
 
-RenderView view_from_above(const Aabb& box, int size) {
+RenderView view_from_above(const Aabb& box, int size, const Vec3d& up_dir) {
   RenderView v;
-  v.toward_eye = Vec3d::UnitZ();
-  v.up = Vec3d::UnitX();
+  Vec3d up, front, left;
+  horizontal_frame(up_dir, up, front, left);
+  v.toward_eye = up;
+  v.up = front;
   v.box = box;
   v.width = v.height = size;
   return v;

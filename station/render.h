@@ -52,9 +52,11 @@ struct RenderOptions {
 };
 
 /// Standard views for the report: from the front (scanner side, +x of the
-/// turntable frame), the left, the back, the right, and from above (+z up).
-RenderView view_from_side(int quarter_turns, const Aabb& box, int size = 400);
-RenderView view_from_above(const Aabb& box, int size = 400);
+/// turntable frame), the left, the back, the right (a little from above), and
+/// from above. `up` is the object's up (the turntable axis; +z in the turntable frame).
+RenderView view_from_side(int quarter_turns, const Aabb& box, int size = 400,
+                          const Vec3d& up = Vec3d::UnitZ());
+RenderView view_from_above(const Aabb& box, int size = 400, const Vec3d& up = Vec3d::UnitZ());
 
 /// Draws the mesh's faces (both sides; shading by face normal). Colours per vertex
 /// are interpolated when present and options.use_colors. Non-finite vertices are skipped.
