@@ -437,15 +437,13 @@ struct V4l2Camera::Parsed {
 
 V4l2Camera::V4l2Camera(std::shared_ptr<SysCalls> sys, const DeviceUri& uri,
                        std::vector<std::string> paths)
-    : sys_(std::move(sys)), uri_(uri), paths_(std::move(paths)) {
-  parse();
-}
+    : sys_(std::move(sys)), uri_(uri), paths_(std::move(paths)), p_(parse(uri_)) {}
 
 V4l2Camera::~V4l2Camera() { close(); }
 
-void V4l2Camera::parse() {
-  const std::string& who = uri_.text;
-  const DeviceOptions& o = uri_.options;
+std::unique_ptr<V4l2Camera::Parsed> V4l2Camera::parse(const DeviceUri& uri) {
+  const std::string& who = uri.text;
+  const DeviceOptions& o = uri.options;
   reject_unknown_options(
       o, {"format",        "width",        "height",      "buffers",      "timeout_ms", "exposure",
           "white_balance", "depth_scale",  "fx",          "fy",           "cx",         "cy",
@@ -453,7 +451,7 @@ void V4l2Camera::parse() {
           "color_cx",      "color_cy",     "extrinsics",  "card"},
       who);
   auto p = std::make_unique<Parsed>();
-  p->path = uri_.path;
+  p->path = uri.path;
   if (p->path.empty())
     throw DeviceError(who + ": no device path (e.g. v4l2:/dev/video0 or v4l2:auto)");
   auto fill = [&](V4l2Stream::Settings& s, const std::string& prefix) {
@@ -507,14 +505,17 @@ void V4l2Camera::parse() {
           std::to_string(n));
     p->extrinsics = m;
   }
-  p_ = std::move(p);
+  return p;
 }
 
 void V4l2Camera::configure(const DeviceOptions& options) {
+  DeviceUri next = uri_;
+  for (const auto& [k, v] : options) next.options[k] = v;
+  auto parsed = parse(next);  // a bad option changes nothing
   const bool was_open = main_ != nullptr;
   close();
-  for (const auto& [k, v] : options) uri_.options[k] = v;
-  parse();
+  uri_ = std::move(next);
+  p_ = std::move(parsed);
   if (was_open) open();
 }
 

@@ -136,7 +136,7 @@ class V4l2Camera final : public Scanner {
 
  private:
   struct Parsed;
-  void parse();
+  static std::unique_ptr<Parsed> parse(const DeviceUri& uri);
   std::shared_ptr<SysCalls> sys_;
   DeviceUri uri_;
   std::vector<std::string> paths_;

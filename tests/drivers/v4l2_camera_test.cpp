@@ -193,6 +193,22 @@ TEST(V4l2Camera, ColourNodePrefersYuyvAndSetsFixedExposureAndWhiteBalance) {
   EXPECT_EQ(n.controls.at(V4L2_CID_WHITE_BALANCE_TEMPERATURE), 4600);
 }
 
+TEST(V4l2Camera, ConfigureFromTheProfileReopensWithTheNewSettings) {
+  Rig r;
+  auto cam = r.camera("v4l2:/dev/video4");
+  cam->open();
+  cam->configure({{"exposure", "80"}});
+  EXPECT_EQ(r.k->nodes["/dev/video4"].controls.at(V4L2_CID_EXPOSURE_ABSOLUTE), 80);
+  EXPECT_TRUE(cam->grab().has_color());
+  EXPECT_NE(message([&] {
+              cam->configure({{"exposur", "80"}});
+            }).find("unknown option 'exposur'"),
+            std::string::npos);
+  EXPECT_TRUE(cam->grab().has_color());  // a rejected option changes nothing
+  cam->configure({{"white_balance", "5000"}});
+  EXPECT_EQ(r.k->nodes["/dev/video4"].controls.at(V4L2_CID_WHITE_BALANCE_TEMPERATURE), 5000);
+}
+
 TEST(V4l2Camera, MjpegNode) {
   Rig r;
   auto& n = r.k->nodes["/dev/video4"];
