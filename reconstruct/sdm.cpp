@@ -7,10 +7,14 @@
 #include <tbb/task_arena.h>
 
 #include <algorithm>
+#include <array>
+#include <unordered_map>
 #include <chrono>
 #include <cmath>
 #include <numeric>
 #include <random>
+#include <cstdio>
+#include <cstdlib>
 
 #include <Eigen/Eigenvalues>
 #include <Eigen/Geometry>
@@ -57,6 +61,18 @@ class VertexGrid {
     if (c == cell_of_[v]) return;
     unlink(v);
     link(v, c);
+  }
+
+  /// Calls f(v) for every vertex in the cells overlapping the box [lo, hi].
+  template <class F>
+  void for_box(const Vec3f& lo, const Vec3f& hi, F f) const {
+    int a[3], b[3];
+    coords(lo, a);
+    coords(hi, b);
+    for (int z = a[2]; z <= b[2]; ++z)
+      for (int y = a[1]; y <= b[1]; ++y)
+        for (int x = a[0]; x <= b[0]; ++x)
+          for (int v = head_[(std::size_t(z) * n_[1] + y) * n_[0] + x]; v >= 0; v = next_[v]) f(v);
   }
 
   /// Nearest vertex to q (Euclidean) among those with accept(v); -1 when none.
@@ -149,11 +165,14 @@ struct Engine {
   std::vector<char> pinned;
   Adjacency adj;
   std::vector<Vec3f> pos;
-  std::unique_ptr<PointIndex> cp_index;
-  std::vector<int> cp_knn;  // 8 nearest control points of each control point
-  static constexpr int kKnn = 8;
-  std::vector<int> nearest_cp;  // per vertex, tracked by walks on cp_knn
+  Cloud sc;                  // phase 1's control points: the target or a random subset of it
+  std::vector<int> sc_index;  // their indices in the target
+  std::unique_ptr<PointIndex> cp_index;  // over sc
+  std::vector<int> nearest_cp;  // per vertex: its nearest control point (maybe stale, see som)
+  float resee = 0;              // anchors re-seek their nearest control point after sliding this far
   std::vector<char> anchor;
+  std::vector<float> free_lb;
+  std::vector<float> anchor_slide;  // per anchor: distance slid since its nearest control point was sought  // per free vertex: lower bound of its distance to the cloud
   std::unique_ptr<VertexGrid> grid;
   float spacing = 0, tau = 0, diag = 0;
   int threads = 1;
@@ -161,23 +180,6 @@ struct Engine {
   Engine(const SdmParams& p, const Cloud& t, const std::vector<Face>& f,
          const std::vector<Landmark>& l, const std::vector<char>& pin)
       : P(p), target(t), faces(f), landmarks(l), pinned(pin) {}
-
-  int walk(int start, const Vec3f& v) const {
-    int cur = start;
-    float d = (target.points[cur] - v).squaredNorm();
-    for (int guard = 0; guard < 1000; ++guard) {
-      int best = cur;
-      for (int j = 0; j < kKnn; ++j) {
-        const int o = cp_knn[std::size_t(cur) * kKnn + j];
-        if (o < 0) continue;
-        const float e = (target.points[o] - v).squaredNorm();
-        if (e < d) d = e, best = o;
-      }
-      if (best == cur) break;
-      cur = best;
-    }
-    return cur;
-  }
 
   void refresh_nearest_cp() {
     tbb::parallel_for(tbb::blocked_range<int>(0, int(pos.size()), 256), [&](const tbb::blocked_range<int>& r) {
@@ -193,14 +195,16 @@ struct Engine {
     std::uniform_real_distribution<double> uni(0.0, 1.0);
     // Selection probabilities: cumulative weights, drawn by binary search.
     std::vector<double> cum;
-    std::vector<float> weights = P.selection_weights;
+    std::vector<float> weights;
+    if (!P.selection_weights.empty())
+      for (int i : sc_index) weights.push_back(P.selection_weights[i]);
     if (weights.empty() && P.curvature_gain > 0) weights = curvature_weights();
     if (!weights.empty()) {
       cum.resize(weights.size());
       double s = 0;
       for (std::size_t i = 0; i < weights.size(); ++i) cum[i] = (s += weights[i]);
     }
-    const int ncp = int(target.size());
+    const int ncp = int(sc.size());
     const float sigma_s = P.sigma_start > 0 ? P.sigma_start : std::max(1.f, std::sqrt(float(nv)) / 8.f);
     const float sigma_f = std::min(P.sigma_final, sigma_s);
     const float cut = std::sqrt(-2.f * std::log(std::clamp(P.lambda_cutoff, 1e-6f, 0.999f)));
@@ -211,6 +215,8 @@ struct Engine {
     for (int t = 0; t < T; ++t) {
       if (t > 0 && t % refresh_every == 0) {
         refresh_nearest_cp();
+        for (int v = 0; v < nv; ++v)
+          if (!anchor[v]) free_lb[v] = (pos[v] - sc.points[nearest_cp[v]]).norm();
         if (progress) progress("som", double(t) / T);
       }
       const double frac = double(t) / T;
@@ -232,8 +238,8 @@ struct Engine {
           idx = std::min<int>(ncp - 1, int(std::upper_bound(cum.begin(), cum.end(),
                                                              uni(rng) * cum.back()) -
                                            cum.begin()));
-        p = target.points[idx];
-        const Vec3f np = target.normals[idx];
+        p = sc.points[idx];
+        const Vec3f np = sc.normals[idx];
         k = grid->nearest(p, [&](int v) { return np.dot(pos[v] - p) >= 0.f; });
       }
       if (k < 0) {
@@ -265,20 +271,34 @@ struct Engine {
         const float step = eps * lam;
         Vec3f& v = pos[i];
         if (!anchor[i]) {
-          v += step * ((p - v) + P.alpha * (v - vk));  // eq. 10
-          nearest_cp[i] = walk(nearest_cp[i], v);
-          if ((v - target.points[nearest_cp[i]]).norm() < tau) anchor[i] = 1;
+          const Vec3f dv = step * ((p - v) + P.alpha * (v - vk));  // eq. 10
+          v += dv;
+          // The distance to the cloud is 1-Lipschitz: only query it when the bound
+          // says the vertex may have come within tau.
+          free_lb[i] -= dv.norm();
+          if (free_lb[i] < tau) {
+            const auto [q, d] = cp_index->nearest(v);
+            nearest_cp[i] = q;
+            free_lb[i] = d;
+            if (d < tau) anchor[i] = 1;
+          }
         } else {
           // Geodesic step approximated: move along the tangent plane at the nearest
           // control point, then project back onto the tangent plane there.
-          const Vec3f& n = target.normals[nearest_cp[i]];
+          // The nearest control point (whose tangent plane stands for the surface) is
+          // re-sought once the vertex has slid `resee` since the last search.
+          const Vec3f& n = sc.normals[nearest_cp[i]];
           Vec3f d = p - v;
           d -= n * n.dot(d);
           v += step * d;
-          nearest_cp[i] = walk(nearest_cp[i], v);
+          anchor_slide[i] += step * d.norm();
+          if (anchor_slide[i] > resee) {
+            nearest_cp[i] = cp_index->nearest(v).first;
+            anchor_slide[i] = 0;
+          }
           const int q = nearest_cp[i];
-          const Vec3f& n2 = target.normals[q];
-          v -= n2 * n2.dot(v - target.points[q]);
+          const Vec3f& n2 = sc.normals[q];
+          v -= n2 * n2.dot(v - sc.points[q]);
         }
         grid->update(i);
       }
@@ -289,17 +309,17 @@ struct Engine {
   }
 
   std::vector<float> curvature_weights() const {
-    const int ncp = int(target.size());
+    const int ncp = int(sc.size());
     std::vector<float> var(ncp, 0.f);
     tbb::parallel_for(tbb::blocked_range<int>(0, ncp, 512), [&](const tbb::blocked_range<int>& r) {
       for (int i = r.begin(); i < r.end(); ++i) {
-        const auto nn = cp_index->knn(target.points[i], 12);
+        const auto nn = cp_index->knn(sc.points[i], 12);
         Vec3d mean = Vec3d::Zero();
-        for (auto& [j, d] : nn) mean += target.points[j].cast<double>();
+        for (auto& [j, d] : nn) mean += sc.points[j].cast<double>();
         mean /= double(nn.size());
         Eigen::Matrix3d C = Eigen::Matrix3d::Zero();
         for (auto& [j, d] : nn) {
-          const Vec3d y = target.points[j].cast<double>() - mean;
+          const Vec3d y = sc.points[j].cast<double>() - mean;
           C += y * y.transpose();
         }
         const double tr = C.trace();
@@ -319,6 +339,7 @@ struct Engine {
   struct Assignment {
     std::vector<int> owner;             // per control point: nearest vertex
     std::vector<int> omega_start, omega;  // control points of each vertex
+    std::vector<float> dist;            // per control point: distance to the owner's faces
     double mean_distance = 0;
   };
 
@@ -326,7 +347,8 @@ struct Engine {
     const int ncp = int(target.size()), nv = int(pos.size());
     Assignment a;
     a.owner.assign(ncp, -1);
-    std::vector<float> dist(ncp, 0.f);
+    std::vector<float>& dist = a.dist;
+    dist.assign(ncp, 0.f);
     tbb::parallel_for(tbb::blocked_range<int>(0, ncp, 512), [&](const tbb::blocked_range<int>& r) {
       for (int i = r.begin(); i < r.end(); ++i) {
         const Vec3f& p = target.points[i];
@@ -357,10 +379,16 @@ struct Engine {
     std::vector<int> colour(nv, -1);
     std::vector<char> used;
     int ncol = 0;
+    // Distance-2 colouring: vertices of one class share no neighbour, so their moves
+    // (computed in parallel against the same positions) never touch a common face.
     for (int v = 0; v < nv; ++v) {
       used.assign(ncol + 1, 0);
-      for (int j = adj.ring_start[v]; j < adj.ring_start[v + 1]; ++j)
-        if (colour[adj.ring[j]] >= 0) used[colour[adj.ring[j]]] = 1;
+      for (int j = adj.ring_start[v]; j < adj.ring_start[v + 1]; ++j) {
+        const int u = adj.ring[j];
+        if (colour[u] >= 0) used[colour[u]] = 1;
+        for (int k = adj.ring_start[u]; k < adj.ring_start[u + 1]; ++k)
+          if (colour[adj.ring[k]] >= 0) used[colour[adj.ring[k]]] = 1;
+      }
       int c = 0;
       while (used[c]) ++c;
       colour[v] = c;
@@ -398,6 +426,42 @@ struct Engine {
     return e;
   }
 
+  // Whether the faces at v, with v moved to c, would cut another face: faces at the
+  // vertices found (vertex grid) within the box of v's faces grown by their longest
+  // edge (any face crossing them has a vertex there, given edges of similar length).
+  bool crosses_nearby(int v, const Vec3f& c) const {
+    thread_local std::vector<int> near_faces;
+    Vec3f lo = c, hi = c;
+    float longest = 0;
+    for (int j = adj.ring_start[v]; j < adj.ring_start[v + 1]; ++j) {
+      const Vec3f& u = pos[adj.ring[j]];
+      lo = lo.cwiseMin(u);
+      hi = hi.cwiseMax(u);
+      longest = std::max(longest, (u - c).norm());
+    }
+    const Vec3f pad = Vec3f::Constant(1.5f * longest);
+    near_faces.clear();
+    grid->for_box(lo - pad, hi + pad, [&](int u) {
+      for (int j = adj.vf_start[u]; j < adj.vf_start[u + 1]; ++j) near_faces.push_back(adj.vf[j]);
+    });
+    std::sort(near_faces.begin(), near_faces.end());
+    near_faces.erase(std::unique(near_faces.begin(), near_faces.end()), near_faces.end());
+    for (int j = adj.vf_start[v]; j < adj.vf_start[v + 1]; ++j) {
+      const Face& A = faces[adj.vf[j]];
+      const Vec3f a[3] = {A[0] == v ? c : pos[A[0]], A[1] == v ? c : pos[A[1]], A[2] == v ? c : pos[A[2]]};
+      const Vec3f lo = a[0].cwiseMin(a[1]).cwiseMin(a[2]), hi = a[0].cwiseMax(a[1]).cwiseMax(a[2]);
+      for (int g : near_faces) {
+        const Face& B = faces[g];
+        if (B[0] == v || B[1] == v || B[2] == v) continue;
+        const Vec3f b[3] = {pos[B[0]], pos[B[1]], pos[B[2]]};
+        const Vec3f blo = b[0].cwiseMin(b[1]).cwiseMin(b[2]), bhi = b[0].cwiseMax(b[1]).cwiseMax(b[2]);
+        if ((blo.array() > hi.array()).any() || (bhi.array() < lo.array()).any()) continue;
+        if (faces_intersect(A, B, a, b)) return true;
+      }
+    }
+    return false;
+  }
+
   Vec3f best_move(int v, const Assignment& a) const {
     const Vec3f cur = pos[v];
     // Reference orientation: the area-weighted normal of the ring as it is.
@@ -414,9 +478,15 @@ struct Engine {
     int cur_bad = bad_faces(v, cur, ref);
     Vec3f best = cur;
     const int os = a.omega_start[v], oe = a.omega_start[v + 1], no = oe - os;
+    bool fitted = false;
     if (no > 0) {
+      double m = 0;
+      for (int k = os; k < oe; ++k) m += a.dist[a.omega[k]];
+      fitted = m / no < 0.5 * P.theta_e * diag;
+    }
+    if (no > 0 && !fitted) {
       // Energy over an evenly spread subset of Omega_i (at most 16 points).
-      constexpr int kMaxEnergyPoints = 16;
+      constexpr int kMaxEnergyPoints = 12;
       int pts[kMaxEnergyPoints];
       const int ne = std::min(no, kMaxEnergyPoints);
       for (int k = 0; k < ne; ++k) pts[k] = a.omega[os + int(std::int64_t(k) * no / ne)];
@@ -436,7 +506,7 @@ struct Engine {
           }
         }
       }
-    } else if (P.membrane > 0) {
+    } else if (no == 0 && P.membrane > 0) {
       const Vec3f c = cur + P.membrane * (centroid - cur);
       if (bad_faces(v, c, ref) <= cur_bad) best = c;
     }
@@ -446,23 +516,141 @@ struct Engine {
       const Vec3f c = best + P.relax * d;
       if (bad_faces(v, c, ref) <= bad_faces(v, best, ref)) best = c;
     }
+    if (best != cur && crosses_nearby(v, best)) return cur;
     return best;
   }
 
-  void energy_phase(SdmDiagnostics& dg, const SdmProgress& progress) {
-    const auto classes = colour_classes();
-    dg.colours = int(classes.size());
+  // Faces across the three edges of each face (-1 on a boundary).
+  std::vector<std::array<int, 3>> face_neighbours() const {
+    std::unordered_map<std::uint64_t, std::pair<int, int>> edge;  // key -> (face, slot)
+    std::vector<std::array<int, 3>> nb(faces.size(), {-1, -1, -1});
+    for (int fi = 0; fi < int(faces.size()); ++fi)
+      for (int k = 0; k < 3; ++k) {
+        const int a = faces[fi][k], b = faces[fi][(k + 1) % 3];
+        const std::uint64_t key = (std::uint64_t(std::min(a, b)) << 32) | std::uint32_t(std::max(a, b));
+        auto it = edge.find(key);
+        if (it == edge.end()) {
+          edge.emplace(key, std::make_pair(fi, k));
+        } else {
+          nb[fi][k] = it->second.first;
+          nb[it->second.first][it->second.second] = fi;
+        }
+      }
+    return nb;
+  }
+
+  // Fold repair (not in the paper): the vertices of folded faces and their rings are
+  // moved to their neighbours' centroid (umbrella smoothing) until no face is folded
+  // or `iterations` passes are spent. Returns the folded faces left.
+  // Umbrella smoothing of the marked vertices (one pass, independent sets in turn).
+  void smooth_marked(const std::vector<std::vector<int>>& classes, const std::vector<char>& mark,
+                     std::vector<Vec3f>& next) {
+    for (const auto& cls : classes) {
+      tbb::parallel_for(tbb::blocked_range<std::size_t>(0, cls.size(), 256), [&](const auto& r) {
+        for (std::size_t i = r.begin(); i < r.end(); ++i) {
+          const int v = cls[i];
+          if (!mark[v] || pinned[v]) continue;
+          Vec3f c = Vec3f::Zero();
+          const int rs = adj.ring_start[v], re = adj.ring_start[v + 1];
+          for (int j = rs; j < re; ++j) c += pos[adj.ring[j]];
+          if (re > rs) next[v] = c / float(re - rs);
+        }
+      });
+      for (int v : cls)
+        if (mark[v] && !pinned[v]) {
+          pos[v] = next[v];
+          grid->update(v);
+        }
+    }
+  }
+
+  void grow(std::vector<char>& mark, int rings) const {
+    for (int g = 0; g < rings; ++g) {
+      std::vector<char> m2 = mark;
+      for (int v = 0; v < int(mark.size()); ++v)
+        if (mark[v])
+          for (int j = adj.ring_start[v]; j < adj.ring_start[v + 1]; ++j) m2[adj.ring[j]] = 1;
+      mark.swap(m2);
+    }
+  }
+
+  // Self-intersection repair (not in the paper): the vertices of intersecting faces
+  // and two rings around them are smoothed, then folds repaired, until none is left
+  // or `iterations` rounds are spent. Returns the intersecting pairs left.
+  int repair_intersections(const std::vector<std::vector<int>>& classes,
+                           const std::vector<std::array<int, 3>>& fnb, int iterations) {
+    std::vector<char> mark(pos.size());
+    std::vector<Vec3f> next(pos.size());
+    for (int it = 0;; ++it) {
+      const auto pairs = self_intersecting_pairs(pos, faces);
+      if (std::getenv("SDM_DEBUG")) std::fprintf(stderr, "  intersections %zu\n", pairs.size());
+      if (pairs.empty() || it == iterations) return int(pairs.size());
+      std::fill(mark.begin(), mark.end(), 0);
+      for (const auto& [a, b] : pairs)
+        for (int k = 0; k < 3; ++k) mark[faces[a][k]] = mark[faces[b][k]] = 1;
+      grow(mark, 1 + it / 3);
+      for (int pass = 0; pass < 2; ++pass) smooth_marked(classes, mark, next);
+      repair_folds(classes, fnb, P.repair_iterations);
+    }
+  }
+
+  int repair_folds(const std::vector<std::vector<int>>& classes,
+                   const std::vector<std::array<int, 3>>& fnb, int iterations) {
+    const int nf = int(faces.size()), nv = int(pos.size());
+    std::vector<Vec3f> fn(nf);
+    std::vector<char> mark(nv);
+    std::vector<Vec3f> next(nv);
+    int folded = 0;
+    for (int it = 0; it <= iterations; ++it) {
+      for (int fi = 0; fi < nf; ++fi) {
+        const Face& f = faces[fi];
+        const Vec3f n = (pos[f[1]] - pos[f[0]]).cross(pos[f[2]] - pos[f[0]]);
+        const float l = n.norm();
+        fn[fi] = l > 0 ? Vec3f(n / l) : Vec3f::Zero();
+      }
+      std::fill(mark.begin(), mark.end(), 0);
+      folded = 0;
+      for (int fi = 0; fi < nf; ++fi) {
+        Vec3f sum = Vec3f::Zero();
+        for (int k = 0; k < 3; ++k)
+          if (fnb[fi][k] >= 0) sum += fn[fnb[fi][k]];
+        if (fn[fi].isZero() || fn[fi].dot(sum) < 0) {
+          ++folded;
+          for (int k = 0; k < 3; ++k) mark[faces[fi][k]] = 1;
+        }
+      }
+      if (folded == 0 || it == iterations) break;
+      grow(mark, 1 + (it >= iterations / 2));
+      smooth_marked(classes, mark, next);
+    }
+    if (std::getenv("SDM_DEBUG")) std::fprintf(stderr, "  folds left %d\n", folded);
+    return folded;
+  }
+
+  // Phase-2 rounds until D < theta_e, max_rounds, or two stalled rounds; ends in the
+  // best state seen. Returns the rounds run; D in dg.mean_distance.
+  int run_rounds(int max_rounds, const std::vector<std::vector<int>>& classes,
+                 const std::vector<std::array<int, 3>>& fnb, SdmDiagnostics& dg,
+                 const SdmProgress& progress) {
     const float theta = P.theta_e * diag;
     double prev = std::numeric_limits<double>::max();
     std::vector<Vec3f> next(pos.size());
-    int rounds = 0;
+    std::vector<Vec3f> best_pos = pos;
+    double best_d = std::numeric_limits<double>::max();
+    int rounds = 0, stalled = 0;
     for (;; ++rounds) {
       const Assignment a = assign();
-      if (rounds == 0) dg.distance_after_som = a.mean_distance;
+      if (a.mean_distance < best_d) {
+        best_d = a.mean_distance;
+        best_pos = pos;
+      }
+      if (std::getenv("SDM_DEBUG")) std::fprintf(stderr, "round %d D %.6f\n", rounds, a.mean_distance);
       dg.mean_distance = a.mean_distance;
-      if (progress) progress("energy", double(rounds) / std::max(1, P.max_energy_rounds));
-      if (a.mean_distance < theta || rounds >= P.max_energy_rounds) break;
-      if (rounds > 0 && prev - a.mean_distance < P.min_improvement * prev) break;
+      if (progress) progress("energy", std::min(1.0, double(rounds) / std::max(1, max_rounds)));
+      if (a.mean_distance < theta || rounds >= max_rounds) break;
+      // Stop after two rounds in a row that gain less than min_improvement.
+      stalled = (rounds > 0 && prev - a.mean_distance < P.min_improvement * prev) ? stalled + 1 : 0;
+      if (stalled >= 2) break;
       prev = a.mean_distance;
       for (const auto& cls : classes) {
         tbb::parallel_for(tbb::blocked_range<std::size_t>(0, cls.size(), 64), [&](const auto& r) {
@@ -476,7 +664,34 @@ struct Engine {
           grid->update(v);
         }
       }
+      repair_folds(classes, fnb, P.repair_iterations);
     }
+    // Keep the best state seen (the last round's moves may have made D worse).
+    if (dg.mean_distance > best_d) {
+      pos = best_pos;
+      for (int v = 0; v < int(pos.size()); ++v) grid->update(v);
+      dg.mean_distance = best_d;
+    }
+    return rounds;
+  }
+
+  void energy_phase(SdmDiagnostics& dg, const SdmProgress& progress) {
+    const auto classes = colour_classes();
+    const auto fnb = face_neighbours();
+    dg.colours = int(classes.size());
+    dg.distance_after_som = assign().mean_distance;
+    repair_folds(classes, fnb, P.repair_iterations);
+    repair_intersections(classes, fnb, P.repair_iterations);
+    int rounds = run_rounds(P.max_energy_rounds, classes, fnb, dg, progress);
+    // Intersections repaired by smoothing, then a few rounds to bring the smoothed
+    // parts back onto the target; twice at most.
+    for (int k = 0; k < 2; ++k) {
+      if (self_intersecting_pairs(pos, faces).empty()) break;
+      repair_intersections(classes, fnb, P.repair_iterations);
+      rounds += run_rounds(5, classes, fnb, dg, progress);
+    }
+    dg.self_intersections = repair_intersections(classes, fnb, P.repair_iterations);
+    dg.mean_distance = assign().mean_distance;
     dg.energy_rounds = rounds;
   }
 };
@@ -494,12 +709,30 @@ SdmResult run_sdm(const Mesh& initial, const Cloud& target, const SdmParams& par
   E.adj = build_adjacency(nv, initial.faces);
   tbb::task_arena arena(params.threads > 0 ? params.threads : tbb::task_arena::automatic);
   arena.execute([&] {
-    E.cp_index = std::make_unique<PointIndex>(target.points);
+    // Phase 1 runs on at most som_points control points (a seeded random subset).
+    const int som_max = params.som_points > 0 ? params.som_points : 8 * nv;
+    E.sc_index.resize(ncp);
+    std::iota(E.sc_index.begin(), E.sc_index.end(), 0);
+    if (ncp > som_max) {
+      std::mt19937_64 rng(params.seed * 7919u + 17u);
+      for (int i = 0; i < som_max; ++i) {
+        std::uniform_int_distribution<int> pick(i, ncp - 1);
+        std::swap(E.sc_index[i], E.sc_index[pick(rng)]);
+      }
+      E.sc_index.resize(som_max);
+      std::sort(E.sc_index.begin(), E.sc_index.end());
+    }
+    for (int i : E.sc_index) {
+      E.sc.points.push_back(target.points[i]);
+      E.sc.normals.push_back(target.normals[i]);
+    }
+    const int nsc = int(E.sc.size());
+    E.cp_index = std::make_unique<PointIndex>(E.sc.points);
     // Control-point spacing (mean nearest-neighbour distance over a spread subset).
-    const int ns = std::min(ncp, 4000);
+    const int ns = std::min(nsc, 4000);
     double sum = 0;
     for (int s = 0; s < ns; ++s) {
-      const auto nn = E.cp_index->knn(target.points[std::size_t(std::int64_t(s) * ncp / ns)], 2);
+      const auto nn = E.cp_index->knn(E.sc.points[std::size_t(std::int64_t(s) * nsc / ns)], 2);
       if (nn.size() == 2) sum += nn[1].second;
     }
     E.spacing = float(sum / std::max(1, ns));
@@ -509,30 +742,24 @@ SdmResult run_sdm(const Mesh& initial, const Cloud& target, const SdmParams& par
     dg.spacing = E.spacing;
     dg.tau = E.tau;
     dg.diagonal = E.diag;
-    // kNN graph of the control points (for tracking each vertex's nearest one).
-    E.cp_knn.assign(std::size_t(ncp) * Engine::kKnn, -1);
-    tbb::parallel_for(tbb::blocked_range<int>(0, ncp, 512), [&](const tbb::blocked_range<int>& r) {
-      for (int i = r.begin(); i < r.end(); ++i) {
-        const auto nn = E.cp_index->knn(target.points[i], Engine::kKnn + 1);
-        int k = 0;
-        for (const auto& [j, d] : nn)
-          if (j != i && k < Engine::kKnn) E.cp_knn[std::size_t(i) * Engine::kKnn + k++] = j;
-      }
-    });
     E.nearest_cp.assign(nv, 0);
     E.refresh_nearest_cp();
     E.anchor.assign(nv, 0);
+    E.free_lb.resize(nv);
+    E.anchor_slide.assign(nv, 0.f);
+    for (int v = 0; v < nv; ++v) E.free_lb[v] = (E.pos[v] - E.sc.points[E.nearest_cp[v]]).norm();
     // Vertex grid over target and template, cell about 1.5 expected edge lengths.
     Aabb box = tbox;
     for (const Vec3f& v : E.pos) box.extend(v);
     const Vec3f pad = Vec3f::Constant(0.02f * box.diagonal() + 1e-6f);
     box.min -= pad;
     box.max += pad;
-    const double area = 2.0 * ncp * double(E.spacing) * E.spacing;
+    const double area = 2.0 * nsc * double(E.spacing) * E.spacing;
     const float edge = float(1.5 * std::sqrt(area / std::max(1, nv)));
     const float bd = box.diagonal();
     const float cell = std::clamp(edge, bd / 200.f, bd / 8.f);
     E.grid = std::make_unique<VertexGrid>(box, cell, E.pos);
+    E.resee = std::max(2.f * E.spacing, 0.2f * edge / 1.5f);
 
     const auto t1 = Clock::now();
     const int T = params.som_iterations > 0 ? params.som_iterations : 12 * nv;

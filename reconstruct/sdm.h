@@ -35,6 +35,11 @@ struct SdmParams {
   // ---- phase 1: competitive learning --------------------------------------
   /// T_c, the number of SOM steps (control points drawn). 0 = 12 x template vertices.
   int som_iterations = 0;
+  /// Phase 1 runs on at most this many control points, a seeded random subset (0 = 8 x
+  /// template vertices): the SOM only learns the coarse shape, and its cost grows with
+  /// the points' density through the anchor projection. Phase 2 uses all points.
+  /// tau and the selection weights refer to this subset.
+  int som_points = 0;
   /// epsilon_s, epsilon_f: learning rate at the start and the end (eq. 16). The paper
   /// gives no values; these are the usual SOM ones (Fritzsche 1997, its ref. 4).
   float eps_start = 0.3f, eps_final = 0.02f;
@@ -76,11 +81,13 @@ struct SdmParams {
   /// At most this many phase-2 rounds; a round that improves D by less than
   /// min_improvement (relative) also ends it.
   int max_energy_rounds = 40;
-  float min_improvement = 0.002f;
+  float min_improvement = 0.01f;
+  /// A vertex whose control points lie on average within theta_e / 2 of its faces is
+  /// taken as fitted and skips the energy moves (relaxation still applies).
   /// w of eq. 19: the step lengths tried towards each control point.
   std::vector<float> steps = {0.25f, 0.5f, 1.f};
   /// At most this many control points of a vertex are tried as p_j (evenly spread over
-  /// its Omega_i), plus their centroid.
+  /// its Omega_i), plus their centroid. The energy is summed over at most 12 of them.
   int max_candidates = 6;
   /// Tangential relaxation (not in the paper): after its energy move, a vertex moves
   /// this fraction of the way to its neighbours' centroid within its tangent plane.
@@ -89,6 +96,13 @@ struct SdmParams {
   /// Vertices that own no control point (holes, the unseen underside) move this
   /// fraction of the way to their neighbours' centroid (a membrane over the hole).
   float membrane = 0.5f;
+  /// Fold repair (not in the paper): before and after every phase-2 round, the
+  /// vertices around folded faces (see count_folded_faces) are smoothed towards their
+  /// neighbours' centroid, at most this many passes; the energy moves then bring them
+  /// back onto the target.
+  int repair_iterations = 10;
+  /// At the end, intersecting faces (count_self_intersections) and two rings around
+  /// them are smoothed likewise, at most repair_iterations rounds (not in the paper).
 
   // ---- general ----------------------------------------------------------------
   /// Neighbours for normal estimation when the target has none (core/normals.h).
@@ -124,7 +138,7 @@ MeshTopology mesh_topology(const Mesh& mesh);
 struct SdmDiagnostics {
   int template_vertices = 0, template_faces = 0, control_points = 0;
   bool normals_estimated = false;  ///< the target had no normals
-  float spacing = 0;               ///< control points' mean nearest-neighbour distance
+  float spacing = 0;               ///< phase-1 control points' mean nearest-neighbour distance
   float tau = 0;                   ///< anchor threshold
   float diagonal = 0;              ///< target bounding-box diagonal
   int som_iterations = 0;          ///< phase-1 steps run
@@ -135,6 +149,7 @@ struct SdmDiagnostics {
   double distance_after_som = 0;   ///< D(M, Psi) after phase 1
   double mean_distance = 0;        ///< D(M, Psi) at the end: mean control-point-to-mesh distance
   int flipped_faces = 0;           ///< faces folded over their neighbours (see count_folded_faces)
+  int self_intersections = 0;      ///< intersecting face pairs left (see count_self_intersections)
   double seconds_som = 0, seconds_energy = 0, seconds_total = 0;
 };
 

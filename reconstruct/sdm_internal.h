@@ -1,6 +1,7 @@
 #pragma once
 // Internals of the SDM shared by sdm.cpp, sdm_topology.cpp and sdm_parameterise.cpp
 // (not a public header).
+#include <utility>
 #include <vector>
 
 #include "core/geometry.h"
@@ -17,6 +18,14 @@ Adjacency build_adjacency(int vertex_count, const std::vector<Face>& faces);
 
 /// Squared distance from p to triangle (a, b, c).
 float point_triangle_dist2(const Vec3f& p, const Vec3f& a, const Vec3f& b, const Vec3f& c);
+
+/// Faces A and B (vertex positions a[3], b[3]) intersect: an edge of one crosses the
+/// other, not counting edges through a shared vertex; faces sharing an edge never do.
+bool faces_intersect(const Face& A, const Face& B, const Vec3f* a, const Vec3f* b);
+
+/// Face pairs (i < j) that intersect (see count_self_intersections).
+std::vector<std::pair<int, int>> self_intersecting_pairs(const std::vector<Vec3f>& vertices,
+                                                         const std::vector<Face>& faces);
 
 /// Runs both phases on `initial` (already placed) against `target` (unit outward
 /// normals present, finite). Vertices with pinned[v] != 0 never move. Fills the

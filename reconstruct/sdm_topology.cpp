@@ -266,9 +266,44 @@ bool segment_hits_triangle(const Vec3d& s, const Vec3d& e, const Vec3d& a, const
 
 }  // namespace
 
+namespace sdm_detail {
+
+bool faces_intersect(const Face& A, const Face& B, const Vec3f* a, const Vec3f* b) {
+  int shared = 0, sa = -1, sb = -1;
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j)
+      if (A[i] == B[j]) ++shared, sa = i, sb = j;
+  if (shared >= 2) return false;
+  Vec3d pa[3], pb[3];
+  for (int k = 0; k < 3; ++k) pa[k] = a[k].cast<double>(), pb[k] = b[k].cast<double>();
+  if (shared == 0) {
+    for (int k = 0; k < 3; ++k)
+      if (segment_hits_triangle(pa[k], pa[(k + 1) % 3], pb[0], pb[1], pb[2]) ||
+          segment_hits_triangle(pb[k], pb[(k + 1) % 3], pa[0], pa[1], pa[2]))
+        return true;
+    return false;
+  }
+  return segment_hits_triangle(pa[(sa + 1) % 3], pa[(sa + 2) % 3], pb[0], pb[1], pb[2]) ||
+         segment_hits_triangle(pb[(sb + 1) % 3], pb[(sb + 2) % 3], pa[0], pa[1], pa[2]);
+}
+
+}  // namespace sdm_detail
+
 int count_self_intersections(const Mesh& mesh) {
+  return int(sdm_detail::self_intersecting_pairs(mesh.vertices, mesh.faces).size());
+}
+
+namespace sdm_detail {
+
+std::vector<std::pair<int, int>> self_intersecting_pairs(const std::vector<Vec3f>& vertices,
+                                                         const std::vector<Face>& faces) {
+  struct View {
+    const std::vector<Vec3f>& vertices;
+    const std::vector<Face>& faces;
+  } mesh{vertices, faces};
+  std::vector<std::pair<int, int>> out;
   const int nf = int(mesh.faces.size());
-  if (nf == 0) return 0;
+  if (nf == 0) return out;
   const Aabb box = bounding_box(mesh.vertices);
   double edge = 0;
   for (const Face& f : mesh.faces) edge += (mesh.vertices[f[0]] - mesh.vertices[f[1]]).norm();
@@ -281,12 +316,11 @@ int count_self_intersections(const Mesh& mesh) {
     return std::clamp(int((x - lo) / cell), 0, n - 1);
   };
   std::unordered_map<std::int64_t, std::vector<int>> grid;
-  std::vector<Vec3d> V(mesh.vertices.size());
-  for (std::size_t i = 0; i < V.size(); ++i) V[i] = mesh.vertices[i].cast<double>();
   for (int fi = 0; fi < nf; ++fi) {
     const Face& f = mesh.faces[fi];
-    Vec3d lo = V[f[0]].cwiseMin(V[f[1]]).cwiseMin(V[f[2]]);
-    Vec3d hi = V[f[0]].cwiseMax(V[f[1]]).cwiseMax(V[f[2]]);
+    const auto& V = mesh.vertices;
+    const Vec3f lo = V[f[0]].cwiseMin(V[f[1]]).cwiseMin(V[f[2]]);
+    const Vec3f hi = V[f[0]].cwiseMax(V[f[1]]).cwiseMax(V[f[2]]);
     const int x0 = cell_of(lo.x(), box.min.x(), nx), x1 = cell_of(hi.x(), box.min.x(), nx);
     const int y0 = cell_of(lo.y(), box.min.y(), ny), y1 = cell_of(hi.y(), box.min.y(), ny);
     const int z0 = cell_of(lo.z(), box.min.z(), nz), z1 = cell_of(hi.z(), box.min.z(), nz);
@@ -303,28 +337,18 @@ int count_self_intersections(const Mesh& mesh) {
                         std::uint32_t(std::max(list[i], list[j])));
   std::sort(pairs.begin(), pairs.end());
   pairs.erase(std::unique(pairs.begin(), pairs.end()), pairs.end());
-  int count = 0;
   for (std::uint64_t key : pairs) {
     const Face& A = mesh.faces[key >> 32];
     const Face& B = mesh.faces[key & 0xffffffffu];
-    int shared = 0, sa = -1, sb = -1;
-    for (int i = 0; i < 3; ++i)
-      for (int j = 0; j < 3; ++j)
-        if (A[i] == B[j]) ++shared, sa = i, sb = j;
-    if (shared >= 2) continue;
-    bool hit = false;
-    if (shared == 0) {
-      for (int k = 0; k < 3 && !hit; ++k)
-        hit = segment_hits_triangle(V[A[k]], V[A[(k + 1) % 3]], V[B[0]], V[B[1]], V[B[2]]) ||
-              segment_hits_triangle(V[B[k]], V[B[(k + 1) % 3]], V[A[0]], V[A[1]], V[A[2]]);
-    } else {
-      hit = segment_hits_triangle(V[A[(sa + 1) % 3]], V[A[(sa + 2) % 3]], V[B[0]], V[B[1]], V[B[2]]) ||
-            segment_hits_triangle(V[B[(sb + 1) % 3]], V[B[(sb + 2) % 3]], V[A[0]], V[A[1]], V[A[2]]);
-    }
-    if (hit) ++count;
+    const Vec3f a[3] = {mesh.vertices[A[0]], mesh.vertices[A[1]], mesh.vertices[A[2]]};
+    const Vec3f b[3] = {mesh.vertices[B[0]], mesh.vertices[B[1]], mesh.vertices[B[2]]};
+    const bool hit = faces_intersect(A, B, a, b);
+    if (hit) out.emplace_back(int(key >> 32), int(key & 0xffffffffu));
   }
-  return count;
+  return out;
 }
+
+}  // namespace sdm_detail
 
 std::vector<Landmark> read_landmarks(const std::string& path) {
   std::ifstream in(path);
