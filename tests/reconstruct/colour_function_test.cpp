@@ -75,6 +75,32 @@ Rgb three_sectors(const Vec3d& p) {
   return a < 2 * M_PI / 3 ? kRed : a < 4 * M_PI / 3 ? kGreen : kBlue;
 }
 
+// Area-uniform samples on a textured mesh with face normals and texture colours.
+Cloud sample_textured(const TexturedMesh& tm, const Texture& tex, int count, unsigned seed) {
+  const Mesh& m = tm.mesh;
+  std::vector<double> cum;
+  double area = 0;
+  for (const Face& f : m.faces) {
+    const Vec3d a = m.vertices[f[0]].cast<double>(), b = m.vertices[f[1]].cast<double>(), cc = m.vertices[f[2]].cast<double>();
+    area += 0.5 * (b - a).cross(cc - a).norm();
+    cum.push_back(area);
+  }
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<double> u(0, 1);
+  Cloud out;
+  for (int i = 0; i < count; ++i) {
+    const int fi = int(std::lower_bound(cum.begin(), cum.end(), u(rng) * area) - cum.begin());
+    const Face& f = m.faces[std::min<std::size_t>(fi, m.faces.size() - 1)];
+    double s = u(rng), t = u(rng);
+    if (s + t > 1) s = 1 - s, t = 1 - t;
+    const Vec3d a = m.vertices[f[0]].cast<double>(), b = m.vertices[f[1]].cast<double>(), cc = m.vertices[f[2]].cast<double>();
+    out.points.push_back(((1 - s - t) * a + s * b + t * cc).cast<float>());
+    out.normals.push_back((b - a).cross(cc - a).normalized().cast<float>());
+    out.colors.push_back(surface_color(tm, tex, int(&f - m.faces.data()), s, t));
+  }
+  return out;
+}
+
 TEST(ColourFunction, HalfRedHalfBlueSphereKeepsItsBoundarySharp) {
   const Cloud c = sphere_cloud(20000, half_red_half_blue);
   const ColourFunction f = fit_colour(c);
@@ -350,30 +376,7 @@ TEST(ColourFunction, WithoutNormalsAndDeterministicAcrossThreads) {
 TEST(ColourFunction, MustardBottleTextureRegression) {
   const TexturedMesh tm = read_textured_mesh(test::source_dir() / "data/mustard_bottle/textured.obj");
   const Texture tex = load_texture(tm.texture);
-  const Mesh& m = tm.mesh;
-  std::vector<double> cum;
-  double area = 0;
-  for (const Face& f : m.faces) {
-    const Vec3d a = m.vertices[f[0]].cast<double>(), b = m.vertices[f[1]].cast<double>(), cc = m.vertices[f[2]].cast<double>();
-    area += 0.5 * (b - a).cross(cc - a).norm();
-    cum.push_back(area);
-  }
-  auto sample = [&](int n, unsigned seed) {
-    std::mt19937 rng(seed);
-    std::uniform_real_distribution<double> u(0, 1);
-    Cloud out;
-    for (int i = 0; i < n; ++i) {
-      const int fi = int(std::lower_bound(cum.begin(), cum.end(), u(rng) * area) - cum.begin());
-      const Face& f = m.faces[std::min<std::size_t>(fi, m.faces.size() - 1)];
-      double s = u(rng), t = u(rng);
-      if (s + t > 1) s = 1 - s, t = 1 - t;
-      const Vec3d a = m.vertices[f[0]].cast<double>(), b = m.vertices[f[1]].cast<double>(), cc = m.vertices[f[2]].cast<double>();
-      out.points.push_back(((1 - s - t) * a + s * b + t * cc).cast<float>());
-      out.normals.push_back((b - a).cross(cc - a).normalized().cast<float>());
-      out.colors.push_back(surface_color(tm, tex, int(&f - m.faces.data()), s, t));
-    }
-    return out;
-  };
+  auto sample = [&](int n, unsigned seed) { return sample_textured(tm, tex, n, seed); };
   const Cloud c = sample(20000, 1), held = sample(10000, 2);
   ColourParams p;
   p.threads = 2;
@@ -446,6 +449,29 @@ TEST(ColourFunction, DragonHalfRedHalfBlue) {
   EXPECT_LT(d.e_col, 1e-3);
   EXPECT_GT(fa.diagnostics().e_col, 10 * d.e_col);
   EXPECT_LT(wrong, far / 1000 + 1);
+}
+
+// Real sharp colour edges: the YCB Rubik's cube (six sticker colours, black gaps,
+// sticker corners where three colours meet). Skipped where ../shared is absent (CI).
+TEST(ColourFunction, RubiksCubeStickerEdges) {
+  const std::filesystem::path obj = test::source_dir() / "../shared/data/textured_objects/077_rubiks_cube/textured.obj";
+  if (!std::filesystem::exists(obj)) GTEST_SKIP() << "no " << obj;
+  const TexturedMesh tm = read_textured_mesh(obj);
+  const Texture tex = load_texture(tm.texture);
+  const Cloud c = sample_textured(tm, tex, 20000, 1), held = sample_textured(tm, tex, 10000, 2);
+  ColourParams p;
+  p.threads = 2;
+  ColourParams multi = p, a_only = p;
+  multi.multi_colour = true;
+  a_only.type_b = false;
+  a_only.n_max = 2000;
+  const ColourFunction f = fit_colour(c, p), fm = fit_colour(c, multi), fa = fit_colour(c, a_only);
+  std::printf("rubik 20k: e_col A+B %.3g (multi %.3g, A only %.3g); held-out %.3g (multi %.3g, A only %.3g); B leaves %zu, multi %zu, fit %.3f s\n",
+              f.diagnostics().e_col, fm.diagnostics().e_col, fa.diagnostics().e_col, f.e_col(held), fm.e_col(held),
+              fa.e_col(held), f.diagnostics().leaves_by_type[1], fm.diagnostics().multi_colour_leaves,
+              f.diagnostics().fit_seconds);
+  EXPECT_LT(f.diagnostics().e_col, 0.5 * fa.diagnostics().e_col);
+  EXPECT_LT(f.e_col(held), fa.e_col(held));
 }
 
 }  // namespace
