@@ -174,7 +174,10 @@ void Consolidator::run() {
     setup();
     result_.seconds_setup = seconds_since(t);
     t = Clock::now();
-    for (int k = 0; k < params_.iterations; ++k) iterate(k + 1 == params_.iterations);
+    for (int k = 0; k < params_.iterations; ++k) {
+      iterate(k + 1 == params_.iterations);
+      if (params_.progress) params_.progress(k + 1, params_.iterations);
+    }
     result_.iterations = params_.iterations;
     result_.seconds_iterations = seconds_since(t);
     t = Clock::now();

@@ -53,6 +53,7 @@
 //   Jacobian (InvertedDensity), and E2 loses its component along c_i -> x_i
 //   (EdgeRepulsion); both are our decisions, explained there.
 #include <cstddef>
+#include <functional>
 #include <vector>
 
 #include "core/geometry.h"
@@ -128,6 +129,8 @@ struct WlopParams {
   unsigned seed = 1;
   /// Worker threads (0 = all cores). The output does not depend on it.
   int threads = 0;
+  /// Called after every iteration with (iterations done, iterations in all).
+  std::function<void(int, int)> progress;
 
   // ---- edge variant (method == kEdgeWlop) ----
   /// R, the inversion radius, in units of d_bb (> 0.25). The paper only asks for

@@ -495,7 +495,10 @@ class Runner {
     p.iterations = c.iterations;
     p.seed = c.seed;
     p.threads = cfg_.threads;
+    Progress bar("  consolidate: WLOP iterations", c.iterations, req_.quiet);
+    p.progress = [&](int done, int) { bar.update(done); };
     const WlopResult w = consolidate(input, p);
+    bar.finish();
     write_ply(req_.out_dir / "consolidated.ply", w.cloud);
     r.figures["input_points"] = double(w.input_points);
     r.figures["points"] = double(w.cloud.size());

@@ -20,8 +20,12 @@ void Progress::update(int done, const std::string& note) {
   if (tty_) {
     const int width = 24;
     const int filled = total_ > 0 ? done * width / total_ : 0;
-    std::fprintf(stderr, "\r%s [%.*s%*s] %d/%d %5.1fs %s\033[K", label_.c_str(), filled,
-                 "########################", width - filled, "", done, total_, s, note.c_str());
+    // Rate and ETA once there is something to go on.
+    char eta[64] = "";
+    if (done > 0 && done < total_ && s > 0.2)
+      std::snprintf(eta, sizeof eta, " %.3g/s ETA %.0fs", done / s, (total_ - done) * s / done);
+    std::fprintf(stderr, "\r%s [%.*s%*s] %d/%d %5.1fs%s %s\033[K", label_.c_str(), filled,
+                 "########################", width - filled, "", done, total_, s, eta, note.c_str());
   } else {
     // Logs get a line at most every two seconds (and the last step), not one per step.
     if (done < total_ && s - last_line_s_ < 2.0) return;
