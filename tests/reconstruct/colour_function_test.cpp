@@ -187,11 +187,16 @@ TEST(ColourFunction, ThreeColourJunctionStaysSharpWithMultiColour) {
   const ColourFunction f2 = fit_colour(c), f3 = fit_colour(c, multi);
   EXPECT_GT(f3.diagnostics().multi_colour_leaves, 0u);
   EXPECT_EQ(f2.diagnostics().multi_colour_leaves, 0u);
-  // Held-out points: mean error and the share of blended colours (none of the three).
+  // Held-out points within 0.25 of the two junctions (the sectors' poles): mean error
+  // and the number of blended colours (none of the three).
+  const Eigen::Matrix3d rot = Eigen::AngleAxisd(0.4, Vec3d(1, 0.3, 0).normalized()).toRotationMatrix();
+  const Vec3d pole = rot.transpose() * Vec3d::UnitZ();
+  std::vector<Vec3d> qs;
+  for (const Vec3d& q : random_sphere_points(60000, 9))
+    if ((q - pole).norm() < 0.25 || (q + pole).norm() < 0.25) qs.push_back(q);
   auto measure = [&](const ColourFunction& f, double& mean, int& blended) {
     mean = 0;
     blended = 0;
-    const auto qs = random_sphere_points(20000, 9);
     for (const Vec3d& q : qs) {
       const Rgb got = f.rgb(q);
       mean += rgb_error(got, three_sectors(q)) / qs.size();
@@ -202,10 +207,11 @@ TEST(ColourFunction, ThreeColourJunctionStaysSharpWithMultiColour) {
   int b2, b3;
   measure(f2, m2, b2);
   measure(f3, m3, b3);
-  std::printf("junction: two clusters mean %.3g blended %d (e_col %.3g); multi mean %.3g blended %d (e_col %.3g)\n", m2,
+  std::printf("junction (%zu points near the poles): two clusters mean %.3g blended %d (e_col %.3g); multi mean %.3g blended %d (e_col %.3g)\n", qs.size(), m2,
               b2, f2.diagnostics().e_col, m3, b3, f3.diagnostics().e_col);
-  EXPECT_LT(m3, m2);
-  EXPECT_LT(b3, b2);
+  // Measured: mean 0.090 -> 0.054, blended 176 -> 11 of 1857.
+  EXPECT_LT(m3, 0.75 * m2);
+  EXPECT_LT(4 * b3, b2);
 }
 
 // On the mesh extracted from the MPU surface of the same points, the band of vertices
