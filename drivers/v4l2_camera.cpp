@@ -129,12 +129,15 @@ std::vector<std::uint8_t> register_color_to_depth(const std::vector<float>& dept
       const std::size_t i = static_cast<std::size_t>(v) * dk.width + u;
       const double z = depth[i];
       if (!(z > 0)) continue;
-      const double x = (u - dk.cx) / dk.fx * z, y = (v - dk.cy) / dk.fy * z;
+      // Through the lenses' distortion when the profile gives it (station calibrate camera).
+      const Eigen::Vector2d ray = pixel_to_ray(dk, u, v);
+      const double x = ray.x() * z, y = ray.y() * z;
       const double X = m[0] * x + m[1] * y + m[2] * z + m[3];
       const double Y = m[4] * x + m[5] * y + m[6] * z + m[7];
       const double Z = m[8] * x + m[9] * y + m[10] * z + m[11];
       if (!(Z > 0)) continue;
-      const long cu = std::lround(ck.fx * X / Z + ck.cx), cv = std::lround(ck.fy * Y / Z + ck.cy);
+      const Eigen::Vector2d px = ray_to_pixel(ck, X / Z, Y / Z);
+      const long cu = std::lround(px.x()), cv = std::lround(px.y());
       if (cu < 0 || cv < 0 || cu >= ck.width || cv >= ck.height) continue;
       const std::size_t j = (static_cast<std::size_t>(cv) * ck.width + cu) * 3;
       std::copy(rgb.begin() + j, rgb.begin() + j + 3, out.begin() + i * 3);
@@ -448,7 +451,7 @@ std::unique_ptr<V4l2Camera::Parsed> V4l2Camera::parse(const DeviceUri& uri) {
       o, {"format",        "width",        "height",      "buffers",      "timeout_ms", "exposure",
           "white_balance", "depth_scale",  "fx",          "fy",           "cx",         "cy",
           "color",         "color_format", "color_width", "color_height", "color_fx",   "color_fy",
-          "color_cx",      "color_cy",     "extrinsics",  "card"},
+          "color_cx",      "color_cy",     "extrinsics",  "card",         "distortion", "color_distortion"},
       who);
   auto p = std::make_unique<Parsed>();
   p->path = uri.path;
@@ -480,6 +483,21 @@ std::unique_ptr<V4l2Camera::Parsed> V4l2Camera::parse(const DeviceUri& uri) {
     k.fy = option_number(o, prefix + "fy", 0, 1e-6, 1e7, who);
     k.cx = option_number(o, prefix + "cx", 0, -1e7, 1e7, who);
     k.cy = option_number(o, prefix + "cy", 0, -1e7, 1e7, who);
+    if (o.count(prefix + "distortion")) {
+      // k1,k2,p1,p2,k3 (OpenCV's order), as `station calibrate camera` writes them.
+      std::stringstream ss(o.at(prefix + "distortion"));
+      std::string item;
+      int i = 0;
+      while (std::getline(ss, item, ',')) {
+        char* end = nullptr;
+        const double v = std::strtod(item.c_str(), &end);
+        if (i >= 5 || item.empty() || *end != '\0' || !std::isfinite(v))
+          throw DeviceError(who + ": option " + prefix + "distortion: expected 5 comma-separated numbers k1,k2,p1,p2,k3");
+        k.distortion[i++] = v;
+      }
+      if (i != 5)
+        throw DeviceError(who + ": option " + prefix + "distortion: expected 5 comma-separated numbers k1,k2,p1,p2,k3");
+    }
     return true;
   };
   p->has_k = intr(p->k, "");

@@ -310,6 +310,22 @@ TEST(V4l2Camera, UnplugMidStreamIsADeviceError) {
   EXPECT_TRUE(r.k->fds.empty());
 }
 
+TEST(V4l2Camera, LensDistortionFromTheProfileReachesTheFrame) {
+  Rig r;
+  auto cam = r.camera(std::string("v4l2:/dev/video2?distortion=-0.2,0.05,0.001,-0.002,0&") + kK);
+  cam->open();
+  const Frame f = cam->grab();
+  EXPECT_TRUE(f.intrinsics.distorted());
+  EXPECT_DOUBLE_EQ(f.intrinsics.distortion[0], -0.2);
+  EXPECT_DOUBLE_EQ(f.intrinsics.distortion[3], -0.002);
+  EXPECT_NE(message([&] { r.camera(std::string("v4l2:/dev/video2?distortion=1,2&") + kK); })
+                .find("distortion: expected 5 comma-separated numbers"),
+            std::string::npos);
+  EXPECT_NE(message([&] { r.camera(std::string("v4l2:/dev/video2?distortion=1,2,x,4,5&") + kK); })
+                .find("distortion: expected 5"),
+            std::string::npos);
+}
+
 TEST(V4l2Camera, ClearErrorsForBadSetups) {
   Rig r;
   EXPECT_NE(message([&] {
