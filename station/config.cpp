@@ -139,7 +139,8 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
     if (n["seed"]) c.seed = unsigned(r.integer(n["seed"], "consolidate.seed"));
   }
   if (const YAML::Node n = root["reconstruct"]) {
-    r.check_keys(n, "reconstruct", {"surface", "resolution", "epsilon0", "extractor", "hole", "colour", "min_component"});
+    r.check_keys(n, "reconstruct", {"surface", "resolution", "epsilon0", "extractor", "hole", "colour", "colour_method", "colour_multi",
+                                     "colour_noise_robust", "min_component"});
     auto& c = p.reconstruct;
     if (n["surface"]) c.surface = r.text(n["surface"], "reconstruct.surface");
     if (c.surface != "mpu" && c.surface != "sdm") r.fail("reconstruct.surface", "must be mpu or sdm");
@@ -152,6 +153,12 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
     if (n["hole"]) c.hole = r.text(n["hole"], "reconstruct.hole");
     if (c.hole != "close" && c.hole != "keep") r.fail("reconstruct.hole", "must be close or keep");
     if (n["colour"]) c.colour = r.boolean(n["colour"], "reconstruct.colour");
+    if (n["colour_method"]) c.colour_method = r.text(n["colour_method"], "reconstruct.colour_method");
+    if (c.colour_method != "mpu" && c.colour_method != "nearest")
+      r.fail("reconstruct.colour_method", "must be mpu or nearest");
+    if (n["colour_multi"]) c.colour_multi = r.boolean(n["colour_multi"], "reconstruct.colour_multi");
+    if (n["colour_noise_robust"])
+      c.colour_noise_robust = r.boolean(n["colour_noise_robust"], "reconstruct.colour_noise_robust");
     if (n["min_component"]) c.min_component = r.number(n["min_component"], "reconstruct.min_component");
     if (c.min_component < 0 || c.min_component > 1) r.fail("reconstruct.min_component", "must be 0..1");
   }

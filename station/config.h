@@ -33,6 +33,9 @@ struct PipelineConfig {
     std::string extractor = "mc";   ///< mc | dmc
     std::string hole = "close";     ///< close | keep (the unseen underside)
     bool colour = true;             ///< colour the mesh when the cloud has colours
+    std::string colour_method = "mpu";  ///< mpu (colour function) | nearest (k-NN transfer)
+    bool colour_multi = false;      ///< colour function: 3+ colours per cell (junctions)
+    bool colour_noise_robust = false;  ///< colour function: no boundaries invented by noise
     double min_component = 0.01;    ///< drop pieces below this fraction of the largest's area
   } reconstruct;
   struct Sdm {

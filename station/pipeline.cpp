@@ -19,6 +19,7 @@
 #include "core/io.h"
 #include "core/normals.h"
 #include "reconstruct/color_transfer.h"
+#include "reconstruct/colour_function.h"
 #include "reconstruct/marching_cubes.h"
 #include "reconstruct/mesh_clean.h"
 #include "reconstruct/mpu.h"
@@ -180,6 +181,7 @@ std::string surface_params(const PipelineConfig& p) {
   std::ostringstream s;
   s << "surface/" << c.surface << ";resolution=" << c.resolution << ";epsilon0=" << fmt("%.17g", c.epsilon0)
     << ";extractor=" << c.extractor << ";hole=" << c.hole << ";colour=" << c.colour
+    << ";colour_method=" << c.colour_method << ";multi=" << c.colour_multi << ";noise=" << c.colour_noise_robust
     << ";min_component=" << fmt("%.17g", c.min_component);
   if (c.surface == "sdm") s << ";level=" << p.sdm.level;
   return s.str();
@@ -314,6 +316,29 @@ void write_report(const fs::path& out_dir, const fs::path& input, bool session, 
       s.figures.push_back({std::string(names[q]) + ", shape", encode_png(render_mesh(m, view_from_side(q, box, 300, up), o))});
     }
     sections.push_back(s);
+    // Colour-boundary cells: vertices where a Type B (two-colour, split) cell of the
+    // colour function dominates, written by the surface stage.
+    const fs::path bfile = out_dir / "colour_boundary.bin";
+    if (fs::exists(bfile)) {
+      const std::string flags = read_file_bytes(bfile);
+      if (flags.size() == m.vertices.size()) {
+        Mesh marked = m;
+        marked.colors.resize(marked.vertices.size());
+        std::size_t nb = 0;
+        for (std::size_t i = 0; i < flags.size(); ++i) {
+          marked.colors[i] = flags[i] ? Rgb{220, 30, 30} : Rgb{210, 210, 210};
+          nb += flags[i] != 0;
+        }
+        ReportSection b;
+        b.title = "Colour boundaries";
+        b.text = "Red: where the colour function fits a boundary (Type B cells: two colour clusters split by a "
+                 "boundary function), " + std::to_string(nb) + " of " + std::to_string(flags.size()) +
+                 " vertices. Elsewhere colour varies smoothly (Type A: one quadratic per channel).";
+        for (int q = 0; q < 4; q += 2)
+          b.figures.push_back({names[q], encode_png(render_mesh(marked, view_from_side(q, box, 300, up)))});
+        sections.push_back(b);
+      }
+    }
   }
   write_file_atomic(report_path, report_html("Station run: " + input.filename().string(), sections));
 }
@@ -534,8 +559,27 @@ class Runner {
           std::to_string(pieces.removed_faces) + " faces)");
     r.figures["removed_pieces"] = double(pieces.removed_components);
     const bool colour = c.colour && input.has_colors();
-    if (colour) transfer_colors(mesh, input, {4, cfg_.threads});
-    else if (c.colour) say("  note: " + in.string() + " has no colours; the mesh is left uncoloured");
+    if (colour && c.colour_method == "nearest") {
+      transfer_colors(mesh, input, {4, cfg_.threads});
+    } else if (colour) {
+      say("  surface: colour function on " + std::to_string(input.size()) + " points");
+      ColourParams cp;
+      cp.threads = cfg_.threads;
+      cp.multi_colour = c.colour_multi;
+      cp.noise_robust = c.colour_noise_robust;
+      const ColourFunction cf = fit_colour(input, cp);
+      colour_mesh(mesh, cf, cfg_.threads);
+      const ColourDiagnostics& cd = cf.diagnostics();
+      r.figures["colour_leaves_a"] = double(cd.leaves_by_type[0]);
+      r.figures["colour_leaves_b"] = double(cd.leaves_by_type[1]);
+      r.figures["e_col"] = cd.e_col;
+      // Where the colour function splits cells at a boundary (Type B), for the report.
+      std::vector<std::uint8_t> b(mesh.vertices.size());
+      for (std::size_t i = 0; i < b.size(); ++i)
+        b[i] = cf.dominant_type(mesh.vertices[i].cast<double>()) == ColourCellType::kB;
+      std::string bytes(b.begin(), b.end());
+      write_file_atomic(req_.out_dir / "colour_boundary.bin", bytes);
+    } else if (c.colour) say("  note: " + in.string() + " has no colours; the mesh is left uncoloured");
     write_ply(req_.out_dir / "mesh.ply", mesh);
     const MpuDiagnostics& d = surface.diagnostics();
     r.figures["leaves"] = double(d.leaves);
