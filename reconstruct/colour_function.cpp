@@ -503,7 +503,7 @@ CellResult fit_cell(const Impl& s, const Vec3d& o, double half, int depth) {
     for (int c = 0; c < kChannels; ++c) err = std::max(err, std::abs(q[c] - s.labs[ids[i]][c]) / kRange[c] * phi);
   }
   cr.converged = err < p.epsilon_col || (p.noise_robust && rms <= p.noise_accept_rms);
-  if (!cr.converged && !cr.grew && depth < p.max_depth) cr.split = true;
+  if (!cr.converged && !cr.grew && depth < p.max_depth && int(ids.size()) >= p.split_min_points) cr.split = true;
   return cr;
 }
 
@@ -517,13 +517,13 @@ ColourFunction fit_colour(const Cloud& cloud, const ColourParams& params) {
   const ColourParams& p = params;
   if (!(p.alpha > 0.5) || !(p.lambda > 0) || p.n_min < 1 || p.n_max < p.n_min || !(p.gamma > 0) ||
       !(p.epsilon_col > 0) || !(p.rbf_radius_factor > 0) || p.max_depth < 0 || p.max_depth > 20 ||
-      p.threads < 0 || !(p.root_margin >= 0) || p.min_rbf_points < 0 || p.max_clusters < 2 ||
+      p.threads < 0 || !(p.root_margin >= 0) || p.min_rbf_points < 0 || p.split_min_points < 0 || p.max_clusters < 2 ||
       p.max_clusters > 16 || !(p.noise_min_fraction >= 0 && p.noise_min_fraction < 0.5) ||
       !(p.noise_separation >= 0) || !(p.noise_accept_rms >= 0))
     throw InvalidInput(
         "colour_function: parameters out of range (alpha > 0.5, lambda > 0, 1 <= n_min <= n_max, gamma > 0, "
         "epsilon_col > 0, rbf_radius_factor > 0, 0 <= max_depth <= 20, threads >= 0, root_margin >= 0, "
-        "min_rbf_points >= 0, 2 <= max_clusters <= 16, 0 <= noise_min_fraction < 0.5, noise_separation >= 0, "
+        "min_rbf_points >= 0, split_min_points >= 0, 2 <= max_clusters <= 16, 0 <= noise_min_fraction < 0.5, noise_separation >= 0, "
         "noise_accept_rms >= 0)");
   if (!all_finite(cloud.points)) throw InvalidInput("colour_function: non-finite point coordinates");
 

