@@ -7,6 +7,9 @@
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
+#include <cstdint>
+#include <cstdlib>
 #include <unordered_map>
 #include <unordered_set>
 
@@ -34,6 +37,7 @@ struct Node {
 };
 
 struct Crossing {
+  int evals = 0;
   Vec3d pos;
   Vec3d normal;  // unit, or zero where the gradient is not usable
 };
@@ -43,7 +47,9 @@ struct Proposal {
   Key node;
   int priority;  // 1 corner, 0 edge
   Key cell;
-  Vec3d pos;
+  Vec3d pos;    // on the feature
+  Vec3d nudge;  // tiny step into the solid
+  double length;  // edge: length of the line inside the point's Omega (longer wins)
 };
 
 class Dmc {
@@ -85,6 +91,13 @@ class Dmc {
       }
     }
     compute_crossings(surface);
+    if (const char* dump = std::getenv("DMC_DUMP_NODES")) {
+      FILE* fp = std::fopen(dump, "w");
+      for (const auto& [k, nd] : nodes_)
+        std::fprintf(fp, "%d %d %d %d %.9g %.9g %.9g %.9g\n", ki(k), kj(k), kk(k), nd.flags, nd.pos.x(), nd.pos.y(),
+                     nd.pos.z(), nd.val);
+      std::fclose(fp);
+    }
     Mesh mesh = build_mesh(surface);
     if (stats) *stats = st_;
     return mesh;
@@ -265,11 +278,15 @@ class Dmc {
     return true;
   }
 
-  // The paper's flood with pruning: candidates are the corners of the crossed cells (and
-  // later the neighbours of moved points). A candidate outside (inside, for thin gaps)
-  // is searched only when the surface may pass through its Omega (|f| / |grad f| within
-  // 1.3 h) and the part beyond that surface is thin: a probe one h past the nearest
-  // surface point along -grad f (+grad f) is back on the candidate's side.
+  // The paper's flood with pruning. Candidates are the corners of the crossed cells,
+  // then the 26-neighbours of the points that moved (or of points already on the thin
+  // part's side, which the flood passes through). A candidate is looked at only when
+  // the surface may pass through its Omega (|f| / |grad f| within 1.3 h) and the part
+  // beyond that surface is thin: a probe one h past the nearest surface point along
+  // -grad f (+grad f for a point inside) is back on the candidate's side. Only then is
+  // Omega sampled (m^3 evaluations). A point already inside a thin part (for the
+  // thin-gap flood: outside in a thin gap) passes the flood on when the other side is
+  // within h too.
   std::vector<Key> barycentre_step(const std::unordered_set<Key>& surface) {
     const double band = 1.3 * h_;
     std::vector<Key> cand;
@@ -279,51 +296,62 @@ class Dmc {
     cand.erase(std::unique(cand.begin(), cand.end()), cand.end());
     std::vector<Key> moved_all;
     bool first_wave = true;
-    // Flood waves: neighbours of points moved into a thin part are searched only when
-    // outside, those of points moved into a thin gap only when inside.
-    std::unordered_set<Key> near_bary, near_gap;
+    // Which flood reached a candidate: 1 thin part (inside), 2 thin gap (outside).
+    std::unordered_map<Key, std::uint8_t> reached;
+    std::unordered_set<Key> passed;
+    enum Role : char { kSkip, kMove, kPass };
     while (!cand.empty()) {
-      // Keep the lattice points that may move.
       std::vector<Key> keep;
+      std::vector<char> role;
       for (Key p : cand) {
         const Node& nd = nodes_.at(p);
-        if (nd.flags & (kFixed | kSearched)) continue;
+        if (nd.flags & kFixed) continue;
         const bool inside = nd.val < 0;
-        if (inside ? !opt_.thin_gaps : !opt_.barycentre) continue;
-        if (!first_wave && !(inside ? near_gap.count(p) : near_bary.count(p))) continue;
-        keep.push_back(p);
+        const std::uint8_t by = first_wave ? (inside ? 2 : 1) : reached[p];
+        for (std::uint8_t kind = 1; kind <= 2; ++kind) {
+          if (!(by & kind)) continue;
+          if (kind == 1 ? !opt_.barycentre : !opt_.thin_gaps) continue;
+          // Moves: outside points into thin parts, inside points into thin gaps.
+          const bool mover = (kind == 1) != inside;
+          if (mover ? (nd.flags & kSearched) != 0 : passed.count(p * 2 + kind) > 0) continue;
+          if (!mover && first_wave) continue;
+          if (!mover) passed.insert(p * 2 + kind);
+          keep.push_back(p);
+          role.push_back(mover ? kMove : kPass);
+        }
       }
       // Gradient test and thin probe, in parallel.
       std::vector<char> go(keep.size(), 0);
-      std::vector<char> probed(keep.size(), 0);
       parallel(keep.size(), [&](std::size_t i) {
         const Node& nd = nodes_.at(keep[i]);
         const Vec3d gr = f_.gradient(nd.pos);
         const double gn = gr.norm();
         if (!(gn > 0) || !std::isfinite(gn)) {
-          go[i] = 1;  // no usable gradient: search
+          go[i] = role[i] == kMove;  // no usable gradient: search
           return;
         }
         const double d = std::abs(nd.val) / gn;
         if (d > band) return;
-        if (!first_wave) {
-          go[i] = 1;  // neighbour of a moved point near the surface: the paper's flood
+        if (role[i] == kMove && !first_wave) {
+          go[i] = 1;  // next to a moved point: the paper's flood (first-wave points are done)
           return;
         }
-        probed[i] = 1;
-        const double sgn = nd.val < 0 ? -1.0 : 1.0;  // outside: probe towards -grad
-        const Vec3d x = nd.pos - sgn * (d + h_) * gr / gn;
+        const double sgn = nd.val < 0 ? -1.0 : 1.0;  // outside: towards -grad
+        const Vec3d n = gr / gn;
+        // Mover: one h past the near surface; passer: one h away from it.
+        const Vec3d x = role[i] == kMove ? Vec3d(nd.pos - sgn * (d + h_) * n) : Vec3d(nd.pos + sgn * h_ * n);
         double v = g(x);
         if (!std::isfinite(v)) v = h_;
-        go[i] = (v < 0) == (nd.val < 0);  // back on the same side: the part is thin
+        go[i] = role[i] == kMove ? (v < 0) == (nd.val < 0) : (v < 0) != (nd.val < 0);
       });
       st_.gradient_evaluations += keep.size();
-      std::vector<Key> todo;
-      for (std::size_t i = 0; i < keep.size(); ++i) {
-        st_.probed += probed[i];
-        st_.evaluations += probed[i];
-        if (go[i]) todo.push_back(keep[i]);
-      }
+      for (std::size_t i = 0; i < keep.size(); ++i)
+        if (first_wave || role[i] == kPass) ++st_.probed, ++st_.evaluations;
+      std::vector<Key> todo, through;
+      for (std::size_t i = 0; i < keep.size(); ++i)
+        if (go[i]) (role[i] == kMove ? todo : through).push_back(keep[i]);
+      for (std::size_t i = 0; i < keep.size(); ++i)
+        if (role[i] == kMove) nodes_.at(keep[i]).flags |= kSearched;
       std::vector<char> ok(todo.size(), 0);
       std::vector<Vec3d> pos(todo.size());
       std::vector<double> value(todo.size());
@@ -332,57 +360,182 @@ class Dmc {
       });
       st_.searched += todo.size();
       st_.evaluations += todo.size() * (std::size_t(m_) * m_ * m_);
-      std::vector<Key> moved;
+      std::vector<std::pair<Key, std::uint8_t>> spread;  // (point, flood kind)
       for (std::size_t i = 0; i < todo.size(); ++i) {
-        Node& nd = nodes_.at(todo[i]);
-        nd.flags |= kSearched;
         if (!ok[i]) continue;
+        Node& nd = nodes_.at(todo[i]);
         st_.evaluations += 1;
         const bool was_inside = nd.val < 0;
+        original_.emplace(todo[i], nd.val);
         nd.pos = pos[i];
         nd.val = value[i];
         nd.flags |= was_inside ? kGap : kBary;
         ++(was_inside ? st_.moved_gap : st_.moved_barycentre);
-        moved.push_back(todo[i]);
+        moved_all.push_back(todo[i]);
+        spread.emplace_back(todo[i], was_inside ? 2 : 1);
       }
-      for (Key p : keep) nodes_.at(p).flags |= kSearched;
-      // Next wave: the 26 neighbours of the moved points.
+      for (Key p : through) spread.emplace_back(p, nodes_.at(p).val < 0 ? 1 : 2);
+      // Next wave: the 26 neighbours.
       std::vector<Key> next;
-      near_bary.clear();
-      near_gap.clear();
-      for (Key p : moved) {
-        auto& near = nodes_.at(p).flags & kGap ? near_gap : near_bary;
+      reached.clear();
+      for (const auto& [p, kind] : spread)
         for (int q = 0; q < 27; ++q) {
           const int i = ki(p) + q % 3 - 1, j = kj(p) + q / 3 % 3 - 1, k = kk(p) + q / 9 - 1;
           if (q != 13 && node_in_grid(i, j, k)) {
             next.push_back(key(i, j, k));
-            near.insert(key(i, j, k));
+            reached[key(i, j, k)] |= kind;
           }
         }
-      }
-      std::vector<Key> fresh = next;
-      ensure(fresh);
       std::sort(next.begin(), next.end());
       next.erase(std::unique(next.begin(), next.end()), next.end());
-      moved_all.insert(moved_all.end(), moved.begin(), moved.end());
+      std::vector<Key> fresh = next;
+      ensure(fresh);
       cand.swap(next);
       first_wave = false;
     }
+    bridge(moved_all);
+    prune_islands(moved_all);
     return moved_all;
   }
 
+  // Moved points that are neighbours only across a cell edge or corner would stay apart
+  // in MC (ambiguous faces keep inside corners apart): where the segment between them
+  // lies in the part (gap), the lattice points whose Omega it crosses move onto it.
+  void bridge(std::vector<Key>& moved) {
+    std::sort(moved.begin(), moved.end());
+    std::vector<std::pair<Key, Vec3d>> props;
+    for (Key p : moved) {
+      const Node& a = nodes_.at(p);
+      const std::uint8_t kind = a.flags & (kBary | kGap);
+      for (int q = 0; q < 27; ++q) {
+        const int dx = q % 3 - 1, dy = q / 3 % 3 - 1, dz = q / 9 - 1;
+        if (std::abs(dx) + std::abs(dy) + std::abs(dz) < 2) continue;
+        if (!node_in_grid(ki(p) + dx, kj(p) + dy, kk(p) + dz)) continue;
+        const Key r = key(ki(p) + dx, kj(p) + dy, kk(p) + dz);
+        if (r < p) continue;
+        const auto it = nodes_.find(r);
+        if (it == nodes_.end() || (it->second.flags & (kBary | kGap)) != kind) continue;
+        const Vec3d x0 = a.pos, x1 = it->second.pos;
+        // Omegas along the segment, each with the middle of its piece.
+        Key last = p;
+        double t_in = 0;
+        constexpr int kSteps = 32;
+        for (int st = 1; st <= kSteps; ++st) {
+          const double t = double(st) / kSteps;
+          const Vec3d y = ((x0 + t * (x1 - x0)) - lo_) / h_;
+          const Key cur = key(std::lround(y.x()), std::lround(y.y()), std::lround(y.z()));
+          if (cur == last) continue;
+          if (last != p) props.emplace_back(last, x0 + 0.5 * (t_in + t - 1.0 / kSteps) * (x1 - x0));
+          last = cur;
+          t_in = t;
+        }
+      }
+    }
+    std::sort(props.begin(), props.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
+    props.erase(std::unique(props.begin(), props.end(), [](const auto& a, const auto& b) { return a.first == b.first; }),
+                props.end());
+    std::vector<Key> keys;
+    for (const auto& pr : props) keys.push_back(pr.first);
+    ensure(keys);
+    std::vector<std::pair<Key, Vec3d>> apply;
+    for (const auto& pr : props) {
+      const Node& nd = nodes_.at(pr.first);
+      if (nd.flags & (kFixed | kBary | kGap)) continue;
+      const Vec3d cen = upos(pr.first);
+      if (((pr.second - cen).array().abs() > 0.5 * h_).any()) continue;
+      apply.push_back(pr);
+    }
+    std::vector<double> v(apply.size());
+    parallel(apply.size(), [&](std::size_t i) {
+      const double x = g(apply[i].second);
+      v[i] = std::isfinite(x) ? x : h_;
+    });
+    st_.evaluations += apply.size();
+    // Bridges only where the lattice point changes side (and lands in the part).
+    std::size_t added = 0;
+    for (std::size_t i = 0; i < apply.size(); ++i) {
+      Node& nd = nodes_.at(apply[i].first);
+      if ((nd.val < 0) == (v[i] < 0)) continue;
+      const bool was_inside = nd.val < 0;
+      original_.emplace(apply[i].first, nd.val);
+      nd.pos = apply[i].second;
+      nd.val = v[i];
+      nd.flags |= kSearched | (was_inside ? kGap : kBary);
+      ++(was_inside ? st_.moved_gap : st_.moved_barycentre);
+      moved.push_back(apply[i].first);
+      ++added;
+    }
+    st_.bridged = added;
+  }
+
+  // A few moved points that touch no unmoved point of their new sign (6-neighbours)
+  // would be a speck of their own: slivers of a convex edge or corner cut off by an
+  // Omega, not a thin part (which floods into many points). They move back.
+  void prune_islands(std::vector<Key>& moved) {
+    constexpr std::size_t kMinIsland = 4;
+    std::sort(moved.begin(), moved.end());
+    std::unordered_set<Key> is_moved(moved.begin(), moved.end()), done;
+    std::vector<Key> revert;
+    auto neighbours = [&](Key p, std::vector<Key>& out) {
+      out.clear();
+      for (int q = 0; q < 6; ++q) {
+        int d[3] = {ki(p), kj(p), kk(p)};
+        d[q / 2] += q % 2 ? 1 : -1;
+        if (node_in_grid(d[0], d[1], d[2])) out.push_back(key(d[0], d[1], d[2]));
+      }
+    };
+    std::vector<Key> nb;
+    for (Key s : moved) {
+      if (done.count(s)) continue;
+      const std::uint8_t kind = nodes_.at(s).flags & (kBary | kGap);
+      std::vector<Key> comp{s}, stack{s};
+      done.insert(s);
+      bool anchored = false;
+      while (!stack.empty()) {
+        const Key p = stack.back();
+        stack.pop_back();
+        neighbours(p, nb);
+        for (Key q : nb) {
+          const auto it = nodes_.find(q);
+          if (it == nodes_.end()) continue;
+          if (is_moved.count(q)) {
+            if ((it->second.flags & (kBary | kGap)) == kind && done.insert(q).second) {
+              comp.push_back(q);
+              stack.push_back(q);
+            }
+          } else if ((it->second.val < 0) == (kind == kBary)) {
+            anchored = true;
+          }
+        }
+      }
+      if (!anchored && comp.size() < kMinIsland) revert.insert(revert.end(), comp.begin(), comp.end());
+    }
+    for (Key p : revert) {
+      Node& nd = nodes_.at(p);
+      --(nd.flags & kGap ? st_.moved_gap : st_.moved_barycentre);
+      nd.flags &= std::uint8_t(~(kBary | kGap));
+      nd.pos = upos(p);
+      nd.val = original_.at(p);
+      is_moved.erase(p);
+    }
+    st_.reverted = revert.size();
+    moved.erase(std::remove_if(moved.begin(), moved.end(), [&](Key p) { return !is_moved.count(p); }), moved.end());
+  }
+
   // ---------------------------------------------------------------- crossings
-  Crossing crossing(Key a_key, int axis) const {
+  Crossing crossing(Key a_key, int axis, int steps) const {
     const Key b_key = key(ki(a_key) + (axis == 0), kj(a_key) + (axis == 1), kk(a_key) + (axis == 2));
     const Node& a = nodes_.at(a_key);
     const Node& b = nodes_.at(b_key);
     double fa = a.val, fb = b.val;
     double lo = 0, hi = 1, t = fa / (fa - fb);
     // Illinois regula falsi on f along the deformed edge, keeping the bracket.
-    int side = 0;
-    for (int it = 0; it < opt_.refine_steps; ++it) {
+    int side = 0, evals = 0;
+    const double tol = 1e-7 * std::abs(a.val - b.val);
+    for (int it = 0; it < steps; ++it) {
       const double v = g(a.pos + t * (b.pos - a.pos));
-      if (!std::isfinite(v) || v == 0) break;
+      ++evals;
+      if (!std::isfinite(v) || std::abs(v) <= tol) break;
       if ((v < 0) == (a.val < 0)) {
         lo = t;
         fa = v;
@@ -400,6 +553,7 @@ class Dmc {
     // Kept off the lattice points so no triangle collapses.
     t = std::clamp(t, 1e-3, 1 - 1e-3);
     Crossing c;
+    c.evals = evals;
     c.pos = a.pos + t * (b.pos - a.pos);
     const Vec3d gr = f_.gradient(c.pos);
     const double len = gr.norm();
@@ -421,16 +575,18 @@ class Dmc {
     std::sort(edges.begin(), edges.end());
     edges.erase(std::unique(edges.begin(), edges.end()), edges.end());
     std::vector<Crossing> out(edges.size());
-    parallel(edges.size(), [&](std::size_t i) { out[i] = crossing(edges[i] / 3, int(edges[i] % 3)); });
-    st_.evaluations += edges.size() * std::size_t(opt_.refine_steps);
+    parallel(edges.size(), [&](std::size_t i) { out[i] = crossing(edges[i] / 3, int(edges[i] % 3), opt_.refine_steps); });
     st_.gradient_evaluations += edges.size();
-    for (std::size_t i = 0; i < edges.size(); ++i) crossings_.emplace(edges[i], out[i]);
+    for (std::size_t i = 0; i < edges.size(); ++i) {
+      st_.evaluations += out[i].evals;
+      crossings_.emplace(edges[i], out[i]);
+    }
   }
 
   // ---------------------------------------------------------------- step 2
   // Per crossed cell: sharp edge / corner from the crossing normals; proposals for the
   // lattice points to move.
-  void detect(Key c, std::vector<Proposal>& out) const {
+  void detect(Key c, std::vector<Proposal>& out, std::size_t& extra_evals) const {
     const auto& ec = mc::edge_corners();
     Vec3d pts[12], nrm[12];
     int n = 0;
@@ -454,6 +610,29 @@ class Dmc {
         if (d < theta && nrm[i].cross(nrm[j]).norm() > 0.1) theta = d, a0 = i, a1 = j;
       }
     if (a0 < 0 || theta >= opt_.theta_sharp) return;
+    // A feature is likely: the planes need crossings on the surface to round-off, not
+    // to the few refinement steps of the mesh vertices.
+    {
+      int i = 0;
+      for (int e = 0; e < 12; ++e) {
+        const Key a = corner_key(c, ec[e][0]), b = corner_key(c, ec[e][1]);
+        if ((val(a) < 0) == (val(b) < 0)) continue;
+        const Crossing x = crossing(a, e / 4, 60);
+        extra_evals += x.evals + 1;
+        if (x.normal.squaredNorm() == 0) return;
+        pts[i] = x.pos;
+        nrm[i] = x.normal;
+        ++i;
+      }
+      theta = 1;
+      a0 = a1 = -1;
+      for (int i = 0; i < n; ++i)
+        for (int j = i + 1; j < n; ++j) {
+          const double d = nrm[i].dot(nrm[j]);
+          if (d < theta && nrm[i].cross(nrm[j]).norm() > 0.1) theta = d, a0 = i, a1 = j;
+        }
+      if (a0 < 0 || theta >= opt_.theta_sharp) return;
+    }
     const Vec3d ne = nrm[a0].cross(nrm[a1]).normalized();
     double phi = 0;
     for (int i = 0; i < n; ++i)
@@ -482,51 +661,85 @@ class Dmc {
       if (ev[k] >= tol) x += V.col(k) * (V.col(k).dot(r) / ev[k]);
     if (!x.allFinite()) return;
     const int ci = ki(c), cj = kj(c), ck = kk(c);
-    // Tiny step into the solid so the moved point is inside and the surface passes
-    // through it (not around it).
-    const Vec3d inward = -(corner ? nsum : Vec3d(nrm[a0] + nrm[a1])).normalized() * (1e-3 * h_);
+    // Tiny step into (or out of) the solid so the moved point keeps a clear sign.
+    const Vec3d inward = -(corner ? nsum : Vec3d(nrm[a0] + nrm[a1])).normalized() * (2e-4 * h_);
+    // Each corner of the cell whose Omega the half line x + t dir (t >= tmin) crosses
+    // moves to the middle of that crossing.
+    auto along = [&](const Vec3d& dir, double tmin, const Vec3d& nudge) {
+      for (int qc = 0; qc < 8; ++qc) {
+        const Key p = corner_key(c, qc);
+        const Vec3d cen = upos(p);
+        double t0 = tmin, t1 = 1e300;
+        bool hit = true;
+        for (int a = 0; a < 3 && hit; ++a) {
+          const double lo = cen[a] - 0.5 * h_, hi = cen[a] + 0.5 * h_;
+          if (std::abs(dir[a]) < 1e-12) {
+            if (x[a] < lo || x[a] >= hi) hit = false;
+            continue;
+          }
+          double u0 = (lo - x[a]) / dir[a], u1 = (hi - x[a]) / dir[a];
+          if (u0 > u1) std::swap(u0, u1);
+          t0 = std::max(t0, u0);
+          t1 = std::min(t1, u1);
+        }
+        // Even a short clip counts: a skipped Omega would leave the chain of lattice
+        // points along the edge only edge-connected.
+        if (!hit || t1 - t0 < 1e-6 * h_) continue;
+        out.push_back({p, 0, c, x + dir * (0.5 * (t0 + t1)), nudge, t1 - t0});
+      }
+    };
     if (corner) {
       const Vec3d q = (x - lo_) / h_;
       const int r0 = int(std::lround(q.x())), r1 = int(std::lround(q.y())), r2 = int(std::lround(q.z()));
       if (r0 < ci - 1 || r0 > ci + 2 || r1 < cj - 1 || r1 > cj + 2 || r2 < ck - 1 || r2 > ck + 2) return;
       if (!node_in_grid(r0, r1, r2)) return;
-      out.push_back({key(r0, r1, r2), 1, c, x + inward});
+      out.push_back({key(r0, r1, r2), 1, c, x, inward, 0.0});
+      if (std::getenv("DMC_TRACE")) {
+        std::string msg = "cell " + std::to_string(ci) + " " + std::to_string(cj) + " " + std::to_string(ck) + " ev " +
+                          std::to_string(ev[0]) + " " + std::to_string(ev[1]) + " " + std::to_string(ev[2]) + "\n";
+        for (int i = 0; i < n; ++i) {
+          char buf[200];
+          std::snprintf(buf, sizeof buf, "  p (%.5f %.5f %.5f) n (%.4f %.4f %.4f) f %.2e\n", pts[i].x(), pts[i].y(),
+                        pts[i].z(), nrm[i].x(), nrm[i].y(), nrm[i].z(), g(pts[i]));
+          msg += buf;
+        }
+        std::fprintf(stderr, "%s", msg.c_str());
+      }
+      // The three edges leaving the corner (between each pair of the three planes, on
+      // the solid side of the third), so the corner's neighbours join it to the edges.
+      int a2 = -1;
+      double best = -1;
+      for (int i = 0; i < n; ++i)
+        if (i != a0 && i != a1 && std::abs(nrm[i].dot(ne)) > best) best = std::abs(nrm[i].dot(ne)), a2 = i;
+      const Vec3d pl[3] = {nrm[a0], nrm[a1], nrm[a2]};
+      for (int e = 0; e < 3; ++e) {
+        const Vec3d& u = pl[(e + 1) % 3];
+        const Vec3d& w = pl[(e + 2) % 3];
+        Vec3d dir = u.cross(w);
+        if (dir.norm() < 0.1) continue;
+        dir.normalize();
+        if (dir.dot(pl[e]) > 0) dir = -dir;
+        along(dir, 0.0, -(u + w).normalized() * (2e-4 * h_));
+      }
       return;
     }
-    // Edge: the line through x along the smallest eigenvector; each corner of the cell
-    // whose Omega the line crosses moves to the middle of that crossing.
-    const Vec3d dir = V.col(0);
-    for (int qc = 0; qc < 8; ++qc) {
-      const Key p = corner_key(c, qc);
-      const Vec3d cen = upos(p);
-      double t0 = -1e300, t1 = 1e300;
-      bool hit = true;
-      for (int a = 0; a < 3 && hit; ++a) {
-        const double lo = cen[a] - 0.5 * h_, hi = cen[a] + 0.5 * h_;
-        if (std::abs(dir[a]) < 1e-12) {
-          if (x[a] < lo || x[a] >= hi) hit = false;
-          continue;
-        }
-        double u0 = (lo - x[a]) / dir[a], u1 = (hi - x[a]) / dir[a];
-        if (u0 > u1) std::swap(u0, u1);
-        t0 = std::max(t0, u0);
-        t1 = std::min(t1, u1);
-      }
-      if (!hit || t1 - t0 < 0.05 * h_) continue;
-      out.push_back({p, 0, c, x + dir * (0.5 * (t0 + t1)) + inward});
-    }
+    // Edge: the line through x along the smallest eigenvector.
+    along(V.col(0), -1e300, inward);
   }
 
   std::vector<Key> feature_step(const std::unordered_set<Key>& surface) {
     std::vector<Key> cells(surface.begin(), surface.end());
     std::sort(cells.begin(), cells.end());
     std::vector<std::vector<Proposal>> props(cells.size());
-    parallel(cells.size(), [&](std::size_t i) { detect(cells[i], props[i]); });
+    std::vector<std::size_t> evals(cells.size(), 0);
+    parallel(cells.size(), [&](std::size_t i) { detect(cells[i], props[i], evals[i]); });
+    for (std::size_t e : evals) st_.evaluations += e;
     std::vector<Proposal> all;
     for (auto& v : props) all.insert(all.end(), v.begin(), v.end());
     std::sort(all.begin(), all.end(), [](const Proposal& a, const Proposal& b) {
       if (a.node != b.node) return a.node < b.node;
       if (a.priority != b.priority) return a.priority > b.priority;
+      if (a.length != b.length) return a.length > b.length;
       return a.cell < b.cell;
     });
     std::vector<Proposal> chosen;
@@ -534,20 +747,50 @@ class Dmc {
       if (i > 0 && all[i].node == all[i - 1].node) continue;
       chosen.push_back(all[i]);
     }
-    // Lattice points not yet evaluated (a corner found just beyond the crossed cells).
+    // Lattice points not yet evaluated (a corner found just beyond the crossed cells),
+    // and their 6-neighbours.
     std::vector<Key> keys;
-    for (const Proposal& p : chosen) keys.push_back(p.node);
+    for (const Proposal& p : chosen) {
+      keys.push_back(p.node);
+      for (int q = 0; q < 6; ++q) {
+          int d[3] = {ki(p.node), kj(p.node), kk(p.node)};
+          d[q / 2] += q % 2 ? 1 : -1;
+          if (node_in_grid(d[0], d[1], d[2])) keys.push_back(key(d[0], d[1], d[2]));
+        }
+    }
     ensure(keys);
+    // The moves keep each point's sign (a tiny step into or out of the solid from the
+    // feature), so the lattice's inside/outside topology is the one after step 1: an
+    // outside point pulled onto an edge would otherwise join the edge to the body
+    // around outside points (handles). Exception: a corner point outside with an inside
+    // 6-neighbour turns inside (the tip of a thin part grows to its apex).
     std::vector<Proposal> apply;
+    std::vector<char> want;
     for (const Proposal& p : chosen) {
       const Node& nd = nodes_.at(p.node);
-      if (nd.flags & (kFixed | kBary | kGap)) continue;
-      // Stay inside Omega (the nudge may cross its border).
+      // A point moved into a thin gap stays there.
+      if (nd.flags & (kFixed | kGap)) continue;
+      bool inside = nd.val < 0;
+      if (!inside) {
+        // Pulled onto the feature, an outside point turns inside (so the surface follows
+        // the feature), except next to a thin gap, which it would close.
+        inside = true;
+        for (int q = 0; q < 6 && inside; ++q) {
+          int d[3] = {ki(p.node), kj(p.node), kk(p.node)};
+          d[q / 2] += q % 2 ? 1 : -1;
+          if (!node_in_grid(d[0], d[1], d[2])) continue;
+          const auto it = nodes_.find(key(d[0], d[1], d[2]));
+          if (it != nodes_.end() && (it->second.flags & kGap)) inside = false;
+        }
+      }
       Proposal q = p;
+      q.pos += inside ? p.nudge : Vec3d(-p.nudge);
+      // Stay inside Omega (the nudge may cross its border).
       const Vec3d cen = upos(p.node);
       for (int a = 0; a < 3; ++a)
         q.pos[a] = std::clamp(q.pos[a], cen[a] - 0.5 * h_, std::nextafter(cen[a] + 0.5 * h_, cen[a]));
       apply.push_back(q);
+      want.push_back(inside);
     }
     std::vector<double> v(apply.size());
     parallel(apply.size(), [&](std::size_t i) {
@@ -555,16 +798,135 @@ class Dmc {
       v[i] = std::isfinite(x) ? x : h_;
     });
     st_.evaluations += apply.size();
+    // MC takes a lattice edge between two inside points as inside. A point turned inside
+    // whose edge to an inside neighbour leaves the solid (two slabs' rims across a thin
+    // slot) would join separate parts: it keeps its place.
+    std::unordered_map<Key, std::size_t> index;
+    for (std::size_t i = 0; i < apply.size(); ++i)
+      if ((v[i] < 0) == bool(want[i])) index.emplace(apply[i].node, i);
+    std::vector<std::pair<std::size_t, Vec3d>> checks;  // (flipped proposal, other end)
+    std::vector<std::size_t> other;
+    for (std::size_t i = 0; i < apply.size(); ++i) {
+      if (!index.count(apply[i].node) || !want[i] || nodes_.at(apply[i].node).val < 0) continue;
+      for (int q = 0; q < 6; ++q) {
+        int d[3] = {ki(apply[i].node), kj(apply[i].node), kk(apply[i].node)};
+        d[q / 2] += q % 2 ? 1 : -1;
+        if (!node_in_grid(d[0], d[1], d[2])) continue;
+        const Key r = key(d[0], d[1], d[2]);
+        const auto jt = index.find(r);
+        Vec3d rp;
+        if (jt != index.end()) {
+          if (!want[jt->second]) continue;
+          rp = apply[jt->second].pos;
+          other.push_back(jt->second);
+        } else {
+          const auto it = nodes_.find(r);
+          if (it == nodes_.end() || !(it->second.val < 0)) continue;
+          rp = it->second.pos;
+          other.push_back(SIZE_MAX);
+        }
+        checks.emplace_back(i, rp);
+      }
+    }
+    std::vector<char> leaves(checks.size(), 0);
+    parallel(checks.size(), [&](std::size_t c) {
+      const Vec3d& a = apply[checks[c].first].pos;
+      for (double t : {0.25, 0.5, 0.75}) {
+        const double x = g(a + t * (checks[c].second - a));
+        if (!(x < 0)) leaves[c] = 1;
+      }
+    });
+    st_.evaluations += 3 * checks.size();
+    std::vector<char> veto(apply.size(), 0);
+    for (std::size_t c = 0; c < checks.size(); ++c)
+      if (leaves[c]) {
+        veto[checks[c].first] = 1;
+        if (other[c] != SIZE_MAX) veto[other[c]] = 1;
+      }
     std::vector<Key> moved;
     for (std::size_t i = 0; i < apply.size(); ++i) {
       Node& nd = nodes_.at(apply[i].node);
+      if ((v[i] < 0) != bool(want[i])) continue;  // the nudge did not give the sign
+      if (veto[i]) {
+        ++st_.vetoed;
+        continue;
+      }
       nd.pos = apply[i].pos;
       nd.val = v[i];
       nd.flags |= apply[i].priority ? kCorner : kEdge;
       ++(apply[i].priority ? st_.moved_corner : st_.moved_edge);
       moved.push_back(apply[i].node);
     }
+    fill_turns(moved);
     return moved;
+  }
+
+  // Where the chain of points on an edge turns a lattice corner, the outside point in
+  // the turn, next to the body, would leave a tunnel between chain and body (a handle).
+  // It moves to the inside sample of its Omega nearest to its chain neighbours.
+  void fill_turns(std::vector<Key>& moved) {
+    std::vector<Key> cand;
+    for (Key p : moved)
+      for (int q = 0; q < 6; ++q) {
+        int d[3] = {ki(p), kj(p), kk(p)};
+        d[q / 2] += q % 2 ? 1 : -1;
+        if (node_in_grid(d[0], d[1], d[2])) cand.push_back(key(d[0], d[1], d[2]));
+      }
+    std::sort(cand.begin(), cand.end());
+    cand.erase(std::unique(cand.begin(), cand.end()), cand.end());
+    std::vector<Key> todo;
+    std::vector<Vec3d> target;
+    for (Key o : cand) {
+      const auto it = nodes_.find(o);
+      if (it == nodes_.end() || (it->second.flags & (kFixed | kGap | kBary | kEdge | kCorner)) || it->second.val < 0)
+        continue;
+      int chain = 0, body = 0;
+      Vec3d sum = Vec3d::Zero();
+      for (int q = 0; q < 6; ++q) {
+        int d[3] = {ki(o), kj(o), kk(o)};
+        d[q / 2] += q % 2 ? 1 : -1;
+        if (!node_in_grid(d[0], d[1], d[2])) continue;
+        const auto jt = nodes_.find(key(d[0], d[1], d[2]));
+        if (jt == nodes_.end() || !(jt->second.val < 0)) continue;
+        if (jt->second.flags & (kEdge | kCorner)) {
+          ++chain;
+          sum += jt->second.pos;
+        } else {
+          ++body;
+        }
+      }
+      if (chain >= 2 && body >= 1) {
+        todo.push_back(o);
+        target.push_back(sum / chain);
+      }
+    }
+    std::vector<char> ok(todo.size(), 0);
+    std::vector<Vec3d> pos(todo.size());
+    std::vector<double> value(todo.size());
+    parallel(todo.size(), [&](std::size_t i) {
+      const Vec3d c0 = upos(todo[i]);
+      const double step = h_ / m_;
+      double best = 1e300;
+      for (int a = 0; a < m_; ++a)
+        for (int b = 0; b < m_; ++b)
+          for (int c = 0; c < m_; ++c) {
+            const Vec3d x = c0 + Vec3d((a + 0.5) * step, (b + 0.5) * step, (c + 0.5) * step) - Vec3d::Constant(0.5 * h_);
+            const double v = g(x);
+            if (!(v < 0)) continue;
+            const double dd = (x - target[i]).squaredNorm();
+            if (dd < best) best = dd, pos[i] = x, value[i] = v, ok[i] = 1;
+          }
+    });
+    st_.evaluations += todo.size() * std::size_t(m_) * m_ * m_;
+    for (std::size_t i = 0; i < todo.size(); ++i) {
+      if (!ok[i]) continue;
+      Node& nd = nodes_.at(todo[i]);
+      nd.pos = pos[i];
+      nd.val = value[i];
+      nd.flags |= kEdge;
+      ++st_.filled_turns;
+      moved.push_back(todo[i]);
+    }
   }
 
   // ---------------------------------------------------------------- step 3
@@ -645,6 +1007,7 @@ class Dmc {
   DmcStats st_;
   std::unordered_map<Key, Node> nodes_;
   std::unordered_map<Key, Crossing> crossings_;
+  std::unordered_map<Key, double> original_;  // value before step 1 moved the point
 };
 
 }  // namespace

@@ -40,8 +40,10 @@ struct DmcOptions : MarchingCubesOptions {
   bool thin_gaps = true;
   /// Step 2: move lattice points onto sharp edges and corners.
   bool features = true;
-  /// Regula-falsi (Illinois) steps on f refining each crossing after linear interpolation.
-  int refine_steps = 2;
+  /// At most this many regula-falsi (Illinois) steps on f refine each crossing after the
+  /// linear interpolation (fewer once |f| is at round-off). Cells with a suspected sharp
+  /// feature refine their crossings to round-off for the feature planes.
+  int refine_steps = 3;
 };
 
 struct DmcStats : MarchingCubesStats {
@@ -50,8 +52,12 @@ struct DmcStats : MarchingCubesStats {
   std::size_t searched = 0;          ///< lattice points whose Omega was sampled at step s
   std::size_t moved_barycentre = 0;  ///< moved into thin inside parts (step 1)
   std::size_t moved_gap = 0;         ///< moved into thin outside gaps (beyond the paper)
+  std::size_t bridged = 0;           ///< step-1 moves joining diagonal neighbours (docs/dmc.md)
+  std::size_t reverted = 0;          ///< step-1 moves undone (isolated specks, see docs/dmc.md)
   std::size_t moved_corner = 0;      ///< moved onto corners (step 2)
   std::size_t moved_edge = 0;        ///< moved onto sharp edges (step 2)
+  std::size_t vetoed = 0;            ///< feature moves refused (would join separate parts)
+  std::size_t filled_turns = 0;      ///< outside points in a turn of an edge chain moved in
   std::size_t degenerate_faces = 0;  ///< zero-area faces in the output (expected 0)
   double search_step = 0;            ///< s actually used, input units
 };
