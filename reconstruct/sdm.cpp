@@ -13,8 +13,6 @@
 #include <cmath>
 #include <numeric>
 #include <random>
-#include <cstdio>
-#include <cstdlib>
 
 #include <Eigen/Eigenvalues>
 #include <Eigen/Geometry>
@@ -163,6 +161,7 @@ struct Engine {
   const std::vector<Face>& faces;
   const std::vector<Landmark>& landmarks;
   std::vector<char> pinned;
+  std::vector<int> landmark_of;  // per vertex: its landmark (phase 2), or -1
   Adjacency adj;
   std::vector<Vec3f> pos;
   Cloud sc;                  // phase 1's control points: the target or a random subset of it
@@ -439,13 +438,12 @@ struct Engine {
       hi = hi.cwiseMax(u);
       longest = std::max(longest, (u - c).norm());
     }
-    const Vec3f pad = Vec3f::Constant(1.5f * longest);
+    const Vec3f pad = Vec3f::Constant(longest);
     near_faces.clear();
     grid->for_box(lo - pad, hi + pad, [&](int u) {
       for (int j = adj.vf_start[u]; j < adj.vf_start[u + 1]; ++j) near_faces.push_back(adj.vf[j]);
     });
-    std::sort(near_faces.begin(), near_faces.end());
-    near_faces.erase(std::unique(near_faces.begin(), near_faces.end()), near_faces.end());
+    // (Faces repeat, once per vertex found; the box test below makes repeats cheap.)
     for (int j = adj.vf_start[v]; j < adj.vf_start[v + 1]; ++j) {
       const Face& A = faces[adj.vf[j]];
       const Vec3f a[3] = {A[0] == v ? c : pos[A[0]], A[1] == v ? c : pos[A[1]], A[2] == v ? c : pos[A[2]]};
@@ -477,6 +475,16 @@ struct Engine {
     if (ref.norm() > 0) ref.normalize();
     int cur_bad = bad_faces(v, cur, ref);
     Vec3f best = cur;
+    if (landmark_of[v] >= 0) {
+      // A landmark vertex goes as close to its point as it can without folding a face
+      // or cutting another (phase 2 keeps it there; fold repair may have moved it).
+      const Vec3f target_point = landmarks[landmark_of[v]].point;
+      for (float w : {1.f, 0.75f, 0.5f, 0.25f}) {
+        const Vec3f c = cur + w * (target_point - cur);
+        if (bad_faces(v, c, ref) <= cur_bad && !crosses_nearby(v, c)) return c;
+      }
+      return cur;
+    }
     const int os = a.omega_start[v], oe = a.omega_start[v + 1], no = oe - os;
     bool fitted = false;
     if (no > 0) {
@@ -583,7 +591,6 @@ struct Engine {
     std::vector<Vec3f> next(pos.size());
     for (int it = 0;; ++it) {
       const auto pairs = self_intersecting_pairs(pos, faces);
-      if (std::getenv("SDM_DEBUG")) std::fprintf(stderr, "  intersections %zu\n", pairs.size());
       if (pairs.empty() || it == iterations) return int(pairs.size());
       std::fill(mark.begin(), mark.end(), 0);
       for (const auto& [a, b] : pairs)
@@ -623,7 +630,6 @@ struct Engine {
       grow(mark, 1 + (it >= iterations / 2));
       smooth_marked(classes, mark, next);
     }
-    if (std::getenv("SDM_DEBUG")) std::fprintf(stderr, "  folds left %d\n", folded);
     return folded;
   }
 
@@ -644,7 +650,6 @@ struct Engine {
         best_d = a.mean_distance;
         best_pos = pos;
       }
-      if (std::getenv("SDM_DEBUG")) std::fprintf(stderr, "round %d D %.6f\n", rounds, a.mean_distance);
       dg.mean_distance = a.mean_distance;
       if (progress) progress("energy", std::min(1.0, double(rounds) / std::max(1, max_rounds)));
       if (a.mean_distance < theta || rounds >= max_rounds) break;
@@ -700,7 +705,7 @@ struct Engine {
 
 SdmResult run_sdm(const Mesh& initial, const Cloud& target, const SdmParams& params,
                   const std::vector<Landmark>& landmarks, const std::vector<char>& pinned,
-                  const SdmProgress& progress, SdmDiagnostics dg) {
+                  const SdmProgress& progress, SdmDiagnostics dg, bool run_som) {
   const auto t0 = Clock::now();
   Engine E(params, target, initial.faces, landmarks, pinned);
   const int nv = int(initial.vertices.size());
@@ -745,6 +750,7 @@ SdmResult run_sdm(const Mesh& initial, const Cloud& target, const SdmParams& par
     E.nearest_cp.assign(nv, 0);
     E.refresh_nearest_cp();
     E.anchor.assign(nv, 0);
+    E.landmark_of.assign(nv, -1);
     E.free_lb.resize(nv);
     E.anchor_slide.assign(nv, 0.f);
     for (int v = 0; v < nv; ++v) E.free_lb[v] = (E.pos[v] - E.sc.points[E.nearest_cp[v]]).norm();
@@ -762,14 +768,41 @@ SdmResult run_sdm(const Mesh& initial, const Cloud& target, const SdmParams& par
     E.resee = std::max(2.f * E.spacing, 0.2f * edge / 1.5f);
 
     const auto t1 = Clock::now();
-    const int T = params.som_iterations > 0 ? params.som_iterations : 12 * nv;
-    E.som(T, dg, progress);
+    // Landmark draws come on top of the control-point draws.
+    const double lm_share = landmarks.empty() ? 0.0 : std::min(0.9f, params.landmark_probability);
+    const int T = params.som_iterations > 0 ? params.som_iterations
+                                            : int(12.0 * nv / (1.0 - lm_share));
+    if (run_som) E.som(T, dg, progress);
     dg.seconds_som = seconds_since(t1);
-    // Landmarks: pinned on their points for phase 2.
-    for (const auto& l : landmarks) {
-      E.pos[l.vertex] = l.point;
-      E.grid->update(l.vertex);
-      E.pinned[l.vertex] = 1;
+    // Landmarks: pinned on their points for phase 2. The vertex's neighbourhood is
+    // carried along (translated by the vertex's offset, weighted by a Gaussian of
+    // sigma = 2 hops) so that the snap does not fold the faces around it.
+    {
+      std::vector<int> hop(nv, -1), queue;
+      for (const auto& l : landmarks) {
+        const Vec3f offset = l.point - E.pos[l.vertex];
+        std::fill(hop.begin(), hop.end(), -1);
+        queue.assign(1, l.vertex);
+        hop[l.vertex] = 0;
+        for (std::size_t q = 0; q < queue.size(); ++q) {
+          const int u = queue[q];
+          if (hop[u] >= 6) continue;
+          for (int j = E.adj.ring_start[u]; j < E.adj.ring_start[u + 1]; ++j)
+            if (hop[E.adj.ring[j]] < 0) {
+              hop[E.adj.ring[j]] = hop[u] + 1;
+              queue.push_back(E.adj.ring[j]);
+            }
+        }
+        for (int u : queue) {
+          if (E.pinned[u]) continue;
+          const float h = hop[u] / 2.f;
+          E.pos[u] += std::exp(-0.5f * h * h) * offset;
+          E.grid->update(u);
+        }
+        E.pos[l.vertex] = l.point;
+        E.grid->update(l.vertex);
+        E.landmark_of[l.vertex] = int(&l - landmarks.data());
+      }
     }
     const auto t2 = Clock::now();
     E.energy_phase(dg, progress);
@@ -814,8 +847,13 @@ void check_params(const SdmParams& p) {
 
 }  // namespace
 
-SdmResult fit_sdm(const Mesh& template_mesh, const Cloud& target_in, const SdmParams& params,
-                  const std::vector<Landmark>& landmarks, const SdmProgress& progress) {
+namespace {
+
+// Checks the inputs and gives the target with unit outward normals (estimated when
+// missing) and the placed template.
+void prepare(const Mesh& template_mesh, const Cloud& target_in, const SdmParams& params,
+             const std::vector<Landmark>& landmarks, Cloud& target, Mesh& initial,
+             SdmDiagnostics& dg) {
   check_params(params);
   if (template_mesh.vertices.empty() || template_mesh.faces.empty())
     throw InvalidInput("template: empty mesh");
@@ -863,11 +901,11 @@ SdmResult fit_sdm(const Mesh& template_mesh, const Cloud& target_in, const SdmPa
                            std::to_string(j));
   }
 
-  SdmDiagnostics dg;
+  dg = SdmDiagnostics{};
   dg.template_vertices = nv;
   dg.template_faces = int(template_mesh.faces.size());
   dg.control_points = int(target_in.size());
-  Cloud target;
+  target = Cloud{};
   target.points = target_in.points;
   bool estimate = !target_in.has_normals();
   if (!estimate) {
@@ -887,7 +925,7 @@ SdmResult fit_sdm(const Mesh& template_mesh, const Cloud& target_in, const SdmPa
     dg.normals_estimated = true;
   }
 
-  Mesh initial;
+  initial = Mesh{};
   initial.faces = template_mesh.faces;
   initial.vertices = template_mesh.vertices;
   if (params.place_template) {
@@ -900,8 +938,72 @@ SdmResult fit_sdm(const Mesh& template_mesh, const Cloud& target_in, const SdmPa
     for (auto& v : initial.vertices)
       v = tb.center() + (v - mb.center()).cwiseProduct(scale);
   }
-  std::vector<char> pinned(nv, 0);
+}
+
+}  // namespace
+
+SdmResult fit_sdm(const Mesh& template_mesh, const Cloud& target_in, const SdmParams& params,
+                  const std::vector<Landmark>& landmarks, const SdmProgress& progress) {
+  Cloud target;
+  Mesh initial;
+  SdmDiagnostics dg;
+  prepare(template_mesh, target_in, params, landmarks, target, initial, dg);
+  const std::vector<char> pinned(initial.vertices.size(), 0);
   return sdm_detail::run_sdm(initial, target, params, landmarks, pinned, progress, dg);
+}
+
+SdmResult fit_sdm_icosphere(int level, const Cloud& target_in, const SdmParams& params,
+                            const std::vector<Landmark>& landmarks, const SdmProgress& progress,
+                            int coarse_level) {
+  const Mesh fine = make_icosphere_template(level);
+  if (coarse_level < 0) throw InvalidInput("sdm: coarse_level < 0");
+  if (level <= coarse_level) return fit_sdm(fine, target_in, params, landmarks, progress);
+  const auto t0 = std::chrono::steady_clock::now();
+  // Full fit at the coarse level (landmarks on coarse vertices only: subdivision keeps
+  // the coarse vertices' indices).
+  const Mesh coarse = make_icosphere_template(coarse_level);
+  Cloud target;
+  Mesh initial;
+  SdmDiagnostics dg;
+  prepare(fine, target_in, params, landmarks, target, initial, dg);  // checks against the fine level
+  std::vector<Landmark> coarse_lm;
+  for (const auto& l : landmarks)
+    if (l.vertex < int(coarse.vertices.size())) coarse_lm.push_back(l);
+  SdmResult r = fit_sdm(coarse, target, params, coarse_lm, progress);
+  const SdmDiagnostics cd = r.diagnostics;
+  // Subdivide the fitted mesh (paper section 4.1: level 5 from the fitted level 4) and
+  // polish every finer level with phase 2 only.
+  Mesh m = std::move(r.mesh);
+  m.normals.clear();
+  SdmDiagnostics last = cd;
+  for (int l = coarse_level + 1; l <= level; ++l) {
+    sdm_detail::subdivide_midpoint(m.vertices, m.faces, false);
+    SdmDiagnostics d0 = dg;
+    d0.template_vertices = int(m.vertices.size());
+    d0.template_faces = int(m.faces.size());
+    const std::vector<char> pinned(m.vertices.size(), 0);
+    std::vector<Landmark> lm;
+    for (const auto& x : landmarks)
+      if (x.vertex < int(m.vertices.size())) lm.push_back(x);
+    SdmResult rl = sdm_detail::run_sdm(m, target, params, lm, pinned, progress, d0, false);
+    last = rl.diagnostics;
+    m = std::move(rl.mesh);
+    m.normals.clear();
+  }
+  m.normals = vertex_normals(m);
+  SdmResult out;
+  out.mesh = std::move(m);
+  out.diagnostics = last;
+  out.diagnostics.som_iterations = cd.som_iterations;
+  out.diagnostics.som_skipped = cd.som_skipped;
+  out.diagnostics.anchors = cd.anchors;
+  out.diagnostics.seconds_som = cd.seconds_som;
+  out.diagnostics.distance_after_som = cd.distance_after_som;
+  out.diagnostics.energy_rounds += cd.energy_rounds;
+  out.diagnostics.seconds_energy += cd.seconds_energy;
+  out.diagnostics.seconds_total =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  return out;
 }
 
 }  // namespace station

@@ -65,8 +65,11 @@ struct SdmParams {
   /// complex.
   float curvature_gain = 0.f;
   /// Probability that a SOM step draws a landmark (when there are any) instead of an
-  /// ordinary control point.
-  float landmark_probability = 0.05f;
+  /// ordinary control point (the default T_c grows to keep as many ordinary draws).
+  /// High, so that the landmarks' neighbourhoods have followed them before phase 2
+  /// pins them (a landmark far from where phase 1 left its vertex folds the faces
+  /// around it).
+  float landmark_probability = 0.3f;
   /// Scale the template (per axis) so that its bounding box is the target's bounding
   /// box enlarged by template_margin, centred on it. The paper's initial shape is
   /// arbitrary; a template around the target keeps the winner rule (vertices on the
@@ -80,8 +83,8 @@ struct SdmParams {
   float theta_e = 0.001f;
   /// At most this many phase-2 rounds; a round that improves D by less than
   /// min_improvement (relative) also ends it.
-  int max_energy_rounds = 40;
-  float min_improvement = 0.01f;
+  int max_energy_rounds = 30;
+  float min_improvement = 0.02f;
   /// A vertex whose control points lie on average within theta_e / 2 of its faces is
   /// taken as fitted and skips the energy moves (relaxation still applies).
   /// w of eq. 19: the step lengths tried towards each control point.
@@ -170,6 +173,18 @@ using SdmProgress = std::function<void(const std::string& phase, double fraction
 /// other topology, too few or non-finite control points, bad landmarks or parameters.
 SdmResult fit_sdm(const Mesh& template_mesh, const Cloud& target, const SdmParams& params = {},
                   const std::vector<Landmark>& landmarks = {}, const SdmProgress& progress = {});
+
+/// fit_sdm with make_icosphere_template(level), coarse to fine as in the paper
+/// (section 4.1: the fitted level-4 SDM subdivided into level 5 and deformed again):
+/// above coarse_level, the icosphere of coarse_level is fitted (both phases), then
+/// subdivided one level at a time (edge midpoints: the same connectivity and vertex
+/// numbering as make_icosphere_template(level)) and polished by phase 2 alone.
+/// Landmarks on vertices that do not exist at a level wait for the level that has
+/// them. Diagnostics: phase 1 of the coarse fit, phase 2 summed, the finest level's
+/// distances and counts.
+SdmResult fit_sdm_icosphere(int level, const Cloud& target, const SdmParams& params = {},
+                            const std::vector<Landmark>& landmarks = {},
+                            const SdmProgress& progress = {}, int coarse_level = 4);
 
 /// Unit icosphere (an icosahedron subdivided `level` times, 10 * 4^level + 2
 /// vertices: level 4 = 2,562, level 5 = 10,242), counter-clockwise outward faces.

@@ -16,6 +16,10 @@ struct Adjacency {
 };
 Adjacency build_adjacency(int vertex_count, const std::vector<Face>& faces);
 
+/// One 1-to-4 split of every face; midpoints appended in face order (normalised to
+/// the unit sphere when `normalise`). make_icosphere_template applies it `level` times.
+void subdivide_midpoint(std::vector<Vec3f>& v, std::vector<Face>& f, bool normalise);
+
 /// Squared distance from p to triangle (a, b, c).
 float point_triangle_dist2(const Vec3f& p, const Vec3f& a, const Vec3f& b, const Vec3f& c);
 
@@ -32,6 +36,6 @@ std::vector<std::pair<int, int>> self_intersecting_pairs(const std::vector<Vec3f
 /// diagnostics it measures; the caller's fields (normals_estimated...) are kept.
 SdmResult run_sdm(const Mesh& initial, const Cloud& target, const SdmParams& params,
                   const std::vector<Landmark>& landmarks, const std::vector<char>& pinned,
-                  const SdmProgress& progress, SdmDiagnostics diagnostics);
+                  const SdmProgress& progress, SdmDiagnostics diagnostics, bool run_som = true);
 
 }  // namespace station::sdm_detail

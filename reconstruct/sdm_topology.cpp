@@ -47,6 +47,28 @@ Adjacency build_adjacency(int n, const std::vector<Face>& faces) {
   return a;
 }
 
+void subdivide_midpoint(std::vector<Vec3f>& v, std::vector<Face>& f, bool normalise) {
+  std::unordered_map<std::uint64_t, int> mid;
+  auto midpoint = [&](int a, int b) {
+    const std::uint64_t key = (std::uint64_t(std::min(a, b)) << 32) | std::uint32_t(std::max(a, b));
+    auto it = mid.find(key);
+    if (it != mid.end()) return it->second;
+    const Vec3f m = 0.5f * (v[a] + v[b]);
+    v.push_back(normalise ? Vec3f(m.normalized()) : m);
+    return mid[key] = int(v.size()) - 1;
+  };
+  std::vector<Face> nf;
+  nf.reserve(f.size() * 4);
+  for (const Face& fc : f) {
+    const int a = midpoint(fc[0], fc[1]), b = midpoint(fc[1], fc[2]), c = midpoint(fc[2], fc[0]);
+    nf.push_back({fc[0], a, c});
+    nf.push_back({fc[1], b, a});
+    nf.push_back({fc[2], c, b});
+    nf.push_back({a, b, c});
+  }
+  f.swap(nf);
+}
+
 float point_triangle_dist2(const Vec3f& p, const Vec3f& a, const Vec3f& b, const Vec3f& c) {
   // Closest point by Voronoi regions of the triangle (vertex, edge, face).
   const Vec3f ab = b - a, ac = c - a, ap = p - a;
@@ -182,26 +204,7 @@ Mesh make_icosphere_template(int level) {
                          {1, 5, 9},  {5, 11, 4}, {11, 10, 2}, {10, 7, 6}, {7, 1, 8},
                          {3, 9, 4},  {3, 4, 2},  {3, 2, 6},   {3, 6, 8},  {3, 8, 9},
                          {4, 9, 5},  {2, 4, 11}, {6, 2, 10},  {8, 6, 7},  {9, 8, 1}};
-  for (int l = 0; l < level; ++l) {
-    std::unordered_map<std::uint64_t, int> mid;
-    auto midpoint = [&](int a, int b) {
-      const std::uint64_t key = (std::uint64_t(std::min(a, b)) << 32) | std::uint32_t(std::max(a, b));
-      auto it = mid.find(key);
-      if (it != mid.end()) return it->second;
-      v.push_back((v[a] + v[b]).normalized());
-      return mid[key] = int(v.size()) - 1;
-    };
-    std::vector<Face> nf;
-    nf.reserve(f.size() * 4);
-    for (const Face& fc : f) {
-      const int a = midpoint(fc[0], fc[1]), b = midpoint(fc[1], fc[2]), c = midpoint(fc[2], fc[0]);
-      nf.push_back({fc[0], a, c});
-      nf.push_back({fc[1], b, a});
-      nf.push_back({fc[2], c, b});
-      nf.push_back({a, b, c});
-    }
-    f.swap(nf);
-  }
+  for (int l = 0; l < level; ++l) sdm_detail::subdivide_midpoint(v, f, true);
   Mesh m;
   m.vertices = std::move(v);
   m.faces = std::move(f);

@@ -11,6 +11,7 @@
 
 #include "core/error.h"
 #include "core/io.h"
+#include "core/kdtree.h"
 #include "reconstruct/eval.h"
 #include "test_util.h"
 
@@ -127,6 +128,219 @@ TEST(Sdm, SphereOntoEllipsoid) {
               d, diag, res.diagnostics.som_iterations, res.diagnostics.seconds_som,
               res.diagnostics.energy_rounds, res.diagnostics.seconds_energy,
               res.diagnostics.anchors);
+}
+
+
+// A torus as a (u, v) grid: closed, genus 1.
+Mesh torus_mesh(int nu, int nv) {
+  Mesh m;
+  for (int i = 0; i < nu; ++i)
+    for (int j = 0; j < nv; ++j) {
+      const double a = 2 * M_PI * i / nu, b = 2 * M_PI * j / nv;
+      m.vertices.push_back(Vec3f(float((1 + 0.4 * std::cos(b)) * std::cos(a)),
+                                 float((1 + 0.4 * std::cos(b)) * std::sin(a)), float(0.4 * std::sin(b))));
+    }
+  for (int i = 0; i < nu; ++i)
+    for (int j = 0; j < nv; ++j) {
+      const int a = i * nv + j, b = ((i + 1) % nu) * nv + j, c = ((i + 1) % nu) * nv + (j + 1) % nv,
+                d = i * nv + (j + 1) % nv;
+      m.faces.push_back({a, b, c});
+      m.faces.push_back({a, c, d});
+    }
+  return m;
+}
+
+Cloud sampled(const std::filesystem::path& path, int n) {
+  const Mesh m = read_mesh(path);
+  return sample_mesh(m, n, 11);
+}
+
+void print_diag(const char* name, const SdmResult& r, double d) {
+  const auto& g = r.diagnostics;
+  std::printf("%s: D %.6f (%.3f%% of diag) som %d steps %.3fs, energy %d rounds %.3fs, total %.3fs\n",
+              name, d, 100 * d / g.diagonal, g.som_iterations, g.seconds_som, g.energy_rounds,
+              g.seconds_energy, g.seconds_total);
+}
+
+TEST(Sdm, SphereOntoFandiskWithSharpFeatures) {
+  const auto path = test::source_dir() / "tests/data/consolidation/fandisk.off";
+  const Cloud target = sampled(path, 10000);
+  const Mesh templ = make_icosphere_template(3);  // level 4 and more points: docs/sdm.md
+  SdmParams p;
+  p.threads = 2;
+  const SdmResult res = fit_sdm(templ, target, p);
+  expect_valid_fit(templ, res);
+  const double diag = bounding_box(target.points).diagonal();
+  const double d = mean_point_to_mesh(target, res.mesh);
+  EXPECT_LT(d, 0.005 * diag);
+  // And the mesh lies on the fandisk (not only the points near the mesh).
+  EvalParams ep;
+  ep.mesh_samples = 20000;
+  const EvalResult e = evaluate(res.mesh, read_mesh(path), ep);
+  EXPECT_LT(e.a_to_b.mean, 0.005 * diag);
+  print_diag("fandisk", res, d);
+}
+
+TEST(Sdm, SphereOntoMustardBottle) {
+  const auto path = test::source_dir() / "data/mustard_bottle/textured.obj";
+  const Cloud target = sampled(path, 10000);
+  const Mesh templ = make_icosphere_template(3);  // level 4 and more points: docs/sdm.md
+  SdmParams p;
+  p.threads = 2;
+  const SdmResult res = fit_sdm(templ, target, p);
+  expect_valid_fit(templ, res);
+  const double diag = bounding_box(target.points).diagonal();
+  const double d = mean_point_to_mesh(target, res.mesh);
+  EXPECT_LT(d, 0.005 * diag);
+  print_diag("mustard", res, d);
+}
+
+TEST(Sdm, UndersideRemovedGivesClosedMesh) {
+  const Vec3d r(1.0, 0.7, 0.5);
+  const Cloud full = ellipsoid_cloud(20000, r);
+  Cloud top;  // the bottom 30 % of the height never seen
+  for (std::size_t i = 0; i < full.size(); ++i)
+    if (full.points[i].z() > -0.2f) {
+      top.points.push_back(full.points[i]);
+      top.normals.push_back(full.normals[i]);
+    }
+  const Mesh templ = make_icosphere_template(3);
+  SdmParams p;
+  p.threads = 2;
+  const SdmResult res = fit_sdm(templ, top, p);
+  expect_valid_fit(templ, res);
+  const MeshTopology t = mesh_topology(res.mesh);
+  EXPECT_TRUE(t.closed_manifold());
+  EXPECT_EQ(t.boundary_edges, 0);
+  EXPECT_LT(mean_point_to_mesh(top, res.mesh), 0.005 * 2 * r.norm());
+  // The hole is spanned, not ballooned: nothing far below the cut or outside the
+  // ellipsoid's box.
+  for (const Vec3f& v : res.mesh.vertices) {
+    EXPECT_GT(v.z(), -0.2f - 0.15f);
+    EXPECT_LT(v.head<2>().cwiseAbs().cwiseQuotient(r.head<2>().cast<float>()).maxCoeff(), 1.05f);
+  }
+}
+
+TEST(Sdm, LandmarksEndOnTheirPoints) {
+  const Vec3d r(1.0, 0.6, 0.4);
+  const Cloud target = ellipsoid_cloud(20000, r);
+  const Mesh templ = make_icosphere_template(3);
+  // Six template vertices pinned to the ellipsoid points in their directions turned
+  // by 25 degrees about z: the fit has to twist to honour them.
+  std::vector<Landmark> lm;
+  const double turn = 25 * M_PI / 180;
+  for (int v : {0, 3, 5, 8, 100, 400}) {
+    const Vec3d d = templ.vertices[v].cast<double>();
+    const Vec3d e(std::cos(turn) * d.x() - std::sin(turn) * d.y(),
+                  std::sin(turn) * d.x() + std::cos(turn) * d.y(), d.z());
+    // Point of the ellipsoid in direction e.
+    const double s = 1 / e.cwiseQuotient(r).norm();
+    lm.push_back({v, (s * e).cast<float>()});
+  }
+  SdmParams p;
+  p.threads = 2;
+  const SdmResult res = fit_sdm(templ, target, p, lm);
+  expect_valid_fit(templ, res);
+  // The control points' spacing: mean nearest-neighbour distance of the whole cloud.
+  const PointIndex index(target.points);
+  double spacing = 0;
+  for (const Vec3f& q : target.points) spacing += index.knn(q, 2)[1].second;
+  spacing /= double(target.size());
+  for (const auto& l : lm)
+    EXPECT_LT((res.mesh.vertices[l.vertex] - l.point).norm(), spacing) << "landmark vertex " << l.vertex;
+  EXPECT_LT(mean_point_to_mesh(target, res.mesh), 0.005 * 2 * r.norm());
+}
+
+TEST(Sdm, SameResultForAnyThreadCount) {
+  const Cloud target = ellipsoid_cloud(5000, Vec3d(1.0, 0.8, 0.5));
+  const Mesh templ = make_icosphere_template(2);
+  SdmParams p;
+  p.threads = 1;
+  const SdmResult a = fit_sdm(templ, target, p);
+  p.threads = 2;
+  const SdmResult b = fit_sdm(templ, target, p);
+  EXPECT_EQ(a.mesh.vertices, b.mesh.vertices);
+}
+
+TEST(Sdm, CoarseToFineKeepsIcosphereNumbering) {
+  const Cloud target = ellipsoid_cloud(20000, Vec3d(1.0, 0.6, 0.4));
+  SdmParams p;
+  p.threads = 2;
+  const SdmResult res = fit_sdm_icosphere(4, target, p, {}, {}, 3);
+  const Mesh templ = make_icosphere_template(4);
+  expect_valid_fit(templ, res);
+  EXPECT_LT(mean_point_to_mesh(target, res.mesh), 0.003 * 2 * Vec3d(1.0, 0.6, 0.4).norm());
+}
+
+TEST(Sdm, TargetWithoutNormalsGetsThemEstimated) {
+  Cloud target = ellipsoid_cloud(8000, Vec3d(1.0, 0.6, 0.4));
+  target.normals.clear();
+  const Mesh templ = make_icosphere_template(2);
+  SdmParams p;
+  p.threads = 2;
+  const SdmResult res = fit_sdm(templ, target, p);
+  EXPECT_TRUE(res.diagnostics.normals_estimated);
+  expect_valid_fit(templ, res);
+  EXPECT_LT(mean_point_to_mesh(target, res.mesh), 0.01 * 2 * Vec3d(1.0, 0.6, 0.4).norm());
+}
+
+TEST(Sdm, BadInputIsRefusedClearly) {
+  const Cloud target = ellipsoid_cloud(3000, Vec3d(1.0, 0.6, 0.4));
+  const Mesh sphere = make_icosphere_template(2);
+  auto message = [&](const Mesh& templ, const Cloud& cloud, const std::vector<Landmark>& lm = {}) {
+    try {
+      fit_sdm(templ, cloud, SdmParams{}, lm);
+    } catch (const InvalidInput& e) {
+      return std::string(e.what());
+    }
+    return std::string("no error");
+  };
+  // Genus 1 template.
+  EXPECT_NE(message(torus_mesh(24, 12), target).find("genus 1"), std::string::npos);
+  // Open template.
+  Mesh open = sphere;
+  open.faces.pop_back();
+  EXPECT_NE(message(open, target).find("boundary edges"), std::string::npos);
+  // Too few control points.
+  Cloud few;
+  few.points.assign(target.points.begin(), target.points.begin() + 20);
+  few.normals.assign(target.normals.begin(), target.normals.begin() + 20);
+  EXPECT_NE(message(sphere, few).find("control points"), std::string::npos);
+  // Non-finite points.
+  Cloud nan = target;
+  nan.points[7].x() = std::nanf("");
+  EXPECT_NE(message(sphere, nan).find("non-finite"), std::string::npos);
+  // Landmarks out of range / pinned twice.
+  EXPECT_NE(message(sphere, target, {{100000, Vec3f::Zero()}}).find("landmark 0"), std::string::npos);
+  EXPECT_NE(message(sphere, target, {{1, Vec3f::Zero()}, {1, Vec3f::Ones()}}).find("landmark 1"),
+            std::string::npos);
+  EXPECT_THROW(fit_sdm(Mesh{}, target), InvalidInput);
+}
+
+TEST(Sdm, ReadLandmarks) {
+  test::TempDir dir;
+  const auto good = dir / "lm.txt";
+  {
+    std::ofstream f(good);
+    f << "# vertex x y z\n12 0.5 -1 2e-3\n\n  7 1 2 3\n";
+  }
+  const auto lm = read_landmarks(good.string());
+  ASSERT_EQ(lm.size(), 2u);
+  EXPECT_EQ(lm[0].vertex, 12);
+  EXPECT_FLOAT_EQ(lm[0].point.z(), 2e-3f);
+  EXPECT_EQ(lm[1].vertex, 7);
+  const auto bad = dir / "bad.txt";
+  {
+    std::ofstream f(bad);
+    f << "1 2 3 4\n5 6 seven 8\n";
+  }
+  try {
+    read_landmarks(bad.string());
+    FAIL() << "no error";
+  } catch (const FormatError& e) {
+    EXPECT_NE(std::string(e.what()).find(":2:"), std::string::npos) << e.what();
+  }
+  EXPECT_THROW(read_landmarks((dir / "missing.txt").string()), IoError);
 }
 
 }  // namespace
