@@ -5,6 +5,7 @@
 
 #include "drivers/fabscan_turntable.h"
 #include "drivers/horus_turntable.h"
+#include "drivers/kinect_scanner.h"
 #include "drivers/v4l2_camera.h"
 
 namespace station {
@@ -58,6 +59,10 @@ void register_v4l2_cameras(DeviceRegistry& registry, std::shared_ptr<SysCalls> s
 void register_real_devices(DeviceRegistry& registry) {
   register_serial_turntables(registry);
   register_v4l2_cameras(registry, real_syscalls());
+#ifdef STATION_HAVE_FREENECT
+  // Kinect v1 through libfreenect (kinect:N); listed by freenect_num_devices.
+  register_kinect(registry, [] { return make_libfreenect_api(); });
+#endif
 }
 
 }  // namespace station
