@@ -37,6 +37,8 @@
 #include "station/json.h"
 #include "station/pipeline.h"
 #include "reconstruct/mesh_clean.h"
+#include "reconstruct/dmc.h"
+#include "reconstruct/colour_function.h"
 #include "drivers/real_devices.h"
 #include "capture/camera_calibration.h"
 #include "station/progress.h"
@@ -795,6 +797,8 @@ struct ReconstructArgs {
   double epsilon = 0;  ///< 0: from the cloud's noise level (suggest_epsilon0)
   bool no_colour = false;
   double min_component = 0.01;
+  std::string extractor = "dmc";
+  std::string colour = "mpu";
 };
 
 int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
@@ -824,7 +828,16 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
   MarchingCubesStats stats;
   if (!c.json) std::fprintf(stderr, "reconstruct: marching cubes at resolution %d...\n", a.resolution);
   const auto t2 = std::chrono::steady_clock::now();
-  Mesh mesh = extract_marching_cubes(surface, a.resolution, mo, &stats);
+  Mesh mesh;
+  if (a.extractor == "dmc") {
+    DmcOptions dopt;
+    static_cast<MarchingCubesOptions&>(dopt) = mo;
+    DmcStats dstats;
+    mesh = extract_dmc(surface, a.resolution, dopt, &dstats);
+    stats = dstats;
+  } else {
+    mesh = extract_marching_cubes(surface, a.resolution, mo, &stats);
+  }
   const double t_extract = seconds_since(t2);
   if (mesh.faces.empty()) throw InvalidInput(a.in + ": the reconstructed surface is empty");
   const ComponentFilterStats pieces = remove_small_components(mesh, a.min_component);
@@ -833,7 +846,21 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
                  pieces.removed_faces);
   const auto t3 = std::chrono::steady_clock::now();
   const bool colour = input.has_colors() && !a.no_colour;
-  if (colour) transfer_colors(mesh, input, {4, cfg.threads});
+  double e_col = -1;
+  if (colour && a.colour == "nearest") {
+    transfer_colors(mesh, input, {4, cfg.threads});
+  } else if (colour) {
+    ColourParams cp;
+    cp.threads = cfg.threads;
+    const ColourFunction cf = fit_colour(input, cp);
+    colour_mesh(mesh, cf, cfg.threads);
+    e_col = cf.diagnostics().e_col;
+    if (!c.json)
+      std::fprintf(stderr, "reconstruct: colour function: %zu cells smooth (A), %zu split at a boundary (B), e_col %.4f\n",
+                   cf.diagnostics().leaves_by_type[0], cf.diagnostics().leaves_by_type[1], e_col);
+  } else if (!a.no_colour && !c.json) {
+    std::fprintf(stderr, "note: %s has no colours; the mesh is left uncoloured\n", a.in.c_str());
+  }
   write_mesh(a.out, mesh);
   const MpuDiagnostics& d = surface.diagnostics();
   if (c.json) {
@@ -856,6 +883,9 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
                       .add("epsilon0", mp.epsilon0)
                       .add("cell_size", stats.cell_size)
                       .add("colours", colour)
+                      .add("extractor", a.extractor)
+                      .add("colour_method", colour ? a.colour : std::string("none"))
+                      .add("e_col", e_col)
                       .add("timings_s", JsonObject()
                                             .add("read", t_read)
                                             .add("fit", t_fit)
@@ -997,6 +1027,12 @@ int run_cli(int argc, char** argv) {
                   "cloud's noise level, at least the paper's 1e-4)")
       ->check(CLI::Range(1e-7, 1e-1));
   rec->add_flag("--no-colour", rec_args.no_colour, "do not colour the mesh from the input's colours");
+  rec->add_option("--extractor", rec_args.extractor,
+                  "dmc: Deformed Marching Cubes (thin parts, sharp edges; docs/dmc.md) or mc: plain marching cubes")
+      ->capture_default_str()->check(CLI::IsMember({"dmc", "mc"}));
+  rec->add_option("--colour", rec_args.colour,
+                  "mpu: the MPU colour function (sharp colour boundaries; docs/colour.md) or nearest: k-NN transfer")
+      ->capture_default_str()->check(CLI::IsMember({"mpu", "nearest"}));
   rec->add_option("--min-component", rec_args.min_component,
                   "drop mesh pieces smaller than this fraction of the largest piece's area (0 keeps all)")
       ->capture_default_str()->check(CLI::Range(0.0, 1.0));

@@ -30,7 +30,7 @@ struct PipelineConfig {
     std::string surface = "mpu";    ///< mpu | sdm
     int resolution = 128;           ///< cells along the longest side
     double epsilon0 = 0;            ///< MPU tolerance; 0 = from the cloud's noise
-    std::string extractor = "mc";   ///< mc | dmc
+    std::string extractor = "dmc";  ///< dmc | mc
     std::string hole = "close";     ///< close | keep (the unseen underside)
     bool colour = true;             ///< colour the mesh when the cloud has colours
     std::string colour_method = "mpu";  ///< mpu (colour function) | nearest (k-NN transfer)

@@ -20,6 +20,7 @@
 #include "core/normals.h"
 #include "reconstruct/color_transfer.h"
 #include "reconstruct/colour_function.h"
+#include "reconstruct/dmc.h"
 #include "reconstruct/marching_cubes.h"
 #include "reconstruct/mesh_clean.h"
 #include "reconstruct/mpu.h"
@@ -551,7 +552,16 @@ class Runner {
     mo.threads = cfg_.threads;
     MarchingCubesStats stats;
     say("  surface: extracting at resolution " + std::to_string(c.resolution));
-    Mesh mesh = extract_marching_cubes(surface, c.resolution, mo, &stats);
+    Mesh mesh;
+    if (c.extractor == "dmc") {
+      DmcOptions dopt;
+      static_cast<MarchingCubesOptions&>(dopt) = mo;
+      DmcStats dstats;
+      mesh = extract_dmc(surface, c.resolution, dopt, &dstats);
+      stats = dstats;
+    } else {
+      mesh = extract_marching_cubes(surface, c.resolution, mo, &stats);
+    }
     if (mesh.faces.empty()) throw InvalidInput(in.string() + ": the reconstructed surface is empty");
     const ComponentFilterStats pieces = remove_small_components(mesh, c.min_component);
     if (pieces.removed_components > 0)
