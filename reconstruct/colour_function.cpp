@@ -62,7 +62,8 @@ struct Leaf {
   double coef[kChannels][6] = {};
   // Type B.
   double rbf_support = 0.4;          // in local units
-  std::vector<Vec3d> nodes;          // local coordinates of the ball's points
+  std::vector<Vec3d> nodes;          // local coordinates of the ball's points, by u
+  std::vector<double> node_u;        // their u coordinates, ascending
   std::vector<RbfPart> clusters;     // colour per cluster (cols = 3)
   RbfPart boundary;                  // cols = 1 (two clusters: b >= 0 -> cluster 0) or k
 
@@ -79,32 +80,39 @@ struct Leaf {
       }
       return out;
     }
+    // Nodes are sorted by their u coordinate: only those with |node_u - a| < support
+    // can be within the RBF support.
+    const std::size_t lo = std::lower_bound(node_u.begin(), node_u.end(), a - rbf_support) - node_u.begin();
+    const std::size_t hi = std::upper_bound(node_u.begin(), node_u.end(), a + rbf_support) - node_u.begin();
     thread_local std::vector<double> ps;
     ps.resize(nodes.size());
     const double s2 = rbf_support * rbf_support;
-    for (std::size_t i = 0; i < nodes.size(); ++i) {
+    for (std::size_t i = lo; i < hi; ++i) {
       const double r2 = (d - nodes[i]).squaredNorm();
       ps[i] = r2 < s2 ? psi(std::sqrt(r2), rbf_support) : 0.0;
     }
-    auto value = [&](const RbfPart& part, int col) {
-      double s = part.poly[col] + part.poly[part.cols + col] * a + part.poly[2 * part.cols + col] * b;
-      for (std::size_t i = 0; i < part.ids.size(); ++i) {
+    // sum over the part's nodes in [lo, hi) (ids ascending) of lambda psi, plus the
+    // polynomial, for columns [c0, c0 + n).
+    auto value = [&](const RbfPart& part, int c0, int n, double* out_v) {
+      for (int c = 0; c < n; ++c)
+        out_v[c] = part.poly[c0 + c] + part.poly[part.cols + c0 + c] * a + part.poly[2 * part.cols + c0 + c] * b;
+      const std::size_t first = std::lower_bound(part.ids.begin(), part.ids.end(), int(lo)) - part.ids.begin();
+      for (std::size_t i = first; i < part.ids.size() && std::size_t(part.ids[i]) < hi; ++i) {
         const double p = ps[part.ids[i]];
-        if (p > 0) s += part.lambda[i * part.cols + col] * p;
+        if (p > 0)
+          for (int c = 0; c < n; ++c) out_v[c] += part.lambda[i * part.cols + c0 + c] * p;
       }
-      return s;
     };
     int chosen = 0;
+    double bv[16];
+    value(boundary, 0, boundary.cols, bv);
     if (boundary.cols == 1) {
-      chosen = value(boundary, 0) >= 0 ? 0 : 1;
+      chosen = bv[0] >= 0 ? 0 : 1;
     } else {
-      double best = -1e300;
-      for (int k = 0; k < boundary.cols; ++k) {
-        const double bk = value(boundary, k);
-        if (bk > best) best = bk, chosen = k;
-      }
+      for (int k = 1; k < boundary.cols; ++k)
+        if (bv[k] > bv[chosen]) chosen = k;
     }
-    for (int c = 0; c < kChannels; ++c) out[c] = value(clusters[chosen], c);
+    value(clusters[chosen], 0, kChannels, out.data());
     return out;
   }
 };
@@ -380,12 +388,28 @@ bool noise_check(const Impl& s, const std::vector<int>& ids, std::vector<int>& l
   }
 }
 
-bool fit_type_b(const Impl& s, const std::vector<int>& ids, const std::vector<int>& label, int k, CellResult& cr) {
+bool fit_type_b(const Impl& s, std::vector<int> ids, const std::vector<int>& label_in, int k, CellResult& cr) {
   Leaf& leaf = cr.leaf;
   leaf.type = ColourCellType::kB;
   leaf.rbf_support = s.params.rbf_radius_factor;
+  // Nodes in ascending u (ties by point index), for the range search in eval().
+  std::vector<int> order(ids.size());
+  std::vector<double> us(ids.size());
+  for (std::size_t i = 0; i < ids.size(); ++i) {
+    order[i] = int(i);
+    us[i] = ((s.points[ids[i]].cast<double>() - leaf.o) * leaf.inv_r).dot(leaf.u);
+  }
+  std::sort(order.begin(), order.end(), [&](int x, int y) { return us[x] < us[y] || (us[x] == us[y] && ids[x] < ids[y]); });
+  std::vector<int> ids_sorted(ids.size()), label_sorted(ids.size());
+  for (std::size_t i = 0; i < ids.size(); ++i) ids_sorted[i] = ids[order[i]], label_sorted[i] = label_in[order[i]];
+  const std::vector<int>& label = label_sorted;
+  ids = ids_sorted;
   leaf.nodes.resize(ids.size());
-  for (std::size_t i = 0; i < ids.size(); ++i) leaf.nodes[i] = (s.points[ids[i]].cast<double>() - leaf.o) * leaf.inv_r;
+  leaf.node_u.resize(ids.size());
+  for (std::size_t i = 0; i < ids.size(); ++i) {
+    leaf.nodes[i] = (s.points[ids[i]].cast<double>() - leaf.o) * leaf.inv_r;
+    leaf.node_u[i] = us[order[i]];
+  }
   leaf.clusters.assign(k, RbfPart{});
   for (int j = 0; j < k; ++j) {
     std::vector<int> sel;
