@@ -343,5 +343,92 @@ TEST(Sdm, ReadLandmarks) {
   EXPECT_THROW(read_landmarks((dir / "missing.txt").string()), IoError);
 }
 
+
+// A lumpy closed genus-0 mesh: an icosphere stretched and bumped.
+Mesh lumpy(int level, const Vec3f& scale) {
+  Mesh m = make_icosphere_template(level);
+  for (auto& v : m.vertices) {
+    const float bump = 1 + 0.15f * std::sin(3 * v.x()) * std::cos(2 * v.y());
+    v = bump * v.cwiseProduct(scale);
+  }
+  m.normals.clear();
+  return m;
+}
+
+TEST(SdmParameterise, SphereGivesOneToOneMapAndUvs) {
+  const Mesh m = lumpy(3, Vec3f(1.0f, 0.7f, 0.5f));
+  SdmParams p;
+  p.threads = 2;
+  const ParameterisationResult r = sdm_parameterise(m, SimpleSurface::kSphere, p);
+  ASSERT_EQ(r.uv.size(), m.vertices.size());
+  EXPECT_EQ(r.mesh.faces, m.faces);
+  for (const Vec3f& v : r.mesh.vertices) EXPECT_NEAR(v.norm(), 1.0, 0.03);
+  EXPECT_EQ(count_folded_faces(r.mesh), 0);
+  EXPECT_EQ(count_self_intersections(r.mesh), 0);
+  for (const Face& f : r.mesh.faces) {  // every face faces outwards on the sphere
+    const Vec3f n = (r.mesh.vertices[f[1]] - r.mesh.vertices[f[0]])
+                        .cross(r.mesh.vertices[f[2]] - r.mesh.vertices[f[0]]);
+    EXPECT_GT(n.dot(r.mesh.vertices[f[0]] + r.mesh.vertices[f[1]] + r.mesh.vertices[f[2]]), 0);
+  }
+  for (const Vec2f& uv : r.uv) {
+    EXPECT_GE(uv.minCoeff(), 0.f);
+    EXPECT_LE(uv.maxCoeff(), 1.f);
+  }
+}
+
+TEST(SdmParameterise, CylinderWithCaps) {
+  const Mesh m = lumpy(3, Vec3f(0.5f, 0.5f, 1.2f));
+  SdmParams p;
+  p.threads = 2;
+  const ParameterisationResult r = sdm_parameterise(m, SimpleSurface::kCylinder, p);
+  EXPECT_EQ(count_folded_faces(r.mesh), 0);
+  EXPECT_EQ(count_self_intersections(r.mesh), 0);
+  for (const Vec3f& v : r.mesh.vertices) {
+    // Distance to the closed cylinder's surface.
+    const float rr = v.head<2>().norm(), dz = std::abs(v.z()) - 1;
+    const float d = rr <= 1 && dz <= 0 ? std::min(1 - rr, -dz)
+                                       : Eigen::Vector2f(std::max(rr - 1, 0.f), std::max(dz, 0.f)).norm();
+    EXPECT_LT(d, 0.05f);
+  }
+  for (const Vec2f& uv : r.uv) {
+    EXPECT_GE(uv.minCoeff(), 0.f);
+    EXPECT_LE(uv.maxCoeff(), 1.f);
+  }
+}
+
+TEST(SdmParameterise, PlaneForADisc) {
+  // The upper cap of a lumpy sphere (faces above z = -0.2): a disc.
+  const Mesh full = lumpy(3, Vec3f(1.0f, 0.8f, 0.9f));
+  Mesh cap;
+  std::vector<int> remap(full.vertices.size(), -1);
+  for (const Face& f : full.faces) {
+    const Vec3f c = (full.vertices[f[0]] + full.vertices[f[1]] + full.vertices[f[2]]) / 3;
+    if (c.z() < -0.2f) continue;
+    Face g;
+    for (int k = 0; k < 3; ++k) {
+      if (remap[f[k]] < 0) {
+        remap[f[k]] = int(cap.vertices.size());
+        cap.vertices.push_back(full.vertices[f[k]]);
+      }
+      g[k] = remap[f[k]];
+    }
+    cap.faces.push_back(g);
+  }
+  ASSERT_EQ(mesh_topology(cap).euler, 1);
+  SdmParams p;
+  p.threads = 2;
+  const ParameterisationResult r = sdm_parameterise(cap, SimpleSurface::kPlane, p);
+  // Every UV triangle keeps its orientation (a one-to-one map onto the disc).
+  int flipped = 0;
+  for (const Face& f : cap.faces) {
+    const Vec2f a = r.uv[f[0]], b = r.uv[f[1]], c = r.uv[f[2]];
+    if ((b - a).x() * (c - a).y() - (b - a).y() * (c - a).x() <= 0) ++flipped;
+  }
+  EXPECT_EQ(flipped, 0);
+  for (const Vec2f& uv : r.uv) EXPECT_LE((uv - Vec2f(0.5f, 0.5f)).norm(), 0.5f + 1e-4f);
+  // A closed mesh is refused for the plane.
+  EXPECT_THROW(sdm_parameterise(full, SimpleSurface::kPlane, p), InvalidInput);
+}
+
 }  // namespace
 }  // namespace station
