@@ -7,6 +7,7 @@
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <chrono>
+#include <memory>
 #include <cmath>
 #include <set>
 #include <sstream>
@@ -24,6 +25,7 @@ const char* to_string(InitialPoseSource s) {
     case InitialPoseSource::kInitialPose: return "initial_pose";
     case InitialPoseSource::kTurntableAxis: return "turntable_axis";
     case InitialPoseSource::kEstimatedAxis: return "estimated_axis";
+    case InitialPoseSource::kGlobal: return "global_features";
     case InitialPoseSource::kNone: return "none";
   }
   return "none";
@@ -155,6 +157,7 @@ class Registrar {
     pp.outlier_std_ratio = p_.outlier_std_ratio;
     pp.normal_neighbors = p_.normal_neighbors;
     views_.resize(n);
+    feats_.resize(n);
     for (std::size_t i = 0; i < n; ++i) {
       views_[i] = prepare_view(clouds_[i], pp);
       ViewDiagnostics& d = res_.views[i];
@@ -276,15 +279,209 @@ class Registrar {
       } else if (v.angle_deg && res_.axis) {
         res_.poses[i] = turntable_pose(*res_.axis, *v.angle_deg);
         d.initial = m_.axis ? InitialPoseSource::kTurntableAxis : InitialPoseSource::kEstimatedAxis;
-      } else if (usable_[i]) {
+      } else if (usable_[i] && !p_.global_registration) {
         fail(i, v.angle_deg ? "turntable axis could not be estimated"
-                            : "no initial pose and no turntable angle (global registration not implemented)");
+                            : "no initial pose and no turntable angle (global registration disabled)");
       }
+    }
+    if (p_.global_registration) {
+      if (p_.check_angles) check_angles();
+      global_poses();
+    }
+  }
+
+  bool posed(std::size_t i) const {
+    return usable_[i] && res_.views[i].initial != InitialPoseSource::kNone;
+  }
+
+  GlobalRegistrationParams global_params() const {
+    GlobalRegistrationParams gp = p_.global;
+    gp.voxel_size = p_.global_voxel_rel * diag_;
+    return gp;
+  }
+
+  const FeatureView& features_of(int i) {
+    if (!feats_[i]) feats_[i] = std::make_unique<FeatureView>(
+                        make_feature_view(views_[i].full.points, Vec3f::Zero(), global_params()));
+    return *feats_[i];
+  }
+
+  // The registration copies of `members` moved by their current poses, as one
+  // target view (points, normals, index).
+  PreparedView model_of(const std::vector<int>& members) const {
+    PreparedView mv;
+    for (int j : members) {
+      const Eigen::Matrix3f R = res_.poses[j].block<3, 3>(0, 0).cast<float>();
+      const Vec3f t = res_.poses[j].block<3, 1>(0, 3).cast<float>();
+      for (std::size_t k = 0; k < views_[j].points.size(); ++k) {
+        mv.points.push_back(R * views_[j].points[k] + t);
+        mv.normals.push_back(R * views_[j].normals[k]);
+      }
+    }
+    mv.index = std::make_shared<PointIndex>(mv.points);
+    return mv;
+  }
+
+  struct GlobalAlign {
+    bool ok = false;
+    Eigen::Matrix4d transform = Eigen::Matrix4d::Identity();  // target <- source
+    double fitness = 0;
+    std::string message;
+  };
+
+  // Feature registration of view `src` onto a target, each hypothesis refined
+  // by ICP; the converged one with the best overlap wins.
+  GlobalAlign global_align(int src, const PreparedView& target, const FeatureView& target_feat) {
+    GlobalAlign out;
+    const GlobalRegistrationParams gp = global_params();
+    const GlobalRegistrationResult g = register_global(features_of(src), target_feat, gp);
+    if (!g.success) {
+      out.message = "global registration failed: " + g.message;
+      return out;
+    }
+    IcpParams ip = p_.icp;
+    ip.max_distance_start = std::max(2.0 * gp.inlier_distance_voxels * gp.voxel_size, p_.icp_end_rel * diag_);
+    ip.max_distance_end = p_.icp_end_rel * diag_;
+    std::vector<IcpResult> r(g.hypotheses.size());
+    tbb::parallel_for(std::size_t(0), g.hypotheses.size(), [&](std::size_t k) {
+      r[k] = icp_point_to_plane(views_[src], target, g.hypotheses[k].transform, ip);
+    });
+    std::string why;
+    for (std::size_t k = 0; k < r.size(); ++k) {
+      if (!r[k].converged) {
+        if (why.empty()) why = r[k].message;
+        continue;
+      }
+      if (r[k].fitness > out.fitness) {
+        out.fitness = r[k].fitness;
+        out.transform = r[k].transform;
+      }
+    }
+    if (out.fitness >= p_.global_min_fitness) {
+      out.ok = true;
+    } else {
+      out.message = "global registration found no pose with enough overlap (best ICP fitness " +
+                    std::to_string(out.fitness) + (why.empty() ? "" : ", " + why) + ")";
+    }
+    return out;
+  }
+
+  // Views without a pose: chained in capture order when nothing is posed,
+  // else registered against the model merged from the posed views.
+  void global_poses() {
+    const std::size_t n = m_.views.size();
+    std::vector<int> todo, have;
+    for (std::size_t i = 0; i < n; ++i) {
+      if (!usable_[i]) continue;
+      if (res_.views[i].initial == InitialPoseSource::kNone) todo.push_back(int(i));
+      else have.push_back(int(i));
+    }
+    if (todo.empty()) return;
+    if (have.empty()) {
+      // Chain: the first view anchors the object frame; each next view is
+      // aligned to the previous registered ones (nearest first, two tried).
+      const int anchor = todo.front();
+      res_.poses[anchor] = Eigen::Matrix4d::Identity();
+      res_.views[anchor].initial = InitialPoseSource::kGlobal;
+      std::vector<int> chain = {anchor};
+      for (std::size_t k = 1; k < todo.size(); ++k) {
+        const int i = todo[k];
+        GlobalAlign best;
+        int best_to = -1;
+        std::string why;
+        for (int back = 1; back <= 2 && back <= int(chain.size()); ++back) {
+          const int j = chain[chain.size() - back];
+          const GlobalAlign a = global_align(i, views_[j], features_of(j));
+          if (a.ok && a.fitness > best.fitness) {
+            best = a;
+            best_to = j;
+          }
+          if (!a.ok && why.empty()) why = view_name(m_, j) + ": " + a.message;
+          if (a.ok && a.fitness > 0.5) break;  // clearly aligned to the nearest
+        }
+        report("global", int(k), int(todo.size() - 1));
+        if (best_to < 0) {
+          fail(i, "global registration against the previous views failed (" + why + ")");
+          continue;
+        }
+        res_.poses[i] = res_.poses[best_to] * best.transform;
+        res_.views[i].initial = InitialPoseSource::kGlobal;
+        chain.push_back(i);
+      }
+      return;
+    }
+    // Off-turntable views: against the model of the posed ones.
+    const PreparedView model = model_of(have);
+    const FeatureView model_feat = make_feature_view(model.points, model.normals, global_params());
+    for (std::size_t k = 0; k < todo.size(); ++k) {
+      const int i = todo[k];
+      const GlobalAlign a = global_align(i, model, model_feat);
+      report("global", int(k + 1), int(todo.size()));
+      if (!a.ok) {
+        fail(i, "no initial pose or angle, and " + a.message + " against the merged model");
+        continue;
+      }
+      res_.poses[i] = a.transform;
+      res_.views[i].initial = InitialPoseSource::kGlobal;
+      off_table_.push_back(i);
+    }
+  }
+
+  // Views posed from a commanded angle: ICP onto the angle neighbours from the
+  // prior. A view none of whose neighbour pairs converges near the prior is
+  // suspect; it is registered globally against the others, and a pose far
+  // from the prior replaces the angle's.
+  void check_angles() {
+    std::vector<int> a;
+    for (int i : ring())
+      if (posed(i) && (res_.views[i].initial == InitialPoseSource::kTurntableAxis ||
+                       res_.views[i].initial == InitialPoseSource::kEstimatedAxis))
+        a.push_back(i);
+    const int m = int(a.size());
+    if (m < 3) return;
+    std::vector<Pair> pairs;
+    std::vector<Eigen::Matrix4d> init;
+    for (int k = 0; k < m; ++k) {
+      pairs.push_back({a[k], a[(k + 1) % m], k + 1 == m});
+      init.push_back(rigid_inverse(res_.poses[a[k]]) * res_.poses[a[(k + 1) % m]]);
+    }
+    const auto r = run_pairs(pairs, init, p_.icp_start_rel * diag_, p_.icp_end_rel * diag_);
+    // good[k]: pair k converged near its prior.
+    std::vector<bool> good(m);
+    for (int k = 0; k < m; ++k)
+      good[k] = r[k].converged && rotation_angle_deg(rigid_inverse(init[k]) * r[k].transform) < p_.wrong_angle_deg;
+    std::vector<int> suspects;
+    for (int k = 0; k < m; ++k)
+      if (!good[k] && !good[(k + m - 1) % m]) suspects.push_back(a[k]);
+    report("angles", 1, 1);
+    if (suspects.empty() || int(suspects.size()) * 2 >= m) return;  // most fail: not the angles' fault
+    std::vector<int> others;
+    for (int i : a)
+      if (std::find(suspects.begin(), suspects.end(), i) == suspects.end()) others.push_back(i);
+    const PreparedView model = model_of(others);
+    const FeatureView model_feat = make_feature_view(model.points, model.normals, global_params());
+    for (int i : suspects) {
+      const GlobalAlign g = global_align(i, model, model_feat);
+      if (!g.ok) continue;  // the refinement decides (and fails it if nothing overlaps)
+      const double off = rotation_angle_deg(rigid_inverse(res_.poses[i]) * g.transform);
+      if (off < p_.wrong_angle_deg) continue;
+      std::ostringstream w;
+      w.precision(3);
+      w << view_name(m_, i) << ": commanded angle " << *m_.views[i].angle_deg
+        << " deg looks wrong: global registration puts the view " << off
+        << " deg from it; the registered pose is used and its angle ignored";
+      res_.warnings.push_back(w.str());
+      res_.views[i].message = w.str();
+      res_.views[i].angle_rejected = true;
+      res_.views[i].initial = InitialPoseSource::kGlobal;
+      res_.poses[i] = g.transform;
     }
   }
 
   bool prior_usable(int i) const {
-    return res_.axis && has_angle(i) && res_.views[i].initial != InitialPoseSource::kInitialPose;
+    return res_.axis && has_angle(i) && !res_.views[i].angle_rejected &&
+           res_.views[i].initial != InitialPoseSource::kInitialPose &&
+           res_.views[i].initial != InitialPoseSource::kGlobal;
   }
 
   void refine() {
@@ -300,6 +497,15 @@ class Registrar {
         if (a == b || seen.count({std::min(a, b), std::max(a, b)})) continue;
         seen.insert({std::min(a, b), std::max(a, b)});
         pairs.push_back({a, b, k + s >= m});
+      }
+    // Off-turntable views (global against the model) overlap views anywhere
+    // in the ring: paired with every other view; pairs that do not overlap
+    // simply give no edge.
+    for (int i : off_table_)
+      for (int j : r) {
+        if (i == j || seen.count({std::min(i, j), std::max(i, j)})) continue;
+        seen.insert({std::min(i, j), std::max(i, j)});
+        pairs.push_back({j, i, false});
       }
     const double end = p_.icp_end_rel * diag_;
     const double sigma_floor = 0.05 * end;
@@ -479,6 +685,8 @@ class Registrar {
   const RegistrationCallback& cb_;
   RegistrationResult res_;
   std::vector<PreparedView> views_;
+  std::vector<std::unique_ptr<FeatureView>> feats_;
+  std::vector<int> off_table_;  // posed by global registration against the model
   std::vector<bool> usable_;
   double diag_ = 0;
 };

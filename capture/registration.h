@@ -9,8 +9,11 @@
 //  2. initial poses, per view in this order: the view's initial_pose; the
 //     turntable prior from its angle and the session's axis; its angle with the
 //     axis estimated from pairwise ICP of neighbouring views
-//     (capture/axis_calibration.h); views with none of these fail (global
-//     feature registration is not implemented yet);
+//     (capture/axis_calibration.h); views with none of these go through
+//     global registration by features (FPFH + RANSAC, then ICP): chained in
+//     capture order when no view has a pose, else against the model merged
+//     from the posed views; views with a commanded angle that ICP contradicts
+//     are checked the same way (a wrong angle is replaced, with a warning);
 //  3. rounds of pairwise point-to-plane ICP between neighbouring views (ring
 //     order plus the loop closure last -> first, and optionally skip-one pairs),
 //     each followed by a pose-graph optimisation (capture/pose_graph.h) weighted
@@ -30,6 +33,7 @@
 #include <vector>
 
 #include "capture/axis_calibration.h"
+#include "capture/global_registration.h"
 #include "capture/icp.h"
 #include "capture/session.h"
 
@@ -40,6 +44,7 @@ enum class InitialPoseSource {
   kInitialPose,    ///< the view's initial_pose
   kTurntableAxis,  ///< angle + the session's axis
   kEstimatedAxis,  ///< angle + an axis estimated from pairwise alignments
+  kGlobal,         ///< global registration by features (capture/global_registration.h)
   kNone,           ///< nothing usable (the view fails)
 };
 const char* to_string(InitialPoseSource s);
@@ -73,6 +78,22 @@ struct RegistrationParams {
   /// ICP Hessian is below this fraction of the largest.
   double degeneracy_ratio = 2e-3;
   bool merge_normals = true;          ///< give the merged cloud normals (PCA when views have none)
+  /// Global registration by FPFH features + RANSAC (capture/global_registration.h)
+  /// for views with neither an initial pose nor a usable angle: when no view
+  /// has a pose, each view is aligned to the previous registered one in capture
+  /// order (chain); otherwise against the model merged from the posed views.
+  /// Also the recovery for views whose commanded angle is wrong.
+  bool global_registration = true;
+  double global_voxel_rel = 0.02;     ///< feature voxel, relative to the session size
+  GlobalRegistrationParams global;    ///< RANSAC settings (voxel_size is set from global_voxel_rel)
+  /// A global pose is kept only when its ICP refinement overlaps at least this much.
+  double global_min_fitness = 0.3;
+  /// Wrong-angle check (views posed from angle + axis): a view whose ICP onto
+  /// both angle neighbours fails, or lands more than `wrong_angle_deg` from
+  /// the prior, is registered globally against the others; when that pose is
+  /// more than wrong_angle_deg from the prior it replaces it, with a warning.
+  bool check_angles = true;
+  double wrong_angle_deg = 8.0;
 };
 
 struct RegistrationProgress {
@@ -104,6 +125,7 @@ struct ViewDiagnostics {
   std::size_t registration_points = 0;  ///< downsampled copy
   InitialPoseSource initial = InitialPoseSource::kNone;
   bool registered = false;
+  bool angle_rejected = false;          ///< its commanded angle was found wrong (pose from global registration)
   std::string message;                  ///< why it failed ("views[3] (view_003.ply): ...")
   /// Against reference_pose, both relative to the first registered view with a
   /// reference (view 0 normally): angle of R_est^T R_ref, degrees, and |t_est - t_ref|, metres.
@@ -120,6 +142,8 @@ struct RegistrationResult {
   std::optional<AxisFitResult> axis_fit;  ///< when the axis was estimated
   bool degenerate = false;              ///< some pair is degenerate about the axis
   std::string degeneracy_message;
+  /// Things the caller should show (a wrong commanded angle, ...), each naming the view.
+  std::vector<std::string> warnings;
   Cloud merged;
   /// Over views with errors (see ViewDiagnostics); 0 when no reference.
   int views_with_reference = 0;

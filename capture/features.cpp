@@ -1,0 +1,137 @@
+#include "capture/features.h"
+
+#include <tbb/parallel_for.h>
+
+#include <Eigen/Geometry>
+
+#include <cmath>
+#include <limits>
+#include <string>
+
+#include "core/error.h"
+#include "core/kdtree.h"
+
+namespace station {
+
+namespace {
+
+using Spfh = std::array<float, kFpfhBins>;
+
+int bin_of(double x, double lo, double hi) {
+  const int b = int(std::floor((x - lo) / (hi - lo) * 11.0));
+  return std::min(10, std::max(0, b));
+}
+
+// Adds the pair (p, q) to h; false when the pair is degenerate.
+bool pair_feature(const Vec3d& p1, const Vec3d& n1, const Vec3d& p2, const Vec3d& n2, Spfh& h,
+                  float w) {
+  Vec3d d = p2 - p1;
+  const double dist = d.norm();
+  if (!(dist > 0)) return false;
+  d /= dist;
+  // The source end is the one whose normal is closer to the connecting line.
+  Vec3d ps = p1, ns = n1, nt = n2;
+  Vec3d line = d;
+  if (std::abs(n1.dot(d)) < std::abs(n2.dot(d))) {
+    ps = p2;
+    ns = n2;
+    nt = n1;
+    line = -d;
+  }
+  (void)ps;
+  const Vec3d u = ns;
+  Vec3d v = u.cross(line);
+  const double vn = v.norm();
+  if (!(vn > 1e-12)) return false;
+  v /= vn;
+  const Vec3d w3 = u.cross(v);
+  const double alpha = v.dot(nt);
+  const double phi = u.dot(line);
+  const double theta = std::atan2(w3.dot(nt), u.dot(nt));
+  h[bin_of(theta, -M_PI, M_PI)] += w;
+  h[11 + bin_of(alpha, -1.0, 1.0)] += w;
+  h[22 + bin_of(phi, -1.0, 1.0)] += w;
+  return true;
+}
+
+}  // namespace
+
+std::vector<FpfhDescriptor> compute_fpfh(const PointIndex& index, const std::vector<Vec3f>& normals,
+                                         double radius, int max_neighbors) {
+  const std::vector<Vec3f>& pts = index.points();
+  const std::size_t n = pts.size();
+  if (normals.size() != n)
+    throw InvalidInput("fpfh: " + std::to_string(normals.size()) + " normals for " + std::to_string(n) +
+                       " points");
+  if (!(radius > 0)) throw InvalidInput("fpfh: radius must be positive");
+  max_neighbors = std::max(1, max_neighbors);
+  std::vector<std::vector<std::pair<int, float>>> nbrs(n);
+  std::vector<Spfh> spfh(n);
+  tbb::parallel_for(std::size_t(0), n, [&](std::size_t i) {
+    auto r = index.radius(pts[i], float(radius));
+    std::vector<std::pair<int, float>> keep;
+    keep.reserve(std::min<std::size_t>(r.size(), max_neighbors));
+    for (const auto& [j, dist] : r) {
+      if (std::size_t(j) == i) continue;
+      if (int(keep.size()) >= max_neighbors) break;
+      keep.push_back({j, dist});
+    }
+    Spfh h{};
+    const Vec3d pi = pts[i].cast<double>(), ni = normals[i].cast<double>();
+    int used = 0;
+    for (const auto& [j, dist] : keep)
+      used += pair_feature(pi, ni, pts[j].cast<double>(), normals[j].cast<double>(), h, 1.0f);
+    if (used > 0)
+      for (float& x : h) x *= 100.0f / float(used);
+    spfh[i] = h;
+    nbrs[i] = std::move(keep);
+  });
+  std::vector<FpfhDescriptor> out(n);
+  tbb::parallel_for(std::size_t(0), n, [&](std::size_t i) {
+    FpfhDescriptor f = spfh[i];
+    if (!nbrs[i].empty()) {
+      Spfh acc{};
+      for (const auto& [j, dist] : nbrs[i]) {
+        const float w = 1.0f / std::max(dist, 1e-9f);
+        for (int b = 0; b < kFpfhBins; ++b) acc[b] += w * spfh[j][b];
+      }
+      const float k = float(nbrs[i].size());
+      for (int b = 0; b < kFpfhBins; ++b) f[b] += acc[b] / k;
+    }
+    for (int blk = 0; blk < 3; ++blk) {
+      float s = 0;
+      for (int b = 0; b < 11; ++b) s += f[blk * 11 + b];
+      if (s > 0)
+        for (int b = 0; b < 11; ++b) f[blk * 11 + b] *= 100.0f / s;
+    }
+    out[i] = f;
+  });
+  return out;
+}
+
+std::vector<int> nearest_descriptors(const std::vector<FpfhDescriptor>& query,
+                                     const std::vector<FpfhDescriptor>& reference) {
+  std::vector<int> out(query.size(), -1);
+  if (reference.empty()) return out;
+  tbb::parallel_for(std::size_t(0), query.size(), [&](std::size_t i) {
+    const FpfhDescriptor& q = query[i];
+    float best = std::numeric_limits<float>::infinity();
+    int bi = -1;
+    for (std::size_t j = 0; j < reference.size(); ++j) {
+      const FpfhDescriptor& r = reference[j];
+      float d = 0;
+      for (int b = 0; b < kFpfhBins && d < best; ++b) {
+        const float e = q[b] - r[b];
+        d += e * e;
+      }
+      if (d < best) {
+        best = d;
+        bi = int(j);
+      }
+    }
+    out[i] = bi;
+  });
+  return out;
+}
+
+}  // namespace station

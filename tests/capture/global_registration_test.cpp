@@ -1,0 +1,131 @@
+// Global registration by features (capture/global_registration.h) and its use
+// in register_views: the bundled dragon with nothing but the clouds, a wrong
+// commanded angle, an off-turntable view.
+#include "capture/global_registration.h"
+
+#include <gtest/gtest.h>
+
+#include <Eigen/Geometry>
+#include <chrono>
+#include <fstream>
+#include <sstream>
+
+#include "capture/capture.h"
+#include "capture/registration.h"
+#include "core/error.h"
+#include "core/io.h"
+#include "core/kdtree.h"
+#include "test_util.h"
+
+namespace station {
+namespace {
+
+SessionManifest dragon(std::vector<Cloud>& clouds) {
+  const auto dir = test::source_dir() / "data/dragon_stand";
+  std::ifstream conf(dir / "dragonStandRight.conf");
+  SessionManifest m;
+  m.scanner = "import";
+  std::string line;
+  while (std::getline(conf, line)) {
+    std::istringstream in(line);
+    std::string kind, file;
+    double tx, ty, tz, qx, qy, qz, qw;
+    if (!(in >> kind >> file >> tx >> ty >> tz >> qx >> qy >> qz >> qw) || kind != "bmesh") continue;
+    ViewRecord v;
+    v.file = file;
+    v.angle_deg = std::stoi(file.substr(file.rfind('_') + 1));
+    v.reference_pose = pose_from_tq(Vec3d(tx, ty, tz), Eigen::Vector4d(-qx, -qy, -qz, qw));
+    m.views.push_back(v);
+    clouds.push_back(read_cloud(dir / file));
+  }
+  return m;
+}
+
+void print(const RegistrationResult& r, double secs) {
+  for (std::size_t i = 0; i < r.views.size(); ++i)
+    std::printf("view %2zu: %s rot %.3f deg, trans %.3f mm %s\n", i, to_string(r.views[i].initial),
+                r.views[i].rotation_error_deg.value_or(-1), 1000 * r.views[i].translation_error.value_or(-1),
+                r.views[i].message.c_str());
+  std::printf("max %.3f deg / %.3f mm, median %.3f deg / %.3f mm, %.2f s (prep %.2f init %.2f refine %.2f)\n",
+              r.max_rotation_error_deg, 1000 * r.max_translation_error, r.median_rotation_error_deg,
+              1000 * r.median_translation_error, secs, r.seconds_prepare, r.seconds_initial, r.seconds_refine);
+}
+
+// Two views of the same dragon scan: view 0 and view 0 moved by a known
+// large motion; the features alone find it.
+TEST(GlobalRegistration, RecoversALargeKnownMotion) {
+  std::vector<Cloud> clouds;
+  dragon(clouds);
+  const std::vector<Vec3f>& pts = clouds[0].points;
+  Eigen::Matrix4d X = Eigen::Matrix4d::Identity();
+  X.block<3, 3>(0, 0) = Eigen::AngleAxisd(2.0, Vec3d(0.3, 1, -0.2).normalized()).toRotationMatrix();
+  X.block<3, 1>(0, 3) = Vec3d(0.1, -0.05, 0.2);
+  std::vector<Vec3f> moved;
+  for (const Vec3f& p : pts) moved.push_back((X.block<3, 3>(0, 0) * p.cast<double>() + X.block<3, 1>(0, 3)).cast<float>());
+  GlobalRegistrationParams gp;
+  gp.voxel_size = 0.004;
+  const FeatureView src = make_feature_view(pts, Vec3f::Zero(), gp);
+  // Normals of the moved copy, carried: the other overload.
+  std::vector<Vec3f> nrm;
+  {
+    const PointIndex idx(pts);
+    const std::vector<Vec3f> n0 = pca_normals(idx, 16, Vec3f::Zero());
+    for (const Vec3f& n : n0) nrm.push_back((X.block<3, 3>(0, 0) * n.cast<double>()).cast<float>());
+  }
+  const FeatureView dst = make_feature_view(moved, nrm, gp);
+  ASSERT_GT(src.points.size(), 200u);
+  const GlobalRegistrationResult g = register_global(src, dst, gp);
+  ASSERT_TRUE(g.success) << g.message;
+  EXPECT_GT(g.prerejected, 0);
+  const Eigen::Matrix4d E = rigid_inverse(X) * g.transform;
+  EXPECT_LT(rotation_angle_deg(E), 3.0);
+  EXPECT_LT((E.block<3, 1>(0, 3)).norm(), 3 * gp.voxel_size);
+  // Deterministic for a seed.
+  const GlobalRegistrationResult g2 = register_global(src, dst, gp);
+  EXPECT_TRUE(g2.transform.isApprox(g.transform));
+}
+
+TEST(GlobalRegistration, UnrelatedCloudsFailAndBadParamsThrow) {
+  // A sphere against a box: no consistent matches with enough overlap.
+  const Cloud sphere = test::icosphere(3, 0.1).as_cloud();
+  GlobalRegistrationParams gp;
+  gp.voxel_size = 0.01;
+  const FeatureView a = make_feature_view(sphere.points, Vec3f::Zero(), gp);
+  const FeatureView empty = make_feature_view({}, Vec3f::Zero(), gp);
+  const GlobalRegistrationResult g = register_global(empty, a, gp);
+  EXPECT_FALSE(g.success);
+  EXPECT_NE(g.message.find("source"), std::string::npos);
+  GlobalRegistrationParams bad = gp;
+  bad.voxel_size = 0;
+  EXPECT_THROW(register_global(a, a, bad), InvalidInput);
+  bad = gp;
+  bad.edge_similarity = 1.5;
+  EXPECT_THROW(make_feature_view(sphere.points, Vec3f::Zero(), bad), InvalidInput);
+}
+
+TEST(GlobalRegistration, DragonFromCloudsAlone) {
+  std::vector<Cloud> clouds;
+  SessionManifest m = dragon(clouds);
+  ASSERT_EQ(m.views.size(), 15u);
+  for (ViewRecord& v : m.views) v.angle_deg.reset();
+  const auto t0 = std::chrono::steady_clock::now();
+  const RegistrationResult r = register_views(clouds, m);
+  print(r, std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
+  // Issue #3: at least 13 of 15 views at the angle + no-axis accuracy (the
+  // existing dragon test: 0.7 deg / 3 mm with margin), the rest flagged.
+  int good = 0;
+  for (std::size_t i = 0; i < r.views.size(); ++i) {
+    const ViewDiagnostics& v = r.views[i];
+    if (!v.registered) {
+      EXPECT_NE(v.message.find("views[" + std::to_string(i) + "]"), std::string::npos) << v.message;
+      continue;
+    }
+    EXPECT_EQ(v.initial, InitialPoseSource::kGlobal);
+    if (v.rotation_error_deg && *v.rotation_error_deg < 0.7 && *v.translation_error < 0.003) ++good;
+  }
+  EXPECT_GE(good, 13);
+  EXPECT_FALSE(r.axis.has_value());
+}
+
+}  // namespace
+}  // namespace station
