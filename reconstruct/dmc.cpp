@@ -6,10 +6,9 @@
 #include <Eigen/Eigenvalues>
 #include <Eigen/Geometry>
 #include <algorithm>
+#include <chrono>
 #include <cmath>
-#include <cstdio>
 #include <cstdint>
-#include <cstdlib>
 #include <unordered_map>
 #include <unordered_set>
 
@@ -67,13 +66,20 @@ class Dmc {
   }
 
   Mesh run(DmcStats* stats) {
+    using Clock = std::chrono::steady_clock;
+    auto since = [](Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); };
+    auto t0 = Clock::now();
     std::vector<Key> start = seed_cells();
     std::unordered_set<Key> surface;
     traverse(start, !opt_.seeds.empty(), surface);
+    st_.seconds_traversal = since(t0);
 
+    t0 = Clock::now();
     std::vector<Key> moved;
     if (opt_.barycentre || opt_.thin_gaps) moved = barycentre_step(surface);
     if (!moved.empty()) update_surface(moved, surface);
+    st_.seconds_barycentre = since(t0);
+    t0 = Clock::now();
 
     if (opt_.features) {
       compute_crossings(surface);
@@ -90,15 +96,11 @@ class Dmc {
           }
       }
     }
+    st_.seconds_features = since(t0);
+    t0 = Clock::now();
     compute_crossings(surface);
-    if (const char* dump = std::getenv("DMC_DUMP_NODES")) {
-      FILE* fp = std::fopen(dump, "w");
-      for (const auto& [k, nd] : nodes_)
-        std::fprintf(fp, "%d %d %d %d %.9g %.9g %.9g %.9g\n", ki(k), kj(k), kk(k), nd.flags, nd.pos.x(), nd.pos.y(),
-                     nd.pos.z(), nd.val);
-      std::fclose(fp);
-    }
     Mesh mesh = build_mesh(surface);
+    st_.seconds_mesh = since(t0);
     if (stats) *stats = st_;
     return mesh;
   }
@@ -287,6 +289,22 @@ class Dmc {
   // Omega sampled (m^3 evaluations). A point already inside a thin part (for the
   // thin-gap flood: outside in a thin gap) passes the flood on when the other side is
   // within h too.
+  // First-wave pruning from the lattice values alone (no evaluation): a point whose |f|
+  // exceeds 1.5 * 1.3 h times the largest difference quotient to its evaluated
+  // 6-neighbours is too far from the surface for its Omega to reach it.
+  bool cheap_candidate(Key p, const Node& nd) const {
+    double slope = 0;
+    for (int q = 0; q < 6; ++q) {
+      int d[3] = {ki(p), kj(p), kk(p)};
+      d[q / 2] += q % 2 ? 1 : -1;
+      if (!node_in_grid(d[0], d[1], d[2])) continue;
+      const auto it = nodes_.find(key(d[0], d[1], d[2]));
+      if (it == nodes_.end()) continue;
+      slope = std::max(slope, std::abs(it->second.val - nd.val) / h_);
+    }
+    return !(std::abs(nd.val) > 1.3 * h_ * slope * 1.5) || slope == 0;
+  }
+
   std::vector<Key> barycentre_step(const std::unordered_set<Key>& surface) {
     const double band = 1.3 * h_;
     std::vector<Key> cand;
@@ -315,6 +333,10 @@ class Dmc {
           const bool mover = (kind == 1) != inside;
           if (mover ? (nd.flags & kSearched) != 0 : passed.count(p * 2 + kind) > 0) continue;
           if (!mover && first_wave) continue;
+          if (first_wave && !cheap_candidate(p, nd)) {
+            nodes_.at(p).flags |= kSearched;
+            continue;
+          }
           if (!mover) passed.insert(p * 2 + kind);
           keep.push_back(p);
           role.push_back(mover ? kMove : kPass);
@@ -694,17 +716,6 @@ class Dmc {
       if (r0 < ci - 1 || r0 > ci + 2 || r1 < cj - 1 || r1 > cj + 2 || r2 < ck - 1 || r2 > ck + 2) return;
       if (!node_in_grid(r0, r1, r2)) return;
       out.push_back({key(r0, r1, r2), 1, c, x, inward, 0.0});
-      if (std::getenv("DMC_TRACE")) {
-        std::string msg = "cell " + std::to_string(ci) + " " + std::to_string(cj) + " " + std::to_string(ck) + " ev " +
-                          std::to_string(ev[0]) + " " + std::to_string(ev[1]) + " " + std::to_string(ev[2]) + "\n";
-        for (int i = 0; i < n; ++i) {
-          char buf[200];
-          std::snprintf(buf, sizeof buf, "  p (%.5f %.5f %.5f) n (%.4f %.4f %.4f) f %.2e\n", pts[i].x(), pts[i].y(),
-                        pts[i].z(), nrm[i].x(), nrm[i].y(), nrm[i].z(), g(pts[i]));
-          msg += buf;
-        }
-        std::fprintf(stderr, "%s", msg.c_str());
-      }
       // The three edges leaving the corner (between each pair of the three planes, on
       // the solid side of the third), so the corner's neighbours join it to the edges.
       int a2 = -1;

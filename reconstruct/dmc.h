@@ -43,7 +43,7 @@ struct DmcOptions : MarchingCubesOptions {
   /// At most this many regula-falsi (Illinois) steps on f refine each crossing after the
   /// linear interpolation (fewer once |f| is at round-off). Cells with a suspected sharp
   /// feature refine their crossings to round-off for the feature planes.
-  int refine_steps = 3;
+  int refine_steps = 2;
 };
 
 struct DmcStats : MarchingCubesStats {
@@ -60,6 +60,9 @@ struct DmcStats : MarchingCubesStats {
   std::size_t filled_turns = 0;      ///< outside points in a turn of an edge chain moved in
   std::size_t degenerate_faces = 0;  ///< zero-area faces in the output (expected 0)
   double search_step = 0;            ///< s actually used, input units
+  /// Wall time of the phases: traversal of the plain lattice, step 1 (with the surface
+  /// update), step 2, crossings + mesh.
+  double seconds_traversal = 0, seconds_barycentre = 0, seconds_features = 0, seconds_mesh = 0;
 };
 
 /// Triangle mesh of {f = iso} inside `box` on a lattice of `resolution` cells along the
