@@ -308,6 +308,22 @@ TEST(ColourFunction, OffsetSurfaceTakesTheProjectedColour) {
   }
 }
 
+// N_max raised above the dense limit (400 nodes): Type B systems go through the sparse
+// Cholesky and give the same sharp result.
+TEST(ColourFunction, LargeTypeBCellsUseTheSparseSolver) {
+  const Cloud c = sphere_cloud(5000, half_red_half_blue);
+  ColourParams big;
+  big.n_max = 500;
+  const ColourFunction f = fit_colour(c, big);
+  EXPECT_GT(f.diagnostics().leaves_by_type[1], 0u);
+  EXPECT_EQ(f.diagnostics().fallback_type_a, 0u);
+  EXPECT_LT(f.diagnostics().e_col, 1e-3);
+  int wrong = 0;
+  for (const Vec3d& q : random_sphere_points(5000, 41))
+    if (std::abs(split_distance(q)) > 0.04) wrong += rgb_error(f.rgb(q), half_red_half_blue(q)) > 2.5 / 255;
+  EXPECT_EQ(wrong, 0);
+}
+
 TEST(ColourFunction, BadInputGivesErrorsOrFiniteColours) {
   Cloud none = sphere_cloud(100, half_red_half_blue);
   none.colors.clear();
