@@ -38,6 +38,7 @@
 #include "station/pipeline.h"
 #include "reconstruct/mesh_clean.h"
 #include "reconstruct/dmc.h"
+#include "reconstruct/sdm.h"
 #include "reconstruct/colour_function.h"
 #include "drivers/real_devices.h"
 #include "capture/camera_calibration.h"
@@ -729,6 +730,77 @@ int cmd_calibrate_camera(const Common& c, const std::vector<std::string>& images
   return 0;
 }
 
+// ---- fit (SDM) ---------------------------------------------------------------------
+
+struct FitArgs {
+  std::string in, out, templ = "icosphere:5", landmarks;
+  bool no_colour = false;
+};
+
+int cmd_fit(const Common& c, const FitArgs& a) {
+  const auto t0 = std::chrono::steady_clock::now();
+  StationConfig cfg = load_common(c);
+  auto threads = limit_threads(cfg.threads);
+  const Cloud target = read_cloud(a.in);
+  std::vector<Landmark> landmarks;
+  if (!a.landmarks.empty()) landmarks = read_landmarks(a.landmarks);
+  SdmParams sp;
+  sp.threads = cfg.threads;
+  Progress bar("fit: SDM", 100, c.json);
+  const SdmProgress progress = [&](const std::string& phase, double f) {
+    bar.update(int(std::lround(100 * f)), phase);
+  };
+  SdmResult fit;
+  if (a.templ.rfind("icosphere:", 0) == 0) {
+    int level = -1;
+    try {
+      level = std::stoi(a.templ.substr(10));
+    } catch (const std::exception&) {
+    }
+    if (level < 0 || level > 7) throw InvalidInput("--template " + a.templ + ": expected icosphere:L with L in 0..7");
+    fit = fit_sdm_icosphere(level, target, sp, landmarks, progress);
+  } else {
+    fit = fit_sdm(read_mesh(a.templ), target, sp, landmarks, progress);
+  }
+  bar.finish();
+  Mesh mesh = fit.mesh;
+  const bool colour = target.has_colors() && !a.no_colour;
+  if (colour) {
+    ColourParams cp;
+    cp.threads = cfg.threads;
+    colour_mesh(mesh, fit_colour(target, cp), cfg.threads);
+  }
+  write_mesh(a.out, mesh);
+  const SdmDiagnostics& d = fit.diagnostics;
+  if (c.json) {
+    print_summary(JsonObject()
+                      .add("command", "fit")
+                      .add("input", a.in)
+                      .add("output", a.out)
+                      .add("template", a.templ)
+                      .add("vertices", mesh.vertices.size())
+                      .add("faces", mesh.faces.size())
+                      .add("control_points", d.control_points)
+                      .add("mean_distance", d.mean_distance)
+                      .add("mean_distance_rel", d.diagonal > 0 ? d.mean_distance / d.diagonal : 0.0)
+                      .add("flipped_faces", d.flipped_faces)
+                      .add("self_intersections", d.self_intersections)
+                      .add("landmarks", landmarks.size())
+                      .add("colours", colour)
+                      .add("timings_s", JsonObject()
+                                            .add("som", d.seconds_som)
+                                            .add("energy", d.seconds_energy)
+                                            .add("total", seconds_since(t0))));
+  } else {
+    std::printf("fit: %zu vertices onto %d control points: mean distance %.4g (%.3f %% of the diagonal), "
+                "%d flipped faces, %d self-intersections, %.2fs -> %s\n",
+                mesh.vertices.size(), d.control_points, d.mean_distance,
+                d.diagonal > 0 ? 100 * d.mean_distance / d.diagonal : 0.0, d.flipped_faces, d.self_intersections,
+                d.seconds_total, a.out.c_str());
+  }
+  return 0;
+}
+
 // ---- consolidate -----------------------------------------------------------------
 
 struct ConsolidateArgs {
@@ -1012,6 +1084,19 @@ int run_cli(int argc, char** argv) {
       ->capture_default_str()->check(CLI::NonNegativeNumber);
   cons->add_option("--seed", cons_args.seed, "seed of the initial subset")->capture_default_str();
 
+  FitArgs fit_args;
+  Common c_fit;
+  auto* fitc = app.add_subcommand("fit", "Fit a template mesh to a cloud (Self-organizing Deformable Model)");
+  add_common(fitc, c_fit);
+  fitc->add_option("input", fit_args.in, "cloud (normals estimated when missing)")->required();
+  fitc->add_option("-o,--out", fit_args.out, "fitted mesh (.ply or .obj); same vertex numbering as the template")->required();
+  fitc->add_option("--template", fit_args.templ,
+                   "icosphere:L (L = 0..7; 5 = 10,242 vertices) or a closed genus-0 mesh file")
+      ->capture_default_str();
+  fitc->add_option("--landmarks", fit_args.landmarks,
+                   "pinned pairs, one \"vertex_index x y z\" per line ('#' comments)");
+  fitc->add_flag("--no-colour", fit_args.no_colour, "do not colour the mesh from the input's colours");
+
   ReconstructArgs rec_args;
   Common c_rec;
   auto* rec = app.add_subcommand("reconstruct", "Fit an MPU implicit surface to a cloud and mesh it (marching cubes)");
@@ -1052,6 +1137,7 @@ int run_cli(int argc, char** argv) {
     if (*import) return cmd_import(c_import, import_args);
     if (*cons) return cmd_consolidate(c_cons, cons_args);
     if (*rec) return cmd_reconstruct(c_rec, rec_args);
+    if (*fitc) return cmd_fit(c_fit, fit_args);
     if (*reg) return cmd_register(c_reg, reg_session, reg_out, reg_poses);
     if (*cal_tt) return cmd_calibrate_turntable(c_cal, cal_session, cal_out);
     if (*cal_cam) return cmd_calibrate_camera(c_cam, cam_images, cam_board, cam_square, cam_out);

@@ -21,6 +21,7 @@
 #include "reconstruct/color_transfer.h"
 #include "reconstruct/colour_function.h"
 #include "reconstruct/dmc.h"
+#include "reconstruct/sdm.h"
 #include "reconstruct/marching_cubes.h"
 #include "reconstruct/mesh_clean.h"
 #include "reconstruct/mpu.h"
@@ -532,11 +533,12 @@ class Runner {
   }
 
   void do_surface(StageRecord& r, const fs::path& in) {
+    std::error_code ec;
+    fs::remove(req_.out_dir / "colour_boundary.bin", ec);  // a report side file of the last surface
     const auto& c = cfg_.pipeline.reconstruct;
-    if (c.surface == "sdm")
-      throw InvalidInput("reconstruct.surface: sdm is not available yet in `station run` (use mpu)");
     Cloud input = read_cloud(in);
     if (input.empty()) throw InvalidInput(in.string() + ": empty cloud");
+    if (c.surface == "sdm") return do_sdm(r, in, input);
     if (!input.has_normals()) {
       say("  note: " + in.string() + " has no normals; estimating them (PCA, MST orientation)");
       input.normals = estimate_normals(input.points, 12, cfg_.threads);
@@ -598,6 +600,40 @@ class Runner {
     r.figures["vertices"] = double(mesh.vertices.size());
     r.figures["faces"] = double(mesh.faces.size());
     r.figures["coloured"] = colour ? 1 : 0;
+  }
+
+  /// The SDM alternative: a level-L icosphere fitted to the cloud (reconstruct/sdm.h),
+  /// coloured by the colour function when the cloud has colours.
+  void do_sdm(StageRecord& r, const fs::path& in, const Cloud& input) {
+    const auto& c = cfg_.pipeline.reconstruct;
+    SdmParams sp;
+    sp.threads = cfg_.threads;
+    const int level = cfg_.pipeline.sdm.level;
+    say("  surface: SDM, level-" + std::to_string(level) + " icosphere onto " + std::to_string(input.size()) +
+        " points");
+    Progress bar("  surface: SDM", 100, req_.quiet);
+    const SdmResult fit = fit_sdm_icosphere(level, input, sp, {}, [&](const std::string& phase, double f) {
+      bar.update(int(std::lround(100 * f)), phase);
+    });
+    bar.finish();
+    Mesh mesh = fit.mesh;
+    const bool colour = c.colour && input.has_colors();
+    if (colour) {
+      ColourParams cp;
+      cp.threads = cfg_.threads;
+      cp.multi_colour = c.colour_multi;
+      cp.noise_robust = c.colour_noise_robust;
+      colour_mesh(mesh, fit_colour(input, cp), cfg_.threads);
+    }
+    write_ply(req_.out_dir / "mesh.ply", mesh);
+    const SdmDiagnostics& d = fit.diagnostics;
+    r.figures["vertices"] = double(mesh.vertices.size());
+    r.figures["faces"] = double(mesh.faces.size());
+    r.figures["mean_distance"] = d.mean_distance;
+    r.figures["flipped_faces"] = d.flipped_faces;
+    r.figures["self_intersections"] = d.self_intersections;
+    r.figures["coloured"] = colour ? 1 : 0;
+    (void)in;
   }
 
   const StationConfig& cfg_;

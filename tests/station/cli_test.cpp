@@ -46,9 +46,10 @@ std::string repo(const std::string& rel) { return (test::source_dir() / rel).str
 TEST(Cli, HelpListsSubcommands) {
   const CmdResult r = run("--help");
   EXPECT_EQ(r.code, 0);
-  for (const char* s : {"devices", "scan", "replay", "eval", "import"})
+  for (const char* s : {"devices", "scan", "replay", "eval", "import", "run", "fit", "reconstruct", "calibrate"})
     EXPECT_NE(r.out.find(s), std::string::npos) << s;
-  for (const char* s : {"devices", "scan", "replay", "eval", "import"}) {
+  for (const char* s : {"devices", "scan", "replay", "eval", "import", "run", "fit", "reconstruct",
+                        "consolidate", "register", "calibrate camera", "calibrate turntable"}) {
     const CmdResult h = run(std::string(s) + " --help");
     EXPECT_EQ(h.code, 0) << s;
     EXPECT_NE(h.out.find("--json"), std::string::npos) << s;
@@ -63,6 +64,34 @@ TEST(Cli, DevicesListsTheSimulator) {
   EXPECT_NE(r.out.find("sim:synthetic"), std::string::npos);
   EXPECT_NE(r.out.find("sim:turntable"), std::string::npos);
   EXPECT_NE(run("devices --json").out.find("\"command\":\"devices\""), std::string::npos);
+}
+
+// `station fit`: an icosphere template onto an ellipsoid's points, and bad templates.
+TEST(Cli, FitDeformsATemplateOntoACloud) {
+  test::TempDir dir("station-cli-fit");
+  Mesh e = test::icosphere(4, 1.0);
+  for (Vec3f& v : e.vertices) v = Vec3f(0.1f * v.x(), 0.06f * v.y(), 0.04f * v.z());
+  write_ply(dir / "ellipsoid.ply", e.as_cloud());
+  const CmdResult r = run("fit " + (dir / "ellipsoid.ply").string() + " -o " + (dir / "fit.ply").string() +
+                          " --template icosphere:3 --json");
+  ASSERT_EQ(r.code, 0) << r.out;
+  EXPECT_EQ(json_number(r.out, "vertices"), 642);
+  EXPECT_EQ(json_number(r.out, "flipped_faces"), 0);
+  EXPECT_LT(json_number(r.out, "mean_distance_rel"), 0.005);
+  EXPECT_EQ(read_mesh(dir / "fit.ply").vertices.size(), 642u);
+  const CmdResult bad = run("fit " + (dir / "ellipsoid.ply").string() + " -o " + (dir / "x.ply").string() +
+                            " --template icosphere:12");
+  EXPECT_EQ(bad.code, 1);
+  EXPECT_NE(bad.out.find("icosphere:L"), std::string::npos);
+  // A template with a hole (not genus 0) is refused, naming the problem.
+  Mesh open = test::icosphere(2);
+  open.faces.pop_back();
+  write_ply(dir / "open.ply", open);
+  const CmdResult holed = run("fit " + (dir / "ellipsoid.ply").string() + " -o " + (dir / "x.ply").string() +
+                              " --template " + (dir / "open.ply").string());
+  EXPECT_EQ(holed.code, 1);
+  EXPECT_NE(holed.out.find("template"), std::string::npos) << holed.out;
+  EXPECT_FALSE(std::filesystem::exists(dir / "x.ply"));
 }
 
 // The acceptance case: 12 simulated views of the bundled mustard bottle,

@@ -173,6 +173,17 @@ TEST_F(PipelineTest, ACloudRunsWithoutRegistration) {
   EXPECT_TRUE(res.report.empty());
 }
 
+TEST_F(PipelineTest, SdmSurfaceGivesTheTemplatesConnectivity) {
+  test::TempDir out("station-run");
+  RunRequest r = request(out.path());
+  r.report = false;
+  const RunResult res = run_pipeline(config({"reconstruct.surface=sdm", "sdm.level=3"}), r);
+  const Mesh m = read_mesh(res.mesh);
+  EXPECT_EQ(m.vertices.size(), 642u);  // the level-3 icosphere's
+  EXPECT_EQ(m.faces.size(), 1280u);
+  EXPECT_TRUE(m.has_colors());
+}
+
 TEST(Pipeline, MissingInputAndBadStateAreClearErrors) {
   test::TempDir out("station-run");
   RunRequest r;
