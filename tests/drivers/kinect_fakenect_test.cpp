@@ -16,6 +16,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <cstdio>
 #include <cstdlib>
 #include <fstream>
 #include <opencv2/imgcodecs.hpp>
@@ -151,6 +152,8 @@ TEST(Fakenect, GrabsTheRecordedFrames) {
         worst = std::max(worst, std::abs(got - z) / step);
       }
     EXPECT_LE(worst, 0.51) << "frame " << i << ": worst error in disparity steps";
+    std::printf("[ KINECT   ] frame %d: %zu valid pixels, worst %.3f disparity steps from PCL's mm\n",
+                i, valid, worst);
   }
   // The recording ends: fakenect's event loop fails, as an unplugged Kinect's does.
   try {
@@ -192,6 +195,7 @@ TEST(Fakenect, RecordsASessionAndKeepsItWhenTheDeviceGoes) {
     ASSERT_TRUE(v.angle_deg);
     EXPECT_DOUBLE_EQ(*v.angle_deg, 90.0 * i);
     EXPECT_GT(v.points, 200000u);
+    std::printf("[ KINECT   ] view %zu: %zu points\n", i, v.points);
     EXPECT_FALSE(v.color_image.empty());
     EXPECT_TRUE(std::filesystem::exists(dir / "session" / v.file));
   }
