@@ -651,9 +651,11 @@ ColourFunction fit_colour(const Cloud& cloud, const ColourParams& params) {
   s.diag.fit_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   ColourFunction out;
   out.impl_ = impl;
-  const auto t1 = std::chrono::steady_clock::now();
-  impl->diag.e_col = out.e_col(cloud, p.threads);
-  impl->diag.e_col_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t1).count();
+  if (p.compute_e_col) {
+    const auto t1 = std::chrono::steady_clock::now();
+    impl->diag.e_col = out.e_col(cloud, p.threads);
+    impl->diag.e_col_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t1).count();
+  }
   return out;
 }
 

@@ -78,6 +78,9 @@ struct ColourParams {
   double noise_separation = 2.0;
   double noise_accept_rms = 14.0;
 
+  /// Evaluate e_col on the input points after the fit (ColourDiagnostics::e_col; about a
+  /// quarter of the total time). false: e_col stays 0.
+  bool compute_e_col = true;
   /// Threads for the build and batched evaluation (0 = all cores). The result does not
   /// depend on it.
   int threads = 0;
