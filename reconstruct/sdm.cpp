@@ -174,6 +174,7 @@ struct Engine {
   std::vector<float> anchor_slide;  // per anchor: distance slid since its nearest control point was sought  // per free vertex: lower bound of its distance to the cloud
   std::unique_ptr<VertexGrid> grid;
   float spacing = 0, tau = 0, diag = 0;
+  float theta = 0;  // theta_e in the target's units (set at the start of phase 2)
   int threads = 1;
 
   Engine(const SdmParams& p, const Cloud& t, const std::vector<Face>& f,
@@ -490,7 +491,7 @@ struct Engine {
     if (no > 0) {
       double m = 0;
       for (int k = os; k < oe; ++k) m += a.dist[a.omega[k]];
-      fitted = m / no < 0.5 * P.theta_e * diag;
+      fitted = m / no < 0.5 * theta;
     }
     if (no > 0 && !fitted) {
       // Energy over an evenly spread subset of Omega_i (at most 16 points).
@@ -638,7 +639,6 @@ struct Engine {
   int run_rounds(int max_rounds, const std::vector<std::vector<int>>& classes,
                  const std::vector<std::array<int, 3>>& fnb, SdmDiagnostics& dg,
                  const SdmProgress& progress) {
-    const float theta = P.theta_e * diag;
     double prev = std::numeric_limits<double>::max();
     std::vector<Vec3f> next(pos.size());
     std::vector<Vec3f> best_pos = pos;
@@ -684,6 +684,9 @@ struct Engine {
     const auto classes = colour_classes();
     const auto fnb = face_neighbours();
     dg.colours = int(classes.size());
+    double edge = 0;
+    for (const Face& f : faces) edge += (pos[f[0]] - pos[f[1]]).norm();
+    theta = float(P.theta_e * edge / std::max<std::size_t>(1, faces.size()));
     dg.distance_after_som = assign().mean_distance;
     repair_folds(classes, fnb, P.repair_iterations);
     repair_intersections(classes, fnb, P.repair_iterations);
@@ -765,13 +768,13 @@ SdmResult run_sdm(const Mesh& initial, const Cloud& target, const SdmParams& par
     const float bd = box.diagonal();
     const float cell = std::clamp(edge, bd / 200.f, bd / 8.f);
     E.grid = std::make_unique<VertexGrid>(box, cell, E.pos);
-    E.resee = std::max(2.f * E.spacing, 0.2f * edge / 1.5f);
+    E.resee = std::max(4.f * E.spacing, 0.2f * edge / 1.5f);
 
     const auto t1 = Clock::now();
     // Landmark draws come on top of the control-point draws.
     const double lm_share = landmarks.empty() ? 0.0 : std::min(0.9f, params.landmark_probability);
     const int T = params.som_iterations > 0 ? params.som_iterations
-                                            : int(12.0 * nv / (1.0 - lm_share));
+                                            : int(8.0 * nv / (1.0 - lm_share));
     if (run_som) E.som(T, dg, progress);
     dg.seconds_som = seconds_since(t1);
     // Landmarks: pinned on their points for phase 2. The vertex's neighbourhood is

@@ -33,7 +33,7 @@ struct Landmark {
 
 struct SdmParams {
   // ---- phase 1: competitive learning --------------------------------------
-  /// T_c, the number of SOM steps (control points drawn). 0 = 12 x template vertices.
+  /// T_c, the number of SOM steps (control points drawn). 0 = 8 x template vertices.
   int som_iterations = 0;
   /// Phase 1 runs on at most this many control points, a seeded random subset (0 = 8 x
   /// template vertices): the SOM only learns the coarse shape, and its cost grows with
@@ -49,7 +49,7 @@ struct SdmParams {
   float sigma_start = 0.f, sigma_final = 0.6f;
   /// lambda(i|k) below this is treated as zero (the neighbourhood is cut there, at
   /// L = sigma sqrt(-2 ln cutoff) hops).
-  float lambda_cutoff = 0.05f;
+  float lambda_cutoff = 0.1f;
   /// alpha of eq. 10: how much a free vertex keeps its offset from the winner
   /// (0: pulled straight to p; 1: translated with the winner).
   float alpha = 0.5f;
@@ -78,9 +78,11 @@ struct SdmParams {
   float template_margin = 1.15f;
 
   // ---- phase 2: energy minimisation ----------------------------------------
-  /// theta_e of eq. 21, relative to the target's bounding-box diagonal: phase 2 stops
-  /// when the mean point-to-mesh distance D(M, Psi) falls below it.
-  float theta_e = 0.001f;
+  /// theta_e of eq. 21, relative to the mesh's mean edge length after phase 1 (the
+  /// paper gives no value): phase 2 stops when the mean point-to-mesh distance
+  /// D(M, Psi) falls below it. Relative to the edge length so that a finer template is
+  /// held to a finer fit.
+  float theta_e = 0.05f;
   /// At most this many phase-2 rounds; a round that improves D by less than
   /// min_improvement (relative) also ends it.
   int max_energy_rounds = 30;

@@ -18,6 +18,7 @@
 namespace station {
 namespace {
 
+
 // Points on the ellipsoid (x/a)^2 + (y/b)^2 + (z/c)^2 = 1 with outward normals
 // (Fibonacci directions, pushed onto the surface).
 Cloud ellipsoid_cloud(int n, const Vec3d& r) {
@@ -428,6 +429,73 @@ TEST(SdmParameterise, PlaneForADisc) {
   for (const Vec2f& uv : r.uv) EXPECT_LE((uv - Vec2f(0.5f, 0.5f)).norm(), 0.5f + 1e-4f);
   // A closed mesh is refused for the plane.
   EXPECT_THROW(sdm_parameterise(full, SimpleSurface::kPlane, p), InvalidInput);
+}
+
+
+// The real dragon (15 turntable scans merged with the .conf poses: "bmesh FILE tx ty tz
+// qx qy qz qw", p_world = R(q) p + t). Skipped where ../shared is absent (CI).
+TEST(SdmRealData, DragonLevel4) {
+  const auto dir = test::source_dir() / "../shared/data/stanford_dragon_stand";
+  if (!std::filesystem::exists(dir / "dragonStandRight.conf")) GTEST_SKIP() << "no " << dir;
+  std::ifstream conf(dir / "dragonStandRight.conf");
+  std::string word;
+  Cloud merged;
+  while (conf >> word) {
+    if (word != "bmesh") {
+      std::string rest;
+      std::getline(conf, rest);
+      continue;
+    }
+    std::string file;
+    double t[3], q[4];
+    conf >> file >> t[0] >> t[1] >> t[2] >> q[0] >> q[1] >> q[2] >> q[3];
+    const Cloud scan = read_cloud(dir / file);
+    const Eigen::Matrix3f R = Eigen::Quaterniond(q[3], q[0], q[1], q[2]).normalized()
+                                  .toRotationMatrix().cast<float>();
+    for (const Vec3f& p : scan.points)
+      merged.points.push_back(R * p + Vec3d(t[0], t[1], t[2]).cast<float>());
+  }
+  ASSERT_GT(merged.size(), 100000u);
+  // A 30,000-point subset (every k-th point), normals estimated.
+  Cloud target;
+  const std::size_t step = merged.size() / 30000 + 1;
+  for (std::size_t i = 0; i < merged.size(); i += step) target.points.push_back(merged.points[i]);
+  SdmParams p;
+  p.threads = 2;
+  p.max_energy_rounds = 8;  // keeps the test short; docs/sdm.md has the full run
+  const SdmResult res = fit_sdm_icosphere(4, target, p);
+  const Mesh templ = make_icosphere_template(4);
+  EXPECT_TRUE(res.diagnostics.normals_estimated);
+  expect_valid_fit(templ, res);
+  const double diag = res.diagnostics.diagonal;
+  const double d = mean_point_to_mesh(target, res.mesh);
+  print_diag("dragon", res, d);
+  // Regression bound (measured 2026-11-22, docs/sdm.md), with margin.
+  EXPECT_LT(d, 0.012 * diag);
+}
+
+
+// Timings for docs/sdm.md (not a unit test: run with --gtest_also_run_disabled_tests
+// --gtest_filter='*DISABLED_Benchmark*'). 100,000 points, 2 threads, levels 4 and 5.
+TEST(SdmBench, DISABLED_Benchmark) {
+  for (const char* rel : {"tests/data/consolidation/fandisk.off", "data/mustard_bottle/textured.obj"}) {
+    const Mesh src = read_mesh(test::source_dir() / rel);
+    const Cloud target = sample_mesh(src, 100000, 5);
+    for (int level : {4, 5}) {
+      SdmParams p;
+      p.threads = 2;
+      const SdmResult r = fit_sdm_icosphere(level, target, p);
+      EvalParams ep;
+      ep.mesh_samples = 100000;
+      const EvalResult e = evaluate(r.mesh, src, ep);
+      const auto& g = r.diagnostics;
+      std::printf("%s level %d: %.2f s (phase 1 %.2f s, phase 2 %.2f s, %d rounds), D %.3f%% of "
+                  "diag, mesh->surface %.3f%%, surface->mesh %.3f%%, folds %d, intersections %d\n",
+                  rel, level, g.seconds_total, g.seconds_som, g.seconds_energy, g.energy_rounds,
+                  100 * g.mean_distance / g.diagonal, 100 * e.a_to_b.mean / g.diagonal,
+                  100 * e.b_to_a.mean / g.diagonal, g.flipped_faces, count_self_intersections(r.mesh));
+    }
+  }
 }
 
 }  // namespace
