@@ -8,7 +8,9 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <cstddef>
 #include <cstdint>
+#include <stdexcept>
 #include <unordered_map>
 #include <unordered_set>
 
@@ -27,6 +29,74 @@ int kj(Key k) { return int(k >> 21 & 0x1FFFFF); }
 int kk(Key k) { return int(k >> 42 & 0x1FFFFF); }
 Key corner_key(Key cell, int q) { return key(ki(cell) + (q & 1), kj(cell) + (q >> 1 & 1), kk(cell) + (q >> 2 & 1)); }
 
+// Open-addressing hash map from lattice key to a value kept in a dense vector (the
+// lattice points near the surface; std::unordered_map's node allocations dominated the
+// walk). find() returns a pointer (nullptr = end()); references stay valid until the
+// next emplace.
+template <class V>
+class FlatMap {
+ public:
+  struct Entry {
+    Key first;
+    V second;
+  };
+  FlatMap() { rehash(1 << 12); }
+  Entry* find(Key k) {
+    const std::uint32_t i = lookup(k);
+    return i == kNone ? nullptr : &entries_[i];
+  }
+  const Entry* find(Key k) const {
+    const std::uint32_t i = lookup(k);
+    return i == kNone ? nullptr : &entries_[i];
+  }
+  std::nullptr_t end() const { return nullptr; }
+  std::size_t count(Key k) const { return lookup(k) != kNone; }
+  V& at(Key k) {
+    Entry* e = find(k);
+    if (!e) throw std::out_of_range("extract_dmc: internal error: lattice point not evaluated");
+    return e->second;
+  }
+  const V& at(Key k) const {
+    const Entry* e = find(k);
+    if (!e) throw std::out_of_range("extract_dmc: internal error: lattice point not evaluated");
+    return e->second;
+  }
+  void emplace(Key k, const V& v) {
+    if (lookup(k) != kNone) return;
+    if ((entries_.size() + 1) * 2 > slots_.size()) rehash(slots_.size() * 2);
+    place(k, std::uint32_t(entries_.size()));
+    entries_.push_back({k, v});
+  }
+
+ private:
+  static constexpr std::uint32_t kNone = 0xFFFFFFFFu;
+  static std::size_t hash(Key k) {
+    k ^= k >> 31;
+    k *= 0x9E3779B97F4A7C15ULL;
+    k ^= k >> 29;
+    return std::size_t(k);
+  }
+  std::uint32_t lookup(Key k) const {
+    for (std::size_t i = hash(k) & mask_;; i = (i + 1) & mask_) {
+      if (slots_[i].second == kNone) return kNone;
+      if (slots_[i].first == k) return slots_[i].second;
+    }
+  }
+  void place(Key k, std::uint32_t idx) {
+    std::size_t i = hash(k) & mask_;
+    while (slots_[i].second != kNone) i = (i + 1) & mask_;
+    slots_[i] = {k, idx};
+  }
+  void rehash(std::size_t n) {
+    slots_.assign(n, {Key(0), kNone});
+    mask_ = n - 1;
+    for (std::size_t e = 0; e < entries_.size(); ++e) place(entries_[e].first, std::uint32_t(e));
+  }
+  std::vector<std::pair<Key, std::uint32_t>> slots_;
+  std::vector<Entry> entries_;
+  std::size_t mask_ = 0;
+};
+
 enum : std::uint8_t { kFixed = 1, kSearched = 2, kBary = 4, kGap = 8, kCorner = 16, kEdge = 32 };
 
 struct Node {
@@ -37,6 +107,7 @@ struct Node {
 
 struct Crossing {
   int evals = 0;
+  bool stale = false;  // an end moved after it was computed
   Vec3d pos;
   Vec3d normal;  // unit, or zero where the gradient is not usable
 };
@@ -81,24 +152,26 @@ class Dmc {
     st_.seconds_barycentre = since(t0);
     t0 = Clock::now();
 
+    bool crossings_done = false;
     if (opt_.features) {
       compute_crossings(surface);
       std::vector<Key> fmoved = feature_step(surface);
+      crossings_done = fmoved.empty();
       if (!fmoved.empty()) {
         update_surface(fmoved, surface);
         // Crossings on the edges of moved points are stale.
         for (Key p : fmoved)
           for (int a = 0; a < 3; ++a) {
-            crossings_.erase(p * 3 + a);
+            mark_stale(p * 3 + a);
             const int i = ki(p), j = kj(p), k = kk(p);
             const int d[3] = {i - (a == 0), j - (a == 1), k - (a == 2)};
-            if (d[0] >= 0 && d[1] >= 0 && d[2] >= 0) crossings_.erase(key(d[0], d[1], d[2]) * 3 + a);
+            if (d[0] >= 0 && d[1] >= 0 && d[2] >= 0) mark_stale(key(d[0], d[1], d[2]) * 3 + a);
           }
       }
     }
     st_.seconds_features = since(t0);
     t0 = Clock::now();
-    compute_crossings(surface);
+    if (!crossings_done) compute_crossings(surface);
     Mesh mesh = build_mesh(surface);
     st_.seconds_mesh = since(t0);
     if (stats) *stats = st_;
@@ -583,6 +656,10 @@ class Dmc {
     return c;
   }
 
+  void mark_stale(Key ek) {
+    if (auto* e = crossings_.find(ek)) e->second.stale = true;
+  }
+
   // Crossings (and normals) of every crossed edge of the surface cells not yet known.
   void compute_crossings(const std::unordered_set<Key>& surface) {
     const auto& ec = mc::edge_corners();
@@ -592,7 +669,8 @@ class Dmc {
         const Key a = corner_key(c, ec[e][0]), b = corner_key(c, ec[e][1]);
         if ((val(a) < 0) == (val(b) < 0)) continue;
         const Key ek = a * 3 + e / 4;
-        if (!crossings_.count(ek)) edges.push_back(ek);
+        const auto* known = crossings_.find(ek);
+        if (!known || known->second.stale) edges.push_back(ek);
       }
     std::sort(edges.begin(), edges.end());
     edges.erase(std::unique(edges.begin(), edges.end()), edges.end());
@@ -601,7 +679,8 @@ class Dmc {
     st_.gradient_evaluations += edges.size();
     for (std::size_t i = 0; i < edges.size(); ++i) {
       st_.evaluations += out[i].evals;
-      crossings_.emplace(edges[i], out[i]);
+      if (auto* known = crossings_.find(edges[i])) known->second = out[i];
+      else crossings_.emplace(edges[i], out[i]);
     }
   }
 
@@ -947,7 +1026,7 @@ class Dmc {
     st_.surface_cells = surface.size();
     const auto& table = mc::triangle_table();
     const auto& ec = mc::edge_corners();
-    std::unordered_map<Key, int> vid;
+    FlatMap<int> vid;
     std::vector<Key> edges;
     Mesh mesh;
     for (Key c : surface) {
@@ -956,9 +1035,13 @@ class Dmc {
         Face face;
         for (int t = 0; t < 3; ++t) {
           const Key ek = corner_key(c, ec[tri[t]][0]) * 3 + tri[t] / 4;
-          const auto [it, added] = vid.emplace(ek, int(edges.size()));
-          if (added) edges.push_back(ek);
-          face[t] = it->second;
+          if (const auto* known = vid.find(ek)) {
+            face[t] = known->second;
+          } else {
+            face[t] = int(edges.size());
+            vid.emplace(ek, face[t]);
+            edges.push_back(ek);
+          }
         }
         mesh.faces.push_back(face);
       }
@@ -1016,8 +1099,8 @@ class Dmc {
   int n_[3] = {1, 1, 1};
   int m_ = 5;
   DmcStats st_;
-  std::unordered_map<Key, Node> nodes_;
-  std::unordered_map<Key, Crossing> crossings_;
+  FlatMap<Node> nodes_;
+  FlatMap<Crossing> crossings_;
   std::unordered_map<Key, double> original_;  // value before step 1 moved the point
 };
 
