@@ -322,6 +322,22 @@ class Registrar {
     return mv;
   }
 
+  // Fraction of (up to ~1000 of) `src`'s registration points that `X` brings
+  // within `dist` of the target.
+  static double overlap(const PreparedView& src, const PreparedView& target, const Eigen::Matrix4d& X,
+                        double dist) {
+    const std::vector<Vec3f>& sp = src.points;
+    if (sp.empty() || !target.index) return 0;
+    const std::size_t stride = std::max<std::size_t>(1, sp.size() / 1000);
+    const Eigen::Matrix4f Xf = X.cast<float>();
+    std::size_t near = 0, total = 0;
+    for (std::size_t q = 0; q < sp.size(); q += stride, ++total) {
+      const Vec3f y = Xf.block<3, 3>(0, 0) * sp[q] + Xf.block<3, 1>(0, 3);
+      if (target.index->nearest(y).second < float(dist)) ++near;
+    }
+    return double(near) / double(std::max<std::size_t>(total, 1));
+  }
+
   struct GlobalAlign {
     bool ok = false;
     Eigen::Matrix4d transform = Eigen::Matrix4d::Identity();  // target <- source
@@ -342,9 +358,19 @@ class Registrar {
     IcpParams ip = p_.icp;
     ip.max_distance_start = std::max(2.0 * gp.inlier_distance_voxels * gp.voxel_size, p_.icp_end_rel * diag_);
     ip.max_distance_end = p_.icp_end_rel * diag_;
-    std::vector<IcpResult> r(g.hypotheses.size());
-    tbb::parallel_for(std::size_t(0), g.hypotheses.size(), [&](std::size_t k) {
-      r[k] = icp_point_to_plane(views_[src], target, g.hypotheses[k].transform, ip);
+    // Hypotheses ranked by the overlap they give the registration copies (the
+    // fraction of source points within the ICP start distance of the target);
+    // only the best `global_icp_candidates` are refined by ICP.
+    const std::size_t nh = g.hypotheses.size();
+    std::vector<std::pair<double, std::size_t>> rank(nh);
+    tbb::parallel_for(std::size_t(0), nh, [&](std::size_t k) {
+      rank[k] = {-overlap(views_[src], target, g.hypotheses[k].transform, ip.max_distance_start), k};
+    });
+    std::sort(rank.begin(), rank.end());
+    rank.resize(std::min<std::size_t>(nh, std::size_t(std::max(1, p_.global_icp_candidates))));
+    std::vector<IcpResult> r(rank.size());
+    tbb::parallel_for(std::size_t(0), rank.size(), [&](std::size_t k) {
+      r[k] = icp_point_to_plane(views_[src], target, g.hypotheses[rank[k].second].transform, ip);
     });
     std::string why;
     for (std::size_t k = 0; k < r.size(); ++k) {
@@ -397,7 +423,7 @@ class Registrar {
             best_to = j;
           }
           if (!a.ok && why.empty()) why = view_name(m_, j) + ": " + a.message;
-          if (a.ok && a.fitness > 0.5) break;  // clearly aligned to the nearest
+          if (a.ok) break;  // aligned to the nearest: enough
         }
         report("global", int(k), int(todo.size() - 1));
         if (best_to < 0) {
@@ -499,11 +525,14 @@ class Registrar {
         pairs.push_back({a, b, k + s >= m});
       }
     // Off-turntable views (global against the model) overlap views anywhere
-    // in the ring: paired with every other view; pairs that do not overlap
-    // simply give no edge.
+    // in the ring: paired with every other view they overlap by 20 % or more
+    // at their global pose.
     for (int i : off_table_)
       for (int j : r) {
         if (i == j || seen.count({std::min(i, j), std::max(i, j)})) continue;
+        if (overlap(views_[i], views_[j], rigid_inverse(res_.poses[j]) * res_.poses[i],
+                    2 * p_.icp_end_rel * diag_) < 0.2)
+          continue;
         seen.insert({std::min(i, j), std::max(i, j)});
         pairs.push_back({j, i, false});
       }

@@ -88,6 +88,8 @@ struct RegistrationParams {
   GlobalRegistrationParams global;    ///< RANSAC settings (voxel_size is set from global_voxel_rel)
   /// A global pose is kept only when its ICP refinement overlaps at least this much.
   double global_min_fitness = 0.3;
+  /// RANSAC hypotheses refined by ICP (the best by overlap first).
+  int global_icp_candidates = 2;
   /// Wrong-angle check (views posed from angle + axis): a view whose ICP onto
   /// both angle neighbours fails, or lands more than `wrong_angle_deg` from
   /// the prior, is registered globally against the others; when that pose is
