@@ -61,6 +61,7 @@ class FlatMap {
     if (!e) throw std::out_of_range("extract_dmc: internal error: lattice point not evaluated");
     return e->second;
   }
+  const std::vector<Entry>& entries() const { return entries_; }
   void emplace(Key k, const V& v) {
     if (lookup(k) != kNone) return;
     if ((entries_.size() + 1) * 2 > slots_.size()) rehash(slots_.size() * 2);
@@ -95,6 +96,42 @@ class FlatMap {
   std::vector<std::pair<Key, std::uint32_t>> slots_;
   std::vector<Entry> entries_;
   std::size_t mask_ = 0;
+};
+
+// Set of keys on FlatMap (erase only clears a flag). Iteration in insertion order.
+class KeySet {
+ public:
+  KeySet() = default;
+  template <class It>
+  KeySet(It first, It last) {
+    for (; first != last; ++first) insert(*first);
+  }
+  std::size_t count(Key k) const {
+    const auto* e = m_.find(k);
+    return e && e->second;
+  }
+  /// True when k was not in the set.
+  bool insert(Key k) {
+    if (auto* e = m_.find(k)) {
+      const bool added = !e->second;
+      e->second = 1;
+      return added;
+    }
+    m_.emplace(k, 1);
+    return true;
+  }
+  void erase(Key k) {
+    if (auto* e = m_.find(k)) e->second = 0;
+  }
+  std::vector<Key> list() const {
+    std::vector<Key> out;
+    for (const auto& e : m_.entries())
+      if (e.second) out.push_back(e.first);
+    return out;
+  }
+
+ private:
+  FlatMap<char> m_;
 };
 
 enum : std::uint8_t { kFixed = 1, kSearched = 2, kBary = 4, kGap = 8, kCorner = 16, kEdge = 32 };
@@ -141,7 +178,7 @@ class Dmc {
     auto since = [](Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); };
     auto t0 = Clock::now();
     std::vector<Key> start = seed_cells();
-    std::unordered_set<Key> surface;
+    KeySet surface;
     traverse(start, !opt_.seeds.empty(), surface);
     st_.seconds_traversal = since(t0);
 
@@ -225,9 +262,9 @@ class Dmc {
   // ---------------------------------------------------------------- traversal
   std::vector<Key> seed_cells() {
     std::vector<Key> cells;
-    std::unordered_set<Key> seen;
+    KeySet seen;
     auto push = [&](int i, int j, int k) {
-      if (cell_in_grid(i, j, k) && seen.insert(key(i, j, k)).second) cells.push_back(key(i, j, k));
+      if (cell_in_grid(i, j, k) && seen.insert(key(i, j, k))) cells.push_back(key(i, j, k));
     };
     if (!opt_.seeds.empty()) {
       for (const Vec3f& p : opt_.seeds) {
@@ -255,8 +292,8 @@ class Dmc {
   // Surface tracking from `frontier` (cells); crossed cells are added to `surface`,
   // cells already in it are not revisited. probe_first: a seed cell the surface misses
   // probes its 26 neighbours once.
-  void traverse(std::vector<Key> frontier, bool probe_first, std::unordered_set<Key>& surface) {
-    std::unordered_set<Key> visited(frontier.begin(), frontier.end());
+  void traverse(std::vector<Key> frontier, bool probe_first, KeySet& surface) {
+    KeySet visited(frontier.begin(), frontier.end());
     bool first = probe_first;
     while (!frontier.empty()) {
       std::vector<Key> keys;
@@ -269,7 +306,7 @@ class Dmc {
       auto push = [&](int i, int j, int k) {
         if (!cell_in_grid(i, j, k)) return;
         const Key c = key(i, j, k);
-        if (surface.count(c) || !visited.insert(c).second) return;
+        if (surface.count(c) || !visited.insert(c)) return;
         next.push_back(c);
       };
       for (Key c : frontier) {
@@ -301,7 +338,7 @@ class Dmc {
 
   // After lattice points moved: only the cells having one as a corner can change; they
   // are re-examined and the walk continues from them into cells not yet known.
-  void update_surface(const std::vector<Key>& moved, std::unordered_set<Key>& surface) {
+  void update_surface(const std::vector<Key>& moved, KeySet& surface) {
     std::vector<Key> cells;
     for (Key p : moved)
       for (int q = 0; q < 8; ++q) {
@@ -378,10 +415,10 @@ class Dmc {
     return !(std::abs(nd.val) > 1.3 * h_ * slope * 1.5) || slope == 0;
   }
 
-  std::vector<Key> barycentre_step(const std::unordered_set<Key>& surface) {
+  std::vector<Key> barycentre_step(const KeySet& surface) {
     const double band = 1.3 * h_;
     std::vector<Key> cand;
-    for (Key c : surface)
+    for (Key c : surface.list())
       for (int q = 0; q < 8; ++q) cand.push_back(corner_key(c, q));
     std::sort(cand.begin(), cand.end());
     cand.erase(std::unique(cand.begin(), cand.end()), cand.end());
@@ -661,10 +698,10 @@ class Dmc {
   }
 
   // Crossings (and normals) of every crossed edge of the surface cells not yet known.
-  void compute_crossings(const std::unordered_set<Key>& surface) {
+  void compute_crossings(const KeySet& surface) {
     const auto& ec = mc::edge_corners();
     std::vector<Key> edges;
-    for (Key c : surface)
+    for (Key c : surface.list())
       for (int e = 0; e < 12; ++e) {
         const Key a = corner_key(c, ec[e][0]), b = corner_key(c, ec[e][1]);
         if ((val(a) < 0) == (val(b) < 0)) continue;
@@ -817,8 +854,8 @@ class Dmc {
     along(V.col(0), -1e300, inward);
   }
 
-  std::vector<Key> feature_step(const std::unordered_set<Key>& surface) {
-    std::vector<Key> cells(surface.begin(), surface.end());
+  std::vector<Key> feature_step(const KeySet& surface) {
+    std::vector<Key> cells = surface.list();
     std::sort(cells.begin(), cells.end());
     std::vector<std::vector<Proposal>> props(cells.size());
     std::vector<std::size_t> evals(cells.size(), 0);
@@ -1020,8 +1057,8 @@ class Dmc {
   }
 
   // ---------------------------------------------------------------- step 3
-  Mesh build_mesh(const std::unordered_set<Key>& surface_set) {
-    std::vector<Key> surface(surface_set.begin(), surface_set.end());
+  Mesh build_mesh(const KeySet& surface_set) {
+    std::vector<Key> surface = surface_set.list();
     std::sort(surface.begin(), surface.end());
     st_.surface_cells = surface.size();
     const auto& table = mc::triangle_table();
