@@ -48,7 +48,8 @@ class LibfreenectApi final : public FreenectApi {
     for (int i = 0; i < n; ++i) {
       const freenect_frame_mode m = freenect_get_depth_mode(i);
       if (!m.is_valid || m.resolution != FREENECT_RESOLUTION_MEDIUM) continue;
-      if (m.depth_format == FREENECT_DEPTH_REGISTERED) out.push_back(KinectDepthFormat::kRegistered);
+      if (m.depth_format == FREENECT_DEPTH_REGISTERED)
+        out.push_back(KinectDepthFormat::kRegistered);
       if (m.depth_format == FREENECT_DEPTH_MM) out.push_back(KinectDepthFormat::kMillimetres);
       if (m.depth_format == FREENECT_DEPTH_11BIT) out.push_back(KinectDepthFormat::kRaw11Bit);
     }
@@ -88,8 +89,10 @@ class LibfreenectApi final : public FreenectApi {
     if (!vmode.is_valid || vmode.width != kKinectWidth || vmode.height != kKinectHeight)
       return {-1, "640x480 RGB video mode not offered"};
     freenect_set_user(dev_, this);
-    if (freenect_set_depth_mode(dev_, dmode) < 0) return {-1, take_log() + "\nset_depth_mode failed"};
-    if (freenect_set_video_mode(dev_, vmode) < 0) return {-1, take_log() + "\nset_video_mode failed"};
+    if (freenect_set_depth_mode(dev_, dmode) < 0)
+      return {-1, take_log() + "\nset_depth_mode failed"};
+    if (freenect_set_video_mode(dev_, vmode) < 0)
+      return {-1, take_log() + "\nset_video_mode failed"};
     freenect_set_depth_callback(dev_, &LibfreenectApi::on_depth);
     freenect_set_video_callback(dev_, &LibfreenectApi::on_video);
     if (freenect_start_depth(dev_) < 0) return {-1, take_log() + "\nstart_depth failed"};

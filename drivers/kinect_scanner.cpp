@@ -15,8 +15,7 @@ namespace station {
 namespace {
 
 double now_seconds() {
-  return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch())
-      .count();
+  return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
 }
 
 bool contains(const std::string& text, const char* what) {
@@ -43,7 +42,8 @@ std::string explain_failure(const std::string& log, const char* fallback) {
       contains(log, "disappeared") || contains(log, "marked dead"))
     return "device gone (unplugged?)";
   const std::string tail = log_tail(log);
-  return tail.empty() ? std::string(fallback) : std::string(fallback) + " (libfreenect: " + tail + ")";
+  return tail.empty() ? std::string(fallback)
+                      : std::string(fallback) + " (libfreenect: " + tail + ")";
 }
 
 Intrinsics default_intrinsics(double f) {
@@ -89,9 +89,12 @@ void read_intrinsics(const DeviceOptions& o, const std::string& prefix, Intrinsi
 
 std::string kinect_depth_format_name(KinectDepthFormat f) {
   switch (f) {
-    case KinectDepthFormat::kRegistered: return "registered";
-    case KinectDepthFormat::kMillimetres: return "mm";
-    case KinectDepthFormat::kRaw11Bit: return "11bit";
+    case KinectDepthFormat::kRegistered:
+      return "registered";
+    case KinectDepthFormat::kMillimetres:
+      return "mm";
+    case KinectDepthFormat::kRaw11Bit:
+      return "11bit";
   }
   return "?";
 }
@@ -105,11 +108,11 @@ float kinect_disparity_to_metres(std::uint16_t raw) {
 
 KinectOptions kinect_options(const std::string& path, const DeviceOptions& o,
                              const std::string& uri) {
-  reject_unknown_options(o,
-                         {"depth_format", "tilt_deg", "tilt_timeout_ms", "timeout_ms", "discard",
-                          "fx", "fy", "cx", "cy", "distortion", "color_fx", "color_fy", "color_cx",
-                          "color_cy", "color_distortion"},
-                         uri);
+  reject_unknown_options(
+      o,
+      {"depth_format", "tilt_deg", "tilt_timeout_ms", "timeout_ms", "discard", "fx", "fy", "cx",
+       "cy", "distortion", "color_fx", "color_fy", "color_cx", "color_cy", "color_distortion"},
+      uri);
   KinectOptions k;
   if (!path.empty()) {
     char* end = nullptr;
@@ -212,8 +215,7 @@ void KinectScanner::open() {
         fail(m.str());
       }
       if (!s.moving) break;
-      if (std::chrono::steady_clock::now() - t0 >
-          std::chrono::milliseconds(opts_.tilt_timeout_ms))
+      if (std::chrono::steady_clock::now() - t0 > std::chrono::milliseconds(opts_.tilt_timeout_ms))
         fail("tilt motor still moving after " + std::to_string(opts_.tilt_timeout_ms) + " ms");
       std::this_thread::sleep_for(std::chrono::milliseconds(50));
     }

@@ -44,11 +44,11 @@ std::string fakenect_path() {
   return p ? p : "";
 }
 
-#define REQUIRE_FAKENECT()                                                            \
-  do {                                                                                \
-    if (fakenect_path().empty())                                                      \
-      GTEST_SKIP() << "FAKENECT_PATH not set: run under fakenect (ctest does, see "   \
-                      "tests/CMakeLists.txt)";                                        \
+#define REQUIRE_FAKENECT()                                                          \
+  do {                                                                              \
+    if (fakenect_path().empty())                                                    \
+      GTEST_SKIP() << "FAKENECT_PATH not set: run under fakenect (ctest does, see " \
+                      "tests/CMakeLists.txt)";                                      \
   } while (0)
 
 struct Recorded {
@@ -106,8 +106,9 @@ TEST(Fakenect, GrabsTheRecordedFrames) {
     registered->open();
     FAIL() << "registered depth opened under fakenect";
   } catch (const DeviceError& e) {
-    EXPECT_EQ(std::string(e.what()),
-              "kinect:0: depth format 'registered' not offered by this libfreenect (offers: 11bit)");
+    EXPECT_EQ(
+        std::string(e.what()),
+        "kinect:0: depth format 'registered' not offered by this libfreenect (offers: 11bit)");
   }
 
   auto scanner = reg.make_scanner(kUri);
@@ -125,7 +126,8 @@ TEST(Fakenect, GrabsTheRecordedFrames) {
     ASSERT_EQ(f.color.size(), 640u * 480u * 3u);
     std::size_t valid = 0;
     for (std::size_t p = 0; p < f.depth.size(); ++p) {
-      ASSERT_EQ(f.depth[p], kinect_disparity_to_metres(rec[i].raw[p])) << "frame " << i << " px " << p;
+      ASSERT_EQ(f.depth[p], kinect_disparity_to_metres(rec[i].raw[p]))
+          << "frame " << i << " px " << p;
       valid += f.depth[p] > 0;
     }
     EXPECT_GT(valid, 200000u) << "frame " << i;
@@ -136,8 +138,9 @@ TEST(Fakenect, GrabsTheRecordedFrames) {
       EXPECT_DOUBLE_EQ(*kinect->tilt_degrees(), -5.0);
     }
     // Against PCL's original millimetres: within half a disparity step.
-    const cv::Mat mm = cv::imread((shared / (std::string("frame_") + kStamps[i] + "_depth.tiff")).string(),
-                                  cv::IMREAD_UNCHANGED);
+    const cv::Mat mm =
+        cv::imread((shared / (std::string("frame_") + kStamps[i] + "_depth.tiff")).string(),
+                   cv::IMREAD_UNCHANGED);
     if (mm.empty() || mm.type() != CV_16UC1) continue;  // ../shared not here
     double worst = 0;
     for (int v = 0; v < 480; ++v)
@@ -152,8 +155,9 @@ TEST(Fakenect, GrabsTheRecordedFrames) {
         worst = std::max(worst, std::abs(got - z) / step);
       }
     EXPECT_LE(worst, 0.51) << "frame " << i << ": worst error in disparity steps";
-    std::printf("[ KINECT   ] frame %d: %zu valid pixels, worst %.3f disparity steps from PCL's mm\n",
-                i, valid, worst);
+    std::printf(
+        "[ KINECT   ] frame %d: %zu valid pixels, worst %.3f disparity steps from PCL's mm\n", i,
+        valid, worst);
   }
   // The recording ends: fakenect's event loop fails, as an unplugged Kinect's does.
   try {

@@ -199,7 +199,8 @@ TEST(KinectDisparity, NoDataAndTheFitsInverse) {
     prev = z;
   }
   EXPECT_GT(prev, 9.5f);
-  for (; raw < 2048; ++raw) ASSERT_EQ(kinect_disparity_to_metres(static_cast<std::uint16_t>(raw)), 0.0f) << raw;
+  for (; raw < 2048; ++raw)
+    ASSERT_EQ(kinect_disparity_to_metres(static_cast<std::uint16_t>(raw)), 0.0f) << raw;
 }
 
 TEST(KinectScanner, GrabsRegisteredMillimetresAndRgb) {
@@ -234,11 +235,11 @@ TEST(KinectScanner, GrabsRegisteredMillimetresAndRgb) {
 TEST(KinectScanner, DiscardsTheFirstFramesOfEachStreamEveryGrab) {
   auto s = std::make_shared<FakeState>();
   // Video arrives before depth; the first two of each are dropped.
-  s->events = {video_event(1), depth_event(100), video_event(2), depth_event(200),
-               video_event(3), depth_event(300),
+  s->events = {video_event(1), depth_event(100), video_event(2), depth_event(200), video_event(3),
+               depth_event(300),
                // second grab
-               depth_event(500), depth_event(600), video_event(5), video_event(6),
-               depth_event(700), video_event(7)};
+               depth_event(500), depth_event(600), video_event(5), video_event(6), depth_event(700),
+               video_event(7)};
   auto k = make(s);  // discard=2 by default
   k->open();
   Frame f = k->grab();
@@ -370,7 +371,9 @@ TEST(KinectScanner, ConfigureValidatesBeforeReopening) {
   auto s = std::make_shared<FakeState>();
   auto k = make(s, "discard=0");
   k->open();
-  EXPECT_NE(error_of([&] { k->configure({{"depth_format", "bogus"}}); }).find("depth_format"),
+  EXPECT_NE(error_of([&] {
+              k->configure({{"depth_format", "bogus"}});
+            }).find("depth_format"),
             std::string::npos);
   EXPECT_EQ(s->opens, 1);  // nothing changed
   EXPECT_EQ(k->options().depth_format, KinectDepthFormat::kRegistered);
