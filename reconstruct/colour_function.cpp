@@ -1,4 +1,5 @@
 #include "reconstruct/colour_function.h"
+#include "reconstruct/color_transfer.h"
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
@@ -736,6 +737,24 @@ const ColourDiagnostics& ColourFunction::diagnostics() const {
 const ColourParams& ColourFunction::params() const {
   if (!impl_) throw InvalidInput("colour_function: not fitted");
   return impl_->params;
+}
+
+std::size_t colour_mesh(Mesh& mesh, const ColourFunction& f, const ImplicitFunction& surface,
+                        const Cloud& coloured_points, int threads) {
+  colour_mesh(mesh, f, threads);
+  std::vector<char> untrusted(mesh.vertices.size(), 0);
+  std::size_t n = 0;
+  for (std::size_t i = 0; i < mesh.vertices.size(); ++i)
+    if (!surface.trusted(mesh.vertices[i].cast<double>())) {
+      untrusted[i] = 1;
+      ++n;
+    }
+  if (n == 0) return 0;
+  Mesh nn = mesh;
+  transfer_colors(nn, coloured_points, {4, threads});
+  for (std::size_t i = 0; i < mesh.vertices.size(); ++i)
+    if (untrusted[i]) mesh.colors[i] = nn.colors[i];
+  return n;
 }
 
 void colour_mesh(Mesh& mesh, const ColourFunction& f, int threads) {

@@ -925,7 +925,7 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
     ColourParams cp;
     cp.threads = cfg.threads;
     const ColourFunction cf = fit_colour(input, cp);
-    colour_mesh(mesh, cf, cfg.threads);
+    colour_mesh(mesh, cf, surface, input, cfg.threads);
     e_col = cf.diagnostics().e_col;
     if (!c.json)
       std::fprintf(stderr, "reconstruct: colour function: %zu cells smooth (A), %zu split at a boundary (B), e_col %.4f\n",

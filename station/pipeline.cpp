@@ -580,7 +580,7 @@ class Runner {
       cp.multi_colour = c.colour_multi;
       cp.noise_robust = c.colour_noise_robust;
       const ColourFunction cf = fit_colour(input, cp);
-      colour_mesh(mesh, cf, cfg_.threads);
+      r.figures["colour_nearest_vertices"] = double(colour_mesh(mesh, cf, surface, input, cfg_.threads));
       const ColourDiagnostics& cd = cf.diagnostics();
       r.figures["colour_leaves_a"] = double(cd.leaves_by_type[0]);
       r.figures["colour_leaves_b"] = double(cd.leaves_by_type[1]);

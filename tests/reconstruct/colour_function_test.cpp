@@ -4,6 +4,7 @@
 
 #include <Eigen/Geometry>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
@@ -493,6 +494,45 @@ TEST(ColourFunction, RubiksCubeStickerEdges) {
               f.diagnostics().leaves_by_type[1], f.diagnostics().fit_seconds);
   EXPECT_LT(f.diagnostics().e_col, 0.5 * fa.diagnostics().e_col);
   EXPECT_LT(f.e_col(held), fa.e_col(held));
+}
+
+}  // namespace
+}  // namespace station
+
+namespace station {
+namespace {
+
+/// The unit sphere as an implicit, trusted only above z = 0 (where the points are).
+struct UpperTrusted : ImplicitFunction {
+  double value(const Vec3d& x) const override { return x.norm() - 1; }
+  Vec3d gradient(const Vec3d& x) const override { return x.normalized(); }
+  bool trusted(const Vec3d& x) const override { return x.z() > 0; }
+};
+
+TEST(ColourMeshTrusted, UntrustedVerticesTakeTheNearestInputColours) {
+  // Points on the upper hemisphere only, colour varying with height.
+  const Mesh sphere = test::icosphere(4, 1.0);
+  Cloud c;
+  for (const Vec3f& v : sphere.vertices) {
+    if (v.z() <= 0.05f) continue;
+    c.points.push_back(v);
+    c.normals.push_back(v.normalized());
+    c.colors.push_back(Rgb{std::uint8_t(100 + 150 * v.z()), 40, std::uint8_t(200 - 150 * v.z())});
+  }
+  const ColourFunction f = fit_colour(c);
+  Mesh m = test::icosphere(3, 1.0);
+  const std::size_t below = std::count_if(m.vertices.begin(), m.vertices.end(), [](const Vec3f& v) { return v.z() <= 0; });
+  const std::size_t n = colour_mesh(m, f, UpperTrusted{}, c);
+  EXPECT_EQ(n, below);
+  Mesh nn = test::icosphere(3, 1.0);
+  transfer_colors(nn, c, {4, 0});
+  Mesh plain = test::icosphere(3, 1.0);
+  colour_mesh(plain, f);
+  for (std::size_t i = 0; i < m.vertices.size(); ++i) {
+    const Rgb expect = m.vertices[i].z() <= 0 ? nn.colors[i] : plain.colors[i];
+    EXPECT_EQ(m.colors[i].r, expect.r) << i;
+    EXPECT_EQ(m.colors[i].b, expect.b) << i;
+  }
 }
 
 }  // namespace
