@@ -390,15 +390,6 @@ class Dmc {
     return true;
   }
 
-  // The paper's flood with pruning. Candidates are the corners of the crossed cells,
-  // then the 26-neighbours of the points that moved (or of points already on the thin
-  // part's side, which the flood passes through). A candidate is looked at only when
-  // the surface may pass through its Omega (|f| / |grad f| within 1.3 h) and the part
-  // beyond that surface is thin: a probe one h past the nearest surface point along
-  // -grad f (+grad f for a point inside) is back on the candidate's side. Only then is
-  // Omega sampled (m^3 evaluations). A point already inside a thin part (for the
-  // thin-gap flood: outside in a thin gap) passes the flood on when the other side is
-  // within h too.
   // First-wave pruning from the lattice values alone (no evaluation): a point whose |f|
   // exceeds 1.5 * 1.3 h times the largest difference quotient to its evaluated
   // 6-neighbours is too far from the surface for its Omega to reach it.
@@ -415,6 +406,15 @@ class Dmc {
     return !(std::abs(nd.val) > 1.3 * h_ * slope * 1.5) || slope == 0;
   }
 
+  // The paper's flood with pruning. Candidates are the corners of the crossed cells,
+  // then the 26-neighbours of the points that moved (or of points already on the thin
+  // part's side, which the flood passes through). A candidate is looked at only when
+  // the surface may pass through its Omega (|f| / |grad f| within 1.3 h) and the part
+  // beyond that surface is thin: a probe one h past the nearest surface point along
+  // -grad f (+grad f for a point inside) is back on the candidate's side. Only then is
+  // Omega sampled (m^3 evaluations). A point already inside a thin part (for the
+  // thin-gap flood: outside in a thin gap) passes the flood on when the other side is
+  // within h too.
   std::vector<Key> barycentre_step(const KeySet& surface) {
     const double band = 1.3 * h_;
     std::vector<Key> cand;
