@@ -6,6 +6,7 @@
 #include "drivers/fabscan_turntable.h"
 #include "drivers/horus_turntable.h"
 #include "drivers/kinect_scanner.h"
+#include "drivers/openni_scanner.h"
 #include "drivers/v4l2_camera.h"
 
 namespace station {
@@ -62,6 +63,10 @@ void register_real_devices(DeviceRegistry& registry) {
 #ifdef STATION_HAVE_FREENECT
   // Kinect v1 through libfreenect (kinect:N); listed by freenect_num_devices.
   register_kinect(registry, [] { return make_libfreenect_api(); });
+#endif
+#ifdef STATION_HAVE_OPENNI2
+  // OpenNI2 depth cameras (openni:N or openni:<OpenNI2 URI>); listed by enumerateDevices.
+  register_openni(registry, [] { return make_openni2_api(); });
 #endif
 }
 
