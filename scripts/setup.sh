@@ -9,7 +9,8 @@ pkgs=(cmake g++ make pkg-config ccache
       libpcl-dev libopencv-dev libusb-1.0-0-dev linux-libc-dev
       libyaml-cpp-dev libcli11-dev libtbb-dev libgtest-dev
       umockdev   # umockdev: V4L2 driver tests through the real system calls (umockdev-wrapper)
-      libfreenect-dev)  # Kinect v1 driver; its libfreenect0.5 ships fakenect (replay tests)
+      libfreenect-dev   # Kinect v1 driver; its libfreenect0.5 ships fakenect (replay tests)
+      libopenni2-dev)   # OpenNI2 depth cameras (Xtion, Carmine, Orbbec) driver
 if [[ "${1:-}" == "--bench" ]]; then
   # Anchors of bench/: Open3D 0.16 (C++), Embree 3 (Open3D's ray caster, driven
   # directly); PCL is in the base list already.
