@@ -471,7 +471,11 @@ struct Engine {
       ref += (pos[f[1]] - pos[f[0]]).cross(pos[f[2]] - pos[f[0]]);
     }
     const int rs = adj.ring_start[v], re = adj.ring_start[v + 1];
-    for (int j = rs; j < re; ++j) centroid += pos[adj.ring[j]];
+    float ring_edge2 = 0;
+    for (int j = rs; j < re; ++j) {
+      centroid += pos[adj.ring[j]];
+      ring_edge2 = std::max(ring_edge2, (pos[adj.ring[j]] - cur).squaredNorm());
+    }
     if (re > rs) centroid /= float(re - rs);
     if (ref.norm() > 0) ref.normalize();
     int cur_bad = bad_faces(v, cur, ref);
@@ -525,7 +529,10 @@ struct Engine {
       const Vec3f c = best + P.relax * d;
       if (bad_faces(v, c, ref) <= bad_faces(v, best, ref)) best = c;
     }
-    if (best != cur && crosses_nearby(v, best)) return cur;
+    // Moves far shorter than the fan's edges cannot reach another sheet unless it is
+    // already about to touch; those are left to the final intersection check.
+    if (best != cur && (best - cur).squaredNorm() > 1e-4f * ring_edge2 && crosses_nearby(v, best))
+      return cur;
     return best;
   }
 
