@@ -11,6 +11,7 @@
 #include <limits>
 #include <unordered_map>
 
+#include "capture/colored_icp.h"
 #include "core/kdtree.h"
 #include "core/normals.h"
 
@@ -170,6 +171,11 @@ PreparedView prepare_view(const Cloud& cloud, const PrepareParams& params) {
   v.points = voxel_downsample(v.full.points, params.voxel_size);
   v.index = std::make_shared<PointIndex>(v.points);
   v.normals = pca_normals(*v.index, params.normal_neighbors, Vec3f::Zero());
+  if (v.full.has_colors() && !v.points.empty()) {
+    const PointIndex full_index(v.full.points);
+    v.intensity = sample_intensity(v.points, full_index, intensities(v.full.colors), 0.5 * params.voxel_size);
+    v.intensity_gradient = intensity_gradients(*v.index, v.normals, v.intensity, params.normal_neighbors);
+  }
   return v;
 }
 
@@ -190,6 +196,10 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
   const double cos_max = std::cos(params.max_normal_angle_deg * kDeg);
   const bool symmetric = params.objective == IcpObjective::kSymmetric;
   const bool point_to_point = params.objective == IcpObjective::kPointToPoint;
+  const bool colored = params.objective == IcpObjective::kColored &&
+                       source.intensity.size() == source.points.size() &&
+                       target.intensity.size() == tp.size() && target.intensity_gradient.size() == tp.size();
+  const double lambda = std::clamp(params.colored_lambda, 0.0, 1.0);
   const double shrink = std::clamp(params.shrink, 0.05, 1.0);
   const double d_end = params.max_distance_end;
   double d_max = std::max(params.max_distance_start, d_end);
@@ -238,8 +248,23 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
               // Huber weight: quadratic near zero, linear beyond the threshold.
               const double a = std::abs(res_plane);
               const double w = (huber > 0 && a > huber) ? huber / a : 1.0;
-              acc.A.noalias() += w * J * J.transpose();
-              acc.b.noalias() += w * J * res_plane;
+              const double wg = colored ? lambda : 1.0;
+              acc.A.noalias() += wg * w * J * J.transpose();
+              acc.b.noalias() += wg * w * J * res_plane;
+              if (colored) {
+                // Photometric term: the target's intensity continued along its
+                // tangent plane to p's projection, against the source intensity.
+                const Vec3d q = tp[j].cast<double>();
+                const Vec3d d = target.intensity_gradient[j].cast<double>();
+                const Vec3d g = d - nd * nd.dot(d);
+                const Vec3d pp = pd - nd * res_plane;
+                const double rc = double(target.intensity[j]) + d.dot(pp - q) - double(source.intensity[i]);
+                Vector6d Jc;
+                Jc.head<3>() = pd.cross(g);
+                Jc.tail<3>() = g;
+                acc.A.noalias() += (1 - lambda) * Jc * Jc.transpose();
+                acc.b.noalias() += (1 - lambda) * Jc * rc;
+              }
             }
             acc.sq_euclid += double(dist) * double(dist);
             acc.sq_plane += res_plane * res_plane;
@@ -255,6 +280,8 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
   };
 
   bool small_step = false;
+  Vector6d prev_step = Vector6d::Zero();
+  double damping = 1.0;
   for (int it = 0; it < params.max_iterations; ++it) {
     const Normal6 sys = linearise(T, d_max);
     res.iterations = it + 1;
@@ -267,10 +294,18 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
     // A tiny ridge keeps a rank-deficient (degenerate) system solvable; the
     // caller detects degeneracy from the Hessian itself.
     const double ridge = 1e-9 * sys.A.trace() / 6.0;
-    const Vector6d x = (sys.A + ridge * Matrix6d::Identity()).ldlt().solve(-sys.b);
+    Vector6d x = (sys.A + ridge * Matrix6d::Identity()).ldlt().solve(-sys.b);
     if (!x.allFinite()) {
       res.message = "ill-posed point-to-plane system";
       return res;
+    }
+    if (colored) {
+      // The photometric term can make the nearest neighbours flip back and
+      // forth (a period-2 cycle on regular samplings): a step that reverses
+      // the previous one halves the step length from then on.
+      if (x.dot(prev_step) < -0.5 * x.norm() * prev_step.norm()) damping *= 0.5;
+      x *= damping;
+      prev_step = x;
     }
     T = motion_exp(x) * T;
     const bool tiny = x.head<3>().norm() < params.convergence_rotation &&
@@ -292,7 +327,7 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
   res.fitness = double(fin.n) / double(source.points.size());
   res.inlier_rmse = fin.n ? std::sqrt(fin.sq_euclid / double(fin.n)) : 0.0;
   res.plane_rmse = fin.n ? std::sqrt(fin.sq_plane / double(fin.n)) : 0.0;
-  res.hessian = fin.A;
+  res.hessian = colored && lambda > 0 ? Matrix6d(fin.A / lambda) : fin.A;
   if (fin.n < std::size_t(std::max(params.min_correspondences, 6))) {
     res.message = "too few correspondences at the end (" + std::to_string(fin.n) + ")";
   } else if (res.fitness < params.min_fitness) {

@@ -53,6 +53,11 @@ struct PreparedView {
   std::vector<Vec3f> points;         ///< downsampled registration points, N
   std::vector<Vec3f> normals;        ///< N unit normals facing the sensor (origin)
   std::shared_ptr<PointIndex> index; ///< over `points`
+  /// Only when the cloud has colours (else empty): intensity in [0, 1] of each
+  /// registration point (mean over its voxel's neighbourhood) and its
+  /// tangent-plane gradient (capture/colored_icp.h), for IcpObjective::kColored.
+  std::vector<float> intensity;
+  std::vector<Vec3f> intensity_gradient;
   std::size_t dropped_nonfinite = 0;
   std::size_t dropped_outliers = 0;
 };
@@ -78,6 +83,11 @@ enum class IcpObjective {
   kPointToPlane,  ///< (p - q) . n_q (Chen & Medioni 1992)
   kSymmetric,     ///< (p - q) . (n_p + n_q), linearised (Rusinkiewicz 2019, "A symmetric objective function for ICP")
   kPointToPoint,  ///< |p - q|^2 (Besl & McKay 1992), same linearised solver
+  /// Point-to-plane + photometric term (Park, Zhou & Koltun 2017, "Colored
+  /// point cloud registration revisited"; capture/colored_icp.h). Needs
+  /// `intensity` on both views and `intensity_gradient` on the target; without
+  /// them it runs as point-to-plane.
+  kColored,
 };
 
 struct IcpParams {
@@ -97,6 +107,9 @@ struct IcpParams {
   /// Huber threshold on point-to-plane residuals, as a fraction of the current
   /// maximum distance (robust weighting; 0 disables it).
   double huber_fraction = 0.3;
+  /// kColored: weight lambda of the geometric term, (1 - lambda) on the colour
+  /// term (the paper's and Open3D's 0.968; residuals in metres and in [0, 1] intensity).
+  double colored_lambda = 0.968;
   /// Guards: at least this many correspondences ...
   int min_correspondences = 50;
   /// ... and at least this fraction of source points matched at the end.
@@ -115,6 +128,8 @@ struct IcpResult {
   double plane_rmse = 0;        ///< point-to-plane distance of inlier pairs, metres
   /// J^T J of the final point-to-plane system (rotation about the target-frame
   /// origin, then translation); the information of the estimate for a pose graph.
+  /// kColored: the joint system divided by lambda (geometric part + the colour
+  /// part weighted (1 - lambda) / lambda).
   Matrix6d hessian = Matrix6d::Zero();
   std::string message;          ///< why it failed (empty when converged)
 };

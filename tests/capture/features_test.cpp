@@ -1,0 +1,116 @@
+// FPFH descriptors (capture/features.h): invariant to rigid motion, equal on
+// equal local shapes, different on different ones, bad input rejected.
+#include "capture/features.h"
+
+#include <gtest/gtest.h>
+
+#include <Eigen/Geometry>
+#include <numeric>
+
+#include "capture/icp.h"
+#include "core/error.h"
+#include "core/io.h"
+#include "core/kdtree.h"
+#include "test_util.h"
+
+namespace station {
+namespace {
+
+float distance(const FpfhDescriptor& a, const FpfhDescriptor& b) {
+  float d = 0;
+  for (int i = 0; i < kFpfhBins; ++i) d += (a[i] - b[i]) * (a[i] - b[i]);
+  return std::sqrt(d);
+}
+
+// Outward unit normals of a sphere centred at the origin.
+std::vector<Vec3f> radial(const std::vector<Vec3f>& p) {
+  std::vector<Vec3f> n;
+  for (const Vec3f& q : p) n.push_back(q.normalized());
+  return n;
+}
+
+TEST(Fpfh, InvariantToRigidMotionOnARealScan) {
+  // Generic positions (a real scan, not a symmetric grid, where ties between
+  // the two ends of a pair make the Darboux frame arbitrary).
+  const Cloud c = read_cloud(test::source_dir() / "data/dragon_stand/dragonStandRight_0.ply");
+  const std::vector<Vec3f> pts = voxel_downsample(c.points, 0.003);
+  const PointIndex index(pts);
+  const std::vector<Vec3f> nrm = pca_normals(index, 16, Vec3f::Zero());
+  const auto f0 = compute_fpfh(index, nrm, 0.015);
+  const Eigen::Matrix3f R = Eigen::AngleAxisf(1.1f, Vec3f(1, 2, 3).normalized()).toRotationMatrix();
+  std::vector<Vec3f> pm, nm;
+  for (std::size_t i = 0; i < pts.size(); ++i) {
+    pm.push_back(R * pts[i] + Vec3f(0.3f, -0.2f, 1.0f));
+    nm.push_back(R * nrm[i]);
+  }
+  const PointIndex index_m(pm);
+  const auto f1 = compute_fpfh(index_m, nm, 0.015);
+  ASSERT_EQ(f0.size(), pts.size());
+  std::vector<float> d;
+  for (std::size_t i = 0; i < f0.size(); ++i) d.push_back(distance(f0[i], f1[i]));
+  std::sort(d.begin(), d.end());
+  // Float rounding moves a few values across bin edges only.
+  EXPECT_LT(d[d.size() / 2], 1e-3f);
+  EXPECT_LT(d[d.size() * 99 / 100], 5.0f);
+  for (int blk = 0; blk < 3; ++blk) {
+    float s = 0;
+    for (int b = 0; b < 11; ++b) s += f0[0][blk * 11 + b];
+    EXPECT_NEAR(s, 100.0f, 1e-3);
+  }
+}
+
+TEST(Fpfh, FlatDiffersFromCorner) {
+  // Box faces sampled on grids; a face centre (flat) against a corner.
+  std::vector<Vec3f> pts, nrm;
+  const Vec3f ext(0.1f, 0.05f, 0.08f);
+  for (int f = 0; f < 3; ++f)
+    for (int s : {-1, 1})
+      for (int i = 0; i <= 20; ++i)
+        for (int j = 0; j <= 20; ++j) {
+          Vec3f p, n = Vec3f::Zero();
+          const int a = (f + 1) % 3, b = (f + 2) % 3;
+          p[f] = s * ext[f];
+          p[a] = -ext[a] + 2 * ext[a] * i / 20.0f;
+          p[b] = -ext[b] + 2 * ext[b] * j / 20.0f;
+          n[f] = float(s);
+          pts.push_back(p);
+          nrm.push_back(n);
+        }
+  const PointIndex index(pts);
+  const auto f0 = compute_fpfh(index, nrm, 0.035);
+  const auto centre = [&](int face) { return std::size_t(face * 441 + 10 * 21 + 10); };
+  // Two flat centres: their own pairs are all (0, 0, 0), the middle bins
+  // (neighbours' histograms near the face edges add a little).
+  EXPECT_LT(distance(f0[centre(0)], f0[centre(1)]), 1.0f);
+  EXPECT_GT(f0[centre(0)][5], 80.0f);
+  EXPECT_GT(distance(f0[centre(0)], f0[0]), 30.0f);
+}
+
+TEST(Fpfh, SpherePointsLookAlikeAndNearestMatchesItself) {
+  const Cloud s = test::icosphere(4, 0.1).as_cloud();
+  const PointIndex index(s.points);
+  const auto f = compute_fpfh(index, radial(s.points), 0.03);
+  // All points of a sphere have the same neighbourhood shape.
+  float worst = 0;
+  for (std::size_t i = 1; i < f.size(); ++i) worst = std::max(worst, distance(f[0], f[i]));
+  EXPECT_LT(worst, 25.0f);
+  // Nearest descriptor of each descriptor in its own set is itself (or an equal one).
+  const std::vector<FpfhDescriptor> q(f.begin(), f.begin() + 10);
+  const std::vector<int> nn = nearest_descriptors(q, f);
+  for (int i = 0; i < 10; ++i) EXPECT_FLOAT_EQ(distance(f[nn[i]], q[i]), 0.0f);
+  EXPECT_EQ(nearest_descriptors(q, {}), std::vector<int>(10, -1));
+}
+
+TEST(Fpfh, BadInputIsRejected) {
+  const Cloud s = test::icosphere(2, 0.1).as_cloud();
+  const PointIndex index(s.points);
+  EXPECT_THROW(compute_fpfh(index, {}, 0.03), InvalidInput);
+  EXPECT_THROW(compute_fpfh(index, radial(s.points), 0.0), InvalidInput);
+  // An isolated point gets a zero descriptor, not NaN.
+  const PointIndex lone(std::vector<Vec3f>{Vec3f(0, 0, 0), Vec3f(1, 0, 0)});
+  const auto f = compute_fpfh(lone, {Vec3f(0, 0, 1), Vec3f(0, 0, 1)}, 0.1);
+  for (float x : f[0]) EXPECT_EQ(x, 0.0f);
+}
+
+}  // namespace
+}  // namespace station
