@@ -83,10 +83,10 @@ struct SdmParams {
   /// D(M, Psi) falls below it. Relative to the edge length so that a finer template is
   /// held to a finer fit.
   float theta_e = 0.05f;
-  /// At most this many phase-2 rounds; a round that improves D by less than
-  /// min_improvement (relative) also ends it.
+  /// At most this many phase-2 rounds; two rounds in a row that improve D by less
+  /// than min_improvement (relative) also end it. The best state seen is kept.
   int max_energy_rounds = 30;
-  float min_improvement = 0.02f;
+  float min_improvement = 0.05f;
   /// A vertex whose control points lie on average within theta_e / 2 of its faces is
   /// taken as fitted and skips the energy moves (relaxation still applies).
   /// w of eq. 19: the step lengths tried towards each control point.
