@@ -1,6 +1,8 @@
 #pragma once
 // Registers every real back-end the build has: serial turntables (horus:,
-// fabscan:) and V4L2 cameras (v4l2:). `station devices` lists what is plugged
+// fabscan:), V4L2 cameras (v4l2:), and, when their libraries were found at
+// build time, the Kinect v1 (kinect:, libfreenect) and OpenNI2 cameras
+// (openni:). `station devices` lists what is plugged
 // in; serial ports are listed without being opened (opening resets Arduinos),
 // so a listed port may hold either board or neither.
 #include <memory>
