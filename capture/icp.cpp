@@ -171,7 +171,7 @@ PreparedView prepare_view(const Cloud& cloud, const PrepareParams& params) {
   v.points = voxel_downsample(v.full.points, params.voxel_size);
   v.index = std::make_shared<PointIndex>(v.points);
   v.normals = pca_normals(*v.index, params.normal_neighbors, Vec3f::Zero());
-  if (v.full.has_colors() && !v.points.empty()) {
+  if (params.intensity && v.full.has_colors() && !v.points.empty()) {
     const PointIndex full_index(v.full.points);
     v.intensity = sample_intensity(v.points, full_index, intensities(v.full.colors), 0.5 * params.voxel_size);
     v.intensity_gradient = intensity_gradients(*v.index, v.normals, v.intensity, params.normal_neighbors);

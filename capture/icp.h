@@ -45,6 +45,9 @@ struct PrepareParams {
   double outlier_std_ratio = 3.0;
   /// Neighbours for the PCA normal of each registration point.
   int normal_neighbors = 16;
+  /// Intensity and its gradient per registration point, for coloured ICP
+  /// (only when the cloud has colours).
+  bool intensity = false;
 };
 
 /// A view ready for registration. Scanner frame throughout.
@@ -53,7 +56,7 @@ struct PreparedView {
   std::vector<Vec3f> points;         ///< downsampled registration points, N
   std::vector<Vec3f> normals;        ///< N unit normals facing the sensor (origin)
   std::shared_ptr<PointIndex> index; ///< over `points`
-  /// Only when the cloud has colours (else empty): intensity in [0, 1] of each
+  /// Only with PrepareParams::intensity and a cloud with colours (else empty): intensity in [0, 1] of each
   /// registration point (mean over its voxel's neighbourhood) and its
   /// tangent-plane gradient (capture/colored_icp.h), for IcpObjective::kColored.
   std::vector<float> intensity;

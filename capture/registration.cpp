@@ -156,6 +156,7 @@ class Registrar {
     pp.outlier_neighbors = p_.outlier_neighbors;
     pp.outlier_std_ratio = p_.outlier_std_ratio;
     pp.normal_neighbors = p_.normal_neighbors;
+    pp.intensity = p_.icp.objective == IcpObjective::kColored || p_.final_objective == IcpObjective::kColored;
     views_.resize(n);
     feats_.resize(n);
     for (std::size_t i = 0; i < n; ++i) {

@@ -51,6 +51,7 @@ TEST(ColoredIcp, TexturedPlaneSlidAlongItselfIsRecoveredOnlyWithColour) {
   const Cloud source = plane_view(X, 0.001);  // different samples of the surface
   PrepareParams pp;
   pp.voxel_size = 0;
+  pp.intensity = true;
   const PreparedView t = prepare_view(target, pp), s = prepare_view(source, pp);
   ASSERT_EQ(t.intensity.size(), t.points.size());
   ASSERT_EQ(t.intensity_gradient.size(), t.points.size());
@@ -80,6 +81,7 @@ TEST(ColoredIcp, WithoutColoursItIsPointToPlane) {
   source.colors.clear();
   PrepareParams pp;
   pp.voxel_size = 0;
+  pp.intensity = true;
   const PreparedView t = prepare_view(target, pp), s = prepare_view(source, pp);
   EXPECT_TRUE(t.intensity.empty());
   IcpParams ip;
