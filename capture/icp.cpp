@@ -200,6 +200,8 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
                        source.intensity.size() == source.points.size() &&
                        target.intensity.size() == tp.size() && target.intensity_gradient.size() == tp.size();
   const double lambda = std::clamp(params.colored_lambda, 0.0, 1.0);
+  const bool generalized = params.objective == IcpObjective::kGeneralized;
+  const double eps = std::clamp(params.gicp_epsilon, 1e-6, 1.0);
   const double shrink = std::clamp(params.shrink, 0.05, 1.0);
   const double d_end = params.max_distance_end;
   double d_max = std::max(params.max_distance_start, d_end);
@@ -231,7 +233,28 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
             const Vec3d nd = (symmetric && !source.normals.empty()) ? Vec3d((n + ns).normalized().cast<double>())
                                                                    : Vec3d(n.cast<double>());
             const double res_plane = nd.dot(pd - tp[j].cast<double>());
-            if (point_to_point) {
+            if (generalized) {
+              // Plane-to-plane: r^T (C_q + R C_p R^T)^-1 r, scaled by 2 eps so
+              // that two aligned planes weigh the normal direction by 1 (the
+              // Hessian is then comparable with point-to-plane's).
+              const Vec3d r3 = pd - tp[j].cast<double>();
+              const Vec3d nq = n.cast<double>();
+              Eigen::Matrix3d C = Eigen::Matrix3d::Identity() - (1 - eps) * nq * nq.transpose();
+              if (!source.normals.empty()) {
+                const Vec3d np = ns.cast<double>();
+                C += Eigen::Matrix3d::Identity() - (1 - eps) * np * np.transpose();
+              } else {
+                C += eps * Eigen::Matrix3d::Identity();
+              }
+              const Eigen::Matrix3d M = 2 * eps * C.inverse();
+              Eigen::Matrix<double, 3, 6> J3;
+              J3.block<3, 3>(0, 0) << 0, pd.z(), -pd.y(), -pd.z(), 0, pd.x(), pd.y(), -pd.x(), 0;
+              J3.block<3, 3>(0, 3).setIdentity();
+              const double a = std::sqrt(std::max(0.0, r3.dot(M * r3)));
+              const double w = (huber > 0 && a > huber) ? huber / a : 1.0;
+              acc.A.noalias() += w * J3.transpose() * M * J3;
+              acc.b.noalias() += w * J3.transpose() * (M * r3);
+            } else if (point_to_point) {
               // Three residuals p - q with d/dx = [-[p]x, I].
               const Vec3d r3 = pd - tp[j].cast<double>();
               Eigen::Matrix<double, 3, 6> J3;

@@ -91,6 +91,11 @@ enum class IcpObjective {
   /// `intensity` on both views and `intensity_gradient` on the target; without
   /// them it runs as point-to-plane.
   kColored,
+  /// Generalized ICP (Segal, Haehnel & Thrun 2009, "Generalized-ICP"): the
+  /// plane-to-plane Mahalanobis distance r^T (C_q + R C_p R^T)^-1 r with
+  /// plane-like covariances I - (1 - eps) n n^T from the views' normals
+  /// (IcpParams::gicp_epsilon), solved by the same Gauss-Newton steps.
+  kGeneralized,
 };
 
 struct IcpParams {
@@ -113,6 +118,9 @@ struct IcpParams {
   /// kColored: weight lambda of the geometric term, (1 - lambda) on the colour
   /// term (the paper's and Open3D's 0.968; residuals in metres and in [0, 1] intensity).
   double colored_lambda = 0.968;
+  /// kGeneralized: covariance eigenvalue along the normal (the others are 1),
+  /// Segal's epsilon (0.001, as in the paper and PCL).
+  double gicp_epsilon = 1e-3;
   /// Guards: at least this many correspondences ...
   int min_correspondences = 50;
   /// ... and at least this fraction of source points matched at the end.
