@@ -9,6 +9,7 @@
 #include <cmath>
 
 #include "capture/icp.h"
+#include "capture/registration.h"
 #include "core/error.h"
 #include "core/kdtree.h"
 
@@ -72,6 +73,45 @@ TEST(ColoredIcp, TexturedPlaneSlidAlongItselfIsRecoveredOnlyWithColour) {
   // Geometry alone leaves the slide (it stays near the start).
   EXPECT_GT((eg.block<3, 1>(0, 3)).norm(), 4e-3);
   EXPECT_GT(rotation_angle_deg(eg), 1.5);
+}
+
+// The same through register_views: the objective chosen in RegistrationParams
+// reaches every round, colours are kept in the merge.
+TEST(ColoredIcp, SessionOfTwoTexturedPlaneViews) {
+  Eigen::Matrix4d X = Eigen::Matrix4d::Identity();
+  const Eigen::Matrix3d Rz = Eigen::AngleAxisd(1.0 * M_PI / 180, Vec3d::UnitZ()).toRotationMatrix();
+  X.block<3, 3>(0, 0) = Rz;
+  X.block<3, 1>(0, 3) = Vec3d(-0.004, 0.005, 0) + (Vec3d(0, 0, 0.5) - Rz * Vec3d(0, 0, 0.5));
+  const std::vector<Cloud> clouds = {plane_view(Eigen::Matrix4d::Identity(), 0.0), plane_view(X, 0.001)};
+  SessionManifest m;
+  m.scanner = "test";
+  for (int i = 0; i < 2; ++i) {
+    ViewRecord v;
+    v.file = "view_" + std::to_string(i) + ".ply";
+    v.initial_pose = Eigen::Matrix4d::Identity();  // the slide is unknown
+    v.reference_pose = i == 0 ? Eigen::Matrix4d::Identity() : X;
+    m.views.push_back(v);
+  }
+  // The final distance must exceed the 2 mm sampling of the planes (0.4 % of
+  // their 0.28 m diagonal would be 1.1 mm, no correspondences at all).
+  RegistrationParams geo;
+  geo.icp_end_rel = 0.012;
+  const RegistrationResult a = register_views(clouds, m, geo);
+  RegistrationParams col = geo;
+  col.icp.objective = IcpObjective::kColored;
+  col.final_objective = IcpObjective::kColored;
+  col.icp.max_iterations = 100;
+  const RegistrationResult b = register_views(clouds, m, col);
+  std::printf("session: point-to-plane %.3f deg %.3f mm, coloured %.4f deg %.4f mm\n",
+              a.max_rotation_error_deg, 1000 * a.max_translation_error, b.max_rotation_error_deg,
+              1000 * b.max_translation_error);
+  ASSERT_EQ(b.views_with_reference, 2);
+  EXPECT_TRUE(b.failed_views.empty());
+  EXPECT_LT(b.max_rotation_error_deg, 0.1);
+  EXPECT_LT(b.max_translation_error, 5e-4);
+  ASSERT_EQ(a.views_with_reference, 2);
+  EXPECT_GT(a.max_translation_error, 4e-3);
+  EXPECT_TRUE(b.merged.has_colors());
 }
 
 TEST(ColoredIcp, WithoutColoursItIsPointToPlane) {
