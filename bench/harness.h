@@ -59,6 +59,14 @@ void run_raycast_cases(const Options& options, Report& report);
 void run_io_cases(const Options& options, Report& report);
 void run_distance_cases(const Options& options, Report& report);
 
+/// Further case groups register themselves from their own file, so a new
+/// group needs no edit here or in station_bench.cpp:
+///   static const bool registered = register_group("wlop", "WLOP vs CGAL", &run_wlop_cases);
+/// `--only NAME` runs one group; without it every group runs, the built-in
+/// ones first, then the registered ones by name.
+using CaseGroup = void (*)(const Options& options, Report& report);
+bool register_group(const std::string& name, const std::string& description, CaseGroup run);
+
 /// "12.3" style formatting helpers.
 std::string format_fixed(double value, int decimals);
 

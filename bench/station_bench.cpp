@@ -15,6 +15,7 @@
 #include <ctime>
 #include <fstream>
 #include <iostream>
+#include <map>
 #include <sstream>
 #include <string>
 #include <thread>
@@ -110,11 +111,25 @@ void print_table(const Report& report) {
   std::cout << out.str();
 }
 
+struct Group {
+  std::string description;
+  station::bench::CaseGroup run = nullptr;
+};
+/// Groups registered by their files (static initialisation; see harness.h).
+std::map<std::string, Group>& registered_groups() {
+  static std::map<std::string, Group> groups;
+  return groups;
+}
+
 [[noreturn]] void usage(const std::string& problem, int status = 2) {
+  std::string names = "raycast|io|distance";
+  for (const auto& [name, group] : registered_groups()) names += "|" + name;
   (status ? std::cerr : std::cout)
       << "station_bench: " << problem << "\n"
       << "usage: station_bench [--threads N] [--reps N] [--warmup N] [--generate]\n"
-      << "                     [--shared DIR] [--only raycast|io|distance]\n";
+      << "                     [--shared DIR] [--only " << names << "]\n";
+  for (const auto& [name, group] : registered_groups())
+    (status ? std::cerr : std::cout) << "  " << name << ": " << group.description << "\n";
   std::exit(status);
 }
 
@@ -128,6 +143,11 @@ int parse_count(const std::string& flag, const char* value, int min) {
 }
 
 }  // namespace
+
+bool register_group(const std::string& name, const std::string& description, CaseGroup run) {
+  registered_groups()[name] = Group{description, run};
+  return true;
+}
 
 std::string format_fixed(double value, int decimals) {
   char buffer[64];
@@ -223,7 +243,7 @@ int main(int argc, char** argv) {
     } else if (arg == "--only") {
       if (!value) usage("--only needs a case group");
       only = value, ++i;
-      if (only != "raycast" && only != "io" && only != "distance")
+      if (only != "raycast" && only != "io" && only != "distance" && !registered_groups().count(only))
         usage("--only: unknown group '" + only + "'");
     } else if (arg == "-h" || arg == "--help") {
       usage("times the station against Embree, Open3D and PCL (docs/benchmarks.md)", 0);
@@ -260,6 +280,8 @@ int main(int argc, char** argv) {
     if (only.empty() || only == "raycast") run_raycast_cases(options, report);
     if (only.empty() || only == "io") run_io_cases(options, report);
     if (only.empty() || only == "distance") run_distance_cases(options, report);
+    for (const auto& [name, group] : registered_groups())
+      if (only.empty() || only == name) group.run(options, report);
   } catch (const std::exception& e) {
     std::cerr << "station_bench: " << e.what() << "\n";
     status = 1;

@@ -12,9 +12,10 @@ pkgs=(cmake g++ make pkg-config ccache
       libfreenect-dev   # Kinect v1 driver; its libfreenect0.5 ships fakenect (replay tests)
       libopenni2-dev)   # OpenNI2 depth cameras (Xtion, Carmine, Orbbec) driver
 if [[ "${1:-}" == "--bench" ]]; then
-  # Anchors of bench/: Open3D 0.16 (C++), Embree 3 (Open3D's ray caster, driven
-  # directly); PCL is in the base list already.
-  pkgs+=(libopen3d-dev libembree-dev)
+  # Anchors of bench/: Open3D 0.16 (C++: ICP, Poisson), Embree 3 (Open3D's ray
+  # caster, driven directly), CGAL 5.5 (WLOP), VTK 9 (flying edges); PCL
+  # (GICP) is in the base list already.
+  pkgs+=(libopen3d-dev libembree-dev libcgal-dev libvtk9-dev)
 fi
 
 missing=()
