@@ -538,10 +538,10 @@ int cmd_import(const Common& c, const ImportArgs& a) {
 // ---- register / calibrate -------------------------------------------------------
 
 /// Registers a session with a progress bar; shared by `register` and `calibrate`.
-RegistrationResult register_with_progress(const Session& session, bool quiet) {
+RegistrationResult register_with_progress(const Session& session, const RegistrationParams& params, bool quiet) {
   std::unique_ptr<Progress> bar;
   std::string stage;
-  RegistrationResult r = register_session(session, {}, [&](const RegistrationProgress& p) {
+  RegistrationResult r = register_session(session, params, [&](const RegistrationProgress& p) {
     if (p.stage != stage) {
       if (bar) bar->finish();
       stage = p.stage;
@@ -552,6 +552,8 @@ RegistrationResult register_with_progress(const Session& session, bool quiet) {
   if (bar) bar->finish();
   for (int v : r.failed_views)
     if (!quiet) std::fprintf(stderr, "warning: %s\n", r.views[v].message.c_str());
+  for (const std::string& w : r.warnings)
+    if (!quiet) std::fprintf(stderr, "warning: %s\n", w.c_str());
   if (r.degenerate && !quiet) std::fprintf(stderr, "note: %s\n", r.degeneracy_message.c_str());
   return r;
 }
@@ -559,6 +561,7 @@ RegistrationResult register_with_progress(const Session& session, bool quiet) {
 JsonObject registration_json(const RegistrationResult& r) {
   JsonObject j;
   j.add("views", r.views.size()).add("failed_views", r.failed_views.size()).add("degenerate", r.degenerate);
+  j.add("warnings", r.warnings);
   if (r.views_with_reference > 0)
     j.add("reference", JsonObject()
                            .add("views", r.views_with_reference)
@@ -570,7 +573,8 @@ JsonObject registration_json(const RegistrationResult& r) {
   for (std::size_t i = 0; i < r.views.size(); ++i) {
     const ViewDiagnostics& v = r.views[i];
     JsonObject o;
-    o.add("registered", v.registered).add("initial", to_string(v.initial)).add("points", v.points);
+    o.add("registered", v.registered).add("initial", to_string(v.initial)).add("points", v.points)
+        .add("angle_rejected", v.angle_rejected);
     if (v.rotation_error_deg) o.add("rotation_error_deg", *v.rotation_error_deg);
     if (v.translation_error) o.add("translation_error_m", *v.translation_error);
     if (!v.message.empty()) o.add("message", v.message);
@@ -600,14 +604,15 @@ JsonObject registration_json(const RegistrationResult& r) {
 }
 
 void print_registration(const RegistrationResult& r) {
-  std::printf("%-5s %-10s %-14s %9s %12s %14s\n", "view", "status", "initial pose", "points",
+  std::printf("%-5s %-10s %-16s %9s %12s %14s\n", "view", "status", "initial pose", "points",
               "rot err deg", "trans err mm");
   for (std::size_t i = 0; i < r.views.size(); ++i) {
     const ViewDiagnostics& v = r.views[i];
     char rot[32] = "-", tr[32] = "-";
     if (v.rotation_error_deg) std::snprintf(rot, sizeof rot, "%.3f", *v.rotation_error_deg);
     if (v.translation_error) std::snprintf(tr, sizeof tr, "%.3f", *v.translation_error * 1000);
-    std::printf("%-5zu %-10s %-14s %9zu %12s %14s\n", i, v.registered ? "ok" : "FAILED",
+    std::printf("%-5zu %-10s %-16s %9zu %12s %14s\n", i,
+                v.registered ? (v.angle_rejected ? "ok*" : "ok") : "FAILED",
                 to_string(v.initial), v.points, rot, tr);
   }
   if (r.views_with_reference > 0)
@@ -615,14 +620,30 @@ void print_registration(const RegistrationResult& r) {
                 "median %.3f deg; translation max %.3f mm, median %.3f mm\n",
                 r.views_with_reference, r.max_rotation_error_deg, r.median_rotation_error_deg,
                 r.max_translation_error * 1000, r.median_translation_error * 1000);
+  for (const ViewDiagnostics& v : r.views)
+    if (v.angle_rejected) {
+      std::printf("ok*: the commanded turntable angle was wrong; the pose comes from global registration\n");
+      break;
+    }
 }
 
-int cmd_register(const Common& c, const std::string& session_dir, const std::string& out,
-                 const std::string& poses_out) {
-  StationConfig cfg = load_common(c);
+struct RegisterArgs {
+  std::string session, out, poses_out, objective;
+  bool no_global = false, no_angle_check = false;
+};
+
+int cmd_register(const Common& c, const RegisterArgs& a) {
+  std::vector<std::string> overrides;
+  if (!a.objective.empty()) overrides.push_back("register.objective=" + a.objective);
+  if (a.no_global) overrides.push_back("register.global=false");
+  if (a.no_angle_check) overrides.push_back("register.check_angles=false");
+  StationConfig cfg = load_common(c, overrides);
   auto threads = limit_threads(cfg.threads);
+  const std::string& session_dir = a.session;
+  const std::string& out = a.out;
+  const std::string& poses_out = a.poses_out;
   const Session session = Session::open(session_dir);
-  const RegistrationResult r = register_with_progress(session, c.json);
+  const RegistrationResult r = register_with_progress(session, registration_params(cfg.pipeline), c.json);
   if (r.merged.empty()) throw InvalidInput(session_dir + ": no view could be registered");
   write_ply(out, r.merged);
   if (!poses_out.empty()) write_poses_yaml(poses_out, r, session.manifest());
@@ -645,7 +666,7 @@ int cmd_calibrate_turntable(const Common& c, const std::string& session_dir, con
   auto threads = limit_threads(cfg.threads);
   const Session session = Session::open(session_dir);
   const SessionManifest& m = session.manifest();
-  const RegistrationResult r = register_with_progress(session, c.json);
+  const RegistrationResult r = register_with_progress(session, registration_params(cfg.pipeline), c.json);
   std::vector<Eigen::Matrix4d> poses;
   std::vector<double> angles;
   for (std::size_t i = 0; i < m.views.size(); ++i) {
@@ -1041,13 +1062,19 @@ int run_cli(int argc, char** argv) {
   import->add_option("--every", import_args.every, "keep every N-th point (downsample)")->capture_default_str();
   import->add_option("--units", import_args.units, "units of the files (recorded, not converted)")->check(CLI::IsMember({"m", "mm"}));
 
-  std::string reg_session, reg_out, reg_poses;
+  RegisterArgs reg_args;
   Common c_reg;
   auto* reg = app.add_subcommand("register", "Align the views of a session and merge them into one cloud");
   add_common(reg, c_reg);
-  reg->add_option("session", reg_session, "session folder")->required();
-  reg->add_option("-o,--out", reg_out, "merged cloud (.ply)")->required();
-  reg->add_option("--poses-out", reg_poses, "write the refined poses and diagnostics (YAML)");
+  reg->add_option("session", reg_args.session, "session folder")->required();
+  reg->add_option("-o,--out", reg_args.out, "merged cloud (.ply)")->required();
+  reg->add_option("--poses-out", reg_args.poses_out, "write the refined poses and diagnostics (YAML)");
+  reg->add_option("--objective", reg_args.objective,
+                  "ICP objective (profile register.objective; default point-to-plane); colored needs coloured views")
+      ->check(CLI::IsMember({"point-to-plane", "symmetric", "point-to-point", "colored", "generalized"}));
+  reg->add_flag("--no-global", reg_args.no_global,
+                "no global registration by features: views without an angle or pose fail");
+  reg->add_flag("--no-angle-check", reg_args.no_angle_check, "trust the commanded turntable angles");
 
   std::string cal_session, cal_out;
   Common c_cal;
@@ -1138,7 +1165,7 @@ int run_cli(int argc, char** argv) {
     if (*cons) return cmd_consolidate(c_cons, cons_args);
     if (*rec) return cmd_reconstruct(c_rec, rec_args);
     if (*fitc) return cmd_fit(c_fit, fit_args);
-    if (*reg) return cmd_register(c_reg, reg_session, reg_out, reg_poses);
+    if (*reg) return cmd_register(c_reg, reg_args);
     if (*cal_tt) return cmd_calibrate_turntable(c_cal, cal_session, cal_out);
     if (*cal_cam) return cmd_calibrate_camera(c_cam, cam_images, cam_board, cam_square, cam_out);
   } catch (const Error& e) {

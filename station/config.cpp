@@ -110,9 +110,19 @@ void apply_override(YAML::Node& root, const std::string& kv) {
   chain.back()[parts.back()] = value;
 }
 
+}  // namespace
+
+bool valid_registration_objective(const std::string& name) {
+  return name == "point-to-plane" || name == "symmetric" || name == "point-to-point" || name == "colored" ||
+         name == "generalized";
+}
+
+namespace {
+
 void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
   if (const YAML::Node n = root["register"]) {
-    r.check_keys(n, "register", {"neighbors", "rounds", "loop_closure", "voxel_rel"});
+    r.check_keys(n, "register",
+                 {"neighbors", "rounds", "loop_closure", "voxel_rel", "objective", "global", "check_angles"});
     if (n["neighbors"]) p.reg.neighbors = r.integer(n["neighbors"], "register.neighbors");
     if (p.reg.neighbors < 1 || p.reg.neighbors > 8) r.fail("register.neighbors", "must be 1..8");
     if (n["rounds"]) p.reg.rounds = r.integer(n["rounds"], "register.rounds");
@@ -120,6 +130,11 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
     if (n["loop_closure"]) p.reg.loop_closure = r.boolean(n["loop_closure"], "register.loop_closure");
     if (n["voxel_rel"]) p.reg.voxel_rel = r.number(n["voxel_rel"], "register.voxel_rel");
     if (p.reg.voxel_rel < 0 || p.reg.voxel_rel > 0.1) r.fail("register.voxel_rel", "must be 0..0.1");
+    if (n["objective"]) p.reg.objective = r.text(n["objective"], "register.objective");
+    if (!valid_registration_objective(p.reg.objective))
+      r.fail("register.objective", "must be point-to-plane, symmetric, point-to-point, colored or generalized");
+    if (n["global"]) p.reg.global = r.boolean(n["global"], "register.global");
+    if (n["check_angles"]) p.reg.check_angles = r.boolean(n["check_angles"], "register.check_angles");
   }
   if (const YAML::Node n = root["consolidate"]) {
     r.check_keys(n, "consolidate", {"enabled", "method", "points", "ratio", "iterations", "seed"});

@@ -17,6 +17,11 @@ struct PipelineConfig {
     int rounds = 3;             ///< ICP + pose-graph rounds
     bool loop_closure = true;   ///< pair the last view with the first
     double voxel_rel = 0.004;   ///< registration copy voxel, relative to the view size
+    /// ICP objective of every round: point-to-plane | symmetric | point-to-point |
+    /// colored (Park 2017; needs colours) | generalized (Segal 2009).
+    std::string objective = "point-to-plane";
+    bool global = true;         ///< global registration (FPFH + RANSAC) for views without a pose
+    bool check_angles = true;   ///< detect wrong commanded angles and recover them globally
   } reg;
   struct Consolidate {
     bool enabled = true;
@@ -64,6 +69,9 @@ StationConfig load_config(const std::filesystem::path& path,
 /// The profile used when --config is not given: config/default.yaml of the
 /// source tree the binary was built from, if it is there; else built-in defaults.
 std::filesystem::path default_config_path();
+
+/// The names `register.objective` accepts (see PipelineConfig::Register).
+bool valid_registration_objective(const std::string& name);
 
 /// "scheme:path?a=1" + {b: 2} -> "scheme:path?a=1&b=2" (options override the URI's).
 std::string compose_uri(const std::string& uri, const DeviceOptions& options);

@@ -51,6 +51,11 @@ JsonObject& JsonObject::add(const std::string& key, const std::vector<double>& v
   }
   return raw(key, s + "]");
 }
+JsonObject& JsonObject::add(const std::string& key, const std::vector<std::string>& values) {
+  std::string s = "[";
+  for (std::size_t i = 0; i < values.size(); ++i) s += (i ? "," : "") + json_quote(values[i]);
+  return raw(key, s + "]");
+}
 JsonObject& JsonObject::add_null(const std::string& key) { return raw(key, "null"); }
 
 std::string JsonObject::str() const {

@@ -16,6 +16,7 @@ class JsonObject {
   JsonObject& add(const std::string& key, bool value);
   JsonObject& add(const std::string& key, const JsonObject& value);
   JsonObject& add(const std::string& key, const std::vector<double>& values);  ///< a number array
+  JsonObject& add(const std::string& key, const std::vector<std::string>& values);  ///< a string array
   JsonObject& add_null(const std::string& key);
   std::string str() const;
 

@@ -168,7 +168,8 @@ std::string fmt(const char* f, double v) {
 std::string register_params(const PipelineConfig& p) {
   std::ostringstream s;
   s << "register/neighbors=" << p.reg.neighbors << ";rounds=" << p.reg.rounds
-    << ";loop=" << p.reg.loop_closure << ";voxel=" << fmt("%.17g", p.reg.voxel_rel);
+    << ";loop=" << p.reg.loop_closure << ";voxel=" << fmt("%.17g", p.reg.voxel_rel)
+    << ";objective=" << p.reg.objective << ";global=" << p.reg.global << ";check_angles=" << p.reg.check_angles;
   return s.str();
 }
 std::string consolidate_params(const PipelineConfig& p) {
@@ -452,11 +453,7 @@ class Runner {
   void do_register(StageRecord& r) {
     const fs::path dir = fs::is_directory(req_.input) ? req_.input : req_.input.parent_path();
     const Session session = Session::open(dir);
-    RegistrationParams p;
-    p.neighbors = cfg_.pipeline.reg.neighbors;
-    p.rounds = cfg_.pipeline.reg.rounds;
-    p.loop_closure = cfg_.pipeline.reg.loop_closure;
-    p.voxel_rel = cfg_.pipeline.reg.voxel_rel;
+    const RegistrationParams p = registration_params(cfg_.pipeline);
     std::unique_ptr<Progress> bar;
     std::string sub;
     const RegistrationResult reg = register_session(session, p, [&](const RegistrationProgress& pr) {
@@ -469,6 +466,7 @@ class Runner {
     });
     if (bar) bar->finish();
     for (int v : reg.failed_views) say("warning: " + reg.views[v].message);
+    for (const std::string& w : reg.warnings) say("warning: " + w);
     if (reg.degenerate) say("note: " + reg.degeneracy_message);
     if (reg.merged.empty()) throw InvalidInput(dir.string() + ": no view could be registered");
     write_ply(req_.out_dir / "merged.ply", reg.merged);
@@ -476,6 +474,9 @@ class Runner {
     r.figures["failed_views"] = double(reg.failed_views.size());
     r.figures["points"] = double(reg.merged.size());
     r.figures["degenerate"] = reg.degenerate ? 1 : 0;
+    int rejected = 0;
+    for (const ViewDiagnostics& v : reg.views) rejected += v.angle_rejected ? 1 : 0;
+    r.figures["angles_rejected"] = rejected;
     if (reg.views_with_reference > 0) {
       r.figures["max_rotation_error_deg"] = reg.max_rotation_error_deg;
       r.figures["max_translation_error_mm"] = reg.max_translation_error * 1000;
@@ -647,6 +648,26 @@ class Runner {
 
 RunResult run_pipeline(const StationConfig& config, const RunRequest& request) {
   return Runner(config, request).run();
+}
+
+RegistrationParams registration_params(const PipelineConfig& p) {
+  RegistrationParams r;
+  r.neighbors = p.reg.neighbors;
+  r.rounds = p.reg.rounds;
+  r.loop_closure = p.reg.loop_closure;
+  r.voxel_rel = p.reg.voxel_rel;
+  r.global_registration = p.reg.global;
+  r.check_angles = p.reg.check_angles;
+  IcpObjective o = IcpObjective::kPointToPlane;
+  if (p.reg.objective == "symmetric") o = IcpObjective::kSymmetric;
+  else if (p.reg.objective == "point-to-point") o = IcpObjective::kPointToPoint;
+  else if (p.reg.objective == "colored") o = IcpObjective::kColored;
+  else if (p.reg.objective == "generalized") o = IcpObjective::kGeneralized;
+  else if (p.reg.objective != "point-to-plane")
+    throw InvalidInput("register.objective: unknown objective '" + p.reg.objective + "'");
+  r.icp.objective = o;
+  r.final_objective = o;
+  return r;
 }
 
 }  // namespace station

@@ -58,6 +58,11 @@ struct RunResult {
 
 /// Runs (or resumes) the job. InvalidInput/IoError/FormatError name the file or
 /// folder at fault; on a failed write the outputs of earlier stages stay intact.
+struct RegistrationParams;
+/// The registration parameters of a profile's `register` section (also used
+/// by `station register` and `station calibrate turntable`).
+RegistrationParams registration_params(const PipelineConfig& pipeline);
+
 RunResult run_pipeline(const StationConfig& config, const RunRequest& request);
 
 /// 64-bit FNV-1a over bytes, as 16 hex digits (stage keys; not cryptographic).

@@ -134,6 +134,23 @@ std::string PtyBoard::received() const {
 
 void PtyBoard::serve() {
   char buf[256];
+  // One chunk from the port; false when the board stops (hang-up, write error).
+  auto handle = [&](const char* data, std::size_t n) {
+    std::string in(data, n);
+    long total;
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      received_ += in;
+      total = static_cast<long>(received_.size());
+    }
+    if (hang_up_after_ >= 0 && total >= hang_up_after_) {
+      ::close(master_);  // the board disappears
+      master_ = -1;
+      return false;
+    }
+    const std::string out = sim_.feed(in);
+    return out.empty() || ::write(master_, out.data(), out.size()) >= 0;
+  };
   while (!stop_) {
     pollfd p{master_, POLLIN, 0};
     const int r = ::poll(&p, 1, 20);
@@ -144,20 +161,15 @@ void PtyBoard::serve() {
     }
     const ssize_t n = ::read(master_, buf, sizeof buf);
     if (n <= 0) continue;
-    std::string in(buf, static_cast<std::size_t>(n));
-    long total;
-    {
-      std::lock_guard<std::mutex> lock(mutex_);
-      received_ += in;
-      total = static_cast<long>(received_.size());
-    }
-    if (hang_up_after_ >= 0 && total >= hang_up_after_) {
-      ::close(master_);  // the board disappears
-      master_ = -1;
-      return;
-    }
-    const std::string out = sim_.feed(in);
-    if (!out.empty() && ::write(master_, out.data(), out.size()) < 0) return;
+    if (!handle(buf, static_cast<std::size_t>(n))) return;
+  }
+  // Stopping: the driver's last bytes (a FabScan motor-off has no answer) may
+  // still be in the pty; take them before the sim is handed back to the test.
+  for (;;) {
+    pollfd p{master_, POLLIN, 0};
+    if (::poll(&p, 1, 50) <= 0 || !(p.revents & POLLIN)) return;
+    const ssize_t n = ::read(master_, buf, sizeof buf);
+    if (n <= 0 || !handle(buf, static_cast<std::size_t>(n))) return;
   }
 }
 

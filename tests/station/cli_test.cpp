@@ -187,6 +187,23 @@ TEST(Cli, DragonImportsAndReplaysLikeALiveScanner) {
     EXPECT_EQ(rm.views[i].points, m.views[i].points) << i;
     EXPECT_NEAR(*rm.views[i].angle_deg, *m.views[i].angle_deg, 0.2) << i;
   }
+
+  // A wrong commanded angle (view 7 says 198 instead of 168 degrees) is found,
+  // recovered and reported by name; --no-angle-check trusts it instead.
+  SessionManifest wrong = m;
+  wrong.views[7].angle_deg = *wrong.views[7].angle_deg + 30;
+  write_manifest(session, wrong);
+  r = run("register " + session + " -o " + merged + " --json");
+  ASSERT_EQ(r.code, 0) << r.out;
+  EXPECT_NE(r.out.find("\"7\":{\"registered\":true,\"initial\":\"global_features\""), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("\"angle_rejected\":true"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("views[7]"), std::string::npos) << r.out;
+  EXPECT_LT(json_number(r.out, "max_rotation_deg"), 0.7) << r.out;
+  r = run("register " + session + " -o " + merged + " --no-angle-check --no-global --json");
+  EXPECT_EQ(r.out.find("\"angle_rejected\":true"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("\"warnings\":[]"), std::string::npos) << r.out;
+  r = run("register " + session + " -o " + merged + " --objective sideways");
+  EXPECT_EQ(r.code, 2) << r.out;
 }
 
 TEST(Cli, BadInputGivesOneLineErrorsNamingTheCulprit) {

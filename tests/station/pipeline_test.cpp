@@ -231,6 +231,12 @@ TEST(Profile, OverridesAreValidatedLikeTheFileAndNameTheKey) {
   EXPECT_NE(message("reconstruct.hole=maybe").find("reconstruct.hole"), std::string::npos);
   EXPECT_NE(message("consolidate.ratio=abc").find("consolidate.ratio: not a number"), std::string::npos);
   EXPECT_NE(message("nosuch.key=1").find("nosuch: unknown key"), std::string::npos);
+  EXPECT_NE(message("register.objective=sideways").find("register.objective: must be"), std::string::npos);
+  EXPECT_NE(message("register.global=perhaps").find("register.global"), std::string::npos);
+  const StationConfig g = load_config(profile, {"register.objective=generalized", "register.check_angles=false"});
+  EXPECT_EQ(g.pipeline.reg.objective, "generalized");
+  EXPECT_FALSE(g.pipeline.reg.check_angles);
+  EXPECT_TRUE(g.pipeline.reg.global);
   EXPECT_NE(message("resolution").find("expected section.key=value"), std::string::npos);
   // The default profile documents every key it accepts, and loads as is.
   const StationConfig d = load_config(profile);
