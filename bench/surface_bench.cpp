@@ -1,0 +1,373 @@
+// Implicit surface + colour (issues 5 and 7): our MPU fit + mesh extraction +
+// MPU colour function against Open3D 0.16's
+// TriangleMesh::CreateFromPointCloudPoisson (with colours) on the same clouds
+// with normals and colours, sampled on the textured YCB mustard bottle, whose
+// mesh and texture are the reference surface and colour. Our grid resolution is
+// chosen so that our mesh has about as many vertices as Poisson's. A synthetic
+// sphere painted in two colours with a sharp boundary gives the width of the
+// colour transition on each side's mesh.
+#include <omp.h>
+
+#include <algorithm>
+#include <array>
+#include <chrono>
+#include <cmath>
+#include <memory>
+#include <random>
+#include <tuple>
+
+#include <open3d/geometry/PointCloud.h>
+#include <open3d/geometry/TriangleMesh.h>
+
+#include "core/io.h"
+#include "core/texture.h"
+#include "harness.h"
+#include "reconstruct/colour_function.h"
+#include "reconstruct/dmc.h"
+#include "reconstruct/eval.h"
+#include "reconstruct/marching_cubes.h"
+#include "reconstruct/mesh_clean.h"
+#include "reconstruct/mpu.h"
+
+namespace station::bench {
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+double seconds_since(Clock::time_point t0) {
+  return std::chrono::duration<double>(Clock::now() - t0).count();
+}
+
+/// Area-uniform samples on a textured mesh: positions, normals interpolated from
+/// the area-weighted vertex normals, colours from the texture (surface_color).
+Cloud sample_textured(const TexturedMesh& tm, const Texture& texture, int count, unsigned seed) {
+  const Mesh& mesh = tm.mesh;
+  const std::vector<Vec3f> vn = vertex_normals(mesh);
+  std::vector<double> cumulative(mesh.faces.size());
+  double total = 0;
+  for (std::size_t f = 0; f < mesh.faces.size(); ++f) {
+    const Face& t = mesh.faces[f];
+    const Vec3d a = mesh.vertices[t[0]].cast<double>(), b = mesh.vertices[t[1]].cast<double>(),
+                c = mesh.vertices[t[2]].cast<double>();
+    total += 0.5 * (b - a).cross(c - a).norm();
+    cumulative[f] = total;
+  }
+  std::mt19937_64 rng(seed);
+  std::uniform_real_distribution<double> unit(0.0, 1.0);
+  Cloud cloud;
+  cloud.points.reserve(count);
+  cloud.normals.reserve(count);
+  cloud.colors.reserve(count);
+  for (int i = 0; i < count; ++i) {
+    const double pick = unit(rng) * total;
+    const int f = int(std::min<std::size_t>(
+        std::lower_bound(cumulative.begin(), cumulative.end(), pick) - cumulative.begin(),
+        mesh.faces.size() - 1));
+    double r1 = std::sqrt(unit(rng)), r2 = unit(rng);
+    const double u = r1 * (1 - r2), v = r1 * r2;  // point = (1-u-v) a + u b + v c
+    const Face& t = mesh.faces[f];
+    const Vec3f p = float(1 - u - v) * mesh.vertices[t[0]] + float(u) * mesh.vertices[t[1]] +
+                    float(v) * mesh.vertices[t[2]];
+    Vec3f n = float(1 - u - v) * vn[t[0]] + float(u) * vn[t[1]] + float(v) * vn[t[2]];
+    if (n.norm() < 1e-12f) {
+      n = (mesh.vertices[t[1]] - mesh.vertices[t[0]]).cross(mesh.vertices[t[2]] - mesh.vertices[t[0]]);
+    }
+    cloud.points.push_back(p);
+    cloud.normals.push_back(n.normalized());
+    cloud.colors.push_back(surface_color(tm, texture, f, u, v));
+  }
+  return cloud;
+}
+
+open3d::geometry::PointCloud to_open3d(const Cloud& cloud) {
+  open3d::geometry::PointCloud out;
+  out.points_.reserve(cloud.size());
+  for (const Vec3f& p : cloud.points) out.points_.push_back(p.cast<double>());
+  for (const Vec3f& n : cloud.normals) out.normals_.push_back(n.cast<double>());
+  for (const Rgb& c : cloud.colors) out.colors_.emplace_back(c.r / 255.0, c.g / 255.0, c.b / 255.0);
+  return out;
+}
+
+Mesh from_open3d(const open3d::geometry::TriangleMesh& in) {
+  Mesh out;
+  out.vertices.reserve(in.vertices_.size());
+  for (const Eigen::Vector3d& v : in.vertices_) out.vertices.push_back(v.cast<float>());
+  for (const Eigen::Vector3i& f : in.triangles_) out.faces.push_back(f);
+  for (const Eigen::Vector3d& n : in.vertex_normals_) out.normals.push_back(n.cast<float>());
+  auto byte = [](double x) { return std::uint8_t(std::lround(std::clamp(x, 0.0, 1.0) * 255.0)); };
+  for (const Eigen::Vector3d& c : in.vertex_colors_) out.colors.push_back(Rgb{byte(c[0]), byte(c[1]), byte(c[2])});
+  return out;
+}
+
+/// What `station reconstruct` does (station/cli.cpp): MPU with epsilon0 from the
+/// cloud's noise, sparse MC or DMC, small pieces removed, MPU colour function on the
+/// vertices (k-NN colours where the surface is untrusted).
+struct OurPipeline {
+  int resolution = 128;
+  bool dmc = false;
+  int threads = 0;
+  bool colour = true;
+  // Filled by run():
+  Mesh mesh;
+  double seconds_fit = 0, seconds_extract = 0, seconds_colour = 0, cell_size = 0;
+  std::size_t leaves = 0;
+  std::array<std::size_t, 2> colour_cells{};
+
+  void run(const Cloud& cloud) {
+    auto t0 = Clock::now();
+    MpuParams mp;
+    mp.epsilon0 = std::max(mp.epsilon0, suggest_epsilon0(cloud));
+    mp.threads = threads;
+    const MpuSurface surface = fit_mpu(cloud, mp);
+    seconds_fit = seconds_since(t0);
+    leaves = surface.diagnostics().leaves;
+    t0 = Clock::now();
+    MarchingCubesOptions mo;
+    mo.threads = threads;
+    if (dmc) {
+      DmcOptions d;
+      static_cast<MarchingCubesOptions&>(d) = mo;
+      DmcStats stats;
+      mesh = extract_dmc(surface, resolution, d, &stats);
+      cell_size = stats.cell_size;
+    } else {
+      MarchingCubesStats stats;
+      mesh = extract_marching_cubes(surface, resolution, mo, &stats);
+      cell_size = stats.cell_size;
+    }
+    remove_small_components(mesh, 0.01);
+    seconds_extract = seconds_since(t0);
+    seconds_colour = 0;
+    if (!colour) return;
+    t0 = Clock::now();
+    ColourParams cp;
+    cp.threads = threads;
+    cp.compute_e_col = false;  // e_col is measured against the reference below, for both sides
+    const ColourFunction cf = fit_colour(cloud, cp);
+    colour_mesh(mesh, cf, surface, cloud, threads);
+    colour_cells = cf.diagnostics().leaves_by_type;
+    seconds_colour = seconds_since(t0);
+  }
+};
+
+struct PoissonRun {
+  int depth = 8;
+  int threads = 0;
+  Mesh mesh;
+  void run(const open3d::geometry::PointCloud& pcd) {
+    auto [m, densities] = open3d::geometry::TriangleMesh::CreateFromPointCloudPoisson(
+        pcd, std::size_t(depth), 0.0f, 1.1f, false, threads);
+    mesh = from_open3d(*m);
+  }
+};
+
+std::string mm(double metres) { return format_fixed(metres * 1000.0, 3) + " mm"; }
+std::string pct(double x) { return format_fixed(100.0 * x, 3) + " %"; }
+
+/// Our resolution giving about `target_vertices` vertices, from one probe
+/// extraction (MC) at `probe` cells: the vertex count grows as resolution^2.
+int matched_resolution(const Cloud& cloud, int threads, std::size_t target_vertices, int probe) {
+  OurPipeline p;
+  p.resolution = probe;
+  p.threads = threads;
+  p.colour = false;
+  p.run(cloud);
+  const double scale = std::sqrt(double(target_vertices) / double(std::max<std::size_t>(1, p.mesh.vertices.size())));
+  return std::max(16, int(std::lround(probe * scale)));
+}
+
+/// Transition across a sharp two-colour boundary (plane n.x = offset on a sphere):
+/// per vertex, t = projection of its colour on the a->b colour axis (0 = colour a,
+/// 1 = colour b) and s = signed distance to the boundary plane (> 0 on b's side).
+struct Transition {
+  double width = 0;          ///< 2 x the 95th percentile of |s| over vertices with 0.1 < t < 0.9
+  double max_band = 0;       ///< largest |s| of a vertex with 0.1 < t < 0.9
+  std::size_t band = 0;      ///< vertices with 0.1 < t < 0.9
+  std::size_t wrong = 0;     ///< vertices on the wrong side (t > 0.5 with s < 0 or t < 0.5 with s > 0)
+  std::size_t wrong_far = 0; ///< ... more than one cell h from the plane
+  double max_wrong = 0;      ///< largest |s| of a wrong-side vertex
+  std::size_t vertices = 0;
+};
+
+Transition measure_transition(const Mesh& mesh, const Vec3d& n, double offset, const Rgb& a, const Rgb& b,
+                              double h) {
+  const Vec3d ca(a.r, a.g, a.b), cb(b.r, b.g, b.b), axis = cb - ca;
+  Transition out;
+  out.vertices = mesh.vertices.size();
+  std::vector<double> band;
+  for (std::size_t i = 0; i < mesh.vertices.size() && i < mesh.colors.size(); ++i) {
+    const Vec3d c(mesh.colors[i].r, mesh.colors[i].g, mesh.colors[i].b);
+    const double t = (c - ca).dot(axis) / axis.squaredNorm();
+    const double s = n.dot(mesh.vertices[i].cast<double>()) - offset;
+    if (t > 0.1 && t < 0.9) {
+      band.push_back(std::abs(s));
+      out.max_band = std::max(out.max_band, std::abs(s));
+    }
+    if ((t > 0.5 && s < 0) || (t < 0.5 && s > 0)) {
+      ++out.wrong;
+      if (std::abs(s) > h) ++out.wrong_far;
+      out.max_wrong = std::max(out.max_wrong, std::abs(s));
+    }
+  }
+  out.band = band.size();
+  if (!band.empty()) {
+    std::sort(band.begin(), band.end());
+    out.width = 2 * band[std::min(band.size() - 1, std::size_t(0.95 * double(band.size())))];
+  }
+  return out;
+}
+
+std::string describe(const Transition& t, double h, double diagonal) {
+  return "band (0.1 < t < 0.9) " + std::to_string(t.band) + " of " + std::to_string(t.vertices) +
+         " vertices, width (2 x p95 |s|) " + mm(t.width) + " = " + format_fixed(t.width / h, 2) + " cells = " +
+         pct(t.width / diagonal) + " of the diagonal (max |s| in band " + format_fixed(t.max_band / h, 2) +
+         " cells); wrong side: " + std::to_string(t.wrong) + " vertices (" +
+         format_fixed(100.0 * double(t.wrong) / double(std::max<std::size_t>(1, t.vertices)), 3) + " %), " +
+         std::to_string(t.wrong_far) + " more than one cell away (max " + format_fixed(t.max_wrong / h, 2) +
+         " cells)";
+}
+
+}  // namespace
+
+void run_surface_cases(const Options& options, Report& report) {
+  const int threads = options.threads;
+  // ---- reference: the textured YCB mustard bottle ------------------------------
+  fs::path obj = options.shared_dir / "textured_objects" / "006_mustard_bottle" / "textured.obj";
+  bool shared = options.use_shared && fs::exists(obj);
+  if (!shared) obj = options.source_dir / "data" / "mustard_bottle" / "textured.obj";
+  const TexturedMesh reference = read_textured_mesh(obj);
+  const Texture texture = load_texture(reference.texture);
+  const double diagonal = bounding_box(reference.mesh.vertices).diagonal();
+  report.note(std::string("surface: reference ") + (shared ? "../shared/data/textured_objects/006_mustard_bottle" :
+              "data/mustard_bottle (../shared/data missing or --generate: the bundled copy of the same YCB model)") +
+              "/textured.obj (" + std::to_string(reference.mesh.faces.size()) + " triangles, " +
+              std::to_string(texture.width) + "^2 texture, diagonal " + mm(diagonal) +
+              "); clouds: area-uniform samples with interpolated vertex normals and texture colours, no noise");
+
+  EvalParams eval;
+  eval.threads = threads;
+  eval.b_surface_color = [&](int f, double u, double v) { return surface_color(reference, texture, f, u, v); };
+  auto quality = [&](const Mesh& mesh) {
+    const EvalResult r = evaluate(mesh, reference.mesh, eval);
+    return "mean distance to the reference " + mm(r.a_to_b.mean) + " (" + pct(r.a_to_b.mean / diagonal) +
+           " of the diagonal), Chamfer " + mm(r.chamfer) + ", e_col " +
+           (r.color_error ? format_fixed(*r.color_error, 4) : std::string("-"));
+  };
+
+  // ---- the mustard rows: 100k at depth 8, 1M at depth 10 ------------------------
+  struct Case {
+    int points;
+    int depth;
+    int probe;
+    bool reduced;  ///< fewer runs (each takes tens of seconds)
+  };
+  const std::vector<Case> cases = {{100000, 8, 128, false}, {1000000, 10, 256, true}};
+  for (const Case& c : cases) {
+    const Cloud cloud = sample_textured(reference, texture, c.points, 7);
+    const open3d::geometry::PointCloud pcd = to_open3d(cloud);
+    const std::string label = "mustard " + std::to_string(c.points / 1000) + "k";
+    Options opt = options;
+    if (c.reduced) {
+      opt.warmup = 0;
+      opt.repetitions = std::min(options.repetitions, 2);
+    } else {
+      opt.repetitions = std::min(options.repetitions, 3);
+    }
+    // Poisson first: its vertex count sets our resolution (this run is also the warm-up).
+    PoissonRun poisson;
+    poisson.depth = c.depth;
+    poisson.threads = threads;
+    auto t0 = Clock::now();
+    poisson.run(pcd);
+    const double poisson_first_s = seconds_since(t0);
+    const int resolution = matched_resolution(cloud, threads, poisson.mesh.vertices.size(), c.probe);
+
+    OurPipeline ours;
+    ours.resolution = resolution;
+    ours.threads = threads;
+    Row row{label + ": MPU + MC " + std::to_string(resolution) + " + colour",
+            "TriangleMesh::CreateFromPointCloudPoisson depth " + std::to_string(c.depth) + " (colours)"};
+    std::tie(row.ours, row.theirs) =
+        measure_pair(opt, [&] { ours.run(cloud); }, [&] { poisson.run(pcd); });
+    report.rows.push_back(row);
+    const double poisson_cell = 1.1 * (bounding_box(cloud.points).max - bounding_box(cloud.points).min).maxCoeff() /
+                                double(1 << c.depth);
+    report.note(label + " (" + std::to_string(opt.repetitions) + " timed runs" +
+                (c.reduced ? ", no warm-up" : "") + "): ours MPU fit " + format_fixed(ours.seconds_fit, 2) +
+                " s (" + std::to_string(ours.leaves) + " leaves) + MC " + format_fixed(ours.seconds_extract, 2) +
+                " s (cell " + mm(ours.cell_size) + ") + colour function " + format_fixed(ours.seconds_colour, 2) +
+                " s (" + std::to_string(ours.colour_cells[0]) + " A / " + std::to_string(ours.colour_cells[1]) +
+                " B cells), " + std::to_string(ours.mesh.vertices.size()) + " vertices; " + quality(ours.mesh));
+    report.note(label + ": Poisson depth " + std::to_string(c.depth) + " (cell " + mm(poisson_cell) + ", first run " +
+                format_fixed(poisson_first_s, 2) + " s), " + std::to_string(poisson.mesh.vertices.size()) +
+                " vertices; " + quality(poisson.mesh));
+
+    if (!c.reduced) {
+      // The same with Deformed Marching Cubes (the station's default extractor); the
+      // anchor column repeats the Poisson timing of the row above.
+      OurPipeline d = ours;
+      d.dmc = true;
+      Row drow{label + ": MPU + DMC " + std::to_string(resolution) + " + colour", row.anchor + " (same runs as above)"};
+      drow.ours = measure(opt, [&] { d.run(cloud); });
+      drow.theirs = row.theirs;
+      report.rows.push_back(drow);
+      report.note(label + " with DMC: fit " + format_fixed(d.seconds_fit, 2) + " s + DMC " +
+                  format_fixed(d.seconds_extract, 2) + " s + colour " + format_fixed(d.seconds_colour, 2) + " s, " +
+                  std::to_string(d.mesh.vertices.size()) + " vertices; " + quality(d.mesh));
+    }
+  }
+
+  // ---- colour transition: a sphere painted in two colours ----------------------
+  {
+    const int n_points = 100000, depth = 8;
+    const double radius = 0.05;
+    const Vec3d plane = Vec3d(0.3, 0.2, 1.0).normalized();  // not aligned with either grid
+    const double offset = 0.004;
+    const Rgb red{220, 30, 30}, blue{30, 40, 200};
+    Cloud sphere;
+    std::mt19937_64 rng(11);
+    std::normal_distribution<double> gauss(0.0, 1.0);
+    for (int i = 0; i < n_points; ++i) {
+      Vec3d d(gauss(rng), gauss(rng), gauss(rng));
+      d.normalize();
+      const Vec3d p = radius * d;
+      sphere.points.push_back(p.cast<float>());
+      sphere.normals.push_back(d.cast<float>());
+      sphere.colors.push_back(plane.dot(p) - offset > 0 ? blue : red);
+    }
+    const double sphere_diagonal = 2 * radius * std::sqrt(3.0);
+    const open3d::geometry::PointCloud pcd = to_open3d(sphere);
+    PoissonRun poisson;
+    poisson.depth = depth;
+    poisson.threads = threads;
+    poisson.run(pcd);
+    const int resolution = matched_resolution(sphere, threads, poisson.mesh.vertices.size(), 128);
+    OurPipeline ours;
+    ours.resolution = resolution;
+    ours.threads = threads;
+    ours.dmc = true;
+    Options opt = options;
+    opt.repetitions = std::min(options.repetitions, 3);
+    Row row{"sphere 100k, two colours: MPU + DMC " + std::to_string(resolution) + " + colour",
+            "TriangleMesh::CreateFromPointCloudPoisson depth " + std::to_string(depth) + " (colours)"};
+    std::tie(row.ours, row.theirs) = measure_pair(opt, [&] { ours.run(sphere); }, [&] { poisson.run(pcd); });
+    report.rows.push_back(row);
+    const double poisson_cell = 1.1 * 2 * radius / double(1 << depth);
+    const Transition t_ours = measure_transition(ours.mesh, plane, offset, red, blue, ours.cell_size);
+    const Transition t_poisson = measure_transition(poisson.mesh, plane, offset, red, blue, poisson_cell);
+    report.note("sphere r = 5 cm, " + std::to_string(n_points / 1000) +
+                "k points, exact normals, red / blue split by a tilted plane (sharp): colour coordinate t of a "
+                "vertex = its colour projected on red -> blue, s = its distance to the plane");
+    report.note("sphere, ours (DMC " + std::to_string(resolution) + ", cell " + mm(ours.cell_size) + ", " +
+                std::to_string(ours.colour_cells[1]) + " Type B cells): " +
+                describe(t_ours, ours.cell_size, sphere_diagonal));
+    report.note("sphere, Poisson depth " + std::to_string(depth) + " (cell " + mm(poisson_cell) + "): " +
+                describe(t_poisson, poisson_cell, sphere_diagonal));
+  }
+}
+
+static const bool registered =
+    register_group("surface", "MPU + colour + MC/DMC vs Open3D Poisson (issues 5, 7)", &run_surface_cases);
+
+}  // namespace station::bench
