@@ -37,6 +37,9 @@ struct PipelineConfig {
     double epsilon0 = 0;            ///< MPU tolerance; 0 = from the cloud's noise
     std::string extractor = "dmc";  ///< dmc | mc
     std::string hole = "close";     ///< close | keep (the unseen underside)
+    /// With hole close on a session (turntable axis known): no surface below the
+    /// lowest point along the axis, so the underside closes flat on the table.
+    bool table_plane = true;
     bool colour = true;             ///< colour the mesh when the cloud has colours
     std::string colour_method = "mpu";  ///< mpu (colour function) | nearest (k-NN transfer)
     bool colour_multi = false;      ///< colour function: 3+ colours per cell (junctions)

@@ -8,6 +8,7 @@
 #include <cmath>
 #include <cstdio>
 #include <fstream>
+#include <limits>
 #include <memory>
 #include <optional>
 #include <sstream>
@@ -21,6 +22,7 @@
 #include "reconstruct/color_transfer.h"
 #include "reconstruct/colour_function.h"
 #include "reconstruct/dmc.h"
+#include "reconstruct/half_space_clip.h"
 #include "reconstruct/sdm.h"
 #include "reconstruct/marching_cubes.h"
 #include "reconstruct/mesh_clean.h"
@@ -185,7 +187,7 @@ std::string surface_params(const PipelineConfig& p) {
   s << "surface/" << c.surface << ";resolution=" << c.resolution << ";epsilon0=" << fmt("%.17g", c.epsilon0)
     << ";extractor=" << c.extractor << ";hole=" << c.hole << ";colour=" << c.colour
     << ";colour_method=" << c.colour_method << ";multi=" << c.colour_multi << ";noise=" << c.colour_noise_robust
-    << ";min_component=" << fmt("%.17g", c.min_component);
+    << ";min_component=" << fmt("%.17g", c.min_component) << ";table_plane=" << c.table_plane;
   if (c.surface == "sdm") s << ";level=" << p.sdm.level;
   return s.str();
 }
@@ -555,15 +557,38 @@ class Runner {
     mo.threads = cfg_.threads;
     MarchingCubesStats stats;
     say("  surface: extracting at resolution " + std::to_string(c.resolution));
+    // The table plane (docs/run.md): a session's object frame knows its up, and
+    // the object rests on the table, so nothing of it lies below its lowest point.
+    std::optional<Vec3d> up;
+    for (const StageRecord& s : result_.stages)
+      if (s.name == "register" && s.figures.count("up_x"))
+        up = Vec3d(s.figures.at("up_x"), s.figures.at("up_y"), s.figures.at("up_z"));
+    std::unique_ptr<HalfSpaceClip> clip;
+    if (c.table_plane && c.hole == "close" && up && up->norm() > 0) {
+      const Vec3d u = up->normalized();
+      double lowest = std::numeric_limits<double>::infinity();
+      for (const Vec3f& p : input.points) lowest = std::min(lowest, u.dot(p.cast<double>()));
+      clip = std::make_unique<HalfSpaceClip>(surface, u, lowest);
+      r.figures["table_height"] = lowest;
+      say("  surface: closed flat at the table plane (lowest point along the turntable axis)");
+    }
+    // The box and seeds of the MpuSurface overloads of the extractors.
+    Aabb box = surface.bounds();
+    const float pad = 0.05f * (box.max - box.min).maxCoeff();
+    box.min.array() -= pad;
+    box.max.array() += pad;
+    mo.seeds = surface.points();
+    mo.close_at_box = true;
+    const ImplicitFunction& f = clip ? static_cast<const ImplicitFunction&>(*clip) : surface;
     Mesh mesh;
     if (c.extractor == "dmc") {
       DmcOptions dopt;
       static_cast<MarchingCubesOptions&>(dopt) = mo;
       DmcStats dstats;
-      mesh = extract_dmc(surface, c.resolution, dopt, &dstats);
+      mesh = extract_dmc(f, box, c.resolution, dopt, &dstats);
       stats = dstats;
     } else {
-      mesh = extract_marching_cubes(surface, c.resolution, mo, &stats);
+      mesh = extract_marching_cubes(f, box, c.resolution, mo, &stats);
     }
     if (mesh.faces.empty()) throw InvalidInput(in.string() + ": the reconstructed surface is empty");
     const ComponentFilterStats pieces = remove_small_components(mesh, c.min_component);

@@ -1,0 +1,35 @@
+#include "reconstruct/half_space_clip.h"
+
+#include <algorithm>
+#include <cmath>
+
+#include "core/error.h"
+
+namespace station {
+
+HalfSpaceClip::HalfSpaceClip(const ImplicitFunction& f, const Vec3d& up, double height)
+    : f_(f), up_(up), height_(height) {
+  const double n = up.norm();
+  if (!(n > 0) || !std::isfinite(n) || !std::isfinite(height))
+    throw InvalidInput("half-space clip: the plane needs a finite non-zero normal and a finite height");
+  up_ /= n;
+}
+
+double HalfSpaceClip::value(const Vec3d& x) const {
+  const double f = f_.value(x);
+  const double p = plane_value(x);
+  if (std::isnan(f)) return p > 0 ? p : f;  // below the plane is outside whatever f says
+  return std::max(f, p);
+}
+
+Vec3d HalfSpaceClip::gradient(const Vec3d& x) const {
+  const double f = f_.value(x);
+  return plane_value(x) >= f || std::isnan(f) ? Vec3d(-up_) : f_.gradient(x);
+}
+
+bool HalfSpaceClip::trusted(const Vec3d& x) const {
+  const double f = f_.value(x);
+  return plane_value(x) >= f || f_.trusted(x);
+}
+
+}  // namespace station
