@@ -84,6 +84,18 @@ TEST_F(PipelineTest, RunsEveryStageAndWritesAColouredMeshAndAReport) {
   EXPECT_EQ(html.find("https://"), std::string::npos);
   EXPECT_NE(html.find("<svg"), std::string::npos);  // residuals per view
   EXPECT_TRUE(fs::exists(out.path() / "run.yaml"));
+  // The closed underside stops at the table plane: no vertex below the lowest
+  // consolidated point along the turntable axis (docs/run.md, table_plane).
+  const StageRecord& reg = r.stages[0];
+  ASSERT_TRUE(reg.figures.count("up_x"));
+  const Vec3d up = Vec3d(reg.figures.at("up_x"), reg.figures.at("up_y"), reg.figures.at("up_z")).normalized();
+  ASSERT_TRUE(r.stages[2].figures.count("table_height"));
+  const double table = r.stages[2].figures.at("table_height");
+  double lowest = 1e30;
+  for (const Vec3f& v : m.vertices) lowest = std::min(lowest, up.dot(v.cast<double>()));
+  const double cell = r.stages[2].figures.at("cell_size");
+  EXPECT_GT(lowest, table - 0.1 * cell);
+  EXPECT_LT(lowest, table + cell);  // and it does reach the table: the bottom is closed there
 }
 
 TEST_F(PipelineTest, InterruptedRunResumesToTheSameMesh) {
