@@ -303,6 +303,26 @@ void run_surface_cases(const Options& options, Report& report) {
                 format_fixed(poisson_first_s, 2) + " s), " + std::to_string(poisson.mesh.vertices.size()) +
                 " vertices; " + quality(poisson.mesh));
 
+    {
+      // Issue 5's comparison: geometry only, our fit + extraction against Poisson on the
+      // same cloud without colours (one run at 1M).
+      OurPipeline g = ours;
+      g.colour = false;
+      open3d::geometry::PointCloud plain = pcd;
+      plain.colors_.clear();
+      PoissonRun pg = poisson;
+      Options gopt = opt;
+      if (c.reduced) gopt.repetitions = 1;
+      Row grow{label + ": MPU + MC " + std::to_string(resolution) + ", no colour",
+               "TriangleMesh::CreateFromPointCloudPoisson depth " + std::to_string(c.depth) + " (no colours)"};
+      std::tie(grow.ours, grow.theirs) = measure_pair(gopt, [&] { g.run(cloud); }, [&] { pg.run(plain); });
+      report.rows.push_back(grow);
+      report.note(label + ", no colour (" + std::to_string(gopt.repetitions) + " timed runs): ours fit " +
+                  format_fixed(g.seconds_fit, 2) + " s + MC " + format_fixed(g.seconds_extract, 2) + " s, " +
+                  std::to_string(g.mesh.vertices.size()) + " vertices; Poisson " +
+                  std::to_string(pg.mesh.vertices.size()) + " vertices");
+    }
+
     if (!c.reduced) {
       // The same with Deformed Marching Cubes (the station's default extractor); the
       // anchor column repeats the Poisson timing of the row above.
