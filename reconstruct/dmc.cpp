@@ -1161,10 +1161,7 @@ Mesh extract_dmc(const ImplicitFunction& f, const Aabb& box, int resolution, con
 }
 
 Mesh extract_dmc(const MpuSurface& surface, int resolution, DmcOptions options, DmcStats* stats) {
-  Aabb box = surface.bounds();
-  const float pad = 0.05f * (box.max - box.min).maxCoeff();
-  box.min.array() -= pad;
-  box.max.array() += pad;
+  const Aabb box = extraction_box(surface);
   options.seeds = surface.points();
   options.close_at_box = true;
   return extract_dmc(static_cast<const ImplicitFunction&>(surface), box, resolution, options, stats);

@@ -325,12 +325,17 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
   return mesh;
 }
 
-Mesh extract_marching_cubes(const MpuSurface& surface, int resolution, MarchingCubesOptions options,
-                            MarchingCubesStats* stats) {
+Aabb extraction_box(const MpuSurface& surface) {
   Aabb box = surface.bounds();
   const float pad = 0.05f * (box.max - box.min).maxCoeff();
   box.min.array() -= pad;
   box.max.array() += pad;
+  return box;
+}
+
+Mesh extract_marching_cubes(const MpuSurface& surface, int resolution, MarchingCubesOptions options,
+                            MarchingCubesStats* stats) {
+  const Aabb box = extraction_box(surface);
   options.seeds = surface.points();
   // Capped either way: kLeaveOpen then drops the cap with the rest of the untrusted part.
   options.close_at_box = true;

@@ -59,6 +59,10 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
                             const MarchingCubesOptions& options = {},
                             MarchingCubesStats* stats = nullptr);
 
+/// The extraction box of an MPU surface: the input's bounding box grown by 5 % of
+/// its longest side on every side (used by both extractors' MpuSurface overloads).
+Aabb extraction_box(const MpuSurface& surface);
+
 /// The MPU surface's mesh: the box is the input's bounding box grown by 5 % of its
 /// longest side on every side, the seeds are the input points (options.seeds is
 /// replaced), close_at_box is set: where MPU's

@@ -573,10 +573,7 @@ class Runner {
       say("  surface: closed flat at the table plane (lowest point along the turntable axis)");
     }
     // The box and seeds of the MpuSurface overloads of the extractors.
-    Aabb box = surface.bounds();
-    const float pad = 0.05f * (box.max - box.min).maxCoeff();
-    box.min.array() -= pad;
-    box.max.array() += pad;
+    const Aabb box = extraction_box(surface);
     mo.seeds = surface.points();
     mo.close_at_box = true;
     const ImplicitFunction& f = clip ? static_cast<const ImplicitFunction&>(*clip) : surface;
