@@ -1071,7 +1071,7 @@ int run_cli(int argc, char** argv) {
   reg->add_option("--poses-out", reg_args.poses_out, "write the refined poses and diagnostics (YAML)");
   reg->add_option("--objective", reg_args.objective,
                   "ICP objective (profile register.objective; default point-to-plane); colored needs coloured views")
-      ->check(CLI::IsMember({"point-to-plane", "symmetric", "point-to-point", "colored", "generalized"}));
+      ->check(CLI::IsMember(registration_objectives()));
   reg->add_flag("--no-global", reg_args.no_global,
                 "no global registration by features: views without an angle or pose fail");
   reg->add_flag("--no-angle-check", reg_args.no_angle_check, "trust the commanded turntable angles");

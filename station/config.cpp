@@ -2,6 +2,7 @@
 
 #include <yaml-cpp/yaml.h>
 
+#include <algorithm>
 #include <cmath>
 
 #include "core/error.h"
@@ -112,9 +113,15 @@ void apply_override(YAML::Node& root, const std::string& kv) {
 
 }  // namespace
 
+const std::vector<std::string>& registration_objectives() {
+  static const std::vector<std::string> names = {"point-to-plane", "symmetric", "point-to-point", "colored",
+                                                 "generalized"};
+  return names;
+}
+
 bool valid_registration_objective(const std::string& name) {
-  return name == "point-to-plane" || name == "symmetric" || name == "point-to-point" || name == "colored" ||
-         name == "generalized";
+  const auto& n = registration_objectives();
+  return std::find(n.begin(), n.end(), name) != n.end();
 }
 
 namespace {

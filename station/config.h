@@ -73,7 +73,9 @@ StationConfig load_config(const std::filesystem::path& path,
 /// source tree the binary was built from, if it is there; else built-in defaults.
 std::filesystem::path default_config_path();
 
-/// The names `register.objective` accepts (see PipelineConfig::Register).
+/// The names `register.objective` accepts (see PipelineConfig::Register), in one
+/// place for the profile check and the CLI's --objective.
+const std::vector<std::string>& registration_objectives();
 bool valid_registration_objective(const std::string& name);
 
 /// "scheme:path?a=1" + {b: 2} -> "scheme:path?a=1&b=2" (options override the URI's).
