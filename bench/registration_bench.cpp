@@ -30,6 +30,7 @@
 #include "capture/registration.h"
 #include "capture/session.h"
 #include "core/io.h"
+#include "core/stanford_conf.h"
 #include "harness.h"
 #include "reconstruct/eval.h"
 
@@ -273,20 +274,14 @@ DragonSession load_dragon(const Options& options) {
     dir = options.source_dir / "data" / "dragon_stand";
     s.where = "data/dragon_stand (bundled: every 5th point; ../shared missing)";
   }
-  std::ifstream conf(dir / "dragonStandRight.conf");
   s.manifest.scanner = "import";
-  std::string line;
-  while (std::getline(conf, line)) {
-    std::istringstream in(line);
-    std::string kind, file;
-    double tx, ty, tz, qx, qy, qz, qw;
-    if (!(in >> kind >> file >> tx >> ty >> tz >> qx >> qy >> qz >> qw) || kind != "bmesh") continue;
+  for (const StanfordScan& scan : read_stanford_conf(dir / "dragonStandRight.conf")) {
     ViewRecord v;
-    v.file = file;
-    v.angle_deg = std::stoi(file.substr(file.rfind('_') + 1));
-    v.reference_pose = pose_from_tq(Vec3d(tx, ty, tz), Eigen::Vector4d(-qx, -qy, -qz, qw));
+    v.file = scan.file;
+    v.angle_deg = std::stoi(scan.file.substr(scan.file.rfind('_') + 1));
+    v.reference_pose = scan.pose;
     s.manifest.views.push_back(v);
-    s.clouds.push_back(read_cloud(dir / file));
+    s.clouds.push_back(read_cloud(dir / scan.file));
   }
   return s;
 }

@@ -23,10 +23,12 @@
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "core/io.h"
+#include "core/stanford_conf.h"
 #include "core/texture.h"
 #include "drivers/registry.h"
 #include "drivers/v4l2_probe.h"
 #include "reconstruct/color_transfer.h"
+#include "reconstruct/consolidation_metrics.h"
 #include "reconstruct/eval.h"
 #include "reconstruct/marching_cubes.h"
 #include "reconstruct/mpu.h"
@@ -398,12 +400,46 @@ std::string stats_json(const DirectedStats& s, JsonObject& j) {
   return j.str();
 }
 
-int cmd_eval(const Common& c, const std::string& a, const std::string& b, int samples, unsigned seed) {
+/// `station eval --points-metrics`: the consolidation metrics of A's points against
+/// reference mesh B (reconstruct/consolidation_metrics.h).
+struct PointsMetricsArgs {
+  bool enabled = false;
+  double edge_radius = 0;   ///< points within this distance of a sharp edge count (0: no edge error)
+  double edge_angle = 30;   ///< degrees between face normals that make an edge sharp
+};
+
+struct PointsMetrics {
+  std::size_t points = 0;
+  double accuracy = 0, uniformity = 0, surface_uniformity = 0, area = 0;
+  std::size_t sharp_edges = 0;
+  std::optional<EdgeError> edge;
+};
+
+PointsMetrics points_metrics(const EvalInput& a, const EvalInput& b, const PointsMetricsArgs& args,
+                             int threads) {
+  if (!b.is_mesh) throw InvalidInput("--points-metrics: B must be a mesh (the reference surface)");
+  const std::vector<Vec3f>& pts = a.textured.mesh.vertices;  // a cloud's points, a mesh's vertices
+  const Mesh& ref = b.textured.mesh;
+  PointsMetrics m;
+  m.points = pts.size();
+  m.area = mesh_area(ref);
+  m.accuracy = mean_distance_to_mesh(pts, ref, threads);
+  m.uniformity = uniformity(pts, m.area);
+  m.surface_uniformity = surface_uniformity(pts, ref, threads);
+  m.sharp_edges = sharp_edges(ref, args.edge_angle).size();
+  if (args.edge_radius > 0) m.edge = edge_error(pts, ref, args.edge_radius, args.edge_angle, threads);
+  return m;
+}
+
+int cmd_eval(const Common& c, const std::string& a, const std::string& b, int samples, unsigned seed,
+             const PointsMetricsArgs& pm_args) {
   const auto t0 = std::chrono::steady_clock::now();
   StationConfig cfg = load_common(c);
   EvalInput ia, ib;
   read_eval_input(a, ia);
   read_eval_input(b, ib);
+  std::optional<PointsMetrics> pm;
+  if (pm_args.enabled) pm = points_metrics(ia, ib, pm_args, cfg.threads);
   const Shape sa = ia.shape(), sb = ib.shape();
   EvalParams params;
   params.a_surface_color = ia.surface_color();
@@ -421,6 +457,19 @@ int cmd_eval(const Common& c, const std::string& a, const std::string& b, int sa
         .add("hausdorff", r.hausdorff).add("p95", r.p95).add("a_to_b", ab).add("b_to_a", ba);
     if (r.normal_consistency) j.add("normal_consistency", *r.normal_consistency); else j.add_null("normal_consistency");
     if (r.color_error) j.add("color_error", *r.color_error); else j.add_null("color_error");
+    if (pm) {
+      JsonObject p;
+      p.add("points", pm->points).add("accuracy", pm->accuracy).add("uniformity", pm->surface_uniformity)
+          .add("uniformity_3d", pm->uniformity).add("reference_area", pm->area)
+          .add("sharp_edges", pm->sharp_edges).add("edge_angle_deg", pm_args.edge_angle);
+      if (pm->edge) {
+        p.add("edge_radius", pm_args.edge_radius).add("edge_error", pm->edge->mean)
+            .add("edge_points", pm->edge->count);
+      } else {
+        p.add_null("edge_radius").add_null("edge_error").add_null("edge_points");
+      }
+      j.add("points_metrics", p);
+    }
     j.add("timings_s", JsonObject().add("eval", seconds_since(t0)));
     print_summary(j);
   } else {
@@ -436,6 +485,18 @@ int cmd_eval(const Common& c, const std::string& a, const std::string& b, int sa
     else std::printf("normal consistency: n/a (normals missing)\n");
     if (r.color_error) std::printf("colour error e_col %.6g\n", *r.color_error);
     else std::printf("colour error: n/a (colours missing on one side)\n");
+    if (pm) {
+      std::printf("points metrics (%zu points of A against mesh B):\n", pm->points);
+      std::printf("  accuracy (mean distance to B) %.6g\n", pm->accuracy);
+      std::printf("  uniformity (on B's surface) %.4f, in 3-D %.4f (B's area %.6g)\n",
+                  pm->surface_uniformity, pm->uniformity, pm->area);
+      if (pm->edge)
+        std::printf("  edge error (within %.6g of %zu sharp edges > %g deg) %.6g over %zu points\n",
+                    pm_args.edge_radius, pm->sharp_edges, pm_args.edge_angle, pm->edge->mean, pm->edge->count);
+      else
+        std::printf("  edge error: n/a (give --edge-radius, e.g. 2h; %zu sharp edges > %g deg)\n",
+                    pm->sharp_edges, pm_args.edge_angle);
+    }
   }
   return 0;
 }
@@ -453,42 +514,13 @@ struct ImportArgs {
   std::string units = "m";
 };
 
-/// Stanford .conf "bmesh FILE tx ty tz qx qy qz qw" lines: p_world = R^T p_scan + t
-/// (checked numerically on the dragon data; see docs/session-format.md).
-std::map<std::string, Eigen::Matrix4d> read_stanford_conf(const fs::path& path) {
-  std::istringstream in(read_file_bytes(path));
-  std::map<std::string, Eigen::Matrix4d> poses;
-  std::string line;
-  int n = 0;
-  while (std::getline(in, line)) {
-    ++n;
-    std::istringstream ls(line);
-    std::string tag, file;
-    ls >> tag;
-    if (tag != "bmesh") continue;
-    double v[7];
-    ls >> file;
-    for (double& x : v) ls >> x;
-    if (!ls || file.empty()) throw FormatError(path.string() + ": line " + std::to_string(n) + ": expected bmesh FILE tx ty tz qx qy qz qw");
-    for (double x : v)
-      if (!std::isfinite(x)) throw FormatError(path.string() + ": line " + std::to_string(n) + ": non-finite number");
-    Eigen::Quaterniond q(v[6], v[3], v[4], v[5]);
-    if (q.norm() < 1e-12) throw FormatError(path.string() + ": line " + std::to_string(n) + ": zero quaternion");
-    q.normalize();
-    Eigen::Matrix4d T = Eigen::Matrix4d::Identity();
-    T.block<3, 3>(0, 0) = q.toRotationMatrix().transpose();
-    T.block<3, 1>(0, 3) = Vec3d(v[0], v[1], v[2]);
-    poses[file] = T;
-  }
-  return poses;
-}
-
 int cmd_import(const Common& c, const ImportArgs& a) {
   const auto t0 = std::chrono::steady_clock::now();
   load_common(c);
   if (a.every < 1) throw InvalidInput("--every must be at least 1");
   std::map<std::string, Eigen::Matrix4d> poses;
-  if (!a.stanford_conf.empty()) poses = read_stanford_conf(a.stanford_conf);
+  if (!a.stanford_conf.empty())
+    for (const StanfordScan& scan : read_stanford_conf(a.stanford_conf)) poses[scan.file] = scan.pose;
   // Read everything first: a bad file aborts before anything is written.
   std::vector<Cloud> clouds;
   for (const std::string& f : a.files) {
@@ -1050,6 +1082,19 @@ int run_cli(int argc, char** argv) {
   eval->add_option("b", eval_b, "reference (cloud or mesh)")->required();
   eval->add_option("--samples", eval_samples, "points sampled on each mesh")->capture_default_str()->check(CLI::Range(1, 100000000));
   eval->add_option("--seed", eval_seed, "sampling seed")->capture_default_str();
+  PointsMetricsArgs eval_pm;
+  eval->add_flag("--points-metrics", eval_pm.enabled,
+                 "also the consolidation metrics of A's points (a cloud's points, a mesh's vertices) "
+                 "against mesh B: accuracy (mean distance to B), uniformity (Schloemer's normalised "
+                 "mean nearest-neighbour distance, on B's surface and in 3-D) and, with --edge-radius, "
+                 "edge error");
+  eval->add_option("--edge-radius", eval_pm.edge_radius,
+                   "edge error: mean distance to B of A's points within this distance of a sharp edge "
+                   "of B (e.g. 2h of the consolidation; implies --points-metrics)")
+      ->check(CLI::PositiveNumber);
+  eval->add_option("--edge-angle", eval_pm.edge_angle,
+                   "an edge of B is sharp when its faces' normals differ by more than this (degrees)")
+      ->capture_default_str()->check(CLI::Range(0.0, 180.0));
 
   ImportArgs import_args;
   auto* import = app.add_subcommand("import", "Make a session from view files recorded elsewhere");
@@ -1160,7 +1205,10 @@ int run_cli(int argc, char** argv) {
     if (*scan) return cmd_scan(c_scan, scan_args);
     if (*runc) return cmd_run(c_run, run_args);
     if (*replay) return cmd_replay(c_replay, replay_src, replay_out);
-    if (*eval) return cmd_eval(c_eval, eval_a, eval_b, eval_samples, eval_seed);
+    if (*eval) {
+      if (eval_pm.edge_radius > 0) eval_pm.enabled = true;
+      return cmd_eval(c_eval, eval_a, eval_b, eval_samples, eval_seed, eval_pm);
+    }
     if (*import) return cmd_import(c_import, import_args);
     if (*cons) return cmd_consolidate(c_cons, cons_args);
     if (*rec) return cmd_reconstruct(c_rec, rec_args);

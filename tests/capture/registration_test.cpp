@@ -11,6 +11,7 @@
 
 #include "core/error.h"
 #include "core/io.h"
+#include "core/stanford_conf.h"
 #include "test_util.h"
 
 namespace station {
@@ -20,22 +21,15 @@ namespace {
 // and reference poses [R^T | t] (docs/session-format.md), no axis.
 SessionManifest dragon_manifest(std::vector<Cloud>& clouds) {
   const auto dir = test::source_dir() / "data/dragon_stand";
-  std::ifstream conf(dir / "dragonStandRight.conf");
   SessionManifest m;
   m.scanner = "import";
-  std::string line;
-  while (std::getline(conf, line)) {
-    std::istringstream in(line);
-    std::string kind, file;
-    double tx, ty, tz, qx, qy, qz, qw;
-    if (!(in >> kind >> file >> tx >> ty >> tz >> qx >> qy >> qz >> qw) || kind != "bmesh") continue;
+  for (const StanfordScan& scan : read_stanford_conf(dir / "dragonStandRight.conf")) {
     ViewRecord v;
-    v.file = file;
-    const int angle = std::stoi(file.substr(file.rfind('_') + 1));
-    v.angle_deg = angle;
-    v.reference_pose = pose_from_tq(Vec3d(tx, ty, tz), Eigen::Vector4d(-qx, -qy, -qz, qw));
+    v.file = scan.file;
+    v.angle_deg = std::stoi(scan.file.substr(scan.file.rfind('_') + 1));
+    v.reference_pose = scan.pose;
     m.views.push_back(v);
-    clouds.push_back(read_cloud(dir / file));
+    clouds.push_back(read_cloud(dir / scan.file));
   }
   return m;
 }

@@ -15,6 +15,7 @@
 
 #include "core/error.h"
 #include "core/io.h"
+#include "core/stanford_conf.h"
 #include "core/texture.h"
 #include "reconstruct/color_transfer.h"
 #include "reconstruct/eval.h"
@@ -428,18 +429,7 @@ TEST(ColourFunction, MustardBottleTextureRegression) {
 TEST(ColourFunction, DragonHalfRedHalfBlue) {
   const std::filesystem::path dir = test::source_dir() / "../shared/data/stanford_dragon_stand";
   if (!std::filesystem::exists(dir / "dragonStandRight.conf")) GTEST_SKIP() << "no " << dir;
-  std::istringstream conf(read_file_bytes(dir / "dragonStandRight.conf"));
-  std::vector<Vec3f> pts;
-  for (std::string line; std::getline(conf, line);) {
-    std::istringstream ls(line);
-    std::string kind, file;
-    double t[3], q[4];
-    if (!(ls >> kind >> file >> t[0] >> t[1] >> t[2] >> q[0] >> q[1] >> q[2] >> q[3]) || kind != "bmesh") continue;
-    const Eigen::Matrix3d R = Eigen::Quaterniond(q[3], q[0], q[1], q[2]).normalized().toRotationMatrix();
-    const Mesh scan = read_mesh(dir / file);
-    for (std::size_t i = 0; i < scan.vertices.size(); i += 4)
-      pts.push_back((R.transpose() * scan.vertices[i].cast<double>() + Vec3d(t[0], t[1], t[2])).cast<float>());
-  }
+  const std::vector<Vec3f> pts = merge_stanford_scans(dir / "dragonStandRight.conf", 4).points;
   ASSERT_GT(pts.size(), 50000u);
   const Aabb box = bounding_box(pts);
   const Vec3d mid = box.center().cast<double>();

@@ -10,6 +10,7 @@
 #include <sstream>
 
 #include "core/io.h"
+#include "core/stanford_conf.h"
 #include "core/normals.h"
 #include "reconstruct/eval.h"
 #include "reconstruct/marching_cubes.h"
@@ -20,26 +21,9 @@
 namespace station {
 namespace {
 
+// Stanford's alignment, as `station import` reads it (core/stanford_conf.h).
 Cloud merged_dragon() {
-  const auto dir = test::source_dir() / "data/dragon_stand";
-  std::ifstream conf(dir / "dragonStandRight.conf");
-  Cloud all;
-  std::string line;
-  while (std::getline(conf, line)) {
-    std::istringstream in(line);
-    std::string kind, file;
-    double tx, ty, tz, qx, qy, qz, qw;
-    if (!(in >> kind >> file >> tx >> ty >> tz >> qx >> qy >> qz >> qw) || kind != "bmesh") continue;
-    // Stanford's .conf: p_world = R(q)^-1... as `station import` reads it (docs/session-format.md):
-    // the pose is [R(q)^T | t].
-    Eigen::Matrix4d T = Eigen::Matrix4d::Identity();
-    T.topLeftCorner<3, 3>() = Eigen::Quaterniond(qw, -qx, -qy, -qz).normalized().toRotationMatrix();
-    T.topRightCorner<3, 1>() = Vec3d(tx, ty, tz);
-    Cloud v = read_cloud(dir / file);
-    transform_cloud(v, T);
-    all.points.insert(all.points.end(), v.points.begin(), v.points.end());
-  }
-  return all;
+  return merge_stanford_scans(test::source_dir() / "data/dragon_stand/dragonStandRight.conf");
 }
 
 bool closed_manifold(const Mesh& m) {
