@@ -414,7 +414,11 @@ struct Engine {
     return bad;
   }
 
-  float energy(int v, const Vec3f& c, const int* pts, int npts) const {
+  // Sum of squared point-to-face distances over v's faces with v at c; stops once the
+  // sum reaches `bound` (terms are non-negative, so a candidate that reaches the best
+  // energy so far cannot beat it: the comparison e < bound gives the same answer).
+  float energy(int v, const Vec3f& c, const int* pts, int npts,
+               float bound = std::numeric_limits<float>::infinity()) const {
     float e = 0;
     for (int j = adj.vf_start[v]; j < adj.vf_start[v + 1]; ++j) {
       const Face& f = faces[adj.vf[j]];
@@ -422,6 +426,7 @@ struct Engine {
       const Vec3f b = f[1] == v ? c : pos[f[1]];
       const Vec3f d = f[2] == v ? c : pos[f[2]];
       for (int k = 0; k < npts; ++k) e += point_triangle_dist2(target.points[pts[k]], a, b, d);
+      if (e >= bound) return e;
     }
     return e;
   }
@@ -430,7 +435,15 @@ struct Engine {
   // vertices found (vertex grid) within the box of v's faces grown by their longest
   // edge (any face crossing them has a vertex there, given edges of similar length).
   bool crosses_nearby(int v, const Vec3f& c) const {
-    thread_local std::vector<int> near_faces;
+    struct Near {
+      int face;
+      Vec3f lo, hi;
+    };
+    thread_local std::vector<Near> near_faces;
+    thread_local std::vector<std::uint32_t> seen;  // per face: the last call that saw it
+    thread_local std::uint32_t call = 0;
+    if (seen.size() != faces.size()) seen.assign(faces.size(), 0), call = 0;
+    if (++call == 0) std::fill(seen.begin(), seen.end(), 0), call = 1;
     Vec3f lo = c, hi = c;
     float longest = 0;
     for (int j = adj.ring_start[v]; j < adj.ring_start[v + 1]; ++j) {
@@ -440,21 +453,30 @@ struct Engine {
       longest = std::max(longest, (u - c).norm());
     }
     const Vec3f pad = Vec3f::Constant(longest);
+    // Each face once, only those meeting the moved fan's box (lo, hi) and not at v:
+    // the same set of pairs as testing every face found, so the same answer.
     near_faces.clear();
     grid->for_box(lo - pad, hi + pad, [&](int u) {
-      for (int j = adj.vf_start[u]; j < adj.vf_start[u + 1]; ++j) near_faces.push_back(adj.vf[j]);
+      for (int j = adj.vf_start[u]; j < adj.vf_start[u + 1]; ++j) {
+        const int g = adj.vf[j];
+        if (seen[g] == call) continue;
+        seen[g] = call;
+        const Face& B = faces[g];
+        if (B[0] == v || B[1] == v || B[2] == v) continue;
+        const Vec3f &b0 = pos[B[0]], &b1 = pos[B[1]], &b2 = pos[B[2]];
+        const Vec3f blo = b0.cwiseMin(b1).cwiseMin(b2), bhi = b0.cwiseMax(b1).cwiseMax(b2);
+        if ((blo.array() > hi.array()).any() || (bhi.array() < lo.array()).any()) continue;
+        near_faces.push_back({g, blo, bhi});
+      }
     });
-    // (Faces repeat, once per vertex found; the box test below makes repeats cheap.)
     for (int j = adj.vf_start[v]; j < adj.vf_start[v + 1]; ++j) {
       const Face& A = faces[adj.vf[j]];
       const Vec3f a[3] = {A[0] == v ? c : pos[A[0]], A[1] == v ? c : pos[A[1]], A[2] == v ? c : pos[A[2]]};
-      const Vec3f lo = a[0].cwiseMin(a[1]).cwiseMin(a[2]), hi = a[0].cwiseMax(a[1]).cwiseMax(a[2]);
-      for (int g : near_faces) {
-        const Face& B = faces[g];
-        if (B[0] == v || B[1] == v || B[2] == v) continue;
+      const Vec3f alo = a[0].cwiseMin(a[1]).cwiseMin(a[2]), ahi = a[0].cwiseMax(a[1]).cwiseMax(a[2]);
+      for (const Near& n : near_faces) {
+        if ((n.lo.array() > ahi.array()).any() || (n.hi.array() < alo.array()).any()) continue;
+        const Face& B = faces[n.face];
         const Vec3f b[3] = {pos[B[0]], pos[B[1]], pos[B[2]]};
-        const Vec3f blo = b[0].cwiseMin(b[1]).cwiseMin(b[2]), bhi = b[0].cwiseMax(b[1]).cwiseMax(b[2]);
-        if ((blo.array() > hi.array()).any() || (bhi.array() < lo.array()).any()) continue;
         if (faces_intersect(A, B, a, b)) return true;
       }
     }
@@ -512,7 +534,7 @@ struct Engine {
         const Vec3f pj = k == nc ? mean : target.points[a.omega[os + int(std::int64_t(k) * no / nc)]];
         for (float w : P.steps) {
           const Vec3f c = cur + w * (pj - cur);  // eq. 19
-          const float e = energy(v, c, pts, ne);
+          const float e = energy(v, c, pts, ne, best_e);
           if (e < best_e) {
             const int b = bad_faces(v, c, ref);
             if (b <= cur_bad) best_e = e, best = c;
