@@ -6,11 +6,14 @@
 #include <array>
 #include <cstdio>
 #include <fstream>
+#include <random>
 #include <regex>
 #include <string>
 
 #include "capture/session.h"
 #include "core/io.h"
+#include "reconstruct/consolidation_metrics.h"
+#include "reconstruct/eval.h"
 #include "test_util.h"
 
 namespace station {
@@ -204,6 +207,67 @@ TEST(Cli, DragonImportsAndReplaysLikeALiveScanner) {
   EXPECT_NE(r.out.find("\"warnings\":[]"), std::string::npos) << r.out;
   r = run("register " + session + " -o " + merged + " --objective sideways");
   EXPECT_EQ(r.code, 2) << r.out;
+}
+
+TEST(Cli, EvalPointsMetrics) {
+  test::TempDir dir;
+  // Points 0.01 outside a cube's faces: accuracy and edge error are 0.01 exactly.
+  const Mesh cube = test::box(Vec3f(-1, -1, -1), Vec3f(1, 1, 1));
+  const std::string cube_ply = (dir / "cube.ply").string();
+  write_ply(cube_ply, cube);
+  Cloud shell = sample_mesh(cube, 3000, 3);
+  for (std::size_t i = 0; i < shell.size(); ++i) shell.points[i] += 0.01f * shell.normals[i];
+  const std::string shell_ply = (dir / "shell.ply").string();
+  write_ply(shell_ply, shell);
+  CmdResult r = run("eval " + shell_ply + " " + cube_ply + " --samples 1000 --edge-radius 0.2 --json");
+  ASSERT_EQ(r.code, 0) << r.out;
+  const Cloud read = read_cloud(shell_ply);
+  EXPECT_NEAR(json_number(r.out, "accuracy"), 0.01, 1e-6) << r.out;
+  EXPECT_NEAR(json_number(r.out, "edge_error"), 0.01, 1e-6) << r.out;
+  const EdgeError ee = edge_error(read.points, cube, 0.2);
+  EXPECT_GT(ee.count, 300u);
+  EXPECT_EQ(json_number(r.out, "edge_points"), double(ee.count)) << r.out;
+  EXPECT_EQ(json_number(r.out, "sharp_edges"), 12) << r.out;
+  EXPECT_NEAR(json_number(r.out, "uniformity"), surface_uniformity(read.points, cube), 1e-6) << r.out;
+  EXPECT_NEAR(json_number(r.out, "uniformity_3d"), uniformity(read.points, 24.0), 1e-6) << r.out;
+  // Text output; without --edge-radius the edge error is n/a.
+  r = run("eval " + shell_ply + " " + cube_ply + " --samples 1000 --points-metrics");
+  ASSERT_EQ(r.code, 0) << r.out;
+  std::smatch m;
+  ASSERT_TRUE(std::regex_search(r.out, m, std::regex("accuracy \\(mean distance to B\\) ([0-9.e-]+)"))) << r.out;
+  EXPECT_NEAR(std::stod(m[1]), 0.01, 1e-5) << r.out;
+  EXPECT_NE(r.out.find("edge error: n/a"), std::string::npos) << r.out;
+  // The reference must be a mesh.
+  r = run("eval " + shell_ply + " " + shell_ply + " --samples 1000 --points-metrics");
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_NE(r.out.find("B must be a mesh"), std::string::npos) << r.out;
+  r = run("eval " + shell_ply + " " + cube_ply + " --edge-radius -1");
+  EXPECT_EQ(r.code, 2) << r.out;
+
+  // End to end on the fandisk (d_bb 1.45) with 0.3 % noise: edge-WLOP's points keep
+  // the sharp edges better.
+  const std::string fandisk = repo("tests/data/consolidation/fandisk.off");
+  const Mesh mesh = read_mesh(fandisk);
+  Cloud in = sample_mesh(mesh, 20000, 5);
+  std::mt19937 rng(5);
+  std::normal_distribution<float> noise(0, 0.0044f);
+  for (Vec3f& p : in.points) p += Vec3f(noise(rng), noise(rng), noise(rng));
+  const std::string in_ply = (dir / "fandisk.ply").string();
+  write_ply(in_ply, Cloud{in.points, {}, {}});
+  double edge[2];
+  for (int m = 0; m < 2; ++m) {
+    const std::string out = (dir / ("out" + std::to_string(m) + ".ply")).string();
+    r = run("consolidate " + in_ply + " -o " + out + " --points 4000 --radius 0.04 --method " +
+            (m ? "edge-wlop" : "wlop"));
+    ASSERT_EQ(r.code, 0) << r.out;
+    r = run("eval " + out + " " + fandisk + " --samples 1000 --edge-radius 0.08 --json");
+    ASSERT_EQ(r.code, 0) << r.out;
+    edge[m] = json_number(r.out, "edge_error");
+    EXPECT_GT(json_number(r.out, "edge_points"), 500) << r.out;
+  }
+  RecordProperty("edge_error_wlop", std::to_string(edge[0]));
+  RecordProperty("edge_error_edge_wlop", std::to_string(edge[1]));
+  EXPECT_LT(edge[1], 0.75 * edge[0]) << "wlop " << edge[0] << ", edge-wlop " << edge[1];
 }
 
 TEST(Cli, BadInputGivesOneLineErrorsNamingTheCulprit) {
