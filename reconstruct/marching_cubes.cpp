@@ -1,13 +1,15 @@
 #include "reconstruct/marching_cubes.h"
 
+#include <tbb/enumerable_thread_specific.h>
 #include <tbb/parallel_for.h>
 #include <tbb/task_arena.h>
 
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
-#include <unordered_map>
-#include <unordered_set>
+#include <cstdint>
+#include <limits>
+#include <tuple>
 
 #include "core/error.h"
 #include "reconstruct/mc_tables.h"
@@ -125,9 +127,129 @@ using Key = std::uint64_t;
 Key key(std::int64_t i, std::int64_t j, std::int64_t k) {
   return Key(i) | Key(j) << 21 | Key(k) << 42;
 }
-int ki(Key k) { return int(k & 0x1FFFFF); }
-int kj(Key k) { return int(k >> 21 & 0x1FFFFF); }
-int kk(Key k) { return int(k >> 42 & 0x1FFFFF); }
+
+// The lattice near the surface, in blocks of 4^3 lattice points (and of the 4^3 cells
+// whose lowest corner they are), created as the walk reaches them: per block the
+// values (float, sign kept), bit masks of the evaluated points, the visited and the
+// crossed cells, the crossed edges starting at each point (vertex ids by popcount),
+// and links to the 7 blocks above it so a cell's corners are found without hashing.
+// Memory grows with the surface; nothing is kept per lattice point outside the blocks.
+constexpr int kSide = 4;
+constexpr std::int32_t kNone = -1, kUnknown = -2;
+
+int local_index(int li, int lj, int lk) { return li | lj << 2 | lk << 4; }
+
+struct Block {
+  int bi, bj, bk;
+  std::uint64_t evaluated = 0, visited = 0, surface = 0;
+  std::uint64_t edges[3] = {0, 0, 0};  // crossed edge from the point along each axis
+  std::uint32_t vbase = 0;             // id of the block's first vertex
+  std::uint32_t fbase = 0;             // index of the block's first face
+  std::int32_t up[8];                  // block at + (q & 1, q >> 1 & 1, q >> 2 & 1); kNone until linked
+  std::int32_t down[3] = {kUnknown, kUnknown, kUnknown};  // block at -1 along each axis
+  bool linked = false;
+};
+
+class BlockLattice {
+ public:
+  BlockLattice() { rehash(1 << 12); }
+  std::int32_t find(int bi, int bj, int bk) const {
+    const Key k = key(bi, bj, bk);
+    for (std::size_t i = hash(k) & mask_;; i = (i + 1) & mask_) {
+      if (slots_[i].second == kNone) return kNone;
+      if (slots_[i].first == k) return slots_[i].second;
+    }
+  }
+  std::int32_t get(int bi, int bj, int bk) {
+    const Key k = key(bi, bj, bk);
+    std::size_t i = hash(k) & mask_;
+    for (;; i = (i + 1) & mask_) {
+      if (slots_[i].second == kNone) break;
+      if (slots_[i].first == k) return slots_[i].second;
+    }
+    const std::int32_t b = std::int32_t(blocks.size());
+    Block blk;
+    blk.bi = bi, blk.bj = bj, blk.bk = bk;
+    std::fill(std::begin(blk.up), std::end(blk.up), kNone);
+    blk.up[0] = b;
+    blocks.push_back(blk);
+    values.resize(values.size() + 64);
+    slots_[i] = {k, b};
+    if (blocks.size() * 2 > slots_.size()) rehash(slots_.size() * 2);
+    return b;
+  }
+  void link(std::int32_t b) {
+    if (blocks[b].linked) return;
+    const int bi = blocks[b].bi, bj = blocks[b].bj, bk = blocks[b].bk;
+    for (int q = 1; q < 8; ++q) {
+      const std::int32_t nb = get(bi + (q & 1), bj + (q >> 1 & 1), bk + (q >> 2 & 1));
+      blocks[b].up[q] = nb;
+    }
+    blocks[b].linked = true;
+  }
+  /// The block next to b at -1 along axis a (created when missing).
+  std::int32_t below(std::int32_t b, int a) {
+    if (blocks[b].down[a] == kUnknown) {
+      const std::int32_t nb = get(blocks[b].bi - (a == 0), blocks[b].bj - (a == 1), blocks[b].bk - (a == 2));
+      blocks[b].down[a] = nb;
+    }
+    return blocks[b].down[a];
+  }
+  /// Block and local index of lattice point (li, lj, lk) relative to block b (0..4 per axis).
+  std::pair<std::int32_t, int> at(std::int32_t b, int li, int lj, int lk) const {
+    const int q = (li >> 2) | (lj >> 2) << 1 | (lk >> 2) << 2;
+    return {blocks[b].up[q], local_index(li & 3, lj & 3, lk & 3)};
+  }
+  std::vector<Block> blocks;
+  std::vector<float> values;  // 64 per block
+
+ private:
+  static std::size_t hash(Key k) {
+    k ^= k >> 31;
+    k *= 0x9E3779B97F4A7C15ULL;
+    k ^= k >> 29;
+    return std::size_t(k);
+  }
+  void rehash(std::size_t n) {
+    slots_.assign(n, {Key(0), kNone});
+    mask_ = n - 1;
+    for (std::size_t b = 0; b < blocks.size(); ++b) {
+      const Key k = key(blocks[b].bi, blocks[b].bj, blocks[b].bk);
+      std::size_t i = hash(k) & mask_;
+      while (slots_[i].second != kNone) i = (i + 1) & mask_;
+      slots_[i] = {k, std::int32_t(b)};
+    }
+  }
+  std::vector<std::pair<Key, std::int32_t>> slots_;
+  std::size_t mask_ = 0;
+};
+
+// A value stored as float with its sign kept (a tiny negative value stays negative).
+float to_float(double x) {
+  float v = float(std::clamp(x, -double(std::numeric_limits<float>::max()), double(std::numeric_limits<float>::max())));
+  if (x < 0 && !(v < 0)) v = -std::numeric_limits<float>::min();
+  return v;
+}
+
+// Per configuration: bit 2a + side set when the cell's face (axis a, side) has a sign
+// change (the walk crosses it).
+const std::array<std::uint8_t, 256>& crossed_faces() {
+  static const std::array<std::uint8_t, 256> table = [] {
+    std::array<std::uint8_t, 256> t{};
+    for (int cfg = 0; cfg < 256; ++cfg)
+      for (int a = 0; a < 3; ++a)
+        for (int side = 0; side < 2; ++side) {
+          int in = 0;
+          for (int q = 0; q < 8; ++q)
+            if ((q >> a & 1) == side && (cfg >> q & 1)) ++in;
+          if (in != 0 && in != 4) t[cfg] |= std::uint8_t(1 << (2 * a + side));
+        }
+    return t;
+  }();
+  return table;
+}
+
+std::uint64_t packed(std::int32_t b, int l) { return std::uint64_t(b) << 6 | std::uint64_t(l); }
 
 }  // namespace
 
@@ -150,35 +272,30 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
   const int threads = opt.threads == 0 ? tbb::this_task_arena::max_concurrency() : opt.threads;
   if (opt.threads < 0) throw InvalidInput("extract_marching_cubes: threads must be >= 0");
   tbb::task_arena arena(threads);
+  auto parallel = [&](std::size_t count, auto&& fn) {
+    arena.execute([&] { tbb::parallel_for(std::size_t(0), count, fn); });
+  };
 
-  std::unordered_map<Key, double> val;
-  // Evaluates the missing grid vertices of `keys` in parallel.
-  auto evaluate = [&](std::vector<Key>& keys) {
-    std::sort(keys.begin(), keys.end());
-    keys.erase(std::unique(keys.begin(), keys.end()), keys.end());
-    keys.erase(std::remove_if(keys.begin(), keys.end(), [&](Key k) { return val.count(k) > 0; }), keys.end());
-    std::vector<double> v(keys.size());
-    arena.execute([&] {
-      tbb::parallel_for(std::size_t(0), keys.size(), [&](std::size_t i) {
-        const int a = ki(keys[i]), b = kj(keys[i]), c = kk(keys[i]);
-        double x = f.value(vpos(a, b, c)) - opt.iso;
-        if (!std::isfinite(x)) x = h;  // a NaN counts as outside
-        // Outermost layer forced outside: caps surfaces that would leave the box.
-        if (opt.close_at_box && (a == 0 || b == 0 || c == 0 || a == n[0] || b == n[1] || c == n[2]))
-          x = std::max(x, 0.5 * h);
-        v[i] = x;
-      });
-    });
-    for (std::size_t i = 0; i < keys.size(); ++i) val.emplace(keys[i], v[i]);
-    st.evaluations += keys.size();
+  // f - iso at a grid vertex; NaN counts as outside, the outermost layer is forced
+  // outside with close_at_box (caps surfaces that would leave the box).
+  auto eval = [&](int a, int b, int c) {
+    double x = f.value(vpos(a, b, c)) - opt.iso;
+    if (!std::isfinite(x)) x = h;
+    if (opt.close_at_box && (a == 0 || b == 0 || c == 0 || a == n[0] || b == n[1] || c == n[2]))
+      x = std::max(x, 0.5 * h);
+    return x;
   };
   auto in_grid = [&](int i, int j, int k) { return i >= 0 && j >= 0 && k >= 0 && i < n[0] && j < n[1] && k < n[2]; };
 
-  std::unordered_set<Key> visited;
-  std::vector<Key> frontier;
-  auto push = [&](int i, int j, int k, std::vector<Key>& to) {
+  BlockLattice lat;
+  std::vector<std::uint64_t> frontier;
+  auto push = [&](int i, int j, int k, std::vector<std::uint64_t>& to) {
     if (!in_grid(i, j, k)) return;
-    if (visited.insert(key(i, j, k)).second) to.push_back(key(i, j, k));
+    const std::int32_t b = lat.get(i >> 2, j >> 2, k >> 2);
+    const int l = local_index(i & 3, j & 3, k & 3);
+    if (lat.blocks[b].visited >> l & 1) return;
+    lat.blocks[b].visited |= std::uint64_t(1) << l;
+    to.push_back(packed(b, l));
   };
   if (!opt.seeds.empty()) {
     for (const Vec3f& p : opt.seeds) {
@@ -188,106 +305,277 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
     }
   } else {
     // Scan lines along x every `step` cells in y and z; a sign change between two
-    // neighbouring vertices seeds the four cells around that edge.
+    // neighbouring vertices seeds the four cells around that edge. Only the values at
+    // the sign changes are kept (in the blocks).
     const int step = opt.coarse_step > 0 ? opt.coarse_step : std::max(1, resolution / 32);
-    std::vector<Key> keys;
+    std::vector<std::pair<int, int>> lines;  // (j, k)
     for (int k = 0; k <= n[2]; k += step)
-      for (int j = 0; j <= n[1]; j += step)
-        for (int i = 0; i <= n[0]; ++i) keys.push_back(key(i, j, k));
-    evaluate(keys);
-    for (int k = 0; k <= n[2]; k += step)
-      for (int j = 0; j <= n[1]; j += step)
-        for (int i = 0; i < n[0]; ++i)
-          if ((val.at(key(i, j, k)) < 0) != (val.at(key(i + 1, j, k)) < 0))
-            for (int dj = -1; dj <= 0; ++dj)
-              for (int dk = -1; dk <= 0; ++dk) push(i, j + dj, k + dk, frontier);
+      for (int j = 0; j <= n[1]; j += step) lines.emplace_back(j, k);
+    std::vector<std::vector<std::pair<int, std::array<double, 2>>>> hits(lines.size());
+    parallel(lines.size(), [&](std::size_t li) {
+      const int j = lines[li].first, k = lines[li].second;
+      double prev = eval(0, j, k);
+      for (int i = 0; i < n[0]; ++i) {
+        const double cur = eval(i + 1, j, k);
+        if ((prev < 0) != (cur < 0)) hits[li].push_back({i, {prev, cur}});
+        prev = cur;
+      }
+    });
+    st.evaluations += lines.size() * std::size_t(n[0] + 1);
+    auto store = [&](int i, int j, int k, double v) {
+      const std::int32_t b = lat.get(i >> 2, j >> 2, k >> 2);
+      const int l = local_index(i & 3, j & 3, k & 3);
+      if (lat.blocks[b].evaluated >> l & 1) return;
+      lat.blocks[b].evaluated |= std::uint64_t(1) << l;
+      lat.values[std::size_t(b) * 64 + l] = to_float(v);
+    };
+    for (std::size_t li = 0; li < lines.size(); ++li) {
+      const int j = lines[li].first, k = lines[li].second;
+      for (const auto& [i, v] : hits[li]) {
+        store(i, j, k, v[0]);
+        store(i + 1, j, k, v[1]);
+        for (int dj = -1; dj <= 0; ++dj)
+          for (int dk = -1; dk <= 0; ++dk) push(i, j + dj, k + dk, frontier);
+      }
+    }
   }
 
   // Continuation: a crossed cell passes the walk on across each face with a sign change.
   // A seed cell the surface misses (the point lies a little off f = 0) probes its 26
   // neighbours once instead.
-  std::vector<Key> surface;
+  const auto& faces_of = crossed_faces();
+  auto config = [&](std::int32_t b, int l) {
+    const int li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
+    int cfg = 0;
+    for (int q = 0; q < 8; ++q) {
+      const auto [cb, cl] = lat.at(b, li + (q & 1), lj + (q >> 1 & 1), lk + (q >> 2 & 1));
+      if (lat.values[std::size_t(cb) * 64 + cl] < 0) cfg |= 1 << q;
+    }
+    return cfg;
+  };
   bool first_wave = !opt.seeds.empty();
+  std::vector<std::uint64_t> next;
+  tbb::enumerable_thread_specific<std::vector<std::uint64_t>> next_local;
+  tbb::enumerable_thread_specific<std::size_t> evaluated_local(0);
+  auto set_bit = [](std::uint64_t& mask, int bit) {
+    const std::uint64_t m = std::uint64_t(1) << bit;
+    return !(__atomic_fetch_or(&mask, m, __ATOMIC_RELAXED) & m);
+  };
   while (!frontier.empty()) {
-    std::vector<Key> keys;
-    keys.reserve(frontier.size() * 8);
-    for (Key c : frontier)
-      for (int q = 0; q < 8; ++q) keys.push_back(key(ki(c) + (q & 1), kj(c) + (q >> 1 & 1), kk(c) + (q >> 2 & 1)));
-    evaluate(keys);
+    // Blocks the wave needs (serial: the only place blocks are created): the 7 above
+    // each cell's block, and the one below where a cell sits on the block's lower face.
+    for (std::uint64_t c : frontier) {
+      const std::int32_t b = std::int32_t(c >> 6);
+      const int l = int(c & 63);
+      lat.link(b);
+      if ((l & 3) == 0) lat.below(b, 0);
+      if ((l >> 2 & 3) == 0) lat.below(b, 1);
+      if ((l >> 4) == 0) lat.below(b, 2);
+    }
+    // Corners not evaluated yet, each by the thread that claims it first.
+    parallel(frontier.size(), [&](std::size_t fi) {
+      const std::uint64_t c = frontier[fi];
+      const std::int32_t b = std::int32_t(c >> 6);
+      const int l = int(c & 63), li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
+      std::size_t count = 0;
+      for (int q = 0; q < 8; ++q) {
+        const auto [cb, cl] = lat.at(b, li + (q & 1), lj + (q >> 1 & 1), lk + (q >> 2 & 1));
+        Block& blk = lat.blocks[cb];
+        if (!set_bit(blk.evaluated, cl)) continue;
+        lat.values[std::size_t(cb) * 64 + cl] =
+            to_float(eval(blk.bi * kSide + (cl & 3), blk.bj * kSide + (cl >> 2 & 3), blk.bk * kSide + (cl >> 4)));
+        ++count;
+      }
+      evaluated_local.local() += count;
+    });
     st.cells_visited += frontier.size();
-    std::vector<Key> next;
-    for (Key c : frontier) {
-      const int i = ki(c), j = kj(c), k = kk(c);
-      int config = 0;
-      for (int q = 0; q < 8; ++q)
-        if (val.at(key(i + (q & 1), j + (q >> 1 & 1), k + (q >> 2 & 1))) < 0) config |= 1 << q;
-      if (config == 0 || config == 255) {
-        if (first_wave)
+    next.clear();
+    if (first_wave) {
+      for (std::uint64_t c : frontier) {
+        const std::int32_t b = std::int32_t(c >> 6);
+        const int l = int(c & 63);
+        const int i = lat.blocks[b].bi * kSide + (l & 3), j = lat.blocks[b].bj * kSide + (l >> 2 & 3),
+                  k = lat.blocks[b].bk * kSide + (l >> 4);
+        const int cfg = config(b, l);
+        if (cfg == 0 || cfg == 255) {
           for (int q = 0; q < 27; ++q)
             if (q != 13) push(i + q % 3 - 1, j + q / 3 % 3 - 1, k + q / 9 - 1, next);
-        continue;
-      }
-      surface.push_back(c);
-      for (int a = 0; a < 3; ++a)
-        for (int side = 0; side < 2; ++side) {
-          int in = 0;
-          for (int q = 0; q < 8; ++q)
-            if ((q >> a & 1) == side && (config >> q & 1)) ++in;
-          if (in == 0 || in == 4) continue;
-          int d[3] = {0, 0, 0};
-          d[a] = side ? 1 : -1;
-          push(i + d[0], j + d[1], k + d[2], next);
+          continue;
         }
+        lat.blocks[b].surface |= std::uint64_t(1) << l;
+        const int fc = faces_of[cfg];
+        if (fc & 1) push(i - 1, j, k, next);
+        if (fc & 2) push(i + 1, j, k, next);
+        if (fc & 4) push(i, j - 1, k, next);
+        if (fc & 8) push(i, j + 1, k, next);
+        if (fc & 16) push(i, j, k - 1, next);
+        if (fc & 32) push(i, j, k + 1, next);
+      }
+    } else {
+      // Crossed cells pass the walk on, in parallel (visited bits claimed atomically;
+      // the order of the next wave does not change the set of cells reached).
+      parallel(frontier.size(), [&](std::size_t fi) {
+        const std::uint64_t c = frontier[fi];
+        const std::int32_t b = std::int32_t(c >> 6);
+        const int l = int(c & 63);
+        const int cfg = config(b, l);
+        if (cfg == 0 || cfg == 255) return;
+        Block& blk = lat.blocks[b];
+        set_bit(blk.surface, l);
+        const int fc = faces_of[cfg];
+        const int loc[3] = {l & 3, l >> 2 & 3, l >> 4};
+        const int glob[3] = {blk.bi * kSide + loc[0], blk.bj * kSide + loc[1], blk.bk * kSide + loc[2]};
+        std::vector<std::uint64_t>& out = next_local.local();
+        for (int a = 0; a < 3; ++a)
+          for (int side = 0; side < 2; ++side) {
+            if (!(fc >> (2 * a + side) & 1)) continue;
+            // The neighbour across the face, found through the block links.
+            if (side ? glob[a] + 1 >= n[a] : glob[a] == 0) continue;
+            std::int32_t nb = b;
+            int nl = l;
+            if (side) {
+              if (loc[a] == 3) nb = blk.up[1 << a], nl = l - (3 << (2 * a));
+              else nl = l + (1 << (2 * a));
+            } else {
+              if (loc[a] == 0) nb = blk.down[a], nl = l + (3 << (2 * a));
+              else nl = l - (1 << (2 * a));
+            }
+            if (set_bit(lat.blocks[nb].visited, nl)) out.push_back(packed(nb, nl));
+          }
+      });
+      for (auto& v : next_local) {
+        next.insert(next.end(), v.begin(), v.end());
+        v.clear();
+      }
     }
     frontier.swap(next);
     first_wave = false;
   }
-  std::sort(surface.begin(), surface.end());
-  st.surface_cells = surface.size();
+  for (std::size_t e : evaluated_local) st.evaluations += e;
+  std::vector<std::uint64_t>().swap(frontier);
+  std::vector<std::uint64_t>().swap(next);
 
-  // Triangles; one vertex per crossed grid edge, keyed by (lower vertex, axis).
-  const auto& table = mc::triangle_table();
-  const auto& ec = mc::edge_corners();
-  std::unordered_map<Key, int> vid;
-  std::vector<std::pair<Key, int>> edges;  // (lower vertex, axis) per mesh vertex
-  Mesh mesh;
-  for (Key c : surface) {
-    const int i = ki(c), j = kj(c), k = kk(c);
-    int config = 0;
-    for (int q = 0; q < 8; ++q)
-      if (val.at(key(i + (q & 1), j + (q >> 1 & 1), k + (q >> 2 & 1))) < 0) config |= 1 << q;
-    for (const auto& tri : table[config]) {
-      Face face;
-      for (int t = 0; t < 3; ++t) {
-        const int c0 = ec[tri[t]][0], axis = tri[t] / 4;
-        const Key lowv = key(i + (c0 & 1), j + (c0 >> 1 & 1), k + (c0 >> 2 & 1));
-        const auto [it, added] = vid.emplace(lowv * 3 + axis, int(edges.size()));
-        if (added) edges.emplace_back(lowv, axis);
-        face[t] = it->second;
+  // Blocks in key order (z, y, x): the mesh's vertex and face order, fixed for any
+  // thread count.
+  std::vector<std::int32_t> order(lat.blocks.size());
+  for (std::size_t b = 0; b < order.size(); ++b) order[b] = std::int32_t(b);
+  auto bkey = [&](std::int32_t b) { return key(lat.blocks[b].bi, lat.blocks[b].bj, lat.blocks[b].bk); };
+  std::sort(order.begin(), order.end(), [&](std::int32_t a, std::int32_t b) { return bkey(a) < bkey(b); });
+
+  // Crossed edges: one vertex per grid edge with a sign change next to a crossed cell
+  // (the walk crosses every face holding such an edge, so the cells around it are
+  // either all crossed or none is: one of them decides). Owned by the edge's lower end.
+  auto surface_cell = [&](int i, int j, int k) {
+    const std::int32_t b = lat.find(i >> 2, j >> 2, k >> 2);
+    return b != kNone && (lat.blocks[b].surface >> local_index(i & 3, j & 3, k & 3) & 1);
+  };
+  parallel(lat.blocks.size(), [&](std::size_t bs) {
+    const std::int32_t b = std::int32_t(bs);
+    Block& blk = lat.blocks[b];
+    for (std::uint64_t ev = blk.evaluated; ev; ev &= ev - 1) {
+      const int l = __builtin_ctzll(ev);
+      const int li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
+      const float v0 = lat.values[std::size_t(b) * 64 + l];
+      const int i = blk.bi * kSide + li, j = blk.bj * kSide + lj, k = blk.bk * kSide + lk;
+      for (int a = 0; a < 3; ++a) {
+        const int d[3] = {a == 0, a == 1, a == 2};
+        std::int32_t nb;
+        int nl;
+        if (blk.linked) {
+          std::tie(nb, nl) = lat.at(b, li + d[0], lj + d[1], lk + d[2]);
+        } else {
+          const int pi = i + d[0], pj = j + d[1], pk = k + d[2];
+          nb = lat.find(pi >> 2, pj >> 2, pk >> 2);
+          nl = local_index(pi & 3, pj & 3, pk & 3);
+        }
+        if (nb == kNone || !(lat.blocks[nb].evaluated >> nl & 1)) continue;
+        if ((v0 < 0) == (lat.values[std::size_t(nb) * 64 + nl] < 0)) continue;
+        // The first grid cell around the edge.
+        const int b1 = (a + 1) % 3, b2 = (a + 2) % 3;
+        bool crossed = false;
+        for (int q = 0; q < 4; ++q) {
+          int c[3] = {i, j, k};
+          c[b1] -= q & 1;
+          c[b2] -= q >> 1;
+          if (!in_grid(c[0], c[1], c[2])) continue;
+          crossed = surface_cell(c[0], c[1], c[2]);
+          break;
+        }
+        if (crossed) blk.edges[a] |= std::uint64_t(1) << l;
       }
-      mesh.faces.push_back(face);
     }
+  });
+  std::size_t nverts = 0, nfaces = 0;
+  const auto& table = mc::triangle_table();
+  std::vector<std::uint32_t> block_faces(lat.blocks.size(), 0);
+  parallel(lat.blocks.size(), [&](std::size_t b) {
+    std::uint32_t count = 0;
+    for (std::uint64_t s = lat.blocks[b].surface; s; s &= s - 1)
+      count += std::uint32_t(table[config(std::int32_t(b), __builtin_ctzll(s))].size());
+    block_faces[b] = count;
+  });
+  for (std::int32_t b : order) {
+    Block& blk = lat.blocks[b];
+    blk.vbase = std::uint32_t(nverts);
+    blk.fbase = std::uint32_t(nfaces);
+    nverts += std::size_t(__builtin_popcountll(blk.edges[0]) + __builtin_popcountll(blk.edges[1]) +
+                          __builtin_popcountll(blk.edges[2]));
+    nfaces += block_faces[b];
   }
-  mesh.vertices.resize(edges.size());
-  if (opt.normals) mesh.normals.resize(edges.size());
-  arena.execute([&] {
-    tbb::parallel_for(std::size_t(0), edges.size(), [&](std::size_t v) {
-      const Key a = edges[v].first;
-      const int ax = edges[v].second;
-      const int i = ki(a), j = kj(a), k = kk(a);
-      const Key b = key(i + (ax == 0), j + (ax == 1), k + (ax == 2));
-      const double fa = val.at(a), fb = val.at(b);
-      // Linear interpolation, kept off the grid corners so no triangle collapses.
-      const double t = std::clamp(fa / (fa - fb), 1e-3, 1 - 1e-3);
-      Vec3d p = vpos(i, j, k);
-      p[ax] += t * h;
-      mesh.vertices[v] = p.cast<float>();
-      if (opt.normals) {
-        const Vec3d g = f.gradient(p);
-        const double len = g.norm();
-        mesh.normals[v] = len > 0 && std::isfinite(len) ? Vec3f((g / len).cast<float>()) : Vec3f::Zero();
+  std::vector<std::uint32_t>().swap(block_faces);
+  if (nverts > std::size_t(std::numeric_limits<int>::max()) || nfaces > std::size_t(std::numeric_limits<std::uint32_t>::max()))
+    throw InvalidInput("extract_marching_cubes: the mesh is too large (over 2^31 vertices)");
+  st.surface_cells = 0;
+  for (const Block& blk : lat.blocks) st.surface_cells += std::size_t(__builtin_popcountll(blk.surface));
+
+  Mesh mesh;
+  mesh.vertices.resize(nverts);
+  if (opt.normals) mesh.normals.resize(nverts);
+  mesh.faces.resize(nfaces);
+  const auto& ec = mc::edge_corners();
+  parallel(lat.blocks.size(), [&](std::size_t bs) {
+    const std::int32_t b = std::int32_t(bs);
+    const Block& blk = lat.blocks[b];
+    // Vertices: linear interpolation, kept off the grid corners so no triangle collapses.
+    std::uint32_t v = blk.vbase;
+    for (int a = 0; a < 3; ++a)
+      for (std::uint64_t e = blk.edges[a]; e; e &= e - 1, ++v) {
+        const int l = __builtin_ctzll(e);
+        const int li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
+        const int i = blk.bi * kSide + li, j = blk.bj * kSide + lj, k = blk.bk * kSide + lk;
+        const int pi = i + (a == 0), pj = j + (a == 1), pk = k + (a == 2);
+        const std::int32_t nb = blk.linked ? lat.at(b, li + (a == 0), lj + (a == 1), lk + (a == 2)).first
+                                           : lat.find(pi >> 2, pj >> 2, pk >> 2);
+        const double fa = lat.values[std::size_t(b) * 64 + l];
+        const double fb = lat.values[std::size_t(nb) * 64 + local_index(pi & 3, pj & 3, pk & 3)];
+        const double t = std::clamp(fa / (fa - fb), 1e-3, 1 - 1e-3);
+        Vec3d p = vpos(i, j, k);
+        p[a] += t * h;
+        mesh.vertices[v] = p.cast<float>();
+        if (opt.normals) {
+          const Vec3d g = f.gradient(p);
+          const double len = g.norm();
+          mesh.normals[v] = len > 0 && std::isfinite(len) ? Vec3f((g / len).cast<float>()) : Vec3f::Zero();
+        }
       }
-    });
+    // Faces of the block's crossed cells.
+    std::uint32_t fi = blk.fbase;
+    for (std::uint64_t s = blk.surface; s; s &= s - 1) {
+      const int l = __builtin_ctzll(s);
+      const int li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
+      for (const auto& tri : table[config(b, l)]) {
+        Face face;
+        for (int t = 0; t < 3; ++t) {
+          const int c0 = ec[tri[t]][0], axis = tri[t] / 4;
+          const auto [ob, ol] = lat.at(b, li + (c0 & 1), lj + (c0 >> 1 & 1), lk + (c0 >> 2 & 1));
+          const Block& owner = lat.blocks[ob];
+          std::uint32_t id = owner.vbase + std::uint32_t(__builtin_popcountll(owner.edges[axis] & ((std::uint64_t(1) << ol) - 1)));
+          for (int a = 0; a < axis; ++a) id += std::uint32_t(__builtin_popcountll(owner.edges[a]));
+          face[t] = int(id);
+        }
+        mesh.faces[fi++] = face;
+      }
+    }
   });
 
   if (opt.untrusted == UntrustedRegions::kLeaveOpen && !mesh.faces.empty()) {
