@@ -147,7 +147,6 @@ struct Block {
   std::uint32_t fbase = 0;             // index of the block's first face
   std::int32_t up[8];                  // block at + (q & 1, q >> 1 & 1, q >> 2 & 1); kNone until linked
   std::int32_t down[3] = {kUnknown, kUnknown, kUnknown};  // block at -1 along each axis
-  bool linked = false;
 };
 
 class BlockLattice {
@@ -178,14 +177,19 @@ class BlockLattice {
     if (blocks.size() * 2 > slots_.size()) rehash(slots_.size() * 2);
     return b;
   }
-  void link(std::int32_t b) {
-    if (blocks[b].linked) return;
-    const int bi = blocks[b].bi, bj = blocks[b].bj, bk = blocks[b].bk;
+  /// Links (creating them) the blocks above b that hold corners of cell l of b.
+  void link(std::int32_t b, int l) {
+    const int hi = int((l & 3) == 3) | int((l >> 2 & 3) == 3) << 1 | int((l >> 4) == 3) << 2;
     for (int q = 1; q < 8; ++q) {
-      const std::int32_t nb = get(bi + (q & 1), bj + (q >> 1 & 1), bk + (q >> 2 & 1));
+      if ((q & hi) != q || blocks[b].up[q] != kNone) continue;
+      const std::int32_t nb = get(blocks[b].bi + (q & 1), blocks[b].bj + (q >> 1 & 1), blocks[b].bk + (q >> 2 & 1));
       blocks[b].up[q] = nb;
     }
-    blocks[b].linked = true;
+  }
+  /// The block above b (offset q as in up), or kNone when there is none.
+  std::int32_t above(std::int32_t b, int q) const {
+    if (blocks[b].up[q] != kNone) return blocks[b].up[q];
+    return find(blocks[b].bi + (q & 1), blocks[b].bj + (q >> 1 & 1), blocks[b].bk + (q >> 2 & 1));
   }
   /// The block next to b at -1 along axis a (created when missing).
   std::int32_t below(std::int32_t b, int a) {
@@ -355,22 +359,19 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
   };
   bool first_wave = !opt.seeds.empty();
   std::vector<std::uint64_t> next;
-  tbb::enumerable_thread_specific<std::vector<std::uint64_t>> next_local;
+  tbb::enumerable_thread_specific<std::vector<std::uint64_t>> next_local, deferred_local;
   tbb::enumerable_thread_specific<std::size_t> evaluated_local(0);
   auto set_bit = [](std::uint64_t& mask, int bit) {
     const std::uint64_t m = std::uint64_t(1) << bit;
     return !(__atomic_fetch_or(&mask, m, __ATOMIC_RELAXED) & m);
   };
   while (!frontier.empty()) {
-    // Blocks the wave needs (serial: the only place blocks are created): the 7 above
-    // each cell's block, and the one below where a cell sits on the block's lower face.
+    // Blocks holding the wave's corners (serial: blocks are created only here and in
+    // the serial pushes below).
     for (std::uint64_t c : frontier) {
       const std::int32_t b = std::int32_t(c >> 6);
       const int l = int(c & 63);
-      lat.link(b);
-      if ((l & 3) == 0) lat.below(b, 0);
-      if ((l >> 2 & 3) == 0) lat.below(b, 1);
-      if ((l >> 4) == 0) lat.below(b, 2);
+      lat.link(b, l);
     }
     // Corners not evaluated yet, each by the thread that claims it first.
     parallel(frontier.size(), [&](std::size_t fi) {
@@ -437,8 +438,15 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
               if (loc[a] == 3) nb = blk.up[1 << a], nl = l - (3 << (2 * a));
               else nl = l + (1 << (2 * a));
             } else {
-              if (loc[a] == 0) nb = blk.down[a], nl = l + (3 << (2 * a));
-              else nl = l - (1 << (2 * a));
+              if (loc[a] == 0) {
+                nb = blk.down[a], nl = l + (3 << (2 * a));
+                if (nb == kUnknown) {  // not linked yet: the block may not exist
+                  deferred_local.local().push_back(packed(b, l) << 2 | std::uint64_t(a));
+                  continue;
+                }
+              } else {
+                nl = l - (1 << (2 * a));
+              }
             }
             if (set_bit(lat.blocks[nb].visited, nl)) out.push_back(packed(nb, nl));
           }
@@ -446,6 +454,21 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
       for (auto& v : next_local) {
         next.insert(next.end(), v.begin(), v.end());
         v.clear();
+      }
+      // Pushes into blocks below that were not linked, in a fixed order.
+      std::vector<std::uint64_t> deferred;
+      for (auto& v : deferred_local) {
+        deferred.insert(deferred.end(), v.begin(), v.end());
+        v.clear();
+      }
+      std::sort(deferred.begin(), deferred.end());
+      for (std::uint64_t d : deferred) {
+        const int a = int(d & 3);
+        const std::int32_t nb = lat.below(std::int32_t(d >> 8), a);
+        const int nl = int(d >> 2 & 63) + (3 << (2 * a));
+        if (lat.blocks[nb].visited >> nl & 1) continue;
+        lat.blocks[nb].visited |= std::uint64_t(1) << nl;
+        next.push_back(packed(nb, nl));
       }
     }
     frontier.swap(next);
@@ -479,15 +502,9 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
       const int i = blk.bi * kSide + li, j = blk.bj * kSide + lj, k = blk.bk * kSide + lk;
       for (int a = 0; a < 3; ++a) {
         const int d[3] = {a == 0, a == 1, a == 2};
-        std::int32_t nb;
-        int nl;
-        if (blk.linked) {
-          std::tie(nb, nl) = lat.at(b, li + d[0], lj + d[1], lk + d[2]);
-        } else {
-          const int pi = i + d[0], pj = j + d[1], pk = k + d[2];
-          nb = lat.find(pi >> 2, pj >> 2, pk >> 2);
-          nl = local_index(pi & 3, pj & 3, pk & 3);
-        }
+        const int pi = li + d[0], pj = lj + d[1], pk = lk + d[2];
+        const std::int32_t nb = lat.above(b, (pi >> 2) | (pj >> 2) << 1 | (pk >> 2) << 2);
+        const int nl = local_index(pi & 3, pj & 3, pk & 3);
         if (nb == kNone || !(lat.blocks[nb].evaluated >> nl & 1)) continue;
         if ((v0 < 0) == (lat.values[std::size_t(nb) * 64 + nl] < 0)) continue;
         // The first grid cell around the edge.
@@ -543,9 +560,8 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
         const int l = __builtin_ctzll(e);
         const int li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
         const int i = blk.bi * kSide + li, j = blk.bj * kSide + lj, k = blk.bk * kSide + lk;
-        const int pi = i + (a == 0), pj = j + (a == 1), pk = k + (a == 2);
-        const std::int32_t nb = blk.linked ? lat.at(b, li + (a == 0), lj + (a == 1), lk + (a == 2)).first
-                                           : lat.find(pi >> 2, pj >> 2, pk >> 2);
+        const int pi = li + (a == 0), pj = lj + (a == 1), pk = lk + (a == 2);
+        const std::int32_t nb = lat.above(b, (pi >> 2) | (pj >> 2) << 1 | (pk >> 2) << 2);
         const double fa = lat.values[std::size_t(b) * 64 + l];
         const double fb = lat.values[std::size_t(nb) * 64 + local_index(pi & 3, pj & 3, pk & 3)];
         const double t = std::clamp(fa / (fa - fb), 1e-3, 1 - 1e-3);
