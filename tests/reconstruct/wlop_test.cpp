@@ -542,6 +542,58 @@ TEST(WlopInput, Rejected) {
                InvalidInput);
 }
 
+// The bad-input list for the edge variant: fewer points than requested,
+// all points identical, NaN coordinates, no normals (estimated: the simple normals),
+// plus degenerate neighbourhoods (a line, a handful of points).
+TEST(WlopInput, EdgeVariantBadInput) {
+  const Cloud few = uneven_sphere(300, 0.01, 11);
+  const WlopResult r = consolidate(few, edge(1000, 0, 5));
+  EXPECT_TRUE(r.clamped);
+  EXPECT_EQ(r.cloud.size(), 300u);
+  for (const Vec3d& p : r.positions) ASSERT_TRUE(p.allFinite());
+
+  auto message = [](const Cloud& c, const WlopParams& p) -> std::string {
+    try {
+      consolidate(c, p);
+    } catch (const InvalidInput& e) {
+      return e.what();
+    }
+    return "";
+  };
+  Cloud same;
+  same.points.assign(50, Vec3f(1, 2, 3));
+  EXPECT_NE(message(same, edge(10, 0, 5)).find("coincide"), std::string::npos);
+  Cloud nan = uneven_sphere(100, 0.01, 1);
+  nan.points[17].y() = std::numeric_limits<float>::quiet_NaN();
+  EXPECT_NE(message(nan, edge(10, 0, 5)).find("non-finite"), std::string::npos);
+
+  // No normals while asked to use the input's: the simple normals are estimated
+  // instead, giving exactly the default result.
+  const Cloud in = uneven_sphere(3000, 0.01, 19);
+  WlopParams params = edge(600, 0, 5);
+  const WlopResult simple = consolidate(in, params);
+  params.edge_normals = EdgeNormals::kInput;
+  const WlopResult asked = consolidate(in, params);
+  ASSERT_EQ(simple.positions.size(), asked.positions.size());
+  for (std::size_t i = 0; i < simple.positions.size(); ++i)
+    ASSERT_EQ(simple.positions[i], asked.positions[i]) << i;
+  EXPECT_LT(simple.plain_fallbacks, 600u);
+
+  // Degenerate neighbourhoods: points on a line (no plane to fit), and five points.
+  Cloud line;
+  for (int i = 0; i < 200; ++i) line.points.push_back(Vec3f(0.01f * float(i), 0, 0));
+  Cloud five;
+  for (int i = 0; i < 5; ++i) five.points.push_back(Vec3f(float(i % 2), float(i / 2), 0.1f * float(i)));
+  for (const Cloud* c : {&line, &five}) {
+    WlopParams p = edge(c->size() / 2, 0, 5);
+    p.estimate_normals = true;
+    const WlopResult d = consolidate(*c, p);
+    ASSERT_EQ(d.cloud.size(), c->size() / 2);
+    for (const Vec3d& q : d.positions) ASSERT_TRUE(q.allFinite());
+    for (const Vec3f& n : d.cloud.normals) ASSERT_TRUE(n.allFinite());
+  }
+}
+
 TEST(WlopInput, IsolatedPointsStayAndNothingIsNaN) {
   // Two clusters far apart; a radius so small that some projected points have no
   // input neighbour other than (coincident) themselves after the first move.
