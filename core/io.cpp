@@ -243,9 +243,17 @@ void write_ply(const fs::path& path, const Cloud& cloud, PlyFormat format) {
   write_file_atomic(path, ply_bytes(cloud.points, cloud.normals, cloud.colors, nullptr, format));
 }
 
-void write_obj(const fs::path& path, const Mesh& mesh) {
+void write_obj(const fs::path& path, const Mesh& mesh) { write_obj(path, mesh, {}); }
+
+void write_obj(const fs::path& path, const Mesh& mesh, const std::vector<Vec2f>& corner_uv) {
   const std::string what = path.string();
   mesh.check_consistent(what.c_str());
+  const bool uv = !corner_uv.empty();
+  if (uv && corner_uv.size() != 3 * mesh.faces.size())
+    throw InvalidInput(what + ": " + std::to_string(corner_uv.size()) + " texture coordinates for " +
+                       std::to_string(mesh.faces.size()) + " faces (3 per face expected)");
+  for (const Vec2f& t : corner_uv)
+    if (!t.allFinite()) throw InvalidInput(what + ": non-finite texture coordinate");
   std::string out = "# turntable station\n";
   out.reserve(mesh.vertices.size() * 60 + mesh.faces.size() * 40);
   for (std::size_t i = 0; i < mesh.vertices.size(); ++i) {
@@ -271,13 +279,25 @@ void write_obj(const fs::path& path, const Mesh& mesh) {
     }
     out += '\n';
   }
-  for (const Face& f : mesh.faces) {
+  for (const Vec2f& t : corner_uv) {
+    out += "vt ";
+    put_float(out, t.x());
+    out += ' ';
+    put_float(out, t.y());
+    out += '\n';
+  }
+  for (std::size_t fi = 0; fi < mesh.faces.size(); ++fi) {
+    const Face& f = mesh.faces[fi];
     out += 'f';
     for (int k = 0; k < 3; ++k) {
       out += ' ';
       put_int(out, f[k] + 1LL);
+      if (uv) {
+        out += '/';
+        put_int(out, static_cast<long long>(3 * fi + k) + 1LL);
+      }
       if (mesh.has_normals()) {
-        out += "//";
+        out += uv ? "/" : "//";
         put_int(out, f[k] + 1LL);
       }
     }

@@ -68,6 +68,10 @@ void write_ply(const fs::path& path, const Cloud& cloud,
                PlyFormat format = PlyFormat::kBinaryLittleEndian);
 /// Writes v (with r g b in [0,1] when coloured), vn, f. Atomic.
 void write_obj(const fs::path& path, const Mesh& mesh);
+/// The same with texture coordinates: `corner_uv` has 3 entries per face (corner
+/// order of mesh.faces, as TexturedMesh::corner_uv), written as vt and f v/vt[/vn].
+/// InvalidInput when the count is wrong or a coordinate is not finite.
+void write_obj(const fs::path& path, const Mesh& mesh, const std::vector<Vec2f>& corner_uv);
 /// Writes by extension: .ply (binary) or .obj.
 void write_mesh(const fs::path& path, const Mesh& mesh);
 

@@ -854,6 +854,71 @@ int cmd_fit(const Common& c, const FitArgs& a) {
   return 0;
 }
 
+// ---- parameterise (SDM onto a simple surface) ---------------------------------------
+
+struct ParameteriseArgs {
+  std::string in, out, onto = "sphere", mapped;
+  int control_points = 0;
+};
+
+/// Per-corner UVs from per-vertex ones; on the sphere and the cylinder u wraps at 1,
+/// so a face that straddles the seam gets its small u values raised by 1 (texture
+/// repeat then samples the right side) instead of spanning the whole image.
+std::vector<Vec2f> corner_uvs(const Mesh& mesh, const std::vector<Vec2f>& uv, bool wrap_u) {
+  std::vector<Vec2f> out;
+  out.reserve(3 * mesh.faces.size());
+  for (const Face& f : mesh.faces) {
+    Vec2f t[3] = {uv[f[0]], uv[f[1]], uv[f[2]]};
+    if (wrap_u) {
+      const float hi = std::max({t[0].x(), t[1].x(), t[2].x()});
+      for (Vec2f& c : t)
+        if (hi - c.x() > 0.5f) c.x() += 1.f;
+    }
+    out.insert(out.end(), t, t + 3);
+  }
+  return out;
+}
+
+int cmd_parameterise(const Common& c, const ParameteriseArgs& a) {
+  const auto t0 = std::chrono::steady_clock::now();
+  StationConfig cfg = load_common(c);
+  auto threads = limit_threads(cfg.threads);
+  if (fs::path(a.out).extension() != ".obj") throw InvalidInput(a.out + ": the output must be .obj (it carries the UVs)");
+  const SimpleSurface surface = a.onto == "plane" ? SimpleSurface::kPlane
+                                : a.onto == "cylinder" ? SimpleSurface::kCylinder
+                                                       : SimpleSurface::kSphere;
+  const Mesh mesh = read_mesh(a.in);
+  if (mesh.faces.empty()) throw InvalidInput(a.in + ": no faces (parameterise needs a mesh)");
+  SdmParams sp;
+  sp.threads = cfg.threads;
+  const ParameterisationResult r = sdm_parameterise(mesh, surface, sp, a.control_points);
+  Mesh textured = mesh;
+  textured.normals.clear();
+  const auto uv = corner_uvs(mesh, r.uv, surface != SimpleSurface::kPlane);
+  // Each write is atomic: a failure leaves no half-written file.
+  if (!a.mapped.empty()) write_mesh(a.mapped, r.mesh);
+  write_obj(a.out, textured, uv);
+  const SdmDiagnostics& d = r.diagnostics;
+  if (c.json) {
+    print_summary(JsonObject()
+                      .add("command", "parameterise")
+                      .add("input", a.in)
+                      .add("output", a.out)
+                      .add("onto", a.onto)
+                      .add("vertices", mesh.vertices.size())
+                      .add("faces", mesh.faces.size())
+                      .add("control_points", d.control_points)
+                      .add("flipped_faces", d.flipped_faces)
+                      .add("self_intersections", d.self_intersections)
+                      .add("timings_s", JsonObject().add("total", seconds_since(t0))));
+  } else {
+    std::printf("parameterise: %zu vertices onto the %s (%d control points), %d flipped faces, %.2fs -> %s\n",
+                mesh.vertices.size(), a.onto.c_str(), d.control_points, d.flipped_faces, seconds_since(t0),
+                a.out.c_str());
+  }
+  return 0;
+}
+
 // ---- consolidate -----------------------------------------------------------------
 
 struct ConsolidateArgs {
@@ -1169,6 +1234,23 @@ int run_cli(int argc, char** argv) {
                    "pinned pairs, one \"vertex_index x y z\" per line ('#' comments)");
   fitc->add_flag("--no-colour", fit_args.no_colour, "do not colour the mesh from the input's colours");
 
+  ParameteriseArgs par_args;
+  Common c_par;
+  auto* parc = app.add_subcommand("parameterise",
+                                  "Map a mesh onto a plane, sphere or cylinder (SDM) and write it with UVs");
+  add_common(parc, c_par);
+  parc->add_option("input", par_args.in, "mesh: closed genus 0 for sphere and cylinder, a disc for plane")->required();
+  parc->add_option("-o,--out", par_args.out, "the input mesh with texture coordinates (.obj)")->required();
+  parc->add_option("--onto", par_args.onto, "simple surface: sphere (longitude, colatitude), cylinder "
+                                            "(angle, profile length), plane (unit disc)")
+      ->check(CLI::IsMember({"plane", "sphere", "cylinder"}))
+      ->capture_default_str();
+  parc->add_option("--mapped", par_args.mapped, "also write the mesh as mapped onto the surface (.ply or .obj)");
+  parc->add_option("--control-points", par_args.control_points,
+                   "control points sampled on the surface (0 = 4 x the mesh's vertices)")
+      ->check(CLI::NonNegativeNumber)
+      ->capture_default_str();
+
   ReconstructArgs rec_args;
   Common c_rec;
   auto* rec = app.add_subcommand("reconstruct", "Fit an MPU implicit surface to a cloud and mesh it (marching cubes)");
@@ -1213,6 +1295,7 @@ int run_cli(int argc, char** argv) {
     if (*cons) return cmd_consolidate(c_cons, cons_args);
     if (*rec) return cmd_reconstruct(c_rec, rec_args);
     if (*fitc) return cmd_fit(c_fit, fit_args);
+    if (*parc) return cmd_parameterise(c_par, par_args);
     if (*reg) return cmd_register(c_reg, reg_args);
     if (*cal_tt) return cmd_calibrate_turntable(c_cal, cal_session, cal_out);
     if (*cal_cam) return cmd_calibrate_camera(c_cam, cam_images, cam_board, cam_square, cam_out);

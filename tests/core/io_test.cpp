@@ -538,6 +538,25 @@ TEST(IoObj, RoundTripWithColoursAndNormals) {
   expect_same_mesh(read_mesh(dir / "plain.OBJ"), m);
 }
 
+TEST(IoObj, RoundTripWithTextureCoordinates) {
+  test::TempDir dir;
+  Mesh m = coloured_sphere();
+  std::vector<Vec2f> uv;
+  for (std::size_t i = 0; i < 3 * m.faces.size(); ++i) uv.emplace_back(0.001f * float(i), 1.f - 0.0005f * float(i));
+  write_obj(dir / "uv.obj", m, uv);
+  const TexturedMesh t = read_textured_mesh(dir / "uv.obj");
+  EXPECT_EQ(t.mesh.faces, m.faces);
+  EXPECT_EQ(t.mesh.vertices, m.vertices);
+  ASSERT_EQ(t.corner_uv.size(), uv.size());
+  for (std::size_t i = 0; i < uv.size(); ++i) EXPECT_TRUE(t.corner_uv[i].isApprox(uv[i], 1e-6f)) << i;
+  ASSERT_EQ(t.mesh.normals.size(), m.normals.size());  // f v/vt/vn
+  uv.pop_back();
+  EXPECT_THROW(write_obj(dir / "bad.obj", m, uv), InvalidInput);
+  uv.push_back(Vec2f(std::nanf(""), 0));
+  EXPECT_THROW(write_obj(dir / "bad.obj", m, uv), InvalidInput);
+  EXPECT_FALSE(std::filesystem::exists(dir / "bad.obj"));
+}
+
 TEST(IoObj, TexturedFixture) {
   const TexturedMesh t = read_textured_mesh(fixture("textured_quad.obj"));
   ASSERT_EQ(t.mesh.vertices.size(), 5u);

@@ -3,7 +3,9 @@
 #include <gtest/gtest.h>
 #include <sys/wait.h>
 
+#include <algorithm>
 #include <array>
+#include <cmath>
 #include <cstdio>
 #include <fstream>
 #include <random>
@@ -95,6 +97,50 @@ TEST(Cli, FitDeformsATemplateOntoACloud) {
   EXPECT_EQ(holed.code, 1);
   EXPECT_NE(holed.out.find("template"), std::string::npos) << holed.out;
   EXPECT_FALSE(std::filesystem::exists(dir / "x.ply"));
+}
+
+// A lumpy closed mesh mapped onto the sphere: the OBJ carries 3 UVs per face, the
+// sphere's colatitude in v follows the vertex's direction, faces across the seam get
+// u raised past 1 rather than spanning the image, and a disc-only surface is refused.
+TEST(Cli, ParameteriseWritesUvsFromTheSphere) {
+  test::TempDir dir("station-cli-param");
+  Mesh m = test::icosphere(3, 1.0);
+  for (Vec3f& v : m.vertices) v = Vec3f(0.3f * v.x(), 0.2f * v.y(), 0.5f * v.z() * (1 + 0.2f * v.x()));
+  write_ply(dir / "lumpy.ply", m);
+  const CmdResult r = run("parameterise " + (dir / "lumpy.ply").string() + " -o " + (dir / "uv.obj").string() +
+                          " --mapped " + (dir / "mapped.ply").string() + " --json");
+  ASSERT_EQ(r.code, 0) << r.out;
+  EXPECT_EQ(json_number(r.out, "flipped_faces"), 0);
+  const TexturedMesh t = read_textured_mesh(dir / "uv.obj");
+  ASSERT_EQ(t.mesh.faces.size(), m.faces.size());
+  ASSERT_EQ(t.corner_uv.size(), 3 * m.faces.size());
+  const Mesh mapped = read_mesh(dir / "mapped.ply");
+  ASSERT_EQ(mapped.vertices.size(), m.vertices.size());
+  double worst_v = 0, worst_span = 0;
+  for (std::size_t f = 0; f < m.faces.size(); ++f) {
+    float lo = 10, hi = -10;
+    for (int k = 0; k < 3; ++k) {
+      const Vec2f uv = t.corner_uv[3 * f + k];
+      const Vec3f d = mapped.vertices[m.faces[f][k]].normalized();
+      // v = colatitude / pi measured from +z.
+      worst_v = std::max(worst_v, double(std::abs(uv.y() - std::acos(std::clamp(d.z(), -1.f, 1.f)) / float(M_PI))));
+      lo = std::min(lo, uv.x());
+      hi = std::max(hi, uv.x());
+    }
+    // Away from the poles (where u is arbitrary) a face spans a small range of u.
+    const Vec3f c = (mapped.vertices[m.faces[f][0]] + mapped.vertices[m.faces[f][1]] + mapped.vertices[m.faces[f][2]]).normalized();
+    if (std::abs(c.z()) < 0.9f) worst_span = std::max(worst_span, double(hi - lo));
+  }
+  EXPECT_LT(worst_v, 0.01);
+  EXPECT_LT(worst_span, 0.2);
+  const CmdResult plane = run("parameterise " + (dir / "lumpy.ply").string() + " -o " + (dir / "p.obj").string() +
+                              " --onto plane");
+  EXPECT_EQ(plane.code, 1);
+  EXPECT_NE(plane.out.find("disc"), std::string::npos) << plane.out;
+  EXPECT_FALSE(std::filesystem::exists(dir / "p.obj"));
+  const CmdResult ply = run("parameterise " + (dir / "lumpy.ply").string() + " -o " + (dir / "p.ply").string());
+  EXPECT_EQ(ply.code, 1);
+  EXPECT_NE(ply.out.find(".obj"), std::string::npos) << ply.out;
 }
 
 // The acceptance case: 12 simulated views of the bundled mustard bottle,
