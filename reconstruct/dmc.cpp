@@ -10,6 +10,7 @@
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
+#include <memory>
 #include <stdexcept>
 #include <unordered_map>
 #include <unordered_set>
@@ -98,7 +99,109 @@ class FlatMap {
   std::size_t mask_ = 0;
 };
 
-// Set of keys on FlatMap (erase only clears a flag). Iteration in insertion order.
+// Lattice points grouped in blocks of 4^3: a small hash from block to block index.
+class BlockIndex {
+ public:
+  BlockIndex() { rehash(1 << 10); }
+  static Key block_of(Key k) { return k & ~(Key(3) | Key(3) << 21 | Key(3) << 42); }
+  static int local(Key k) { return int((k & 3) | (k >> 21 & 3) << 2 | (k >> 42 & 3) << 4); }
+  std::uint32_t find(Key block) const {
+    for (std::size_t i = hash(block) & mask_;; i = (i + 1) & mask_) {
+      if (slots_[i].second == kNone) return kNone;
+      if (slots_[i].first == block) return slots_[i].second;
+    }
+  }
+  /// Index of the block (new blocks get the next index).
+  std::uint32_t get(Key block, bool& added) {
+    std::size_t i = hash(block) & mask_;
+    for (;; i = (i + 1) & mask_) {
+      if (slots_[i].second == kNone) break;
+      if (slots_[i].first == block) {
+        added = false;
+        return slots_[i].second;
+      }
+    }
+    added = true;
+    const std::uint32_t idx = std::uint32_t(keys_.size());
+    keys_.push_back(block);
+    slots_[i] = {block, idx};
+    if (keys_.size() * 2 > slots_.size()) rehash(slots_.size() * 2);
+    return idx;
+  }
+  const std::vector<Key>& keys() const { return keys_; }
+  static constexpr std::uint32_t kNone = 0xFFFFFFFFu;
+
+ private:
+  static std::size_t hash(Key k) {
+    k ^= k >> 31;
+    k *= 0x9E3779B97F4A7C15ULL;
+    k ^= k >> 29;
+    return std::size_t(k);
+  }
+  void rehash(std::size_t n) {
+    slots_.assign(n, {Key(0), kNone});
+    mask_ = n - 1;
+    for (std::size_t b = 0; b < keys_.size(); ++b) {
+      std::size_t i = hash(keys_[b]) & mask_;
+      while (slots_[i].second != kNone) i = (i + 1) & mask_;
+      slots_[i] = {keys_[b], std::uint32_t(b)};
+    }
+  }
+  std::vector<std::pair<Key, std::uint32_t>> slots_;
+  std::vector<Key> keys_;
+  std::size_t mask_ = 0;
+};
+
+// Map from lattice point to V: a block of 4^3 points holds the indices of its points
+// entries (the corners of a cell and the neighbours of a point are mostly in one block,
+// and the block hash is 64x smaller than a hash of points). Same interface as FlatMap
+// for lattice keys; references stay valid until the next emplace.
+// kPer = 3: edge keys (point * 3 + axis), the three edges of a point together.
+template <class V, int kPer = 1>
+class BlockMap {
+ public:
+  struct Entry {
+    Key first;
+    V second;
+  };
+  Entry* find(Key k) {
+    const std::uint32_t b = index_.find(BlockIndex::block_of(k / kPer));
+    if (b == BlockIndex::kNone) return nullptr;
+    const std::uint32_t e = slots_[slot(b, k)];
+    return e == BlockIndex::kNone ? nullptr : &entries_[e];
+  }
+  const Entry* find(Key k) const { return const_cast<BlockMap*>(this)->find(k); }
+  std::nullptr_t end() const { return nullptr; }
+  std::size_t count(Key k) const { return find(k) != nullptr; }
+  V& at(Key k) {
+    Entry* e = find(k);
+    if (!e) throw std::out_of_range("extract_dmc: internal error: lattice point not evaluated");
+    return e->second;
+  }
+  const V& at(Key k) const { return const_cast<BlockMap*>(this)->at(k); }
+  /// True when k was not in the map.
+  bool emplace(Key k, const V& v) {
+    bool added = false;
+    const std::uint32_t b = index_.get(BlockIndex::block_of(k / kPer), added);
+    if (added) slots_.resize(slots_.size() + 64 * kPer, BlockIndex::kNone);
+    std::uint32_t& e = slots_[slot(b, k)];
+    if (e != BlockIndex::kNone) return false;
+    e = std::uint32_t(entries_.size());
+    entries_.push_back({k, v});
+    return true;
+  }
+
+ private:
+  static std::size_t slot(std::uint32_t b, Key k) {
+    return (std::size_t(b) * 64 + std::size_t(BlockIndex::local(k / kPer))) * kPer + std::size_t(k % kPer);
+  }
+  BlockIndex index_;
+  std::vector<std::uint32_t> slots_;  // 64 * kPer per block: entry index or kNone
+  std::vector<Entry> entries_;
+};
+
+// Set of lattice keys (cells), one bit per key in blocks of 4^3. Iteration in block
+// creation order, then by place in the block.
 class KeySet {
  public:
   KeySet() = default;
@@ -107,32 +210,40 @@ class KeySet {
     for (; first != last; ++first) insert(*first);
   }
   std::size_t count(Key k) const {
-    const auto* e = m_.find(k);
-    return e && e->second;
+    const std::uint32_t b = index_.find(BlockIndex::block_of(k));
+    return b != BlockIndex::kNone && (bits_[b] >> BlockIndex::local(k) & 1);
   }
   /// True when k was not in the set.
   bool insert(Key k) {
-    if (auto* e = m_.find(k)) {
-      const bool added = !e->second;
-      e->second = 1;
-      return added;
-    }
-    m_.emplace(k, 1);
+    bool added = false;
+    const std::uint32_t b = index_.get(BlockIndex::block_of(k), added);
+    if (added) bits_.push_back(0);
+    const std::uint64_t m = std::uint64_t(1) << BlockIndex::local(k);
+    if (bits_[b] & m) return false;
+    bits_[b] |= m;
     return true;
   }
   void erase(Key k) {
-    if (auto* e = m_.find(k)) e->second = 0;
+    const std::uint32_t b = index_.find(BlockIndex::block_of(k));
+    if (b != BlockIndex::kNone) bits_[b] &= ~(std::uint64_t(1) << BlockIndex::local(k));
   }
   std::vector<Key> list() const {
     std::vector<Key> out;
-    for (const auto& e : m_.entries())
-      if (e.second) out.push_back(e.first);
+    for (std::size_t b = 0; b < bits_.size(); ++b) {
+      const Key base = index_.keys()[b];
+      for (std::uint64_t m = bits_[b]; m; m &= m - 1) {
+        const int l = __builtin_ctzll(m);
+        out.push_back(base | Key(l & 3) | Key(l >> 2 & 3) << 21 | Key(l >> 4) << 42);
+      }
+    }
     return out;
   }
 
  private:
-  FlatMap<char> m_;
+  BlockIndex index_;
+  std::vector<std::uint64_t> bits_;
 };
+
 
 enum : std::uint8_t { kFixed = 1, kSearched = 2, kBary = 4, kGap = 8, kCorner = 16, kEdge = 32 };
 
@@ -236,19 +347,19 @@ class Dmc {
   }
 
   // Evaluates the missing lattice points of `keys` (undeformed positions) in parallel.
+  // The new points are entered first (value filled in below), which also drops
+  // duplicates without sorting; `keys` keeps the new ones.
   void ensure(std::vector<Key>& keys) {
-    std::sort(keys.begin(), keys.end());
-    keys.erase(std::unique(keys.begin(), keys.end()), keys.end());
-    keys.erase(std::remove_if(keys.begin(), keys.end(), [&](Key k) { return nodes_.count(k) > 0; }), keys.end());
-    std::vector<double> v(keys.size());
+    std::size_t m = 0;
+    for (Key k : keys)
+      if (nodes_.emplace(k, Node{upos(k), 0.0, std::uint8_t(on_boundary(k) ? kFixed : 0)})) keys[m++] = k;
+    keys.resize(m);
     parallel(keys.size(), [&](std::size_t i) {
       double x = g(upos(keys[i]));
       if (!std::isfinite(x)) x = h_;  // NaN counts as outside
       if (opt_.close_at_box && on_boundary(keys[i])) x = std::max(x, 0.5 * h_);
-      v[i] = x;
+      nodes_.at(keys[i]).val = x;
     });
-    for (std::size_t i = 0; i < keys.size(); ++i)
-      nodes_.emplace(keys[i], Node{upos(keys[i]), v[i], std::uint8_t(on_boundary(keys[i]) ? kFixed : 0)});
     st_.evaluations += keys.size();
   }
   double val(Key p) const { return nodes_.at(p).val; }
@@ -1063,7 +1174,7 @@ class Dmc {
     st_.surface_cells = surface.size();
     const auto& table = mc::triangle_table();
     const auto& ec = mc::edge_corners();
-    FlatMap<int> vid;
+    BlockMap<int, 3> vid;
     std::vector<Key> edges;
     Mesh mesh;
     for (Key c : surface) {
@@ -1136,8 +1247,8 @@ class Dmc {
   int n_[3] = {1, 1, 1};
   int m_ = 5;
   DmcStats st_;
-  FlatMap<Node> nodes_;
-  FlatMap<Crossing> crossings_;
+  BlockMap<Node> nodes_;
+  BlockMap<Crossing, 3> crossings_;
   std::unordered_map<Key, double> original_;  // value before step 1 moved the point
 };
 
