@@ -93,9 +93,25 @@ struct LocalFit {
   Bivariate piece[3];
   int pieces = 1;
   bool take_max = true;  // convex feature: intersection of the pieces' insides
+  // Saddle corner (three pieces, edges of both kinds): pieces 0 and 1 meet at the
+  // odd edge and are combined first, by the opposite of take_max; the result is
+  // then combined with piece 2 by take_max. E.g. a notch's corner, where a concave
+  // edge (0, 1) meets a top face (2) along two convex edges: max(min(f0, f1), f2).
+  bool saddle = false;
   double eval(const Vec3d& x, Vec3d* g) const {
     if (type == MpuFitType::kQuadric) return quadric.eval(x, g);
     Vec3d gb;
+    if (saddle) {
+      Vec3d g0, g1, g2;
+      const double q0 = piece[0].eval(x, g ? &g0 : nullptr);
+      const double q1 = piece[1].eval(x, g ? &g1 : nullptr);
+      const double q2 = piece[2].eval(x, g ? &g2 : nullptr);
+      const bool first = take_max ? q0 <= q1 : q0 >= q1;  // inner: the opposite op
+      const double inner = first ? q0 : q1;
+      const bool outer_inner = take_max ? inner >= q2 : inner <= q2;
+      if (g) *g = outer_inner ? (first ? g0 : g1) : g2;
+      return outer_inner ? inner : q2;
+    }
     double best = piece[0].eval(x, g ? &gb : nullptr);
     Vec3d best_g = gb;
     for (int i = 1; i < pieces; ++i) {
@@ -351,13 +367,36 @@ bool fit_sharp(const MpuSurface::Impl& s, const std::vector<int>& ids, const std
   out.pieces = k;
   out.type = k == 2 ? MpuFitType::kEdge : MpuFitType::kCorner;
   for (int c = 0; c < k; ++c) out.piece[c] = fit_bivariate(s, cid[c], cw[c], seeds[c], R);
-  // Convex when each cluster's centroid lies inside (Q < 0) the other pieces.
-  int convex = 0, concave = 0;
-  for (int a = 0; a < k; ++a)
-    for (int b = 0; b < k; ++b)
-      if (a != b) (out.piece[a].eval(out.piece[b].origin, nullptr) < 0 ? convex : concave) += 1;
-  if (convex && concave) return false;  // saddle-like corner: leave it to the quadric
-  out.take_max = convex > 0;
+  // How the pieces combine: max (convex: the insides intersect) or min (concave), and
+  // for three pieces also the saddle (mixed) corners, where one edge is of the other
+  // kind: the odd pair is combined first, the result with the third piece (Ohtake et
+  // al. 2003 combine three pieces by max and min). Telling the kinds apart by where
+  // each cluster's centroid lies against the other pieces fails near saddle corners
+  // (a face wrapping around the corner has its centroid on either side), so every
+  // combination is tried and the one with the least Taubin error on the cell's points
+  // kept (2 for an edge, 8 for a corner; only sharp cells pay for it).
+  const Bivariate fitted[3] = {out.piece[0], out.piece[1], out.piece[2]};
+  LocalFit trial = out, best;
+  double best_err = std::numeric_limits<double>::infinity();
+  auto consider = [&]() {
+    const double e = taubin_error(s, ids, trial);
+    if (e < best_err) best_err = e, best = trial;
+  };
+  for (bool take_max : {true, false}) {
+    trial.saddle = false;
+    trial.take_max = take_max;
+    for (int c = 0; c < k; ++c) trial.piece[c] = fitted[c];
+    consider();
+    if (k != 3) continue;
+    for (int third = 0; third < 3; ++third) {
+      trial.saddle = true;
+      trial.piece[0] = fitted[(third + 1) % 3];
+      trial.piece[1] = fitted[(third + 2) % 3];
+      trial.piece[2] = fitted[third];
+      consider();
+    }
+  }
+  out = best;
   return true;
 }
 
