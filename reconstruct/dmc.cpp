@@ -256,8 +256,9 @@ struct Node {
 struct Crossing {
   int evals = 0;
   bool stale = false;  // an end moved after it was computed
-  Vec3d pos;
-  Vec3d normal;  // unit, or zero where the gradient is not usable
+  bool queued = false;  // being computed (compute_crossings)
+  Vec3d pos = Vec3d::Zero();
+  Vec3d normal = Vec3d::Zero();  // unit, or zero where the gradient is not usable
 };
 
 // Where a lattice point moves (feature step).
@@ -529,10 +530,12 @@ class Dmc {
   std::vector<Key> barycentre_step(const KeySet& surface) {
     const double band = 1.3 * h_;
     std::vector<Key> cand;
-    for (Key c : surface.list())
-      for (int q = 0; q < 8; ++q) cand.push_back(corner_key(c, q));
-    std::sort(cand.begin(), cand.end());
-    cand.erase(std::unique(cand.begin(), cand.end()), cand.end());
+    {
+      KeySet seen;
+      for (Key c : surface.list())
+        for (int q = 0; q < 8; ++q)
+          if (seen.insert(corner_key(c, q))) cand.push_back(corner_key(c, q));
+    }
     std::vector<Key> moved_all;
     bool first_wave = true;
     // Which flood reached a candidate: 1 thin part (inside), 2 thin gap (outside).
@@ -817,18 +820,24 @@ class Dmc {
         const Key a = corner_key(c, ec[e][0]), b = corner_key(c, ec[e][1]);
         if ((val(a) < 0) == (val(b) < 0)) continue;
         const Key ek = a * 3 + e / 4;
-        const auto* known = crossings_.find(ek);
-        if (!known || known->second.stale) edges.push_back(ek);
+        // Each edge once (queued marks it), without sorting.
+        auto* known = crossings_.find(ek);
+        if (!known) {
+          Crossing placeholder;
+          placeholder.queued = true;
+          crossings_.emplace(ek, placeholder);
+          edges.push_back(ek);
+        } else if (known->second.stale && !known->second.queued) {
+          known->second.queued = true;
+          edges.push_back(ek);
+        }
       }
-    std::sort(edges.begin(), edges.end());
-    edges.erase(std::unique(edges.begin(), edges.end()), edges.end());
     std::vector<Crossing> out(edges.size());
     parallel(edges.size(), [&](std::size_t i) { out[i] = crossing(edges[i] / 3, int(edges[i] % 3), opt_.refine_steps); });
     st_.gradient_evaluations += edges.size();
     for (std::size_t i = 0; i < edges.size(); ++i) {
       st_.evaluations += out[i].evals;
-      if (auto* known = crossings_.find(edges[i])) known->second = out[i];
-      else crossings_.emplace(edges[i], out[i]);
+      crossings_.at(edges[i]) = out[i];
     }
   }
 
