@@ -141,7 +141,7 @@ int local_index(int li, int lj, int lk) { return li | lj << 2 | lk << 4; }
 
 struct Block {
   int bi, bj, bk;
-  std::uint64_t evaluated = 0, visited = 0, surface = 0;
+  std::uint64_t evaluated = 0, inside = 0, visited = 0, surface = 0;  // inside: value < 0
   std::uint64_t edges[3] = {0, 0, 0};  // crossed edge from the point along each axis
   std::uint32_t vbase = 0;             // id of the block's first vertex
   std::uint32_t fbase = 0;             // index of the block's first face
@@ -332,6 +332,7 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
       if (lat.blocks[b].evaluated >> l & 1) return;
       lat.blocks[b].evaluated |= std::uint64_t(1) << l;
       lat.values[std::size_t(b) * 64 + l] = to_float(v);
+      if (v < 0) lat.blocks[b].inside |= std::uint64_t(1) << l;
     };
     for (std::size_t li = 0; li < lines.size(); ++li) {
       const int j = lines[li].first, k = lines[li].second;
@@ -353,7 +354,7 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
     int cfg = 0;
     for (int q = 0; q < 8; ++q) {
       const auto [cb, cl] = lat.at(b, li + (q & 1), lj + (q >> 1 & 1), lk + (q >> 2 & 1));
-      if (lat.values[std::size_t(cb) * 64 + cl] < 0) cfg |= 1 << q;
+      cfg |= int(lat.blocks[cb].inside >> cl & 1) << q;
     }
     return cfg;
   };
@@ -383,8 +384,10 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
         const auto [cb, cl] = lat.at(b, li + (q & 1), lj + (q >> 1 & 1), lk + (q >> 2 & 1));
         Block& blk = lat.blocks[cb];
         if (!set_bit(blk.evaluated, cl)) continue;
-        lat.values[std::size_t(cb) * 64 + cl] =
+        const float v =
             to_float(eval(blk.bi * kSide + (cl & 3), blk.bj * kSide + (cl >> 2 & 3), blk.bk * kSide + (cl >> 4)));
+        lat.values[std::size_t(cb) * 64 + cl] = v;
+        if (v < 0) set_bit(blk.inside, cl);
         ++count;
       }
       evaluated_local.local() += count;
@@ -498,7 +501,7 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
     for (std::uint64_t ev = blk.evaluated; ev; ev &= ev - 1) {
       const int l = __builtin_ctzll(ev);
       const int li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
-      const float v0 = lat.values[std::size_t(b) * 64 + l];
+      const bool in0 = blk.inside >> l & 1;
       const int i = blk.bi * kSide + li, j = blk.bj * kSide + lj, k = blk.bk * kSide + lk;
       for (int a = 0; a < 3; ++a) {
         const int d[3] = {a == 0, a == 1, a == 2};
@@ -506,7 +509,7 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
         const std::int32_t nb = lat.above(b, (pi >> 2) | (pj >> 2) << 1 | (pk >> 2) << 2);
         const int nl = local_index(pi & 3, pj & 3, pk & 3);
         if (nb == kNone || !(lat.blocks[nb].evaluated >> nl & 1)) continue;
-        if ((v0 < 0) == (lat.values[std::size_t(nb) * 64 + nl] < 0)) continue;
+        if (in0 == bool(lat.blocks[nb].inside >> nl & 1)) continue;
         // The first grid cell around the edge.
         const int b1 = (a + 1) % 3, b2 = (a + 2) % 3;
         bool crossed = false;
@@ -545,10 +548,11 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
   st.surface_cells = 0;
   for (const Block& blk : lat.blocks) st.surface_cells += std::size_t(__builtin_popcountll(blk.surface));
 
+  // Vertices first; the values are then freed (the faces need only the inside bits),
+  // so the lattice's values and the faces are never held together (peak memory).
   Mesh mesh;
   mesh.vertices.resize(nverts);
   if (opt.normals) mesh.normals.resize(nverts);
-  mesh.faces.resize(nfaces);
   const auto& ec = mc::edge_corners();
   parallel(lat.blocks.size(), [&](std::size_t bs) {
     const std::int32_t b = std::int32_t(bs);
@@ -574,6 +578,12 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
           mesh.normals[v] = len > 0 && std::isfinite(len) ? Vec3f((g / len).cast<float>()) : Vec3f::Zero();
         }
       }
+  });
+  std::vector<float>().swap(lat.values);
+  mesh.faces.resize(nfaces);
+  parallel(lat.blocks.size(), [&](std::size_t bs) {
+    const std::int32_t b = std::int32_t(bs);
+    const Block& blk = lat.blocks[b];
     // Faces of the block's crossed cells.
     std::uint32_t fi = blk.fbase;
     for (std::uint64_t s = blk.surface; s; s &= s - 1) {
