@@ -362,8 +362,11 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
   std::vector<std::uint64_t> next;
   tbb::enumerable_thread_specific<std::vector<std::uint64_t>> next_local, deferred_local;
   tbb::enumerable_thread_specific<std::size_t> evaluated_local(0);
+  // Claims a bit: true for the one thread that set it (a plain load first: most bits
+  // asked for are set already, and a locked or is dear).
   auto set_bit = [](std::uint64_t& mask, int bit) {
     const std::uint64_t m = std::uint64_t(1) << bit;
+    if (__atomic_load_n(&mask, __ATOMIC_RELAXED) & m) return false;
     return !(__atomic_fetch_or(&mask, m, __ATOMIC_RELAXED) & m);
   };
   while (!frontier.empty()) {
