@@ -11,8 +11,9 @@
 //      each cell (Kobbelt et al. 2001) pull the nearest lattice points onto them;
 //   3. marching cubes on the deformed lattice, crossings refined on f along the
 //      deformed edges.
-// Lattice values are f at the moved positions. Sparse (hash map of the lattice points
-// near the surface), parallel (TBB), deterministic for any thread count.
+// Lattice values are f at the moved positions. Sparse (the lattice points near the
+// surface, in blocks of 4^3 behind a block hash), parallel (TBB), deterministic for
+// any thread count.
 #include <cstddef>
 
 #include "core/geometry.h"

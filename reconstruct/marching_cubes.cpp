@@ -9,6 +9,7 @@
 #include <cmath>
 #include <cstdint>
 #include <limits>
+#include <memory>
 #include <tuple>
 
 #include "core/error.h"
@@ -139,6 +140,28 @@ constexpr std::int32_t kNone = -1, kUnknown = -2;
 
 int local_index(int li, int lj, int lk) { return li | lj << 2 | lk << 4; }
 
+// Vector in chunks of 4096 (no copy when it grows, so no transient doubling of memory).
+template <class T>
+class Chunked {
+ public:
+  static constexpr std::size_t kChunk = 4096;
+  T& operator[](std::size_t i) { return chunks_[i / kChunk][i % kChunk]; }
+  const T& operator[](std::size_t i) const { return chunks_[i / kChunk][i % kChunk]; }
+  std::size_t size() const { return size_; }
+  void push_back(const T& v) {
+    if (size_ % kChunk == 0) chunks_.emplace_back(new T[kChunk]);
+    (*this)[size_++] = v;
+  }
+  void clear() {
+    chunks_.clear();
+    size_ = 0;
+  }
+
+ private:
+  std::vector<std::unique_ptr<T[]>> chunks_;
+  std::size_t size_ = 0;
+};
+
 struct Block {
   int bi, bj, bk;
   std::uint64_t evaluated = 0, inside = 0, visited = 0, surface = 0;  // inside: value < 0
@@ -172,7 +195,7 @@ class BlockLattice {
     std::fill(std::begin(blk.up), std::end(blk.up), kNone);
     blk.up[0] = b;
     blocks.push_back(blk);
-    values.resize(values.size() + 64);
+    values.push_back({});
     slots_[i] = {k, b};
     if (blocks.size() * 2 > slots_.size()) rehash(slots_.size() * 2);
     return b;
@@ -204,8 +227,8 @@ class BlockLattice {
     const int q = (li >> 2) | (lj >> 2) << 1 | (lk >> 2) << 2;
     return {blocks[b].up[q], local_index(li & 3, lj & 3, lk & 3)};
   }
-  std::vector<Block> blocks;
-  std::vector<float> values;  // 64 per block
+  Chunked<Block> blocks;
+  Chunked<std::array<float, 64>> values;  // per block
 
  private:
   static std::size_t hash(Key k) {
@@ -331,7 +354,7 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
       const int l = local_index(i & 3, j & 3, k & 3);
       if (lat.blocks[b].evaluated >> l & 1) return;
       lat.blocks[b].evaluated |= std::uint64_t(1) << l;
-      lat.values[std::size_t(b) * 64 + l] = to_float(v);
+      lat.values[b][l] = to_float(v);
       if (v < 0) lat.blocks[b].inside |= std::uint64_t(1) << l;
     };
     for (std::size_t li = 0; li < lines.size(); ++li) {
@@ -389,7 +412,7 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
         if (!set_bit(blk.evaluated, cl)) continue;
         const float v =
             to_float(eval(blk.bi * kSide + (cl & 3), blk.bj * kSide + (cl >> 2 & 3), blk.bk * kSide + (cl >> 4)));
-        lat.values[std::size_t(cb) * 64 + cl] = v;
+        lat.values[cb][cl] = v;
         if (v < 0) set_bit(blk.inside, cl);
         ++count;
       }
@@ -549,7 +572,8 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
   if (nverts > std::size_t(std::numeric_limits<int>::max()) || nfaces > std::size_t(std::numeric_limits<std::uint32_t>::max()))
     throw InvalidInput("extract_marching_cubes: the mesh is too large (over 2^31 vertices)");
   st.surface_cells = 0;
-  for (const Block& blk : lat.blocks) st.surface_cells += std::size_t(__builtin_popcountll(blk.surface));
+  for (std::size_t b = 0; b < lat.blocks.size(); ++b)
+    st.surface_cells += std::size_t(__builtin_popcountll(lat.blocks[b].surface));
 
   // Vertices first; the values are then freed (the faces need only the inside bits),
   // so the lattice's values and the faces are never held together (peak memory).
@@ -569,8 +593,8 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
         const int i = blk.bi * kSide + li, j = blk.bj * kSide + lj, k = blk.bk * kSide + lk;
         const int pi = li + (a == 0), pj = lj + (a == 1), pk = lk + (a == 2);
         const std::int32_t nb = lat.above(b, (pi >> 2) | (pj >> 2) << 1 | (pk >> 2) << 2);
-        const double fa = lat.values[std::size_t(b) * 64 + l];
-        const double fb = lat.values[std::size_t(nb) * 64 + local_index(pi & 3, pj & 3, pk & 3)];
+        const double fa = lat.values[b][l];
+        const double fb = lat.values[nb][local_index(pi & 3, pj & 3, pk & 3)];
         const double t = std::clamp(fa / (fa - fb), 1e-3, 1 - 1e-3);
         Vec3d p = vpos(i, j, k);
         p[a] += t * h;
@@ -582,7 +606,7 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
         }
       }
   });
-  std::vector<float>().swap(lat.values);
+  lat.values.clear();
   mesh.faces.resize(nfaces);
   parallel(lat.blocks.size(), [&](std::size_t bs) {
     const std::int32_t b = std::int32_t(bs);

@@ -2,10 +2,14 @@
 // Sparse marching cubes (Lorensen & Cline 1987) on a uniform grid: only the cells
 // the surface passes through are visited, found by continuation from seed cells
 // (Wyvill-style surface tracking), so memory grows with the surface area, not with
-// resolution^3. The case table is derived at start-up from one rule per cube face
-// (reconstruct/mc_tables.h): on an ambiguous face the inside (f < iso) corners are
-// kept apart. The rule depends only on the face's four corners, so the two cells
-// sharing a face agree and the mesh is watertight on closed surfaces.
+// resolution^3. The lattice near the surface lives in blocks of 4^3 points created as
+// the walk reaches them (float values, bit masks for evaluated / visited / crossed,
+// vertex ids of crossed edges by popcount; docs/dmc.md, "Sparse storage"): no hash
+// lookup per point, each lattice value evaluated once, walk and mesh parallel. The
+// case table is derived at start-up from one rule per cube face (reconstruct/mc_tables.h):
+// on an ambiguous face the inside (f < iso) corners are kept apart. The rule depends
+// only on the face's four corners, so the two cells sharing a face agree and the mesh
+// is watertight on closed surfaces.
 #include <vector>
 
 #include "core/geometry.h"
