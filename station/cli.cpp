@@ -41,6 +41,7 @@
 #include "reconstruct/mesh_clean.h"
 #include "reconstruct/dmc.h"
 #include "reconstruct/sdm.h"
+#include "reconstruct/winding_close.h"
 #include "reconstruct/colour_function.h"
 #include "drivers/real_devices.h"
 #include "capture/camera_calibration.h"
@@ -1018,15 +1019,24 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
   MarchingCubesStats stats;
   if (!c.json) std::fprintf(stderr, "reconstruct: marching cubes at resolution %d...\n", a.resolution);
   const auto t2 = std::chrono::steady_clock::now();
+  // Far from the data, inside and outside by the cloud's winding number rather than
+  // MPU's extrapolation (profile reconstruct.winding_close; reconstruct/winding_close.h).
+  std::unique_ptr<WindingClose> winding;
+  if (a.holes == "close" && cfg.pipeline.reconstruct.winding_close)
+    winding = std::make_unique<WindingClose>(surface, input);
+  const ImplicitFunction& f = winding ? static_cast<const ImplicitFunction&>(*winding) : surface;
+  const Aabb box = extraction_box(surface);
+  mo.seeds = surface.points();
+  mo.close_at_box = true;
   Mesh mesh;
   if (a.extractor == "dmc") {
     DmcOptions dopt;
     static_cast<MarchingCubesOptions&>(dopt) = mo;
     DmcStats dstats;
-    mesh = extract_dmc(surface, a.resolution, dopt, &dstats);
+    mesh = extract_dmc(f, box, a.resolution, dopt, &dstats);
     stats = dstats;
   } else {
-    mesh = extract_marching_cubes(surface, a.resolution, mo, &stats);
+    mesh = extract_marching_cubes(f, box, a.resolution, mo, &stats);
   }
   const double t_extract = seconds_since(t2);
   if (mesh.faces.empty()) throw InvalidInput(a.in + ": the reconstructed surface is empty");

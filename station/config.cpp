@@ -162,10 +162,11 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
   }
   if (const YAML::Node n = root["reconstruct"]) {
     r.check_keys(n, "reconstruct", {"surface", "resolution", "epsilon0", "extractor", "hole", "colour", "colour_method", "colour_multi",
-                                     "colour_noise_robust", "min_component", "table_plane"});
+                                     "colour_noise_robust", "min_component", "table_plane", "winding_close"});
     auto& c = p.reconstruct;
     if (n["surface"]) c.surface = r.text(n["surface"], "reconstruct.surface");
     if (n["table_plane"]) c.table_plane = r.boolean(n["table_plane"], "reconstruct.table_plane");
+    if (n["winding_close"]) c.winding_close = r.boolean(n["winding_close"], "reconstruct.winding_close");
     if (c.surface != "mpu" && c.surface != "sdm") r.fail("reconstruct.surface", "must be mpu or sdm");
     if (n["resolution"]) c.resolution = r.integer(n["resolution"], "reconstruct.resolution");
     if (c.resolution < 8 || c.resolution > 4096) r.fail("reconstruct.resolution", "must be 8..4096");

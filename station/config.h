@@ -40,6 +40,10 @@ struct PipelineConfig {
     /// With hole close on a session (turntable axis known): no surface below the
     /// lowest point along the axis, so the underside closes flat on the table.
     bool table_plane = true;
+    /// With hole close: far from the data (beyond a few point spacings) the solid is
+    /// decided by the winding number of the oriented cloud, not MPU's extrapolation
+    /// (reconstruct/winding_close.h).
+    bool winding_close = true;
     bool colour = true;             ///< colour the mesh when the cloud has colours
     std::string colour_method = "mpu";  ///< mpu (colour function) | nearest (k-NN transfer)
     bool colour_multi = false;      ///< colour function: 3+ colours per cell (junctions)

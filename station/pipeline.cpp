@@ -23,6 +23,7 @@
 #include "reconstruct/colour_function.h"
 #include "reconstruct/dmc.h"
 #include "reconstruct/half_space_clip.h"
+#include "reconstruct/winding_close.h"
 #include "reconstruct/sdm.h"
 #include "reconstruct/marching_cubes.h"
 #include "reconstruct/mesh_clean.h"
@@ -187,7 +188,8 @@ std::string surface_params(const PipelineConfig& p) {
   s << "surface/" << c.surface << ";resolution=" << c.resolution << ";epsilon0=" << fmt("%.17g", c.epsilon0)
     << ";extractor=" << c.extractor << ";hole=" << c.hole << ";colour=" << c.colour
     << ";colour_method=" << c.colour_method << ";multi=" << c.colour_multi << ";noise=" << c.colour_noise_robust
-    << ";min_component=" << fmt("%.17g", c.min_component) << ";table_plane=" << c.table_plane;
+    << ";min_component=" << fmt("%.17g", c.min_component) << ";table_plane=" << c.table_plane
+    << ";winding_close=" << c.winding_close;
   if (c.surface == "sdm") s << ";level=" << p.sdm.level;
   return s.str();
 }
@@ -556,27 +558,37 @@ class Runner {
     mo.untrusted = c.hole == "keep" ? UntrustedRegions::kLeaveOpen : UntrustedRegions::kClose;
     mo.threads = cfg_.threads;
     MarchingCubesStats stats;
-    say("  surface: extracting at resolution " + std::to_string(c.resolution));
     // The table plane (docs/run.md): a session's object frame knows its up, and
     // the object rests on the table, so nothing of it lies below its lowest point.
     std::optional<Vec3d> up;
     for (const StageRecord& s : result_.stages)
       if (s.name == "register" && s.figures.count("up_x"))
         up = Vec3d(s.figures.at("up_x"), s.figures.at("up_y"), s.figures.at("up_z"));
+    // Far from the data, inside and outside by the winding number of the oriented
+    // cloud instead of MPU's extrapolation (reconstruct/winding_close.h).
+    std::unique_ptr<WindingClose> winding;
+    if (c.winding_close && c.hole == "close") {
+      winding = std::make_unique<WindingClose>(surface, input);
+      r.figures["winding_points"] = double(winding->winding_points());
+      say("  surface: unseen parts closed by the winding number (" + std::to_string(winding->winding_points()) +
+          " clusters, beyond " + fmt("%.3g", winding->trust_distance()) + " of the data)");
+    }
+    const ImplicitFunction& closed = winding ? static_cast<const ImplicitFunction&>(*winding) : surface;
     std::unique_ptr<HalfSpaceClip> clip;
     if (c.table_plane && c.hole == "close" && up && up->norm() > 0) {
       const Vec3d u = up->normalized();
       double lowest = std::numeric_limits<double>::infinity();
       for (const Vec3f& p : input.points) lowest = std::min(lowest, u.dot(p.cast<double>()));
-      clip = std::make_unique<HalfSpaceClip>(surface, u, lowest);
+      clip = std::make_unique<HalfSpaceClip>(closed, u, lowest);
       r.figures["table_height"] = lowest;
       say("  surface: closed flat at the table plane (lowest point along the turntable axis)");
     }
+    say("  surface: extracting at resolution " + std::to_string(c.resolution));
     // The box and seeds of the MpuSurface overloads of the extractors.
     const Aabb box = extraction_box(surface);
     mo.seeds = surface.points();
     mo.close_at_box = true;
-    const ImplicitFunction& f = clip ? static_cast<const ImplicitFunction&>(*clip) : surface;
+    const ImplicitFunction& f = clip ? static_cast<const ImplicitFunction&>(*clip) : closed;
     Mesh mesh;
     if (c.extractor == "dmc") {
       DmcOptions dopt;

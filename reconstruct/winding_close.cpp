@@ -1,0 +1,229 @@
+#include "reconstruct/winding_close.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <numeric>
+#include <unordered_map>
+
+#include "core/error.h"
+#include "core/kdtree.h"
+
+namespace station {
+
+namespace {
+
+constexpr double kFourPi = 4.0 * 3.14159265358979323846;
+
+struct WPoint {
+  Vec3d p;
+  Vec3d dipole;  // area x unit normal
+};
+
+struct WNode {
+  Vec3d centre = Vec3d::Zero();
+  Vec3d dipole = Vec3d::Zero();
+  double radius = 0;
+  int begin = 0, end = 0;    // points [begin, end) of the reordered array
+  int left = -1, right = -1;  // children (both or neither)
+};
+
+constexpr int kLeafSize = 8;
+constexpr double kFarRatio = 2.0;  // a cluster is far when distance > 2 x its radius
+
+}  // namespace
+
+struct WindingNumber::Impl {
+  std::vector<WPoint> pts;
+  std::vector<WNode> nodes;
+
+  int build(int begin, int end) {
+    const int id = int(nodes.size());
+    nodes.push_back({});
+    WNode n;
+    n.begin = begin;
+    n.end = end;
+    double weight = 0;
+    Vec3d lo = Vec3d::Constant(std::numeric_limits<double>::infinity()), hi = -lo;
+    for (int i = begin; i < end; ++i) {
+      const double a = pts[i].dipole.norm();
+      n.centre += a * pts[i].p;
+      weight += a;
+      n.dipole += pts[i].dipole;
+      lo = lo.cwiseMin(pts[i].p);
+      hi = hi.cwiseMax(pts[i].p);
+    }
+    n.centre = weight > 0 ? Vec3d(n.centre / weight) : Vec3d(0.5 * (lo + hi));
+    for (int i = begin; i < end; ++i) n.radius = std::max(n.radius, (pts[i].p - n.centre).norm());
+    if (end - begin > kLeafSize) {
+      int axis = 0;
+      (hi - lo).maxCoeff(&axis);
+      const int mid = begin + (end - begin) / 2;
+      std::nth_element(pts.begin() + begin, pts.begin() + mid, pts.begin() + end,
+                       [axis](const WPoint& a, const WPoint& b) { return a.p[axis] < b.p[axis]; });
+      n.left = build(begin, mid);
+      n.right = build(mid, end);
+    }
+    nodes[id] = n;
+    return id;
+  }
+};
+
+WindingNumber::WindingNumber(const std::vector<Vec3f>& points, const std::vector<Vec3f>& normals, double voxel)
+    : impl_(std::make_unique<Impl>()) {
+  if (points.size() != normals.size()) throw InvalidInput("winding number: points and normals differ in count");
+  if (!(voxel > 0) || !std::isfinite(voxel)) throw InvalidInput("winding number: the voxel must be positive");
+  // Area per point from the local density: the disc reaching the k-th neighbour
+  // holds k points, so a point stands for pi r_k^2 / k (uneven density, such as the
+  // overlaps of merged views, is handled by construction).
+  constexpr int kNeighbours = 8;
+  std::vector<Vec3f> finite;
+  std::vector<Vec3d> fnormals;
+  for (std::size_t i = 0; i < points.size(); ++i)
+    if (points[i].allFinite() && normals[i].allFinite()) {
+      finite.push_back(points[i]);
+      fnormals.push_back(normals[i].cast<double>());
+    }
+  const PointIndex index(finite);
+  std::vector<double> area(finite.size(), 0);
+  for (std::size_t i = 0; i < finite.size(); ++i) {
+    const auto nn = index.knn(finite[i], kNeighbours + 1);  // the point itself first
+    if (nn.size() < 2) continue;
+    const double r = nn.back().second;
+    area[i] = 3.14159265358979323846 * r * r / double(nn.size() - 1);
+  }
+  struct Acc {
+    Vec3d p = Vec3d::Zero(), dipole = Vec3d::Zero();
+    double weight = 0;
+  };
+  std::unordered_map<std::uint64_t, Acc> cells;
+  auto key = [voxel](const Vec3f& p) {
+    std::uint64_t k = 0;
+    for (int a = 0; a < 3; ++a)
+      k = (k << 21) | (std::uint64_t(std::int64_t(std::floor(p[a] / voxel)) + (1 << 20)) & 0x1FFFFF);
+    return k;
+  };
+  for (std::size_t i = 0; i < finite.size(); ++i) {
+    Acc& a = cells[key(finite[i])];
+    a.p += area[i] * finite[i].cast<double>();
+    a.weight += area[i];
+    const double len = fnormals[i].norm();
+    if (len > 0) a.dipole += area[i] / len * fnormals[i];
+  }
+  std::vector<std::pair<std::uint64_t, Acc>> sorted(cells.begin(), cells.end());
+  std::sort(sorted.begin(), sorted.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
+  for (const auto& [k, a] : sorted)
+    if (a.weight > 0 && a.dipole.squaredNorm() > 0) impl_->pts.push_back({a.p / a.weight, a.dipole});
+  if (!impl_->pts.empty()) impl_->build(0, int(impl_->pts.size()));
+}
+
+WindingNumber::~WindingNumber() = default;
+WindingNumber::WindingNumber(WindingNumber&&) noexcept = default;
+WindingNumber& WindingNumber::operator=(WindingNumber&&) noexcept = default;
+
+std::size_t WindingNumber::size() const { return impl_->pts.size(); }
+
+double WindingNumber::operator()(const Vec3d& x) const {
+  const auto& nodes = impl_->nodes;
+  if (nodes.empty()) return 0;
+  double sum = 0;
+  int stack[128];
+  int top = 0;
+  stack[top++] = 0;
+  while (top > 0) {
+    const WNode& n = nodes[stack[--top]];
+    const Vec3d d = n.centre - x;
+    const double r2 = d.squaredNorm();
+    if (r2 > kFarRatio * kFarRatio * n.radius * n.radius) {
+      sum += n.dipole.dot(d) / (r2 * std::sqrt(r2));
+    } else if (n.left < 0) {
+      for (int i = n.begin; i < n.end; ++i) {
+        const Vec3d e = impl_->pts[i].p - x;
+        const double s2 = e.squaredNorm();
+        if (s2 > 0) sum += impl_->pts[i].dipole.dot(e) / (s2 * std::sqrt(s2));
+      }
+    } else if (top + 2 <= 128) {
+      stack[top++] = n.left;
+      stack[top++] = n.right;
+    }
+  }
+  return sum / kFourPi;
+}
+
+// ---- WindingClose -------------------------------------------------------------------
+
+struct WindingClose::Index {
+  PointIndex points;
+};
+
+WindingClose::WindingClose(const ImplicitFunction& f, const Cloud& cloud, const WindingCloseParams& params)
+    : f_(f) {
+  if (cloud.points.empty()) throw InvalidInput("winding close: empty cloud");
+  if (!cloud.has_normals()) throw InvalidInput("winding close: the cloud has no normals");
+  if (!(params.ramp > 1) || !(params.trust_distance >= 0) || !(params.voxel >= 0))
+    throw InvalidInput("winding close: need ramp > 1, trust_distance >= 0, voxel >= 0");
+  index_ = std::make_unique<Index>(Index{PointIndex(cloud.points)});
+  t1_ = params.trust_distance;
+  if (t1_ <= 0) {
+    // Mean nearest-neighbour spacing over an even subset of at most 4,000 points.
+    const std::size_t n = cloud.points.size(), m = std::min<std::size_t>(n, 4000);
+    double sum = 0;
+    int counted = 0;
+    for (std::size_t s = 0; s < m; ++s) {
+      const auto nn = index_->points.knn(cloud.points[s * n / m], 2);
+      if (nn.size() == 2) sum += nn[1].second, ++counted;
+    }
+    t1_ = 4 * (counted ? sum / counted : 0);
+  }
+  const Aabb box = bounding_box(cloud.points);
+  const double diag = box.diagonal();
+  if (!(t1_ > 0)) t1_ = 1e-3 * std::max(diag, 1e-9);
+  t2_ = params.ramp * t1_;
+  const double voxel = params.voxel > 0 ? params.voxel : std::max(0.5 * t1_, diag / 200);
+  w_ = std::make_unique<WindingNumber>(cloud.points, cloud.normals, voxel);
+}
+
+WindingClose::~WindingClose() = default;
+
+double WindingClose::blend(const Vec3d& x, Vec3d* grad) const {
+  const auto [id, d] = index_->points.nearest(x.cast<float>());
+  const double beta = std::clamp((d - t1_) / (t2_ - t1_), 0.0, 1.0);
+  if (grad) {
+    *grad = Vec3d::Zero();
+    if (beta > 0 && beta < 1 && id >= 0 && d > 0)
+      *grad = (x - index_->points.points()[id].cast<double>()) / (double(d) * (t2_ - t1_));
+  }
+  return beta;
+}
+
+double WindingClose::value(const Vec3d& x) const {
+  const double beta = blend(x, nullptr);
+  if (beta <= 0) return f_.value(x);
+  const double s = (0.5 - (*w_)(x)) * 2 * t2_;
+  if (beta >= 1) return s;
+  const double f = f_.value(x);
+  if (!std::isfinite(f)) return s;
+  return (1 - beta) * f + beta * s;
+}
+
+Vec3d WindingClose::gradient(const Vec3d& x) const {
+  Vec3d gbeta;
+  const double beta = blend(x, &gbeta);
+  if (beta <= 0) return f_.gradient(x);
+  // grad s = -2 t2 grad w, grad w by central differences (step t1 / 4).
+  const double h = 0.25 * t1_;
+  Vec3d gw;
+  for (int a = 0; a < 3; ++a) {
+    Vec3d e = Vec3d::Zero();
+    e[a] = h;
+    gw[a] = ((*w_)(x + e) - (*w_)(x - e)) / (2 * h);
+  }
+  const Vec3d gs = -2 * t2_ * gw;
+  if (beta >= 1) return gs;
+  const double f = f_.value(x);
+  if (!std::isfinite(f)) return gs;
+  const double s = (0.5 - (*w_)(x)) * 2 * t2_;
+  return (1 - beta) * f_.gradient(x) + beta * gs + (s - f) * gbeta;
+}
+
+}  // namespace station

@@ -1,0 +1,83 @@
+#pragma once
+// Closing what the scanner never saw, by the winding number of the oriented cloud.
+//
+// Far from the data an implicit fit only extrapolates: on a turntable scan with an
+// open bottom (the Stanford dragon on its stand) MPU's local quadrics flare outwards
+// until the extraction box caps them (docs/mpu.md, "Known limits"). Telling the
+// exterior from the interior there needs global information. The generalized
+// winding number of the oriented points (Barill et al. 2018, "Fast winding numbers
+// for soups and clouds") gives it: w(x) = sum_i a_i n_i . (p_i - x) / (4 pi |p_i - x|^3)
+// is about 1 inside, 0 outside, and passes smoothly through 1/2 across holes, so its
+// 1/2 level set spans a hole the way a membrane would.
+//
+// WindingClose blends: near the data (within the trust distance t1 of a point) the
+// function is f; beyond t2 it is s(x) = (1/2 - w(x)) * scale; in between it moves
+// linearly from one to the other with the distance. The blend is continuous, so the
+// extracted mesh has no seams.
+#include <memory>
+#include <vector>
+
+#include "core/geometry.h"
+#include "reconstruct/implicit.h"
+
+namespace station {
+
+/// Barnes-Hut evaluation of the winding number of an oriented cloud. Each point
+/// stands for the area pi r_8^2 / 8 (r_8: distance to its 8th neighbour); the cloud
+/// is then reduced to one point per voxel (area-weighted centroid, summed area x
+/// normal, so normals that cancel, as on both sides of a thin part, weigh less).
+/// Far clusters (distance > 2 x their radius) count as one dipole. Thread-safe
+/// after construction.
+class WindingNumber {
+ public:
+  /// points and unit normals (outwards), same size; voxel > 0.
+  WindingNumber(const std::vector<Vec3f>& points, const std::vector<Vec3f>& normals, double voxel);
+  ~WindingNumber();
+  WindingNumber(WindingNumber&&) noexcept;
+  WindingNumber& operator=(WindingNumber&&) noexcept;
+  double operator()(const Vec3d& x) const;
+  /// Points after the voxel reduction.
+  std::size_t size() const;
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+struct WindingCloseParams {
+  /// Trust distance t1 (world units): within it the function is f alone. 0 = 4 x the
+  /// cloud's mean nearest-neighbour spacing (MPU's trust_factor default).
+  double trust_distance = 0;
+  /// t2 = ramp x t1: beyond it the function is the winding-number term alone.
+  double ramp = 3;
+  /// Voxel of the winding-number reduction; 0 = max(t1 / 2, diagonal / 200).
+  double voxel = 0;
+};
+
+/// g(x) = (1 - beta) f(x) + beta s(x), beta = clamp((d(x) - t1) / (t2 - t1), 0, 1),
+/// d the distance to the nearest input point, s = (1/2 - w(x)) * 2 t2. f must
+/// outlive this object; thread-safe when f is.
+class WindingClose : public ImplicitFunction {
+ public:
+  /// InvalidInput when the cloud is empty or has no normals.
+  WindingClose(const ImplicitFunction& f, const Cloud& cloud, const WindingCloseParams& params = {});
+  ~WindingClose() override;
+  double value(const Vec3d& x) const override;
+  /// grad f where beta = 0; elsewhere the blend's gradient, with grad w by central
+  /// differences (step t1 / 4).
+  Vec3d gradient(const Vec3d& x) const override;
+  bool trusted(const Vec3d& x) const override { return f_.trusted(x); }
+  double winding(const Vec3d& x) const { return (*w_)(x); }
+  double trust_distance() const { return t1_; }
+  std::size_t winding_points() const { return w_->size(); }
+
+ private:
+  double blend(const Vec3d& x, Vec3d* grad) const;
+  const ImplicitFunction& f_;
+  struct Index;
+  std::unique_ptr<Index> index_;
+  std::unique_ptr<WindingNumber> w_;
+  double t1_ = 0, t2_ = 0;
+};
+
+}  // namespace station
