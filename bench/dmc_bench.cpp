@@ -24,6 +24,8 @@
 #include <vtkSmartPointer.h>
 #include <vtkVersion.h>
 
+#include "core/normals.h"
+#include "core/stanford_conf.h"
 #include "harness.h"
 #include "reconstruct/dmc.h"
 #include "reconstruct/marching_cubes.h"
@@ -222,8 +224,44 @@ void run_dmc_cases(const Options& options, Report& report) {
     report.rows.push_back(row);
     report.note(label + ": " + std::to_string(cloud.size()) +
                 " points (icosphere level 5, radius 1 + 0.1 sin 5x cos 4y), triangles DMC " +
-                std::to_string(dmc_faces) + ", MC " + std::to_string(mc_faces) +
-                "; not the dragon of the issue (no merged dragon MPU in this bench)");
+                std::to_string(dmc_faces) + ", MC " + std::to_string(mc_faces));
+  }
+
+  // The MPU surface of the Stanford dragon (the issue's case): the full scans of
+  // ../shared/data/stanford_dragon_stand merged with the .conf poses, every 5th point,
+  // normals estimated and oriented (k = 12), fit_mpu with epsilon0 from
+  // suggest_epsilon0 (as tests/reconstruct/mpu_dragon_test.cpp). Skipped without ../shared.
+  {
+    const fs::path conf = options.shared_dir / "stanford_dragon_stand" / "dragonStandRight.conf";
+    if (!options.use_shared || !fs::exists(conf)) {
+      report.note("MPU dragon: skipped (" + conf.string() + " missing; the row needs ../shared)");
+    } else {
+      Cloud cloud = merge_stanford_scans(conf, 5);
+      cloud.normals = estimate_normals(cloud.points, 12, options.threads);
+      orient_normals_mst(cloud.points, cloud.normals, 12);
+      MpuParams params;
+      params.epsilon0 = std::max(params.epsilon0, suggest_epsilon0(cloud));
+      const MpuSurface mpu = fit_mpu(cloud, params);
+      for (int resolution : {128, 256}) {
+        std::size_t mc_faces = 0, dmc_faces = 0;
+        DmcStats stats;
+        const std::string label = "MPU dragon " + std::to_string(resolution) + "^3: DMC vs our MC";
+        Row row{label, "our sparse MC (target: DMC <= 2x)"};
+        std::tie(row.ours, row.theirs) = measure_pair(
+            few, [&] { dmc_faces = extract_dmc(mpu, resolution, dmc_options, &stats).faces.size(); },
+            [&] { mc_faces = extract_marching_cubes(mpu, resolution, mc_options).faces.size(); });
+        report.rows.push_back(row);
+        report.note(label + ": " + std::to_string(cloud.size()) +
+                    " points (../shared full scans merged with the .conf poses, every 5th point), triangles DMC " +
+                    std::to_string(dmc_faces) + ", MC " + std::to_string(mc_faces) + "; DMC Omega searches " +
+                    std::to_string(stats.searched) + ", moved (thin / corner / edge) " +
+                    std::to_string(stats.moved_barycentre) + " / " + std::to_string(stats.moved_corner) + " / " +
+                    std::to_string(stats.moved_edge) + "; phases walk / step 1 / step 2 / mesh " +
+                    format_fixed(stats.seconds_traversal, 2) + " / " + format_fixed(stats.seconds_barycentre, 2) +
+                    " / " + format_fixed(stats.seconds_features, 2) + " / " + format_fixed(stats.seconds_mesh, 2) +
+                    " s");
+      }
+    }
   }
 
   // 512^3 against VTK Flying Edges, sphere and lens; one run per side (no warm-up).
