@@ -1,6 +1,7 @@
 // Mesh extraction (issue 6, docs/dmc.md): our sparse marching cubes and Deformed
 // Marching Cubes (s = h/5) on analytic functions (sphere, the paper's contact lens,
-// a thin spike, a rotated cube) at 128^3 and 256^3, and on an MPU surface; and at
+// a thin spike, a rotated cube) at 128^3 and 256^3, and on MPU surfaces (a lumpy
+// sphere; the dragon of ../shared/data/stanford_dragon_stand when present); and at
 // 512^3 both against VTK's vtkFlyingEdges3D on the sphere and the lens, its
 // vtkImageData filled from the same function (whole run: allocation + fill +
 // contour; the contour alone is timed separately and given in the notes).
