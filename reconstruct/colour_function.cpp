@@ -68,7 +68,21 @@ struct Leaf {
   std::vector<RbfPart> clusters;     // colour per cluster (cols = 3)
   RbfPart boundary;                  // cols = 1 (two clusters: b >= 0 -> cluster 0) or k
 
-  Lab eval(const Vec3d& y) const {
+  // The paper's Q_k(y): Type A's quadratic, or Type B's cluster chosen by its own
+  // boundary function(s).
+  Lab eval(const Vec3d& y) const { return eval_impl(y, nullptr, nullptr); }
+  // Type B only: every cluster's side score (two clusters: b and -b; k clusters: b_c)
+  // and colour at y. Returns the paper's choice (argmax, ties to the first).
+  int eval_clusters(const Vec3d& y, double* score, Lab* colour) const {
+    int chosen = 0;
+    eval_impl(y, score, colour);
+    for (int k = 1; k < int(clusters.size()); ++k)
+      if (score[k] > score[chosen]) chosen = k;
+    return chosen;
+  }
+
+ private:
+  Lab eval_impl(const Vec3d& y, double* score_out, Lab* colour_out) const {
     const Vec3d d = (y - o) * inv_r;
     const double a = d.dot(u), b = d.dot(v);
     Lab out{};
@@ -113,6 +127,16 @@ struct Leaf {
       for (int k = 1; k < boundary.cols; ++k)
         if (bv[k] > bv[chosen]) chosen = k;
     }
+    if (score_out) {
+      if (boundary.cols == 1) {
+        score_out[0] = bv[0];
+        score_out[1] = -bv[0];
+      } else {
+        for (int k = 0; k < boundary.cols; ++k) score_out[k] = bv[k];
+      }
+      for (int k = 0; k < int(clusters.size()); ++k) value(clusters[k], 0, kChannels, colour_out[k].data());
+      return colour_out[chosen];
+    }
     value(clusters[chosen], 0, kChannels, out.data());
     return out;
   }
@@ -147,26 +171,25 @@ struct ColourFunction::Impl {
   std::vector<Node> nodes;
   std::vector<Leaf> leaves;
 
-  // sum_k w_k(y) Q_k(y) and sum_k w_k(y); optionally the leaf of largest weight.
-  void accumulate(const Vec3d& y, Lab& swq, double& sw, int* dominant) const {
+  struct Hit {
+    int leaf;
+    double w;
+  };
+
+  // The leaves whose ball holds y, with their weights w_k(y), in a fixed (traversal)
+  // order.
+  void gather(const Vec3d& y, std::vector<Hit>& hits) const {
+    hits.clear();
     int stack[64 * 8];
     int top = 0;
     stack[top++] = 0;
-    double best_w = 0;
     while (top > 0) {
       const Node& nd = nodes[stack[--top]];
       const double r = (y - nd.center).norm();
       if (nd.first_child < 0) {
         if (nd.leaf < 0 || r >= nd.radius) continue;
         const double w = bspline2(1.5 * r / nd.radius);
-        if (w <= 0) continue;
-        if (dominant) {
-          if (w > best_w) best_w = w, *dominant = nd.leaf;
-          continue;
-        }
-        const Lab q = leaves[nd.leaf].eval(y);
-        for (int c = 0; c < kChannels; ++c) swq[c] += w * q[c];
-        sw += w;
+        if (w > 0) hits.push_back({nd.leaf, w});
       } else {
         if (r >= nd.reach) continue;
         for (int c = 7; c >= 0; --c) stack[top++] = nd.first_child + c;
@@ -174,16 +197,118 @@ struct ColourFunction::Impl {
     }
   }
 
-  Lab eval(const Vec3d& x) const {
-    const Vec3d y = (x - center) * scale;
+  // The paper's blend: sum_k w_k Q_k / sum_k w_k, every leaf deciding its own side.
+  bool blend_paper(const Vec3d& y, const std::vector<Hit>& hits, Lab& out) const {
     Lab swq{};
     double sw = 0;
-    accumulate(y, swq, sw, nullptr);
-    if (!(sw > 1e-300)) return labs[index->nearest(y.cast<float>()).first];
-    for (double& c : swq) c /= sw;
-    if (!std::isfinite(swq[0]) || !std::isfinite(swq[1]) || !std::isfinite(swq[2]))
+    for (const Hit& h : hits) {
+      const Lab q = leaves[h.leaf].eval(y);
+      for (int c = 0; c < kChannels; ++c) swq[c] += h.w * q[c];
+      sw += h.w;
+    }
+    if (!(sw > 1e-300)) return false;
+    for (int c = 0; c < kChannels; ++c) out[c] = swq[c] / sw;
+    return true;
+  }
+
+  // side_consensus (docs/colour.md). Every leaf at y votes on the side (colour class) of
+  // y, then only predictions for the winning class are blended. Classes group the
+  // leaves' colour predictions at y: each Type B leaf's clusters (their RBFs at y; the
+  // heaviest Type B leaf's first) and each Type A leaf's quadratic; a prediction within
+  // gamma / 2 of a class's first colour joins it, else starts a new class. Votes: a
+  // Type B leaf gives each of its clusters' classes its side score (b and -b; b_c
+  // one-vs-rest), clamped to the targets' range [-1, 1] (beyond it b only extrapolates
+  // its linear part away from the nodes); a Type A leaf holds one colour in its ball and
+  // gives its class +1; a leaf gives -1 to every class it does not have. The class of
+  // the largest weighted sum wins. Then each leaf with that class contributes its
+  // prediction for it (a Type B leaf its cluster's RBF), the others none: a one-colour
+  // leaf whose ball reaches over the boundary, or a Type B leaf whose boundary lies a
+  // little elsewhere, no longer mixes in the other colour.
+  bool blend_consensus(const Vec3d& y, const std::vector<Hit>& hits, Lab& out) const {
+    int ref = -1;
+    for (std::size_t i = 0; i < hits.size(); ++i)
+      if (leaves[hits[i].leaf].type == ColourCellType::kB && (ref < 0 || hits[i].w > hits[ref].w)) ref = int(i);
+    if (ref < 0) return blend_paper(y, hits, out);
+    thread_local std::vector<Lab> class_colour;
+    thread_local std::vector<double> class_vote;
+    // Per hit and class it has: the (clamped) score and the colour at y.
+    struct Entry {
+      int hit, cls;
+      double score;
+      Lab colour;
+    };
+    thread_local std::vector<Entry> at;
+    class_colour.clear();
+    class_vote.clear();
+    at.clear();
+    const double match2 = 0.25 * params.gamma * params.gamma;
+    auto class_of = [&](const Lab& colour) {
+      int cls = -1;
+      double best = match2;
+      for (int r = 0; r < int(class_colour.size()); ++r) {
+        const double d = delta_e2(colour, class_colour[r]);
+        if (d < best) best = d, cls = r;
+      }
+      if (cls < 0) {
+        cls = int(class_colour.size());
+        class_colour.push_back(colour);
+        class_vote.push_back(0);
+      }
+      return cls;
+    };
+    auto add = [&](std::size_t first, int i, int cls, double score, const Lab& colour) {
+      // Two clusters of one leaf in the same class: the one with the larger score.
+      for (std::size_t j = first; j < at.size(); ++j)
+        if (at[j].cls == cls) {
+          if (score > at[j].score) at[j].score = score, at[j].colour = colour;
+          return;
+        }
+      at.push_back({i, cls, score, colour});
+    };
+    auto visit_b = [&](int i) {
+      const Leaf& leaf = leaves[hits[i].leaf];
+      double score[16];
+      Lab colour[16];
+      leaf.eval_clusters(y, score, colour);
+      const std::size_t first = at.size();
+      for (int c = 0; c < int(leaf.clusters.size()); ++c)
+        add(first, i, class_of(colour[c]), std::clamp(score[c], -1.0, 1.0), colour[c]);
+    };
+    visit_b(ref);
+    for (int i = 0; i < int(hits.size()); ++i)
+      if (i != ref && leaves[hits[i].leaf].type == ColourCellType::kB) visit_b(i);
+    for (int i = 0; i < int(hits.size()); ++i)
+      if (leaves[hits[i].leaf].type == ColourCellType::kA) {
+        const Lab q = leaves[hits[i].leaf].eval(y);
+        at.push_back({i, class_of(q), 1.0, q});
+      }
+    // Sum over leaves of w (score + 1) per class: the -1 of the leaves without the class
+    // is common to all classes once shifted.
+    for (const Entry& e : at) class_vote[e.cls] += hits[e.hit].w * (e.score + 1);
+    int side = 0;
+    for (int r = 1; r < int(class_colour.size()); ++r)
+      if (class_vote[r] > class_vote[side]) side = r;
+    Lab swq{};
+    double sw = 0;
+    for (const Entry& e : at) {
+      if (e.cls != side) continue;
+      for (int ch = 0; ch < kChannels; ++ch) swq[ch] += hits[e.hit].w * e.colour[ch];
+      sw += hits[e.hit].w;
+    }
+    if (!(sw > 1e-300)) return false;
+    for (int c = 0; c < kChannels; ++c) out[c] = swq[c] / sw;
+    return true;
+  }
+
+  Lab eval(const Vec3d& x) const {
+    const Vec3d y = (x - center) * scale;
+    thread_local std::vector<Hit> hits;
+    gather(y, hits);
+    Lab out{};
+    const bool ok = params.side_consensus ? blend_consensus(y, hits, out) : blend_paper(y, hits, out);
+    if (!ok || !std::isfinite(out[0]) || !std::isfinite(out[1]) || !std::isfinite(out[2]))
       return labs[index->nearest(y.cast<float>()).first];
-    return swq;
+    return out;
   }
 };
 
@@ -703,10 +828,12 @@ void ColourFunction::set_surface(const ImplicitFunction* surface, int steps) {
 
 ColourCellType ColourFunction::dominant_type(const Vec3d& x) const {
   if (!impl_) return ColourCellType::kA;
-  Lab swq{};
-  double sw = 0;
+  std::vector<Impl::Hit> hits;
+  impl_->gather((x - impl_->center) * impl_->scale, hits);
   int leaf = -1;
-  impl_->accumulate((x - impl_->center) * impl_->scale, swq, sw, &leaf);
+  double best_w = 0;
+  for (const Impl::Hit& h : hits)
+    if (h.w > best_w) best_w = h.w, leaf = h.leaf;
   return leaf < 0 ? ColourCellType::kA : impl_->leaves[leaf].type;
 }
 

@@ -62,6 +62,20 @@ struct ColourParams {
   /// the cell stays Type B. Bad-input guard (issue 7: "fewer than four points").
   int min_rbf_points = 4;
 
+  // ---- blending (beyond the paper, on by default) --------------------------------
+  /// Where Type B leaves cover x, decide the side (colour class) at x once and blend
+  /// only predictions for that side. The leaves' colour predictions at x (each Type B
+  /// cluster's RBF, each Type A quadratic) are grouped into classes (within gamma / 2);
+  /// every leaf votes with its weight: a Type B leaf its boundary function for each of
+  /// its clusters' classes (b and -b, or b_c one-vs-rest, clamped to [-1, 1]), a Type A
+  /// leaf +1 for its class, -1 for classes a leaf does not have; the best class wins and
+  /// only the leaves' predictions in it are blended. false: the paper, every leaf blends
+  /// the colour of its own side, so leaves whose boundaries disagree slightly, and
+  /// one-colour leaves whose balls reach over the boundary, mix the two colours in a band
+  /// about two grid cells wide on a mesh finer than the sampling (docs/colour.md). Where
+  /// no Type B leaf covers x both are the same.
+  bool side_consensus = true;
+
   // ---- beyond the paper (each off by default = the paper's method) --------------
   /// (a) Three or more colours in a cell: up to max_clusters clusters (farthest-point
   /// seeds in L*a*b* while the next seed is more than gamma from all others), each with

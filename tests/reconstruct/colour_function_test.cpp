@@ -241,6 +241,102 @@ TEST(ColourFunction, TransitionOnTheExtractedMeshIsNarrowerThanOneCell) {
   EXPECT_LT(ours, h);
 }
 
+// The transition measured as bench/surface_bench.cpp does (docs/benchmarks.md, "Colour
+// transition on the two-colour sphere"): per mesh vertex, t = its colour projected on the
+// red -> blue axis, s = its distance to the boundary plane; the band is 2 x the 95th
+// percentile of |s| over vertices with 0.1 < t < 0.9; a vertex is on the wrong side when
+// t > 0.5 with s < 0 or t < 0.5 with s > 0.
+struct Transition {
+  double width = 0, max_wrong = 0;
+  std::size_t band = 0, wrong = 0, wrong_far = 0;
+};
+Transition measure_transition(const Mesh& mesh, const std::function<double(const Vec3d&)>& signed_distance,
+                              const Rgb& a, const Rgb& b, double h) {
+  const Vec3d ca(a.r, a.g, a.b), axis = Vec3d(b.r, b.g, b.b) - ca;
+  Transition out;
+  std::vector<double> band;
+  for (std::size_t i = 0; i < mesh.vertices.size(); ++i) {
+    const double t = (Vec3d(mesh.colors[i].r, mesh.colors[i].g, mesh.colors[i].b) - ca).dot(axis) / axis.squaredNorm();
+    const double s = signed_distance(mesh.vertices[i].cast<double>());
+    if (t > 0.1 && t < 0.9) band.push_back(std::abs(s));
+    if ((t > 0.5 && s < 0) || (t < 0.5 && s > 0)) {
+      ++out.wrong;
+      out.wrong_far += std::abs(s) > h;
+      out.max_wrong = std::max(out.max_wrong, std::abs(s));
+    }
+  }
+  out.band = band.size();
+  if (!band.empty()) {
+    std::sort(band.begin(), band.end());
+    out.width = 2 * band[std::min(band.size() - 1, std::size_t(0.95 * double(band.size())))];
+  }
+  return out;
+}
+
+// Issue 7's targets on a grid finer than the sampling, as in the bench (cell 0.78 x the
+// mean point spacing, random points): the colour band on the mesh is narrower than one
+// cell, and no vertex more than one cell from the boundary takes the other side's colour
+// where the samples decide it. Where the nearest input point itself has the other colour
+// (a gap in the sampling along the boundary: e.g. red samples right at the boundary and
+// the nearest blue ones 1-2 spacings beyond it), no local method can know the side; the
+// test checks that every such vertex is one of those. Measured (seeds 53 / 5; seed 2
+// alike): paper blend band 2.24 / 2.38 cells, side_consensus 0 (no band vertex); wrong
+// side beyond one cell 0 / 1 (1.01 cells, where the nearest sample has the other colour;
+// nearest-sample colours have 6 / 8 such vertices, up to 1.85 cells).
+TEST(ColourFunction, TransitionIsNarrowerThanOneCellOnAGridFinerThanTheSampling) {
+  const Rgb red{220, 30, 30}, blue{30, 40, 200};
+  auto side = [&](const Vec3d& p) { return split_distance(p) > 0 ? blue : red; };
+  auto distance = [](const Vec3d& p) { return split_distance(p.normalized()); };
+  for (unsigned seed : {53u, 5u}) {
+    Cloud c;
+    for (const Vec3d& d : random_sphere_points(40000, seed)) {
+      c.points.push_back(d.cast<float>());
+      c.normals.push_back(d.cast<float>());
+      c.colors.push_back(side(d));
+    }
+    const double spacing = std::sqrt(4 * M_PI / double(c.size()));
+    MpuParams mp;
+    mp.threads = 2;
+    const MpuSurface s = fit_mpu(c, mp);
+    MarchingCubesOptions mo;
+    mo.threads = 2;
+    MarchingCubesStats st;
+    Mesh mesh = extract_marching_cubes(s, 160, mo, &st);
+    const double h = st.cell_size;
+    ColourParams cp, paper;
+    cp.threads = paper.threads = 2;
+    paper.side_consensus = false;
+    const ColourFunction f = fit_colour(c, cp);
+    Mesh mesh_paper = mesh, nearest = mesh;
+    colour_mesh(mesh, f, 2);
+    colour_mesh(mesh_paper, fit_colour(c, paper), 2);
+    transfer_colors(nearest, c, {1, 2});
+    const Transition t = measure_transition(mesh, distance, red, blue, h);
+    const Transition tp = measure_transition(mesh_paper, distance, red, blue, h);
+    const Transition tn = measure_transition(nearest, distance, red, blue, h);
+    // Wrong-side vertices beyond one cell whose nearest input point has their true colour.
+    std::size_t decided_far = 0;
+    for (std::size_t i = 0; i < mesh.vertices.size(); ++i) {
+      const Vec3d p = mesh.vertices[i].cast<double>();
+      const Rgb truth = side(p.normalized());
+      if (std::abs(distance(p)) > h && rgb_error(mesh.colors[i], truth) > 0.5 && rgb_error(nearest.colors[i], truth) < 0.1)
+        ++decided_far;
+    }
+    std::printf("seed %u: %zu vertices, cell %.4f (%.2f spacings), e_col %.3g, B leaves %zu\n", seed, mesh.vertices.size(), h,
+                h / spacing, f.diagnostics().e_col, f.diagnostics().leaves_by_type[1]);
+    for (const auto& [name, tr] : {std::pair<const char*, const Transition&>{"side consensus", t}, {"paper blend", tp},
+                                   {"nearest sample", tn}})
+      std::printf("  %-14s band %3zu vertices, width %.2f cells; wrong side %3zu, %zu beyond one cell, farthest %.2f cells\n",
+                  name, tr.band, tr.width / h, tr.wrong, tr.wrong_far, tr.max_wrong / h);
+    std::printf("  side consensus: wrong side beyond one cell where the nearest sample is right: %zu\n", decided_far);
+    EXPECT_LT(t.width, h);
+    EXPECT_EQ(decided_far, 0u);
+    EXPECT_LE(t.wrong_far, tn.wrong_far);
+    EXPECT_LT(t.max_wrong, 1.25 * h);
+    EXPECT_LT(f.diagnostics().e_col, 1e-3);
+  }
+}
+
 // Option (b): colour noise makes the paper's test see boundaries everywhere (and the
 // RBFs then interpolate the noise); the noise test keeps them where they are.
 TEST(ColourFunction, NoiseRobustCellsIgnoreColourNoise) {
@@ -286,26 +382,33 @@ TEST(ColourFunction, NoiseRobustCellsIgnoreColourNoise) {
 TEST(ColourFunction, OffsetSurfaceTakesTheProjectedColour) {
   const Cloud c = sphere_cloud(12000, half_red_half_blue);
   const MpuSurface s = fit_mpu(c);
-  ColourFunction plain = fit_colour(c);
-  ColourFunction projected = plain;
-  projected.set_surface(&s);
-  // Measured (12k points, unit sphere): without projection the error grows with the
-  // offset (0.0054 at 0.02, 0.0099 at 0.08, 0.022 at 0.2); with it, it stays at the
-  // on-surface level (0.0056).
-  for (double offset : {0.02, 0.08, 0.12, 0.2}) {
-    double ep = 0, eq = 0;
-    const auto qs = random_sphere_points(6000, 17);
-    for (const Vec3d& q : qs) {
-      for (double sign : {-1.0, 1.0}) {
-        const Vec3d x = q * (1 + sign * offset);
-        ep += rgb_error(plain.srgb(x), half_red_half_blue(q)) / (2 * qs.size());
-        eq += rgb_error(projected.srgb(x), half_red_half_blue(q)) / (2 * qs.size());
+  ColourParams paper;
+  paper.side_consensus = false;
+  // The paper's blend, where off-surface queries degrade most, and the default.
+  for (const ColourParams& p : {paper, ColourParams{}}) {
+    ColourFunction plain = fit_colour(c, p);
+    ColourFunction projected = plain;
+    projected.set_surface(&s);
+    // Measured (12k points, unit sphere), paper's blend: without projection the error
+    // grows with the offset (0.0054 at 0.02, 0.0099 at 0.08, 0.022 at 0.2); with it, it
+    // stays at the on-surface level (0.0056). With side_consensus (default) the off-surface
+    // error grows later (0.0050 at 0.08, 0.011 at 0.2; projected 0.0057).
+    for (double offset : {0.02, 0.08, 0.12, 0.2}) {
+      double ep = 0, eq = 0;
+      const auto qs = random_sphere_points(6000, 17);
+      for (const Vec3d& q : qs) {
+        for (double sign : {-1.0, 1.0}) {
+          const Vec3d x = q * (1 + sign * offset);
+          ep += rgb_error(plain.srgb(x), half_red_half_blue(q)) / (2 * qs.size());
+          eq += rgb_error(projected.srgb(x), half_red_half_blue(q)) / (2 * qs.size());
+        }
       }
-    }
-    std::printf("offset %.2f: error without projection %.4f, with %.4f\n", offset, ep, eq);
-    EXPECT_LT(eq, 0.007);
-    if (offset >= 0.08) {
-      EXPECT_LT(eq, 0.7 * ep);
+      std::printf("%s, offset %.2f: error without projection %.4f, with %.4f\n",
+                  p.side_consensus ? "side consensus" : "paper blend", offset, ep, eq);
+      EXPECT_LT(eq, 0.007);
+      if (offset >= (p.side_consensus ? 0.2 : 0.08)) {
+        EXPECT_LT(eq, 0.7 * ep);
+      }
     }
   }
 }
