@@ -179,6 +179,24 @@ class BlockMap {
     return e->second;
   }
   const V& at(Key k) const { return const_cast<BlockMap*>(this)->at(k); }
+  /// The entries of the 8 corners of cell c (point keys; nullptr where missing), one
+  /// block lookup per block the corners fall in.
+  void corners(Key c, const Entry* out[8]) const {
+    static_assert(kPer == 1, "corners() takes point keys");
+    Key last = ~Key(0);
+    const std::uint32_t* base = nullptr;
+    for (int q = 0; q < 8; ++q) {
+      const Key k = corner_key(c, q);
+      const Key bk = BlockIndex::block_of(k);
+      if (bk != last) {
+        last = bk;
+        const std::uint32_t b = index_.find(bk);
+        base = b == BlockIndex::kNone ? nullptr : &slots_[std::size_t(b) * 64];
+      }
+      const std::uint32_t e = base ? base[BlockIndex::local(k)] : BlockIndex::kNone;
+      out[q] = e == BlockIndex::kNone ? nullptr : &entries_[e];
+    }
+  }
   /// True when k was not in the map.
   bool emplace(Key k, const V& v) {
     bool added = false;
@@ -365,10 +383,19 @@ class Dmc {
   }
   double val(Key p) const { return nodes_.at(p).val; }
   int config(Key c) const {
+    const BlockMap<Node>::Entry* e[8];
+    nodes_.corners(c, e);
     int cfg = 0;
-    for (int q = 0; q < 8; ++q)
-      if (val(corner_key(c, q)) < 0) cfg |= 1 << q;
+    for (int q = 0; q < 8; ++q) {
+      if (!e[q]) throw std::out_of_range("extract_dmc: internal error: lattice point not evaluated");
+      if (e[q]->second.val < 0) cfg |= 1 << q;
+    }
     return cfg;
+  }
+  // Whether cell edge e has a sign change, from the cell's configuration.
+  static bool crossed(int cfg, int e) {
+    const auto& ec = mc::edge_corners();
+    return ((cfg >> ec[e][0]) ^ (cfg >> ec[e][1])) & 1;
   }
 
   // ---------------------------------------------------------------- traversal
@@ -555,8 +582,8 @@ class Dmc {
           if (kind == 1 ? !opt_.barycentre : !opt_.thin_gaps) continue;
           // Moves: outside points into thin parts, inside points into thin gaps.
           const bool mover = (kind == 1) != inside;
-          if (mover ? (nd.flags & kSearched) != 0 : passed.count(p * 2 + kind) > 0) continue;
           if (!mover && first_wave) continue;
+          if (mover ? (nd.flags & kSearched) != 0 : passed.count(p * 2 + kind) > 0) continue;
           if (first_wave && !cheap_candidate(p, nd)) {
             nodes_.at(p).flags |= kSearched;
             continue;
@@ -815,10 +842,11 @@ class Dmc {
   void compute_crossings(const KeySet& surface) {
     const auto& ec = mc::edge_corners();
     std::vector<Key> edges;
-    for (Key c : surface.list())
+    for (Key c : surface.list()) {
+      const int cfg = config(c);
       for (int e = 0; e < 12; ++e) {
-        const Key a = corner_key(c, ec[e][0]), b = corner_key(c, ec[e][1]);
-        if ((val(a) < 0) == (val(b) < 0)) continue;
+        if (!crossed(cfg, e)) continue;
+        const Key a = corner_key(c, ec[e][0]);
         const Key ek = a * 3 + e / 4;
         // Each edge once (queued marks it), without sorting.
         auto* known = crossings_.find(ek);
@@ -832,6 +860,7 @@ class Dmc {
           edges.push_back(ek);
         }
       }
+    }
     std::vector<Crossing> out(edges.size());
     parallel(edges.size(), [&](std::size_t i) { out[i] = crossing(edges[i] / 3, int(edges[i] % 3), opt_.refine_steps); });
     st_.gradient_evaluations += edges.size();
@@ -848,9 +877,10 @@ class Dmc {
     const auto& ec = mc::edge_corners();
     Vec3d pts[12], nrm[12];
     int n = 0;
+    const int cfg = config(c);
     for (int e = 0; e < 12; ++e) {
-      const Key a = corner_key(c, ec[e][0]), b = corner_key(c, ec[e][1]);
-      if ((val(a) < 0) == (val(b) < 0)) continue;
+      if (!crossed(cfg, e)) continue;
+      const Key a = corner_key(c, ec[e][0]);
       const Crossing& x = crossings_.at(a * 3 + e / 4);
       if (x.normal.squaredNorm() == 0) return;  // no usable normal: leave the cell alone
       pts[n] = x.pos;
@@ -873,8 +903,8 @@ class Dmc {
     {
       int i = 0;
       for (int e = 0; e < 12; ++e) {
-        const Key a = corner_key(c, ec[e][0]), b = corner_key(c, ec[e][1]);
-        if ((val(a) < 0) == (val(b) < 0)) continue;
+        if (!crossed(cfg, e)) continue;
+        const Key a = corner_key(c, ec[e][0]);
         const Crossing x = crossing(a, e / 4, 60);
         extra_evals += x.evals + 1;
         if (x.normal.squaredNorm() == 0) return;
