@@ -8,6 +8,7 @@
 
 #include "core/error.h"
 #include "core/kdtree.h"
+#include "reconstruct/mpu.h"
 
 namespace station {
 
@@ -123,30 +124,40 @@ WindingNumber& WindingNumber::operator=(WindingNumber&&) noexcept = default;
 
 std::size_t WindingNumber::size() const { return impl_->pts.size(); }
 
-double WindingNumber::operator()(const Vec3d& x) const {
+double WindingNumber::operator()(const Vec3d& x) const { return evaluate(x, nullptr); }
+
+double WindingNumber::evaluate(const Vec3d& x, Vec3d* grad) const {
   const auto& nodes = impl_->nodes;
+  if (grad) *grad = Vec3d::Zero();
   if (nodes.empty()) return 0;
   double sum = 0;
+  Vec3d g = Vec3d::Zero();
+  // One dipole D at c seen from x: D . r / |r|^3 with r = c - x; its gradient in x
+  // is (3 (D . r) r / |r|^2 - D) / |r|^3.
+  auto add = [&](const Vec3d& D, const Vec3d& r) {
+    const double r2 = r.squaredNorm();
+    if (!(r2 > 0)) return;
+    const double inv3 = 1.0 / (r2 * std::sqrt(r2));
+    const double dr = D.dot(r);
+    sum += dr * inv3;
+    if (grad) g += (3 * dr / r2 * r - D) * inv3;
+  };
   int stack[128];
   int top = 0;
   stack[top++] = 0;
   while (top > 0) {
     const WNode& n = nodes[stack[--top]];
     const Vec3d d = n.centre - x;
-    const double r2 = d.squaredNorm();
-    if (r2 > kFarRatio * kFarRatio * n.radius * n.radius) {
-      sum += n.dipole.dot(d) / (r2 * std::sqrt(r2));
+    if (d.squaredNorm() > kFarRatio * kFarRatio * n.radius * n.radius) {
+      add(n.dipole, d);
     } else if (n.left < 0) {
-      for (int i = n.begin; i < n.end; ++i) {
-        const Vec3d e = impl_->pts[i].p - x;
-        const double s2 = e.squaredNorm();
-        if (s2 > 0) sum += impl_->pts[i].dipole.dot(e) / (s2 * std::sqrt(s2));
-      }
+      for (int i = n.begin; i < n.end; ++i) add(impl_->pts[i].dipole, impl_->pts[i].p - x);
     } else if (top + 2 <= 128) {
       stack[top++] = n.left;
       stack[top++] = n.right;
     }
   }
+  if (grad) *grad = g / kFourPi;
   return sum / kFourPi;
 }
 
@@ -157,7 +168,7 @@ struct WindingClose::Index {
 };
 
 WindingClose::WindingClose(const ImplicitFunction& f, const Cloud& cloud, const WindingCloseParams& params)
-    : f_(f) {
+    : f_(f), mpu_(dynamic_cast<const MpuSurface*>(&f)) {
   if (cloud.points.empty()) throw InvalidInput("winding close: empty cloud");
   if (!cloud.has_normals()) throw InvalidInput("winding close: the cloud has no normals");
   if (!(params.ramp > 1) || !(params.trust_distance >= 0) || !(params.voxel >= 0))
@@ -210,20 +221,21 @@ Vec3d WindingClose::gradient(const Vec3d& x) const {
   Vec3d gbeta;
   const double beta = blend(x, &gbeta);
   if (beta <= 0) return f_.gradient(x);
-  // grad s = -2 t2 grad w, grad w by central differences (step t1 / 4).
-  const double h = 0.25 * t1_;
   Vec3d gw;
-  for (int a = 0; a < 3; ++a) {
-    Vec3d e = Vec3d::Zero();
-    e[a] = h;
-    gw[a] = ((*w_)(x + e) - (*w_)(x - e)) / (2 * h);
-  }
+  const double w = w_->evaluate(x, &gw);
   const Vec3d gs = -2 * t2_ * gw;
   if (beta >= 1) return gs;
-  const double f = f_.value(x);
+  Vec3d gf;
+  double f;
+  if (mpu_) {
+    f = mpu_->value_gradient(x, gf);  // one octree walk for both
+  } else {
+    f = f_.value(x);
+    gf = f_.gradient(x);
+  }
   if (!std::isfinite(f)) return gs;
-  const double s = (0.5 - (*w_)(x)) * 2 * t2_;
-  return (1 - beta) * f_.gradient(x) + beta * gs + (s - f) * gbeta;
+  const double s = (0.5 - w) * 2 * t2_;
+  return (1 - beta) * gf + beta * gs + (s - f) * gbeta;
 }
 
 }  // namespace station

@@ -36,6 +36,8 @@ class WindingNumber {
   WindingNumber(WindingNumber&&) noexcept;
   WindingNumber& operator=(WindingNumber&&) noexcept;
   double operator()(const Vec3d& x) const;
+  /// w(x) and, when grad is given, its gradient (analytic, from the same sum).
+  double evaluate(const Vec3d& x, Vec3d* grad) const;
   /// Points after the voxel reduction.
   std::size_t size() const;
 
@@ -65,8 +67,7 @@ class WindingClose : public ImplicitFunction {
   WindingClose(const ImplicitFunction& f, const Cloud& cloud, const WindingCloseParams& params = {});
   ~WindingClose() override;
   double value(const Vec3d& x) const override;
-  /// grad f where beta = 0; elsewhere the blend's gradient, with grad w by central
-  /// differences (step t1 / 4).
+  /// grad f where beta = 0; elsewhere the blend's gradient (grad w analytic).
   Vec3d gradient(const Vec3d& x) const override;
   bool trusted(const Vec3d& x) const override { return f_.trusted(x); }
   double winding(const Vec3d& x) const { return (*w_)(x); }
@@ -76,6 +77,7 @@ class WindingClose : public ImplicitFunction {
  private:
   double blend(const Vec3d& x, Vec3d* grad) const;
   const ImplicitFunction& f_;
+  const class MpuSurface* mpu_;  // f_ when it is an MPU surface (value and gradient in one walk)
   struct Index;
   std::unique_ptr<Index> index_;
   std::unique_ptr<WindingNumber> w_;

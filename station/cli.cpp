@@ -1029,10 +1029,10 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
   mo.seeds = surface.points();
   mo.close_at_box = true;
   Mesh mesh;
+  DmcStats dstats;
   if (a.extractor == "dmc") {
     DmcOptions dopt;
     static_cast<MarchingCubesOptions&>(dopt) = mo;
-    DmcStats dstats;
     mesh = extract_dmc(f, box, a.resolution, dopt, &dstats);
     stats = dstats;
   } else {
@@ -1084,6 +1084,17 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
                       .add("cell_size", stats.cell_size)
                       .add("colours", colour)
                       .add("extractor", a.extractor)
+                      .add("winding_close", bool(winding))
+                      .add("dmc", JsonObject()
+                                      .add("probed", dstats.probed)
+                                      .add("searched", dstats.searched)
+                                      .add("moved_barycentre", dstats.moved_barycentre)
+                                      .add("moved_corner", dstats.moved_corner)
+                                      .add("moved_edge", dstats.moved_edge)
+                                      .add("seconds_traversal", dstats.seconds_traversal)
+                                      .add("seconds_barycentre", dstats.seconds_barycentre)
+                                      .add("seconds_features", dstats.seconds_features)
+                                      .add("seconds_mesh", dstats.seconds_mesh))
                       .add("colour_method", colour ? a.colour : std::string("none"))
                       .add("e_col", e_col)
                       .add("timings_s", JsonObject()

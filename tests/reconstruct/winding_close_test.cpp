@@ -52,6 +52,17 @@ TEST(WindingNumber, OneInsideZeroOutsideHalfAcrossAHole) {
   EXPECT_NEAR(h(Vec3d(0, 0, 0)), 0.5, 0.05);
   EXPECT_GT(h(Vec3d(0, 0, 0.5)), 0.6);
   EXPECT_LT(h(Vec3d(0, 0, -0.5)), 0.4);
+  // The analytic gradient agrees with central differences away from the points.
+  for (const Vec3d& q : {Vec3d(0.1, 0.2, -0.4), Vec3d(0.7, -0.9, 0.2), Vec3d(0, 0, -1.5)}) {
+    Vec3d g;
+    const double v = h.evaluate(q, &g);
+    EXPECT_DOUBLE_EQ(v, h(q));
+    for (int a = 0; a < 3; ++a) {
+      Vec3d e = Vec3d::Zero();
+      e[a] = 1e-5;
+      EXPECT_NEAR(g[a], (h(q + e) - h(q - e)) / 2e-5, 1e-4 * (1 + g.norm())) << q.transpose() << " axis " << a;
+    }
+  }
   EXPECT_THROW(WindingNumber(open.points, {}, 0.05), InvalidInput);
   EXPECT_THROW(WindingNumber(open.points, open.normals, 0), InvalidInput);
 }
