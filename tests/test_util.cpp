@@ -1,5 +1,6 @@
 #include "test_util.h"
 
+#include <algorithm>
 #include <atomic>
 #include <map>
 #include <random>
@@ -73,5 +74,14 @@ TempDir::~TempDir() {
 }
 
 std::filesystem::path source_dir() { return STATION_SOURCE_DIR; }
+
+int open_edges(const Mesh& m) {
+  std::map<std::pair<int, int>, int> uses;
+  for (const Face& f : m.faces)
+    for (int t = 0; t < 3; ++t) ++uses[std::minmax(f[t], f[(t + 1) % 3])];
+  int bad = 0;
+  for (const auto& [e, n] : uses) bad += n != 2;
+  return bad;
+}
 
 }  // namespace station::test

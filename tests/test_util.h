@@ -25,6 +25,9 @@ class TempDir {
   std::filesystem::path path_;
 };
 
+/// Undirected edges used by other than exactly two faces (0 for a closed manifold).
+int open_edges(const Mesh& m);
+
 /// Repository root (for bundled data).
 std::filesystem::path source_dir();
 

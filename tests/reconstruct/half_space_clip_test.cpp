@@ -13,6 +13,7 @@
 #include "reconstruct/dmc.h"
 #include "reconstruct/marching_cubes.h"
 #include "reconstruct/mpu.h"
+#include "test_util.h"
 
 namespace station {
 namespace {
@@ -21,16 +22,6 @@ struct Sphere : ImplicitFunction {
   double value(const Vec3d& x) const override { return x.norm() - 1.0; }
   Vec3d gradient(const Vec3d& x) const override { return x.normalized(); }
 };
-
-// Undirected edges used by other than exactly two faces (0 for a closed manifold).
-int open_edges(const Mesh& m) {
-  std::map<std::pair<int, int>, int> uses;
-  for (const Face& f : m.faces)
-    for (int t = 0; t < 3; ++t) ++uses[std::minmax(f[t], f[(t + 1) % 3])];
-  int bad = 0;
-  for (const auto& [e, n] : uses) bad += n != 2;
-  return bad;
-}
 
 float min_z(const Mesh& m) {
   float z = 1e30f;
@@ -60,7 +51,7 @@ TEST(HalfSpaceClip, SphereIsCutFlatAndStaysClosed) {
   EXPECT_LT(min_z(whole), -0.98f);  // without the clip the bottom is round
   const Mesh cut = extract_dmc(c, box, 40);
   ASSERT_GT(cut.faces.size(), 100u);
-  EXPECT_EQ(open_edges(cut), 0);
+  EXPECT_EQ(test::open_edges(cut), 0);
   // Crossings on DMC's deformed edges are refined to f's tolerance, not exactly: a
   // small fraction of the cell size h = 0.06.
   EXPECT_GT(min_z(cut), -0.5f - 0.003f);
@@ -99,7 +90,7 @@ TEST(HalfSpaceClip, MpuClosingOfAnOpenBottomStopsAtTheLowestPoint) {
   const HalfSpaceClip clipped(surface, Vec3d(0, 0, 1), lowest);
   const Mesh m = extract_dmc(clipped, box, 48, o);
   ASSERT_GT(m.faces.size(), 100u);
-  EXPECT_EQ(open_edges(m), 0);
+  EXPECT_EQ(test::open_edges(m), 0);
   const float h = (box.max - box.min).maxCoeff() / 48;
   EXPECT_GT(min_z(m), lowest - 0.05f * h);
   // Every vertex above the cut stays near the sphere (no flare sideways either).

@@ -12,6 +12,7 @@
 #include "core/error.h"
 #include "reconstruct/marching_cubes.h"
 #include "reconstruct/mpu.h"
+#include "test_util.h"
 
 namespace station {
 namespace {
@@ -28,15 +29,6 @@ Cloud sphere_cloud(int n, double r, double min_z, unsigned seed) {
     c.normals.push_back(d.cast<float>());
   }
   return c;
-}
-
-int open_edges(const Mesh& m) {
-  std::map<std::pair<int, int>, int> uses;
-  for (const Face& f : m.faces)
-    for (int t = 0; t < 3; ++t) ++uses[std::minmax(f[t], f[(t + 1) % 3])];
-  int bad = 0;
-  for (const auto& [e, n] : uses) bad += n != 2;
-  return bad;
 }
 
 TEST(WindingNumber, OneInsideZeroOutsideHalfAcrossAHole) {
@@ -109,7 +101,7 @@ TEST(WindingClose, OpenTubeIsCappedAtItsRimNotAtTheBox) {
   // Without the closing the tube runs on far below the rim (the issue this solves).
   EXPECT_LT(lowest(plain), -half - 0.5 * pad);
   ASSERT_GT(m.faces.size(), 100u);
-  EXPECT_EQ(open_edges(m), 0);
+  EXPECT_EQ(test::open_edges(m), 0);
   EXPECT_GT(lowest(m), -half - 0.5 * r);
   for (const Vec3f& v : m.vertices) EXPECT_LT(std::hypot(v.x(), v.y()), r + h) << v.transpose();
 }
@@ -137,7 +129,7 @@ TEST(WindingClose, OpenBottomedScanClosesWithoutFlaring) {
   std::printf("open bottom: farthest vertex %.4f (MPU alone %.4f), sphere radius %.4f\n", farthest(m),
               farthest(plain), r);
   ASSERT_GT(m.faces.size(), 100u);
-  EXPECT_EQ(open_edges(m), 0);
+  EXPECT_EQ(test::open_edges(m), 0);
   // Nothing beyond the sphere (the hole spanned inside it); near the data the mesh
   // is MPU's (the same as without the closing).
   EXPECT_LT(farthest(m), r * 1.04);
