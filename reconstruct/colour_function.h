@@ -13,7 +13,9 @@
 // Each leaf is Type A (a weighted least-squares bivariate quadratic per channel in
 // the cell's tangent frame) or Type B (the ball's points split into colour
 // clusters, each interpolated by a compactly supported RBF, joined by RBF boundary
-// functions), so colour boundaries stay sharp.
+// functions), so colour boundaries stay sharp. By default (ColourParams::side_consensus)
+// the leaves at x first vote on x's side (colour class) and only that side's
+// predictions are blended, so neighbouring leaves never mix the two colours.
 #include <array>
 #include <memory>
 #include <vector>
