@@ -177,45 +177,12 @@ int matched_resolution(const Cloud& cloud, int threads, std::size_t target_verti
   return std::max(16, int(std::lround(probe * scale)));
 }
 
-/// Transition across a sharp two-colour boundary (plane n.x = offset on a sphere):
-/// per vertex, t = projection of its colour on the a->b colour axis (0 = colour a,
-/// 1 = colour b) and s = signed distance to the boundary plane (> 0 on b's side).
-struct Transition {
-  double width = 0;          ///< 2 x the 95th percentile of |s| over vertices with 0.1 < t < 0.9
-  double max_band = 0;       ///< largest |s| of a vertex with 0.1 < t < 0.9
-  std::size_t band = 0;      ///< vertices with 0.1 < t < 0.9
-  std::size_t wrong = 0;     ///< vertices on the wrong side (t > 0.5 with s < 0 or t < 0.5 with s > 0)
-  std::size_t wrong_far = 0; ///< ... more than one cell h from the plane
-  double max_wrong = 0;      ///< largest |s| of a wrong-side vertex
-  std::size_t vertices = 0;
-};
-
+/// Transition across the sharp two-colour boundary, the plane n.x = offset on the
+/// sphere (measure_colour_transition, reconstruct/eval.h).
+using Transition = ColourTransition;
 Transition measure_transition(const Mesh& mesh, const Vec3d& n, double offset, const Rgb& a, const Rgb& b,
                               double h) {
-  const Vec3d ca(a.r, a.g, a.b), cb(b.r, b.g, b.b), axis = cb - ca;
-  Transition out;
-  out.vertices = mesh.vertices.size();
-  std::vector<double> band;
-  for (std::size_t i = 0; i < mesh.vertices.size() && i < mesh.colors.size(); ++i) {
-    const Vec3d c(mesh.colors[i].r, mesh.colors[i].g, mesh.colors[i].b);
-    const double t = (c - ca).dot(axis) / axis.squaredNorm();
-    const double s = n.dot(mesh.vertices[i].cast<double>()) - offset;
-    if (t > 0.1 && t < 0.9) {
-      band.push_back(std::abs(s));
-      out.max_band = std::max(out.max_band, std::abs(s));
-    }
-    if ((t > 0.5 && s < 0) || (t < 0.5 && s > 0)) {
-      ++out.wrong;
-      if (std::abs(s) > h) ++out.wrong_far;
-      out.max_wrong = std::max(out.max_wrong, std::abs(s));
-    }
-  }
-  out.band = band.size();
-  if (!band.empty()) {
-    std::sort(band.begin(), band.end());
-    out.width = 2 * band[std::min(band.size() - 1, std::size_t(0.95 * double(band.size())))];
-  }
-  return out;
+  return measure_colour_transition(mesh, [&](const Vec3d& x) { return n.dot(x) - offset; }, a, b, h);
 }
 
 std::string describe(const Transition& t, double h, double diagonal) {

@@ -340,4 +340,32 @@ EvalResult evaluate(const Shape& a, const Shape& b, const EvalParams& params) {
   return result;
 }
 
+ColourTransition measure_colour_transition(const Mesh& mesh,
+                                           const std::function<double(const Vec3d&)>& signed_distance,
+                                           const Rgb& a, const Rgb& b, double cell) {
+  const Vec3d ca(a.r, a.g, a.b), axis = Vec3d(b.r, b.g, b.b) - ca;
+  ColourTransition out;
+  out.vertices = std::min(mesh.vertices.size(), mesh.colors.size());
+  std::vector<double> band;
+  for (std::size_t i = 0; i < out.vertices; ++i) {
+    const double t = (Vec3d(mesh.colors[i].r, mesh.colors[i].g, mesh.colors[i].b) - ca).dot(axis) / axis.squaredNorm();
+    const double s = signed_distance(mesh.vertices[i].cast<double>());
+    if (t > 0.1 && t < 0.9) {
+      band.push_back(std::abs(s));
+      out.max_band = std::max(out.max_band, std::abs(s));
+    }
+    if ((t > 0.5 && s < 0) || (t < 0.5 && s > 0)) {
+      ++out.wrong;
+      out.wrong_far += std::abs(s) > cell;
+      out.max_wrong = std::max(out.max_wrong, std::abs(s));
+    }
+  }
+  out.band = band.size();
+  if (!band.empty()) {
+    std::sort(band.begin(), band.end());
+    out.width = 2 * band[std::min(band.size() - 1, std::size_t(0.95 * double(band.size())))];
+  }
+  return out;
+}
+
 }  // namespace station

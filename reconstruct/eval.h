@@ -66,4 +66,21 @@ EvalResult evaluate(const Shape& a, const Shape& b, const EvalParams& params = {
 /// InvalidInput on a mesh without faces or of zero area, or a negative count.
 Cloud sample_mesh(const Mesh& mesh, int count, unsigned seed);
 
+/// The colour transition of a mesh across a known sharp two-colour boundary (issue 7's
+/// measure, used by the colour tests and bench/surface_bench.cpp): per vertex, t = the
+/// projection of its colour on the a -> b colour axis (0 = a, 1 = b) and s = its signed
+/// distance to the boundary (> 0 on b's side).
+struct ColourTransition {
+  double width = 0;           ///< 2 x the 95th percentile of |s| over vertices with 0.1 < t < 0.9
+  double max_band = 0;        ///< largest |s| of a vertex with 0.1 < t < 0.9
+  std::size_t band = 0;       ///< vertices with 0.1 < t < 0.9
+  std::size_t wrong = 0;      ///< vertices on the wrong side (t > 0.5 with s < 0 or t < 0.5 with s > 0)
+  std::size_t wrong_far = 0;  ///< ... more than `cell` from the boundary
+  double max_wrong = 0;       ///< largest |s| of a wrong-side vertex
+  std::size_t vertices = 0;   ///< coloured vertices measured
+};
+ColourTransition measure_colour_transition(const Mesh& mesh,
+                                           const std::function<double(const Vec3d&)>& signed_distance,
+                                           const Rgb& a, const Rgb& b, double cell);
+
 }  // namespace station

@@ -241,36 +241,12 @@ TEST(ColourFunction, TransitionOnTheExtractedMeshIsNarrowerThanOneCell) {
   EXPECT_LT(ours, h);
 }
 
-// The transition measured as bench/surface_bench.cpp does (docs/benchmarks.md, "Colour
-// transition on the two-colour sphere"): per mesh vertex, t = its colour projected on the
-// red -> blue axis, s = its distance to the boundary plane; the band is 2 x the 95th
-// percentile of |s| over vertices with 0.1 < t < 0.9; a vertex is on the wrong side when
-// t > 0.5 with s < 0 or t < 0.5 with s > 0.
-struct Transition {
-  double width = 0, max_wrong = 0;
-  std::size_t band = 0, wrong = 0, wrong_far = 0;
-};
+// The transition measured as bench/surface_bench.cpp does (measure_colour_transition,
+// reconstruct/eval.h; docs/benchmarks.md, "Colour transition on the two-colour sphere").
+using Transition = ColourTransition;
 Transition measure_transition(const Mesh& mesh, const std::function<double(const Vec3d&)>& signed_distance,
                               const Rgb& a, const Rgb& b, double h) {
-  const Vec3d ca(a.r, a.g, a.b), axis = Vec3d(b.r, b.g, b.b) - ca;
-  Transition out;
-  std::vector<double> band;
-  for (std::size_t i = 0; i < mesh.vertices.size(); ++i) {
-    const double t = (Vec3d(mesh.colors[i].r, mesh.colors[i].g, mesh.colors[i].b) - ca).dot(axis) / axis.squaredNorm();
-    const double s = signed_distance(mesh.vertices[i].cast<double>());
-    if (t > 0.1 && t < 0.9) band.push_back(std::abs(s));
-    if ((t > 0.5 && s < 0) || (t < 0.5 && s > 0)) {
-      ++out.wrong;
-      out.wrong_far += std::abs(s) > h;
-      out.max_wrong = std::max(out.max_wrong, std::abs(s));
-    }
-  }
-  out.band = band.size();
-  if (!band.empty()) {
-    std::sort(band.begin(), band.end());
-    out.width = 2 * band[std::min(band.size() - 1, std::size_t(0.95 * double(band.size())))];
-  }
-  return out;
+  return measure_colour_transition(mesh, signed_distance, a, b, h);
 }
 
 // Issue 7's targets on a grid finer than the sampling, as in the bench (cell 0.78 x the
