@@ -11,6 +11,7 @@
 #include <cmath>
 #include <set>
 #include <sstream>
+#include <tuple>
 
 #include "capture/capture.h"
 #include "capture/pose_graph.h"
@@ -99,6 +100,30 @@ struct Pair {
   int from, to;
   bool loop;
 };
+
+/// RMS point-to-plane distance of b's registration points to a's (see
+/// PairResidual), with b moved into a's frame by Ta^-1 Tb.
+std::pair<double, std::size_t> pair_plane_rmse(const PreparedView& a, const PreparedView& b,
+                                               const Eigen::Matrix4d& Ta, const Eigen::Matrix4d& Tb,
+                                               double max_distance, double min_normal_dot) {
+  if (!a.index || a.points.empty()) return {0.0, 0};
+  const Eigen::Matrix4d T = rigid_inverse(Ta) * Tb;
+  const Eigen::Matrix3d R = T.block<3, 3>(0, 0);
+  const Eigen::Vector3d t = T.block<3, 1>(0, 3);
+  double ss = 0;
+  std::size_t n = 0;
+  for (std::size_t k = 0; k < b.points.size(); ++k) {
+    const Eigen::Vector3d p = R * b.points[k].cast<double>() + t;
+    const auto [j, d] = a.index->nearest(p.cast<float>());
+    if (j < 0 || d > max_distance) continue;
+    const Eigen::Vector3d nq = a.normals[j].cast<double>();
+    if ((R * b.normals[k].cast<double>()).dot(nq) < min_normal_dot) continue;
+    const double r = (p - a.points[j].cast<double>()).dot(nq);
+    ss += r * r;
+    ++n;
+  }
+  return {n ? std::sqrt(ss / double(n)) : 0.0, n};
+}
 
 class Registrar {
  public:
@@ -651,6 +676,43 @@ class Registrar {
       if (!has_edge[i]) fail(i, "no overlap with its neighbouring views (every ICP pair failed)");
   }
 
+  /// PairResidual for the last round's converged pairs, under the refined
+  /// poses and, where both views have one, under the reference poses.
+  void pair_residuals() {
+    if (res_.pairs.empty()) return;
+    const int last = res_.pairs.back().round;
+    const double max_distance = p_.icp_end_rel * diag_;
+    const double min_dot = std::cos(p_.icp.max_normal_angle_deg * M_PI / 180.0);
+    std::vector<const PairDiagnostics*> pairs;
+    for (const PairDiagnostics& pd : res_.pairs)
+      if (pd.round == last && pd.converged && usable_[pd.from] && usable_[pd.to]) pairs.push_back(&pd);
+    res_.pair_residuals.resize(pairs.size());
+    tbb::parallel_for(std::size_t(0), pairs.size(), [&](std::size_t k) {
+      const PairDiagnostics& pd = *pairs[k];
+      PairResidual& out = res_.pair_residuals[k];
+      out.from = pd.from;
+      out.to = pd.to;
+      const PreparedView& a = views_[pd.from];
+      const PreparedView& b = views_[pd.to];
+      std::tie(out.rmse, out.matches) =
+          pair_plane_rmse(a, b, res_.poses[pd.from], res_.poses[pd.to], max_distance, min_dot);
+      const auto& ra = m_.views[pd.from].reference_pose;
+      const auto& rb = m_.views[pd.to].reference_pose;
+      if (ra && rb) out.reference_rmse = pair_plane_rmse(a, b, *ra, *rb, max_distance, min_dot).first;
+    });
+    if (res_.pair_residuals.empty()) return;
+    double ours = 0, reference = 0;
+    bool all_reference = true;
+    for (const PairResidual& pr : res_.pair_residuals) {
+      ours += pr.rmse;
+      if (pr.reference_rmse) reference += *pr.reference_rmse;
+      else all_reference = false;
+    }
+    const double n = double(res_.pair_residuals.size());
+    res_.mean_pair_rmse = ours / n;
+    if (all_reference) res_.mean_reference_pair_rmse = reference / n;
+  }
+
   void finish() {
     const std::size_t n = m_.views.size();
     for (std::size_t i = 0; i < n; ++i) {
@@ -681,6 +743,7 @@ class Registrar {
       res_.median_rotation_error_deg = median_of(rot);
       res_.median_translation_error = median_of(trans);
     }
+    pair_residuals();
     // Merge: colours only when every merged view has them (a cloud's colours are all or none).
     bool colors = true;
     for (std::size_t i = 0; i < n; ++i)

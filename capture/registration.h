@@ -136,6 +136,17 @@ struct ViewDiagnostics {
   std::optional<double> translation_error;
 };
 
+/// How well one refined pair's views agree under a set of poses: the RMS
+/// point-to-plane distance of the later view's registration points to the
+/// earlier view's (nearest neighbour within the final ICP distance, normals
+/// within IcpParams::max_normal_angle_deg), in metres.
+struct PairResidual {
+  int from = 0, to = 0;
+  std::size_t matches = 0;            ///< under the refined poses
+  double rmse = 0;                    ///< under the refined poses
+  std::optional<double> reference_rmse;  ///< under the reference poses, when both views have one
+};
+
 struct RegistrationResult {
   std::vector<Eigen::Matrix4d> poses;   ///< per view, object <- scanner (the prior for failed views)
   std::vector<ViewDiagnostics> views;
@@ -152,6 +163,12 @@ struct RegistrationResult {
   int views_with_reference = 0;
   double max_rotation_error_deg = 0, median_rotation_error_deg = 0;
   double max_translation_error = 0, median_translation_error = 0;
+  /// Data consistency of the poses, per refined pair (last round's pairs that
+  /// converged) and averaged: lets a user see whether the refined poses or the
+  /// reference poses fit the scans better (a reference is an estimate too).
+  std::vector<PairResidual> pair_residuals;
+  double mean_pair_rmse = 0;
+  std::optional<double> mean_reference_pair_rmse;  ///< over the same pairs, when all have one
   double diagonal = 0;  ///< session size used for the relative lengths, metres
   double seconds_prepare = 0, seconds_initial = 0, seconds_refine = 0, seconds_merge = 0,
          seconds_total = 0;

@@ -595,13 +595,18 @@ JsonObject registration_json(const RegistrationResult& r) {
   JsonObject j;
   j.add("views", r.views.size()).add("failed_views", r.failed_views.size()).add("degenerate", r.degenerate);
   j.add("warnings", r.warnings);
-  if (r.views_with_reference > 0)
-    j.add("reference", JsonObject()
-                           .add("views", r.views_with_reference)
-                           .add("max_rotation_deg", r.max_rotation_error_deg)
-                           .add("median_rotation_deg", r.median_rotation_error_deg)
-                           .add("max_translation_m", r.max_translation_error)
-                           .add("median_translation_m", r.median_translation_error));
+  j.add("pair_rmse_m", r.mean_pair_rmse);
+  if (r.views_with_reference > 0) {
+    JsonObject ref;
+    ref.add("views", r.views_with_reference)
+        .add("max_rotation_deg", r.max_rotation_error_deg)
+        .add("median_rotation_deg", r.median_rotation_error_deg)
+        .add("max_translation_m", r.max_translation_error)
+        .add("median_translation_m", r.median_translation_error);
+    // The same pairs' residual under the reference poses: which poses fit the scans better.
+    if (r.mean_reference_pair_rmse) ref.add("pair_rmse_m", *r.mean_reference_pair_rmse);
+    j.add("reference", ref);
+  }
   JsonObject per_view;
   for (std::size_t i = 0; i < r.views.size(); ++i) {
     const ViewDiagnostics& v = r.views[i];
@@ -623,6 +628,11 @@ JsonObject registration_json(const RegistrationResult& r) {
     o.add("converged", p.converged).add("fitness", p.fitness).add("inlier_rmse_m", p.inlier_rmse)
         .add("correspondences", p.correspondences).add("iterations", p.iterations)
         .add("loop_closure", p.loop_closure).add("degenerate", p.degenerate);
+    for (const PairResidual& pr : r.pair_residuals)
+      if (pr.from == p.from && pr.to == p.to) {
+        o.add("residual_rmse_m", pr.rmse);
+        if (pr.reference_rmse) o.add("reference_residual_rmse_m", *pr.reference_rmse);
+      }
     if (!p.message.empty()) o.add("message", p.message);
     per_pair.add(std::to_string(p.from) + "-" + std::to_string(p.to), o);
   }
@@ -653,6 +663,13 @@ void print_registration(const RegistrationResult& r) {
                 "median %.3f deg; translation max %.3f mm, median %.3f mm\n",
                 r.views_with_reference, r.max_rotation_error_deg, r.median_rotation_error_deg,
                 r.max_translation_error * 1000, r.median_translation_error * 1000);
+  if (!r.pair_residuals.empty()) {
+    std::printf("pair residual (RMS point-to-plane over %zu refined pairs): %.4f mm",
+                r.pair_residuals.size(), r.mean_pair_rmse * 1000);
+    if (r.mean_reference_pair_rmse)
+      std::printf("; under the reference poses %.4f mm", *r.mean_reference_pair_rmse * 1000);
+    std::printf("\n");
+  }
   for (const ViewDiagnostics& v : r.views)
     if (v.angle_rejected) {
       std::printf("ok*: the commanded turntable angle was wrong; the pose comes from global registration\n");

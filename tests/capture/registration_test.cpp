@@ -71,6 +71,32 @@ TEST(Registration, DragonWithAnglesButNoAxisMatchesStanford) {
   EXPECT_FALSE(r.degenerate);
   EXPECT_GT(r.merged.size(), 50000u);
   EXPECT_TRUE(r.merged.has_normals());
+  // Are Stanford's poses or ours closer to the scans? The same pairs' RMS
+  // point-to-plane residual under both (docs/registration.md): ours is lower on
+  // every pair, so the 0.6 deg gap is not a worse fit of the data. Refining from
+  // Stanford's poses converges to ours (measured on the full scans).
+  ASSERT_EQ(r.pair_residuals.size(), 30u);
+  ASSERT_TRUE(r.mean_reference_pair_rmse.has_value());
+  std::printf("pair residual: ours %.4f mm, Stanford's poses %.4f mm\n", 1000 * r.mean_pair_rmse,
+              1000 * *r.mean_reference_pair_rmse);
+  EXPECT_LT(r.mean_pair_rmse, 0.85 * *r.mean_reference_pair_rmse);
+  int better = 0;
+  for (const PairResidual& pr : r.pair_residuals) {
+    EXPECT_GT(pr.matches, 100u) << pr.from << "-" << pr.to;
+    EXPECT_GT(pr.rmse, 0.0);
+    if (pr.rmse < *pr.reference_rmse) ++better;
+  }
+  EXPECT_GE(better, 28);
+  // Started at Stanford's poses, the refinement walks back to the same optimum.
+  SessionManifest from_reference = m;
+  for (ViewRecord& v : from_reference.views) v.initial_pose = v.reference_pose;
+  const RegistrationResult r2 = register_views(clouds, from_reference);
+  ASSERT_TRUE(r2.failed_views.empty());
+  for (std::size_t i = 0; i < r.poses.size(); ++i) {
+    const auto [rot, trans] = relative_pose_error(r.poses[0], r.poses[i], r2.poses[0], r2.poses[i]);
+    EXPECT_LT(rot, 0.05) << "view " << i;
+    EXPECT_LT(trans, 2e-4) << "view " << i;
+  }
 }
 
 // Bad input: an empty view, a view of NaNs and a view that overlaps nothing
