@@ -241,27 +241,29 @@ class KeySet {
     bits_[b] |= m;
     return true;
   }
-  void erase(Key k) {
-    const std::uint32_t b = index_.find(BlockIndex::block_of(k));
-    if (b != BlockIndex::kNone) bits_[b] &= ~(std::uint64_t(1) << BlockIndex::local(k));
-  }
-  std::vector<Key> list() const {
-    std::vector<Key> out;
-    for (std::size_t b = 0; b < bits_.size(); ++b) {
-      const Key base = index_.keys()[b];
-      for (std::uint64_t m = bits_[b]; m; m &= m - 1) {
-        const int l = __builtin_ctzll(m);
-        out.push_back(base | Key(l & 3) | Key(l >> 2 & 3) << 21 | Key(l >> 4) << 42);
-      }
-    }
-    return out;
-  }
 
  private:
   BlockIndex index_;
   std::vector<std::uint64_t> bits_;
 };
 
+// Vector in chunks of 4096 (no copy when it grows; references stay valid).
+template <class T>
+class Chunked {
+ public:
+  static constexpr std::size_t kChunk = 4096;
+  T& operator[](std::size_t i) { return chunks_[i / kChunk][i % kChunk]; }
+  const T& operator[](std::size_t i) const { return chunks_[i / kChunk][i % kChunk]; }
+  std::size_t size() const { return size_; }
+  void push_back(const T& v) {
+    if (size_ % kChunk == 0) chunks_.emplace_back(new T[kChunk]);
+    (*this)[size_++] = v;
+  }
+
+ private:
+  std::vector<std::unique_ptr<T[]>> chunks_;
+  std::size_t size_ = 0;
+};
 
 enum : std::uint8_t { kFixed = 1, kSearched = 2, kBary = 4, kGap = 8, kCorner = 16, kEdge = 32 };
 
@@ -269,6 +271,153 @@ struct Node {
   Vec3d pos;
   double val;  // f(pos) - iso; NaN stored as outside
   std::uint8_t flags;
+};
+
+// DMC's lattice near the surface (docs/dmc.md, "Sparse storage"): blocks of 4^3 lattice
+// points (and of the 4^3 cells whose lowest corner they are) behind a block hash. A
+// block holds the index of each entered point's node, bit masks of the entered points,
+// the crossed cells and a scratch set, and links to its 26 neighbouring blocks, cached
+// as they are looked up (a block, once there, stays; a missing one is looked up again),
+// so a cell's corners and a point's neighbours are found without hashing.
+class Lattice {
+ public:
+  static constexpr std::int32_t kNone = -1, kUnknown = -2;
+  struct Block {
+    int bi, bj, bk;
+    std::uint64_t present;  // points with a node
+    std::uint64_t surface;  // crossed cells
+    std::uint64_t mark;     // scratch set of points or cells (cleared after use)
+    std::int32_t nb[27];    // block at (q % 3 - 1, q / 3 % 3 - 1, q / 9 - 1), or kUnknown
+    std::uint32_t node[64];  // index of the point's node, where present
+  };
+  Lattice() { rehash(1 << 12); }
+  static int local(int li, int lj, int lk) { return li | lj << 2 | lk << 4; }
+  static int local(Key p) { return int((p & 3) | (p >> 21 & 3) << 2 | (p >> 42 & 3) << 4); }
+  std::size_t block_count() const { return blocks_.size(); }
+  Block& blk(std::int32_t b) { return blocks_[std::size_t(b)]; }
+  const Block& blk(std::int32_t b) const { return blocks_[std::size_t(b)]; }
+  Key point(std::int32_t b, int l) const {
+    const Block& B = blk(b);
+    return key(B.bi * 4 + (l & 3), B.bj * 4 + (l >> 2 & 3), B.bk * 4 + (l >> 4));
+  }
+  std::int32_t find_block(int bi, int bj, int bk) const {
+    const Key k = key(bi, bj, bk);
+    for (std::size_t i = hash(k) & mask_;; i = (i + 1) & mask_) {
+      if (slots_[i].second == kNone) return kNone;
+      if (slots_[i].first == k) return slots_[i].second;
+    }
+  }
+  std::int32_t block_of(Key p) const { return find_block(ki(p) >> 2, kj(p) >> 2, kk(p) >> 2); }
+  /// The block (created when missing; serial only).
+  std::int32_t block(int bi, int bj, int bk) {
+    const Key k = key(bi, bj, bk);
+    std::size_t i = hash(k) & mask_;
+    for (;; i = (i + 1) & mask_) {
+      if (slots_[i].second == kNone) break;
+      if (slots_[i].first == k) return slots_[i].second;
+    }
+    const std::int32_t b = std::int32_t(blocks_.size());
+    Block B;
+    B.bi = bi, B.bj = bj, B.bk = bk;
+    B.present = B.surface = B.mark = 0;
+    std::fill(std::begin(B.nb), std::end(B.nb), kUnknown);
+    B.nb[13] = b;
+    blocks_.push_back(B);
+    slots_[i] = {k, b};
+    if (blocks_.size() * 2 > slots_.size()) rehash(slots_.size() * 2);
+    return b;
+  }
+  /// Neighbour q of block b (as in Block::nb), kNone when there is none. Safe in
+  /// parallel with other readers: the link only ever changes from kUnknown to a block.
+  std::int32_t neighbour(std::int32_t b, int q) const {
+    const std::int32_t n = __atomic_load_n(&blk(b).nb[q], __ATOMIC_RELAXED);
+    if (n >= 0) return n;
+    const Block& B = blk(b);
+    const std::int32_t f = find_block(B.bi + q % 3 - 1, B.bj + q / 3 % 3 - 1, B.bk + q / 9 - 1);
+    if (f >= 0) __atomic_store_n(&const_cast<Block&>(B).nb[q], f, __ATOMIC_RELAXED);
+    return f;
+  }
+  /// Block and local index of the point (li, lj, lk) given relative to block b (each in
+  /// [-4, 8)); the block is kNone when missing.
+  std::pair<std::int32_t, int> rel(std::int32_t b, int li, int lj, int lk) const {
+    const int q = ((li >> 2) + 1) + ((lj >> 2) + 1) * 3 + ((lk >> 2) + 1) * 9;
+    return {q == 13 ? b : neighbour(b, q), local(li & 3, lj & 3, lk & 3)};
+  }
+  /// As rel, creating the block when missing (serial only).
+  std::pair<std::int32_t, int> rel_get(std::int32_t b, int li, int lj, int lk) {
+    const int q = ((li >> 2) + 1) + ((lj >> 2) + 1) * 3 + ((lk >> 2) + 1) * 9;
+    std::int32_t n = q == 13 ? b : neighbour(b, q);
+    if (n < 0) {
+      const Block& B = blk(b);
+      n = block(B.bi + q % 3 - 1, B.bj + q / 3 % 3 - 1, B.bk + q / 9 - 1);
+      blk(b).nb[q] = n;
+    }
+    return {n, local(li & 3, lj & 3, lk & 3)};
+  }
+  bool present(std::int32_t b, int l) const { return b >= 0 && (blk(b).present >> l & 1); }
+  Node& node(std::int32_t b, int l) { return nodes_[blk(b).node[l]]; }
+  const Node& node(std::int32_t b, int l) const { return nodes_[blk(b).node[l]]; }
+  Node* find(Key p) {
+    const std::int32_t b = block_of(p);
+    const int l = local(p);
+    return present(b, l) ? &node(b, l) : nullptr;
+  }
+  const Node* find(Key p) const { return const_cast<Lattice*>(this)->find(p); }
+  Node& at(Key p) {
+    Node* n = find(p);
+    if (!n) throw std::out_of_range("extract_dmc: internal error: lattice point not evaluated");
+    return *n;
+  }
+  const Node& at(Key p) const { return const_cast<Lattice*>(this)->at(p); }
+  /// Enters the point's node; false (nothing changed) when it was there.
+  bool enter(std::int32_t b, int l, const Node& v) {
+    Block& B = blk(b);
+    if (B.present >> l & 1) return false;
+    B.present |= std::uint64_t(1) << l;
+    B.node[l] = std::uint32_t(nodes_.size());
+    nodes_.push_back(v);
+    return true;
+  }
+  bool emplace(Key p, const Node& v) { return enter(block(ki(p) >> 2, kj(p) >> 2, kk(p) >> 2), local(p), v); }
+  bool is_surface(Key c) const {
+    const std::int32_t b = block_of(c);
+    return b >= 0 && (blk(b).surface >> local(c) & 1);
+  }
+  void set_surface(Key c, bool on) {
+    const std::int32_t b = on ? block(ki(c) >> 2, kj(c) >> 2, kk(c) >> 2) : block_of(c);
+    if (b < 0) return;
+    const std::uint64_t m = std::uint64_t(1) << local(c);
+    if (on) blk(b).surface |= m;
+    else blk(b).surface &= ~m;
+  }
+  std::vector<Key> surface_list() const {
+    std::vector<Key> out;
+    for (std::size_t b = 0; b < blocks_.size(); ++b)
+      for (std::uint64_t m = blocks_[b].surface; m; m &= m - 1) out.push_back(point(std::int32_t(b), __builtin_ctzll(m)));
+    return out;
+  }
+
+ private:
+  static std::size_t hash(Key k) {
+    k ^= k >> 31;
+    k *= 0x9E3779B97F4A7C15ULL;
+    k ^= k >> 29;
+    return std::size_t(k);
+  }
+  void rehash(std::size_t n) {
+    slots_.assign(n, {Key(0), kNone});
+    mask_ = n - 1;
+    for (std::size_t b = 0; b < blocks_.size(); ++b) {
+      const Key k = key(blocks_[b].bi, blocks_[b].bj, blocks_[b].bk);
+      std::size_t i = hash(k) & mask_;
+      while (slots_[i].second != kNone) i = (i + 1) & mask_;
+      slots_[i] = {k, std::int32_t(b)};
+    }
+  }
+  Chunked<Block> blocks_;
+  Chunked<Node> nodes_;
+  std::vector<std::pair<Key, std::int32_t>> slots_;
+  std::size_t mask_ = 0;
 };
 
 struct Crossing {
@@ -307,25 +456,23 @@ class Dmc {
     using Clock = std::chrono::steady_clock;
     auto since = [](Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); };
     auto t0 = Clock::now();
-    std::vector<Key> start = seed_cells();
-    KeySet surface;
-    traverse(start, !opt_.seeds.empty(), surface);
+    traverse(seed_cells(), !opt_.seeds.empty());
     st_.seconds_traversal = since(t0);
 
     t0 = Clock::now();
     std::vector<Key> moved;
-    if (opt_.barycentre || opt_.thin_gaps) moved = barycentre_step(surface);
-    if (!moved.empty()) update_surface(moved, surface);
+    if (opt_.barycentre || opt_.thin_gaps) moved = barycentre_step();
+    if (!moved.empty()) update_surface(moved);
     st_.seconds_barycentre = since(t0);
     t0 = Clock::now();
 
     bool crossings_done = false;
     if (opt_.features) {
-      compute_crossings(surface);
-      std::vector<Key> fmoved = feature_step(surface);
+      compute_crossings();
+      std::vector<Key> fmoved = feature_step();
       crossings_done = fmoved.empty();
       if (!fmoved.empty()) {
-        update_surface(fmoved, surface);
+        update_surface(fmoved);
         // Crossings on the edges of moved points are stale.
         for (Key p : fmoved)
           for (int a = 0; a < 3; ++a) {
@@ -338,8 +485,8 @@ class Dmc {
     }
     st_.seconds_features = since(t0);
     t0 = Clock::now();
-    if (!crossings_done) compute_crossings(surface);
-    Mesh mesh = build_mesh(surface);
+    if (!crossings_done) compute_crossings();
+    Mesh mesh = build_mesh();
     st_.seconds_mesh = since(t0);
     if (stats) *stats = st_;
     return mesh;
@@ -370,28 +517,44 @@ class Dmc {
   // duplicates without sorting; `keys` keeps the new ones.
   void ensure(std::vector<Key>& keys) {
     std::size_t m = 0;
-    for (Key k : keys)
-      if (nodes_.emplace(k, Node{upos(k), 0.0, std::uint8_t(on_boundary(k) ? kFixed : 0)})) keys[m++] = k;
+    std::vector<std::uint32_t> fresh;
+    for (Key k : keys) {
+      const std::int32_t b = nodes_.block(ki(k) >> 2, kj(k) >> 2, kk(k) >> 2);
+      const int l = Lattice::local(k);
+      if (nodes_.enter(b, l, Node{upos(k), 0.0, std::uint8_t(on_boundary(k) ? kFixed : 0)})) {
+        keys[m++] = k;
+        fresh.push_back(std::uint32_t(b) << 6 | std::uint32_t(l));
+      }
+    }
     keys.resize(m);
-    parallel(keys.size(), [&](std::size_t i) {
-      double x = g(upos(keys[i]));
+    evaluate(fresh);
+  }
+  // Lattice values of the entered points `fresh` (block << 6 | local index), in parallel.
+  void evaluate(const std::vector<std::uint32_t>& fresh) {
+    parallel(fresh.size(), [&](std::size_t i) {
+      const std::int32_t b = std::int32_t(fresh[i] >> 6);
+      const int l = int(fresh[i] & 63);
+      Node& nd = nodes_.node(b, l);
+      double x = g(nd.pos);
       if (!std::isfinite(x)) x = h_;  // NaN counts as outside
-      if (opt_.close_at_box && on_boundary(keys[i])) x = std::max(x, 0.5 * h_);
-      nodes_.at(keys[i]).val = x;
+      if (opt_.close_at_box && (nd.flags & kFixed)) x = std::max(x, 0.5 * h_);
+      nd.val = x;
     });
-    st_.evaluations += keys.size();
+    st_.evaluations += fresh.size();
   }
   double val(Key p) const { return nodes_.at(p).val; }
-  int config(Key c) const {
-    const BlockMap<Node>::Entry* e[8];
-    nodes_.corners(c, e);
+  // Configuration of cell l of block b (corner q inside: bit q), through the links.
+  int config(std::int32_t b, int l) const {
+    const int li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
     int cfg = 0;
     for (int q = 0; q < 8; ++q) {
-      if (!e[q]) throw std::out_of_range("extract_dmc: internal error: lattice point not evaluated");
-      if (e[q]->second.val < 0) cfg |= 1 << q;
+      const auto [cb, cl] = nodes_.rel(b, li + (q & 1), lj + (q >> 1 & 1), lk + (q >> 2 & 1));
+      if (!nodes_.present(cb, cl)) throw std::out_of_range("extract_dmc: internal error: lattice point not evaluated");
+      if (nodes_.node(cb, cl).val < 0) cfg |= 1 << q;
     }
     return cfg;
   }
+  int config(Key c) const { return config(nodes_.block_of(c), Lattice::local(c)); }
   // Whether cell edge e has a sign change, from the cell's configuration.
   static bool crossed(int cfg, int e) {
     const auto& ec = mc::edge_corners();
@@ -428,56 +591,104 @@ class Dmc {
     return cells;
   }
 
-  // Surface tracking from `frontier` (cells); crossed cells are added to `surface`,
-  // cells already in it are not revisited. probe_first: a seed cell the surface misses
-  // probes its 26 neighbours once.
-  void traverse(std::vector<Key> frontier, bool probe_first, KeySet& surface) {
-    KeySet visited(frontier.begin(), frontier.end());
-    bool first = probe_first;
-    while (!frontier.empty()) {
-      std::vector<Key> keys;
-      keys.reserve(frontier.size() * 8);
-      for (Key c : frontier)
-        for (int q = 0; q < 8; ++q) keys.push_back(corner_key(c, q));
-      ensure(keys);
-      st_.cells_visited += frontier.size();
-      std::vector<Key> next;
-      auto push = [&](int i, int j, int k) {
-        if (!cell_in_grid(i, j, k)) return;
-        const Key c = key(i, j, k);
-        if (surface.count(c) || !visited.insert(c)) return;
-        next.push_back(c);
-      };
-      for (Key c : frontier) {
-        const int i = ki(c), j = kj(c), k = kk(c);
-        const int cfg = config(c);
-        if (cfg == 0 || cfg == 255) {
-          surface.erase(c);
-          if (first)
-            for (int q = 0; q < 27; ++q)
-              if (q != 13) push(i + q % 3 - 1, j + q / 3 % 3 - 1, k + q / 9 - 1);
-          continue;
-        }
-        surface.insert(c);
+  // Per configuration: bit 2a + side set when the cell's face (axis a, side) has a sign
+  // change (the walk crosses it).
+  static const std::array<std::uint8_t, 256>& crossed_faces() {
+    static const std::array<std::uint8_t, 256> table = [] {
+      std::array<std::uint8_t, 256> t{};
+      for (int cfg = 0; cfg < 256; ++cfg)
         for (int a = 0; a < 3; ++a)
           for (int side = 0; side < 2; ++side) {
             int in = 0;
             for (int q = 0; q < 8; ++q)
               if ((q >> a & 1) == side && (cfg >> q & 1)) ++in;
-            if (in == 0 || in == 4) continue;
-            int d[3] = {0, 0, 0};
-            d[a] = side ? 1 : -1;
-            push(i + d[0], j + d[1], k + d[2]);
+            if (in != 0 && in != 4) t[cfg] |= std::uint8_t(1 << (2 * a + side));
           }
+      return t;
+    }();
+    return table;
+  }
+
+  // Surface tracking from the cells `start`, on the block lattice (cells as block << 6 |
+  // local index, neighbours through the links); crossed cells get their surface bit,
+  // cells that have it are not revisited. probe_first: a seed cell the surface misses
+  // probes its 26 neighbours once.
+  void traverse(const std::vector<Key>& start, bool probe_first) {
+    std::vector<std::uint64_t> frontier, next;
+    std::vector<std::int32_t> marked;  // blocks whose mark bits (visited cells) are set
+    auto visit = [&](std::int32_t b, int l) {
+      Lattice::Block& B = nodes_.blk(b);
+      const std::uint64_t m = std::uint64_t(1) << l;
+      if ((B.surface & m) || (B.mark & m)) return false;
+      if (!B.mark) marked.push_back(b);
+      B.mark |= m;
+      return true;
+    };
+    for (Key c : start) {
+      const std::int32_t b = nodes_.block(ki(c) >> 2, kj(c) >> 2, kk(c) >> 2);
+      Lattice::Block& B = nodes_.blk(b);
+      const int l = Lattice::local(c);
+      if (B.mark >> l & 1) continue;
+      if (!B.mark) marked.push_back(b);
+      B.mark |= std::uint64_t(1) << l;
+      frontier.push_back(std::uint64_t(b) << 6 | std::uint64_t(l));
+    }
+    const auto& faces_of = crossed_faces();
+    bool first = probe_first;
+    std::vector<std::uint32_t> fresh;
+    while (!frontier.empty()) {
+      // Corners not entered yet (serial: blocks are created here), then evaluated.
+      fresh.clear();
+      for (std::uint64_t c : frontier) {
+        const std::int32_t b = std::int32_t(c >> 6);
+        const int l = int(c & 63), li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
+        for (int q = 0; q < 8; ++q) {
+          const auto [cb, cl] = nodes_.rel_get(b, li + (q & 1), lj + (q >> 1 & 1), lk + (q >> 2 & 1));
+          if (nodes_.present(cb, cl)) continue;
+          const Key k = nodes_.point(cb, cl);
+          nodes_.enter(cb, cl, Node{upos(k), 0.0, std::uint8_t(on_boundary(k) ? kFixed : 0)});
+          fresh.push_back(std::uint32_t(cb) << 6 | std::uint32_t(cl));
+        }
+      }
+      evaluate(fresh);
+      st_.cells_visited += frontier.size();
+      next.clear();
+      for (std::uint64_t c : frontier) {
+        const std::int32_t b = std::int32_t(c >> 6);
+        const int l = int(c & 63), li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
+        const Lattice::Block& B = nodes_.blk(b);
+        const int i = B.bi * 4 + li, j = B.bj * 4 + lj, k = B.bk * 4 + lk;
+        auto push = [&](int dx, int dy, int dz) {
+          if (!cell_in_grid(i + dx, j + dy, k + dz)) return;
+          const auto [nb, nl] = nodes_.rel_get(b, li + dx, lj + dy, lk + dz);
+          if (visit(nb, nl)) next.push_back(std::uint64_t(nb) << 6 | std::uint64_t(nl));
+        };
+        const int cfg = config(b, l);
+        if (cfg == 0 || cfg == 255) {
+          nodes_.blk(b).surface &= ~(std::uint64_t(1) << l);
+          if (first)
+            for (int q = 0; q < 27; ++q)
+              if (q != 13) push(q % 3 - 1, q / 3 % 3 - 1, q / 9 - 1);
+          continue;
+        }
+        nodes_.blk(b).surface |= std::uint64_t(1) << l;
+        const int fc = faces_of[cfg];
+        if (fc & 1) push(-1, 0, 0);
+        if (fc & 2) push(1, 0, 0);
+        if (fc & 4) push(0, -1, 0);
+        if (fc & 8) push(0, 1, 0);
+        if (fc & 16) push(0, 0, -1);
+        if (fc & 32) push(0, 0, 1);
       }
       frontier.swap(next);
       first = false;
     }
+    for (std::int32_t b : marked) nodes_.blk(b).mark = 0;
   }
 
   // After lattice points moved: only the cells having one as a corner can change; they
   // are re-examined and the walk continues from them into cells not yet known.
-  void update_surface(const std::vector<Key>& moved, KeySet& surface) {
+  void update_surface(const std::vector<Key>& moved) {
     std::vector<Key> cells;
     for (Key p : moved)
       for (int q = 0; q < 8; ++q) {
@@ -486,8 +697,8 @@ class Dmc {
       }
     std::sort(cells.begin(), cells.end());
     cells.erase(std::unique(cells.begin(), cells.end()), cells.end());
-    for (Key c : cells) surface.erase(c);
-    traverse(cells, false, surface);
+    for (Key c : cells) nodes_.set_surface(c, false);
+    traverse(cells, false);
   }
 
   // ---------------------------------------------------------------- step 1
@@ -539,8 +750,8 @@ class Dmc {
       d[q / 2] += q % 2 ? 1 : -1;
       if (!node_in_grid(d[0], d[1], d[2])) continue;
       const auto it = nodes_.find(key(d[0], d[1], d[2]));
-      if (it == nodes_.end()) continue;
-      slope = std::max(slope, std::abs(it->second.val - nd.val) / h_);
+      if (it == nullptr) continue;
+      slope = std::max(slope, std::abs(it->val - nd.val) / h_);
     }
     return !(std::abs(nd.val) > 1.3 * h_ * slope * 1.5) || slope == 0;
   }
@@ -554,14 +765,27 @@ class Dmc {
   // Omega sampled (m^3 evaluations). A point already inside a thin part (for the
   // thin-gap flood: outside in a thin gap) passes the flood on when the other side is
   // within h too.
-  std::vector<Key> barycentre_step(const KeySet& surface) {
+  std::vector<Key> barycentre_step() {
     const double band = 1.3 * h_;
     std::vector<Key> cand;
     {
-      KeySet seen;
-      for (Key c : surface.list())
-        for (int q = 0; q < 8; ++q)
-          if (seen.insert(corner_key(c, q))) cand.push_back(corner_key(c, q));
+      // The corners of the crossed cells, each once (mark bits, cleared after).
+      std::vector<std::int32_t> marked;
+      for (std::size_t bs = 0; bs < nodes_.block_count(); ++bs) {
+        const std::int32_t b = std::int32_t(bs);
+        for (std::uint64_t m = nodes_.blk(b).surface; m; m &= m - 1) {
+          const int l = __builtin_ctzll(m), li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
+          for (int q = 0; q < 8; ++q) {
+            const auto [cb, cl] = nodes_.rel(b, li + (q & 1), lj + (q >> 1 & 1), lk + (q >> 2 & 1));
+            Lattice::Block& B = nodes_.blk(cb);
+            if (B.mark >> cl & 1) continue;
+            if (!B.mark) marked.push_back(cb);
+            B.mark |= std::uint64_t(1) << cl;
+            cand.push_back(nodes_.point(cb, cl));
+          }
+        }
+      }
+      for (std::int32_t b : marked) nodes_.blk(b).mark = 0;
     }
     std::vector<Key> moved_all;
     bool first_wave = true;
@@ -687,8 +911,8 @@ class Dmc {
         const Key r = key(ki(p) + dx, kj(p) + dy, kk(p) + dz);
         if (r < p) continue;
         const auto it = nodes_.find(r);
-        if (it == nodes_.end() || (it->second.flags & (kBary | kGap)) != kind) continue;
-        const Vec3d x0 = a.pos, x1 = it->second.pos;
+        if (it == nullptr || (it->flags & (kBary | kGap)) != kind) continue;
+        const Vec3d x0 = a.pos, x1 = it->pos;
         // Omegas along the segment, each with the middle of its piece.
         Key last = p;
         double t_in = 0;
@@ -770,13 +994,13 @@ class Dmc {
         neighbours(p, nb);
         for (Key q : nb) {
           const auto it = nodes_.find(q);
-          if (it == nodes_.end()) continue;
+          if (it == nullptr) continue;
           if (is_moved.count(q)) {
-            if ((it->second.flags & (kBary | kGap)) == kind && done.insert(q).second) {
+            if ((it->flags & (kBary | kGap)) == kind && done.insert(q).second) {
               comp.push_back(q);
               stack.push_back(q);
             }
-          } else if ((it->second.val < 0) == (kind == kBary)) {
+          } else if ((it->val < 0) == (kind == kBary)) {
             anchored = true;
           }
         }
@@ -839,10 +1063,10 @@ class Dmc {
   }
 
   // Crossings (and normals) of every crossed edge of the surface cells not yet known.
-  void compute_crossings(const KeySet& surface) {
+  void compute_crossings() {
     const auto& ec = mc::edge_corners();
     std::vector<Key> edges;
-    for (Key c : surface.list()) {
+    for (Key c : nodes_.surface_list()) {
       const int cfg = config(c);
       for (int e = 0; e < 12; ++e) {
         if (!crossed(cfg, e)) continue;
@@ -1004,8 +1228,8 @@ class Dmc {
     along(V.col(0), -1e300, inward);
   }
 
-  std::vector<Key> feature_step(const KeySet& surface) {
-    std::vector<Key> cells = surface.list();
+  std::vector<Key> feature_step() {
+    std::vector<Key> cells = nodes_.surface_list();
     std::sort(cells.begin(), cells.end());
     std::vector<std::vector<Proposal>> props(cells.size());
     std::vector<std::size_t> evals(cells.size(), 0);
@@ -1057,7 +1281,7 @@ class Dmc {
           d[q / 2] += q % 2 ? 1 : -1;
           if (!node_in_grid(d[0], d[1], d[2])) continue;
           const auto it = nodes_.find(key(d[0], d[1], d[2]));
-          if (it != nodes_.end() && (it->second.flags & kGap)) inside = false;
+          if (it != nullptr && (it->flags & kGap)) inside = false;
         }
       }
       Proposal q = p;
@@ -1098,8 +1322,8 @@ class Dmc {
           other.push_back(jt->second);
         } else {
           const auto it = nodes_.find(r);
-          if (it == nodes_.end() || !(it->second.val < 0)) continue;
-          rp = it->second.pos;
+          if (it == nullptr || !(it->val < 0)) continue;
+          rp = it->pos;
           other.push_back(SIZE_MAX);
         }
         checks.emplace_back(i, rp);
@@ -1155,7 +1379,7 @@ class Dmc {
     std::vector<Vec3d> target;
     for (Key o : cand) {
       const auto it = nodes_.find(o);
-      if (it == nodes_.end() || (it->second.flags & (kFixed | kGap | kBary | kEdge | kCorner)) || it->second.val < 0)
+      if (it == nullptr || (it->flags & (kFixed | kGap | kBary | kEdge | kCorner)) || it->val < 0)
         continue;
       int chain = 0, body = 0;
       Vec3d sum = Vec3d::Zero();
@@ -1164,10 +1388,10 @@ class Dmc {
         d[q / 2] += q % 2 ? 1 : -1;
         if (!node_in_grid(d[0], d[1], d[2])) continue;
         const auto jt = nodes_.find(key(d[0], d[1], d[2]));
-        if (jt == nodes_.end() || !(jt->second.val < 0)) continue;
-        if (jt->second.flags & (kEdge | kCorner)) {
+        if (jt == nullptr || !(jt->val < 0)) continue;
+        if (jt->flags & (kEdge | kCorner)) {
           ++chain;
-          sum += jt->second.pos;
+          sum += jt->pos;
         } else {
           ++body;
         }
@@ -1207,8 +1431,8 @@ class Dmc {
   }
 
   // ---------------------------------------------------------------- step 3
-  Mesh build_mesh(const KeySet& surface_set) {
-    std::vector<Key> surface = surface_set.list();
+  Mesh build_mesh() {
+    std::vector<Key> surface = nodes_.surface_list();
     std::sort(surface.begin(), surface.end());
     st_.surface_cells = surface.size();
     const auto& table = mc::triangle_table();
@@ -1286,7 +1510,7 @@ class Dmc {
   int n_[3] = {1, 1, 1};
   int m_ = 5;
   DmcStats st_;
-  BlockMap<Node> nodes_;
+  Lattice nodes_;
   BlockMap<Crossing, 3> crossings_;
   std::unordered_map<Key, double> original_;  // value before step 1 moved the point
 };
