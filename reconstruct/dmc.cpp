@@ -6,6 +6,7 @@
 #include <Eigen/Eigenvalues>
 #include <Eigen/Geometry>
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <cstddef>
@@ -29,75 +30,6 @@ int ki(Key k) { return int(k & 0x1FFFFF); }
 int kj(Key k) { return int(k >> 21 & 0x1FFFFF); }
 int kk(Key k) { return int(k >> 42 & 0x1FFFFF); }
 Key corner_key(Key cell, int q) { return key(ki(cell) + (q & 1), kj(cell) + (q >> 1 & 1), kk(cell) + (q >> 2 & 1)); }
-
-// Open-addressing hash map from lattice key to a value kept in a dense vector (the
-// lattice points near the surface; std::unordered_map's node allocations dominated the
-// walk). find() returns a pointer (nullptr = end()); references stay valid until the
-// next emplace.
-template <class V>
-class FlatMap {
- public:
-  struct Entry {
-    Key first;
-    V second;
-  };
-  FlatMap() { rehash(1 << 12); }
-  Entry* find(Key k) {
-    const std::uint32_t i = lookup(k);
-    return i == kNone ? nullptr : &entries_[i];
-  }
-  const Entry* find(Key k) const {
-    const std::uint32_t i = lookup(k);
-    return i == kNone ? nullptr : &entries_[i];
-  }
-  std::nullptr_t end() const { return nullptr; }
-  std::size_t count(Key k) const { return lookup(k) != kNone; }
-  V& at(Key k) {
-    Entry* e = find(k);
-    if (!e) throw std::out_of_range("extract_dmc: internal error: lattice point not evaluated");
-    return e->second;
-  }
-  const V& at(Key k) const {
-    const Entry* e = find(k);
-    if (!e) throw std::out_of_range("extract_dmc: internal error: lattice point not evaluated");
-    return e->second;
-  }
-  const std::vector<Entry>& entries() const { return entries_; }
-  void emplace(Key k, const V& v) {
-    if (lookup(k) != kNone) return;
-    if ((entries_.size() + 1) * 2 > slots_.size()) rehash(slots_.size() * 2);
-    place(k, std::uint32_t(entries_.size()));
-    entries_.push_back({k, v});
-  }
-
- private:
-  static constexpr std::uint32_t kNone = 0xFFFFFFFFu;
-  static std::size_t hash(Key k) {
-    k ^= k >> 31;
-    k *= 0x9E3779B97F4A7C15ULL;
-    k ^= k >> 29;
-    return std::size_t(k);
-  }
-  std::uint32_t lookup(Key k) const {
-    for (std::size_t i = hash(k) & mask_;; i = (i + 1) & mask_) {
-      if (slots_[i].second == kNone) return kNone;
-      if (slots_[i].first == k) return slots_[i].second;
-    }
-  }
-  void place(Key k, std::uint32_t idx) {
-    std::size_t i = hash(k) & mask_;
-    while (slots_[i].second != kNone) i = (i + 1) & mask_;
-    slots_[i] = {k, idx};
-  }
-  void rehash(std::size_t n) {
-    slots_.assign(n, {Key(0), kNone});
-    mask_ = n - 1;
-    for (std::size_t e = 0; e < entries_.size(); ++e) place(entries_[e].first, std::uint32_t(e));
-  }
-  std::vector<std::pair<Key, std::uint32_t>> slots_;
-  std::vector<Entry> entries_;
-  std::size_t mask_ = 0;
-};
 
 // Lattice points grouped in blocks of 4^3: a small hash from block to block index.
 class BlockIndex {
@@ -152,74 +84,7 @@ class BlockIndex {
   std::size_t mask_ = 0;
 };
 
-// Map from lattice point to V: a block of 4^3 points holds the indices of its points
-// entries (the corners of a cell and the neighbours of a point are mostly in one block,
-// and the block hash is 64x smaller than a hash of points). Same interface as FlatMap
-// for lattice keys; references stay valid until the next emplace.
-// kPer = 3: edge keys (point * 3 + axis), the three edges of a point together.
-template <class V, int kPer = 1>
-class BlockMap {
- public:
-  struct Entry {
-    Key first;
-    V second;
-  };
-  Entry* find(Key k) {
-    const std::uint32_t b = index_.find(BlockIndex::block_of(k / kPer));
-    if (b == BlockIndex::kNone) return nullptr;
-    const std::uint32_t e = slots_[slot(b, k)];
-    return e == BlockIndex::kNone ? nullptr : &entries_[e];
-  }
-  const Entry* find(Key k) const { return const_cast<BlockMap*>(this)->find(k); }
-  std::nullptr_t end() const { return nullptr; }
-  std::size_t count(Key k) const { return find(k) != nullptr; }
-  V& at(Key k) {
-    Entry* e = find(k);
-    if (!e) throw std::out_of_range("extract_dmc: internal error: lattice point not evaluated");
-    return e->second;
-  }
-  const V& at(Key k) const { return const_cast<BlockMap*>(this)->at(k); }
-  /// The entries of the 8 corners of cell c (point keys; nullptr where missing), one
-  /// block lookup per block the corners fall in.
-  void corners(Key c, const Entry* out[8]) const {
-    static_assert(kPer == 1, "corners() takes point keys");
-    Key last = ~Key(0);
-    const std::uint32_t* base = nullptr;
-    for (int q = 0; q < 8; ++q) {
-      const Key k = corner_key(c, q);
-      const Key bk = BlockIndex::block_of(k);
-      if (bk != last) {
-        last = bk;
-        const std::uint32_t b = index_.find(bk);
-        base = b == BlockIndex::kNone ? nullptr : &slots_[std::size_t(b) * 64];
-      }
-      const std::uint32_t e = base ? base[BlockIndex::local(k)] : BlockIndex::kNone;
-      out[q] = e == BlockIndex::kNone ? nullptr : &entries_[e];
-    }
-  }
-  /// True when k was not in the map.
-  bool emplace(Key k, const V& v) {
-    bool added = false;
-    const std::uint32_t b = index_.get(BlockIndex::block_of(k / kPer), added);
-    if (added) slots_.resize(slots_.size() + 64 * kPer, BlockIndex::kNone);
-    std::uint32_t& e = slots_[slot(b, k)];
-    if (e != BlockIndex::kNone) return false;
-    e = std::uint32_t(entries_.size());
-    entries_.push_back({k, v});
-    return true;
-  }
-
- private:
-  static std::size_t slot(std::uint32_t b, Key k) {
-    return (std::size_t(b) * 64 + std::size_t(BlockIndex::local(k / kPer))) * kPer + std::size_t(k % kPer);
-  }
-  BlockIndex index_;
-  std::vector<std::uint32_t> slots_;  // 64 * kPer per block: entry index or kNone
-  std::vector<Entry> entries_;
-};
-
-// Set of lattice keys (cells), one bit per key in blocks of 4^3. Iteration in block
-// creation order, then by place in the block.
+// Set of lattice keys (cells), one bit per key in blocks of 4^3 (the seed cells).
 class KeySet {
  public:
   KeySet() = default;
@@ -273,10 +138,21 @@ struct Node {
   std::uint8_t flags;
 };
 
+struct Crossing {
+  int evals = 0;
+  bool stale = false;  // an end moved after it was computed
+  bool queued = false;  // being computed (compute_crossings)
+  Vec3d pos = Vec3d::Zero();
+  Vec3d normal = Vec3d::Zero();  // unit, or zero where the gradient is not usable
+  int vid = -1;  // mesh vertex (build_mesh)
+};
+
 // DMC's lattice near the surface (docs/dmc.md, "Sparse storage"): blocks of 4^3 lattice
 // points (and of the 4^3 cells whose lowest corner they are) behind a block hash. A
 // block holds the index of each entered point's node, bit masks of the entered points,
-// the crossed cells and a scratch set, and links to its 26 neighbouring blocks, cached
+// the crossed cells and a scratch set, the crossings on the three lattice edges from
+// each point (slots made when the block gets its first), and links to its 26
+// neighbouring blocks, cached
 // as they are looked up (a block, once there, stays; a missing one is looked up again),
 // so a cell's corners and a point's neighbours are found without hashing.
 class Lattice {
@@ -288,8 +164,10 @@ class Lattice {
     std::uint64_t surface;  // crossed cells
     std::uint64_t mark;     // scratch set of points or cells (cleared after use)
     std::int32_t nb[27];    // block at (q % 3 - 1, q / 3 % 3 - 1, q / 9 - 1), or kUnknown
+    std::int32_t xs;        // crossing slots of the block, or kNone
     std::uint32_t node[64];  // index of the point's node, where present
   };
+  static constexpr std::uint32_t kNoCrossing = 0xFFFFFFFFu;
   Lattice() { rehash(1 << 12); }
   static int local(int li, int lj, int lk) { return li | lj << 2 | lk << 4; }
   static int local(Key p) { return int((p & 3) | (p >> 21 & 3) << 2 | (p >> 42 & 3) << 4); }
@@ -320,6 +198,7 @@ class Lattice {
     Block B;
     B.bi = bi, B.bj = bj, B.bk = bk;
     B.present = B.surface = B.mark = 0;
+    B.xs = kNone;
     std::fill(std::begin(B.nb), std::end(B.nb), kUnknown);
     B.nb[13] = b;
     blocks_.push_back(B);
@@ -379,6 +258,35 @@ class Lattice {
     return true;
   }
   bool emplace(Key p, const Node& v) { return enter(block(ki(p) >> 2, kj(p) >> 2, kk(p) >> 2), local(p), v); }
+  /// The crossing on the lattice edge from point l of block b along axis a, or nullptr.
+  Crossing* crossing(std::int32_t b, int l, int a) {
+    const std::int32_t xs = blk(b).xs;
+    if (xs < 0) return nullptr;
+    const std::uint32_t e = xslots_[std::size_t(xs)][std::size_t(l * 3 + a)];
+    return e == kNoCrossing ? nullptr : &crossings_[e];
+  }
+  const Crossing* crossing(std::int32_t b, int l, int a) const { return const_cast<Lattice*>(this)->crossing(b, l, a); }
+  /// Edge key (point * 3 + axis) form.
+  Crossing* crossing(Key ek) {
+    const Key p = ek / 3;
+    const std::int32_t b = block_of(p);
+    return b < 0 ? nullptr : crossing(b, local(p), int(ek % 3));
+  }
+  /// Enters a crossing (serial); false when there was one.
+  bool add_crossing(std::int32_t b, int l, int a, const Crossing& x) {
+    Block& B = blk(b);
+    if (B.xs < 0) {
+      B.xs = std::int32_t(xslots_.size());
+      std::array<std::uint32_t, 192> none;
+      none.fill(kNoCrossing);
+      xslots_.push_back(none);
+    }
+    std::uint32_t& e = xslots_[std::size_t(B.xs)][std::size_t(l * 3 + a)];
+    if (e != kNoCrossing) return false;
+    e = std::uint32_t(crossings_.size());
+    crossings_.push_back(x);
+    return true;
+  }
   bool is_surface(Key c) const {
     const std::int32_t b = block_of(c);
     return b >= 0 && (blk(b).surface >> local(c) & 1);
@@ -416,16 +324,10 @@ class Lattice {
   }
   Chunked<Block> blocks_;
   Chunked<Node> nodes_;
+  Chunked<std::array<std::uint32_t, 192>> xslots_;
+  Chunked<Crossing> crossings_;
   std::vector<std::pair<Key, std::int32_t>> slots_;
   std::size_t mask_ = 0;
-};
-
-struct Crossing {
-  int evals = 0;
-  bool stale = false;  // an end moved after it was computed
-  bool queued = false;  // being computed (compute_crossings)
-  Vec3d pos = Vec3d::Zero();
-  Vec3d normal = Vec3d::Zero();  // unit, or zero where the gradient is not usable
 };
 
 // Where a lattice point moves (feature step).
@@ -1020,10 +922,8 @@ class Dmc {
   }
 
   // ---------------------------------------------------------------- crossings
-  Crossing crossing(Key a_key, int axis, int steps) const {
-    const Key b_key = key(ki(a_key) + (axis == 0), kj(a_key) + (axis == 1), kk(a_key) + (axis == 2));
-    const Node& a = nodes_.at(a_key);
-    const Node& b = nodes_.at(b_key);
+  // The crossing on the deformed lattice edge from node a to node b.
+  Crossing crossing(const Node& a, const Node& b, int steps) const {
     double fa = a.val, fb = b.val;
     double lo = 0, hi = 1, t = fa / (fa - fb);
     // Illinois regula falsi on f along the deformed edge, keeping the bracket.
@@ -1059,39 +959,49 @@ class Dmc {
   }
 
   void mark_stale(Key ek) {
-    if (auto* e = crossings_.find(ek)) e->second.stale = true;
+    if (Crossing* e = nodes_.crossing(ek)) e->stale = true;
   }
 
   // Crossings (and normals) of every crossed edge of the surface cells not yet known.
   void compute_crossings() {
     const auto& ec = mc::edge_corners();
-    std::vector<Key> edges;
-    for (Key c : nodes_.surface_list()) {
-      const int cfg = config(c);
-      for (int e = 0; e < 12; ++e) {
-        if (!crossed(cfg, e)) continue;
-        const Key a = corner_key(c, ec[e][0]);
-        const Key ek = a * 3 + e / 4;
-        // Each edge once (queued marks it), without sorting.
-        auto* known = crossings_.find(ek);
-        if (!known) {
-          Crossing placeholder;
-          placeholder.queued = true;
-          crossings_.emplace(ek, placeholder);
-          edges.push_back(ek);
-        } else if (known->second.stale && !known->second.queued) {
-          known->second.queued = true;
-          edges.push_back(ek);
+    std::vector<Crossing*> todo;
+    std::vector<std::pair<const Node*, const Node*>> ends;
+    for (std::size_t bs = 0; bs < nodes_.block_count(); ++bs) {
+      const std::int32_t b = std::int32_t(bs);
+      for (std::uint64_t m = nodes_.blk(b).surface; m; m &= m - 1) {
+        const int l = __builtin_ctzll(m), li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
+        const int cfg = config(b, l);
+        for (int e = 0; e < 12; ++e) {
+          if (!crossed(cfg, e)) continue;
+          const int c0 = ec[e][0], a = e / 4;
+          const auto [cb, cl] = nodes_.rel(b, li + (c0 & 1), lj + (c0 >> 1 & 1), lk + (c0 >> 2 & 1));
+          // Each edge once (queued marks it).
+          Crossing* known = nodes_.crossing(cb, cl, a);
+          if (!known) {
+            Crossing placeholder;
+            placeholder.queued = true;
+            nodes_.add_crossing(cb, cl, a, placeholder);
+            known = nodes_.crossing(cb, cl, a);
+          } else if (known->stale && !known->queued) {
+            known->queued = true;
+          } else {
+            continue;
+          }
+          todo.push_back(known);
+          const int c1 = ec[e][1];
+          const auto [db, dl] = nodes_.rel(b, li + (c1 & 1), lj + (c1 >> 1 & 1), lk + (c1 >> 2 & 1));
+          ends.emplace_back(&nodes_.node(cb, cl), &nodes_.node(db, dl));
         }
       }
     }
-    std::vector<Crossing> out(edges.size());
-    parallel(edges.size(), [&](std::size_t i) { out[i] = crossing(edges[i] / 3, int(edges[i] % 3), opt_.refine_steps); });
-    st_.gradient_evaluations += edges.size();
-    for (std::size_t i = 0; i < edges.size(); ++i) {
-      st_.evaluations += out[i].evals;
-      crossings_.at(edges[i]) = out[i];
-    }
+    std::vector<int> evals(todo.size());
+    parallel(todo.size(), [&](std::size_t i) {
+      *todo[i] = crossing(*ends[i].first, *ends[i].second, opt_.refine_steps);
+      evals[i] = todo[i]->evals;
+    });
+    st_.gradient_evaluations += todo.size();
+    for (int e : evals) st_.evaluations += std::size_t(e);
   }
 
   // ---------------------------------------------------------------- step 2
@@ -1101,11 +1011,23 @@ class Dmc {
     const auto& ec = mc::edge_corners();
     Vec3d pts[12], nrm[12];
     int n = 0;
-    const int cfg = config(c);
+    const std::int32_t cb = nodes_.block_of(c);
+    const int cl = Lattice::local(c), cli = cl & 3, clj = cl >> 2 & 3, clk = cl >> 4;
+    const Node* corner_node[8];
+    for (int q = 0; q < 8; ++q) {
+      const auto [qb, ql] = nodes_.rel(cb, cli + (q & 1), clj + (q >> 1 & 1), clk + (q >> 2 & 1));
+      corner_node[q] = &nodes_.node(qb, ql);
+    }
+    int cfg = 0;
+    for (int q = 0; q < 8; ++q)
+      if (corner_node[q]->val < 0) cfg |= 1 << q;
     for (int e = 0; e < 12; ++e) {
       if (!crossed(cfg, e)) continue;
-      const Key a = corner_key(c, ec[e][0]);
-      const Crossing& x = crossings_.at(a * 3 + e / 4);
+      const int c0 = ec[e][0];
+      const auto [xb, xl] = nodes_.rel(cb, cli + (c0 & 1), clj + (c0 >> 1 & 1), clk + (c0 >> 2 & 1));
+      const Crossing* xp = nodes_.crossing(xb, xl, e / 4);
+      if (!xp) throw std::out_of_range("extract_dmc: internal error: crossing not computed");
+      const Crossing& x = *xp;
       if (x.normal.squaredNorm() == 0) return;  // no usable normal: leave the cell alone
       pts[n] = x.pos;
       nrm[n] = x.normal;
@@ -1128,8 +1050,7 @@ class Dmc {
       int i = 0;
       for (int e = 0; e < 12; ++e) {
         if (!crossed(cfg, e)) continue;
-        const Key a = corner_key(c, ec[e][0]);
-        const Crossing x = crossing(a, e / 4, 60);
+        const Crossing x = crossing(*corner_node[ec[e][0]], *corner_node[ec[e][1]], 60);
         extra_evals += x.evals + 1;
         if (x.normal.squaredNorm() == 0) return;
         pts[i] = x.pos;
@@ -1437,22 +1358,25 @@ class Dmc {
     st_.surface_cells = surface.size();
     const auto& table = mc::triangle_table();
     const auto& ec = mc::edge_corners();
-    BlockMap<int, 3> vid;
-    std::vector<Key> edges;
+    // Vertex ids by first use, cells in key order.
+    std::vector<const Crossing*> edges;
     Mesh mesh;
     for (Key c : surface) {
-      const int cfg = config(c);
+      const std::int32_t b = nodes_.block_of(c);
+      const int l = Lattice::local(c), li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
+      const int cfg = config(b, l);
       for (const auto& tri : table[cfg]) {
         Face face;
         for (int t = 0; t < 3; ++t) {
-          const Key ek = corner_key(c, ec[tri[t]][0]) * 3 + tri[t] / 4;
-          if (const auto* known = vid.find(ek)) {
-            face[t] = known->second;
-          } else {
-            face[t] = int(edges.size());
-            vid.emplace(ek, face[t]);
-            edges.push_back(ek);
+          const int c0 = ec[tri[t]][0];
+          const auto [xb, xl] = nodes_.rel(b, li + (c0 & 1), lj + (c0 >> 1 & 1), lk + (c0 >> 2 & 1));
+          Crossing* x = nodes_.crossing(xb, xl, tri[t] / 4);
+          if (!x) throw std::out_of_range("extract_dmc: internal error: crossing not computed");
+          if (x->vid < 0) {
+            x->vid = int(edges.size());
+            edges.push_back(x);
           }
+          face[t] = x->vid;
         }
         mesh.faces.push_back(face);
       }
@@ -1460,7 +1384,7 @@ class Dmc {
     mesh.vertices.resize(edges.size());
     if (opt_.normals) mesh.normals.resize(edges.size());
     for (std::size_t v = 0; v < edges.size(); ++v) {
-      const Crossing& x = crossings_.at(edges[v]);
+      const Crossing& x = *edges[v];
       mesh.vertices[v] = x.pos.cast<float>();
       if (opt_.normals) mesh.normals[v] = x.normal.cast<float>();
     }
@@ -1511,7 +1435,6 @@ class Dmc {
   int m_ = 5;
   DmcStats st_;
   Lattice nodes_;
-  BlockMap<Crossing, 3> crossings_;
   std::unordered_map<Key, double> original_;  // value before step 1 moved the point
 };
 
