@@ -723,7 +723,7 @@ class Registrar {
     int anchor = -1;
     for (std::size_t i = 0; i < n && anchor < 0; ++i)
       if (usable_[i] && m_.views[i].reference_pose) anchor = int(i);
-    std::vector<double> rot, trans;
+    std::vector<double> rot, trans, object_trans;
     if (anchor >= 0) {
       for (std::size_t i = 0; i < n; ++i) {
         if (!usable_[i] || !m_.views[i].reference_pose) continue;
@@ -734,6 +734,12 @@ class Registrar {
         res_.views[i].translation_error = et;
         rot.push_back(er);
         trans.push_back(et);
+        const Eigen::Vector4d c = centroid(views_[i].points).homogeneous();
+        const Eigen::Matrix4d ra = rigid_inverse(res_.poses[anchor]) * res_.poses[i];
+        const Eigen::Matrix4d rb = rigid_inverse(*m_.views[anchor].reference_pose) * *m_.views[i].reference_pose;
+        const double eo = ((ra - rb) * c).norm();
+        res_.views[i].object_translation_error = eo;
+        object_trans.push_back(eo);
       }
     }
     res_.views_with_reference = int(rot.size());
@@ -742,6 +748,8 @@ class Registrar {
       res_.max_translation_error = *std::max_element(trans.begin(), trans.end());
       res_.median_rotation_error_deg = median_of(rot);
       res_.median_translation_error = median_of(trans);
+      res_.max_object_translation_error = *std::max_element(object_trans.begin(), object_trans.end());
+      res_.median_object_translation_error = median_of(object_trans);
     }
     pair_residuals();
     // Merge: colours only when every merged view has them (a cloud's colours are all or none).
@@ -846,6 +854,8 @@ std::string poses_to_yaml(const RegistrationResult& result, const SessionManifes
     if (!v.message.empty()) out << YAML::Key << "message" << YAML::Value << YAML::DoubleQuoted << v.message;
     if (v.rotation_error_deg) out << YAML::Key << "rotation_error_deg" << YAML::Value << *v.rotation_error_deg;
     if (v.translation_error) out << YAML::Key << "translation_error" << YAML::Value << *v.translation_error;
+    if (v.object_translation_error)
+      out << YAML::Key << "object_translation_error" << YAML::Value << *v.object_translation_error;
     out << YAML::EndMap;
   }
   out << YAML::EndSeq << YAML::EndMap;

@@ -645,15 +645,19 @@ class Dmc {
   // First-wave pruning from the lattice values alone (no evaluation): a point whose |f|
   // exceeds 1.5 * 1.3 h times the largest difference quotient to its evaluated
   // 6-neighbours is too far from the surface for its Omega to reach it.
-  bool cheap_candidate(Key p, const Node& nd) const {
+  bool cheap_candidate(Key p, std::uint32_t handle, const Node& nd) const {
+    const std::int32_t b = std::int32_t(handle >> 6);
+    const int l = int(handle & 63), loc[3] = {l & 3, l >> 2 & 3, l >> 4};
     double slope = 0;
     for (int q = 0; q < 6; ++q) {
       int d[3] = {ki(p), kj(p), kk(p)};
       d[q / 2] += q % 2 ? 1 : -1;
       if (!node_in_grid(d[0], d[1], d[2])) continue;
-      const auto it = nodes_.find(key(d[0], d[1], d[2]));
-      if (it == nullptr) continue;
-      slope = std::max(slope, std::abs(it->val - nd.val) / h_);
+      int r[3] = {loc[0], loc[1], loc[2]};
+      r[q / 2] += q % 2 ? 1 : -1;
+      const auto [nb, nl] = nodes_.rel(b, r[0], r[1], r[2]);
+      if (!nodes_.present(nb, nl)) continue;
+      slope = std::max(slope, std::abs(nodes_.node(nb, nl).val - nd.val) / h_);
     }
     return !(std::abs(nd.val) > 1.3 * h_ * slope * 1.5) || slope == 0;
   }
@@ -670,6 +674,7 @@ class Dmc {
   std::vector<Key> barycentre_step() {
     const double band = 1.3 * h_;
     std::vector<Key> cand;
+    std::vector<std::uint32_t> cand_h;  // block << 6 | local index of each candidate
     {
       // The corners of the crossed cells, each once (mark bits, cleared after).
       std::vector<std::int32_t> marked;
@@ -684,6 +689,7 @@ class Dmc {
             if (!B.mark) marked.push_back(cb);
             B.mark |= std::uint64_t(1) << cl;
             cand.push_back(nodes_.point(cb, cl));
+            cand_h.push_back(std::uint32_t(cb) << 6 | std::uint32_t(cl));
           }
         }
       }
@@ -697,9 +703,11 @@ class Dmc {
     enum Role : char { kSkip, kMove, kPass };
     while (!cand.empty()) {
       std::vector<Key> keep;
+      std::vector<Node*> keep_node;
       std::vector<char> role;
-      for (Key p : cand) {
-        const Node& nd = nodes_.at(p);
+      for (std::size_t ci = 0; ci < cand.size(); ++ci) {
+        const Key p = cand[ci];
+        Node& nd = nodes_.node(std::int32_t(cand_h[ci] >> 6), int(cand_h[ci] & 63));
         if (nd.flags & kFixed) continue;
         const bool inside = nd.val < 0;
         const std::uint8_t by = first_wave ? (inside ? 2 : 1) : reached[p];
@@ -710,19 +718,20 @@ class Dmc {
           const bool mover = (kind == 1) != inside;
           if (!mover && first_wave) continue;
           if (mover ? (nd.flags & kSearched) != 0 : passed.count(p * 2 + kind) > 0) continue;
-          if (first_wave && !cheap_candidate(p, nd)) {
-            nodes_.at(p).flags |= kSearched;
+          if (first_wave && !cheap_candidate(p, cand_h[ci], nd)) {
+            nd.flags |= kSearched;
             continue;
           }
           if (!mover) passed.insert(p * 2 + kind);
           keep.push_back(p);
+          keep_node.push_back(&nd);
           role.push_back(mover ? kMove : kPass);
         }
       }
       // Gradient test and thin probe, in parallel.
       std::vector<char> go(keep.size(), 0);
       parallel(keep.size(), [&](std::size_t i) {
-        const Node& nd = nodes_.at(keep[i]);
+        const Node& nd = *keep_node[i];
         const Vec3d gr = f_.gradient(nd.pos);
         const double gn = gr.norm();
         if (!(gn > 0) || !std::isfinite(gn)) {
@@ -750,7 +759,7 @@ class Dmc {
       for (std::size_t i = 0; i < keep.size(); ++i)
         if (go[i]) (role[i] == kMove ? todo : through).push_back(keep[i]);
       for (std::size_t i = 0; i < keep.size(); ++i)
-        if (role[i] == kMove) nodes_.at(keep[i]).flags |= kSearched;
+        if (role[i] == kMove) keep_node[i]->flags |= kSearched;
       std::vector<char> ok(todo.size(), 0);
       std::vector<Vec3d> pos(todo.size());
       std::vector<double> value(todo.size());
@@ -790,6 +799,9 @@ class Dmc {
       std::vector<Key> fresh = next;
       ensure(fresh);
       cand.swap(next);
+      cand_h.resize(cand.size());
+      for (std::size_t ci = 0; ci < cand.size(); ++ci)
+        cand_h[ci] = std::uint32_t(nodes_.block_of(cand[ci])) << 6 | std::uint32_t(Lattice::local(cand[ci]));
       first_wave = false;
     }
     bridge(moved_all);

@@ -602,7 +602,9 @@ JsonObject registration_json(const RegistrationResult& r) {
         .add("max_rotation_deg", r.max_rotation_error_deg)
         .add("median_rotation_deg", r.median_rotation_error_deg)
         .add("max_translation_m", r.max_translation_error)
-        .add("median_translation_m", r.median_translation_error);
+        .add("median_translation_m", r.median_translation_error)
+        .add("max_object_translation_m", r.max_object_translation_error)
+        .add("median_object_translation_m", r.median_object_translation_error);
     // The same pairs' residual under the reference poses: which poses fit the scans better.
     if (r.mean_reference_pair_rmse) ref.add("pair_rmse_m", *r.mean_reference_pair_rmse);
     j.add("reference", ref);
@@ -615,6 +617,7 @@ JsonObject registration_json(const RegistrationResult& r) {
         .add("angle_rejected", v.angle_rejected);
     if (v.rotation_error_deg) o.add("rotation_error_deg", *v.rotation_error_deg);
     if (v.translation_error) o.add("translation_error_m", *v.translation_error);
+    if (v.object_translation_error) o.add("object_translation_error_m", *v.object_translation_error);
     if (!v.message.empty()) o.add("message", v.message);
     per_view.add(std::to_string(i), o);
   }
@@ -663,6 +666,9 @@ void print_registration(const RegistrationResult& r) {
                 "median %.3f deg; translation max %.3f mm, median %.3f mm\n",
                 r.views_with_reference, r.max_rotation_error_deg, r.median_rotation_error_deg,
                 r.max_translation_error * 1000, r.median_translation_error * 1000);
+  if (r.views_with_reference > 0)
+    std::printf("  translation at the object (each view's centroid): max %.3f mm, median %.3f mm\n",
+                r.max_object_translation_error * 1000, r.median_object_translation_error * 1000);
   if (!r.pair_residuals.empty()) {
     std::printf("pair residual (RMS point-to-plane over %zu refined pairs): %.4f mm",
                 r.pair_residuals.size(), r.mean_pair_rmse * 1000);
