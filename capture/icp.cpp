@@ -208,18 +208,20 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
   Eigen::Matrix4d T = initial;
 
   // One pass of correspondences + normal equations at the current T and d_max.
-  const auto linearise = [&](const Eigen::Matrix4d& Tc, double dmax) {
+  const auto linearise = [&](const Eigen::Matrix4d& Tc, double dmax, std::size_t stride) {
     const Eigen::Matrix3f R = Tc.block<3, 3>(0, 0).cast<float>();
     const Vec3f t = Tc.block<3, 1>(0, 3).cast<float>();
     const double huber = params.huber_fraction > 0 ? params.huber_fraction * dmax : 0.0;
     const std::size_t grain = 256;
+    const std::size_t count = (source.points.size() + stride - 1) / stride;
     // Deterministic reduction: the same split and join order on every run.
     return tbb::parallel_deterministic_reduce(
-        tbb::blocked_range<std::size_t>(0, source.points.size(), grain), Normal6{},
+        tbb::blocked_range<std::size_t>(0, count, grain), Normal6{},
         [&](const tbb::blocked_range<std::size_t>& r, Normal6 acc) {
-          for (std::size_t i = r.begin(); i != r.end(); ++i) {
+          for (std::size_t k = r.begin(); k != r.end(); ++k) {
+            const std::size_t i = k * stride;
             const Vec3f p = R * source.points[i] + t;
-            const auto [j, dist] = target.index->nearest(p);
+            const auto [j, dist] = target.index->nearest_within(p, float(dmax));
             if (j < 0 || dist > dmax) continue;
             const Vec3f& n = tn[j];
             Vec3f ns = Vec3f::Zero();
@@ -305,8 +307,12 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
   bool small_step = false;
   Vector6d prev_step = Vector6d::Zero();
   double damping = 1.0;
+  // Before the final distance, every coarse_stride-th source point (the pull
+  // of a coarse stage needs no more); at the final distance all of them.
+  const std::size_t coarse_stride = std::size_t(std::max(1, params.coarse_stride));
   for (int it = 0; it < params.max_iterations; ++it) {
-    const Normal6 sys = linearise(T, d_max);
+    const bool fine = d_max <= d_end * (1 + 1e-9);
+    const Normal6 sys = linearise(T, d_max, fine ? 1 : coarse_stride);
     res.iterations = it + 1;
     if (sys.n < std::size_t(std::max(params.min_correspondences, 6))) {
       res.message = "too few correspondences (" + std::to_string(sys.n) + " within " +
@@ -345,7 +351,7 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
   }
   res.transform = T;
   // Final diagnostics at the fine distance.
-  const Normal6 fin = linearise(T, d_end);
+  const Normal6 fin = linearise(T, d_end, 1);
   res.correspondences = fin.n;
   res.fitness = double(fin.n) / double(source.points.size());
   res.inlier_rmse = fin.n ? std::sqrt(fin.sq_euclid / double(fin.n)) : 0.0;

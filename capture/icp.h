@@ -125,6 +125,10 @@ struct IcpParams {
   int min_correspondences = 50;
   /// ... and at least this fraction of source points matched at the end.
   double min_fitness = 0.15;
+  /// While the correspondence distance is still above max_distance_end, use
+  /// every coarse_stride-th source point only (1: all); the iterations at the
+  /// final distance and the diagnostics always use all of them.
+  int coarse_stride = 1;
 };
 
 /// ICP outcome. `transform` maps source points onto the target:

@@ -57,6 +57,21 @@ std::pair<int, float> PointIndex::nearest(const Vec3f& q) const {
   return {int(index), std::sqrt(dist_sq)};
 }
 
+std::pair<int, float> PointIndex::nearest_within(const Vec3f& q, float max_distance) const {
+  constexpr std::pair<int, float> kNone{-1, std::numeric_limits<float>::infinity()};
+  if (!impl_->tree || !(max_distance >= 0)) return kNone;
+  std::uint32_t index = 0;
+  float dist_sq = 0;
+  nanoflann::KNNResultSet<float, std::uint32_t> result(1);
+  result.init(&index, &dist_sq);
+  // The result set's worst distance is the search bound: start it at the
+  // squared radius (the next float up, so the bound is inclusive).
+  dist_sq = std::nextafter(max_distance * max_distance, std::numeric_limits<float>::infinity());
+  impl_->tree->findNeighbors(result, q.data(), nanoflann::SearchParams());
+  if (result.size() == 0) return kNone;
+  return {int(index), std::sqrt(dist_sq)};
+}
+
 std::vector<std::pair<int, float>> PointIndex::knn(const Vec3f& q, int k) const {
   std::vector<std::pair<int, float>> out;
   if (!impl_->tree || k <= 0) return out;

@@ -22,6 +22,10 @@ class PointIndex {
   const std::vector<Vec3f>& points() const;
   /// Index and Euclidean distance of the nearest point; {-1, inf} when empty.
   std::pair<int, float> nearest(const Vec3f& q) const;
+  /// The nearest point if it lies within `max_distance` (inclusive), else
+  /// {-1, inf}. The bound prunes the search: much cheaper than nearest() for
+  /// queries far from every point (ICP's non-overlapping parts).
+  std::pair<int, float> nearest_within(const Vec3f& q, float max_distance) const;
   /// The k nearest (fewer if the set is smaller), closest first: (index, distance).
   std::vector<std::pair<int, float>> knn(const Vec3f& q, int k) const;
   /// All points within `radius` (Euclidean), closest first.

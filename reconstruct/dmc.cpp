@@ -420,8 +420,11 @@ class Dmc {
   void ensure(std::vector<Key>& keys) {
     std::size_t m = 0;
     std::vector<std::uint32_t> fresh;
+    Key last = ~Key(0);  // block of the previous key (runs of keys share blocks: scan lines)
+    std::int32_t b = Lattice::kNone;
     for (Key k : keys) {
-      const std::int32_t b = nodes_.block(ki(k) >> 2, kj(k) >> 2, kk(k) >> 2);
+      const Key bk = BlockIndex::block_of(k);
+      if (bk != last) b = nodes_.block(ki(k) >> 2, kj(k) >> 2, kk(k) >> 2), last = bk;
       const int l = Lattice::local(k);
       if (nodes_.enter(b, l, Node{upos(k), 0.0, std::uint8_t(on_boundary(k) ? kFixed : 0)})) {
         keys[m++] = k;

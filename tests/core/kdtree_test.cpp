@@ -37,6 +37,38 @@ TEST(PointIndex, NearestMatchesBruteForce) {
   }
 }
 
+// nearest_within: the same point as nearest() when it lies within the bound,
+// nothing otherwise; the bound is inclusive; empty sets and bad bounds give nothing.
+TEST(PointIndex, NearestWithinMatchesBruteForce) {
+  const auto pts = random_points(3000, 3);
+  PointIndex index(pts);
+  int found = 0, missed = 0;
+  for (const Vec3f& q : random_points(400, 4, 1.8f)) {
+    const auto ref = brute_sorted(pts, q);
+    for (float r : {0.02f, 0.08f, 0.3f}) {
+      const auto [i, d] = index.nearest_within(q, r);
+      if (ref[0].second <= r) {
+        EXPECT_EQ(i, ref[0].first);
+        EXPECT_NEAR(d, ref[0].second, 1e-6f);
+        ++found;
+      } else {
+        EXPECT_EQ(i, -1);
+        EXPECT_TRUE(std::isinf(d));
+        ++missed;
+      }
+    }
+  }
+  EXPECT_GT(found, 100);  // both branches are exercised
+  EXPECT_GT(missed, 100);
+  // Inclusive: a query exactly at distance r from its nearest point finds it.
+  const auto [i, d] = index.nearest_within(pts[7] + Vec3f(0, 0, 0), 0.0f);
+  EXPECT_EQ(i, 7);
+  EXPECT_EQ(d, 0.0f);
+  EXPECT_EQ(index.nearest_within(pts[7], -1.0f).first, -1);
+  EXPECT_EQ(index.nearest_within(pts[7], std::nanf("")).first, -1);
+  EXPECT_EQ(PointIndex({}).nearest_within(Vec3f::Zero(), 1.0f).first, -1);
+}
+
 TEST(PointIndex, NearestOfAnIndexedPointIsItself) {
   const auto pts = random_points(500, 3);
   PointIndex index(pts);
