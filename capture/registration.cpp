@@ -204,8 +204,11 @@ class Registrar {
   // or the given initial relative motions.
   std::vector<IcpResult> run_pairs(const std::vector<Pair>& pairs,
                                    const std::vector<Eigen::Matrix4d>& initial, double start,
-                                   double end, std::optional<IcpObjective> objective = {}) {
+                                   double end, std::optional<IcpObjective> objective = {},
+                                   double convergence_scale = 1.0) {
     IcpParams ip = p_.icp;
+    ip.convergence_rotation *= convergence_scale;
+    ip.convergence_translation *= convergence_scale;
     if (objective) ip.objective = *objective;
     ip.max_distance_start = start;
     ip.max_distance_end = end;
@@ -259,7 +262,8 @@ class Registrar {
       TurntableAxis axis;
       axis.direction = d;
       axis.point = c;
-      const auto r = run_pairs(probe, motions_for(axis, probe), start, end);
+      const auto r = run_pairs(probe, motions_for(axis, probe), start, end, std::nullopt,
+                               p_.early_convergence_scale);
       double score = 0;
       for (const IcpResult& x : r) score += x.converged ? x.fitness : 0.0;
       report("axis", 0, 2);
@@ -271,7 +275,8 @@ class Registrar {
     }
     // Two fits: the second starts from the first fitted axis.
     for (int pass = 0; pass < 2; ++pass) {
-      const auto r = run_pairs(pairs, motions_for(best, pairs), pass == 0 ? start : 2 * end, end);
+      const auto r = run_pairs(pairs, motions_for(best, pairs), pass == 0 ? start : 2 * end, end,
+                               std::nullopt, p_.early_convergence_scale);
       std::vector<AxisMotion> motions(pairs.size());
       for (std::size_t k = 0; k < pairs.size(); ++k) {
         motions[k].transform = r[k].transform;
@@ -574,7 +579,8 @@ class Registrar {
       const bool last = round + 1 == std::max(1, p_.rounds);
       const std::vector<IcpResult> icp =
           run_pairs(pairs, init, std::max(start, end), end,
-                    last ? std::optional<IcpObjective>(p_.final_objective) : std::nullopt);
+                    last ? std::optional<IcpObjective>(p_.final_objective) : std::nullopt,
+                    last ? 1.0 : p_.early_convergence_scale);
       report("icp", round + 1, p_.rounds);
 
       std::vector<PoseGraphEdge> edges;

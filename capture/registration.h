@@ -50,6 +50,15 @@ enum class InitialPoseSource {
 const char* to_string(InitialPoseSource s);
 
 struct RegistrationParams {
+  /// IcpParams with the registration's choices: coarse iterations on every
+  /// 4th source point (the dragon's poses unchanged to 1e-4 degree, the
+  /// initial stage 1.7x faster).
+  static IcpParams default_icp() {
+    IcpParams p;
+    p.coarse_stride = 4;
+    return p;
+  }
+
   /// Lengths below are relative to the session size: the median bounding-box
   /// diagonal of the views (scanner frame).
   double voxel_rel = 0.004;           ///< voxel edge of the registration copy (0: no downsampling)
@@ -59,7 +68,12 @@ struct RegistrationParams {
   int outlier_neighbors = 16;         ///< statistical outlier removal k (0: off)
   double outlier_std_ratio = 3.0;     ///< ... and its alpha
   int normal_neighbors = 10;          ///< PCA normal neighbourhood (small: less bias on sparse views)
-  IcpParams icp;                      ///< iteration count, guards; distances are set from the above
+  IcpParams icp = default_icp();      ///< iteration count, guards; distances are set from the above
+  /// The ICP runs whose poses are refined again later (axis estimation, every
+  /// round but the last) stop at this many times icp's convergence thresholds:
+  /// the last round converges fully from wherever they stop. (10: the dragon's
+  /// poses unchanged to 1e-5 degree, refinement 1.6x faster.)
+  double early_convergence_scale = 10.0;
   /// Each view is paired with the next `neighbors` views in capture order
   /// (1: ring only; 2: also skip-one pairs).
   int neighbors = 2;
