@@ -46,12 +46,15 @@ TEST(SimRegistration, NoisyScanWithAnglesOffByThreeDegrees) {
   cp.views = 12;
   run_capture(*scanner, *table, session, cp);
   ASSERT_EQ(session.manifest().views.size(), 12u);
-  // The prior: the right axis, angles off by up to 3 degrees.
+  // The prior, as the issue describes it: angles off by up to 3 degrees ...
   SessionManifest noisy = session.manifest();
   ASSERT_TRUE(noisy.axis.has_value());
   std::mt19937 rng(11);
   std::uniform_real_distribution<double> off(-3, 3);
   for (std::size_t i = 1; i < noisy.views.size(); ++i) *noisy.views[i].angle_deg += off(rng);
+  // ... and the axis 2 % of the object's diagonal (about 4 mm) off, sideways.
+  Vec3d side = noisy.axis->direction.normalized().unitOrthogonal();
+  noisy.axis->point += 0.02 * 0.19 * side;
   std::vector<Cloud> clouds;
   for (std::size_t i = 0; i < noisy.views.size(); ++i) clouds.push_back(session.load_view(i));
   const RegistrationResult r = register_views(clouds, noisy);
@@ -67,11 +70,65 @@ TEST(SimRegistration, NoisyScanWithAnglesOffByThreeDegrees) {
                 1000 * *r.views[i].translation_error, 1000 * *r.views[i].object_translation_error);
   RecordProperty("max_rotation_error_deg", std::to_string(r.max_rotation_error_deg));
   EXPECT_LT(r.max_rotation_error_deg, 0.1);
-  // The issue asks for 0.05 % of the diagonal (0.1 mm); reached: about 1.1 mm
-  // (relative poses in the scanner frame, 0.45 m from the object, where each
-  // 0.01 degree is 0.08 mm). Asserted: what we reach, so a regression fails.
+  // The issue asks for 0.05 % of the diagonal (0.1 mm); reached: about 1.0 mm
+  // in the scanner frame and 0.9 mm at the object, on views 1-5 only: the
+  // blocks' faces are axis-aligned and views 0 and 6 face them squarely, so
+  // sliding along them is barely held there (the truth fits the data no better
+  // than our poses: same pair residual). See NoisyFandiskWithPriorOff for a
+  // generic shape. Asserted: what we reach, so a regression fails.
   EXPECT_LT(r.max_translation_error, 0.0015);
   for (const ViewDiagnostics& v : r.views) EXPECT_EQ(v.initial, InitialPoseSource::kTurntableAxis);
+}
+
+// The same on a generic shape: the fandisk CAD part (tests/data/consolidation,
+// curved and flat faces, no symmetry), scaled to 15 cm and stood on the table.
+// The blocks above are a hard case for point-to-plane ICP: their faces are all
+// axis-aligned and views 0 and 6 look straight at them, so sliding along a
+// face is barely constrained between neighbouring views there.
+TEST(SimRegistration, NoisyFandiskWithPriorOff) {
+  test::TempDir dir;
+  Mesh part = read_mesh(test::source_dir() / "tests/data/consolidation/fandisk.off");
+  for (Vec3f& v : part.vertices) v = 0.15f * (v + Vec3f(0, 0, 0.5f));
+  write_ply(dir / "fandisk.ply", part);
+  DeviceRegistry reg = test::sim_registry();
+  auto scanner = reg.make_scanner("sim:synthetic?mesh=" + (dir / "fandisk.ply").string() +
+                                  "&noise=0.0002&width=320&height=240&color=0&seed=5");
+  auto table = reg.make_turntable("sim:turntable");
+  scanner->open();
+  table->open();
+  Session session = Session::create(dir / "scan", SessionManifest{});
+  CaptureParams cp;
+  cp.views = 12;
+  run_capture(*scanner, *table, session, cp);
+  ASSERT_EQ(session.manifest().views.size(), 12u);
+  SessionManifest noisy = session.manifest();
+  ASSERT_TRUE(noisy.axis.has_value());
+  std::mt19937 rng(13);
+  std::uniform_real_distribution<double> off(-3, 3);
+  for (std::size_t i = 1; i < noisy.views.size(); ++i) *noisy.views[i].angle_deg += off(rng);
+  const double diag = 0.15 * std::sqrt(0.9206 * 0.9206 + 0.5111 * 0.5111 + 1.0);
+  noisy.axis->point += 0.02 * diag * noisy.axis->direction.normalized().unitOrthogonal();
+  std::vector<Cloud> clouds;
+  for (std::size_t i = 0; i < noisy.views.size(); ++i) clouds.push_back(session.load_view(i));
+  const RegistrationResult r = register_views(clouds, noisy);
+  EXPECT_TRUE(r.failed_views.empty());
+  ASSERT_EQ(r.views_with_reference, 12);
+  std::printf("fandisk (diagonal %.1f mm): max %.4f deg / %.4f mm (at the object %.4f mm), median %.4f deg; %.2f s\n",
+              1000 * diag, r.max_rotation_error_deg, 1000 * r.max_translation_error,
+              1000 * r.max_object_translation_error, r.median_rotation_error_deg, r.seconds_total);
+  for (std::size_t i = 0; i < r.views.size(); ++i)
+    std::printf("  view %2zu: %.4f deg, %.4f mm, at the object %.4f mm\n", i, *r.views[i].rotation_error_deg,
+                1000 * *r.views[i].translation_error, 1000 * *r.views[i].object_translation_error);
+  // The issue: every view under 0.1 degree (reached) and 0.05 % of the
+  // diagonal (0.11 mm). Reached at the object on 11 of 12 views (0.02-0.06
+  // mm); view 6 looks at the part's broad flat side and slides 0.29 mm along
+  // it (the scanner-frame translation adds 0.5 mm of lever arm). Asserted:
+  // what is reached, with a margin, so a regression fails.
+  EXPECT_LT(r.max_rotation_error_deg, 0.1);
+  int within = 0;
+  for (const ViewDiagnostics& v : r.views) within += *v.object_translation_error < 0.0005 * diag;
+  EXPECT_GE(within, 10);
+  EXPECT_LT(r.max_object_translation_error, 0.0006);
 }
 
 }  // namespace
