@@ -1,6 +1,8 @@
 #include "reconstruct/dmc.h"
 
+#include <tbb/enumerable_thread_specific.h>
 #include <tbb/parallel_for.h>
+#include <tbb/parallel_sort.h>
 #include <tbb/task_arena.h>
 
 #include <Eigen/Eigenvalues>
@@ -121,9 +123,15 @@ class Chunked {
   const T& operator[](std::size_t i) const { return chunks_[i / kChunk][i % kChunk]; }
   std::size_t size() const { return size_; }
   void push_back(const T& v) {
-    if (size_ % kChunk == 0) chunks_.emplace_back(new T[kChunk]);
+    if (size_ == chunks_.size() * kChunk) chunks_.emplace_back(new T[kChunk]);
     (*this)[size_++] = v;
   }
+  /// Room for n more elements (serial), so that claim() may run in parallel.
+  void reserve_more(std::size_t n) {
+    while (chunks_.size() * kChunk < size_ + n) chunks_.emplace_back(new T[kChunk]);
+  }
+  /// Index of a new element, within the room made by reserve_more (parallel).
+  std::size_t claim() { return __atomic_fetch_add(&size_, std::size_t(1), __ATOMIC_RELAXED); }
 
  private:
   std::vector<std::unique_ptr<T[]>> chunks_;
@@ -258,6 +266,24 @@ class Lattice {
     return true;
   }
   bool emplace(Key p, const Node& v) { return enter(block(ki(p) >> 2, kj(p) >> 2, kk(p) >> 2), local(p), v); }
+  /// Room for n more nodes, so that claim_point may run in parallel.
+  void reserve_nodes(std::size_t n) { nodes_.reserve_more(n); }
+  /// Enters point l of block b when this call is the first to claim it (parallel, after
+  /// reserve_nodes): its node is returned, to be filled in; nullptr when it was there.
+  Node* claim_point(std::int32_t b, int l) {
+    Block& B = blk(b);
+    if (!set_bit(B.present, l)) return nullptr;
+    const std::size_t i = nodes_.claim();
+    B.node[l] = std::uint32_t(i);
+    return &nodes_[i];
+  }
+  /// Sets a bit of a mask shared between threads: true for the one caller that set it
+  /// (a plain load first: most bits asked for are set already).
+  static bool set_bit(std::uint64_t& mask, int bit) {
+    const std::uint64_t m = std::uint64_t(1) << bit;
+    if (__atomic_load_n(&mask, __ATOMIC_RELAXED) & m) return false;
+    return !(__atomic_fetch_or(&mask, m, __ATOMIC_RELAXED) & m);
+  }
   /// The crossing on the lattice edge from point l of block b along axis a, or nullptr.
   Crossing* crossing(std::int32_t b, int l, int a) {
     const std::int32_t xs = blk(b).xs;
@@ -440,12 +466,15 @@ class Dmc {
       const std::int32_t b = std::int32_t(fresh[i] >> 6);
       const int l = int(fresh[i] & 63);
       Node& nd = nodes_.node(b, l);
-      double x = g(nd.pos);
-      if (!std::isfinite(x)) x = h_;  // NaN counts as outside
-      if (opt_.close_at_box && (nd.flags & kFixed)) x = std::max(x, 0.5 * h_);
-      nd.val = x;
+      nd.val = lattice_value(nd.pos, nd.flags);
     });
     st_.evaluations += fresh.size();
+  }
+  double lattice_value(const Vec3d& pos, std::uint8_t flags) const {
+    double x = g(pos);
+    if (!std::isfinite(x)) x = h_;  // NaN counts as outside
+    if (opt_.close_at_box && (flags & kFixed)) x = std::max(x, 0.5 * h_);
+    return x;
   }
   double val(Key p) const { return nodes_.at(p).val; }
   // Configuration of cell l of block b (corner q inside: bit q), through the links.
@@ -517,18 +546,16 @@ class Dmc {
   // Surface tracking from the cells `start`, on the block lattice (cells as block << 6 |
   // local index, neighbours through the links); crossed cells get their surface bit,
   // cells that have it are not revisited. probe_first: a seed cell the surface misses
-  // probes its 26 neighbours once.
+  // probes its 26 neighbours once. Parallel as marching_cubes.cpp's walk: the corners
+  // and the visited cells (mark bits) are claimed atomically; blocks are created only in
+  // the serial parts (a step into a block not there yet is deferred to them). The set
+  // of crossed cells does not depend on the order of a wave.
   void traverse(const std::vector<Key>& start, bool probe_first) {
     std::vector<std::uint64_t> frontier, next;
     std::vector<std::int32_t> marked;  // blocks whose mark bits (visited cells) are set
-    auto visit = [&](std::int32_t b, int l) {
-      Lattice::Block& B = nodes_.blk(b);
-      const std::uint64_t m = std::uint64_t(1) << l;
-      if ((B.surface & m) || (B.mark & m)) return false;
-      if (!B.mark) marked.push_back(b);
-      B.mark |= m;
-      return true;
-    };
+    tbb::enumerable_thread_specific<std::vector<std::uint64_t>> next_local, deferred_local;
+    tbb::enumerable_thread_specific<std::vector<std::int32_t>> marked_local;
+    tbb::enumerable_thread_specific<std::size_t> evaluated_local(0);
     for (Key c : start) {
       const std::int32_t b = nodes_.block(ki(c) >> 2, kj(c) >> 2, kk(c) >> 2);
       Lattice::Block& B = nodes_.blk(b);
@@ -540,43 +567,63 @@ class Dmc {
     }
     const auto& faces_of = crossed_faces();
     bool first = probe_first;
-    std::vector<std::uint32_t> fresh;
     while (!frontier.empty()) {
-      // Corners not entered yet (serial: blocks are created here), then evaluated.
-      fresh.clear();
+      // Blocks holding the wave's corners (serial: blocks are created here) and room for
+      // their nodes.
       for (std::uint64_t c : frontier) {
         const std::int32_t b = std::int32_t(c >> 6);
         const int l = int(c & 63), li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
-        for (int q = 0; q < 8; ++q) {
-          const auto [cb, cl] = nodes_.rel_get(b, li + (q & 1), lj + (q >> 1 & 1), lk + (q >> 2 & 1));
-          if (nodes_.present(cb, cl)) continue;
-          const Key k = nodes_.point(cb, cl);
-          nodes_.enter(cb, cl, Node{upos(k), 0.0, std::uint8_t(on_boundary(k) ? kFixed : 0)});
-          fresh.push_back(std::uint32_t(cb) << 6 | std::uint32_t(cl));
-        }
+        const int hi = int(li == 3) | int(lj == 3) << 1 | int(lk == 3) << 2;
+        for (int q = 1; q < 8; ++q)
+          if ((q & hi) == q) nodes_.rel_get(b, li + (q & 1), lj + (q >> 1 & 1), lk + (q >> 2 & 1));
       }
-      evaluate(fresh);
-      st_.cells_visited += frontier.size();
-      next.clear();
-      for (std::uint64_t c : frontier) {
+      nodes_.reserve_nodes(8 * frontier.size());
+      // Corners not entered yet, each entered and evaluated by the thread claiming it.
+      parallel(frontier.size(), [&](std::size_t fi) {
+        const std::uint64_t c = frontier[fi];
         const std::int32_t b = std::int32_t(c >> 6);
         const int l = int(c & 63), li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
-        const Lattice::Block& B = nodes_.blk(b);
+        std::size_t count = 0;
+        for (int q = 0; q < 8; ++q) {
+          const auto [cb, cl] = nodes_.rel(b, li + (q & 1), lj + (q >> 1 & 1), lk + (q >> 2 & 1));
+          Node* nd = nodes_.claim_point(cb, cl);
+          if (!nd) continue;
+          const Key k = nodes_.point(cb, cl);
+          const std::uint8_t flags = on_boundary(k) ? kFixed : 0;
+          *nd = Node{upos(k), 0.0, flags};
+          nd->val = lattice_value(nd->pos, flags);
+          ++count;
+        }
+        evaluated_local.local() += count;
+      });
+      st_.cells_visited += frontier.size();
+      // Crossed cells pass the walk on (mark bits claimed atomically).
+      const bool probing = first;
+      parallel(frontier.size(), [&](std::size_t fi) {
+        const std::uint64_t c = frontier[fi];
+        const std::int32_t b = std::int32_t(c >> 6);
+        const int l = int(c & 63), li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
+        Lattice::Block& B = nodes_.blk(b);
         const int i = B.bi * 4 + li, j = B.bj * 4 + lj, k = B.bk * 4 + lk;
         auto push = [&](int dx, int dy, int dz) {
           if (!cell_in_grid(i + dx, j + dy, k + dz)) return;
-          const auto [nb, nl] = nodes_.rel_get(b, li + dx, lj + dy, lk + dz);
-          if (visit(nb, nl)) next.push_back(std::uint64_t(nb) << 6 | std::uint64_t(nl));
+          const auto [nb, nl] = nodes_.rel(b, li + dx, lj + dy, lk + dz);
+          if (nb < 0) {  // the block is not there yet
+            deferred_local.local().push_back(c << 5 | std::uint64_t((dx + 1) + (dy + 1) * 3 + (dz + 1) * 9));
+            return;
+          }
+          if (visit(nb, nl, marked_local.local())) next_local.local().push_back(std::uint64_t(nb) << 6 | std::uint64_t(nl));
         };
+        const std::uint64_t m = std::uint64_t(1) << l;
         const int cfg = config(b, l);
         if (cfg == 0 || cfg == 255) {
-          nodes_.blk(b).surface &= ~(std::uint64_t(1) << l);
-          if (first)
+          __atomic_fetch_and(&B.surface, ~m, __ATOMIC_RELAXED);
+          if (probing)
             for (int q = 0; q < 27; ++q)
               if (q != 13) push(q % 3 - 1, q / 3 % 3 - 1, q / 9 - 1);
-          continue;
+          return;
         }
-        nodes_.blk(b).surface |= std::uint64_t(1) << l;
+        __atomic_fetch_or(&B.surface, m, __ATOMIC_RELAXED);
         const int fc = faces_of[cfg];
         if (fc & 1) push(-1, 0, 0);
         if (fc & 2) push(1, 0, 0);
@@ -584,11 +631,43 @@ class Dmc {
         if (fc & 8) push(0, 1, 0);
         if (fc & 16) push(0, 0, -1);
         if (fc & 32) push(0, 0, 1);
+      });
+      next.clear();
+      for (auto& v : next_local) {
+        next.insert(next.end(), v.begin(), v.end());
+        v.clear();
+      }
+      // Steps into blocks not there yet (serial: the blocks are created).
+      for (auto& v : deferred_local) {
+        for (std::uint64_t d : v) {
+          const std::uint64_t c = d >> 5;
+          const int q = int(d & 31);
+          const std::int32_t b = std::int32_t(c >> 6);
+          const int l = int(c & 63);
+          const auto [nb, nl] =
+              nodes_.rel_get(b, (l & 3) + q % 3 - 1, (l >> 2 & 3) + q / 3 % 3 - 1, (l >> 4) + q / 9 - 1);
+          if (visit(nb, nl, marked)) next.push_back(std::uint64_t(nb) << 6 | std::uint64_t(nl));
+        }
+        v.clear();
       }
       frontier.swap(next);
       first = false;
     }
+    for (std::size_t n : evaluated_local) st_.evaluations += n;
+    for (const auto& v : marked_local) marked.insert(marked.end(), v.begin(), v.end());
     for (std::int32_t b : marked) nodes_.blk(b).mark = 0;
+  }
+  // Claims cell l of block b for the walk (parallel): false when it is a crossed cell
+  // already or visited; a block whose first mark bit this sets goes to `marked`.
+  bool visit(std::int32_t b, int l, std::vector<std::int32_t>& marked) {
+    Lattice::Block& B = nodes_.blk(b);
+    const std::uint64_t m = std::uint64_t(1) << l;
+    if ((__atomic_load_n(&B.surface, __ATOMIC_RELAXED) & m) || (__atomic_load_n(&B.mark, __ATOMIC_RELAXED) & m))
+      return false;
+    const std::uint64_t old = __atomic_fetch_or(&B.mark, m, __ATOMIC_RELAXED);
+    if (old & m) return false;
+    if (!old) marked.push_back(b);
+    return true;
   }
 
   // After lattice points moved: only the cells having one as a corner can change; they
@@ -665,6 +744,73 @@ class Dmc {
     return !(std::abs(nd.val) > 1.3 * h_ * slope * 1.5) || slope == 0;
   }
 
+  enum Role : char { kSkip, kMove, kPass };
+  // The pruning of a candidate (see barycentre_step): whether its Omega is searched
+  // (mover) or it passes the flood on (passer). One gradient and, where the surface is
+  // within the band and the point is not next to a moved point, one probe evaluation.
+  bool probe(const Node& nd, char role, bool first_wave) const {
+    const Vec3d gr = f_.gradient(nd.pos);
+    const double gn = gr.norm();
+    if (!(gn > 0) || !std::isfinite(gn)) return role == kMove;  // no usable gradient: search
+    const double d = std::abs(nd.val) / gn;
+    if (d > 1.3 * h_) return false;
+    // Next to a moved point: the paper's flood (first-wave points are done).
+    if (role == kMove && !first_wave) return true;
+    const double sgn = nd.val < 0 ? -1.0 : 1.0;  // outside: towards -grad
+    const Vec3d n = gr / gn;
+    // Mover: one h past the near surface; passer: one h away from it.
+    const Vec3d x = role == kMove ? Vec3d(nd.pos - sgn * (d + h_) * n) : Vec3d(nd.pos + sgn * h_ * n);
+    double v = g(x);
+    if (!std::isfinite(v)) v = h_;
+    return role == kMove ? (v < 0) == (nd.val < 0) : (v < 0) != (nd.val < 0);
+  }
+
+  // The first wave of the flood, in parallel over the blocks: the corners of the crossed
+  // cells, each once (mark bits claimed atomically, cleared after), pre-tested and
+  // probed; the points whose Omega is to be searched, in key order.
+  std::vector<Key> first_wave_todo() {
+    tbb::enumerable_thread_specific<std::vector<Key>> todo_local;
+    tbb::enumerable_thread_specific<std::vector<std::int32_t>> marked_local;
+    tbb::enumerable_thread_specific<std::size_t> probed_local(0);
+    parallel(nodes_.block_count(), [&](std::size_t bs) {
+      const std::int32_t b = std::int32_t(bs);
+      for (std::uint64_t m = nodes_.blk(b).surface; m; m &= m - 1) {
+        const int l = __builtin_ctzll(m), li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
+        for (int q = 0; q < 8; ++q) {
+          const auto [cb, cl] = nodes_.rel(b, li + (q & 1), lj + (q >> 1 & 1), lk + (q >> 2 & 1));
+          Lattice::Block& B = nodes_.blk(cb);
+          const std::uint64_t bit = std::uint64_t(1) << cl;
+          if (__atomic_load_n(&B.mark, __ATOMIC_RELAXED) & bit) continue;
+          const std::uint64_t old = __atomic_fetch_or(&B.mark, bit, __ATOMIC_RELAXED);
+          if (old & bit) continue;
+          if (!old) marked_local.local().push_back(cb);
+          Node& nd = nodes_.node(cb, cl);
+          if (nd.flags & kFixed) continue;
+          // Outside points move into thin parts, inside points into thin gaps.
+          if (nd.val < 0 ? !opt_.thin_gaps : !opt_.barycentre) continue;
+          const Key p = nodes_.point(cb, cl);
+          const std::uint32_t handle = std::uint32_t(cb) << 6 | std::uint32_t(cl);
+          if (cheap_candidate(p, handle, nd)) {
+            ++probed_local.local();
+            if (probe(nd, kMove, true)) todo_local.local().push_back(p);
+          }
+          nd.flags |= kSearched;
+        }
+      }
+    });
+    std::size_t probed = 0;
+    for (std::size_t n : probed_local) probed += n;
+    st_.gradient_evaluations += probed;
+    st_.probed += probed;
+    st_.evaluations += probed;
+    for (const auto& v : marked_local)
+      for (std::int32_t b : v) nodes_.blk(b).mark = 0;
+    std::vector<Key> todo;
+    for (const auto& v : todo_local) todo.insert(todo.end(), v.begin(), v.end());
+    std::sort(todo.begin(), todo.end());
+    return todo;
+  }
+
   // The paper's flood with pruning. Candidates are the corners of the crossed cells,
   // then the 26-neighbours of the points that moved (or of points already on the thin
   // part's side, which the flood passes through). A candidate is looked at only when
@@ -675,94 +821,50 @@ class Dmc {
   // thin-gap flood: outside in a thin gap) passes the flood on when the other side is
   // within h too.
   std::vector<Key> barycentre_step() {
-    const double band = 1.3 * h_;
     std::vector<Key> cand;
     std::vector<std::uint32_t> cand_h;  // block << 6 | local index of each candidate
-    {
-      // The corners of the crossed cells, each once (mark bits, cleared after).
-      std::vector<std::int32_t> marked;
-      for (std::size_t bs = 0; bs < nodes_.block_count(); ++bs) {
-        const std::int32_t b = std::int32_t(bs);
-        for (std::uint64_t m = nodes_.blk(b).surface; m; m &= m - 1) {
-          const int l = __builtin_ctzll(m), li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
-          for (int q = 0; q < 8; ++q) {
-            const auto [cb, cl] = nodes_.rel(b, li + (q & 1), lj + (q >> 1 & 1), lk + (q >> 2 & 1));
-            Lattice::Block& B = nodes_.blk(cb);
-            if (B.mark >> cl & 1) continue;
-            if (!B.mark) marked.push_back(cb);
-            B.mark |= std::uint64_t(1) << cl;
-            cand.push_back(nodes_.point(cb, cl));
-            cand_h.push_back(std::uint32_t(cb) << 6 | std::uint32_t(cl));
-          }
-        }
-      }
-      for (std::int32_t b : marked) nodes_.blk(b).mark = 0;
-    }
     std::vector<Key> moved_all;
     bool first_wave = true;
     // Which flood reached a candidate: 1 thin part (inside), 2 thin gap (outside).
     std::unordered_map<Key, std::uint8_t> reached;
     std::unordered_set<Key> passed;
-    enum Role : char { kSkip, kMove, kPass };
-    while (!cand.empty()) {
-      std::vector<Key> keep;
-      std::vector<Node*> keep_node;
-      std::vector<char> role;
-      for (std::size_t ci = 0; ci < cand.size(); ++ci) {
-        const Key p = cand[ci];
-        Node& nd = nodes_.node(std::int32_t(cand_h[ci] >> 6), int(cand_h[ci] & 63));
-        if (nd.flags & kFixed) continue;
-        const bool inside = nd.val < 0;
-        const std::uint8_t by = first_wave ? (inside ? 2 : 1) : reached[p];
-        for (std::uint8_t kind = 1; kind <= 2; ++kind) {
-          if (!(by & kind)) continue;
-          if (kind == 1 ? !opt_.barycentre : !opt_.thin_gaps) continue;
-          // Moves: outside points into thin parts, inside points into thin gaps.
-          const bool mover = (kind == 1) != inside;
-          if (!mover && first_wave) continue;
-          if (mover ? (nd.flags & kSearched) != 0 : passed.count(p * 2 + kind) > 0) continue;
-          if (first_wave && !cheap_candidate(p, cand_h[ci], nd)) {
-            nd.flags |= kSearched;
-            continue;
-          }
-          if (!mover) passed.insert(p * 2 + kind);
-          keep.push_back(p);
-          keep_node.push_back(&nd);
-          role.push_back(mover ? kMove : kPass);
-        }
-      }
-      // Gradient test and thin probe, in parallel.
-      std::vector<char> go(keep.size(), 0);
-      parallel(keep.size(), [&](std::size_t i) {
-        const Node& nd = *keep_node[i];
-        const Vec3d gr = f_.gradient(nd.pos);
-        const double gn = gr.norm();
-        if (!(gn > 0) || !std::isfinite(gn)) {
-          go[i] = role[i] == kMove;  // no usable gradient: search
-          return;
-        }
-        const double d = std::abs(nd.val) / gn;
-        if (d > band) return;
-        if (role[i] == kMove && !first_wave) {
-          go[i] = 1;  // next to a moved point: the paper's flood (first-wave points are done)
-          return;
-        }
-        const double sgn = nd.val < 0 ? -1.0 : 1.0;  // outside: towards -grad
-        const Vec3d n = gr / gn;
-        // Mover: one h past the near surface; passer: one h away from it.
-        const Vec3d x = role[i] == kMove ? Vec3d(nd.pos - sgn * (d + h_) * n) : Vec3d(nd.pos + sgn * h_ * n);
-        double v = g(x);
-        if (!std::isfinite(v)) v = h_;
-        go[i] = role[i] == kMove ? (v < 0) == (nd.val < 0) : (v < 0) != (nd.val < 0);
-      });
-      st_.gradient_evaluations += keep.size();
-      for (std::size_t i = 0; i < keep.size(); ++i)
-        if (first_wave || role[i] == kPass) ++st_.probed, ++st_.evaluations;
+    while (first_wave || !cand.empty()) {
       std::vector<Key> todo, through;
-      for (std::size_t i = 0; i < keep.size(); ++i)
-        if (go[i]) (role[i] == kMove ? todo : through).push_back(keep[i]);
-      for (std::size_t i = 0; i < keep.size(); ++i)
-        if (role[i] == kMove) keep_node[i]->flags |= kSearched;
+      if (first_wave) {
+        todo = first_wave_todo();
+      } else {
+        std::vector<Key> keep;
+        std::vector<Node*> keep_node;
+        std::vector<char> role;
+        for (std::size_t ci = 0; ci < cand.size(); ++ci) {
+          const Key p = cand[ci];
+          Node& nd = nodes_.node(std::int32_t(cand_h[ci] >> 6), int(cand_h[ci] & 63));
+          if (nd.flags & kFixed) continue;
+          const bool inside = nd.val < 0;
+          const std::uint8_t by = reached[p];
+          for (std::uint8_t kind = 1; kind <= 2; ++kind) {
+            if (!(by & kind)) continue;
+            if (kind == 1 ? !opt_.barycentre : !opt_.thin_gaps) continue;
+            // Moves: outside points into thin parts, inside points into thin gaps.
+            const bool mover = (kind == 1) != inside;
+            if (mover ? (nd.flags & kSearched) != 0 : passed.count(p * 2 + kind) > 0) continue;
+            if (!mover) passed.insert(p * 2 + kind);
+            keep.push_back(p);
+            keep_node.push_back(&nd);
+            role.push_back(mover ? kMove : kPass);
+          }
+        }
+        // Gradient test and thin probe, in parallel.
+        std::vector<char> go(keep.size(), 0);
+        parallel(keep.size(), [&](std::size_t i) { go[i] = probe(*keep_node[i], role[i], false); });
+        st_.gradient_evaluations += keep.size();
+        for (std::size_t i = 0; i < keep.size(); ++i)
+          if (role[i] == kPass) ++st_.probed, ++st_.evaluations;
+        for (std::size_t i = 0; i < keep.size(); ++i)
+          if (go[i]) (role[i] == kMove ? todo : through).push_back(keep[i]);
+        for (std::size_t i = 0; i < keep.size(); ++i)
+          if (role[i] == kMove) keep_node[i]->flags |= kSearched;
+      }
       std::vector<char> ok(todo.size(), 0);
       std::vector<Vec3d> pos(todo.size());
       std::vector<double> value(todo.size());
