@@ -149,7 +149,6 @@ struct Node {
 struct Crossing {
   int evals = 0;
   bool stale = false;  // an end moved after it was computed
-  bool queued = false;  // being computed (compute_crossings)
   Vec3d pos = Vec3d::Zero();
   Vec3d normal = Vec3d::Zero();  // unit, or zero where the gradient is not usable
   int vid = -1;  // mesh vertex (build_mesh)
@@ -173,6 +172,7 @@ class Lattice {
     std::uint64_t mark;     // scratch set of points or cells (cleared after use)
     std::int32_t nb[27];    // block at (q % 3 - 1, q / 3 % 3 - 1, q / 9 - 1), or kUnknown
     std::int32_t xs;        // crossing slots of the block, or kNone
+    std::uint64_t xwant[3];  // edges from the points along each axis to compute (scratch)
     std::uint32_t node[64];  // index of the point's node, where present
   };
   static constexpr std::uint32_t kNoCrossing = 0xFFFFFFFFu;
@@ -207,6 +207,7 @@ class Lattice {
     B.bi = bi, B.bj = bj, B.bk = bk;
     B.present = B.surface = B.mark = 0;
     B.xs = kNone;
+    B.xwant[0] = B.xwant[1] = B.xwant[2] = 0;
     std::fill(std::begin(B.nb), std::end(B.nb), kUnknown);
     B.nb[13] = b;
     blocks_.push_back(B);
@@ -298,21 +299,22 @@ class Lattice {
     const std::int32_t b = block_of(p);
     return b < 0 ? nullptr : crossing(b, local(p), int(ek % 3));
   }
-  /// Enters a crossing (serial); false when there was one.
-  bool add_crossing(std::int32_t b, int l, int a, const Crossing& x) {
+  /// Gives block b its crossing slots (serial).
+  void make_slots(std::int32_t b) {
     Block& B = blk(b);
-    if (B.xs < 0) {
-      B.xs = std::int32_t(xslots_.size());
-      std::array<std::uint32_t, 192> none;
-      none.fill(kNoCrossing);
-      xslots_.push_back(none);
-    }
-    std::uint32_t& e = xslots_[std::size_t(B.xs)][std::size_t(l * 3 + a)];
-    if (e != kNoCrossing) return false;
-    e = std::uint32_t(crossings_.size());
-    crossings_.push_back(x);
-    return true;
+    if (B.xs >= 0) return;
+    B.xs = std::int32_t(xslots_.size());
+    std::array<std::uint32_t, 192> none;
+    none.fill(kNoCrossing);
+    xslots_.push_back(none);
   }
+  /// Room for n more crossings, so that claim_crossing may run in parallel.
+  void reserve_crossings(std::size_t n) { crossings_.reserve_more(n); }
+  /// The slot of the crossing on edge (l, a) of block b (which has slots).
+  std::uint32_t& slot(std::int32_t b, int l, int a) { return xslots_[std::size_t(blk(b).xs)][std::size_t(l * 3 + a)]; }
+  Crossing& crossing_at(std::uint32_t e) { return crossings_[e]; }
+  /// A new crossing (parallel, after reserve_crossings).
+  std::uint32_t claim_crossing() { return std::uint32_t(crossings_.claim()); }
   bool is_surface(Key c) const {
     const std::int32_t b = block_of(c);
     return b >= 0 && (blk(b).surface >> local(c) & 1);
@@ -438,6 +440,13 @@ class Dmc {
   template <class Fn>
   void parallel(std::size_t count, Fn&& fn) {
     arena_.execute([&] { tbb::parallel_for(std::size_t(0), count, fn); });
+  }
+
+  // The crossed cells in key order (keys are unique: the same order for any thread count).
+  std::vector<Key> sorted_surface() {
+    std::vector<Key> cells = nodes_.surface_list();
+    arena_.execute([&] { tbb::parallel_sort(cells.begin(), cells.end()); });
+    return cells;
   }
 
   // Evaluates the missing lattice points of `keys` (undeformed positions) in parallel.
@@ -1079,46 +1088,59 @@ class Dmc {
     if (Crossing* e = nodes_.crossing(ek)) e->stale = true;
   }
 
-  // Crossings (and normals) of every crossed edge of the surface cells not yet known.
+  // Crossings (and normals) of every crossed edge of the surface cells not yet known
+  // (or stale). In parallel: the cells mark their crossed edges in the block of the
+  // edge's lower end (xwant bits, claimed atomically); each such block then computes
+  // its marked edges' crossings (new ones get an index claimed atomically; the order of
+  // the crossings in storage is not used).
   void compute_crossings() {
     const auto& ec = mc::edge_corners();
-    std::vector<Crossing*> todo;
-    std::vector<std::pair<const Node*, const Node*>> ends;
-    for (std::size_t bs = 0; bs < nodes_.block_count(); ++bs) {
+    parallel(nodes_.block_count(), [&](std::size_t bs) {
       const std::int32_t b = std::int32_t(bs);
       for (std::uint64_t m = nodes_.blk(b).surface; m; m &= m - 1) {
         const int l = __builtin_ctzll(m), li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
         const int cfg = config(b, l);
         for (int e = 0; e < 12; ++e) {
           if (!crossed(cfg, e)) continue;
-          const int c0 = ec[e][0], a = e / 4;
+          const int c0 = ec[e][0];
           const auto [cb, cl] = nodes_.rel(b, li + (c0 & 1), lj + (c0 >> 1 & 1), lk + (c0 >> 2 & 1));
-          // Each edge once (queued marks it).
-          Crossing* known = nodes_.crossing(cb, cl, a);
-          if (!known) {
-            Crossing placeholder;
-            placeholder.queued = true;
-            nodes_.add_crossing(cb, cl, a, placeholder);
-            known = nodes_.crossing(cb, cl, a);
-          } else if (known->stale && !known->queued) {
-            known->queued = true;
-          } else {
-            continue;
-          }
-          todo.push_back(known);
-          const int c1 = ec[e][1];
-          const auto [db, dl] = nodes_.rel(b, li + (c1 & 1), lj + (c1 >> 1 & 1), lk + (c1 >> 2 & 1));
-          ends.emplace_back(&nodes_.node(cb, cl), &nodes_.node(db, dl));
+          Lattice::set_bit(nodes_.blk(cb).xwant[e / 4], cl);
         }
       }
-    }
-    std::vector<int> evals(todo.size());
-    parallel(todo.size(), [&](std::size_t i) {
-      *todo[i] = crossing(*ends[i].first, *ends[i].second, opt_.refine_steps);
-      evals[i] = todo[i]->evals;
     });
-    st_.gradient_evaluations += todo.size();
-    for (int e : evals) st_.evaluations += std::size_t(e);
+    std::size_t wanted = 0;
+    for (std::size_t bs = 0; bs < nodes_.block_count(); ++bs) {
+      const Lattice::Block& B = nodes_.blk(std::int32_t(bs));
+      const int n = __builtin_popcountll(B.xwant[0]) + __builtin_popcountll(B.xwant[1]) + __builtin_popcountll(B.xwant[2]);
+      if (n == 0) continue;
+      nodes_.make_slots(std::int32_t(bs));
+      wanted += std::size_t(n);
+    }
+    nodes_.reserve_crossings(wanted);
+    tbb::enumerable_thread_specific<std::size_t> evals_local(0), grads_local(0);
+    parallel(nodes_.block_count(), [&](std::size_t bs) {
+      const std::int32_t b = std::int32_t(bs);
+      Lattice::Block& B = nodes_.blk(b);
+      std::size_t evals = 0, grads = 0;
+      for (int a = 0; a < 3; ++a) {
+        for (std::uint64_t m = B.xwant[a]; m; m &= m - 1) {
+          const int l = __builtin_ctzll(m);
+          std::uint32_t& slot = nodes_.slot(b, l, a);
+          if (slot != Lattice::kNoCrossing && !nodes_.crossing_at(slot).stale) continue;
+          if (slot == Lattice::kNoCrossing) slot = nodes_.claim_crossing();
+          const auto [db, dl] = nodes_.rel(b, (l & 3) + (a == 0), (l >> 2 & 3) + (a == 1), (l >> 4) + (a == 2));
+          Crossing& x = nodes_.crossing_at(slot);
+          x = crossing(nodes_.node(b, l), nodes_.node(db, dl), opt_.refine_steps);
+          evals += std::size_t(x.evals);
+          ++grads;
+        }
+        B.xwant[a] = 0;
+      }
+      evals_local.local() += evals;
+      grads_local.local() += grads;
+    });
+    for (std::size_t n : grads_local) st_.gradient_evaluations += n;
+    for (std::size_t n : evals_local) st_.evaluations += n;
   }
 
   // ---------------------------------------------------------------- step 2
@@ -1267,8 +1289,7 @@ class Dmc {
   }
 
   std::vector<Key> feature_step() {
-    std::vector<Key> cells = nodes_.surface_list();
-    std::sort(cells.begin(), cells.end());
+    std::vector<Key> cells = sorted_surface();
     std::vector<std::vector<Proposal>> props(cells.size());
     std::vector<std::size_t> evals(cells.size(), 0);
     parallel(cells.size(), [&](std::size_t i) { detect(cells[i], props[i], evals[i]); });
@@ -1470,46 +1491,67 @@ class Dmc {
 
   // ---------------------------------------------------------------- step 3
   Mesh build_mesh() {
-    std::vector<Key> surface = nodes_.surface_list();
-    std::sort(surface.begin(), surface.end());
+    const std::vector<Key> surface = sorted_surface();
     st_.surface_cells = surface.size();
     const auto& table = mc::triangle_table();
     const auto& ec = mc::edge_corners();
-    // Vertex ids by first use, cells in key order.
-    std::vector<const Crossing*> edges;
-    Mesh mesh;
-    for (Key c : surface) {
-      const std::int32_t b = nodes_.block_of(c);
-      const int l = Lattice::local(c), li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
-      const int cfg = config(b, l);
-      for (const auto& tri : table[cfg]) {
-        Face face;
+    // Per cell (key order) its configuration, then its first face (prefix sum); the
+    // faces' crossings in parallel; vertex ids by first use in face order (serial), so
+    // the mesh is the same for any thread count.
+    std::vector<std::uint8_t> cfgs(surface.size());
+    std::vector<std::uint32_t> handle(surface.size());  // block << 6 | local index
+    parallel(surface.size(), [&](std::size_t i) {
+      const std::int32_t b = nodes_.block_of(surface[i]);
+      const int l = Lattice::local(surface[i]);
+      handle[i] = std::uint32_t(b) << 6 | std::uint32_t(l);
+      cfgs[i] = std::uint8_t(config(b, l));
+    });
+    std::vector<std::size_t> first(surface.size() + 1, 0);
+    for (std::size_t i = 0; i < surface.size(); ++i) first[i + 1] = first[i] + table[cfgs[i]].size();
+    std::vector<Crossing*> corners(3 * first.back());
+    parallel(surface.size(), [&](std::size_t i) {
+      const std::int32_t b = std::int32_t(handle[i] >> 6);
+      const int l = int(handle[i] & 63), li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
+      std::size_t f = first[i];
+      for (const auto& tri : table[cfgs[i]]) {
         for (int t = 0; t < 3; ++t) {
           const int c0 = ec[tri[t]][0];
           const auto [xb, xl] = nodes_.rel(b, li + (c0 & 1), lj + (c0 >> 1 & 1), lk + (c0 >> 2 & 1));
           Crossing* x = nodes_.crossing(xb, xl, tri[t] / 4);
           if (!x) throw std::out_of_range("extract_dmc: internal error: crossing not computed");
-          if (x->vid < 0) {
-            x->vid = int(edges.size());
-            edges.push_back(x);
-          }
-          face[t] = x->vid;
+          corners[3 * f + std::size_t(t)] = x;
         }
-        mesh.faces.push_back(face);
+        ++f;
       }
-    }
+    });
+    std::vector<const Crossing*> edges;
+    Mesh mesh;
+    mesh.faces.resize(first.back());
+    for (std::size_t f = 0; f < mesh.faces.size(); ++f)
+      for (int t = 0; t < 3; ++t) {
+        Crossing* x = corners[3 * f + std::size_t(t)];
+        if (x->vid < 0) {
+          x->vid = int(edges.size());
+          edges.push_back(x);
+        }
+        mesh.faces[f][t] = x->vid;
+      }
+    std::vector<Crossing*>().swap(corners);
     mesh.vertices.resize(edges.size());
     if (opt_.normals) mesh.normals.resize(edges.size());
-    for (std::size_t v = 0; v < edges.size(); ++v) {
+    parallel(edges.size(), [&](std::size_t v) {
       const Crossing& x = *edges[v];
       mesh.vertices[v] = x.pos.cast<float>();
       if (opt_.normals) mesh.normals[v] = x.normal.cast<float>();
-    }
-    for (const Face& fc : mesh.faces) {
+    });
+    tbb::enumerable_thread_specific<std::size_t> degenerate(0);
+    parallel(mesh.faces.size(), [&](std::size_t f) {
+      const Face& fc = mesh.faces[f];
       const Vec3f e1 = mesh.vertices[fc[1]] - mesh.vertices[fc[0]];
       const Vec3f e2 = mesh.vertices[fc[2]] - mesh.vertices[fc[0]];
-      if (!(e1.cross(e2).norm() > 0)) ++st_.degenerate_faces;
-    }
+      if (!(e1.cross(e2).norm() > 0)) ++degenerate.local();
+    });
+    for (std::size_t n : degenerate) st_.degenerate_faces += n;
     if (opt_.untrusted == UntrustedRegions::kLeaveOpen && !mesh.faces.empty()) drop_untrusted(mesh);
     return mesh;
   }
