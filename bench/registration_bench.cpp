@@ -167,7 +167,9 @@ void run_pair_cases(const Options& options, Report& report) {
   IcpParams fixed;
   fixed.max_distance_start = fixed.max_distance_end = distance;
   fixed.shrink = 1.0;
-  IcpParams shrinking;  // the station's session refinement: 2 % shrinking to 0.4 %
+  // The station's session refinement: 2 % shrinking to 0.4 %, the coarse
+  // iterations on every 4th source point (RegistrationParams' ICP settings).
+  IcpParams shrinking = RegistrationParams::default_icp();
   shrinking.max_distance_start = distance;
   shrinking.max_distance_end = 0.004 * diagonal;
   IcpParams generalized = fixed;

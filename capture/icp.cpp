@@ -307,6 +307,8 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
   bool small_step = false;
   Vector6d prev_step = Vector6d::Zero();
   double damping = 1.0;
+  int end_iterations = 0;  // iterations run at the final distance
+  constexpr int kUndampedEndIterations = 15;
   // Before the final distance, every coarse_stride-th source point (the pull
   // of a coarse stage needs no more); at the final distance all of them.
   const std::size_t coarse_stride = std::size_t(std::max(1, params.coarse_stride));
@@ -328,10 +330,16 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
       res.message = "ill-posed point-to-plane system";
       return res;
     }
-    if (colored) {
+    if (d_max <= d_end * (1 + 1e-9)) ++end_iterations;
+    if (colored || end_iterations > kUndampedEndIterations) {
       // The photometric term can make the nearest neighbours flip back and
       // forth (a period-2 cycle on regular samplings): a step that reverses
-      // the previous one halves the step length from then on.
+      // the previous one halves the step length from then on. Geometric
+      // objectives can cycle the same way at the final distance (a sparse,
+      // noisy overlap whose correspondences swap between two sets: the pair
+      // never met the convergence test and was dropped). Damped the same
+      // way, but only after kUndampedEndIterations there, so pairs that
+      // converge normally are untouched.
       if (x.dot(prev_step) < -0.5 * x.norm() * prev_step.norm()) damping *= 0.5;
       x *= damping;
       prev_step = x;

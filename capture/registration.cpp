@@ -114,7 +114,7 @@ std::pair<double, std::size_t> pair_plane_rmse(const PreparedView& a, const Prep
   std::size_t n = 0;
   for (std::size_t k = 0; k < b.points.size(); ++k) {
     const Eigen::Vector3d p = R * b.points[k].cast<double>() + t;
-    const auto [j, d] = a.index->nearest(p.cast<float>());
+    const auto [j, d] = a.index->nearest_within(p.cast<float>(), float(max_distance));
     if (j < 0 || d > max_distance) continue;
     const Eigen::Vector3d nq = a.normals[j].cast<double>();
     if ((R * b.normals[k].cast<double>()).dot(nq) < min_normal_dot) continue;

@@ -80,8 +80,9 @@ TEST(SimRegistration, NoisyScanWithAnglesOffByThreeDegrees) {
   for (const ViewDiagnostics& v : r.views) EXPECT_EQ(v.initial, InitialPoseSource::kTurntableAxis);
 }
 
-// The same on a generic shape: the fandisk CAD part (tests/data/consolidation,
-// curved and flat faces, no symmetry), scaled to 15 cm and stood on the table.
+// The same on a generic shape, with the prior as far off as the issue allows:
+// the fandisk CAD part (tests/data/consolidation, curved and flat faces, no
+// symmetry), scaled to 15 cm and stood on the table.
 // The blocks above are a hard case for point-to-plane ICP: their faces are all
 // axis-aligned and views 0 and 6 look straight at them, so sliding along a
 // face is barely constrained between neighbouring views there.
@@ -119,16 +120,20 @@ TEST(SimRegistration, NoisyFandiskWithPriorOff) {
   for (std::size_t i = 0; i < r.views.size(); ++i)
     std::printf("  view %2zu: %.4f deg, %.4f mm, at the object %.4f mm\n", i, *r.views[i].rotation_error_deg,
                 1000 * *r.views[i].translation_error, 1000 * *r.views[i].object_translation_error);
-  // The issue: every view under 0.1 degree (reached) and 0.05 % of the
-  // diagonal (0.11 mm). Reached at the object on 11 of 12 views (0.02-0.06
-  // mm); view 6 looks at the part's broad flat side and slides 0.29 mm along
-  // it (the scanner-frame translation adds 0.5 mm of lever arm). Asserted:
-  // what is reached, with a margin, so a regression fails.
+  // Every pair of the last round converged (two of them used to cycle at the
+  // final distance and were dropped; icp.cpp now damps such cycles).
+  for (const PairDiagnostics& p : r.pairs)
+    if (p.round == 2) EXPECT_TRUE(p.converged) << p.from << "-" << p.to << ": " << p.message;
+  // The issue: every view under 0.1 degree and 0.05 % of the diagonal
+  // (0.11 mm). With these seeds: 0.053 degree, and 0.07 mm measured at the
+  // object (0.36 mm in the scanner frame 0.45 m away, mostly the rotation
+  // error times that lever arm). Over other noise and angle seeds (6/14, 7/21,
+  // 9/3): 0.052-0.090 degree, but 0.21-0.33 mm at the object, so the
+  // translation target is not met in general (docs/registration.md).
+  // Asserted: the rotation target, and the translation we reach across those
+  // seeds with a margin, so a regression fails.
   EXPECT_LT(r.max_rotation_error_deg, 0.1);
-  int within = 0;
-  for (const ViewDiagnostics& v : r.views) within += *v.object_translation_error < 0.0005 * diag;
-  EXPECT_GE(within, 10);
-  EXPECT_LT(r.max_object_translation_error, 0.0006);
+  EXPECT_LT(r.max_object_translation_error, 0.0004);
 }
 
 }  // namespace
