@@ -170,6 +170,7 @@ class Lattice {
     std::uint64_t present;  // points with a node
     std::uint64_t surface;  // crossed cells
     std::uint64_t mark;     // scratch set of points or cells (cleared after use)
+    std::uint64_t mark2;    // a second scratch set
     std::int32_t nb[27];    // block at (q % 3 - 1, q / 3 % 3 - 1, q / 9 - 1), or kUnknown
     std::int32_t xs;        // crossing slots of the block, or kNone
     std::uint64_t xwant[3];  // edges from the points along each axis to compute (scratch)
@@ -205,7 +206,7 @@ class Lattice {
     const std::int32_t b = std::int32_t(blocks_.size());
     Block B;
     B.bi = bi, B.bj = bj, B.bk = bk;
-    B.present = B.surface = B.mark = 0;
+    B.present = B.surface = B.mark = B.mark2 = 0;
     B.xs = kNone;
     B.xwant[0] = B.xwant[1] = B.xwant[2] = 0;
     std::fill(std::begin(B.nb), std::end(B.nb), kUnknown);
@@ -386,7 +387,12 @@ class Dmc {
     using Clock = std::chrono::steady_clock;
     auto since = [](Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); };
     auto t0 = Clock::now();
-    traverse(seed_cells(), !opt_.seeds.empty());
+    {
+      std::vector<std::uint64_t> start;
+      for (Key c : seed_cells())
+        start.push_back(std::uint64_t(nodes_.block(ki(c) >> 2, kj(c) >> 2, kk(c) >> 2)) << 6 | std::uint64_t(Lattice::local(c)));
+      traverse(start, !opt_.seeds.empty());
+    }
     st_.seconds_traversal = since(t0);
 
     t0 = Clock::now();
@@ -559,16 +565,16 @@ class Dmc {
   // and the visited cells (mark bits) are claimed atomically; blocks are created only in
   // the serial parts (a step into a block not there yet is deferred to them). The set
   // of crossed cells does not depend on the order of a wave.
-  void traverse(const std::vector<Key>& start, bool probe_first) {
+  void traverse(const std::vector<std::uint64_t>& start, bool probe_first) {
     std::vector<std::uint64_t> frontier, next;
     std::vector<std::int32_t> marked;  // blocks whose mark bits (visited cells) are set
     tbb::enumerable_thread_specific<std::vector<std::uint64_t>> next_local, deferred_local;
     tbb::enumerable_thread_specific<std::vector<std::int32_t>> marked_local;
     tbb::enumerable_thread_specific<std::size_t> evaluated_local(0);
-    for (Key c : start) {
-      const std::int32_t b = nodes_.block(ki(c) >> 2, kj(c) >> 2, kk(c) >> 2);
+    for (std::uint64_t c : start) {
+      const std::int32_t b = std::int32_t(c >> 6);
       Lattice::Block& B = nodes_.blk(b);
-      const int l = Lattice::local(c);
+      const int l = int(c & 63);
       if (B.mark >> l & 1) continue;
       if (!B.mark) marked.push_back(b);
       B.mark |= std::uint64_t(1) << l;
@@ -682,15 +688,18 @@ class Dmc {
   // After lattice points moved: only the cells having one as a corner can change; they
   // are re-examined and the walk continues from them into cells not yet known.
   void update_surface(const std::vector<Key>& moved) {
-    std::vector<Key> cells;
-    for (Key p : moved)
+    std::vector<std::uint64_t> cells;  // block << 6 | local index (duplicates: traverse drops them)
+    for (Key p : moved) {
+      const std::int32_t b = nodes_.block_of(p);
+      const int l = Lattice::local(p);
       for (int q = 0; q < 8; ++q) {
-        const int i = ki(p) - (q & 1), j = kj(p) - (q >> 1 & 1), k = kk(p) - (q >> 2 & 1);
-        if (cell_in_grid(i, j, k)) cells.push_back(key(i, j, k));
+        const int dx = q & 1, dy = q >> 1 & 1, dz = q >> 2 & 1;
+        if (!cell_in_grid(ki(p) - dx, kj(p) - dy, kk(p) - dz)) continue;
+        const auto [cb, cl] = nodes_.rel_get(b, (l & 3) - dx, (l >> 2 & 3) - dy, (l >> 4) - dz);
+        nodes_.blk(cb).surface &= ~(std::uint64_t(1) << cl);
+        cells.push_back(std::uint64_t(cb) << 6 | std::uint64_t(cl));
       }
-    std::sort(cells.begin(), cells.end());
-    cells.erase(std::unique(cells.begin(), cells.end()), cells.end());
-    for (Key c : cells) nodes_.set_surface(c, false);
+    }
     traverse(cells, false);
   }
 
@@ -834,8 +843,8 @@ class Dmc {
     std::vector<std::uint32_t> cand_h;  // block << 6 | local index of each candidate
     std::vector<Key> moved_all;
     bool first_wave = true;
-    // Which flood reached a candidate: 1 thin part (inside), 2 thin gap (outside).
-    std::unordered_map<Key, std::uint8_t> reached;
+    // Which flood reached each candidate: 1 thin part (inside), 2 thin gap (outside).
+    std::vector<std::uint8_t> cand_by;
     std::unordered_set<Key> passed;
     while (first_wave || !cand.empty()) {
       std::vector<Key> todo, through;
@@ -850,7 +859,7 @@ class Dmc {
           Node& nd = nodes_.node(std::int32_t(cand_h[ci] >> 6), int(cand_h[ci] & 63));
           if (nd.flags & kFixed) continue;
           const bool inside = nd.val < 0;
-          const std::uint8_t by = reached[p];
+          const std::uint8_t by = cand_by[ci];
           for (std::uint8_t kind = 1; kind <= 2; ++kind) {
             if (!(by & kind)) continue;
             if (kind == 1 ? !opt_.barycentre : !opt_.thin_gaps) continue;
@@ -897,25 +906,40 @@ class Dmc {
         spread.emplace_back(todo[i], was_inside ? 2 : 1);
       }
       for (Key p : through) spread.emplace_back(p, nodes_.at(p).val < 0 ? 1 : 2);
-      // Next wave: the 26 neighbours.
-      std::vector<Key> next;
-      reached.clear();
-      for (const auto& [p, kind] : spread)
+      // Next wave: the 26 neighbours, each once, with the floods that reached it (mark
+      // bits for the thin part's flood, mark2 for the thin gap's); the new points are
+      // entered and evaluated.
+      std::vector<std::int32_t> touched;
+      for (const auto& [p, kind] : spread) {
+        const std::int32_t b = nodes_.block_of(p);
+        const int l = Lattice::local(p);
         for (int q = 0; q < 27; ++q) {
-          const int i = ki(p) + q % 3 - 1, j = kj(p) + q / 3 % 3 - 1, k = kk(p) + q / 9 - 1;
-          if (q != 13 && node_in_grid(i, j, k)) {
-            next.push_back(key(i, j, k));
-            reached[key(i, j, k)] |= kind;
-          }
+          const int dx = q % 3 - 1, dy = q / 3 % 3 - 1, dz = q / 9 - 1;
+          if (q == 13 || !node_in_grid(ki(p) + dx, kj(p) + dy, kk(p) + dz)) continue;
+          const auto [nb, nl] = nodes_.rel_get(b, (l & 3) + dx, (l >> 2 & 3) + dy, (l >> 4) + dz);
+          Lattice::Block& B = nodes_.blk(nb);
+          if (!(B.mark | B.mark2)) touched.push_back(nb);
+          (kind == 1 ? B.mark : B.mark2) |= std::uint64_t(1) << nl;
         }
-      std::sort(next.begin(), next.end());
-      next.erase(std::unique(next.begin(), next.end()), next.end());
-      std::vector<Key> fresh = next;
-      ensure(fresh);
-      cand.swap(next);
-      cand_h.resize(cand.size());
-      for (std::size_t ci = 0; ci < cand.size(); ++ci)
-        cand_h[ci] = std::uint32_t(nodes_.block_of(cand[ci])) << 6 | std::uint32_t(Lattice::local(cand[ci]));
+      }
+      cand.clear();
+      cand_h.clear();
+      cand_by.clear();
+      std::vector<std::uint32_t> fresh;
+      for (std::int32_t b : touched) {
+        Lattice::Block& B = nodes_.blk(b);
+        for (std::uint64_t m = B.mark | B.mark2; m; m &= m - 1) {
+          const int l = __builtin_ctzll(m);
+          const Key k = nodes_.point(b, l);
+          cand.push_back(k);
+          cand_h.push_back(std::uint32_t(b) << 6 | std::uint32_t(l));
+          cand_by.push_back(std::uint8_t((B.mark >> l & 1) | (B.mark2 >> l & 1) << 1));
+          if (nodes_.enter(b, l, Node{upos(k), 0.0, std::uint8_t(on_boundary(k) ? kFixed : 0)}))
+            fresh.push_back(std::uint32_t(b) << 6 | std::uint32_t(l));
+        }
+        B.mark = B.mark2 = 0;
+      }
+      evaluate(fresh);
       first_wave = false;
     }
     bridge(moved_all);
@@ -928,34 +952,44 @@ class Dmc {
   // lies in the part (gap), the lattice points whose Omega it crosses move onto it.
   void bridge(std::vector<Key>& moved) {
     std::sort(moved.begin(), moved.end());
-    std::vector<std::pair<Key, Vec3d>> props;
-    for (Key p : moved) {
-      const Node& a = nodes_.at(p);
-      const std::uint8_t kind = a.flags & (kBary | kGap);
-      for (int q = 0; q < 27; ++q) {
-        const int dx = q % 3 - 1, dy = q / 3 % 3 - 1, dz = q / 9 - 1;
-        if (std::abs(dx) + std::abs(dy) + std::abs(dz) < 2) continue;
-        if (!node_in_grid(ki(p) + dx, kj(p) + dy, kk(p) + dz)) continue;
-        const Key r = key(ki(p) + dx, kj(p) + dy, kk(p) + dz);
-        if (r < p) continue;
-        const auto it = nodes_.find(r);
-        if (it == nullptr || (it->flags & (kBary | kGap)) != kind) continue;
-        const Vec3d x0 = a.pos, x1 = it->pos;
-        // Omegas along the segment, each with the middle of its piece.
-        Key last = p;
-        double t_in = 0;
-        constexpr int kSteps = 32;
-        for (int st = 1; st <= kSteps; ++st) {
-          const double t = double(st) / kSteps;
-          const Vec3d y = ((x0 + t * (x1 - x0)) - lo_) / h_;
-          const Key cur = key(std::lround(y.x()), std::lround(y.y()), std::lround(y.z()));
-          if (cur == last) continue;
-          if (last != p) props.emplace_back(last, x0 + 0.5 * (t_in + t - 1.0 / kSteps) * (x1 - x0));
-          last = cur;
-          t_in = t;
+    // In parallel over runs of `moved`; the runs' proposals joined in order (the same
+    // list as one serial pass: its order picks among equal keys below).
+    constexpr std::size_t kRun = 256;
+    std::vector<std::vector<std::pair<Key, Vec3d>>> run_props((moved.size() + kRun - 1) / kRun);
+    parallel(run_props.size(), [&](std::size_t ri) {
+      std::vector<std::pair<Key, Vec3d>>& props = run_props[ri];
+      for (std::size_t mi = ri * kRun; mi < std::min(moved.size(), (ri + 1) * kRun); ++mi) {
+        const Key p = moved[mi];
+        const Node& a = nodes_.at(p);
+        const std::uint8_t kind = a.flags & (kBary | kGap);
+        for (int q = 0; q < 27; ++q) {
+          const int dx = q % 3 - 1, dy = q / 3 % 3 - 1, dz = q / 9 - 1;
+          if (std::abs(dx) + std::abs(dy) + std::abs(dz) < 2) continue;
+          if (!node_in_grid(ki(p) + dx, kj(p) + dy, kk(p) + dz)) continue;
+          const Key r = key(ki(p) + dx, kj(p) + dy, kk(p) + dz);
+          if (r < p) continue;
+          const auto it = nodes_.find(r);
+          if (it == nullptr || (it->flags & (kBary | kGap)) != kind) continue;
+          const Vec3d x0 = a.pos, x1 = it->pos;
+          // Omegas along the segment, each with the middle of its piece.
+          Key last = p;
+          double t_in = 0;
+          constexpr int kSteps = 32;
+          for (int st = 1; st <= kSteps; ++st) {
+            const double t = double(st) / kSteps;
+            const Vec3d y = ((x0 + t * (x1 - x0)) - lo_) / h_;
+            const Key cur = key(std::lround(y.x()), std::lround(y.y()), std::lround(y.z()));
+            if (cur == last) continue;
+            if (last != p) props.emplace_back(last, x0 + 0.5 * (t_in + t - 1.0 / kSteps) * (x1 - x0));
+            last = cur;
+            t_in = t;
+          }
         }
       }
-    }
+    });
+    std::vector<std::pair<Key, Vec3d>> props;
+    for (const auto& v : run_props) props.insert(props.end(), v.begin(), v.end());
+    run_props.clear();
     std::sort(props.begin(), props.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
     props.erase(std::unique(props.begin(), props.end(), [](const auto& a, const auto& b) { return a.first == b.first; }),
                 props.end());
