@@ -477,13 +477,21 @@ class Dmc {
   }
   // Lattice values of the entered points `fresh` (block << 6 | local index), in parallel.
   void evaluate(const std::vector<std::uint32_t>& fresh) {
+    tbb::enumerable_thread_specific<std::size_t> count(0);
     parallel(fresh.size(), [&](std::size_t i) {
       const std::int32_t b = std::int32_t(fresh[i] >> 6);
       const int l = int(fresh[i] & 63);
       Node& nd = nodes_.node(b, l);
-      nd.val = lattice_value(nd.pos, nd.flags);
+      nd.val = initial_value(nodes_.point(b, l), nd, count.local());
     });
-    st_.evaluations += fresh.size();
+    for (std::size_t n : count) st_.evaluations += n;
+  }
+  // The value of a node just entered at its lattice point p: a scan line's where p is on
+  // one (the same value), else f there (counted in `evals`).
+  double initial_value(Key p, const Node& nd, std::size_t& evals) const {
+    if (const double* v = scan_value(ki(p), kj(p), kk(p))) return *v;
+    ++evals;
+    return lattice_value(nd.pos, nd.flags);
   }
   double lattice_value(const Vec3d& pos, std::uint8_t flags) const {
     double x = g(pos);
@@ -491,7 +499,6 @@ class Dmc {
     if (opt_.close_at_box && (flags & kFixed)) x = std::max(x, 0.5 * h_);
     return x;
   }
-  double val(Key p) const { return nodes_.at(p).val; }
   // Configuration of cell l of block b (corner q inside: bit q), through the links.
   int config(std::int32_t b, int l) const {
     const int li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
@@ -526,18 +533,43 @@ class Dmc {
       return cells;
     }
     const int step = opt_.coarse_step > 0 ? opt_.coarse_step : std::max(1, std::max({n_[0], n_[1], n_[2]}) / 32);
-    std::vector<Key> keys;
-    for (int k = 0; k <= n_[2]; k += step)
-      for (int j = 0; j <= n_[1]; j += step)
-        for (int i = 0; i <= n_[0]; ++i) keys.push_back(key(i, j, k));
-    ensure(keys);
+    scan_step_ = step;
+    scan_nj_ = n_[1] / step + 1;
+    const int nk = n_[2] / step + 1;
+    const std::size_t len = std::size_t(n_[0]) + 1;
+    scan_.assign(std::size_t(nk) * std::size_t(scan_nj_) * len, 0.0);
+    parallel(std::size_t(nk) * std::size_t(scan_nj_), [&](std::size_t line) {
+      const int j = int(line % std::size_t(scan_nj_)) * step, k = int(line / std::size_t(scan_nj_)) * step;
+      for (int i = 0; i <= n_[0]; ++i) {
+        const Key p = key(i, j, k);
+        scan_[line * len + std::size_t(i)] = lattice_value(upos(p), on_boundary(p) ? kFixed : 0);
+      }
+    });
+    st_.evaluations += scan_.size();
     for (int k = 0; k <= n_[2]; k += step)
       for (int j = 0; j <= n_[1]; j += step)
         for (int i = 0; i < n_[0]; ++i)
-          if ((val(key(i, j, k)) < 0) != (val(key(i + 1, j, k)) < 0))
+          if ((*scan_value(i, j, k) < 0) != (*scan_value(i + 1, j, k) < 0))
             for (int dj = -1; dj <= 0; ++dj)
               for (int dk = -1; dk <= 0; ++dk) push(i, j + dj, k + dk);
     return cells;
+  }
+
+  // A scan line's value at lattice point (i, j, k), or nullptr when the point is on none.
+  const double* scan_value(int i, int j, int k) const {
+    if (scan_step_ == 0 || j % scan_step_ || k % scan_step_ || !node_in_grid(i, j, k)) return nullptr;
+    return &scan_[(std::size_t(k / scan_step_) * std::size_t(scan_nj_) + std::size_t(j / scan_step_)) *
+                      (std::size_t(n_[0]) + 1) + std::size_t(i)];
+  }
+  // Lattice point p as the neighbour tests see it: its node, or, for a point of a scan
+  // line that has none, a node made in `tmp` (undeformed, its scan-line value); nullptr
+  // when it was never evaluated.
+  const Node* known(Key p, Node& tmp) const {
+    if (const Node* n = nodes_.find(p)) return n;
+    const double* v = scan_value(ki(p), kj(p), kk(p));
+    if (!v) return nullptr;
+    tmp = Node{upos(p), *v, std::uint8_t(on_boundary(p) ? kFixed : 0)};
+    return &tmp;
   }
 
   // Per configuration: bit 2a + side set when the cell's face (axis a, side) has a sign
@@ -606,8 +638,7 @@ class Dmc {
           const Key k = nodes_.point(cb, cl);
           const std::uint8_t flags = on_boundary(k) ? kFixed : 0;
           *nd = Node{upos(k), 0.0, flags};
-          nd->val = lattice_value(nd->pos, flags);
-          ++count;
+          nd->val = initial_value(k, *nd, count);
         }
         evaluated_local.local() += count;
       });
@@ -756,8 +787,15 @@ class Dmc {
       int r[3] = {loc[0], loc[1], loc[2]};
       r[q / 2] += q % 2 ? 1 : -1;
       const auto [nb, nl] = nodes_.rel(b, r[0], r[1], r[2]);
-      if (!nodes_.present(nb, nl)) continue;
-      slope = std::max(slope, std::abs(nodes_.node(nb, nl).val - nd.val) / h_);
+      double v;
+      if (nodes_.present(nb, nl)) {
+        v = nodes_.node(nb, nl).val;
+      } else if (const double* sv = scan_value(d[0], d[1], d[2])) {
+        v = *sv;
+      } else {
+        continue;
+      }
+      slope = std::max(slope, std::abs(v - nd.val) / h_);
     }
     return !(std::abs(nd.val) > 1.3 * h_ * slope * 1.5) || slope == 0;
   }
@@ -1044,6 +1082,7 @@ class Dmc {
       }
     };
     std::vector<Key> nb;
+    Node tmp;
     for (Key s : moved) {
       if (done.count(s)) continue;
       const std::uint8_t kind = nodes_.at(s).flags & (kBary | kGap);
@@ -1055,7 +1094,7 @@ class Dmc {
         stack.pop_back();
         neighbours(p, nb);
         for (Key q : nb) {
-          const auto it = nodes_.find(q);
+          const Node* it = known(q, tmp);
           if (it == nullptr) continue;
           if (is_moved.count(q)) {
             if ((it->flags & (kBary | kGap)) == kind && done.insert(q).second) {
@@ -1414,7 +1453,8 @@ class Dmc {
           rp = apply[jt->second].pos;
           other.push_back(jt->second);
         } else {
-          const auto it = nodes_.find(r);
+          Node tmp;
+          const Node* it = known(r, tmp);
           if (it == nullptr || !(it->val < 0)) continue;
           rp = it->pos;
           other.push_back(SIZE_MAX);
@@ -1480,7 +1520,8 @@ class Dmc {
         int d[3] = {ki(o), kj(o), kk(o)};
         d[q / 2] += q % 2 ? 1 : -1;
         if (!node_in_grid(d[0], d[1], d[2])) continue;
-        const auto jt = nodes_.find(key(d[0], d[1], d[2]));
+        Node tmp;
+        const Node* jt = known(key(d[0], d[1], d[2]), tmp);
         if (jt == nullptr || !(jt->val < 0)) continue;
         if (jt->flags & (kEdge | kCorner)) {
           ++chain;
@@ -1629,6 +1670,11 @@ class Dmc {
   DmcStats st_;
   Lattice nodes_;
   std::unordered_map<Key, double> original_;  // value before step 1 moved the point
+  // Scan lines (no seeds): f along x at every scan_step_-th j and k, kept apart from the
+  // nodes (no blocks for them, as in MC); the neighbour tests see them as evaluated
+  // points (known()), and a node entered on a line takes its value.
+  int scan_step_ = 0, scan_nj_ = 0;
+  std::vector<double> scan_;
 };
 
 }  // namespace
