@@ -762,9 +762,12 @@ class Registrar {
     bool colors = true;
     for (std::size_t i = 0; i < n; ++i)
       if (usable_[i] && !views_[i].full.has_colors()) colors = false;
+    std::vector<Cloud> moved;
+    std::vector<double> spacings;
     for (std::size_t i = 0; i < n; ++i) {
       if (!usable_[i]) continue;
       Cloud c = views_[i].full;
+      if (p_.fuse && !(p_.fuse_distance > 0)) spacings.push_back(median_spacing(c.points));
       if (!colors) c.colors.clear();
       if (!c.has_normals() && p_.merge_normals) {
         const PointIndex index(c.points);
@@ -775,15 +778,13 @@ class Registrar {
           if (c.normals[k].dot(-c.points[k]) < 0) c.normals[k] = -c.normals[k];
       }
       transform_cloud(c, res_.poses[i]);
-      if (!c.has_normals() && res_.merged.has_normals()) res_.merged.normals.clear();
-      res_.merged.points.insert(res_.merged.points.end(), c.points.begin(), c.points.end());
-      if (c.has_normals() && (res_.merged.normals.size() + c.size() == res_.merged.points.size()))
-        res_.merged.normals.insert(res_.merged.normals.end(), c.normals.begin(), c.normals.end());
-      else
-        res_.merged.normals.clear();
-      if (colors) res_.merged.colors.insert(res_.merged.colors.end(), c.colors.begin(), c.colors.end());
+      moved.push_back(std::move(c));
       report("merge", int(i + 1), int(n));
     }
+    // Concatenation, or fusion of the overlaps; either way attributes are kept
+    // only when every view has them.
+    if (p_.fuse) res_.fuse_distance = p_.fuse_distance > 0 ? p_.fuse_distance : median_of(spacings);
+    res_.merged = fuse_clouds(moved, res_.fuse_distance, p_.fuse ? &res_.fuse : nullptr);
   }
 
   const std::vector<Cloud>& clouds_;

@@ -33,6 +33,7 @@
 #include <vector>
 
 #include "capture/axis_calibration.h"
+#include "capture/fuse.h"
 #include "capture/global_registration.h"
 #include "capture/icp.h"
 #include "capture/session.h"
@@ -92,6 +93,12 @@ struct RegistrationParams {
   /// ICP Hessian is below this fraction of the largest.
   double degeneracy_ratio = 2e-3;
   bool merge_normals = true;          ///< give the merged cloud normals (PCA when views have none)
+  /// Fuse overlapping points of different views in the merge
+  /// (capture/fuse.h): a point within fuse_distance of a point kept from an
+  /// earlier view is averaged into it. Off by default: the merged cloud then
+  /// keeps every measured point (WLOP, the next stage, evens it out anyway).
+  bool fuse = false;
+  double fuse_distance = 0;           ///< metres; 0: the median point spacing of the views
   /// Global registration by FPFH features + RANSAC (capture/global_registration.h)
   /// for views with neither an initial pose nor a usable angle: when no view
   /// has a pose, each view is aligned to the previous registered one in capture
@@ -178,6 +185,8 @@ struct RegistrationResult {
   /// Things the caller should show (a wrong commanded angle, ...), each naming the view.
   std::vector<std::string> warnings;
   Cloud merged;
+  FuseStats fuse;              ///< when RegistrationParams::fuse (else zeros)
+  double fuse_distance = 0;    ///< metres, the distance used (0: not fused)
   /// Over views with errors (see ViewDiagnostics); 0 when no reference.
   int views_with_reference = 0;
   double max_rotation_error_deg = 0, median_rotation_error_deg = 0;

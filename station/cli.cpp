@@ -596,6 +596,12 @@ JsonObject registration_json(const RegistrationResult& r) {
   j.add("views", r.views.size()).add("failed_views", r.failed_views.size()).add("degenerate", r.degenerate);
   j.add("warnings", r.warnings);
   j.add("pair_rmse_m", r.mean_pair_rmse);
+  if (r.fuse_distance > 0)
+    j.add("fuse", JsonObject()
+                      .add("distance_m", r.fuse_distance)
+                      .add("input_points", r.fuse.input)
+                      .add("fused_points", r.fuse.fused)
+                      .add("output_points", r.fuse.output));
   if (r.views_with_reference > 0) {
     JsonObject ref;
     ref.add("views", r.views_with_reference)
@@ -685,7 +691,7 @@ void print_registration(const RegistrationResult& r) {
 
 struct RegisterArgs {
   std::string session, out, poses_out, objective;
-  bool no_global = false, no_angle_check = false;
+  bool no_global = false, no_angle_check = false, fuse = false;
 };
 
 int cmd_register(const Common& c, const RegisterArgs& a) {
@@ -693,6 +699,7 @@ int cmd_register(const Common& c, const RegisterArgs& a) {
   if (!a.objective.empty()) overrides.push_back("register.objective=" + a.objective);
   if (a.no_global) overrides.push_back("register.global=false");
   if (a.no_angle_check) overrides.push_back("register.check_angles=false");
+  if (a.fuse) overrides.push_back("register.fuse=true");
   StationConfig cfg = load_common(c, overrides);
   auto threads = limit_threads(cfg.threads);
   const std::string& session_dir = a.session;
@@ -711,6 +718,9 @@ int cmd_register(const Common& c, const RegisterArgs& a) {
     print_summary(j);
   } else {
     print_registration(r);
+    if (r.fuse_distance > 0)
+      std::printf("fused %zu of %zu points into earlier views' points (within %.3f mm)\n", r.fuse.fused,
+                  r.fuse.input, r.fuse_distance * 1000);
     std::printf("register: %zu of %zu views, %zu points -> %s\n", r.views.size() - r.failed_views.size(),
                 r.views.size(), r.merged.size(), out.c_str());
   }
@@ -1229,6 +1239,9 @@ int run_cli(int argc, char** argv) {
   reg->add_flag("--no-global", reg_args.no_global,
                 "no global registration by features: views without an angle or pose fail");
   reg->add_flag("--no-angle-check", reg_args.no_angle_check, "trust the commanded turntable angles");
+  reg->add_flag("--fuse", reg_args.fuse,
+                "average overlapping points of different views in the merge (profile register.fuse, "
+                "register.fuse_distance; default off)");
 
   std::string cal_session, cal_out;
   Common c_cal;

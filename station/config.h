@@ -22,6 +22,8 @@ struct PipelineConfig {
     std::string objective = "point-to-plane";
     bool global = true;         ///< global registration (FPFH + RANSAC) for views without a pose
     bool check_angles = true;   ///< detect wrong commanded angles and recover them globally
+    bool fuse = false;          ///< average overlapping points of different views in the merge
+    double fuse_distance = 0;   ///< metres; 0: the views' median point spacing
   } reg;
   struct Consolidate {
     bool enabled = true;

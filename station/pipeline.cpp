@@ -692,6 +692,8 @@ RegistrationParams registration_params(const PipelineConfig& p) {
   r.voxel_rel = p.reg.voxel_rel;
   r.global_registration = p.reg.global;
   r.check_angles = p.reg.check_angles;
+  r.fuse = p.reg.fuse;
+  r.fuse_distance = p.reg.fuse_distance;
   IcpObjective o = IcpObjective::kPointToPlane;
   if (p.reg.objective == "symmetric") o = IcpObjective::kSymmetric;
   else if (p.reg.objective == "point-to-point") o = IcpObjective::kPointToPoint;

@@ -137,6 +137,22 @@ TEST(Registration, BadViewsFailAloneAndAreNamed) {
   }
   EXPECT_GT(r.merged.size(), 20000u);
   EXPECT_FALSE(stages.empty());
+  EXPECT_EQ(r.fuse_distance, 0.0);  // fusion is off by default
+
+  // With fusion: the same poses, fewer points (the overlaps averaged), the
+  // distance taken from the views' spacing.
+  RegistrationParams fp;
+  fp.fuse = true;
+  const RegistrationResult rf = register_session(reopened, fp);
+  ASSERT_EQ(rf.failed_views, r.failed_views);
+  for (int i = 0; i < 6; ++i) EXPECT_TRUE(rf.poses[i].isApprox(r.poses[i], 1e-12)) << i;
+  EXPECT_GT(rf.fuse_distance, 0.0002);  // every 5th point of 0.3-0.5 mm scans
+  EXPECT_LT(rf.fuse_distance, 0.005);
+  EXPECT_EQ(rf.fuse.input, r.merged.size());
+  EXPECT_EQ(rf.fuse.output, rf.merged.size());
+  EXPECT_GT(rf.fuse.fused, r.merged.size() / 5);  // neighbouring views overlap widely
+  EXPECT_EQ(rf.merged.size() + rf.fuse.fused, r.merged.size());
+  EXPECT_TRUE(rf.merged.has_normals());
   const auto poses = dir / "poses.yaml";
   write_poses_yaml(poses, r, reopened.manifest());
   const std::string yaml = read_file_bytes(poses);
