@@ -1,0 +1,110 @@
+// ICP on real coloured data: three consecutive hand-held Kinect frames
+// (tests/data/kinect_frames, a laptop and a box on a carpet). No poses are
+// known, so the check is consistency: the motion 0 -> 2 against 0 -> 1 -> 2
+// (the loop), and the objectives against each other.
+#include <gtest/gtest.h>
+
+#include <opencv2/imgcodecs.hpp>
+
+#include <cstdio>
+#include <map>
+
+#include "capture/capture.h"
+#include "capture/icp.h"
+#include "test_util.h"
+
+namespace station {
+namespace {
+
+Cloud load_frame(int k) {
+  const auto dir = test::source_dir() / "tests/data/kinect_frames";
+  const std::string stem = (dir / ("frame" + std::to_string(k))).string();
+  const cv::Mat depth = cv::imread(stem + "_depth.png", cv::IMREAD_UNCHANGED);
+  const cv::Mat bgr = cv::imread(stem + "_rgb.png", cv::IMREAD_COLOR);
+  EXPECT_EQ(depth.type(), CV_16UC1) << stem;
+  EXPECT_EQ(bgr.type(), CV_8UC3) << stem;
+  Frame f;
+  f.intrinsics.width = depth.cols;
+  f.intrinsics.height = depth.rows;
+  f.intrinsics.fx = f.intrinsics.fy = 262.5;
+  f.intrinsics.cx = 160;
+  f.intrinsics.cy = 120;
+  f.color_intrinsics = f.intrinsics;
+  for (int v = 0; v < depth.rows; ++v)
+    for (int u = 0; u < depth.cols; ++u) {
+      f.depth.push_back(0.001f * float(depth.at<std::uint16_t>(v, u)));
+      const cv::Vec3b c = bgr.at<cv::Vec3b>(v, u);
+      f.color.insert(f.color.end(), {c[2], c[1], c[0]});
+    }
+  return frame_to_cloud(f);
+}
+
+struct Motions {
+  IcpResult m01, m12, m02;  // target <- source: 0 <- 1, 1 <- 2, 0 <- 2
+};
+
+TEST(KinectFrames, ObjectivesConvergeAgreeAndCloseTheLoop) {
+  std::vector<PreparedView> views;
+  PrepareParams pp;
+  pp.voxel_size = 0.005;
+  pp.normal_neighbors = 16;
+  pp.intensity = true;
+  for (int k = 0; k < 3; ++k) {
+    const Cloud c = load_frame(k);
+    ASSERT_GT(c.size(), 60000u);
+    ASSERT_TRUE(c.has_colors());
+    views.push_back(prepare_view(c, pp));
+    ASSERT_EQ(views.back().intensity.size(), views.back().points.size());  // the colour term is live
+  }
+  std::map<IcpObjective, Motions> runs;
+  for (IcpObjective o : {IcpObjective::kPointToPlane, IcpObjective::kColored, IcpObjective::kGeneralized}) {
+    IcpParams ip;
+    ip.objective = o;
+    ip.max_distance_start = 0.1;
+    ip.max_distance_end = 0.02;
+    Motions& m = runs[o];
+    m.m01 = icp_point_to_plane(views[1], views[0], Eigen::Matrix4d::Identity(), ip);
+    m.m12 = icp_point_to_plane(views[2], views[1], Eigen::Matrix4d::Identity(), ip);
+    m.m02 = icp_point_to_plane(views[2], views[0], Eigen::Matrix4d::Identity(), ip);
+    for (const IcpResult* r : {&m.m01, &m.m12, &m.m02}) {
+      EXPECT_TRUE(r->converged) << int(o) << ": " << r->message;
+      EXPECT_GT(r->fitness, 0.95) << int(o);
+    }
+    // The hand-held sensor moved about 0.8 degree and 8 mm between frames.
+    EXPECT_GT(rotation_angle_deg(m.m01.transform), 0.5);
+    EXPECT_GT((m.m01.transform.block<3, 1>(0, 3).norm()), 0.004);
+    const Eigen::Matrix4d loop = rigid_inverse(m.m02.transform) * m.m01.transform * m.m12.transform;
+    const double loop_rot = rotation_angle_deg(loop), loop_trans = loop.block<3, 1>(0, 3).norm();
+    std::printf("objective %d: 0<-1 %.3f deg %.2f mm, loop %.4f deg %.3f mm, rmse %.2f mm\n", int(o),
+                rotation_angle_deg(m.m01.transform), 1000 * m.m01.transform.block<3, 1>(0, 3).norm(), loop_rot,
+                1000 * loop_trans, 1000 * m.m01.inlier_rmse);
+    // Measured: point-to-plane 0.019 deg / 0.30 mm, generalized 0.024 deg /
+    // 0.43 mm, coloured 0.076 deg / 0.47 mm (Kinect noise at 1-1.7 m is
+    // several mm; the voxels are 5 mm). Coloured ICP closes the loop worse
+    // here (docs/registration.md; not diagnosed: the frames' colour is taken
+    // as registered with the depth pixel for pixel, which it is only roughly).
+    const bool coloured = o == IcpObjective::kColored;
+    EXPECT_LT(loop_rot, coloured ? 0.12 : 0.04) << int(o);
+    EXPECT_LT(loop_trans, 0.001) << int(o);
+  }
+  // The objectives agree on each motion: generalized with point-to-plane
+  // within 0.025 deg / 0.44 mm (measured), coloured within 0.23 deg / 3.4 mm.
+  const Motions& p2p = runs[IcpObjective::kPointToPlane];
+  for (IcpObjective o : {IcpObjective::kColored, IcpObjective::kGeneralized}) {
+    const Motions& m = runs[o];
+    const bool coloured = o == IcpObjective::kColored;
+    for (const auto& [a, b] : {std::pair{&p2p.m01, &m.m01}, {&p2p.m12, &m.m12}, {&p2p.m02, &m.m02}}) {
+      const Eigen::Matrix4d d = rigid_inverse(a->transform) * b->transform;
+      std::printf("objective %d against point-to-plane: %.4f deg %.3f mm\n", int(o), rotation_angle_deg(d),
+                  1000 * d.block<3, 1>(0, 3).norm());
+      EXPECT_LT(rotation_angle_deg(d), coloured ? 0.35 : 0.06) << int(o);
+      EXPECT_LT((d.block<3, 1>(0, 3).norm()), coloured ? 0.005 : 0.001) << int(o);
+    }
+  }
+  // The photometric term did take part: coloured ICP is not point-to-plane
+  // under another name on these views.
+  EXPECT_FALSE(runs[IcpObjective::kColored].m01.transform.isApprox(p2p.m01.transform, 1e-9));
+}
+
+}  // namespace
+}  // namespace station
