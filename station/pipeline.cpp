@@ -172,7 +172,8 @@ std::string register_params(const PipelineConfig& p) {
   std::ostringstream s;
   s << "register/neighbors=" << p.reg.neighbors << ";rounds=" << p.reg.rounds
     << ";loop=" << p.reg.loop_closure << ";voxel=" << fmt("%.17g", p.reg.voxel_rel)
-    << ";objective=" << p.reg.objective << ";global=" << p.reg.global << ";check_angles=" << p.reg.check_angles;
+    << ";objective=" << p.reg.objective << ";global=" << p.reg.global << ";check_angles=" << p.reg.check_angles
+    << ";fuse=" << p.reg.fuse << ";fuse_distance=" << fmt("%.17g", p.reg.fuse_distance);
   return s.str();
 }
 std::string consolidate_params(const PipelineConfig& p) {

@@ -11,6 +11,7 @@
 #include <fstream>
 #include <regex>
 
+#include "capture/registration.h"
 #include "core/error.h"
 #include "core/io.h"
 #include "station/config.h"
@@ -132,6 +133,9 @@ TEST_F(PipelineTest, OnlyStagesWhoseParametersOrInputsChangedAreRedone) {
   { std::ofstream(out.path() / "consolidated.ply", std::ios::app) << "x"; }
   EXPECT_EQ(names(run_pipeline(config({"reconstruct.resolution=48"}), request(out.path(), true))),
             (std::vector<std::string>{"register*", "consolidate", "surface*"}));
+  // A registration parameter (fusion of the merge): everything from register on.
+  EXPECT_EQ(names(run_pipeline(config({"reconstruct.resolution=48", "register.fuse=true"}), request(out.path(), true))),
+            (std::vector<std::string>{"register", "consolidate", "surface"}));
 }
 
 TEST_F(PipelineTest, AFailedWriteLeavesEarlierOutputsIntact) {
@@ -245,9 +249,14 @@ TEST(Profile, OverridesAreValidatedLikeTheFileAndNameTheKey) {
   EXPECT_NE(message("nosuch.key=1").find("nosuch: unknown key"), std::string::npos);
   EXPECT_NE(message("register.objective=sideways").find("register.objective: must be"), std::string::npos);
   EXPECT_NE(message("register.global=perhaps").find("register.global"), std::string::npos);
-  const StationConfig g = load_config(profile, {"register.objective=generalized", "register.check_angles=false"});
+  EXPECT_NE(message("register.fuse_distance=-1").find("register.fuse_distance: must be"), std::string::npos);
+  const StationConfig g = load_config(profile, {"register.objective=generalized", "register.check_angles=false",
+                                                "register.fuse=true", "register.fuse_distance=0.0005"});
   EXPECT_EQ(g.pipeline.reg.objective, "generalized");
   EXPECT_FALSE(g.pipeline.reg.check_angles);
+  EXPECT_TRUE(g.pipeline.reg.fuse);
+  EXPECT_EQ(g.pipeline.reg.fuse_distance, 0.0005);
+  EXPECT_TRUE(registration_params(g.pipeline).fuse);
   EXPECT_TRUE(g.pipeline.reg.global);
   EXPECT_NE(message("resolution").find("expected section.key=value"), std::string::npos);
   // The default profile documents every key it accepts, and loads as is.
