@@ -152,6 +152,7 @@ struct Crossing {
   Vec3d pos = Vec3d::Zero();
   Vec3d normal = Vec3d::Zero();  // unit, or zero where the gradient is not usable
   int vid = -1;  // mesh vertex (build_mesh)
+  std::int32_t refined = -1;  // the same crossing refined to round-off (feature_step), or -1
 };
 
 // DMC's lattice near the surface (docs/dmc.md, "Sparse storage"): blocks of 4^3 lattice
@@ -309,6 +310,12 @@ class Lattice {
     none.fill(kNoCrossing);
     xslots_.push_back(none);
   }
+  /// Room for n more refined crossings (feature_step), so that claim_refined may run in
+  /// parallel.
+  void reserve_refined(std::size_t n) { refined_.reserve_more(n); }
+  std::int32_t claim_refined() { return std::int32_t(refined_.claim()); }
+  Crossing& refined(std::int32_t r) { return refined_[std::size_t(r)]; }
+  const Crossing& refined(std::int32_t r) const { return refined_[std::size_t(r)]; }
   /// Room for n more crossings, so that claim_crossing may run in parallel.
   void reserve_crossings(std::size_t n) { crossings_.reserve_more(n); }
   /// The slot of the crossing on edge (l, a) of block b (which has slots).
@@ -355,6 +362,7 @@ class Lattice {
   Chunked<Node> nodes_;
   Chunked<std::array<std::uint32_t, 192>> xslots_;
   Chunked<Crossing> crossings_;
+  Chunked<Crossing> refined_;
   std::vector<std::pair<Key, std::int32_t>> slots_;
   std::size_t mask_ = 0;
 };
@@ -1219,9 +1227,13 @@ class Dmc {
   // ---------------------------------------------------------------- step 2
   // Per crossed cell: sharp edge / corner from the crossing normals; proposals for the
   // lattice points to move.
-  void detect(Key c, std::vector<Proposal>& out, std::size_t& extra_evals) const {
+  // Run twice (feature_step): first (refined false) it only tells whether the cell's
+  // crossings suggest a feature (then they are refined to round-off, each edge once, and
+  // kept in Crossing::refined); then, for those cells, it finds the feature.
+  bool detect(Key c, std::vector<Proposal>& out, bool refined) const {
     const auto& ec = mc::edge_corners();
     Vec3d pts[12], nrm[12];
+    const Crossing* xs[12];
     int n = 0;
     const std::int32_t cb = nodes_.block_of(c);
     const int cl = Lattice::local(c), cli = cl & 3, clj = cl >> 2 & 3, clk = cl >> 4;
@@ -1240,12 +1252,13 @@ class Dmc {
       const Crossing* xp = nodes_.crossing(xb, xl, e / 4);
       if (!xp) throw std::out_of_range("extract_dmc: internal error: crossing not computed");
       const Crossing& x = *xp;
-      if (x.normal.squaredNorm() == 0) return;  // no usable normal: leave the cell alone
+      if (x.normal.squaredNorm() == 0) return false;  // no usable normal: leave the cell alone
+      xs[n] = xp;
       pts[n] = x.pos;
       nrm[n] = x.normal;
       ++n;
     }
-    if (n < 3) return;
+    if (n < 3) return false;
     // The pair of normals farthest apart that are not (anti)parallel: a thin sheet's two
     // sides face opposite ways but make no edge.
     double theta = 1;
@@ -1255,19 +1268,17 @@ class Dmc {
         const double d = nrm[i].dot(nrm[j]);
         if (d < theta && nrm[i].cross(nrm[j]).norm() > 0.1) theta = d, a0 = i, a1 = j;
       }
-    if (a0 < 0 || theta >= opt_.theta_sharp) return;
+    if (a0 < 0 || theta >= opt_.theta_sharp) return false;
     // A feature is likely: the planes need crossings on the surface to round-off, not
     // to the few refinement steps of the mesh vertices.
+    if (!refined) return true;
     {
-      int i = 0;
-      for (int e = 0; e < 12; ++e) {
-        if (!crossed(cfg, e)) continue;
-        const Crossing x = crossing(*corner_node[ec[e][0]], *corner_node[ec[e][1]], 60);
-        extra_evals += x.evals + 1;
-        if (x.normal.squaredNorm() == 0) return;
+      for (int i = 0; i < n; ++i) {
+        if (xs[i]->refined < 0) throw std::out_of_range("extract_dmc: internal error: crossing not refined");
+        const Crossing& x = nodes_.refined(xs[i]->refined);
+        if (x.normal.squaredNorm() == 0) return false;
         pts[i] = x.pos;
         nrm[i] = x.normal;
-        ++i;
       }
       theta = 1;
       a0 = a1 = -1;
@@ -1276,7 +1287,7 @@ class Dmc {
           const double d = nrm[i].dot(nrm[j]);
           if (d < theta && nrm[i].cross(nrm[j]).norm() > 0.1) theta = d, a0 = i, a1 = j;
         }
-      if (a0 < 0 || theta >= opt_.theta_sharp) return;
+      if (a0 < 0 || theta >= opt_.theta_sharp) return false;
     }
     const Vec3d ne = nrm[a0].cross(nrm[a1]).normalized();
     double phi = 0;
@@ -1304,7 +1315,7 @@ class Dmc {
     Vec3d x = mass;
     for (int k = corner ? 0 : 1; k < 3; ++k)
       if (ev[k] >= tol) x += V.col(k) * (V.col(k).dot(r) / ev[k]);
-    if (!x.allFinite()) return;
+    if (!x.allFinite()) return true;
     const int ci = ki(c), cj = kj(c), ck = kk(c);
     // Tiny step into (or out of) the solid so the moved point keeps a clear sign.
     const Vec3d inward = -(corner ? nsum : Vec3d(nrm[a0] + nrm[a1])).normalized() * (2e-4 * h_);
@@ -1336,8 +1347,8 @@ class Dmc {
     if (corner) {
       const Vec3d q = (x - lo_) / h_;
       const int r0 = int(std::lround(q.x())), r1 = int(std::lround(q.y())), r2 = int(std::lround(q.z()));
-      if (r0 < ci - 1 || r0 > ci + 2 || r1 < cj - 1 || r1 > cj + 2 || r2 < ck - 1 || r2 > ck + 2) return;
-      if (!node_in_grid(r0, r1, r2)) return;
+      if (r0 < ci - 1 || r0 > ci + 2 || r1 < cj - 1 || r1 > cj + 2 || r2 < ck - 1 || r2 > ck + 2) return true;
+      if (!node_in_grid(r0, r1, r2)) return true;
       out.push_back({key(r0, r1, r2), 1, c, x, inward, 0.0});
       // The three edges leaving the corner (between each pair of the three planes, on
       // the solid side of the third), so the corner's neighbours join it to the edges.
@@ -1355,18 +1366,69 @@ class Dmc {
         if (dir.dot(pl[e]) > 0) dir = -dir;
         along(dir, 0.0, -(u + w).normalized() * (2e-4 * h_));
       }
-      return;
+      return true;
     }
     // Edge: the line through x along the smallest eigenvector.
     along(V.col(0), -1e300, inward);
+    return true;
+  }
+
+  // The crossings of the cells that suggest a feature, refined to round-off (up to 60
+  // steps), each edge once (a crossing is shared by up to four cells): marked by the
+  // cells in the block of the edge's lower end (xwant bits), computed per block in
+  // parallel.
+  void refine_sharp(const std::vector<Key>& cells, const std::vector<char>& sharp) {
+    const auto& ec = mc::edge_corners();
+    parallel(cells.size(), [&](std::size_t i) {
+      if (!sharp[i]) return;
+      const std::int32_t b = nodes_.block_of(cells[i]);
+      const int l = Lattice::local(cells[i]), li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
+      const int cfg = config(b, l);
+      for (int e = 0; e < 12; ++e) {
+        if (!crossed(cfg, e)) continue;
+        const int c0 = ec[e][0];
+        const auto [cb, cl] = nodes_.rel(b, li + (c0 & 1), lj + (c0 >> 1 & 1), lk + (c0 >> 2 & 1));
+        Lattice::set_bit(nodes_.blk(cb).xwant[e / 4], cl);
+      }
+    });
+    std::size_t wanted = 0;
+    for (std::size_t bs = 0; bs < nodes_.block_count(); ++bs) {
+      const Lattice::Block& B = nodes_.blk(std::int32_t(bs));
+      wanted += std::size_t(__builtin_popcountll(B.xwant[0]) + __builtin_popcountll(B.xwant[1]) +
+                            __builtin_popcountll(B.xwant[2]));
+    }
+    nodes_.reserve_refined(wanted);
+    tbb::enumerable_thread_specific<std::size_t> evals_local(0);
+    parallel(nodes_.block_count(), [&](std::size_t bs) {
+      const std::int32_t b = std::int32_t(bs);
+      Lattice::Block& B = nodes_.blk(b);
+      for (int a = 0; a < 3; ++a) {
+        for (std::uint64_t m = B.xwant[a]; m; m &= m - 1) {
+          const int l = __builtin_ctzll(m);
+          Crossing* x = nodes_.crossing(b, l, a);
+          if (!x) throw std::out_of_range("extract_dmc: internal error: crossing not computed");
+          const auto [db, dl] = nodes_.rel(b, (l & 3) + (a == 0), (l >> 2 & 3) + (a == 1), (l >> 4) + (a == 2));
+          const std::int32_t r = nodes_.claim_refined();
+          Crossing& y = nodes_.refined(r);
+          y = crossing(nodes_.node(b, l), nodes_.node(db, dl), 60);
+          evals_local.local() += std::size_t(y.evals) + 1;
+          x->refined = r;
+        }
+        B.xwant[a] = 0;
+      }
+    });
+    for (std::size_t n : evals_local) st_.evaluations += n;
   }
 
   std::vector<Key> feature_step() {
     std::vector<Key> cells = sorted_surface();
     std::vector<std::vector<Proposal>> props(cells.size());
-    std::vector<std::size_t> evals(cells.size(), 0);
-    parallel(cells.size(), [&](std::size_t i) { detect(cells[i], props[i], evals[i]); });
-    for (std::size_t e : evals) st_.evaluations += e;
+    std::vector<char> sharp(cells.size(), 0);
+    parallel(cells.size(), [&](std::size_t i) { sharp[i] = detect(cells[i], props[i], false); });
+    refine_sharp(cells, sharp);
+    parallel(cells.size(), [&](std::size_t i) {
+      if (sharp[i]) detect(cells[i], props[i], true);
+    });
     std::vector<Proposal> all;
     for (auto& v : props) all.insert(all.end(), v.begin(), v.end());
     std::sort(all.begin(), all.end(), [](const Proposal& a, const Proposal& b) {
