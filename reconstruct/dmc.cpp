@@ -1600,21 +1600,32 @@ class Dmc {
     std::vector<char> ok(todo.size(), 0);
     std::vector<Vec3d> pos(todo.size());
     std::vector<double> value(todo.size());
+    // The samples in order of distance to the target (ties in sampling order): the first
+    // inside one is the nearest, so the search stops there.
+    tbb::enumerable_thread_specific<std::size_t> evals_local(0);
     parallel(todo.size(), [&](std::size_t i) {
       const Vec3d c0 = upos(todo[i]);
       const double step = h_ / m_;
-      double best = 1e300;
-      for (int a = 0; a < m_; ++a)
-        for (int b = 0; b < m_; ++b)
-          for (int c = 0; c < m_; ++c) {
-            const Vec3d x = c0 + Vec3d((a + 0.5) * step, (b + 0.5) * step, (c + 0.5) * step) - Vec3d::Constant(0.5 * h_);
-            const double v = g(x);
-            if (!(v < 0)) continue;
-            const double dd = (x - target[i]).squaredNorm();
-            if (dd < best) best = dd, pos[i] = x, value[i] = v, ok[i] = 1;
-          }
+      std::vector<std::pair<double, int>> order;
+      order.reserve(std::size_t(m_) * m_ * m_);
+      auto sample = [&](int s) {
+        const int a = s / (m_ * m_), b = s / m_ % m_, c = s % m_;
+        return Vec3d(c0 + Vec3d((a + 0.5) * step, (b + 0.5) * step, (c + 0.5) * step) - Vec3d::Constant(0.5 * h_));
+      };
+      for (int s = 0; s < m_ * m_ * m_; ++s) order.emplace_back((sample(s) - target[i]).squaredNorm(), s);
+      std::sort(order.begin(), order.end());
+      std::size_t evals = 0;
+      for (const auto& [dd, s] : order) {
+        const Vec3d x = sample(s);
+        const double v = g(x);
+        ++evals;
+        if (!(v < 0)) continue;
+        pos[i] = x, value[i] = v, ok[i] = 1;
+        break;
+      }
+      evals_local.local() += evals;
     });
-    st_.evaluations += todo.size() * std::size_t(m_) * m_ * m_;
+    for (std::size_t n : evals_local) st_.evaluations += n;
     for (std::size_t i = 0; i < todo.size(); ++i) {
       if (!ok[i]) continue;
       Node& nd = nodes_.at(todo[i]);
