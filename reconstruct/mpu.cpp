@@ -157,8 +157,14 @@ struct MpuSurface::Impl {
     while (top > 0) {
       const Node& nd = nodes[stack[--top]];
       const Vec3d d = y - nd.center;
-      const double r = d.norm();
+      // Squared distances first: most nodes are rejected without a root. The
+      // squared tests only skip what is clearly beyond (a relative margin over
+      // the rounding of the squares), so the walk visits at least what the
+      // exact test r < reach visits, and each leaf is still decided exactly.
+      const double r2 = d.squaredNorm();
       if (nd.first_child < 0) {
+        if (r2 > nd.radius * nd.radius * (1 + 1e-12)) continue;
+        const double r = std::sqrt(r2);
         if (r >= nd.radius) continue;
         const double t = 1.5 * r / nd.radius;
         const double w = bspline2(t);
@@ -177,7 +183,7 @@ struct MpuSurface::Impl {
           sw += w;
         }
       } else {
-        if (r >= nd.reach) continue;
+        if (r2 > nd.reach * nd.reach * (1 + 1e-12)) continue;
         for (int c = 7; c >= 0; --c) stack[top++] = nd.first_child + c;
       }
     }
