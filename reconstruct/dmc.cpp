@@ -295,6 +295,12 @@ class Lattice {
     return e == kNoCrossing ? nullptr : &crossings_[e];
   }
   const Crossing* crossing(std::int32_t b, int l, int a) const { return const_cast<Lattice*>(this)->crossing(b, l, a); }
+  /// Index of the crossing on the lattice edge from point l of block b along axis a, or
+  /// kNoCrossing.
+  std::uint32_t crossing_index(std::int32_t b, int l, int a) const {
+    const std::int32_t xs = blk(b).xs;
+    return xs < 0 ? kNoCrossing : xslots_[std::size_t(xs)][std::size_t(l * 3 + a)];
+  }
   /// Edge key (point * 3 + axis) form.
   Crossing* crossing(Key ek) {
     const Key p = ek / 3;
@@ -1656,7 +1662,9 @@ class Dmc {
     });
     std::vector<std::size_t> first(surface.size() + 1, 0);
     for (std::size_t i = 0; i < surface.size(); ++i) first[i + 1] = first[i] + table[cfgs[i]].size();
-    std::vector<Crossing*> corners(3 * first.back());
+    // Faces hold crossing indices until the vertex ids replace them.
+    Mesh mesh;
+    mesh.faces.resize(first.back());
     parallel(surface.size(), [&](std::size_t i) {
       const std::int32_t b = std::int32_t(handle[i] >> 6);
       const int l = int(handle[i] & 63), li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
@@ -1665,26 +1673,23 @@ class Dmc {
         for (int t = 0; t < 3; ++t) {
           const int c0 = ec[tri[t]][0];
           const auto [xb, xl] = nodes_.rel(b, li + (c0 & 1), lj + (c0 >> 1 & 1), lk + (c0 >> 2 & 1));
-          Crossing* x = nodes_.crossing(xb, xl, tri[t] / 4);
-          if (!x) throw std::out_of_range("extract_dmc: internal error: crossing not computed");
-          corners[3 * f + std::size_t(t)] = x;
+          const std::uint32_t x = nodes_.crossing_index(xb, xl, tri[t] / 4);
+          if (x == Lattice::kNoCrossing) throw std::out_of_range("extract_dmc: internal error: crossing not computed");
+          mesh.faces[f][t] = int(x);
         }
         ++f;
       }
     });
     std::vector<const Crossing*> edges;
-    Mesh mesh;
-    mesh.faces.resize(first.back());
-    for (std::size_t f = 0; f < mesh.faces.size(); ++f)
+    for (Face& fc : mesh.faces)
       for (int t = 0; t < 3; ++t) {
-        Crossing* x = corners[3 * f + std::size_t(t)];
-        if (x->vid < 0) {
-          x->vid = int(edges.size());
-          edges.push_back(x);
+        Crossing& x = nodes_.crossing_at(std::uint32_t(fc[t]));
+        if (x.vid < 0) {
+          x.vid = int(edges.size());
+          edges.push_back(&x);
         }
-        mesh.faces[f][t] = x->vid;
+        fc[t] = x.vid;
       }
-    std::vector<Crossing*>().swap(corners);
     mesh.vertices.resize(edges.size());
     if (opt_.normals) mesh.normals.resize(edges.size());
     parallel(edges.size(), [&](std::size_t v) {
