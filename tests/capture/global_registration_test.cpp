@@ -146,7 +146,9 @@ TEST(GlobalRegistration, WrongAngleAndViewWithoutAngle) {
   EXPECT_EQ(r.views[9].initial, InitialPoseSource::kEstimatedAxis);
   EXPECT_TRUE(r.failed_views.empty());
   for (std::size_t i = 0; i < r.views.size(); ++i)
-    if (i != 7) EXPECT_FALSE(r.views[i].angle_rejected) << i;
+    if (i != 7) {
+      EXPECT_FALSE(r.views[i].angle_rejected) << i;
+    }
   ASSERT_EQ(r.views_with_reference, 15);
   EXPECT_LT(r.max_rotation_error_deg, 0.7);
   EXPECT_LT(r.max_translation_error, 0.003);

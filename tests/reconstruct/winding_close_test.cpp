@@ -135,7 +135,9 @@ TEST(WindingClose, OpenBottomedScanClosesWithoutFlaring) {
   EXPECT_LT(farthest(m), r * 1.04);
   const double h = (box.max - box.min).maxCoeff() / 64;
   for (const Vec3f& v : m.vertices)
-    if (v.z() > -0.3 * r) EXPECT_NEAR(v.norm(), r, 0.5 * h) << v.transpose();
+    if (v.z() > -0.3 * r) {
+      EXPECT_NEAR(v.norm(), r, 0.5 * h) << v.transpose();
+    }
   EXPECT_THROW(WindingClose(surface, Cloud{}), InvalidInput);
   Cloud bare = cloud;
   bare.normals.clear();
