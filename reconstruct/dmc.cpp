@@ -1180,20 +1180,24 @@ class Dmc {
   // edge's lower end (xwant bits, claimed atomically); each such block then computes
   // its marked edges' crossings (new ones get an index claimed atomically; the order of
   // the crossings in storage is not used).
-  void compute_crossings() {
+  // Marks the crossed edges of cell (b, l) as wanted: each edge's bit goes to
+  // the block of its lower end (xwant, one word per axis).
+  void want_crossings(std::int32_t b, int l) {
     const auto& ec = mc::edge_corners();
+    const int li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
+    const int cfg = config(b, l);
+    for (int e = 0; e < 12; ++e) {
+      if (!crossed(cfg, e)) continue;
+      const int c0 = ec[e][0];
+      const auto [cb, cl] = nodes_.rel(b, li + (c0 & 1), lj + (c0 >> 1 & 1), lk + (c0 >> 2 & 1));
+      Lattice::set_bit(nodes_.blk(cb).xwant[e / 4], cl);
+    }
+  }
+
+  void compute_crossings() {
     parallel(nodes_.block_count(), [&](std::size_t bs) {
       const std::int32_t b = std::int32_t(bs);
-      for (std::uint64_t m = nodes_.blk(b).surface; m; m &= m - 1) {
-        const int l = __builtin_ctzll(m), li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
-        const int cfg = config(b, l);
-        for (int e = 0; e < 12; ++e) {
-          if (!crossed(cfg, e)) continue;
-          const int c0 = ec[e][0];
-          const auto [cb, cl] = nodes_.rel(b, li + (c0 & 1), lj + (c0 >> 1 & 1), lk + (c0 >> 2 & 1));
-          Lattice::set_bit(nodes_.blk(cb).xwant[e / 4], cl);
-        }
-      }
+      for (std::uint64_t m = nodes_.blk(b).surface; m; m &= m - 1) want_crossings(b, __builtin_ctzll(m));
     });
     std::size_t wanted = 0;
     for (std::size_t bs = 0; bs < nodes_.block_count(); ++bs) {
@@ -1384,18 +1388,8 @@ class Dmc {
   // cells in the block of the edge's lower end (xwant bits), computed per block in
   // parallel.
   void refine_sharp(const std::vector<Key>& cells, const std::vector<char>& sharp) {
-    const auto& ec = mc::edge_corners();
     parallel(cells.size(), [&](std::size_t i) {
-      if (!sharp[i]) return;
-      const std::int32_t b = nodes_.block_of(cells[i]);
-      const int l = Lattice::local(cells[i]), li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
-      const int cfg = config(b, l);
-      for (int e = 0; e < 12; ++e) {
-        if (!crossed(cfg, e)) continue;
-        const int c0 = ec[e][0];
-        const auto [cb, cl] = nodes_.rel(b, li + (c0 & 1), lj + (c0 >> 1 & 1), lk + (c0 >> 2 & 1));
-        Lattice::set_bit(nodes_.blk(cb).xwant[e / 4], cl);
-      }
+      if (sharp[i]) want_crossings(nodes_.block_of(cells[i]), Lattice::local(cells[i]));
     });
     std::size_t wanted = 0;
     for (std::size_t bs = 0; bs < nodes_.block_count(); ++bs) {
