@@ -19,6 +19,7 @@
 #include <unordered_set>
 
 #include "core/error.h"
+#include "reconstruct/lattice_storage.h"
 #include "reconstruct/mc_tables.h"
 #include "reconstruct/mpu.h"
 
@@ -36,54 +37,24 @@ Key corner_key(Key cell, int q) { return key(ki(cell) + (q & 1), kj(cell) + (q >
 // Lattice points grouped in blocks of 4^3: a small hash from block to block index.
 class BlockIndex {
  public:
-  BlockIndex() { rehash(1 << 10); }
   static Key block_of(Key k) { return k & ~(Key(3) | Key(3) << 21 | Key(3) << 42); }
   static int local(Key k) { return int((k & 3) | (k >> 21 & 3) << 2 | (k >> 42 & 3) << 4); }
   std::uint32_t find(Key block) const {
-    for (std::size_t i = hash(block) & mask_;; i = (i + 1) & mask_) {
-      if (slots_[i].second == kNone) return kNone;
-      if (slots_[i].first == block) return slots_[i].second;
-    }
+    const std::int32_t b = table_.find(block);
+    return b == detail::BlockTable::kAbsent ? kNone : std::uint32_t(b);
   }
   /// Index of the block (new blocks get the next index).
   std::uint32_t get(Key block, bool& added) {
-    std::size_t i = hash(block) & mask_;
-    for (;; i = (i + 1) & mask_) {
-      if (slots_[i].second == kNone) break;
-      if (slots_[i].first == block) {
-        added = false;
-        return slots_[i].second;
-      }
-    }
-    added = true;
-    const std::uint32_t idx = std::uint32_t(keys_.size());
-    keys_.push_back(block);
-    slots_[i] = {block, idx};
-    if (keys_.size() * 2 > slots_.size()) rehash(slots_.size() * 2);
-    return idx;
+    const std::int32_t b = table_.find_or_insert(block, std::int32_t(keys_.size()), added);
+    if (added) keys_.push_back(block);
+    return std::uint32_t(b);
   }
   const std::vector<Key>& keys() const { return keys_; }
   static constexpr std::uint32_t kNone = 0xFFFFFFFFu;
 
  private:
-  static std::size_t hash(Key k) {
-    k ^= k >> 31;
-    k *= 0x9E3779B97F4A7C15ULL;
-    k ^= k >> 29;
-    return std::size_t(k);
-  }
-  void rehash(std::size_t n) {
-    slots_.assign(n, {Key(0), kNone});
-    mask_ = n - 1;
-    for (std::size_t b = 0; b < keys_.size(); ++b) {
-      std::size_t i = hash(keys_[b]) & mask_;
-      while (slots_[i].second != kNone) i = (i + 1) & mask_;
-      slots_[i] = {keys_[b], std::uint32_t(b)};
-    }
-  }
-  std::vector<std::pair<Key, std::uint32_t>> slots_;
+  detail::BlockTable table_{1 << 10};
   std::vector<Key> keys_;
-  std::size_t mask_ = 0;
 };
 
 // Set of lattice keys (cells), one bit per key in blocks of 4^3 (the seed cells).
@@ -114,29 +85,7 @@ class KeySet {
   std::vector<std::uint64_t> bits_;
 };
 
-// Vector in chunks of 4096 (no copy when it grows; references stay valid).
-template <class T>
-class Chunked {
- public:
-  static constexpr std::size_t kChunk = 4096;
-  T& operator[](std::size_t i) { return chunks_[i / kChunk][i % kChunk]; }
-  const T& operator[](std::size_t i) const { return chunks_[i / kChunk][i % kChunk]; }
-  std::size_t size() const { return size_; }
-  void push_back(const T& v) {
-    if (size_ == chunks_.size() * kChunk) chunks_.emplace_back(new T[kChunk]);
-    (*this)[size_++] = v;
-  }
-  /// Room for n more elements (serial), so that claim() may run in parallel.
-  void reserve_more(std::size_t n) {
-    while (chunks_.size() * kChunk < size_ + n) chunks_.emplace_back(new T[kChunk]);
-  }
-  /// Index of a new element, within the room made by reserve_more (parallel).
-  std::size_t claim() { return __atomic_fetch_add(&size_, std::size_t(1), __ATOMIC_RELAXED); }
-
- private:
-  std::vector<std::unique_ptr<T[]>> chunks_;
-  std::size_t size_ = 0;
-};
+using detail::Chunked;
 
 enum : std::uint8_t { kFixed = 1, kSearched = 2, kBary = 4, kGap = 8, kCorner = 16, kEdge = 32 };
 
@@ -178,7 +127,7 @@ class Lattice {
     std::uint32_t node[64];  // index of the point's node, where present
   };
   static constexpr std::uint32_t kNoCrossing = 0xFFFFFFFFu;
-  Lattice() { rehash(1 << 12); }
+  Lattice() = default;
   static int local(int li, int lj, int lk) { return li | lj << 2 | lk << 4; }
   static int local(Key p) { return int((p & 3) | (p >> 21 & 3) << 2 | (p >> 42 & 3) << 4); }
   std::size_t block_count() const { return blocks_.size(); }
@@ -188,23 +137,13 @@ class Lattice {
     const Block& B = blk(b);
     return key(B.bi * 4 + (l & 3), B.bj * 4 + (l >> 2 & 3), B.bk * 4 + (l >> 4));
   }
-  std::int32_t find_block(int bi, int bj, int bk) const {
-    const Key k = key(bi, bj, bk);
-    for (std::size_t i = hash(k) & mask_;; i = (i + 1) & mask_) {
-      if (slots_[i].second == kNone) return kNone;
-      if (slots_[i].first == k) return slots_[i].second;
-    }
-  }
+  std::int32_t find_block(int bi, int bj, int bk) const { return table_.find(key(bi, bj, bk)); }
   std::int32_t block_of(Key p) const { return find_block(ki(p) >> 2, kj(p) >> 2, kk(p) >> 2); }
   /// The block (created when missing; serial only).
   std::int32_t block(int bi, int bj, int bk) {
-    const Key k = key(bi, bj, bk);
-    std::size_t i = hash(k) & mask_;
-    for (;; i = (i + 1) & mask_) {
-      if (slots_[i].second == kNone) break;
-      if (slots_[i].first == k) return slots_[i].second;
-    }
-    const std::int32_t b = std::int32_t(blocks_.size());
+    bool inserted = false;
+    const std::int32_t b = table_.find_or_insert(key(bi, bj, bk), std::int32_t(blocks_.size()), inserted);
+    if (!inserted) return b;
     Block B;
     B.bi = bi, B.bj = bj, B.bk = bk;
     B.present = B.surface = B.mark = B.mark2 = 0;
@@ -213,8 +152,6 @@ class Lattice {
     std::fill(std::begin(B.nb), std::end(B.nb), kUnknown);
     B.nb[13] = b;
     blocks_.push_back(B);
-    slots_[i] = {k, b};
-    if (blocks_.size() * 2 > slots_.size()) rehash(slots_.size() * 2);
     return b;
   }
   /// Neighbour q of block b (as in Block::nb), kNone when there is none. Safe in
@@ -348,29 +285,13 @@ class Lattice {
   }
 
  private:
-  static std::size_t hash(Key k) {
-    k ^= k >> 31;
-    k *= 0x9E3779B97F4A7C15ULL;
-    k ^= k >> 29;
-    return std::size_t(k);
-  }
-  void rehash(std::size_t n) {
-    slots_.assign(n, {Key(0), kNone});
-    mask_ = n - 1;
-    for (std::size_t b = 0; b < blocks_.size(); ++b) {
-      const Key k = key(blocks_[b].bi, blocks_[b].bj, blocks_[b].bk);
-      std::size_t i = hash(k) & mask_;
-      while (slots_[i].second != kNone) i = (i + 1) & mask_;
-      slots_[i] = {k, std::int32_t(b)};
-    }
-  }
   Chunked<Block> blocks_;
   Chunked<Node> nodes_;
   Chunked<std::array<std::uint32_t, 192>> xslots_;
   Chunked<Crossing> crossings_;
   Chunked<Crossing> refined_;
-  std::vector<std::pair<Key, std::int32_t>> slots_;
-  std::size_t mask_ = 0;
+  static_assert(kNone == detail::BlockTable::kAbsent, "a missing block reads as kNone");
+  detail::BlockTable table_;
 };
 
 // Where a lattice point moves (feature step).

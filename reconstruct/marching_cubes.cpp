@@ -13,6 +13,7 @@
 #include <tuple>
 
 #include "core/error.h"
+#include "reconstruct/lattice_storage.h"
 #include "reconstruct/mc_tables.h"
 #include "reconstruct/mpu.h"
 
@@ -140,27 +141,7 @@ constexpr std::int32_t kNone = -1, kUnknown = -2;
 
 int local_index(int li, int lj, int lk) { return li | lj << 2 | lk << 4; }
 
-// Vector in chunks of 4096 (no copy when it grows, so no transient doubling of memory).
-template <class T>
-class Chunked {
- public:
-  static constexpr std::size_t kChunk = 4096;
-  T& operator[](std::size_t i) { return chunks_[i / kChunk][i % kChunk]; }
-  const T& operator[](std::size_t i) const { return chunks_[i / kChunk][i % kChunk]; }
-  std::size_t size() const { return size_; }
-  void push_back(const T& v) {
-    if (size_ % kChunk == 0) chunks_.emplace_back(new T[kChunk]);
-    (*this)[size_++] = v;
-  }
-  void clear() {
-    chunks_.clear();
-    size_ = 0;
-  }
-
- private:
-  std::vector<std::unique_ptr<T[]>> chunks_;
-  std::size_t size_ = 0;
-};
+using detail::Chunked;
 
 struct Block {
   int bi, bj, bk;
@@ -174,30 +155,17 @@ struct Block {
 
 class BlockLattice {
  public:
-  BlockLattice() { rehash(1 << 12); }
-  std::int32_t find(int bi, int bj, int bk) const {
-    const Key k = key(bi, bj, bk);
-    for (std::size_t i = hash(k) & mask_;; i = (i + 1) & mask_) {
-      if (slots_[i].second == kNone) return kNone;
-      if (slots_[i].first == k) return slots_[i].second;
-    }
-  }
+  std::int32_t find(int bi, int bj, int bk) const { return table_.find(key(bi, bj, bk)); }
   std::int32_t get(int bi, int bj, int bk) {
-    const Key k = key(bi, bj, bk);
-    std::size_t i = hash(k) & mask_;
-    for (;; i = (i + 1) & mask_) {
-      if (slots_[i].second == kNone) break;
-      if (slots_[i].first == k) return slots_[i].second;
-    }
-    const std::int32_t b = std::int32_t(blocks.size());
+    bool inserted = false;
+    const std::int32_t b = table_.find_or_insert(key(bi, bj, bk), std::int32_t(blocks.size()), inserted);
+    if (!inserted) return b;
     Block blk;
     blk.bi = bi, blk.bj = bj, blk.bk = bk;
     std::fill(std::begin(blk.up), std::end(blk.up), kNone);
     blk.up[0] = b;
     blocks.push_back(blk);
     values.push_back({});
-    slots_[i] = {k, b};
-    if (blocks.size() * 2 > slots_.size()) rehash(slots_.size() * 2);
     return b;
   }
   /// Links (creating them) the blocks above b that hold corners of cell l of b.
@@ -231,24 +199,8 @@ class BlockLattice {
   Chunked<std::array<float, 64>> values;  // per block
 
  private:
-  static std::size_t hash(Key k) {
-    k ^= k >> 31;
-    k *= 0x9E3779B97F4A7C15ULL;
-    k ^= k >> 29;
-    return std::size_t(k);
-  }
-  void rehash(std::size_t n) {
-    slots_.assign(n, {Key(0), kNone});
-    mask_ = n - 1;
-    for (std::size_t b = 0; b < blocks.size(); ++b) {
-      const Key k = key(blocks[b].bi, blocks[b].bj, blocks[b].bk);
-      std::size_t i = hash(k) & mask_;
-      while (slots_[i].second != kNone) i = (i + 1) & mask_;
-      slots_[i] = {k, std::int32_t(b)};
-    }
-  }
-  std::vector<std::pair<Key, std::int32_t>> slots_;
-  std::size_t mask_ = 0;
+  static_assert(kNone == detail::BlockTable::kAbsent, "a missing block reads as kNone");
+  detail::BlockTable table_;
 };
 
 // A value stored as float with its sign kept (a tiny negative value stays negative).
