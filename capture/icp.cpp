@@ -313,8 +313,8 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
   // of a coarse stage needs no more); at the final distance all of them.
   const std::size_t coarse_stride = std::size_t(std::max(1, params.coarse_stride));
   for (int it = 0; it < params.max_iterations; ++it) {
-    const bool fine = d_max <= d_end * (1 + 1e-9);
-    const Normal6 sys = linearise(T, d_max, fine ? 1 : coarse_stride);
+    const bool at_end = d_max <= d_end * (1 + 1e-9);  // d_max changes only at the bottom
+    const Normal6 sys = linearise(T, d_max, at_end ? 1 : coarse_stride);
     res.iterations = it + 1;
     if (sys.n < std::size_t(std::max(params.min_correspondences, 6))) {
       res.message = "too few correspondences (" + std::to_string(sys.n) + " within " +
@@ -330,7 +330,7 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
       res.message = "ill-posed point-to-plane system";
       return res;
     }
-    if (d_max <= d_end * (1 + 1e-9)) ++end_iterations;
+    if (at_end) ++end_iterations;
     if (colored || end_iterations > kUndampedEndIterations) {
       // The photometric term can make the nearest neighbours flip back and
       // forth (a period-2 cycle on regular samplings): a step that reverses
@@ -347,7 +347,6 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
     T = motion_exp(x) * T;
     const bool tiny = x.head<3>().norm() < params.convergence_rotation &&
                       x.tail<3>().norm() < params.convergence_translation;
-    const bool at_end = d_max <= d_end * (1 + 1e-9);
     if (tiny && at_end) {
       small_step = true;
       break;

@@ -12,6 +12,7 @@
 #include <set>
 #include <sstream>
 #include <tuple>
+#include <utility>
 
 #include "capture/capture.h"
 #include "capture/pose_graph.h"
@@ -766,7 +767,7 @@ class Registrar {
     std::vector<double> spacings;
     for (std::size_t i = 0; i < n; ++i) {
       if (!usable_[i]) continue;
-      Cloud c = views_[i].full;
+      Cloud c = std::move(views_[i].full);  // not needed after the merge: no second copy of every view
       if (p_.fuse && !(p_.fuse_distance > 0)) spacings.push_back(median_spacing(c.points));
       if (!colors) c.colors.clear();
       if (!c.has_normals() && p_.merge_normals) {
