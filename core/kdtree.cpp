@@ -85,17 +85,25 @@ std::vector<std::pair<int, float>> PointIndex::knn(const Vec3f& q, int k) const 
   return out;
 }
 
-std::vector<std::pair<int, float>> PointIndex::radius(const Vec3f& q, float radius) const {
+std::vector<std::pair<int, float>> PointIndex::radius_search(const Vec3f& q, float radius, bool sorted) const {
   std::vector<std::pair<int, float>> out;
   if (!impl_->tree || !(radius >= 0)) return out;
   std::vector<std::pair<std::uint32_t, float>> hits;
   // L2_Simple_Adaptor works on squared distances, so the radius is squared too;
   // nanoflann keeps only dist < r, the next float up makes the bound inclusive.
   const float r_sq = std::nextafter(radius * radius, std::numeric_limits<float>::infinity());
-  impl_->tree->radiusSearch(q.data(), r_sq, hits, nanoflann::SearchParams(32, 0.f, true));
+  impl_->tree->radiusSearch(q.data(), r_sq, hits, nanoflann::SearchParams(32, 0.f, sorted));
   out.reserve(hits.size());
   for (const auto& h : hits) out.emplace_back(int(h.first), std::sqrt(h.second));
   return out;
+}
+
+std::vector<std::pair<int, float>> PointIndex::radius(const Vec3f& q, float radius) const {
+  return radius_search(q, radius, true);
+}
+
+std::vector<std::pair<int, float>> PointIndex::radius_unsorted(const Vec3f& q, float radius) const {
+  return radius_search(q, radius, false);
 }
 
 }  // namespace station

@@ -30,8 +30,12 @@ class PointIndex {
   std::vector<std::pair<int, float>> knn(const Vec3f& q, int k) const;
   /// All points within `radius` (Euclidean), closest first.
   std::vector<std::pair<int, float>> radius(const Vec3f& q, float radius) const;
+  /// The same points in the index's own order (deterministic for the index, not
+  /// sorted by distance): cheaper when the order does not matter.
+  std::vector<std::pair<int, float>> radius_unsorted(const Vec3f& q, float radius) const;
 
  private:
+  std::vector<std::pair<int, float>> radius_search(const Vec3f& q, float radius, bool sorted) const;
   struct Impl;
   std::unique_ptr<Impl> impl_;
 };

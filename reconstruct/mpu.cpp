@@ -149,42 +149,111 @@ struct MpuSurface::Impl {
   std::vector<LocalFit> fits;
   double trust_radius = 0;  // normalised
 
+  // Evaluation layout, built once after the fit (the queries' time is mostly
+  // cache misses on the octree's nodes and fits, docs/mpu.md "Evaluation"):
+  // - per node, a float copy of its centre and squared reach (a leaf's: its
+  //   support radius), enlarged so that it never rejects what the exact test
+  //   would keep, and a link: first child, or -(leaf record + 1). 20 bytes, the
+  //   8 children of a node side by side.
+  // - per leaf, one 192-byte record with its exact centre and radius and, for the
+  //   common single bivariate fit, the fit itself (other fits: `fits`).
+  struct WalkNode {
+    float x, y, z, r2;
+    std::int32_t link;
+  };
+  struct alignas(64) LeafRecord {
+    Vec3d center;
+    double radius = 0;
+    Bivariate bivariate;  // when single
+    std::int32_t fit = -1;
+    bool single = false;
+  };
+  std::vector<WalkNode> walk;
+  std::vector<LeafRecord> leaf_records;
+  // Queries farther out than this (normalised) take the exact double test
+  // throughout: the float bounds' slack covers the rounding of coordinates up to it.
+  static constexpr double kFloatRange = 2.0;
+
+  void build_walk() {
+    walk.resize(nodes.size());
+    leaf_records.clear();
+    for (std::size_t i = 0; i < nodes.size(); ++i) {
+      const Node& nd = nodes[i];
+      const double r = (nd.first_child < 0 ? nd.radius : nd.reach) * (1 + 1e-6) + 1e-6;
+      WalkNode& w = walk[i];
+      w = {float(nd.center.x()), float(nd.center.y()), float(nd.center.z()), float(r * r * (1 + 1e-6)),
+           nd.first_child};
+      if (nd.first_child >= 0) continue;  // every other node is a fitted leaf
+      LeafRecord rec;
+      rec.center = nd.center;
+      rec.radius = nd.radius;
+      rec.fit = nd.fit;
+      const LocalFit& f = fits[nd.fit];
+      rec.single = f.type != MpuFitType::kQuadric && f.pieces == 1 && !f.saddle;
+      if (rec.single) rec.bivariate = f.piece[0];
+      w.link = -std::int32_t(leaf_records.size()) - 1;
+      leaf_records.push_back(rec);
+    }
+  }
+
   // Accumulates sum w Q, sum w, and (when grads) their gradients, in normalised units.
+  // Visits the leaves whose ball holds y in depth-first order (children 0..7).
   void accumulate(const Vec3d& y, double& swq, double& sw, Vec3d* gwq, Vec3d* gw) const {
+    const bool prefilter = y.cwiseAbs().maxCoeff() <= kFloatRange;
+    const float yx = float(y.x()), yy = float(y.y()), yz = float(y.z());
+    // Whether node i may reach y: the float bound first (conservative), or the
+    // exact test when y is too far out for the bounds' slack.
+    auto may_reach = [&](int i) {
+      if (prefilter) {
+        const WalkNode& b = walk[i];
+        const float dx = yx - b.x, dy = yy - b.y, dz = yz - b.z;
+        return dx * dx + dy * dy + dz * dz <= b.r2;
+      }
+      const Node& nd = nodes[i];
+      const double r = nd.first_child < 0 ? nd.radius : nd.reach;
+      return (y - nd.center).squaredNorm() <= r * r * (1 + 1e-12);
+    };
     int stack[64 * 8];
     int top = 0;
-    stack[top++] = 0;
+    if (may_reach(0)) stack[top++] = 0;
     while (top > 0) {
-      const Node& nd = nodes[stack[--top]];
-      const Vec3d d = y - nd.center;
-      // Squared distances first: most nodes are rejected without a root. The
-      // squared tests only skip what is clearly beyond (a relative margin over
-      // the rounding of the squares), so the walk visits at least what the
-      // exact test r < reach visits, and each leaf is still decided exactly.
-      const double r2 = d.squaredNorm();
-      if (nd.first_child < 0) {
-        if (r2 > nd.radius * nd.radius * (1 + 1e-12)) continue;
-        const double r = std::sqrt(r2);
-        if (r >= nd.radius) continue;
-        const double t = 1.5 * r / nd.radius;
-        const double w = bspline2(t);
-        if (w <= 0) continue;
-        const LocalFit& f = fits[nd.fit];
-        if (gwq) {
-          Vec3d gq;
-          const double q = f.eval(y, &gq);
-          const Vec3d gwt = r > 0 ? Vec3d(bspline2_deriv(t) * 1.5 / nd.radius / r * d) : Vec3d::Zero();
-          swq += w * q;
-          sw += w;
-          *gwq += gwt * q + w * gq;
-          *gw += gwt;
-        } else {
-          swq += w * f.eval(y, nullptr);
-          sw += w;
+      const std::int32_t link = walk[stack[--top]].link;
+      if (link >= 0) {
+        for (int c = 7; c >= 0; --c) {
+          if (!may_reach(link + c)) continue;
+          stack[top++] = link + c;
+          // A leaf's record is read soon: start loading it now (the walk's time
+          // is mostly these loads).
+          const std::int32_t child = walk[link + c].link;
+          if (child < 0) {
+            __builtin_prefetch(&leaf_records[std::size_t(-child - 1)]);
+          } else {
+            __builtin_prefetch(&walk[std::size_t(child)]);
+          }
         }
+        continue;
+      }
+      // A leaf: decided exactly.
+      const LeafRecord& leaf = leaf_records[std::size_t(-link - 1)];
+      const Vec3d d = y - leaf.center;
+      const double r2 = d.squaredNorm();
+      if (r2 > leaf.radius * leaf.radius * (1 + 1e-12)) continue;
+      const double r = std::sqrt(r2);
+      if (r >= leaf.radius) continue;
+      const double t = 1.5 * r / leaf.radius;
+      const double w = bspline2(t);
+      if (w <= 0) continue;
+      if (gwq) {
+        Vec3d gq;
+        const double q = leaf.single ? leaf.bivariate.eval(y, &gq) : fits[leaf.fit].eval(y, &gq);
+        const Vec3d gwt = r > 0 ? Vec3d(bspline2_deriv(t) * 1.5 / leaf.radius / r * d) : Vec3d::Zero();
+        swq += w * q;
+        sw += w;
+        *gwq += gwt * q + w * gq;
+        *gw += gwt;
       } else {
-        if (r2 > nd.reach * nd.reach * (1 + 1e-12)) continue;
-        for (int c = 7; c >= 0; --c) stack[top++] = nd.first_child + c;
+        swq += w * (leaf.single ? leaf.bivariate.eval(y, nullptr) : fits[leaf.fit].eval(y, nullptr));
+        sw += w;
       }
     }
   }
@@ -410,16 +479,28 @@ CellFit fit_cell(const MpuSurface::Impl& s, const Vec3d& o, double half) {
   const MpuParams& p = s.params;
   CellFit cf;
   double R = p.alpha * 2 * half * std::sqrt(3.0);
-  auto nn = s.index->radius(o.cast<float>(), float(R));
+  // The ball's points in the index's order: the fit does not need them sorted.
+  auto nn = s.index->radius_unsorted(o.cast<float>(), float(R));
   cf.points = int(nn.size());
+  if (int(nn.size()) < p.n_min) {
+    // The ball grows R <- R + lambda R until it holds n_min points. Skip the
+    // steps that stay clearly inside the n_min-th nearest point (the same sequence
+    // of R, so the same final R); the loop below then decides exactly.
+    const auto k = s.index->knn(o.cast<float>(), p.n_min);
+    if (int(k.size()) == p.n_min) {
+      const double inside = double(k.back().second) * (1 - 1e-5);
+      for (double next = R + p.lambda * R; next < inside; next = R + p.lambda * R) R = next;
+    }
+  }
   while (int(nn.size()) < p.n_min) {
     R += p.lambda * R;
     cf.grew = true;
-    nn = s.index->radius(o.cast<float>(), float(R));
+    nn = s.index->radius_unsorted(o.cast<float>(), float(R));
   }
   cf.radius = R;
-  // Coarse cells hold most of the cloud; a deterministic stride sample (over the
-  // distance-sorted list, so it spans the ball) keeps their fit cost bounded.
+  // Coarse cells hold most of the cloud; a deterministic stride sample keeps their
+  // fit cost bounded. The list is in the k-d tree's order, which walks space
+  // region by region, so a stride over it spans the ball.
   if (p.max_fit_points > 0 && int(nn.size()) > p.max_fit_points) {
     const double stride = double(nn.size()) / p.max_fit_points;
     std::vector<std::pair<int, float>> sub(p.max_fit_points);
@@ -594,6 +675,7 @@ MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
       }
     }
   }
+  s.build_walk();
   s.diag.cells = s.nodes.size();
   while (s.diag.leaves_by_depth.size() > 1 && s.diag.leaves_by_depth.back() == 0) s.diag.leaves_by_depth.pop_back();
   s.diag.fit_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();

@@ -125,6 +125,21 @@ TEST(PointIndex, RadiusMatchesBruteForce) {
   }
 }
 
+TEST(PointIndex, RadiusUnsortedHoldsTheSamePointsAsRadius) {
+  const auto pts = random_points(3000, 9);
+  PointIndex index(pts);
+  for (const Vec3f& q : random_points(50, 10)) {
+    const auto sorted = index.radius(q, 0.3f);
+    auto unsorted = index.radius_unsorted(q, 0.3f);
+    ASSERT_EQ(unsorted, index.radius_unsorted(q, 0.3f));  // the same order every time
+    std::sort(unsorted.begin(), unsorted.end(), [](auto& a, auto& b) { return a.first < b.first; });
+    auto expect = sorted;
+    std::sort(expect.begin(), expect.end(), [](auto& a, auto& b) { return a.first < b.first; });
+    EXPECT_EQ(unsorted, expect);
+  }
+  EXPECT_TRUE(index.radius_unsorted(Vec3f(9, 9, 9), 0.1f).empty());
+}
+
 TEST(PointIndex, RadiusIsInclusive) {
   PointIndex index({Vec3f(0, 0, 0), Vec3f(1, 0, 0), Vec3f(3, 0, 0)});
   const auto got = index.radius(Vec3f(0, 0, 0), 1.f);
