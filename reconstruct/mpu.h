@@ -51,7 +51,7 @@ struct MpuParams {
   /// Balls holding more points are fitted (and their error measured) on an evenly
   /// spread subset of this size (0 = all). Only coarse cells are affected; they are
   /// split anyway unless the subset already fits within epsilon0. Not in the paper.
-  int max_fit_points = 2000;
+  int max_fit_points = 1000;
   /// epsilon_0: Taubin error max |Q(p)| / |grad Q(p)| over the ball's points above
   /// which a cell is subdivided; relative to the normalised size (bounding-cube
   /// diagonal 1). Paper: 1e-4.
