@@ -20,6 +20,7 @@ struct Options {
   fs::path shared_dir; ///< shared data folder (../shared/data from the root)
   bool use_shared = true;  ///< false: generate the I/O inputs even when shared data exists
   fs::path temp_dir;   ///< scratch folder for generated inputs
+  std::size_t max_points = 0;  ///< > 0: skip the surface cases with larger clouds (--max-points)
 };
 
 /// One measured side: median wall time and the peak RSS growth during a run.

@@ -2,7 +2,7 @@
 // process and prints one table (docs/benchmarks.md).
 //
 //   station_bench [--threads N] [--reps N] [--warmup N] [--generate]
-//                 [--shared DIR] [--only raycast|io|distance]
+//                 [--shared DIR] [--only raycast|io|distance] [--max-points N]
 #include <malloc.h>
 #include <omp.h>
 #include <tbb/global_control.h>
@@ -127,17 +127,18 @@ std::map<std::string, Group>& registered_groups() {
   (status ? std::cerr : std::cout)
       << "station_bench: " << problem << "\n"
       << "usage: station_bench [--threads N] [--reps N] [--warmup N] [--generate]\n"
-      << "                     [--shared DIR] [--only " << names << "]\n";
+      << "                     [--shared DIR] [--only " << names << "] [--max-points N]\n"
+      << "  --max-points N: surface group: skip the clouds larger than N points (the 1M case)\n";
   for (const auto& [name, group] : registered_groups())
     (status ? std::cerr : std::cout) << "  " << name << ": " << group.description << "\n";
   std::exit(status);
 }
 
-int parse_count(const std::string& flag, const char* value, int min) {
+int parse_count(const std::string& flag, const char* value, int min, long max = 1000) {
   if (!value) usage(flag + " needs a value");
   char* end = nullptr;
   const long n = std::strtol(value, &end, 10);
-  if (end == value || *end != '\0' || n < min || n > 1000)
+  if (end == value || *end != '\0' || n < min || n > max)
     usage(flag + ": bad value '" + value + "'");
   return int(n);
 }
@@ -235,6 +236,8 @@ int main(int argc, char** argv) {
       options.repetitions = parse_count(arg, value, 1), ++i;
     } else if (arg == "--warmup") {
       options.warmup = parse_count(arg, value, 0), ++i;
+    } else if (arg == "--max-points") {
+      options.max_points = std::size_t(parse_count(arg, value, 1, 1000000000L)), ++i;
     } else if (arg == "--generate") {
       options.use_shared = false;
     } else if (arg == "--shared") {

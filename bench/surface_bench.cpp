@@ -231,6 +231,10 @@ void run_surface_cases(const Options& options, Report& report) {
   };
   const std::vector<Case> cases = {{100000, 8, 128, false}, {1000000, 10, 256, true}};
   for (const Case& c : cases) {
+    if (options.max_points > 0 && std::size_t(c.points) > options.max_points) {
+      report.note("surface: mustard " + std::to_string(c.points / 1000) + "k skipped (--max-points)");
+      continue;
+    }
     const Cloud cloud = sample_textured(reference, texture, c.points, 7);
     const open3d::geometry::PointCloud pcd = to_open3d(cloud);
     const std::string label = "mustard " + std::to_string(c.points / 1000) + "k";

@@ -479,18 +479,26 @@ CellFit fit_cell(const MpuSurface::Impl& s, const Vec3d& o, double half) {
   const MpuParams& p = s.params;
   CellFit cf;
   double R = p.alpha * 2 * half * std::sqrt(3.0);
-  // The ball's points in the index's order: the fit does not need them sorted.
-  auto nn = s.index->radius_unsorted(o.cast<float>(), float(R));
-  cf.points = int(nn.size());
-  if (int(nn.size()) < p.n_min) {
-    // The ball grows R <- R + lambda R until it holds n_min points. Skip the
-    // steps that stay clearly inside the n_min-th nearest point (the same sequence
-    // of R, so the same final R); the loop below then decides exactly.
-    const auto k = s.index->knn(o.cast<float>(), p.n_min);
-    if (int(k.size()) == p.n_min) {
-      const double inside = double(k.back().second) * (1 - 1e-5);
-      for (double next = R + p.lambda * R; next < inside; next = R + p.lambda * R) R = next;
-    }
+  // The n_min nearest points first: most cells (the empty children of split
+  // cells) hold fewer than n_min points in their ball, which then grows R <- R +
+  // lambda R until it does. When the n_min-th nearest point lies clearly outside,
+  // the first ball search is skipped, and so are the growth steps that stay clearly
+  // inside that point's distance (the same sequence of R, so the same final R);
+  // the loop below then decides exactly. The ball's points come in the index's
+  // order: the fit does not need them sorted.
+  const auto nearest = s.index->knn(o.cast<float>(), p.n_min);
+  const bool full = int(nearest.size()) == p.n_min;
+  std::vector<std::pair<int, float>> nn;
+  if (full && double(nearest.back().second) > R * (1 + 1e-5)) {
+    cf.grew = true;
+    for (const auto& [id, d] : nearest) cf.points += double(d) <= R ? 1 : 0;
+  } else {
+    nn = s.index->radius_unsorted(o.cast<float>(), float(R));
+    cf.points = int(nn.size());
+  }
+  if (full && int(nn.size()) < p.n_min) {
+    const double inside = double(nearest.back().second) * (1 - 1e-5);
+    for (double next = R + p.lambda * R; next < inside; next = R + p.lambda * R) R = next;
   }
   while (int(nn.size()) < p.n_min) {
     R += p.lambda * R;
@@ -693,7 +701,10 @@ double suggest_epsilon0(const Cloud& cloud, int k, double factor) {
   if (!(side > 0)) throw InvalidInput("suggest_epsilon0: all points are equal");
   const double scale = 1 / (side * std::sqrt(3.0));
   const PointIndex index(cloud.points);
-  const std::size_t n = std::min<std::size_t>(cloud.size(), 20000);
+  // 5000 evenly spread points: the median residual is a stable statistic well
+  // before that (mustard 100k: epsilon0 1.3188e-4 from 20000, 1.3229e-4 from
+  // 5000), and the k-nearest queries were ~5 % of a 100k reconstruction.
+  const std::size_t n = std::min<std::size_t>(cloud.size(), 5000);
   const double stride = double(cloud.size()) / n;
   std::vector<double> rms(n);
   tbb::parallel_for(std::size_t(0), n, [&](std::size_t i) {

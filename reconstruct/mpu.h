@@ -152,7 +152,7 @@ class MpuSurface : public ImplicitFunction {
 /// n_min usable points, all points equal, or when a parameter is out of range.
 MpuSurface fit_mpu(const Cloud& points_with_normals, const MpuParams& params = {});
 
-/// An epsilon0 suited to the cloud's noise: factor x the median, over up to 20000
+/// An epsilon0 suited to the cloud's noise: factor x the median, over up to 5000
 /// evenly spread points, of the RMS residual of a quadratic height fit (over the plane
 /// normal to the neighbours' mean normal, or their PCA plane without normals) to a
 /// point's k nearest neighbours, in the normalised frame of fit_mpu;
