@@ -143,6 +143,27 @@ TEST(Mpu, DeterministicAcrossThreads) {
   }
 }
 
+// Queries far from the data (beyond the range where the walk's float bounds are
+// used, docs/mpu.md "Evaluation") take the exact tests: no leaf holds them, so f is
+// the distance to the root centre and the gradient points away from it; just inside
+// that range, where the float bounds are used, the same holds.
+TEST(Mpu, FarQueriesAreBeyondEverySupport) {
+  const Cloud c = torus_cloud(3000, 1.0, 0.35, 2);
+  const MpuSurface s = fit_mpu(c);
+  const Vec3d centre = s.center();
+  for (const double normalised : {1.9, 2.1, 50.0}) {
+    for (const Vec3d& dir : {Vec3d(1, 0, 0), Vec3d(0, -1, 0), Vec3d(1, 1, 1).normalized()}) {
+      const Vec3d x = centre + dir * (normalised / s.scale());
+      EXPECT_EQ(s.weight_sum(x), 0.0);
+      EXPECT_NEAR(s.value(x), (x - centre).norm(), 1e-9 * (x - centre).norm());
+      EXPECT_NEAR(s.gradient(x).dot(dir), 1.0, 1e-9);
+    }
+  }
+  // Near the data both paths agree with the surface: f changes sign across it.
+  EXPECT_LT(s.value(Vec3d(1.0, 0, 0)), 0.0);
+  EXPECT_GT(s.value(Vec3d(1.0, 0, 0.5)), 0.0);
+}
+
 TEST(Mpu, ScaleInvariant) {
   // The same sphere at 1, 1e-3 and 1e3: same fit in the normalised frame, so f / scale
   // agrees (up to float rounding of the input).
