@@ -487,17 +487,17 @@ CellFit fit_cell(const MpuSurface::Impl& s, const Vec3d& o, double half) {
   // inside that point's distance (the same sequence of R, so the same final R);
   // the loop below then decides exactly. The ball's points come in the index's
   // order: the fit does not need them sorted.
+  // fit_mpu needs at least n_min points, so there are n_min nearest.
   const auto nearest = s.index->knn(o.cast<float>(), p.n_min);
-  const bool full = int(nearest.size()) == p.n_min;
   std::vector<std::pair<int, float>> nn;
-  if (full && double(nearest.back().second) > R * (1 + 1e-5)) {
+  if (double(nearest.back().second) > R * (1 + 1e-5)) {
     cf.grew = true;
     for (const auto& [id, d] : nearest) cf.points += double(d) <= R ? 1 : 0;
   } else {
     nn = s.index->radius_unsorted(o.cast<float>(), float(R));
     cf.points = int(nn.size());
   }
-  if (full && int(nn.size()) < p.n_min) {
+  if (int(nn.size()) < p.n_min) {
     const double inside = double(nearest.back().second) * (1 - 1e-5);
     for (double next = R + p.lambda * R; next < inside; next = R + p.lambda * R) R = next;
   }
