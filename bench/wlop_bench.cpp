@@ -154,6 +154,14 @@ void run_wlop_cases(const Options& options, Report& report) {
 
   cgal_case("WLOP 100k -> 20k, v_j = 1 (as CGAL)", in100k, options, like_cgal);
   cgal_case("WLOP 1M -> 20k, v_j = 1 (as CGAL)", in1m, few, like_cgal);
+  // The same with WlopRepulsion::kTangential (E2 without its part along the local
+  // normal, docs/consolidation.md): the drift off the surface removed.
+  {
+    WlopParams tangential = like_cgal;
+    tangential.repulsion = WlopRepulsion::kTangential;
+    cgal_case("WLOP 100k -> 20k, v_j = 1, tangential E2", in100k, few, tangential);
+    cgal_case("WLOP 1M -> 20k, v_j = 1, tangential E2", in1m, few, tangential);
+  }
   // Ours with CGAL's kernel width: theta(d) = exp(-16 d^2 / h^2) at h = 2R is CGAL's
   // exp(-4 d^2 / R^2) (ours then sums to 2R where CGAL stops at R).
   {

@@ -95,6 +95,20 @@ enum class EdgeRepulsion {
   kFull,  ///< E2 exactly as in WLOP (eq. 1 as printed)
 };
 
+/// The repulsion E2 of plain WLOP's update x_i <- E1 + mu E2 (eq. 1).
+enum class WlopRepulsion {
+  kFull,  ///< E2 exactly as in WLOP (eq. 1 as printed; the default)
+  /// E2 without its component along the local normal at x_i (the direction of least
+  /// spread of the projected points within h, unweighted PCA; left whole where fewer
+  /// than 3 are within h). Not in the paper: wherever the neighbours are not coplanar
+  /// (noise, curvature) E2 has a part along the normal, and it feeds back into the
+  /// drift off the surface that CGAL's users report (docs/consolidation.md,
+  /// "Behaviour worth knowing"); the edge variant's kTangential removes it the same
+  /// way along its inversion axis. Costs one more pass over the projected neighbours
+  /// and a 3x3 eigen-solve per point and iteration.
+  kTangential,
+};
+
 /// Density weights v'_s of the inverted, upsampled neighbourhood (eq. 18).
 enum class InvertedDensity {
   /// v'_s = 1 + (v_j - 1) sum_t 1/sigma_t(j): the input density of the point p_j that
@@ -125,6 +139,8 @@ struct WlopParams {
   /// mu, weight of the repulsion E2 (eq. 1); in [0, 0.5) per Huang et al.
   double mu = 0.45;
   InputDensity input_density = InputDensity::kComputed;
+  /// Plain WLOP's E2 (method == kWlop; the edge variant has edge_repulsion).
+  WlopRepulsion repulsion = WlopRepulsion::kFull;
   /// Seed of the random initial subset (see initial_subset).
   unsigned seed = 1;
   /// Worker threads (0 = all cores). The output does not depend on it.

@@ -962,6 +962,7 @@ struct ConsolidateArgs {
   std::string method = "wlop";
   int iterations = 35;
   double radius = 0;
+  std::string repulsion = "full";
   unsigned seed = 1;
 };
 
@@ -976,6 +977,7 @@ int cmd_consolidate(const Common& c, const ConsolidateArgs& a) {
   p.ratio = a.ratio;
   p.iterations = a.iterations;
   p.radius = a.radius;
+  p.repulsion = a.repulsion == "tangential" ? WlopRepulsion::kTangential : WlopRepulsion::kFull;
   p.seed = a.seed;
   p.threads = cfg.threads;
   if (!c.json)
@@ -1276,6 +1278,10 @@ int run_cli(int argc, char** argv) {
   cons->add_option("--iterations", cons_args.iterations, "iterations k")->capture_default_str()->check(CLI::NonNegativeNumber);
   cons->add_option("--radius", cons_args.radius, "support radius h in input units (0 = 4 d_bb / sqrt(|J|))")
       ->capture_default_str()->check(CLI::NonNegativeNumber);
+  cons->add_option("--repulsion", cons_args.repulsion,
+                   "wlop's repulsion: full (as printed) or tangential (no part along the local normal: "
+                   "less drift off the surface)")
+      ->capture_default_str()->check(CLI::IsMember({"full", "tangential"}));
   cons->add_option("--seed", cons_args.seed, "seed of the initial subset")->capture_default_str();
 
   FitArgs fit_args;

@@ -300,17 +300,22 @@ TEST(Cli, EvalPointsMetrics) {
   for (Vec3f& p : in.points) p += Vec3f(noise(rng), noise(rng), noise(rng));
   const std::string in_ply = (dir / "fandisk.ply").string();
   write_ply(in_ply, Cloud{in.points, {}, {}});
-  double edge[2];
-  for (int m = 0; m < 2; ++m) {
+  double edge[3], accuracy[3];
+  for (int m = 0; m < 3; ++m) {
     const std::string out = (dir / ("out" + std::to_string(m) + ".ply")).string();
     r = run("consolidate " + in_ply + " -o " + out + " --points 4000 --radius 0.04 --method " +
-            (m ? "edge-wlop" : "wlop"));
+            (m == 1 ? "edge-wlop" : "wlop") + (m == 2 ? " --repulsion tangential" : ""));
     ASSERT_EQ(r.code, 0) << r.out;
     r = run("eval " + out + " " + fandisk + " --samples 1000 --edge-radius 0.08 --json");
     ASSERT_EQ(r.code, 0) << r.out;
     edge[m] = json_number(r.out, "edge_error");
+    accuracy[m] = json_number(r.out, "accuracy");
     EXPECT_GT(json_number(r.out, "edge_points"), 500) << r.out;
   }
+  // wlop --repulsion tangential drifts less off the surface than E2 as printed.
+  EXPECT_LT(accuracy[2], accuracy[0]) << "full " << accuracy[0] << ", tangential " << accuracy[2];
+  r = run("consolidate " + in_ply + " -o " + (dir / "x.ply").string() + " --repulsion sideways");
+  EXPECT_NE(r.code, 0);
   RecordProperty("edge_error_wlop", std::to_string(edge[0]));
   RecordProperty("edge_error_edge_wlop", std::to_string(edge[1]));
   EXPECT_LT(edge[1], 0.75 * edge[0]) << "wlop " << edge[0] << ", edge-wlop " << edge[1];
