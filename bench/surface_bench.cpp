@@ -22,6 +22,7 @@
 #include "core/io.h"
 #include "core/texture.h"
 #include "harness.h"
+#include "reconstruct/colour_edges.h"
 #include "reconstruct/colour_function.h"
 #include "reconstruct/dmc.h"
 #include "reconstruct/eval.h"
@@ -108,11 +109,13 @@ struct OurPipeline {
   bool dmc = false;
   int threads = 0;
   bool colour = true;
+  bool colour_edges = true;  ///< sharpen_colour_edges after colouring (the station's default)
   // Filled by run():
   Mesh mesh;
   double seconds_fit = 0, seconds_extract = 0, seconds_colour = 0, cell_size = 0;
   std::size_t leaves = 0;
   std::array<std::size_t, 2> colour_cells{};
+  std::size_t colour_edges_split = 0;
 
   void run(const Cloud& cloud) {
     auto t0 = Clock::now();
@@ -146,6 +149,11 @@ struct OurPipeline {
     cp.compute_e_col = false;  // e_col is measured against the reference below, for both sides
     const ColourFunction cf = fit_colour(cloud, cp);
     colour_mesh(mesh, cf, surface, cloud, threads);
+    if (colour_edges) {
+      ColourEdgeParams ep;
+      ep.threads = threads;
+      colour_edges_split = sharpen_colour_edges(mesh, cf, ep).split_edges;
+    }
     colour_cells = cf.diagnostics().leaves_by_type;
     seconds_colour = seconds_since(t0);
   }
@@ -276,7 +284,8 @@ void run_surface_cases(const Options& options, Report& report) {
                 " s (" + std::to_string(ours.leaves) + " leaves) + MC " + format_fixed(ours.seconds_extract, 2) +
                 " s (cell " + mm(ours.cell_size) + ") + colour function " + format_fixed(ours.seconds_colour, 2) +
                 " s (" + std::to_string(ours.colour_cells[0]) + " A / " + std::to_string(ours.colour_cells[1]) +
-                " B cells), " + std::to_string(ours.mesh.vertices.size()) + " vertices; " + quality(ours.mesh, cloud));
+                " B cells, " + std::to_string(ours.colour_edges_split) + " edges split at colour boundaries), " +
+                std::to_string(ours.mesh.vertices.size()) + " vertices; " + quality(ours.mesh, cloud));
     report.note(label + ": Poisson depth " + std::to_string(c.depth) + " (cell " + mm(poisson_cell) + ", first run " +
                 format_fixed(poisson_first_s, 2) + " s), " + std::to_string(poisson.mesh.vertices.size()) +
                 " vertices; " + quality(poisson.mesh, cloud));
@@ -383,7 +392,8 @@ void run_surface_cases(const Options& options, Report& report) {
                 "vertex = its colour projected on red -> blue, s = its distance to the plane");
     report.note(label + ", ours (" + (ours.dmc ? "DMC " : "MC ") + std::to_string(resolution) + ", cell " +
                 mm(ours.cell_size) + ", " + std::to_string(ours.colour_cells[1]) +
-                " Type B cells, e_col at the input points " + e_col(ours.mesh) + "): " +
+                " Type B cells, " + std::to_string(ours.colour_edges_split) +
+                " edges split at the boundary, e_col at the input points " + e_col(ours.mesh) + "): " +
                 describe(t_ours, ours.cell_size, sphere_diagonal));
     report.note(label + ", Poisson depth " + std::to_string(c.depth) + " (cell " + mm(poisson_cell) +
                 ", e_col at the input points " + e_col(poisson.mesh) + "): " +

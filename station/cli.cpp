@@ -42,6 +42,7 @@
 #include "reconstruct/dmc.h"
 #include "reconstruct/sdm.h"
 #include "reconstruct/winding_close.h"
+#include "reconstruct/colour_edges.h"
 #include "reconstruct/colour_function.h"
 #include "drivers/real_devices.h"
 #include "capture/camera_calibration.h"
@@ -1022,6 +1023,7 @@ struct ReconstructArgs {
   std::string holes = "close";
   double epsilon = 0;  ///< 0: from the cloud's noise level (suggest_epsilon0)
   bool no_colour = false;
+  bool no_colour_edges = false;
   double min_component = 0.01;
   std::string extractor = "dmc";
   std::string colour = "mpu";
@@ -1082,6 +1084,7 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
   const auto t3 = std::chrono::steady_clock::now();
   const bool colour = input.has_colors() && !a.no_colour;
   double e_col = -1;
+  std::size_t colour_edges_split = 0;
   if (colour && a.colour == "nearest") {
     transfer_colors(mesh, input, {4, cfg.threads});
   } else if (colour) {
@@ -1089,10 +1092,17 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
     cp.threads = cfg.threads;
     const ColourFunction cf = fit_colour(input, cp);
     colour_mesh(mesh, cf, surface, input, cfg.threads);
+    if (!a.no_colour_edges) {
+      ColourEdgeParams ep;
+      ep.threads = cfg.threads;
+      colour_edges_split = sharpen_colour_edges(mesh, cf, ep).split_edges;
+    }
     e_col = cf.diagnostics().e_col;
     if (!c.json)
       std::fprintf(stderr, "reconstruct: colour function: %zu cells smooth (A), %zu split at a boundary (B), e_col %.4f\n",
                    cf.diagnostics().leaves_by_type[0], cf.diagnostics().leaves_by_type[1], e_col);
+    if (!c.json && colour_edges_split > 0)
+      std::fprintf(stderr, "reconstruct: %zu edges split at colour boundaries\n", colour_edges_split);
   } else if (!a.no_colour && !c.json) {
     std::fprintf(stderr, "note: %s has no colours; the mesh is left uncoloured\n", a.in.c_str());
   }
@@ -1132,6 +1142,7 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
                                       .add("seconds_mesh", dstats.seconds_mesh))
                       .add("colour_method", colour ? a.colour : std::string("none"))
                       .add("e_col", e_col)
+                      .add("colour_edges_split", colour_edges_split)
                       .add("timings_s", JsonObject()
                                             .add("read", t_read)
                                             .add("fit", t_fit)
@@ -1329,6 +1340,9 @@ int run_cli(int argc, char** argv) {
                   "cloud's noise level, at least the paper's 1e-4)")
       ->check(CLI::Range(1e-7, 1e-1));
   rec->add_flag("--no-colour", rec_args.no_colour, "do not colour the mesh from the input's colours");
+  rec->add_flag("--no-colour-edges", rec_args.no_colour_edges,
+                "keep the extracted faces: do not split edges at colour boundaries (then a face that a "
+                "boundary crosses blends both colours)");
   rec->add_option("--extractor", rec_args.extractor,
                   "dmc: Deformed Marching Cubes (thin parts, sharp edges; docs/dmc.md) or mc: plain marching cubes")
       ->capture_default_str()->check(CLI::IsMember({"dmc", "mc"}));

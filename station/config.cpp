@@ -167,7 +167,7 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
   }
   if (const YAML::Node n = root["reconstruct"]) {
     r.check_keys(n, "reconstruct", {"surface", "resolution", "epsilon0", "extractor", "hole", "colour", "colour_method", "colour_multi",
-                                     "colour_noise_robust", "min_component", "table_plane", "winding_close"});
+                                     "colour_noise_robust", "colour_edges", "min_component", "table_plane", "winding_close"});
     auto& c = p.reconstruct;
     if (n["surface"]) c.surface = r.text(n["surface"], "reconstruct.surface");
     if (n["table_plane"]) c.table_plane = r.boolean(n["table_plane"], "reconstruct.table_plane");
@@ -188,6 +188,7 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
     if (n["colour_multi"]) c.colour_multi = r.boolean(n["colour_multi"], "reconstruct.colour_multi");
     if (n["colour_noise_robust"])
       c.colour_noise_robust = r.boolean(n["colour_noise_robust"], "reconstruct.colour_noise_robust");
+    if (n["colour_edges"]) c.colour_edges = r.boolean(n["colour_edges"], "reconstruct.colour_edges");
     if (n["min_component"]) c.min_component = r.number(n["min_component"], "reconstruct.min_component");
     if (c.min_component < 0 || c.min_component > 1) r.fail("reconstruct.min_component", "must be 0..1");
   }

@@ -50,6 +50,9 @@ struct PipelineConfig {
     std::string colour_method = "mpu";  ///< mpu (colour function) | nearest (k-NN transfer)
     bool colour_multi = false;      ///< colour function: 3+ colours per cell (junctions)
     bool colour_noise_robust = false;  ///< colour function: no boundaries invented by noise
+    /// Split mesh edges at colour boundaries so no face blends two colours across one
+    /// (reconstruct/colour_edges.h; colour_method mpu only).
+    bool colour_edges = true;
     double min_component = 0.01;    ///< drop pieces below this fraction of the largest's area
   } reconstruct;
   struct Sdm {

@@ -20,6 +20,7 @@
 #include "core/io.h"
 #include "core/normals.h"
 #include "reconstruct/color_transfer.h"
+#include "reconstruct/colour_edges.h"
 #include "reconstruct/colour_function.h"
 #include "reconstruct/dmc.h"
 #include "reconstruct/half_space_clip.h"
@@ -189,6 +190,7 @@ std::string surface_params(const PipelineConfig& p) {
   s << "surface/" << c.surface << ";resolution=" << c.resolution << ";epsilon0=" << fmt("%.17g", c.epsilon0)
     << ";extractor=" << c.extractor << ";hole=" << c.hole << ";colour=" << c.colour
     << ";colour_method=" << c.colour_method << ";multi=" << c.colour_multi << ";noise=" << c.colour_noise_robust
+    << ";colour_edges=" << c.colour_edges
     << ";min_component=" << fmt("%.17g", c.min_component) << ";table_plane=" << c.table_plane
     << ";winding_close=" << c.winding_close;
   if (c.surface == "sdm") s << ";level=" << p.sdm.level;
@@ -617,6 +619,11 @@ class Runner {
       cp.noise_robust = c.colour_noise_robust;
       const ColourFunction cf = fit_colour(input, cp);
       r.figures["colour_nearest_vertices"] = double(colour_mesh(mesh, cf, surface, input, cfg_.threads));
+      if (c.colour_edges) {
+        ColourEdgeParams ep;
+        ep.threads = cfg_.threads;
+        r.figures["colour_edges_split"] = double(sharpen_colour_edges(mesh, cf, ep).split_edges);
+      }
       const ColourDiagnostics& cd = cf.diagnostics();
       r.figures["colour_leaves_a"] = double(cd.leaves_by_type[0]);
       r.figures["colour_leaves_b"] = double(cd.leaves_by_type[1]);
