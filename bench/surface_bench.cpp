@@ -10,6 +10,7 @@
 
 #include <algorithm>
 #include <array>
+#include <cstdio>
 #include <chrono>
 #include <cmath>
 #include <memory>
@@ -33,6 +34,13 @@
 namespace station::bench {
 
 namespace {
+
+// Three significant digits (colour errors span 1e-8 .. 1e-1).
+std::string significant(double v) {
+  char buf[32];
+  std::snprintf(buf, sizeof buf, "%.3g", v);
+  return buf;
+}
 
 using Clock = std::chrono::steady_clock;
 
@@ -234,7 +242,7 @@ void run_surface_cases(const Options& options, Report& report) {
     return "mean distance to the reference " + mm(r.a_to_b.mean) + " (" + pct(r.a_to_b.mean / diagonal) +
            " of the diagonal), Chamfer " + mm(r.chamfer) + ", e_col against the texture " +
            (r.color_error ? format_fixed(*r.color_error, 4) : std::string("-")) + ", at the input points " +
-           (ri.color_error ? format_fixed(*ri.color_error, 4) : std::string("-"));
+           (ri.color_error ? significant(*ri.color_error) : std::string("-"));
   };
 
   // ---- the mustard rows: 100k at depth 8, 1M at depth 10 ------------------------
@@ -385,7 +393,7 @@ void run_surface_cases(const Options& options, Report& report) {
     at_input.threads = threads;
     auto e_col = [&](const Mesh& mesh) {
       const EvalResult r = evaluate(mesh, sphere, at_input);
-      return r.color_error ? format_fixed(*r.color_error, 4) : std::string("-");
+      return r.color_error ? significant(*r.color_error) : std::string("-");
     };
     report.note(label + ": r = 5 cm, " + std::to_string(c.points / 1000) +
                 "k points, exact normals, red / blue split by a tilted plane (sharp): colour coordinate t of a "
