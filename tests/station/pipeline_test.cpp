@@ -134,8 +134,18 @@ TEST_F(PipelineTest, OnlyStagesWhoseParametersOrInputsChangedAreRedone) {
   EXPECT_EQ(names(run_pipeline(config({"reconstruct.resolution=48"}), request(out.path(), true))),
             (std::vector<std::string>{"register*", "consolidate", "surface*"}));
   // A registration parameter (fusion of the merge): everything from register on.
-  EXPECT_EQ(names(run_pipeline(config({"reconstruct.resolution=48", "register.fuse=true"}), request(out.path(), true))),
-            (std::vector<std::string>{"register", "consolidate", "surface"}));
+  const RunResult fused = run_pipeline(config({"reconstruct.resolution=48", "register.fuse=true"}), request(out.path(), true));
+  EXPECT_EQ(names(fused), (std::vector<std::string>{"register", "consolidate", "surface"}));
+  // The colour-edge splits (on by default; the bottle's label has colour edges) are a
+  // surface parameter.
+  ASSERT_TRUE(fused.stages[2].figures.count("colour_edges_split"));
+  EXPECT_GT(fused.stages[2].figures.at("colour_edges_split"), 0);
+  const RunResult plain = run_pipeline(
+      config({"reconstruct.resolution=48", "register.fuse=true", "reconstruct.colour_edges=false"}),
+      request(out.path(), true));
+  EXPECT_EQ(names(plain), (std::vector<std::string>{"register*", "consolidate*", "surface"}));
+  EXPECT_EQ(plain.stages[2].figures.count("colour_edges_split"), 0u);
+  EXPECT_LT(plain.stages[2].figures.at("faces"), fused.stages[2].figures.at("faces"));
 }
 
 TEST_F(PipelineTest, AFailedWriteLeavesEarlierOutputsIntact) {
