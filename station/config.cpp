@@ -149,11 +149,14 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
       r.fail("register.fuse_distance", "must be 0..0.1 (metres; 0: the views' point spacing)");
   }
   if (const YAML::Node n = root["consolidate"]) {
-    r.check_keys(n, "consolidate", {"enabled", "method", "points", "ratio", "iterations", "seed"});
+    r.check_keys(n, "consolidate", {"enabled", "method", "points", "ratio", "iterations", "seed", "repulsion"});
     auto& c = p.consolidate;
     if (n["enabled"]) c.enabled = r.boolean(n["enabled"], "consolidate.enabled");
     if (n["method"]) c.method = r.text(n["method"], "consolidate.method");
     if (c.method != "wlop" && c.method != "edge-wlop") r.fail("consolidate.method", "must be wlop or edge-wlop");
+    if (n["repulsion"]) c.repulsion = r.text(n["repulsion"], "consolidate.repulsion");
+    if (c.repulsion != "full" && c.repulsion != "tangential")
+      r.fail("consolidate.repulsion", "must be full or tangential");
     if (n["points"]) {
       const int v = r.integer(n["points"], "consolidate.points");
       if (v < 0) r.fail("consolidate.points", "must not be negative");

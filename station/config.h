@@ -32,6 +32,9 @@ struct PipelineConfig {
     double ratio = 0.2;
     int iterations = 35;
     unsigned seed = 1;
+    /// wlop's repulsion: full (eq. 1 as printed) | tangential (no part along the local
+    /// normal: less drift off the surface; reconstruct/wlop.h WlopRepulsion)
+    std::string repulsion = "full";
   } consolidate;
   struct Reconstruct {
     std::string surface = "mpu";    ///< mpu | sdm

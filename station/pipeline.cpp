@@ -181,7 +181,7 @@ std::string consolidate_params(const PipelineConfig& p) {
   const auto& c = p.consolidate;
   std::ostringstream s;
   s << "consolidate/method=" << c.method << ";points=" << c.points << ";ratio=" << fmt("%.17g", c.ratio)
-    << ";iterations=" << c.iterations << ";seed=" << c.seed;
+    << ";iterations=" << c.iterations << ";seed=" << c.seed << ";repulsion=" << c.repulsion;
   return s.str();
 }
 std::string surface_params(const PipelineConfig& p) {
@@ -529,6 +529,7 @@ class Runner {
     p.ratio = c.ratio;
     p.iterations = c.iterations;
     p.seed = c.seed;
+    p.repulsion = c.repulsion == "tangential" ? WlopRepulsion::kTangential : WlopRepulsion::kFull;
     p.threads = cfg_.threads;
     Progress bar("  consolidate: WLOP iterations", c.iterations, req_.quiet);
     p.progress = [&](int done, int) { bar.update(done); };

@@ -268,11 +268,16 @@ TEST(Profile, OverridesAreValidatedLikeTheFileAndNameTheKey) {
   EXPECT_EQ(g.pipeline.reg.fuse_distance, 0.0005);
   EXPECT_TRUE(registration_params(g.pipeline).fuse);
   EXPECT_TRUE(g.pipeline.reg.global);
+  EXPECT_NE(message("consolidate.repulsion=sideways").find("consolidate.repulsion: must be"), std::string::npos);
+  EXPECT_EQ(load_config(profile, {"consolidate.repulsion=tangential"}).pipeline.consolidate.repulsion, "tangential");
+  EXPECT_FALSE(load_config(profile, {"reconstruct.colour_edges=false"}).pipeline.reconstruct.colour_edges);
   EXPECT_NE(message("resolution").find("expected section.key=value"), std::string::npos);
   // The default profile documents every key it accepts, and loads as is.
   const StationConfig d = load_config(profile);
   EXPECT_EQ(d.pipeline.reconstruct.resolution, 128);
   EXPECT_EQ(d.pipeline.consolidate.points, 20000u);
+  EXPECT_EQ(d.pipeline.consolidate.repulsion, "full");
+  EXPECT_TRUE(d.pipeline.reconstruct.colour_edges);
 }
 
 }  // namespace
