@@ -106,17 +106,22 @@ ColourEdgeStats sharpen_colour_edges(Mesh& mesh, const ColourFunction& f, const 
 
   // New vertices, in edge order (deterministic).
   const bool normals = mesh.has_normals();
-  auto add_vertex = [&](std::size_t u, std::size_t v, double t, const Lab& lab) {
-    const Vec3f p = mesh.vertices[u] + float(t) * (mesh.vertices[v] - mesh.vertices[u]);
+  // Appends a vertex; its normal is `normal` normalised (that of vertex `fallback`
+  // when it is zero).
+  auto append = [&](const Vec3f& p, const Rgb& colour, const Vec3f& normal, std::size_t fallback) {
     mesh.vertices.push_back(p);
-    mesh.colors.push_back(lab_to_rgb(lab));
+    mesh.colors.push_back(colour);
     if (normals) {
-      Vec3f n = (1 - float(t)) * mesh.normals[u] + float(t) * mesh.normals[v];
-      const float len = n.norm();
-      mesh.normals.push_back(len > 0 ? Vec3f(n / len) : mesh.normals[u]);
+      const float len = normal.norm();
+      mesh.normals.push_back(len > 0 ? Vec3f(normal / len) : mesh.normals[fallback]);
     }
     ++stats.new_vertices;
     return int(mesh.vertices.size() - 1);
+  };
+  auto add_vertex = [&](std::size_t u, std::size_t v, double t, const Lab& lab) {
+    const float w = float(t);
+    const Vec3f n = normals ? Vec3f((1 - w) * mesh.normals[u] + w * mesh.normals[v]) : Vec3f::Zero();
+    return append(mesh.vertices[u] + w * (mesh.vertices[v] - mesh.vertices[u]), lab_to_rgb(lab), n, u);
   };
   for (Split& s : splits) {
     if (!s.done) continue;
@@ -216,17 +221,13 @@ ColourEdgeStats sharpen_colour_edges(Mesh& mesh, const ColourFunction& f, const 
       const Vec3f centre = (mesh.vertices[std::size_t(face[0])] + mesh.vertices[std::size_t(face[1])] +
                             mesh.vertices[std::size_t(face[2])]) /
                            3.f;
-      mesh.vertices.push_back(centre);
-      mesh.colors.push_back(f.rgb(centre.cast<double>()));
-      if (normals) {
-        Vec3f nrm = mesh.normals[std::size_t(face[0])] + mesh.normals[std::size_t(face[1])] +
-                    mesh.normals[std::size_t(face[2])];
-        const float len = nrm.norm();
-        mesh.normals.push_back(len > 0 ? Vec3f(nrm / len) : mesh.normals[std::size_t(face[0])]);
-      }
-      ++stats.new_vertices;
+      Vec3f normal_sum = Vec3f::Zero();
+      if (normals)
+        normal_sum = mesh.normals[std::size_t(face[0])] + mesh.normals[std::size_t(face[1])] +
+                     mesh.normals[std::size_t(face[2])];
+      const int middle = append(centre, f.rgb(centre.cast<double>()), normal_sum, std::size_t(face[0]));
       ++stats.three_way_faces;
-      const Corner c{int(mesh.vertices.size() - 1), -1};
+      const Corner c{middle, -1};
       for (int i = 0; i < n; ++i) emit(c, poly[std::size_t(i)], poly[std::size_t((i + 1) % n)]);
     }
   }

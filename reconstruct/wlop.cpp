@@ -8,7 +8,6 @@
 #include <random>
 #include <string>
 
-#include <Eigen/Eigenvalues>
 #include <tbb/blocked_range.h>
 #include <tbb/enumerable_thread_specific.h>
 #include <tbb/parallel_for.h>
@@ -98,43 +97,19 @@ void gather(const RadiusGrid& grid, const Vec3d& q, double h2, Neighbours& nb) {
   });
 }
 
-// The direction of least spread of the grid's points within h of q (unweighted
-// PCA about their mean): WlopRepulsion::kTangential's local normal. Zero when
-// fewer than 3 points are within h.
-Vec3d least_spread(const RadiusGrid& grid, const Vec3d& q, double h2) {
+// WlopRepulsion::kTangential's local normal at q: the PCA normal (core/normals.h)
+// of the grid's points within h of q, as offsets from q in `buffer`. Zero when
+// fewer than 3 are within h.
+Vec3d least_spread(const RadiusGrid& grid, const Vec3d& q, double h2, std::vector<Vec3d>& buffer) {
   const double *xs = grid.xs(), *ys = grid.ys(), *zs = grid.zs();
-  int n = 0;
-  double sx = 0, sy = 0, sz = 0, sxx = 0, sxy = 0, sxz = 0, syy = 0, syz = 0, szz = 0;
+  buffer.clear();
   grid.for_each_run(q, [&](int b, int e) {
     for (int p = b; p < e; ++p) {
-      const double x = xs[p] - q.x(), y = ys[p] - q.y(), z = zs[p] - q.z();
-      if (x * x + y * y + z * z >= h2) continue;
-      ++n;
-      sx += x;
-      sy += y;
-      sz += z;
-      sxx += x * x;
-      sxy += x * y;
-      sxz += x * z;
-      syy += y * y;
-      syz += y * z;
-      szz += z * z;
+      const Vec3d d(xs[p] - q.x(), ys[p] - q.y(), zs[p] - q.z());
+      if (d.squaredNorm() < h2) buffer.push_back(d);
     }
   });
-  if (n < 3) return Vec3d::Zero();
-  const double inv = 1.0 / double(n);
-  const Vec3d m(sx * inv, sy * inv, sz * inv);
-  Eigen::Matrix3d c;
-  c(0, 0) = sxx * inv - m.x() * m.x();
-  c(0, 1) = c(1, 0) = sxy * inv - m.x() * m.y();
-  c(0, 2) = c(2, 0) = sxz * inv - m.x() * m.z();
-  c(1, 1) = syy * inv - m.y() * m.y();
-  c(1, 2) = c(2, 1) = syz * inv - m.y() * m.z();
-  c(2, 2) = szz * inv - m.z() * m.z();
-  Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
-  es.computeDirect(c);
-  const Vec3d nrm = es.eigenvectors().col(0);
-  return nrm.allFinite() ? nrm : Vec3d::Zero();
+  return pca_normal(buffer.data(), int(buffer.size()));
 }
 
 // Growable arrays with RadiusGrid::kPad spare readable entries for vector loops
@@ -150,7 +125,7 @@ struct Padded {
 
 struct Scratch {
   Neighbours input;
-  std::vector<Vec3d> points;  // simple normals' neighbourhood
+  std::vector<Vec3d> points;  // simple normals' neighbourhood; kTangential's PCA neighbourhood
   // Edge variant: per neighbour, its simple normal, v_j and the weight 1/v'; the
   // upsampled, inverted neighbourhood U (eq. 14) as offsets from x'_i, one block of
   // k_h entries per copy (entry k of each block is neighbour k).
@@ -457,7 +432,7 @@ void Consolidator::iterate(bool last) {
           step -= step.dot(axis) * axis;
         // Plain WLOP, kTangential: E2 without its part along the local normal.
         if (!edge && params_.repulsion == WlopRepulsion::kTangential) {
-          const Vec3d nrm = least_spread(x_grid_, q, kernel_.h2);
+          const Vec3d nrm = least_spread(x_grid_, q, kernel_.h2, s.points);
           step -= step.dot(nrm) * nrm;
         }
         next += step;
