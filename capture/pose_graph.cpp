@@ -2,7 +2,9 @@
 
 #include <Eigen/Cholesky>
 #include <Eigen/Geometry>
+#include <algorithm>
 #include <cmath>
+#include <limits>
 #include <string>
 
 #include "core/error.h"
@@ -21,6 +23,39 @@ double edge_cost(const std::vector<Eigen::Matrix4d>& X, const PoseGraphEdge& e) 
   return r.dot(e.information * r);
 }
 
+void check_edges(const std::vector<PoseGraphEdge>& edges, int n) {
+  for (const PoseGraphEdge& e : edges)
+    if (e.from < 0 || e.to < 0 || e.from >= n || e.to >= n || e.from == e.to)
+      throw InvalidInput("pose graph: edge " + std::to_string(e.from) + "-" + std::to_string(e.to) +
+                         " names no pair of distinct nodes among " + std::to_string(n));
+}
+
+void edge_diagnostics(const std::vector<Eigen::Matrix4d>& poses, const std::vector<PoseGraphEdge>& edges,
+                      PoseGraphResult& res) {
+  for (const PoseGraphEdge& e : edges) {
+    const Vector6d r = pose_graph_error(poses[e.from], poses[e.to], e.measurement);
+    res.edge_rotation_deg.push_back(r.head<3>().norm() * 180.0 / M_PI);
+    res.edge_translation.push_back(r.tail<3>().norm());
+  }
+}
+
+/// Rotation by `angle` about the line (p, d), d unit.
+Eigen::Matrix4d line_rotation(const Vec3d& p, const Vec3d& d, double angle) {
+  Eigen::Matrix4d T = Eigen::Matrix4d::Identity();
+  const Eigen::Matrix3d R = Eigen::AngleAxisd(angle, d).toRotationMatrix();
+  T.block<3, 3>(0, 0) = R;
+  T.block<3, 1>(0, 3) = p - R * p;
+  return T;
+}
+
+/// Unknowns of the turntable graph: the line, one angle per table node but the
+/// gauge, a free pose per other node.
+struct TurntableState {
+  Vec3d p, d;
+  std::vector<double> angle;
+  std::vector<Eigen::Matrix4d> free;  // poses of the nodes off the table (others unused)
+};
+
 }  // namespace
 
 Vector6d pose_graph_error(const Eigen::Matrix4d& Xi, const Eigen::Matrix4d& Xj,
@@ -36,10 +71,7 @@ PoseGraphResult optimize_pose_graph(std::vector<Eigen::Matrix4d> poses,
                                     const std::vector<PoseGraphEdge>& edges,
                                     const PoseGraphParams& params) {
   const int n = int(poses.size());
-  for (const PoseGraphEdge& e : edges)
-    if (e.from < 0 || e.to < 0 || e.from >= n || e.to >= n || e.from == e.to)
-      throw InvalidInput("pose graph: edge " + std::to_string(e.from) + "-" + std::to_string(e.to) +
-                         " names no pair of distinct nodes among " + std::to_string(n));
+  check_edges(edges, n);
   PoseGraphResult res;
   const auto total_cost = [&](const std::vector<Eigen::Matrix4d>& X) {
     double c = 0;
@@ -110,12 +142,151 @@ PoseGraphResult optimize_pose_graph(std::vector<Eigen::Matrix4d> poses,
   }
   if (n <= 1) res.converged = true;
   res.final_cost = cost;
-  for (const PoseGraphEdge& e : edges) {
-    const Vector6d r = pose_graph_error(poses[e.from], poses[e.to], e.measurement);
-    res.edge_rotation_deg.push_back(r.head<3>().norm() * 180.0 / M_PI);
-    res.edge_translation.push_back(r.tail<3>().norm());
-  }
+  edge_diagnostics(poses, edges, res);
   res.poses = std::move(poses);
+  return res;
+}
+
+PoseGraphResult optimize_turntable_graph(std::vector<Eigen::Matrix4d> poses,
+                                         const std::vector<PoseGraphEdge>& edges,
+                                         const std::vector<bool>& on_table, const Vec3d& axis_point,
+                                         const Vec3d& axis_direction, const PoseGraphParams& params,
+                                         TurntableGraphModel* model) {
+  const int n = int(poses.size());
+  check_edges(edges, n);
+  const int f = params.fixed_node;
+  if (int(on_table.size()) != n || f < 0 || f >= n || !on_table[f])
+    throw InvalidInput("turntable pose graph: the gauge node " + std::to_string(f) +
+                       " must be one of the nodes on the table (" + std::to_string(on_table.size()) +
+                       " flags for " + std::to_string(n) + " nodes)");
+  if (!axis_point.allFinite() || !axis_direction.allFinite() || axis_direction.norm() == 0)
+    throw InvalidInput("turntable pose graph: the starting axis is not a line");
+  const Eigen::Matrix4d Xf = poses[f];
+  const Eigen::Matrix4d Xf_inv = rigid_inverse(Xf);
+
+  // Unknown layout: [0, 4) the line (two tilts of d, two shifts of p across d),
+  // then one angle per table node but the gauge, then 6 per other node.
+  std::vector<int> index(n, -1);
+  int dim = 4;
+  for (int i = 0; i < n; ++i)
+    if (on_table[i] && i != f) index[i] = dim++;
+  for (int i = 0; i < n; ++i)
+    if (!on_table[i]) {
+      index[i] = dim;
+      dim += 6;
+    }
+
+  TurntableState s;
+  s.d = axis_direction.normalized();
+  s.p = axis_point;
+  s.angle.assign(n, 0.0);
+  s.free = poses;
+  for (int i = 0; i < n; ++i)
+    if (on_table[i] && i != f) {
+      const Eigen::AngleAxisd aa(Eigen::Matrix3d((Xf_inv * poses[i]).block<3, 3>(0, 0)));
+      s.angle[i] = aa.angle() * (aa.axis().dot(s.d) >= 0 ? 1.0 : -1.0);
+    }
+  const auto pose = [&](const TurntableState& st, int i) -> Eigen::Matrix4d {
+    if (!on_table[i]) return st.free[i];
+    return Xf * line_rotation(st.p, st.d, st.angle[i]);
+  };
+  // Applies step x (full or one unknown) to a state.
+  const auto apply = [&](const TurntableState& st, const Eigen::VectorXd& x) {
+    TurntableState out = st;
+    const Vec3d u1 = st.d.unitOrthogonal(), u2 = st.d.cross(u1);
+    out.d = (st.d + x(0) * u1 + x(1) * u2).normalized();
+    out.p = st.p + x(2) * u1 + x(3) * u2;
+    for (int i = 0; i < n; ++i) {
+      if (index[i] < 0) continue;
+      if (on_table[i])
+        out.angle[i] += x(index[i]);
+      else
+        out.free[i] = motion_exp(x.segment<6>(index[i])) * st.free[i];
+    }
+    return out;
+  };
+  const auto total_cost = [&](const TurntableState& st) {
+    double c = 0;
+    for (const PoseGraphEdge& e : edges) {
+      const Vector6d r = pose_graph_error(pose(st, e.from), pose(st, e.to), e.measurement);
+      c += r.dot(e.information * r);
+    }
+    return c;
+  };
+
+  PoseGraphResult res;
+  res.initial_cost = total_cost(s);
+  double cost = res.initial_cost;
+  const double h = 1e-6;
+  std::vector<int> unknowns;
+  for (int it = 0; it < params.max_iterations; ++it) {
+    Eigen::MatrixXd H = Eigen::MatrixXd::Zero(dim, dim);
+    Eigen::VectorXd g = Eigen::VectorXd::Zero(dim);
+    for (const PoseGraphEdge& e : edges) {
+      // The unknowns this edge depends on: the line and the ends' angles, or
+      // the ends' free poses.
+      unknowns.clear();
+      bool line = false;
+      for (int node : {e.from, e.to}) {
+        if (on_table[node]) line = true;
+        if (index[node] < 0) continue;
+        const int count = on_table[node] ? 1 : 6;
+        for (int k = 0; k < count; ++k) unknowns.push_back(index[node] + k);
+      }
+      if (line)
+        for (int k = 0; k < 4; ++k) unknowns.push_back(k);
+      const Vector6d r = pose_graph_error(pose(s, e.from), pose(s, e.to), e.measurement);
+      Eigen::MatrixXd J(6, unknowns.size());
+      Eigen::VectorXd x = Eigen::VectorXd::Zero(dim);
+      for (std::size_t c = 0; c < unknowns.size(); ++c) {
+        x(unknowns[c]) = h;
+        const TurntableState sp = apply(s, x);
+        x(unknowns[c]) = -h;
+        const TurntableState sm = apply(s, x);
+        x(unknowns[c]) = 0;
+        J.col(c) = (pose_graph_error(pose(sp, e.from), pose(sp, e.to), e.measurement) -
+                    pose_graph_error(pose(sm, e.from), pose(sm, e.to), e.measurement)) /
+                   (2 * h);
+      }
+      const Eigen::MatrixXd JtO = J.transpose() * e.information;
+      const Eigen::MatrixXd Hl = JtO * J;
+      const Eigen::VectorXd gl = JtO * r;
+      for (std::size_t a = 0; a < unknowns.size(); ++a) {
+        g(unknowns[a]) += gl(a);
+        for (std::size_t b = 0; b < unknowns.size(); ++b) H(unknowns[a], unknowns[b]) += Hl(a, b);
+      }
+    }
+    // Unknowns no edge reaches stay where they are (as in optimize_pose_graph).
+    const double ridge = 1e-12 * (H.trace() / dim + 1.0);
+    for (int i = 0; i < dim; ++i) H(i, i) += (H(i, i) == 0 ? 1.0 : ridge);
+    const Eigen::VectorXd dx = H.ldlt().solve(-g);
+    if (!dx.allFinite()) break;
+    const TurntableState next = apply(s, dx);
+    const double next_cost = total_cost(next);
+    res.iterations = it + 1;
+    if (next_cost > cost * (1 + 1e-12) + 1e-300) {
+      res.converged = true;
+      break;
+    }
+    s = next;
+    cost = next_cost;
+    if (dx.cwiseAbs().maxCoeff() < params.tolerance) {
+      res.converged = true;
+      break;
+    }
+  }
+  res.final_cost = cost;
+  for (int i = 0; i < n; ++i) poses[i] = pose(s, i);
+  edge_diagnostics(poses, edges, res);
+  res.poses = std::move(poses);
+  if (model) {
+    model->direction = s.d;
+    // The point nearest the gauge view's scanner origin, as fit_turntable_axis does.
+    model->point = s.p - s.d * s.d.dot(s.p);
+    model->angles_rad.assign(n, std::numeric_limits<double>::quiet_NaN());
+    for (int i = 0; i < n; ++i)
+      if (on_table[i]) model->angles_rad[i] = s.angle[i];
+  }
   return res;
 }
 

@@ -52,6 +52,32 @@ PoseGraphResult optimize_pose_graph(std::vector<Eigen::Matrix4d> poses,
                                     const std::vector<PoseGraphEdge>& edges,
                                     const PoseGraphParams& params = {});
 
+/// The turntable line and angles found by optimize_turntable_graph.
+struct TurntableGraphModel {
+  Vec3d point = Vec3d::Zero();      ///< on the axis, scanner frame
+  Vec3d direction = Vec3d::UnitY(); ///< unit
+  /// Per node: rotation about `direction` (radians, right-handed) taking the
+  /// gauge node's scanner frame to the node's, i.e. X_f^-1 X_i = Rot(line,
+  /// angle_i); 0 for the gauge, NaN for nodes off the table.
+  std::vector<double> angles_rad;
+};
+
+/// The same cost as optimize_pose_graph, with the nodes flagged `on_table`
+/// constrained to a rigid turntable: X_i = X_f Rot(L, phi_i), X_f the gauge
+/// node's pose (held), L one line in the scanner frame (4 unknowns) and one
+/// angle per node. Every view of a turntable session sees the object turned
+/// about the same line by a fixed scanner, so this is exact for a rigid table;
+/// it leaves 4 + (n - 1) unknowns instead of 6 (n - 1), so a view cannot slide
+/// along a face its pairs barely hold. Nodes not on the table keep 6 free
+/// unknowns. `axis_point` / `axis_direction`: the starting line (scanner
+/// frame); the angles start from the poses. InvalidInput if the gauge node is
+/// not on the table, on bad edges or a zero direction.
+PoseGraphResult optimize_turntable_graph(std::vector<Eigen::Matrix4d> poses,
+                                         const std::vector<PoseGraphEdge>& edges,
+                                         const std::vector<bool>& on_table, const Vec3d& axis_point,
+                                         const Vec3d& axis_direction, const PoseGraphParams& params = {},
+                                         TurntableGraphModel* model = nullptr);
+
 /// e = (log R, t) of X_i^-1 X_j Z^-1 (the edge error above).
 Vector6d pose_graph_error(const Eigen::Matrix4d& Xi, const Eigen::Matrix4d& Xj,
                           const Eigen::Matrix4d& Z);

@@ -33,6 +33,22 @@ const char* to_string(InitialPoseSource s) {
   return "none";
 }
 
+const char* to_string(RigidTurntable r) {
+  switch (r) {
+    case RigidTurntable::kOff: return "off";
+    case RigidTurntable::kOn: return "on";
+    case RigidTurntable::kAuto: return "auto";
+  }
+  return "auto";
+}
+
+RigidTurntable parse_rigid_turntable(const std::string& name) {
+  if (name == "off") return RigidTurntable::kOff;
+  if (name == "on") return RigidTurntable::kOn;
+  if (name == "auto") return RigidTurntable::kAuto;
+  throw InvalidInput("rigid turntable: '" + name + "' is not off, on or auto");
+}
+
 std::pair<double, double> relative_pose_error(const Eigen::Matrix4d& A0, const Eigen::Matrix4d& A,
                                               const Eigen::Matrix4d& B0, const Eigen::Matrix4d& B) {
   const Eigen::Matrix4d ra = rigid_inverse(A0) * A;
@@ -54,6 +70,23 @@ double median_of(std::vector<double> v) {
   std::sort(v.begin(), v.end());
   const std::size_t n = v.size();
   return n % 2 ? v[n / 2] : 0.5 * (v[n / 2 - 1] + v[n / 2]);
+}
+
+/// For poses without commanded angles: each pose's rotation from the first,
+/// signed about the direction most of those rotations share (degrees, the
+/// commanded-angle convention: X_0^-1 X_i turns by -angle_i about it).
+std::vector<double> angles_about_common_axis(const std::vector<Eigen::Matrix4d>& poses) {
+  std::vector<Vec3d> w;
+  Eigen::Matrix3d S = Eigen::Matrix3d::Zero();
+  for (const Eigen::Matrix4d& X : poses) {
+    const Eigen::AngleAxisd aa(Eigen::Matrix3d((rigid_inverse(poses.front()) * X).block<3, 3>(0, 0)));
+    w.push_back(aa.axis() * aa.angle());
+    S += w.back() * w.back().transpose();
+  }
+  const Vec3d d = Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>(S).eigenvectors().col(2);
+  std::vector<double> angles;
+  for (const Vec3d& v : w) angles.push_back(-v.dot(d) * 180.0 / M_PI);
+  return angles;
 }
 
 Eigen::Matrix3d skew(const Vec3d& a) {
@@ -641,7 +674,54 @@ class Registrar {
       }
       PoseGraphParams gp;
       gp.fixed_node = r.front();
-      PoseGraphResult g = optimize_pose_graph(res_.poses, edges, gp);
+      // The rigid turntable over the views with an angle (its gauge one of them).
+      std::vector<bool> on_table(m_.views.size(), false);
+      int table_views = 0;
+      // A session without any angle (clouds only) is taken as one turntable
+      // ring too: kAuto then keeps the rigid poses only if they fit.
+      const bool no_angles = std::none_of(r.begin(), r.end(), [&](int i) { return has_angle(i); });
+      if (p_.rigid_turntable != RigidTurntable::kOff)
+        for (int i : r)
+          if ((has_angle(i) || no_angles) && !res_.views[i].angle_rejected &&
+              std::find(off_table_.begin(), off_table_.end(), i) == off_table_.end()) {
+            on_table[i] = true;
+            if (table_views++ == 0) gp.fixed_node = i;
+          }
+      const auto solve = [&](const std::vector<PoseGraphEdge>& es) {
+        PoseGraphResult free_graph = optimize_pose_graph(res_.poses, es, gp);
+        rigid_rejected_ = rigid_used_ = false;
+        if (table_views < 3) return free_graph;
+        // The rigid solve starts from the free solution and the axis that
+        // best explains it (or the session's / estimated axis).
+        std::vector<Eigen::Matrix4d> table_poses;
+        std::vector<double> table_angles;
+        for (int i : r)
+          if (on_table[i]) {
+            table_poses.push_back(free_graph.poses[i]);
+            table_angles.push_back(has_angle(i) ? *m_.views[i].angle_deg : 0.0);
+          }
+        if (no_angles) table_angles = angles_about_common_axis(table_poses);
+        const AxisFitResult fit = calibrate_axis(table_poses, table_angles);
+        std::optional<TurntableAxis> start = fit.ok ? std::optional<TurntableAxis>(fit.axis) : res_.axis;
+        if (!start) return free_graph;
+        PoseGraphResult rigid =
+            optimize_turntable_graph(free_graph.poses, es, on_table, start->point, start->direction, gp);
+        double dev_deg = 0, dev = 0;
+        for (int i : r) {
+          if (!on_table[i]) continue;
+          const Eigen::Matrix4d a = rigid_inverse(free_graph.poses[gp.fixed_node]) * free_graph.poses[i];
+          const Eigen::Matrix4d b = rigid_inverse(rigid.poses[gp.fixed_node]) * rigid.poses[i];
+          dev_deg = std::max(dev_deg, rotation_angle_deg(rigid_inverse(a) * b));
+          dev = std::max(dev, ((a - b) * centroid(views_[i].points).homogeneous()).norm());
+        }
+        res_.rigid_deviation_deg = dev_deg;
+        res_.rigid_deviation = dev;
+        rigid_rejected_ = p_.rigid_turntable == RigidTurntable::kAuto &&
+                          !(dev_deg <= p_.rigid_max_deviation_deg && dev <= p_.rigid_max_deviation_rel * diag_);
+        rigid_used_ = !rigid_rejected_;
+        return rigid_rejected_ ? free_graph : rigid;
+      };
+      PoseGraphResult g = solve(edges);
       // Edges the optimised graph disagrees with strongly are wrong matches
       // (a symmetric part aligned the wrong way): drop them and solve again.
       std::vector<PoseGraphEdge> kept;
@@ -659,8 +739,9 @@ class Registrar {
         kept.push_back(edges[e]);
         kept_pair.push_back(edge_pair[e]);
       }
-      if (kept.size() != edges.size()) g = optimize_pose_graph(res_.poses, kept, gp);
+      if (kept.size() != edges.size()) g = solve(kept);
       res_.poses = g.poses;
+      res_.rigid_turntable = rigid_used_;
       for (std::size_t e = 0; e < kept.size(); ++e) {
         if (kept_pair[e] < 0) continue;
         PairDiagnostics& pd = res_.pairs[first_diag + kept_pair[e]];
@@ -669,6 +750,14 @@ class Registrar {
         has_edge[kept[e].from] = has_edge[kept[e].to] = true;
       }
       report("pose graph", round + 1, p_.rounds);
+    }
+    if (rigid_rejected_) {
+      std::ostringstream w;
+      w.precision(3);
+      w << "the views do not fit one rigid turntable (the rigid solution moves a view " << res_.rigid_deviation_deg
+        << " deg / " << 1000 * res_.rigid_deviation
+        << " mm from the free one: did the object shift on the table?); the free poses are used";
+      res_.warnings.push_back(w.str());
     }
     for (const PairDiagnostics& pd : res_.pairs)
       if (pd.degenerate && pd.round == p_.rounds - 1) res_.degenerate = true;
@@ -796,6 +885,8 @@ class Registrar {
   std::vector<PreparedView> views_;
   std::vector<std::unique_ptr<FeatureView>> feats_;
   std::vector<int> off_table_;  // posed by global registration against the model
+  bool rigid_rejected_ = false;  // kAuto kept the free poses in the last solve
+  bool rigid_used_ = false;      // the last solve's poses are the rigid ones
   std::vector<bool> usable_;
   double diag_ = 0;
 };

@@ -50,6 +50,12 @@ enum class InitialPoseSource {
 };
 const char* to_string(InitialPoseSource s);
 
+/// How the pose graph treats the views on the turntable (RegistrationParams).
+enum class RigidTurntable { kOff, kOn, kAuto };
+const char* to_string(RigidTurntable r);
+/// "off", "on" or "auto"; InvalidInput otherwise.
+RigidTurntable parse_rigid_turntable(const std::string& name);
+
 struct RegistrationParams {
   /// IcpParams with the registration's choices: coarse iterations on every
   /// 4th source point (the dragon's poses unchanged to 1e-4 degree, the
@@ -89,6 +95,17 @@ struct RegistrationParams {
   bool turntable_prior = true;
   double prior_angle_sigma_deg = 2.0;        ///< trust in the commanded angles
   double prior_translation_sigma_rel = 0.02; ///< trust in the axis position
+  /// Hold the views with a commanded angle on one rigid turntable in the
+  /// pose-graph solves (capture/pose_graph.h optimize_turntable_graph: X_i =
+  /// X_0 Rot(axis, phi_i), the axis and the angles unknown), so a view cannot
+  /// slide along a face its pairs barely hold. Views without an angle, and
+  /// those whose angle was found wrong, stay free. kAuto solves both ways and
+  /// keeps the rigid poses only when no view moves further from the free ones
+  /// than the tolerances below (an object that shifted on the table between
+  /// views, or a wobbling table, fails that and is warned about).
+  RigidTurntable rigid_turntable = RigidTurntable::kAuto;
+  double rigid_max_deviation_deg = 0.75;  ///< kAuto: largest rotation from the free poses
+  double rigid_max_deviation_rel = 0.01;  ///< kAuto: largest shift at the object, relative to the session size
   /// A pair is degenerate when the smallest eigenvalue of its (scale-normalised)
   /// ICP Hessian is below this fraction of the largest.
   double degeneracy_ratio = 2e-3;
@@ -180,6 +197,14 @@ struct RegistrationResult {
   std::vector<int> failed_views;
   std::optional<TurntableAxis> axis;    ///< the session's or the estimated one
   std::optional<AxisFitResult> axis_fit;  ///< when the axis was estimated
+  /// The last round's poses of the turntable views lie on one rigid turntable
+  /// (RegistrationParams::rigid_turntable).
+  bool rigid_turntable = false;
+  /// Largest difference between the rigid and the free solution over the
+  /// turntable views, last round (when both were solved): degrees, and metres
+  /// at the view's centroid.
+  double rigid_deviation_deg = 0;
+  double rigid_deviation = 0;
   bool degenerate = false;              ///< some pair is degenerate about the axis
   std::string degeneracy_message;
   /// Things the caller should show (a wrong commanded angle, ...), each naming the view.

@@ -597,6 +597,10 @@ JsonObject registration_json(const RegistrationResult& r) {
   j.add("views", r.views.size()).add("failed_views", r.failed_views.size()).add("degenerate", r.degenerate);
   j.add("warnings", r.warnings);
   j.add("pair_rmse_m", r.mean_pair_rmse);
+  j.add("rigid_turntable", JsonObject()
+                               .add("used", r.rigid_turntable)
+                               .add("deviation_deg", r.rigid_deviation_deg)
+                               .add("deviation_m", r.rigid_deviation));
   if (r.fuse_distance > 0)
     j.add("fuse", JsonObject()
                       .add("distance_m", r.fuse_distance)
@@ -676,6 +680,9 @@ void print_registration(const RegistrationResult& r) {
   if (r.views_with_reference > 0)
     std::printf("  translation at the object (each view's centroid): max %.3f mm, median %.3f mm\n",
                 r.max_object_translation_error * 1000, r.median_object_translation_error * 1000);
+  if (r.rigid_turntable)
+    std::printf("rigid turntable: the views lie on one axis (at most %.3f deg / %.3f mm from the free poses)\n",
+                r.rigid_deviation_deg, r.rigid_deviation * 1000);
   if (!r.pair_residuals.empty()) {
     std::printf("pair residual (RMS point-to-plane over %zu refined pairs): %.4f mm",
                 r.pair_residuals.size(), r.mean_pair_rmse * 1000);
@@ -691,7 +698,7 @@ void print_registration(const RegistrationResult& r) {
 }
 
 struct RegisterArgs {
-  std::string session, out, poses_out, objective;
+  std::string session, out, poses_out, objective, rigid_turntable;
   bool no_global = false, no_angle_check = false, fuse = false;
 };
 
@@ -701,6 +708,7 @@ int cmd_register(const Common& c, const RegisterArgs& a) {
   if (a.no_global) overrides.push_back("register.global=false");
   if (a.no_angle_check) overrides.push_back("register.check_angles=false");
   if (a.fuse) overrides.push_back("register.fuse=true");
+  if (!a.rigid_turntable.empty()) overrides.push_back("register.rigid_turntable=" + a.rigid_turntable);
   StationConfig cfg = load_common(c, overrides);
   auto threads = limit_threads(cfg.threads);
   const std::string& session_dir = a.session;
@@ -1252,6 +1260,10 @@ int run_cli(int argc, char** argv) {
   reg->add_flag("--no-global", reg_args.no_global,
                 "no global registration by features: views without an angle or pose fail");
   reg->add_flag("--no-angle-check", reg_args.no_angle_check, "trust the commanded turntable angles");
+  reg->add_option("--rigid-turntable", reg_args.rigid_turntable,
+                  "hold the views on one rigid turntable axis: auto (when it fits the free poses), on, off "
+                  "(profile register.rigid_turntable; default auto)")
+      ->check(CLI::IsMember({"auto", "on", "off"}));
   reg->add_flag("--fuse", reg_args.fuse,
                 "average overlapping points of different views in the merge (profile register.fuse, "
                 "register.fuse_distance; default off)");

@@ -22,6 +22,9 @@ struct PipelineConfig {
     std::string objective = "point-to-plane";
     bool global = true;         ///< global registration (FPFH + RANSAC) for views without a pose
     bool check_angles = true;   ///< detect wrong commanded angles and recover them globally
+    /// Views with an angle on one rigid turntable in the pose graph: auto (kept
+    /// when it fits the free solution), on, off (capture/registration.h).
+    std::string rigid_turntable = "auto";
     bool fuse = false;          ///< average overlapping points of different views in the merge
     double fuse_distance = 0;   ///< metres; 0: the views' median point spacing
   } reg;

@@ -174,7 +174,8 @@ std::string register_params(const PipelineConfig& p) {
   s << "register/neighbors=" << p.reg.neighbors << ";rounds=" << p.reg.rounds
     << ";loop=" << p.reg.loop_closure << ";voxel=" << fmt("%.17g", p.reg.voxel_rel)
     << ";objective=" << p.reg.objective << ";global=" << p.reg.global << ";check_angles=" << p.reg.check_angles
-    << ";fuse=" << p.reg.fuse << ";fuse_distance=" << fmt("%.17g", p.reg.fuse_distance);
+    << ";fuse=" << p.reg.fuse << ";fuse_distance=" << fmt("%.17g", p.reg.fuse_distance)
+    << ";rigid_turntable=" << p.reg.rigid_turntable;
   return s.str();
 }
 std::string consolidate_params(const PipelineConfig& p) {
@@ -701,6 +702,7 @@ RegistrationParams registration_params(const PipelineConfig& p) {
   r.voxel_rel = p.reg.voxel_rel;
   r.global_registration = p.reg.global;
   r.check_angles = p.reg.check_angles;
+  r.rigid_turntable = parse_rigid_turntable(p.reg.rigid_turntable);
   r.fuse = p.reg.fuse;
   r.fuse_distance = p.reg.fuse_distance;
   IcpObjective o = IcpObjective::kPointToPlane;

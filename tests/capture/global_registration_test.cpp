@@ -107,7 +107,8 @@ TEST(GlobalRegistration, DragonFromCloudsAlone) {
   const RegistrationResult r = register_views(clouds, m);
   print(r, std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
   // Issue #3: at least 13 of 15 views at the angle + no-axis accuracy (the
-  // existing dragon test: 0.7 deg / 3 mm with margin), the rest flagged.
+  // dragon test of registration_test.cpp: 0.5 deg / 2.3 mm), the rest flagged.
+  // Without angles the ring is still tried as one rigid turntable, and fits.
   int good = 0;
   for (std::size_t i = 0; i < r.views.size(); ++i) {
     const ViewDiagnostics& v = r.views[i];
@@ -116,9 +117,10 @@ TEST(GlobalRegistration, DragonFromCloudsAlone) {
       continue;
     }
     EXPECT_EQ(v.initial, InitialPoseSource::kGlobal);
-    if (v.rotation_error_deg && *v.rotation_error_deg < 0.7 && *v.translation_error < 0.003) ++good;
+    if (v.rotation_error_deg && *v.rotation_error_deg < 0.5 && *v.translation_error < 0.0023) ++good;
   }
   EXPECT_GE(good, 13);
+  EXPECT_TRUE(r.rigid_turntable);
   EXPECT_FALSE(r.axis.has_value());
 }
 
@@ -150,8 +152,10 @@ TEST(GlobalRegistration, WrongAngleAndViewWithoutAngle) {
       EXPECT_FALSE(r.views[i].angle_rejected) << i;
     }
   ASSERT_EQ(r.views_with_reference, 15);
-  EXPECT_LT(r.max_rotation_error_deg, 0.7);
-  EXPECT_LT(r.max_translation_error, 0.003);
+  // Views 7 and 10 are free in the pose graph, the 13 others on the rigid table.
+  EXPECT_TRUE(r.rigid_turntable);
+  EXPECT_LT(r.max_rotation_error_deg, 0.5);
+  EXPECT_LT(r.max_translation_error, 0.0023);
 }
 
 }  // namespace

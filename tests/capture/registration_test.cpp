@@ -55,18 +55,25 @@ TEST(Registration, DragonWithAnglesButNoAxisMatchesStanford) {
   RecordProperty("median_rotation_error_deg", std::to_string(r.median_rotation_error_deg));
   RecordProperty("max_translation_error_m", std::to_string(r.max_translation_error));
   // The target is 0.5 deg / 1 mm for every view and a 0.25 deg median.
-  // Reached (docs/registration.md): about 0.60 deg / 2.6 mm max, 0.27 deg / 1.7 mm median;
-  // the residual is a 0.25 deg tilt and 1.2 mm shift of the turntable axis
-  // against Stanford's alignment, consistent over all pairs. Asserted here is
-  // what we reach, with a small margin, so a regression fails.
-  EXPECT_LT(r.max_rotation_error_deg, 0.7);
-  EXPECT_LT(r.median_rotation_error_deg, 0.4);
-  EXPECT_LT(r.max_translation_error, 0.003);
-  EXPECT_LT(r.median_translation_error, 0.002);
+  // Reached with the rigid turntable (docs/registration.md): 0.32 deg / 2.0 mm
+  // max, 0.19 deg / 1.5 mm median (free poses: 0.60 deg / 2.6 mm, 0.27 deg):
+  // the rotation targets are met, the translation one is not; what is left is
+  // a 1 mm shift in depth of the turntable axis against the axis of Stanford's
+  // poses, consistent over all pairs. Asserted: the rotation targets, and the
+  // translation we reach with a small margin, so a regression fails.
+  EXPECT_TRUE(r.rigid_turntable);
+  EXPECT_LT(r.rigid_deviation_deg, 0.5);
+  EXPECT_LT(r.max_rotation_error_deg, 0.5);
+  EXPECT_LT(r.median_rotation_error_deg, 0.25);
+  EXPECT_LT(r.max_translation_error, 0.0023);
+  EXPECT_LT(r.median_translation_error, 0.0017);
   // Every pair of the last round converged, and the axis found is vertical
   // in the scanner frame (the Cyberware's turntable turns about y).
-  for (const PairDiagnostics& p : r.pairs)
-    if (p.round == 2) EXPECT_TRUE(p.converged) << p.from << "-" << p.to << ": " << p.message;
+  for (const PairDiagnostics& p : r.pairs) {
+    if (p.round == 2) {
+      EXPECT_TRUE(p.converged) << p.from << "-" << p.to << ": " << p.message;
+    }
+  }
   EXPECT_GT(std::abs(r.axis->direction.normalized().y()), 0.999);
   EXPECT_FALSE(r.degenerate);
   EXPECT_GT(r.merged.size(), 50000u);

@@ -213,12 +213,21 @@ TEST(Cli, DragonImportsAndReplaysLikeALiveScanner) {
   EXPECT_NEAR(std::acos((R.trace() - 1) / 2) * 180 / M_PI, 24.0, 0.5);
 
   // Registration with the angles but not the axis, measured against Stanford's poses
-  // (docs/registration.md: the 0.5 degree target is not reached yet).
+  // (docs/registration.md): the views held on one rigid turntable reach the issue's
+  // rotation targets (0.5 degree, median 0.25); free poses do not.
   const std::string merged = (dir / "merged.ply").string(), poses = (dir / "poses.yaml").string();
   r = run("register " + session + " -o " + merged + " --poses-out " + poses + " --json");
   ASSERT_EQ(r.code, 0) << r.out;
-  EXPECT_LT(json_number(r.out, "max_rotation_deg"), 0.7) << r.out;
-  EXPECT_LT(json_number(r.out, "median_rotation_deg"), 0.4) << r.out;
+  EXPECT_LT(json_number(r.out, "max_rotation_deg"), 0.5) << r.out;
+  EXPECT_LT(json_number(r.out, "median_rotation_deg"), 0.25) << r.out;
+  EXPECT_NE(r.out.find("\"rigid_turntable\":{\"used\":true"), std::string::npos) << r.out;
+  CmdResult free_poses = run("register " + session + " -o " + merged + " --rigid-turntable off --json");
+  ASSERT_EQ(free_poses.code, 0) << free_poses.out;
+  EXPECT_NE(free_poses.out.find("\"rigid_turntable\":{\"used\":false"), std::string::npos) << free_poses.out;
+  EXPECT_GT(json_number(free_poses.out, "max_rotation_deg"), 0.5) << free_poses.out;
+  EXPECT_EQ(run("register " + session + " -o " + merged + " --rigid-turntable sideways").code, 2);
+  r = run("register " + session + " -o " + merged + " --poses-out " + poses + " --json");
+  ASSERT_EQ(r.code, 0) << r.out;
   EXPECT_NE(r.out.find("\"14-0\":{\"converged\":true"), std::string::npos) << r.out;  // loop closure
   EXPECT_GT(read_cloud(merged).size(), 80000u);
   EXPECT_NE(read_file_bytes(poses).find("view_014.ply"), std::string::npos);
@@ -253,7 +262,7 @@ TEST(Cli, DragonImportsAndReplaysLikeALiveScanner) {
   EXPECT_NE(r.out.find("\"7\":{\"registered\":true,\"initial\":\"global_features\""), std::string::npos) << r.out;
   EXPECT_NE(r.out.find("\"angle_rejected\":true"), std::string::npos) << r.out;
   EXPECT_NE(r.out.find("views[7]"), std::string::npos) << r.out;
-  EXPECT_LT(json_number(r.out, "max_rotation_deg"), 0.7) << r.out;
+  EXPECT_LT(json_number(r.out, "max_rotation_deg"), 0.5) << r.out;
   r = run("register " + session + " -o " + merged + " --no-angle-check --no-global --json");
   EXPECT_EQ(r.out.find("\"angle_rejected\":true"), std::string::npos) << r.out;
   EXPECT_NE(r.out.find("\"warnings\":[]"), std::string::npos) << r.out;

@@ -260,6 +260,11 @@ TEST(Profile, OverridesAreValidatedLikeTheFileAndNameTheKey) {
   EXPECT_NE(message("register.objective=sideways").find("register.objective: must be"), std::string::npos);
   EXPECT_NE(message("register.global=perhaps").find("register.global"), std::string::npos);
   EXPECT_NE(message("register.fuse_distance=-1").find("register.fuse_distance: must be"), std::string::npos);
+  EXPECT_NE(message("register.rigid_turntable=maybe").find("register.rigid_turntable: must be auto, on or off"),
+            std::string::npos);
+  EXPECT_EQ(registration_params(load_config(profile, {"register.rigid_turntable=off"}).pipeline).rigid_turntable,
+            RigidTurntable::kOff);
+  EXPECT_EQ(registration_params(load_config(profile, {}).pipeline).rigid_turntable, RigidTurntable::kAuto);
   const StationConfig g = load_config(profile, {"register.objective=generalized", "register.check_angles=false",
                                                 "register.fuse=true", "register.fuse_distance=0.0005"});
   EXPECT_EQ(g.pipeline.reg.objective, "generalized");
