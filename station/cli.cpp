@@ -741,7 +741,12 @@ int cmd_calibrate_turntable(const Common& c, const std::string& session_dir, con
   auto threads = limit_threads(cfg.threads);
   const Session session = Session::open(session_dir);
   const SessionManifest& m = session.manifest();
-  const RegistrationResult r = register_with_progress(session, registration_params(cfg.pipeline), c.json);
+  // The axis is fitted to free poses: on poses held on one rigid turntable the
+  // tilt and translation residuals would be zero by construction, and they are
+  // what tells a wobbling table or a shifting object.
+  RegistrationParams rp = registration_params(cfg.pipeline);
+  rp.rigid_turntable = RigidTurntable::kOff;
+  const RegistrationResult r = register_with_progress(session, rp, c.json);
   std::vector<Eigen::Matrix4d> poses;
   std::vector<double> angles;
   for (std::size_t i = 0; i < m.views.size(); ++i) {
