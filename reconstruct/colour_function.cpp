@@ -10,6 +10,8 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <limits>
+#include <optional>
 #include <string>
 
 #include "core/error.h"
@@ -324,6 +326,7 @@ struct CellResult {
   bool rejected_b = false;
   bool fallback_a = false;
   int constant_clusters = 0;
+  int linear_boundaries = 0;
   Leaf leaf;
   double radius = 0;
 };
@@ -446,6 +449,78 @@ bool solve_rbf(const Leaf& leaf, const std::vector<int>& ids, const Eigen::Matri
   return true;
 }
 
+// Convex hull (counter-clockwise, no collinear points) of 2-D points; 1 or 2 points for
+// degenerate sets.
+std::vector<Eigen::Vector2d> convex_hull(std::vector<Eigen::Vector2d> p) {
+  std::sort(p.begin(), p.end(), [](const Eigen::Vector2d& x, const Eigen::Vector2d& y) {
+    return x.x() < y.x() || (x.x() == y.x() && x.y() < y.y());
+  });
+  p.erase(std::unique(p.begin(), p.end()), p.end());
+  if (p.size() < 3) return p;
+  const auto cross = [](const Eigen::Vector2d& o, const Eigen::Vector2d& a, const Eigen::Vector2d& b) {
+    return (a.x() - o.x()) * (b.y() - o.y()) - (a.y() - o.y()) * (b.x() - o.x());
+  };
+  std::vector<Eigen::Vector2d> h(2 * p.size());
+  std::size_t k = 0;
+  for (std::size_t i = 0; i < p.size(); ++i) {
+    while (k >= 2 && cross(h[k - 2], h[k - 1], p[i]) <= 0) --k;
+    h[k++] = p[i];
+  }
+  for (std::size_t i = p.size() - 1, t = k + 1; i-- > 0;) {
+    while (k >= t && cross(h[k - 2], h[k - 1], p[i]) <= 0) --k;
+    h[k++] = p[i];
+  }
+  h.resize(k - 1);
+  return h;
+}
+
+// Closest point to q on segment [a, b].
+Eigen::Vector2d closest_on_segment(const Eigen::Vector2d& q, const Eigen::Vector2d& a, const Eigen::Vector2d& b) {
+  const Eigen::Vector2d ab = b - a;
+  const double l2 = ab.squaredNorm();
+  const double t = l2 > 0 ? std::clamp((q - a).dot(ab) / l2, 0.0, 1.0) : 0.0;
+  return a + t * ab;
+}
+
+// The max-margin line between two point sets in the plane, as b(a, b) = q0 + q1 a + q2 b
+// with b = +1 / -1 at the margin on the side of `pos` / `neg`: the perpendicular bisector
+// of the closest points of their convex hulls. Empty when some point is not strictly on
+// its side (the sets are not separable by a line).
+std::optional<Eigen::Vector3d> max_margin_line(const std::vector<Eigen::Vector2d>& pos,
+                                               const std::vector<Eigen::Vector2d>& neg) {
+  if (pos.empty() || neg.empty()) return std::nullopt;
+  const std::vector<Eigen::Vector2d> hp = convex_hull(pos), hn = convex_hull(neg);
+  double best = std::numeric_limits<double>::infinity();
+  Eigen::Vector2d bp = Eigen::Vector2d::Zero(), bn = Eigen::Vector2d::Zero();
+  // For disjoint convex polygons the closest pair has a vertex of one of them.
+  const auto scan = [&](const std::vector<Eigen::Vector2d>& verts, const std::vector<Eigen::Vector2d>& poly,
+                        bool verts_are_pos) {
+    for (const Eigen::Vector2d& v : verts)
+      for (std::size_t i = 0; i < poly.size(); ++i) {
+        const Eigen::Vector2d c = closest_on_segment(v, poly[i], poly[(i + 1) % poly.size()]);
+        const double d = (c - v).squaredNorm();
+        if (d < best) {
+          best = d;
+          bp = verts_are_pos ? v : c;
+          bn = verts_are_pos ? c : v;
+        }
+      }
+  };
+  scan(hp, hn, true);
+  scan(hn, hp, false);
+  const double dist = std::sqrt(best);
+  if (!(dist > 0)) return std::nullopt;
+  const Eigen::Vector2d n = (bp - bn) / dist, m = 0.5 * (bp + bn);
+  const double half = 0.5 * dist;
+  const Eigen::Vector3d q(-n.dot(m) / half, n.x() / half, n.y() / half);
+  const auto b = [&](const Eigen::Vector2d& x) { return q(0) + q(1) * x.x() + q(2) * x.y(); };
+  for (const Eigen::Vector2d& x : pos)
+    if (!(b(x) > 0.5)) return std::nullopt;
+  for (const Eigen::Vector2d& x : neg)
+    if (!(b(x) < -0.5)) return std::nullopt;
+  return q;
+}
+
 // Colour clusters of a ball (eq. 7, or farthest-point seeds for multi_colour); labels
 // per point. Returns the number of clusters.
 int cluster_colours(const Impl& s, const std::vector<int>& ids, int far_i, int far_j, std::vector<int>& label) {
@@ -555,6 +630,18 @@ bool fit_type_b(const Impl& s, std::vector<int> ids, const std::vector<int>& lab
     for (std::size_t i = 0; i < sel.size(); ++i)
       for (int c = 0; c < kChannels; ++c) rhs(i, c) = s.labs[ids[sel[i]]][c];
     if (!solve_rbf(leaf, sel, rhs, leaf.clusters[j])) return false;
+  }
+  if (k == 2 && s.params.linear_boundary) {
+    std::vector<Eigen::Vector2d> pos, neg;
+    for (std::size_t i = 0; i < ids.size(); ++i)
+      (label[i] == 0 ? pos : neg).emplace_back(leaf.nodes[i].dot(leaf.u), leaf.nodes[i].dot(leaf.v));
+    if (const std::optional<Eigen::Vector3d> q = max_margin_line(pos, neg)) {
+      leaf.boundary = RbfPart{};
+      leaf.boundary.cols = 1;
+      leaf.boundary.poly = {(*q)(0), (*q)(1), (*q)(2)};
+      ++cr.linear_boundaries;
+      return true;
+    }
   }
   // Boundary function(s), targets +1 / -1 (eq. 11-12); one-vs-rest for k > 2.
   const int cols = k == 2 ? 1 : k;
@@ -755,6 +842,7 @@ ColourFunction fit_colour(const Cloud& cloud, const ColourParams& params) {
         if (cr.grew) ++s.diag.grown_leaves;
         if (type == 0 && !cr.converged) ++s.diag.unconverged_leaves;
         s.diag.constant_clusters += cr.constant_clusters;
+        s.diag.linear_boundaries += cr.linear_boundaries;
         s.diag.rejected_type_b += cr.rejected_b;
         s.diag.fallback_type_a += cr.fallback_a;
       }

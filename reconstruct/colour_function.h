@@ -78,6 +78,17 @@ struct ColourParams {
   /// no Type B leaf covers x both are the same.
   bool side_consensus = true;
 
+  /// A two-cluster cell whose clusters a straight line separates in the cell's tangent
+  /// plane gets that line as its boundary function instead of the RBF: the widest
+  /// empty strip between the clusters (the perpendicular bisector of the closest points
+  /// of their convex hulls), b = +-1 at the strip's edges. The RBF's zero set runs
+  /// midway between neighbouring samples of the two colours, so where the sampling
+  /// leaves a gap along the boundary it strays into the gap by up to a spacing; the
+  /// line is held by every sample along the cell's stretch of boundary. Cells whose
+  /// clusters no line separates (curved or interleaved boundaries) keep the RBF. Both
+  /// classify every input point alike, so e_col at the input points is unchanged.
+  bool linear_boundary = true;
+
   // ---- beyond the paper (each off by default = the paper's method) --------------
   /// (a) Three or more colours in a cell: up to max_clusters clusters (farthest-point
   /// seeds in L*a*b* while the next seed is more than gamma from all others), each with
@@ -116,6 +127,7 @@ struct ColourDiagnostics {
   std::size_t unconverged_leaves = 0; ///< Type A leaves failing eq. 4 (grown or max depth)
   std::size_t multi_colour_leaves = 0;///< Type B leaves with three or more clusters
   std::size_t constant_clusters = 0;  ///< clusters below min_rbf_points (constant colour)
+  std::size_t linear_boundaries = 0;  ///< Type B leaves whose boundary is a line (linear_boundary)
   std::size_t rejected_type_b = 0;    ///< gamma exceeded but rejected by noise_robust
   std::size_t fallback_type_a = 0;    ///< Type B systems that failed to solve -> Type A
   /// e_col on the input points (the paper's: mean over points of |dR|+|dG|+|dB|, sRGB
