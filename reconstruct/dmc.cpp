@@ -8,6 +8,7 @@
 #include <Eigen/Eigenvalues>
 #include <Eigen/Geometry>
 #include <algorithm>
+#include <atomic>
 #include <array>
 #include <chrono>
 #include <cmath>
@@ -1200,6 +1201,16 @@ class Dmc {
         if (d < theta && nrm[i].cross(nrm[j]).norm() > 0.1) theta = d, a0 = i, a1 = j;
       }
     if (a0 < 0 || theta >= opt_.theta_sharp) return false;
+    if (!refined && opt_.features_where_sharp) {
+      // Where f has no crease (an MPU surface away from its edge and corner fits), the
+      // normals turning within the cell are a bend of the smooth surface, not an edge.
+      Vec3d mid = Vec3d::Zero();
+      for (int i = 0; i < n; ++i) mid += pts[i];
+      if (!f_.may_be_sharp(mid / n, h_ * std::sqrt(3.0))) {
+        smooth_cells_.fetch_add(1, std::memory_order_relaxed);
+        return false;
+      }
+    }
     // A feature is likely: the planes need crossings on the surface to round-off, not
     // to the few refinement steps of the mesh vertices.
     if (!refined) return true;
@@ -1346,6 +1357,7 @@ class Dmc {
     std::vector<std::vector<Proposal>> props(cells.size());
     std::vector<char> sharp(cells.size(), 0);
     parallel(cells.size(), [&](std::size_t i) { sharp[i] = detect(cells[i], props[i], false); });
+    st_.smooth_cells = smooth_cells_.load();
     refine_sharp(cells, sharp);
     parallel(cells.size(), [&](std::size_t i) {
       if (sharp[i]) detect(cells[i], props[i], true);
@@ -1655,6 +1667,7 @@ class Dmc {
 
   const ImplicitFunction& f_;
   const DmcOptions& opt_;
+  mutable std::atomic<std::size_t> smooth_cells_{0};  // detect(): cells left alone as smooth
   tbb::task_arena arena_;
   Vec3d lo_;
   double h_ = 0;

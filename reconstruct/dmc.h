@@ -41,6 +41,11 @@ struct DmcOptions : MarchingCubesOptions {
   bool thin_gaps = true;
   /// Step 2: move lattice points onto sharp edges and corners.
   bool features = true;
+  /// Step 2 only in cells where f says it may have a crease
+  /// (ImplicitFunction::may_be_sharp; analytic functions: everywhere; the MPU surface:
+  /// near its edge and corner fits). false: wherever the crossing normals say so, which on
+  /// a noisy scan also takes bends of the smooth surface for edges (docs/dmc.md).
+  bool features_where_sharp = true;
   /// At most this many regula-falsi (Illinois) steps on f refine each crossing after the
   /// linear interpolation (fewer once |f| is at round-off). Cells with a suspected sharp
   /// feature refine their crossings to round-off for the feature planes.
@@ -58,6 +63,7 @@ struct DmcStats : MarchingCubesStats {
   std::size_t moved_corner = 0;      ///< moved onto corners (step 2)
   std::size_t moved_edge = 0;        ///< moved onto sharp edges (step 2)
   std::size_t vetoed = 0;            ///< feature moves refused (would join separate parts)
+  std::size_t smooth_cells = 0;      ///< cells whose normals suggested a feature where f is smooth (skipped)
   std::size_t filled_turns = 0;      ///< outside points in a turn of an edge chain moved in
   std::size_t degenerate_faces = 0;  ///< zero-area faces in the output (expected 0)
   double search_step = 0;            ///< s actually used, input units

@@ -5,6 +5,8 @@
 // table, so nothing of it lies below the table plane: intersecting the implicit
 // solid with the half-space above the plane closes the underside flat, where
 // the real object is flat against the table.
+#include <cmath>
+
 #include "core/geometry.h"
 #include "reconstruct/implicit.h"
 
@@ -22,6 +24,10 @@ class HalfSpaceClip : public ImplicitFunction {
   /// On the cut face (the plane side wins) the surface is trusted: the plane is
   /// known, not extrapolated. Elsewhere as f.
   bool trusted(const Vec3d& x) const override;
+  /// Where the plane cuts f the solid has a crease; elsewhere as f.
+  bool may_be_sharp(const Vec3d& x, double radius) const override {
+    return std::abs(plane_value(x)) <= radius || f_.may_be_sharp(x, radius);
+  }
   double plane_value(const Vec3d& x) const { return height_ - up_.dot(x); }
 
  private:

@@ -17,6 +17,11 @@ class ImplicitFunction {
   /// Whether f is backed by data near x (default: everywhere). Extraction can drop
   /// the surface where it is not (MarchingCubesOptions::untrusted).
   virtual bool trusted(const Vec3d& x) const { return true; }
+  /// Whether f may have a sharp edge or corner within `radius` of x (default: it may,
+  /// anywhere). A function that knows where it is smooth (the MPU surface: only its
+  /// leaves with an edge or corner fit make creases) lets DMC's feature step skip the
+  /// cells there, where a bend of the surface would otherwise pass for an edge.
+  virtual bool may_be_sharp(const Vec3d& x, double radius) const { return true; }
 };
 
 }  // namespace station

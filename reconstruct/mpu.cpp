@@ -171,6 +171,8 @@ struct MpuSurface::Impl {
   };
   std::vector<WalkNode> walk;
   std::vector<LeafRecord> leaf_records;
+  // Per node: some leaf in its subtree has a sharp fit (edge or corner).
+  std::vector<char> sharp_below;
   // Queries farther out than this (normalised) take the exact double test
   // throughout: the float bounds' slack covers the rounding of coordinates up to it.
   static constexpr double kFloatRange = 2.0;
@@ -195,6 +197,32 @@ struct MpuSurface::Impl {
       w.link = -std::int32_t(leaf_records.size()) - 1;
       leaf_records.push_back(rec);
     }
+    // Children come after their parent in `nodes`.
+    sharp_below.assign(nodes.size(), 0);
+    for (std::size_t i = nodes.size(); i-- > 0;) {
+      const Node& nd = nodes[i];
+      if (nd.first_child < 0) {
+        sharp_below[i] = fits[nd.fit].pieces > 1;
+      } else {
+        for (int c = 0; c < 8; ++c) sharp_below[i] |= sharp_below[std::size_t(nd.first_child + c)];
+      }
+    }
+  }
+
+  bool may_be_sharp(const Vec3d& y, double r) const {
+    if (nodes.empty() || !sharp_below[0]) return false;
+    int stack[64 * 8];
+    int top = 0;
+    stack[top++] = 0;
+    while (top > 0) {
+      const Node& nd = nodes[std::size_t(stack[--top])];
+      const double reach = (nd.first_child < 0 ? nd.radius : nd.reach) + r;
+      if ((y - nd.center).squaredNorm() > reach * reach) continue;
+      if (nd.first_child < 0) return true;
+      for (int c = 0; c < 8; ++c)
+        if (sharp_below[std::size_t(nd.first_child + c)]) stack[top++] = nd.first_child + c;
+    }
+    return false;
   }
 
   // Accumulates sum w Q, sum w, and (when grads) their gradients, in normalised units.
@@ -784,6 +812,9 @@ double MpuSurface::weight_sum(const Vec3d& x) const {
 double MpuSurface::nearest_point_distance(const Vec3d& x) const {
   const auto [id, d] = impl_->index->nearest(((x - impl_->center) * impl_->scale).cast<float>());
   return id < 0 ? std::numeric_limits<double>::infinity() : d / impl_->scale;
+}
+bool MpuSurface::may_be_sharp(const Vec3d& x, double radius) const {
+  return impl_->may_be_sharp((x - impl_->center) * impl_->scale, radius * impl_->scale);
 }
 bool MpuSurface::trusted(const Vec3d& x) const {
   const auto [id, d] = impl_->index->nearest(((x - impl_->center) * impl_->scale).cast<float>());

@@ -126,6 +126,10 @@ class MpuSurface : public ImplicitFunction {
   double nearest_point_distance(const Vec3d& x) const;
   /// nearest_point_distance(x) <= trust_factor * mean spacing (MpuParams).
   bool trusted(const Vec3d& x) const override;
+  /// Whether a leaf with a sharp fit (edge or corner, MpuParams::sharp_features) has
+  /// its support ball within `radius` of x: elsewhere f is a blend of smooth
+  /// quadratics and has no crease.
+  bool may_be_sharp(const Vec3d& x, double radius) const override;
 
   /// Normalised frame: y = (x - center()) * scale(); the bounding cube of the input
   /// points has diagonal 1 there, and epsilon0 is measured in it.

@@ -70,6 +70,8 @@ class WindingClose : public ImplicitFunction {
   /// grad f where beta = 0; elsewhere the blend's gradient (grad w analytic).
   Vec3d gradient(const Vec3d& x) const override;
   bool trusted(const Vec3d& x) const override { return f_.trusted(x); }
+  /// The blend with the smooth winding field adds no crease: as f.
+  bool may_be_sharp(const Vec3d& x, double radius) const override { return f_.may_be_sharp(x, radius); }
   double winding(const Vec3d& x) const { return (*w_)(x); }
   double trust_distance() const { return t1_; }
   std::size_t winding_points() const { return w_->size(); }

@@ -16,6 +16,7 @@
 
 #include "core/bvh.h"
 #include "core/error.h"
+#include "reconstruct/eval.h"
 #include "reconstruct/marching_cubes.h"
 #include "reconstruct/mpu.h"
 #include "test_util.h"
@@ -478,6 +479,60 @@ TEST(Dmc, MpuSurfaceIsClosedManifold) {
   double worst = 0;
   for (const Vec3f& v : m.vertices) worst = std::max(worst, std::abs(double(v.norm()) - 1.0));
   EXPECT_LT(worst, 0.02);
+}
+
+// On an MPU surface the feature step works only near the fit's own edge and corner
+// leaves (ImplicitFunction::may_be_sharp): a noisy scan's smooth surface bends enough
+// within a cell to pass the normals' test, and used to get creases there; a cube's
+// edges and corners, which MPU fits as sharp, are still found.
+TEST(Dmc, FeatureStepFollowsTheMpuSurfacesSharpFits) {
+  // A sphere of radius 1 scanned with 0.3 % noise, normals off by a few degrees.
+  std::mt19937 rng(4);
+  std::normal_distribution<double> g(0, 1);
+  Cloud noisy;
+  for (int i = 0; i < 30000; ++i) {
+    Vec3d d(g(rng), g(rng), g(rng));
+    d.normalize();
+    noisy.points.push_back((d * (1 + 0.003 * g(rng))).cast<float>());
+    noisy.normals.push_back((d + 0.05 * Vec3d(g(rng), g(rng), g(rng))).normalized().cast<float>());
+  }
+  const MpuSurface sphere = fit_mpu(noisy);
+  DmcOptions everywhere;
+  everywhere.features_where_sharp = false;
+  DmcStats st_all, st_sharp;
+  const Mesh m_all = extract_dmc(sphere, 96, everywhere, &st_all);
+  const Mesh m_sharp = extract_dmc(sphere, 96, {}, &st_sharp);
+  std::printf("noisy sphere: MPU sharp leaves %zu; edges moved %zu / corners %zu (everywhere) -> %zu / %zu (%zu cells "
+              "left as smooth)\n",
+              sphere.diagnostics().leaves_by_type[2] + sphere.diagnostics().leaves_by_type[3], st_all.moved_edge,
+              st_all.moved_corner, st_sharp.moved_edge, st_sharp.moved_corner, st_sharp.smooth_cells);
+  expect_clean(m_sharp, "noisy sphere");
+  EXPECT_EQ(euler(m_sharp), 2);
+  EXPECT_GT(st_all.moved_edge + st_all.moved_corner, 20u);
+  EXPECT_LT(10 * (st_sharp.moved_edge + st_sharp.moved_corner), st_all.moved_edge + st_all.moved_corner);
+  EXPECT_GT(st_sharp.smooth_cells, 0u);
+
+  // A cube of half side 0.5 sampled on its faces with exact normals: MPU fits its
+  // edges and corners as sharp, and DMC still puts lattice points on them.
+  const Mesh box = test::box(Vec3f(-0.5f, -0.5f, -0.5f), Vec3f(0.5f, 0.5f, 0.5f));
+  const Cloud cube = sample_mesh(box, 40000, 9);
+  const MpuSurface cube_fit = fit_mpu(cube);
+  DmcStats st_cube;
+  const Mesh m_cube = extract_dmc(cube_fit, 32, {}, &st_cube);
+  const double h = st_cube.cell_size;
+  double worst = 0;
+  for (int c = 0; c < 8; ++c) {
+    const Vec3d corner(c & 1 ? 0.5 : -0.5, c & 2 ? 0.5 : -0.5, c & 4 ? 0.5 : -0.5);
+    double best = std::numeric_limits<double>::infinity();
+    for (const Vec3f& v : m_cube.vertices) best = std::min(best, (v.cast<double>() - corner).norm());
+    worst = std::max(worst, best);
+  }
+  std::printf("MPU cube: corners moved %zu, edges %zu, farthest corner %.3f h\n", st_cube.moved_corner,
+              st_cube.moved_edge, worst / h);
+  expect_clean(m_cube, "mpu cube");
+  EXPECT_GT(st_cube.moved_corner, 0u);
+  EXPECT_GT(st_cube.moved_edge, 0u);
+  EXPECT_LT(worst, 0.1 * h);
 }
 
 // Timing (not a test): DMC vs MC on the analytic functions. Run with
