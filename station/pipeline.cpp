@@ -485,6 +485,11 @@ class Runner {
     int rejected = 0;
     for (const ViewDiagnostics& v : reg.views) rejected += v.angle_rejected ? 1 : 0;
     r.figures["angles_rejected"] = rejected;
+    r.figures["rigid_turntable"] = reg.rigid_turntable ? 1 : 0;
+    if (reg.rigid_deviation_deg > 0 || reg.rigid_deviation > 0) {
+      r.figures["rigid_deviation_deg"] = reg.rigid_deviation_deg;
+      r.figures["rigid_deviation_mm"] = reg.rigid_deviation * 1000;
+    }
     if (reg.views_with_reference > 0) {
       r.figures["max_rotation_error_deg"] = reg.max_rotation_error_deg;
       r.figures["max_translation_error_mm"] = reg.max_translation_error * 1000;

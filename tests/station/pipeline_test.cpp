@@ -88,6 +88,11 @@ TEST_F(PipelineTest, RunsEveryStageAndWritesAColouredMeshAndAReport) {
   // The closed underside stops at the table plane: no vertex below the lowest
   // consolidated point along the turntable axis (docs/run.md, table_plane).
   const StageRecord& reg = r.stages[0];
+  // A simulated turntable is rigid: the views are held on one axis.
+  ASSERT_TRUE(reg.figures.count("rigid_turntable"));
+  EXPECT_EQ(reg.figures.at("rigid_turntable"), 1.0);
+  ASSERT_TRUE(reg.figures.count("rigid_deviation_deg"));
+  EXPECT_LT(reg.figures.at("rigid_deviation_deg"), 0.75);
   ASSERT_TRUE(reg.figures.count("up_x"));
   const Vec3d up = Vec3d(reg.figures.at("up_x"), reg.figures.at("up_y"), reg.figures.at("up_z")).normalized();
   ASSERT_TRUE(r.stages[2].figures.count("table_height"));
