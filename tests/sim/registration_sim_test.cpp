@@ -105,11 +105,18 @@ TEST(SimRegistration, NoisyScanWithAnglesOffByThreeDegrees) {
 // The blocks above are a hard case for point-to-plane ICP: their faces are all
 // axis-aligned and views 0 and 6 look straight at them, so sliding along a
 // face is barely constrained between neighbouring views there.
-TEST(SimRegistration, NoisyFandiskWithPriorOff) {
-  test::TempDir dir;
+// The fandisk CAD part scaled to 15 cm and stood on the table; its diagonal.
+Mesh fandisk_part(double& diag) {
   Mesh part = read_mesh(test::source_dir() / "tests/data/consolidation/fandisk.off");
   for (Vec3f& v : part.vertices) v = 0.15f * (v + Vec3f(0, 0, 0.5f));
-  const double diag = 0.15 * std::sqrt(0.9206 * 0.9206 + 0.5111 * 0.5111 + 1.0);
+  diag = 0.15 * std::sqrt(0.9206 * 0.9206 + 0.5111 * 0.5111 + 1.0);
+  return part;
+}
+
+TEST(SimRegistration, NoisyFandiskWithPriorOff) {
+  test::TempDir dir;
+  double diag = 0;
+  const Mesh part = fandisk_part(diag);
   SessionManifest noisy;
   const std::vector<Cloud> clouds = scan_with_prior_off(dir, part, 5, 13, diag, noisy);
   ASSERT_EQ(clouds.size(), 12u);
@@ -146,9 +153,8 @@ TEST(SimRegistration, NoisyFandiskWithPriorOff) {
 // refused with a warning, and the free poses register every view.
 TEST(SimRegistration, ObjectMovedOnTheTableKeepsTheFreePoses) {
   test::TempDir dir;
-  Mesh part = read_mesh(test::source_dir() / "tests/data/consolidation/fandisk.off");
-  for (Vec3f& v : part.vertices) v = 0.15f * (v + Vec3f(0, 0, 0.5f));
-  const double diag = 0.15 * std::sqrt(0.9206 * 0.9206 + 0.5111 * 0.5111 + 1.0);
+  double diag = 0;
+  const Mesh part = fandisk_part(diag);
   SessionManifest noisy;
   std::vector<Cloud> clouds = scan_with_prior_off(dir, part, 5, 13, diag, noisy);
   ASSERT_EQ(clouds.size(), 12u);
