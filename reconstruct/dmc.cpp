@@ -681,12 +681,23 @@ class Dmc {
     Vec3d sum = Vec3d::Zero();
     int count = 0;
     std::vector<std::pair<Vec3d, double>> hits;
+    // All m^3 samples at once: f may share work between them (values_near).
+    thread_local std::vector<Vec3d> xs;
+    thread_local std::vector<double> vs;
+    xs.clear();
+    for (int a = 0; a < m_; ++a)
+      for (int b = 0; b < m_; ++b)
+        for (int c = 0; c < m_; ++c)
+          xs.push_back(c0 + Vec3d((a + 0.5) * step - 0.5 * h_, (b + 0.5) * step - 0.5 * h_,
+                                  (c + 0.5) * step - 0.5 * h_));
+    vs.resize(xs.size());
+    f_.values_near(xs.data(), int(xs.size()), vs.data());
+    std::size_t at = 0;
     for (int a = 0; a < m_; ++a)
       for (int b = 0; b < m_; ++b)
         for (int c = 0; c < m_; ++c) {
-          const Vec3d x = c0 + Vec3d((a + 0.5) * step - 0.5 * h_, (b + 0.5) * step - 0.5 * h_,
-                                     (c + 0.5) * step - 0.5 * h_);
-          double v = g(x);
+          const Vec3d& x = xs[at];
+          double v = vs[at++] - opt_.iso;
           if (!std::isfinite(v)) v = h_;
           if ((v < 0) == want_inside) {
             sum += x;

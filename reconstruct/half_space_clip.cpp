@@ -15,11 +15,18 @@ HalfSpaceClip::HalfSpaceClip(const ImplicitFunction& f, const Vec3d& up, double 
   up_ /= n;
 }
 
-double HalfSpaceClip::value(const Vec3d& x) const {
-  const double f = f_.value(x);
-  const double p = plane_value(x);
+namespace {
+double clip(double f, double p) {
   if (std::isnan(f)) return p > 0 ? p : f;  // below the plane is outside whatever f says
   return std::max(f, p);
+}
+}  // namespace
+
+double HalfSpaceClip::value(const Vec3d& x) const { return clip(f_.value(x), plane_value(x)); }
+
+void HalfSpaceClip::values_near(const Vec3d* xs, int n, double* out) const {
+  f_.values_near(xs, n, out);
+  for (int i = 0; i < n; ++i) out[i] = clip(out[i], plane_value(xs[i]));
 }
 
 Vec3d HalfSpaceClip::gradient(const Vec3d& x) const {

@@ -29,6 +29,8 @@ class HalfSpaceClip : public ImplicitFunction {
     return std::abs(plane_value(x)) <= radius || f_.may_be_sharp(x, radius);
   }
   double plane_value(const Vec3d& x) const { return height_ - up_.dot(x); }
+  /// value() at each point, f's values taken together (f.values_near).
+  void values_near(const Vec3d* xs, int n, double* out) const override;
 
  private:
   const ImplicitFunction& f_;

@@ -22,6 +22,13 @@ class ImplicitFunction {
   /// leaves with an edge or corner fit make creases) lets DMC's feature step skip the
   /// cells there, where a bend of the surface would otherwise pass for an edge.
   virtual bool may_be_sharp(const Vec3d& x, double radius) const { return true; }
+  /// f at n points close together (a lattice point's box, a few cells at most): the
+  /// same values as value() one by one, which is what the default does. A function
+  /// that can share work between nearby points overrides it (the MPU surface: one walk
+  /// of its octree for all of them).
+  virtual void values_near(const Vec3d* xs, int n, double* out) const {
+    for (int i = 0; i < n; ++i) out[i] = value(xs[i]);
+  }
 };
 
 }  // namespace station

@@ -209,6 +209,65 @@ struct MpuSurface::Impl {
     }
   }
 
+  // value() at n points (world units) from one walk: the leaves that may reach the
+  // points' bounding ball, gathered in accumulate()'s depth-first order, then for each
+  // point the same exact test and sum as accumulate() (so the same bits).
+  void values_near(const Vec3d* xs, int n, double* out) const {
+    if (n <= 0) return;
+    thread_local std::vector<Vec3d> ys;
+    thread_local std::vector<std::int32_t> leaves;
+    ys.resize(std::size_t(n));
+    Vec3d lo = Vec3d::Constant(std::numeric_limits<double>::infinity()), hi = -lo;
+    for (int i = 0; i < n; ++i) {
+      ys[std::size_t(i)] = (xs[i] - center) * scale;
+      lo = lo.cwiseMin(ys[std::size_t(i)]);
+      hi = hi.cwiseMax(ys[std::size_t(i)]);
+    }
+    if (!lo.allFinite() || !hi.allFinite()) {
+      for (int i = 0; i < n; ++i) out[i] = eval(xs[i], nullptr);
+      return;
+    }
+    const Vec3d mid = 0.5 * (lo + hi);
+    const double rb = 0.5 * (hi - lo).norm() * (1 + 1e-9) + 1e-12;
+    leaves.clear();
+    int stack[64 * 8];
+    int top = 0;
+    stack[top++] = 0;
+    while (top > 0) {
+      const int i = stack[--top];
+      const Node& nd = nodes[std::size_t(i)];
+      const double reach = (nd.first_child < 0 ? nd.radius : nd.reach) * (1 + 1e-9) + rb;
+      if ((mid - nd.center).squaredNorm() > reach * reach) continue;
+      const std::int32_t link = walk[std::size_t(i)].link;
+      if (link >= 0) {
+        for (int c = 7; c >= 0; --c) stack[top++] = link + c;
+      } else {
+        leaves.push_back(-link - 1);
+      }
+    }
+    for (int k = 0; k < n; ++k) {
+      const Vec3d& y = ys[std::size_t(k)];
+      double swq = 0, sw = 0;
+      for (const std::int32_t li : leaves) {
+        const LeafRecord& leaf = leaf_records[std::size_t(li)];
+        const Vec3d d = y - leaf.center;
+        const double r2 = d.squaredNorm();
+        if (r2 > leaf.radius * leaf.radius * (1 + 1e-12)) continue;
+        const double r = std::sqrt(r2);
+        if (r >= leaf.radius) continue;
+        const double w = bspline2(1.5 * r / leaf.radius);
+        if (w <= 0) continue;
+        swq += w * (leaf.single ? leaf.bivariate.eval(y, nullptr) : fits[leaf.fit].eval(y, nullptr));
+        sw += w;
+      }
+      if (sw <= 1e-300) {
+        out[k] = (y - nodes[0].center).norm() / scale;
+      } else {
+        out[k] = swq / sw / scale;
+      }
+    }
+  }
+
   bool may_be_sharp(const Vec3d& y, double r) const {
     if (nodes.empty() || !sharp_below[0]) return false;
     int stack[64 * 8];
@@ -813,6 +872,7 @@ double MpuSurface::nearest_point_distance(const Vec3d& x) const {
   const auto [id, d] = impl_->index->nearest(((x - impl_->center) * impl_->scale).cast<float>());
   return id < 0 ? std::numeric_limits<double>::infinity() : d / impl_->scale;
 }
+void MpuSurface::values_near(const Vec3d* xs, int n, double* out) const { impl_->values_near(xs, n, out); }
 bool MpuSurface::may_be_sharp(const Vec3d& x, double radius) const {
   return impl_->may_be_sharp((x - impl_->center) * impl_->scale, radius * impl_->scale);
 }

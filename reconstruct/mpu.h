@@ -130,6 +130,9 @@ class MpuSurface : public ImplicitFunction {
   /// its support ball within `radius` of x: elsewhere f is a blend of smooth
   /// quadratics and has no crease.
   bool may_be_sharp(const Vec3d& x, double radius) const override;
+  /// value() at each point, bit for bit, with one octree walk for all (the leaves whose
+  /// support reaches the points' bounding ball, in the walk's order).
+  void values_near(const Vec3d* xs, int n, double* out) const override;
 
   /// Normalised frame: y = (x - center()) * scale(); the bounding cube of the input
   /// points has diagonal 1 there, and epsilon0 is measured in it.

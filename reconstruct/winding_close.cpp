@@ -217,6 +217,33 @@ double WindingClose::value(const Vec3d& x) const {
   return (1 - beta) * f + beta * s;
 }
 
+void WindingClose::values_near(const Vec3d* xs, int n, double* out) const {
+  // Local buffers: f may itself be a function that calls values_near.
+  std::vector<double> beta(std::size_t(std::max(n, 0))), fv;
+  std::vector<Vec3d> need;
+  for (int i = 0; i < n; ++i) {
+    beta[std::size_t(i)] = blend(xs[i], nullptr);
+    if (beta[std::size_t(i)] < 1) need.push_back(xs[i]);
+  }
+  fv.resize(need.size());
+  if (!need.empty()) f_.values_near(need.data(), int(need.size()), fv.data());
+  std::size_t k = 0;
+  for (int i = 0; i < n; ++i) {
+    const double b = beta[std::size_t(i)];
+    if (b <= 0) {
+      out[i] = fv[k++];
+      continue;
+    }
+    const double s = (0.5 - (*w_)(xs[i])) * 2 * t2_;
+    if (b >= 1) {
+      out[i] = s;
+      continue;
+    }
+    const double f = fv[k++];
+    out[i] = std::isfinite(f) ? (1 - b) * f + b * s : s;
+  }
+}
+
 Vec3d WindingClose::gradient(const Vec3d& x) const {
   Vec3d gbeta;
   const double beta = blend(x, &gbeta);

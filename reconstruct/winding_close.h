@@ -69,6 +69,8 @@ class WindingClose : public ImplicitFunction {
   double value(const Vec3d& x) const override;
   /// grad f where beta = 0; elsewhere the blend's gradient (grad w analytic).
   Vec3d gradient(const Vec3d& x) const override;
+  /// value() at each point; f's values (where the blend needs them) taken together.
+  void values_near(const Vec3d* xs, int n, double* out) const override;
   bool trusted(const Vec3d& x) const override { return f_.trusted(x); }
   /// The blend with the smooth winding field adds no crease: as f.
   bool may_be_sharp(const Vec3d& x, double radius) const override { return f_.may_be_sharp(x, radius); }
