@@ -257,13 +257,14 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
 
   // f - iso at a grid vertex; NaN counts as outside, the outermost layer is forced
   // outside with close_at_box (caps surfaces that would leave the box).
-  auto eval = [&](int a, int b, int c) {
-    double x = f.value(vpos(a, b, c)) - opt.iso;
+  auto finish = [&](double value, int a, int b, int c) {
+    double x = value - opt.iso;
     if (!std::isfinite(x)) x = h;
     if (opt.close_at_box && (a == 0 || b == 0 || c == 0 || a == n[0] || b == n[1] || c == n[2]))
       x = std::max(x, 0.5 * h);
     return x;
   };
+  auto eval = [&](int a, int b, int c) { return finish(f.value(vpos(a, b, c)), a, b, c); };
   auto in_grid = [&](int i, int j, int k) { return i >= 0 && j >= 0 && k >= 0 && i < n[0] && j < n[1] && k < n[2]; };
 
   BlockLattice lat;
@@ -337,6 +338,9 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
   std::vector<std::uint64_t> next;
   tbb::enumerable_thread_specific<std::vector<std::uint64_t>> next_local, deferred_local;
   tbb::enumerable_thread_specific<std::size_t> evaluated_local(0);
+  tbb::enumerable_thread_specific<std::vector<std::uint64_t>> claimed_local;
+  std::vector<std::uint64_t> claimed;
+  std::vector<std::size_t> groups;
   // Claims a bit: true for the one thread that set it (a plain load first: most bits
   // asked for are set already, and a locked or is dear).
   auto set_bit = [](std::uint64_t& mask, int bit) {
@@ -352,23 +356,52 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
       const int l = int(c & 63);
       lat.link(b, l);
     }
-    // Corners not evaluated yet, each by the thread that claims it first.
+    // Corners not evaluated yet, each claimed by one thread; then evaluated a block at
+    // a time (f.values_near: the MPU surface walks its octree once per group).
     parallel(frontier.size(), [&](std::size_t fi) {
       const std::uint64_t c = frontier[fi];
       const std::int32_t b = std::int32_t(c >> 6);
       const int l = int(c & 63), li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
-      std::size_t count = 0;
+      std::vector<std::uint64_t>& mine = claimed_local.local();
       for (int q = 0; q < 8; ++q) {
         const auto [cb, cl] = lat.at(b, li + (q & 1), lj + (q >> 1 & 1), lk + (q >> 2 & 1));
-        Block& blk = lat.blocks[cb];
-        if (!set_bit(blk.evaluated, cl)) continue;
-        const float v =
-            to_float(eval(blk.bi * kSide + (cl & 3), blk.bj * kSide + (cl >> 2 & 3), blk.bk * kSide + (cl >> 4)));
+        if (set_bit(lat.blocks[cb].evaluated, cl)) mine.push_back(packed(cb, cl));
+      }
+    });
+    claimed.clear();
+    for (auto& v : claimed_local) {
+      claimed.insert(claimed.end(), v.begin(), v.end());
+      v.clear();
+    }
+    std::sort(claimed.begin(), claimed.end());
+    groups.clear();
+    for (std::size_t i = 0; i < claimed.size(); ++i)
+      if (i == 0 || claimed[i] >> 6 != claimed[i - 1] >> 6) groups.push_back(i);
+    groups.push_back(claimed.size());
+    parallel(groups.size() - 1, [&](std::size_t g) {
+      const std::size_t first = groups[g], last = groups[g + 1];
+      const std::int32_t cb = std::int32_t(claimed[first] >> 6);
+      Block& blk = lat.blocks[cb];
+      Vec3d xs[64];
+      double vs[64];
+      int ijk[64][3];
+      for (Vec3d& x : xs) x.setZero();
+      const int count = int(last - first);
+      for (int t = 0; t < count; ++t) {
+        const int cl = int(claimed[first + std::size_t(t)] & 63);
+        ijk[t][0] = blk.bi * kSide + (cl & 3);
+        ijk[t][1] = blk.bj * kSide + (cl >> 2 & 3);
+        ijk[t][2] = blk.bk * kSide + (cl >> 4);
+        xs[t] = vpos(ijk[t][0], ijk[t][1], ijk[t][2]);
+      }
+      f.values_near(xs, count, vs);
+      for (int t = 0; t < count; ++t) {
+        const int cl = int(claimed[first + std::size_t(t)] & 63);
+        const float v = to_float(finish(vs[t], ijk[t][0], ijk[t][1], ijk[t][2]));
         lat.values[cb][cl] = v;
         if (v < 0) set_bit(blk.inside, cl);
-        ++count;
       }
-      evaluated_local.local() += count;
+      evaluated_local.local() += std::size_t(count);
     });
     st.cells_visited += frontier.size();
     next.clear();
