@@ -429,8 +429,10 @@ class Dmc {
     ++evals;
     return lattice_value(nd.pos, nd.flags);
   }
-  double lattice_value(const Vec3d& pos, std::uint8_t flags) const {
-    double x = g(pos);
+  double lattice_value(const Vec3d& pos, std::uint8_t flags) const { return lattice_value_from(f_.value(pos), flags); }
+  // The lattice value from f at the point.
+  double lattice_value_from(double f, std::uint8_t flags) const {
+    double x = f - opt_.iso;
     if (!std::isfinite(x)) x = h_;  // NaN counts as outside
     if (opt_.close_at_box && (flags & kFixed)) x = std::max(x, 0.5 * h_);
     return x;
@@ -539,6 +541,9 @@ class Dmc {
     tbb::enumerable_thread_specific<std::vector<std::uint64_t>> next_local, deferred_local;
     tbb::enumerable_thread_specific<std::vector<std::int32_t>> marked_local;
     tbb::enumerable_thread_specific<std::size_t> evaluated_local(0);
+    tbb::enumerable_thread_specific<std::vector<std::pair<std::int32_t, Node*>>> pending_local;
+    std::vector<std::pair<std::int32_t, Node*>> pending;
+    std::vector<std::size_t> groups;
     for (std::uint64_t c : start) {
       const std::int32_t b = std::int32_t(c >> 6);
       Lattice::Block& B = nodes_.blk(b);
@@ -561,12 +566,14 @@ class Dmc {
           if ((q & hi) == q) nodes_.rel_get(b, li + (q & 1), lj + (q >> 1 & 1), lk + (q >> 2 & 1));
       }
       nodes_.reserve_nodes(8 * frontier.size());
-      // Corners not entered yet, each entered and evaluated by the thread claiming it.
+      // Corners not entered yet, each entered by the thread claiming it (a scan line's
+      // value taken over), then the others evaluated a block at a time (f.values_near:
+      // the MPU surface walks its octree once per group; the same values).
       parallel(frontier.size(), [&](std::size_t fi) {
         const std::uint64_t c = frontier[fi];
         const std::int32_t b = std::int32_t(c >> 6);
         const int l = int(c & 63), li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
-        std::size_t count = 0;
+        auto& mine = pending_local.local();
         for (int q = 0; q < 8; ++q) {
           const auto [cb, cl] = nodes_.rel(b, li + (q & 1), lj + (q >> 1 & 1), lk + (q >> 2 & 1));
           Node* nd = nodes_.claim_point(cb, cl);
@@ -574,9 +581,38 @@ class Dmc {
           const Key k = nodes_.point(cb, cl);
           const std::uint8_t flags = on_boundary(k) ? kFixed : 0;
           *nd = Node{upos(k), 0.0, flags};
-          nd->val = initial_value(k, *nd, count);
+          if (const double* v = scan_value(ki(k), kj(k), kk(k))) {
+            nd->val = *v;
+          } else {
+            mine.emplace_back(cb, nd);
+          }
         }
-        evaluated_local.local() += count;
+      });
+      pending.clear();
+      for (auto& v : pending_local) {
+        pending.insert(pending.end(), v.begin(), v.end());
+        v.clear();
+      }
+      std::sort(pending.begin(), pending.end(), [](const auto& x, const auto& y) {
+        return x.first != y.first ? x.first < y.first : std::less<const Node*>()(x.second, y.second);
+      });
+      groups.clear();
+      for (std::size_t i = 0; i < pending.size(); ++i)
+        if (i == 0 || pending[i].first != pending[i - 1].first) groups.push_back(i);
+      groups.push_back(pending.size());
+      parallel(groups.size() - 1, [&](std::size_t g) {
+        Vec3d xs[64];
+        double vs[64];
+        for (Vec3d& x : xs) x.setZero();
+        const std::size_t first = groups[g];
+        const int count = int(groups[g + 1] - first);
+        for (int t = 0; t < count; ++t) xs[t] = pending[first + std::size_t(t)].second->pos;
+        f_.values_near(xs, count, vs);
+        for (int t = 0; t < count; ++t) {
+          Node& nd = *pending[first + std::size_t(t)].second;
+          nd.val = lattice_value_from(vs[t], nd.flags);
+        }
+        evaluated_local.local() += std::size_t(count);
       });
       st_.cells_visited += frontier.size();
       // Crossed cells pass the walk on (mark bits claimed atomically).
