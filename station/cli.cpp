@@ -1149,6 +1149,7 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
                                       .add("moved_barycentre", dstats.moved_barycentre)
                                       .add("moved_corner", dstats.moved_corner)
                                       .add("moved_edge", dstats.moved_edge)
+                                      .add("smooth_cells", dstats.smooth_cells)
                                       .add("seconds_traversal", dstats.seconds_traversal)
                                       .add("seconds_barycentre", dstats.seconds_barycentre)
                                       .add("seconds_features", dstats.seconds_features)
