@@ -728,19 +728,15 @@ class Dmc {
                                   (c + 0.5) * step - 0.5 * h_));
     vs.resize(xs.size());
     f_.values_near(xs.data(), int(xs.size()), vs.data());
-    std::size_t at = 0;
-    for (int a = 0; a < m_; ++a)
-      for (int b = 0; b < m_; ++b)
-        for (int c = 0; c < m_; ++c) {
-          const Vec3d& x = xs[at];
-          double v = vs[at++] - opt_.iso;
-          if (!std::isfinite(v)) v = h_;
-          if ((v < 0) == want_inside) {
-            sum += x;
-            ++count;
-            hits.emplace_back(x, v);
-          }
-        }
+    for (std::size_t at = 0; at < xs.size(); ++at) {
+      double v = vs[at] - opt_.iso;
+      if (!std::isfinite(v)) v = h_;
+      if ((v < 0) == want_inside) {
+        sum += xs[at];
+        ++count;
+        hits.emplace_back(xs[at], v);
+      }
+    }
     if (count == 0) return false;
     pos = sum / count;
     double v = g(pos);

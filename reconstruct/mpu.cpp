@@ -250,21 +250,14 @@ struct MpuSurface::Impl {
       double swq = 0, sw = 0;
       for (const std::int32_t li : leaves) {
         const LeafRecord& leaf = leaf_records[std::size_t(li)];
-        const Vec3d d = y - leaf.center;
-        const double r2 = d.squaredNorm();
-        if (r2 > leaf.radius * leaf.radius * (1 + 1e-12)) continue;
-        const double r = std::sqrt(r2);
-        if (r >= leaf.radius) continue;
-        const double w = bspline2(1.5 * r / leaf.radius);
+        Vec3d d;
+        double r = 0;
+        const double w = leaf_weight(leaf, y, d, r);
         if (w <= 0) continue;
-        swq += w * (leaf.single ? leaf.bivariate.eval(y, nullptr) : fits[leaf.fit].eval(y, nullptr));
+        swq += w * leaf_fit(leaf, y, nullptr);
         sw += w;
       }
-      if (sw <= 1e-300) {
-        out[k] = (y - nodes[0].center).norm() / scale;
-      } else {
-        out[k] = swq / sw / scale;
-      }
+      out[k] = value_from(y, swq, sw);
     }
   }
 
@@ -323,27 +316,44 @@ struct MpuSurface::Impl {
       }
       // A leaf: decided exactly.
       const LeafRecord& leaf = leaf_records[std::size_t(-link - 1)];
-      const Vec3d d = y - leaf.center;
-      const double r2 = d.squaredNorm();
-      if (r2 > leaf.radius * leaf.radius * (1 + 1e-12)) continue;
-      const double r = std::sqrt(r2);
-      if (r >= leaf.radius) continue;
-      const double t = 1.5 * r / leaf.radius;
-      const double w = bspline2(t);
+      Vec3d d;
+      double r = 0;
+      const double w = leaf_weight(leaf, y, d, r);
       if (w <= 0) continue;
       if (gwq) {
         Vec3d gq;
-        const double q = leaf.single ? leaf.bivariate.eval(y, &gq) : fits[leaf.fit].eval(y, &gq);
+        const double q = leaf_fit(leaf, y, &gq);
+        const double t = 1.5 * r / leaf.radius;
         const Vec3d gwt = r > 0 ? Vec3d(bspline2_deriv(t) * 1.5 / leaf.radius / r * d) : Vec3d::Zero();
         swq += w * q;
         sw += w;
         *gwq += gwt * q + w * gq;
         *gw += gwt;
       } else {
-        swq += w * (leaf.single ? leaf.bivariate.eval(y, nullptr) : fits[leaf.fit].eval(y, nullptr));
+        swq += w * leaf_fit(leaf, y, nullptr);
         sw += w;
       }
     }
+  }
+
+  // The weight of a leaf at y, decided exactly (0 outside its support), with d = y -
+  // its centre and r = |d| (for the weight's gradient).
+  static double leaf_weight(const LeafRecord& leaf, const Vec3d& y, Vec3d& d, double& r) {
+    d = y - leaf.center;
+    const double r2 = d.squaredNorm();
+    if (r2 > leaf.radius * leaf.radius * (1 + 1e-12)) return 0;
+    r = std::sqrt(r2);
+    if (r >= leaf.radius) return 0;
+    return bspline2(1.5 * r / leaf.radius);
+  }
+  double leaf_fit(const LeafRecord& leaf, const Vec3d& y, Vec3d* g) const {
+    return leaf.single ? leaf.bivariate.eval(y, g) : fits[leaf.fit].eval(y, g);
+  }
+  // f (world units) from the sums at y; beyond every support a positive (outside)
+  // distance-like value.
+  double value_from(const Vec3d& y, double swq, double sw) const {
+    if (sw <= 1e-300) return (y - nodes[0].center).norm() / scale;
+    return swq / sw / scale;
   }
 
   double eval(const Vec3d& x, Vec3d* grad) const {
@@ -351,16 +361,17 @@ struct MpuSurface::Impl {
     double swq = 0, sw = 0;
     Vec3d gwq = Vec3d::Zero(), gw = Vec3d::Zero();
     accumulate(y, swq, sw, grad ? &gwq : nullptr, grad ? &gw : nullptr);
-    if (sw <= 1e-300) {
-      // Beyond every support: a positive (outside) distance-like value.
-      const Vec3d d = y - nodes[0].center;
-      const double r = d.norm();
-      if (grad) *grad = r > 0 ? Vec3d(d / r) : Vec3d::UnitZ();
-      return r / scale;
+    if (grad) {
+      if (sw <= 1e-300) {
+        const Vec3d d = y - nodes[0].center;
+        const double r = d.norm();
+        *grad = r > 0 ? Vec3d(d / r) : Vec3d::UnitZ();
+      } else {
+        // Gradient in the normalised frame equals the world one (f_world = f_norm / scale).
+        *grad = (gwq * sw - swq * gw) / (sw * sw);
+      }
     }
-    // Gradient in the normalised frame equals the world one (f_world = f_norm / scale).
-    if (grad) *grad = (gwq * sw - swq * gw) / (sw * sw);
-    return swq / sw / scale;
+    return value_from(y, swq, sw);
   }
 };
 
