@@ -54,14 +54,15 @@ struct Kernel {
 };
 
 // The points of a grid strictly within h of a query: sorted positions and
-// offsets p - q. Buffers grow to the largest neighbourhood seen and stay.
+// offsets p - q (float: they feed the edge variant's float kernels and the simple
+// normals' plane fits). Buffers grow to the largest neighbourhood seen and stay.
 struct Neighbours {
   std::vector<int> pos;
-  std::vector<double> dx, dy, dz, r2;
+  std::vector<float> dx, dy, dz, r2;
   int n = 0;
-  // Room for m entries plus RadiusGrid::kPad for vector loops reading past the end.
+  // Room for m entries plus kFloatPad for vector loops reading past the end.
   void fit(std::size_t m) {
-    m += RadiusGrid::kPad;
+    m += detail::kFloatPad;
     if (pos.size() < m) {
       const std::size_t cap = std::max(m, 2 * pos.size());
       pos.resize(cap);
@@ -82,15 +83,15 @@ void gather(const RadiusGrid& grid, const Vec3d& q, double h2, Neighbours& nb) {
     nb.fit(std::size_t(nb.n + (e - b)));
     int n = nb.n;
     int* pos = nb.pos.data();
-    double *dx = nb.dx.data(), *dy = nb.dy.data(), *dz = nb.dz.data(), *r2 = nb.r2.data();
+    float *dx = nb.dx.data(), *dy = nb.dy.data(), *dz = nb.dz.data(), *r2 = nb.r2.data();
     for (int p = b; p < e; ++p) {
       const double x = xs[p] - q.x(), y = ys[p] - q.y(), z = zs[p] - q.z();
       const double d2 = x * x + y * y + z * z;
       pos[n] = p;
-      dx[n] = x;
-      dy[n] = y;
-      dz[n] = z;
-      r2[n] = d2;
+      dx[n] = float(x);
+      dy[n] = float(y);
+      dz[n] = float(z);
+      r2[n] = float(d2);
       n += d2 < h2;
     }
     nb.n = n;
@@ -112,15 +113,15 @@ Vec3d least_spread(const RadiusGrid& grid, const Vec3d& q, double h2, std::vecto
   return pca_normal(buffer.data(), int(buffer.size()));
 }
 
-// Growable arrays with RadiusGrid::kPad spare readable entries for vector loops
+// Growable float arrays with kFloatPad spare readable entries for vector loops
 // (which mask the lanes past the end).
 struct Padded {
-  std::vector<double> v;
-  double* fit(std::size_t n) {
-    if (v.size() < n + RadiusGrid::kPad) v.resize(std::max(n + RadiusGrid::kPad, 2 * v.size()), 0.0);
+  std::vector<float> v;
+  float* fit(std::size_t n) {
+    if (v.size() < n + detail::kFloatPad) v.resize(std::max(n + detail::kFloatPad, 2 * v.size()), 0.0f);
     return v.data();
   }
-  double* data() { return v.data(); }
+  float* data() { return v.data(); }
 };
 
 struct Scratch {
@@ -164,13 +165,10 @@ class Consolidator {
   std::vector<Vec3d> p_;            // input, double
   RadiusGrid input_grid_, x_grid_;  // input: built once; projected: every iteration
   std::vector<double> inv_v_;       // 1 / v_j by input-grid sorted position
-  std::vector<double> v_;           // v_j by sorted position (edge variant)
-  // Edge variant, by input-grid sorted position: the simple normal n (eqs. 11-12)
-  // with the sign of the PCA normal m, which only serves to orient it.
-  struct EdgeNormal {
-    float n[3], m[3];
-  };
-  std::vector<EdgeNormal> edge_normals_;
+  // Edge variant, by input-grid sorted position (kFloatPad more entries): the
+  // simple normal n (eqs. 11-12) with the sign of the PCA normal m, which only
+  // serves to orient it, and v_j.
+  std::vector<float> enx_, eny_, enz_, emx_, emy_, emz_, v_;
   bool oriented_ = false;  // n are the input's (oriented) normals
   std::vector<Vec3d> x_, x_next_;   // projected set
   std::vector<double> w_;           // w_i by projected-grid sorted position
@@ -221,11 +219,20 @@ void Consolidator::setup() {
   inv_v_.assign(nj_ + RadiusGrid::kPad, 1.0);
   const bool uniform = params_.input_density == InputDensity::kUniform;
   if (edge) {
-    v_.assign(nj_, 1.0);
-    edge_normals_.assign(nj_, EdgeNormal{{0, 0, 0}, {0, 0, 0}});
+    for (std::vector<float>* a : {&enx_, &eny_, &enz_, &emx_, &emy_, &emz_})
+      a->assign(nj_ + detail::kFloatPad, 0.0f);
+    v_.assign(nj_ + detail::kFloatPad, 1.0f);
   }
   // Input densities v_j (eq. 6) and, for the edge variant, the simple normals
   // (eqs. 11-12) with PCA normals that only serve to orient them.
+  const auto set_normals = [&](int sp, const Vec3f& n, const Vec3f& m) {
+    enx_[sp] = n.x();
+    eny_[sp] = n.y();
+    enz_[sp] = n.z();
+    emx_[sp] = m.x();
+    emy_[sp] = m.y();
+    emz_[sp] = m.z();
+  };
   tbb::parallel_for(tbb::blocked_range<int>(0, int(nj_), kGrain), [&](const tbb::blocked_range<int>& r) {
     Scratch& s = scratch_.local();
     const int* ids = input_grid_.ids().data();
@@ -236,10 +243,10 @@ void Consolidator::setup() {
       const double v = uniform ? 1.0 : detail::density_sum(input_grid_, q, shape).w;
       inv_v_[sp] = 1.0 / v;
       if (!edge) continue;
-      v_[sp] = v;
+      v_[sp] = float(v);
       if (input_normals) {
         const Vec3f n = input_.normals[ids[sp]].normalized();  // zero stays zero
-        edge_normals_[sp] = EdgeNormal{{n.x(), n.y(), n.z()}, {n.x(), n.y(), n.z()}};
+        set_normals(sp, n, n);
         continue;
       }
       gather(input_grid_, q, kernel_.h2, s.input);
@@ -247,12 +254,11 @@ void Consolidator::setup() {
       const int stride = (nb.n + kSimpleNormalPoints - 1) / kSimpleNormalPoints;
       s.points.clear();
       for (int k = 0; k < nb.n; k += std::max(stride, 1))
-        s.points.emplace_back(nb.dx[k], nb.dy[k], nb.dz[k]);
+        s.points.emplace_back(double(nb.dx[k]), double(nb.dy[k]), double(nb.dz[k]));
       const Vec3d m = pca_normal(s.points.data(), int(s.points.size()));
       Vec3d n = simple_normal(s.points.data(), int(s.points.size()), 4);
       if (n.dot(m) < 0) n = -n;
-      edge_normals_[sp] = EdgeNormal{{float(n.x()), float(n.y()), float(n.z())},
-                                     {float(m.x()), float(m.y()), float(m.z())}};
+      set_normals(sp, n.cast<float>(), m.cast<float>());
     }
   });
 
@@ -283,30 +289,13 @@ bool Consolidator::edge_e1(const Vec3d& q, const Neighbours& nb, Scratch& s, Vec
   // Eq. 10: c_i from the mean simple normal. Signs are made consistent through
   // the PCA normals (smooth across edges, unlike the simple ones), relative to
   // the one of the input point nearest x_i.
-  int nearest = 0;
-  double best = nb.r2[0];
-  for (int k = 1; k < kh; ++k) {
-    const bool closer = nb.r2[k] < best;  // branch-free: the comparisons are unpredictable
-    best = closer ? nb.r2[k] : best;
-    nearest = closer ? k : nearest;
-  }
-  const float* ref = edge_normals_[nb.pos[nearest]].m;
-  double *snx = s.nx.fit(kh), *sny = s.ny.fit(kh), *snz = s.nz.fit(kh), *sv = s.v.fit(kh);
-  double nx = 0, ny = 0, nz = 0;
-  for (int k = 0; k < kh; ++k) {
-    const int sp = nb.pos[k];
-    const EdgeNormal& en = edge_normals_[sp];
-    const float dot = en.m[0] * ref[0] + en.m[1] * ref[1] + en.m[2] * ref[2];
-    const double sign = oriented_ || dot >= 0 ? 1.0 : -1.0;
-    snx[k] = sign * en.n[0];
-    sny[k] = sign * en.n[1];
-    snz[k] = sign * en.n[2];
-    nx += snx[k];
-    ny += sny[k];
-    nz += snz[k];
-    sv[k] = v_[sp];
-  }
-  const Vec3d sum(nx, ny, nz);
+  const int nearest = detail::nearest(nb.r2.data(), kh);
+  const int ref_sp = nb.pos[nearest];
+  const float ref[3] = {emx_[ref_sp], emy_[ref_sp], emz_[ref_sp]};
+  float *snx = s.nx.fit(kh), *sny = s.ny.fit(kh), *snz = s.nz.fit(kh), *sv = s.v.fit(kh);
+  const detail::EdgeNormalArrays normals{enx_.data(), eny_.data(), enz_.data(), emx_.data(),
+                                         emy_.data(), emz_.data(), v_.data(),  oriented_};
+  const Vec3d sum = detail::signed_normal_sum(nb.pos.data(), kh, normals, ref, snx, sny, snz, sv);
   const double agreement = sum.norm();
   if (!(agreement >= kMinNormalAgreement * kh)) return false;  // normals cancel: plain E1
   const Vec3d a = -sum / agreement;                // unit axis, from c_i towards x_i
@@ -323,7 +312,7 @@ bool Consolidator::edge_e1(const Vec3d& q, const Neighbours& nb, Scratch& s, Vec
   int K = 0, count = 0;
   while (K < params_.max_copies && count < kh) {
     const std::size_t end = std::size_t(K + 1) * kh, off = std::size_t(K) * kh;
-    double *ux = s.ux.fit(end), *uy = s.uy.fit(end), *uz = s.uz.fit(end), *ur2 = s.ur2.fit(end);
+    float *ux = s.ux.fit(end), *uy = s.uy.fit(end), *uz = s.uz.fit(end), *ur2 = s.ur2.fit(end);
     if (params_.inverted_density == InvertedDensity::kExact) s.uw.fit(end);
     count += detail::invert_copy(nb.dx.data(), nb.dy.data(), nb.dz.data(), nb.r2.data(), kh,
                                  D + K * shift, Q, a, h2, ux + off, uy + off, uz + off, ur2 + off);
@@ -333,12 +322,12 @@ bool Consolidator::edge_e1(const Vec3d& q, const Neighbours& nb, Scratch& s, Vec
   const int total = K * kh;
 
   // Eq. 18: density weights 1 / v'_s of U.
-  double* uw = s.uw.data();
+  float* uw = s.uw.data();
   const bool exact = params_.inverted_density == InvertedDensity::kExact;
   if (exact) {
     // Literally: over the points of U within h of u_s (only those of U within h
     // of x'_i weigh anything in E1').
-    const double *ux = s.ux.data(), *uy = s.uy.data(), *uz = s.uz.data(), *ur2 = s.ur2.data();
+    const float *ux = s.ux.data(), *uy = s.uy.data(), *uz = s.uz.data(), *ur2 = s.ur2.data();
     const double reach2 = 4 * h2;  // a neighbour of a point within h of x'_i is within 2h
     for (int i = 0; i < total; ++i) {
       uw[i] = 0;
@@ -346,11 +335,11 @@ bool Consolidator::edge_e1(const Vec3d& q, const Neighbours& nb, Scratch& s, Vec
       double v = 1;
       for (int j = 0; j < total; ++j) {
         if (j == i || ur2[j] >= reach2) continue;
-        const double dx = ux[i] - ux[j], dy = uy[i] - uy[j], dz = uz[i] - uz[j];
+        const double dx = double(ux[i]) - ux[j], dy = double(uy[i]) - uy[j], dz = double(uz[i]) - uz[j];
         const double d2 = dx * dx + dy * dy + dz * dz;
         if (d2 < h2) v += kernel_.theta(d2);
       }
-      uw[i] = 1.0 / v;
+      uw[i] = float(1.0 / v);
     }
   } else {
     // The input density v_j carried into the inverted space: a surface element with
@@ -367,7 +356,7 @@ bool Consolidator::edge_e1(const Vec3d& q, const Neighbours& nb, Scratch& s, Vec
   KernelSums sums;
   for (int t = 0; t < K; ++t) {
     const std::size_t off = std::size_t(t) * kh;
-    const double* weight = exact ? uw + off : s.w.data();
+    const float* weight = exact ? uw + off : s.w.data();
     const KernelSums part = detail::attraction_sum(s.ux.data() + off, s.uy.data() + off,
                                                    s.uz.data() + off, s.ur2.data() + off,
                                                    weight, kh, kernel_.shape());
@@ -475,7 +464,7 @@ void Consolidator::colours() {
       const Neighbours& nb = s.input;
       double sw = 0, sr = 0, sg = 0, sb = 0;
       for (int k = 0; k < nb.n; ++k) {
-        const double r2 = std::max(nb.r2[k], kernel_.eps2);
+        const double r2 = std::max(double(nb.r2[k]), kernel_.eps2);
         const double a = kernel_.theta(r2) / std::sqrt(r2) * inv_v_[nb.pos[k]];
         const Rgb& c = input_.colors[ids[nb.pos[k]]];
         sw += a;

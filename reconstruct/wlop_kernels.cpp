@@ -1,6 +1,11 @@
 #include "reconstruct/wlop_kernels.h"
 
+#include <atomic>
 #include <cstring>
+#include <limits>
+#include <stdexcept>
+#include <string>
+#include <vector>
 
 #ifdef __x86_64__
 #include <immintrin.h>
@@ -40,6 +45,8 @@ enum class Mode { kDensity, kAttraction, kRepulsion };
 __attribute__((target("avx512f"))) inline Lanes<8>::V rsqrt14(Lanes<8>::V x) {
   return (Lanes<8>::V)_mm512_maskz_rsqrt14_pd(__mmask8(0xFF), (__m512d)x);
 }
+__attribute__((target("avx512f"))) inline __m512 rsqrt14_f(__m512 x) { return _mm512_maskz_rsqrt14_ps(__mmask16(0xFFFF), x); }
+__attribute__((target("avx"))) inline __m256 rsqrt_f(__m256 x) { return _mm256_rsqrt_ps(x); }
 #endif
 
 template <int W>
@@ -146,82 +153,6 @@ struct Kernels {
     }
   }
 
-  // Attraction over contiguous arrays of offsets (the edge variant's inverted
-  // neighbourhood): the same lane arithmetic as block().
-  static STATION_INLINE KernelSums array_attraction(const double* dx, const double* dy,
-                                                    const double* dz, const double* r2s,
-                                                    const double* weight, int n,
-                                                    const KernelShape& k) {
-    Acc acc;
-    V lane;
-    for (int l = 0; l < W; ++l) lane[l] = l;
-    for (int p = 0; p < n; p += W) {
-      const V r2 = load(r2s + p);
-      U inside = negative(r2 - k.h2) & negative(k.eps2 - r2) & negative(lane - double(n - p));
-      V a = exp_nonpositive(r2 * -k.inv_s2) * rsqrt_positive(r2) * load(weight + p);
-      a = keep(a, inside);
-      acc.w += a;
-      acc.x += a * load(dx + p);
-      acc.y += a * load(dy + p);
-      acc.z += a * load(dz + p);
-    }
-    KernelSums out;
-    out.w = lane_sum(acc.w);
-    out.d = Vec3d(lane_sum(acc.x), lane_sum(acc.y), lane_sum(acc.z));
-    return out;
-  }
-
-  // See invert_copy in the header. With z the axial and l2 the squared lateral
-  // offset of a neighbour, A = Dt + z its shifted axial distance from c_i and
-  // d = |p + t l - c_i|: e = d - A, the inverted distance from c_i is Q - z - e,
-  // the lateral scale g = (Q - z - e) / d and the axial offset from x'_i is
-  // -z - e - g e; the lateral offset, g (p - x_i - z a). (d - A loses about
-  // eps * A / e of e's relative precision, absolute error ~1e-16 A: no need for the
-  // division of l2 / (d + A).)
-  static STATION_INLINE int invert_copy(const double* dxs, const double* dys, const double* dzs,
-                                        const double* r2s, int n, double Dt, double Q,
-                                        const Vec3d& a, double h2, double* ux, double* uy,
-                                        double* uz, double* ur2) {
-    V lane;
-    for (int l = 0; l < W; ++l) lane[l] = l;
-    V inside{};
-    for (int p = 0; p < n; p += W) {
-      const V dx = load(dxs + p), dy = load(dys + p), dz = load(dzs + p);
-      const V z = dx * a.x() + dy * a.y() + dz * a.z();
-      V l2 = load(r2s + p) - z * z;
-      l2 = keep(l2, ~negative(l2));  // rounding can make it slightly negative
-      const V A = Dt + z;
-      const V dd = A * A + l2;
-      const V inv_d = rsqrt_positive(dd);
-      const V e = dd * inv_d - A;
-      const V g = (Q - z - e) * inv_d;
-      const V ax = -z - e - g * e;
-      const V along = ax - g * z;  // the axial part of g (p - x_i) is g z
-      const V ox = along * a.x() + g * dx, oy = along * a.y() + g * dy, oz = along * a.z() + g * dz;
-      const V d2 = ax * ax + g * g * l2;
-      std::memcpy(ux + p, &ox, sizeof ox);
-      std::memcpy(uy + p, &oy, sizeof oy);
-      std::memcpy(uz + p, &oz, sizeof oz);
-      std::memcpy(ur2 + p, &d2, sizeof d2);
-      inside += keep(splat(1.0), negative(d2 - h2) & negative(lane - double(n - p)));
-    }
-    return int(lane_sum(inside));
-  }
-
-  static STATION_INLINE void edge_weights(const double* nxs, const double* nys, const double* nzs,
-                                          const double* vs, int n, const Vec3d& a, const double* g,
-                                          int K, double* w) {
-    for (int p = 0; p < n; p += W) {
-      const V c = load(nxs + p) * a.x() + load(nys + p) * a.y() + load(nzs + p) * a.z();
-      const V c2 = c * c;
-      V S{};
-      // 1 / (g sqrt(1 + (g^2 - 1) c^2)) = rsqrt(g^2 (1 + (g^2 - 1) c^2))
-      for (int t = 0; t < K; ++t) S += rsqrt_positive(g[t] * g[t] * (1.0 + (g[t] * g[t] - 1.0) * c2));
-      const V out = 1.0 / (1.0 + (load(vs + p) - 1.0) * S);
-      std::memcpy(w + p, &out, sizeof out);
-    }
-  }
-
   template <Mode mode>
   static STATION_INLINE KernelSums sums(const RadiusGrid& grid, const double* weight, const Vec3d& q,
                                         const KernelShape& k, int self) {
@@ -244,19 +175,230 @@ struct Kernels {
   }
 };
 
+// The edge variant's inverted-space sums (invert_copy, the Jacobian weights and the
+// attraction over the copies) in single precision, twice the lanes of the double
+// kernels. Every quantity in them is an offset from x_i or x'_i of order h (or a
+// ratio of such), so float keeps them to about 1e-7 h relative to h; the sums are
+// taken per lane in float (at most a few hundred terms a lane) and across lanes in
+// double. This part of the edge variant is bound by the arithmetic per neighbour
+// and copy (a reciprocal square root twice, an exponential once), which float
+// halves per lane and shortens (a degree-7 polynomial, one Newton step after the
+// hardware estimate).
+template <int W>
+struct FloatLanes {
+  typedef float V __attribute__((vector_size(4 * W)));
+  typedef unsigned U __attribute__((vector_size(4 * W)));
+};
+
+template <int W>
+struct FloatKernels {
+  using V = typename FloatLanes<W>::V;
+  using U = typename FloatLanes<W>::U;
+  static_assert(kFloatPad >= W, "float padding must cover a lane block");
+
+  static STATION_INLINE V load(const float* p) {
+    V v;
+    std::memcpy(&v, p, sizeof v);
+    return v;
+  }
+  static STATION_INLINE void store(float* p, V v) { std::memcpy(p, &v, sizeof v); }
+  static STATION_INLINE V splat(float x) { return V{} + x; }
+  static STATION_INLINE double lane_sum(V v) {
+    double s = 0;
+    for (int l = 0; l < W; ++l) s += double(v[l]);
+    return s;
+  }
+  static STATION_INLINE U negative(V v) { return U{} - ((U)v >> 31); }
+  static STATION_INLINE V keep(V v, U mask) { return (V)((U)v & mask); }
+  static STATION_INLINE V lanes() {
+    V lane;
+    for (int l = 0; l < W; ++l) lane[l] = float(l);
+    return lane;
+  }
+
+  // exp(x) for -87 < x <= 0 to about 1 ulp (float): Cody-Waite reduction as in the
+  // double kernels, e^r by its degree-7 Taylor polynomial (|r| <= ln2/2: remainder
+  // < 2e-8 relative). Garbage below -87; callers mask those lanes (x < -16 there).
+  static STATION_INLINE V exp_nonpositive(V x) {
+    const V shifter = splat(12582912.0f);  // 1.5 * 2^23
+    const V t = x * 1.44269504f + shifter;
+    const V n = t - shifter;
+    const V r = x - n * 0.693145752f - n * 1.42860677e-6f;
+    V p = splat(1.0f / 5040.0f);
+    p = p * r + 1.0f / 720.0f;
+    p = p * r + 1.0f / 120.0f;
+    p = p * r + 1.0f / 24.0f;
+    p = p * r + 1.0f / 6.0f;
+    p = p * r + 0.5f;
+    p = p * r + 1.0f;
+    p = p * r + 1.0f;
+    const U bits = (((U)t - (U)shifter) + 127u) << 23;
+    return p * (V)bits;
+  }
+
+  // 1 / sqrt(x) for x > 0, float precision: the CPU's estimate (12 bits with SSE and
+  // AVX, 14 with AVX-512) and one Newton step; elsewhere the bit-level guess and
+  // three. Garbage for x = 0; masked by callers.
+  static STATION_INLINE V rsqrt_positive(V x) {
+    V y;
+#if defined(__x86_64__) && defined(__GNUC__)
+    if constexpr (W == 16) {
+      y = (V)rsqrt14_f((__m512)x);
+    } else if constexpr (W == 8) {
+      y = (V)rsqrt_f((__m256)x);
+    } else {
+      y = (V)_mm_rsqrt_ps((__m128)x);
+    }
+    return y * (1.5f - (x * 0.5f) * y * y);
+#else
+    y = (V)((U{} + 0x5f375a86u) - ((U)x >> 1));
+    for (int i = 0; i < 3; ++i) y = y * (1.5f - (x * 0.5f) * y * y);
+    return y;
+#endif
+  }
+
+  // See invert_copy in the header; the arithmetic of the double version, with
+  // e = l2 / (d + A) instead of d - A (no cancellation in float).
+  static STATION_INLINE int invert_copy(const float* dxs, const float* dys, const float* dzs,
+                                        const float* r2s, int n, double Dt, double Q,
+                                        const Vec3d& a, double h2, float* ux, float* uy,
+                                        float* uz, float* ur2) {
+    const V lane = lanes();
+    const float axf = float(a.x()), ayf = float(a.y()), azf = float(a.z());
+    const float dt = float(Dt), q = float(Q), hh = float(h2);
+    V inside{};
+    for (int p = 0; p < n; p += W) {
+      const V dx = load(dxs + p), dy = load(dys + p), dz = load(dzs + p);
+      const V z = dx * axf + dy * ayf + dz * azf;
+      V l2 = load(r2s + p) - z * z;
+      l2 = keep(l2, ~negative(l2));  // rounding can make it slightly negative
+      const V A = dt + z;
+      const V dd = A * A + l2;
+      const V inv_d = rsqrt_positive(dd);
+      const V e = l2 / (dd * inv_d + A);
+      const V g = (q - z - e) * inv_d;
+      const V ax = -z - e - g * e;
+      const V along = ax - g * z;
+      store(ux + p, along * axf + g * dx);
+      store(uy + p, along * ayf + g * dy);
+      store(uz + p, along * azf + g * dz);
+      const V d2 = ax * ax + g * g * l2;
+      store(ur2 + p, d2);
+      inside += keep(splat(1.0f), negative(d2 - hh) & negative(lane - float(n - p)));
+    }
+    return int(lane_sum(inside));
+  }
+
+  static STATION_INLINE void edge_weights(const float* nxs, const float* nys, const float* nzs,
+                                          const float* vs, int n, const Vec3d& a, const double* g,
+                                          int K, float* w) {
+    const float axf = float(a.x()), ayf = float(a.y()), azf = float(a.z());
+    for (int p = 0; p < n; p += W) {
+      const V c = load(nxs + p) * axf + load(nys + p) * ayf + load(nzs + p) * azf;
+      const V c2 = c * c;
+      V S{};
+      for (int t = 0; t < K; ++t) {
+        const float g2 = float(g[t] * g[t]);
+        S += rsqrt_positive(g2 * (1.0f + (g2 - 1.0f) * c2));
+      }
+      store(w + p, 1.0f / (1.0f + (load(vs + p) - 1.0f) * S));
+    }
+  }
+
+  // Index of the smallest of r2[0..n) (the first on ties); n > 0.
+  static STATION_INLINE int nearest(const float* r2, int n) {
+    const V lane = lanes();
+    V best = splat(std::numeric_limits<float>::infinity()), at = splat(-1.0f);
+    for (int p = 0; p < n; p += W) {
+      // Past-the-end lanes read as +inf; a strictly smaller value replaces.
+      const U valid = negative(lane - float(n - p));
+      const V r = (V)(((U)load(r2 + p) & valid) | (~valid & (U)splat(std::numeric_limits<float>::infinity())));
+      const U smaller = negative(r - best);
+      best = (V)(((U)r & smaller) | ((U)best & ~smaller));
+      at = (V)(((U)(lane + float(p)) & smaller) | ((U)at & ~smaller));
+    }
+    float b = best[0];
+    float idx = at[0];
+    for (int l = 1; l < W; ++l)
+      if (best[l] < b || (best[l] == b && at[l] < idx)) {
+        b = best[l];
+        idx = at[l];
+      }
+    return int(idx);
+  }
+
+  // Eq. 10's signed normal sum; see signed_normal_sum in the header.
+  static STATION_INLINE Vec3d signed_normal_sum(const int* pos, int n, const EdgeNormalArrays& e,
+                                                const float* ref, float* nx, float* ny, float* nz,
+                                                float* v) {
+    const V lane = lanes();
+    V sx{}, sy{}, sz{};
+    for (int p = 0; p < n; p += W) {
+      V gnx, gny, gnz, gmx, gmy, gmz, gv;
+      for (int l = 0; l < W; ++l) {
+        const int q = pos[p + l];
+        gnx[l] = e.nx[q];
+        gny[l] = e.ny[q];
+        gnz[l] = e.nz[q];
+        gmx[l] = e.mx[q];
+        gmy[l] = e.my[q];
+        gmz[l] = e.mz[q];
+        gv[l] = e.v[q];
+      }
+      const V dot = gmx * ref[0] + gmy * ref[1] + gmz * ref[2];
+      // sign = -1 where dot < 0: flip the sign bit of the normal's components.
+      const U flip = e.oriented ? U{} : (negative(dot) << 31);
+      const V fx = (V)((U)gnx ^ flip), fy = (V)((U)gny ^ flip), fz = (V)((U)gnz ^ flip);
+      store(nx + p, fx);
+      store(ny + p, fy);
+      store(nz + p, fz);
+      store(v + p, gv);
+      const U valid = negative(lane - float(n - p));
+      sx += keep(fx, valid);
+      sy += keep(fy, valid);
+      sz += keep(fz, valid);
+    }
+    return Vec3d(lane_sum(sx), lane_sum(sy), lane_sum(sz));
+  }
+
+  static STATION_INLINE KernelSums attraction(const float* dx, const float* dy, const float* dz,
+                                              const float* r2s, const float* weight, int n,
+                                              const KernelShape& k) {
+    const V lane = lanes();
+    const float h2 = float(k.h2), eps2 = float(k.eps2), inv_s2 = float(k.inv_s2);
+    V w{}, x{}, y{}, z{};
+    for (int p = 0; p < n; p += W) {
+      const V r2 = load(r2s + p);
+      const U inside = negative(r2 - h2) & negative(eps2 - r2) & negative(lane - float(n - p));
+      const V a = keep(exp_nonpositive(r2 * -inv_s2) * rsqrt_positive(r2) * load(weight + p), inside);
+      w += a;
+      x += a * load(dx + p);
+      y += a * load(dy + p);
+      z += a * load(dz + p);
+    }
+    KernelSums out;
+    out.w = lane_sum(w);
+    out.d = Vec3d(lane_sum(x), lane_sum(y), lane_sum(z));
+    return out;
+  }
+};
+
 struct Table {
   KernelSums (*density)(const RadiusGrid&, const Vec3d&, const KernelShape&);
   KernelSums (*attraction)(const RadiusGrid&, const double*, const Vec3d&, const KernelShape&);
   KernelSums (*repulsion)(const RadiusGrid&, const double*, const Vec3d&, const KernelShape&, int);
-  KernelSums (*array_attraction)(const double*, const double*, const double*, const double*,
-                                 const double*, int, const KernelShape&);
-  int (*invert_copy)(const double*, const double*, const double*, const double*, int, double,
-                     double, const Vec3d&, double, double*, double*, double*, double*);
-  void (*edge_weights)(const double*, const double*, const double*, const double*, int,
-                       const Vec3d&, const double*, int, double*);
+  KernelSums (*array_attraction_f)(const float*, const float*, const float*, const float*,
+                                   const float*, int, const KernelShape&);
+  int (*invert_copy_f)(const float*, const float*, const float*, const float*, int, double,
+                       double, const Vec3d&, double, float*, float*, float*, float*);
+  void (*edge_weights_f)(const float*, const float*, const float*, const float*, int,
+                         const Vec3d&, const double*, int, float*);
+  int (*nearest)(const float*, int);
+  Vec3d (*signed_normal_sum)(const int*, int, const EdgeNormalArrays&, const float*, float*,
+                             float*, float*, float*);
 };
 
-#define STATION_KERNEL_TABLE(NAME, W, TARGET)                                                    \
+#define STATION_KERNEL_TABLE(NAME, W, WF, TARGET)                                                  \
   TARGET KernelSums NAME##_density(const RadiusGrid& g, const Vec3d& q, const KernelShape& k) { \
     return Kernels<W>::template sums<Mode::kDensity>(g, nullptr, q, k, -1);                     \
   }                                                                                             \
@@ -268,61 +410,103 @@ struct Table {
                                      const KernelShape& k, int self) {                          \
     return Kernels<W>::template sums<Mode::kRepulsion>(g, w, q, k, self);                       \
   }                                                                                             \
-  TARGET KernelSums NAME##_array(const double* dx, const double* dy, const double* dz,           \
-                                 const double* r2, const double* w, int n, const KernelShape& k) { \
-    return Kernels<W>::array_attraction(dx, dy, dz, r2, w, n, k);                               \
+  TARGET KernelSums NAME##_array_f(const float* dx, const float* dy, const float* dz,          \
+                                   const float* r2, const float* w, int n, const KernelShape& k) { \
+    return FloatKernels<WF>::attraction(dx, dy, dz, r2, w, n, k);                               \
   }                                                                                             \
-  TARGET int NAME##_invert(const double* dx, const double* dy, const double* dz, const double* r2, \
-                           int n, double Dt, double Q, const Vec3d& a, double h2, double* ux,   \
-                           double* uy, double* uz, double* ur2) {                               \
-    return Kernels<W>::invert_copy(dx, dy, dz, r2, n, Dt, Q, a, h2, ux, uy, uz, ur2);           \
+  TARGET int NAME##_invert_f(const float* dx, const float* dy, const float* dz, const float* r2, \
+                             int n, double Dt, double Q, const Vec3d& a, double h2, float* ux,  \
+                             float* uy, float* uz, float* ur2) {                                \
+    return FloatKernels<WF>::invert_copy(dx, dy, dz, r2, n, Dt, Q, a, h2, ux, uy, uz, ur2);     \
   }                                                                                             \
-  TARGET void NAME##_weights(const double* nx, const double* ny, const double* nz,              \
-                             const double* v, int n, const Vec3d& a, const double* g, int K,     \
-                             double* w) {                                                        \
-    Kernels<W>::edge_weights(nx, ny, nz, v, n, a, g, K, w);                                     \
+  TARGET void NAME##_weights_f(const float* nx, const float* ny, const float* nz, const float* v, \
+                               int n, const Vec3d& a, const double* g, int K, float* w) {       \
+    FloatKernels<WF>::edge_weights(nx, ny, nz, v, n, a, g, K, w);                               \
   }                                                                                             \
-  const Table NAME##_table{NAME##_density, NAME##_attraction, NAME##_repulsion, NAME##_array,  \
-                           NAME##_invert, NAME##_weights};
+  TARGET int NAME##_nearest(const float* r2, int n) { return FloatKernels<WF>::nearest(r2, n); } \
+  TARGET Vec3d NAME##_normal_sum(const int* pos, int n, const EdgeNormalArrays& e, const float* ref, \
+                                 float* nx, float* ny, float* nz, float* v) {                   \
+    return FloatKernels<WF>::signed_normal_sum(pos, n, e, ref, nx, ny, nz, v);                 \
+  }                                                                                             \
+  const Table NAME##_table{NAME##_density,  NAME##_attraction, NAME##_repulsion, NAME##_array_f, \
+                           NAME##_invert_f, NAME##_weights_f,  NAME##_nearest,   NAME##_normal_sum};
 
-STATION_KERNEL_TABLE(base, 2, )
+STATION_KERNEL_TABLE(base, 2, 4, )
 #ifdef STATION_X86_DISPATCH
-STATION_KERNEL_TABLE(avx2, 4, __attribute__((target("avx2"))))
-STATION_KERNEL_TABLE(avx512, 8, __attribute__((target("avx512f,avx512dq"))))
+STATION_KERNEL_TABLE(avx2, 4, 8, __attribute__((target("avx2"))))
+STATION_KERNEL_TABLE(avx512, 8, 16, __attribute__((target("avx512f,avx512dq"))))
 #endif
 
-const Table& table() {
-  static const Table& chosen = [&]() -> const Table& {
+struct Variant {
+  const char* name;
+  const Table* table;
+};
+
+// The kernel sets this CPU can run, widest first.
+const std::vector<Variant>& variants() {
+  static const std::vector<Variant> all = [] {
+    std::vector<Variant> v;
 #ifdef STATION_X86_DISPATCH
     __builtin_cpu_init();
-    if (__builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512dq")) return avx512_table;
-    if (__builtin_cpu_supports("avx2")) return avx2_table;
+    if (__builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512dq"))
+      v.push_back({"avx512", &avx512_table});
+    if (__builtin_cpu_supports("avx2")) v.push_back({"avx2", &avx2_table});
 #endif
-    return base_table;
+    v.push_back({"base", &base_table});
+    return v;
   }();
+  return all;
+}
+
+std::atomic<const Table*>& current() {
+  static std::atomic<const Table*> chosen{variants().front().table};
   return chosen;
 }
 
+const Table& table() { return *current().load(std::memory_order_relaxed); }
+
 }  // namespace
 
-KernelSums attraction_sum(const double* dx, const double* dy, const double* dz, const double* r2,
-                          const double* weight, int n, const KernelShape& k) {
-  return table().array_attraction(dx, dy, dz, r2, weight, n, k);
+std::vector<std::string> kernel_variants() {
+  std::vector<std::string> names;
+  for (const Variant& v : variants()) names.emplace_back(v.name);
+  return names;
+}
+
+void use_kernel_variant(const std::string& name) {
+  for (const Variant& v : variants())
+    if (name == v.name) {
+      current().store(v.table);
+      return;
+    }
+  throw std::invalid_argument("no WLOP kernel variant '" + name + "' on this CPU");
+}
+
+KernelSums attraction_sum(const float* dx, const float* dy, const float* dz, const float* r2,
+                          const float* weight, int n, const KernelShape& k) {
+  return table().array_attraction_f(dx, dy, dz, r2, weight, n, k);
+}
+
+void edge_weights(const float* nx, const float* ny, const float* nz, const float* v, int n,
+                  const Vec3d& a, const double* g, int K, float* w) {
+  table().edge_weights_f(nx, ny, nz, v, n, a, g, K, w);
+}
+
+int invert_copy(const float* dx, const float* dy, const float* dz, const float* r2, int n,
+                double Dt, double Q, const Vec3d& a, double h2, float* ux, float* uy, float* uz,
+                float* ur2) {
+  return table().invert_copy_f(dx, dy, dz, r2, n, Dt, Q, a, h2, ux, uy, uz, ur2);
+}
+
+int nearest(const float* r2, int n) { return table().nearest(r2, n); }
+
+Vec3d signed_normal_sum(const int* pos, int n, const EdgeNormalArrays& normals, const float* ref,
+                        float* nx, float* ny, float* nz, float* v) {
+  return table().signed_normal_sum(pos, n, normals, ref, nx, ny, nz, v);
 }
 
 KernelSums density_sum(const RadiusGrid& grid, const Vec3d& q, const KernelShape& k) {
   return table().density(grid, q, k);
-}
-
-void edge_weights(const double* nx, const double* ny, const double* nz, const double* v, int n,
-                  const Vec3d& a, const double* g, int K, double* w) {
-  table().edge_weights(nx, ny, nz, v, n, a, g, K, w);
-}
-
-int invert_copy(const double* dx, const double* dy, const double* dz, const double* r2, int n,
-                double Dt, double Q, const Vec3d& a, double h2, double* ux, double* uy,
-                double* uz, double* ur2) {
-  return table().invert_copy(dx, dy, dz, r2, n, Dt, Q, a, h2, ux, uy, uz, ur2);
 }
 
 KernelSums attraction_sum(const RadiusGrid& grid, const double* weight, const Vec3d& q,

@@ -4,10 +4,24 @@
 // a time. theta(r) = exp(-r^2 / (h/4)^2) (eq. 8). The lanes are summed in a fixed
 // order, so a result depends on the grid and the query alone (not on the CPU's
 // vector width: every ISA runs the same eight-lane arithmetic).
+#include <string>
+#include <vector>
+
 #include "core/geometry.h"
 #include "reconstruct/radius_grid.h"
 
 namespace station::detail {
+
+/// The kernel sets this CPU can run, widest first ("avx512", "avx2", "base"); the
+/// first is used unless use_kernel_variant picks another (for tests: every set can
+/// then be checked on one machine; not to be called while kernels run).
+/// use_kernel_variant throws std::invalid_argument for a name not in the list.
+std::vector<std::string> kernel_variants();
+void use_kernel_variant(const std::string& name);
+
+/// Readable (and, for outputs, writable) entries past the end that the float
+/// kernels below need: one lane block of the widest ISA.
+constexpr int kFloatPad = 16;
 
 /// A weighted sum over neighbours p: w = sum a_p, d = sum a_p (p - q).
 struct KernelSums {
@@ -36,27 +50,51 @@ KernelSums attraction_sum(const RadiusGrid& grid, const double* weight, const Ve
 KernelSums repulsion_sum(const RadiusGrid& grid, const double* weight, const Vec3d& q,
                          const KernelShape& k, int self);
 
+// The edge variant's sums over its gathered, inverted neighbourhood, in single
+// precision (twice the lanes of the double kernels): every quantity is an offset
+// of order h from x_i or x'_i, kept to about 1e-7 relative; sums across lanes in
+// double. Arrays need n + kFloatPad readable entries (outputs: writable).
+
 /// The attraction sum over n points given as offsets (dx, dy, dz) from q with
 /// squared lengths r2, in contiguous arrays: a_p = theta(r) / r * weight[p] over
-/// eps2 < r^2 < h^2. Each array must hold n + RadiusGrid::kPad readable entries.
-KernelSums attraction_sum(const double* dx, const double* dy, const double* dz, const double* r2,
-                          const double* weight, int n, const KernelShape& k);
+/// eps2 < r^2 < h^2.
+KernelSums attraction_sum(const float* dx, const float* dy, const float* dz, const float* r2,
+                          const float* weight, int n, const KernelShape& k);
 
 /// One copy of the edge variant's upsampling (eqs. 13-15) for the n neighbours of
 /// x_i at offsets (dx, dy, dz) (squared lengths r2): with a the unit axis from c_i
 /// to x_i, the copy is shifted so that x_i lies Dt from c_i and inverted with the
 /// radius that keeps x'_i at Q from c_i. Writes each neighbour's offset from x'_i
 /// to (ux, uy, uz) and its squared length to ur2, and returns how many of those
-/// are below h2. Inputs need n + kPad readable entries, outputs n + kPad writable.
-int invert_copy(const double* dx, const double* dy, const double* dz, const double* r2, int n,
-                double Dt, double Q, const Vec3d& a, double h2, double* ux, double* uy,
-                double* uz, double* ur2);
+/// are below h2.
+int invert_copy(const float* dx, const float* dy, const float* dz, const float* r2, int n,
+                double Dt, double Q, const Vec3d& a, double h2, float* ux, float* uy, float* uz,
+                float* ur2);
 
 /// The edge variant's density weights 1 / v'_k = 1 / (1 + (v_k - 1) S_k) for n
 /// neighbours with (unit, any sign) normals (nx, ny, nz) and input densities v, where
 /// S_k = sum_t 1 / (g_t sqrt(1 + (g_t^2 - 1) (n_k . a)^2)) over the copies' lateral
-/// scales g (K of them). Arrays need n + kPad entries (w: writable).
-void edge_weights(const double* nx, const double* ny, const double* nz, const double* v, int n,
-                  const Vec3d& a, const double* g, int K, double* w);
+/// scales g (K of them).
+void edge_weights(const float* nx, const float* ny, const float* nz, const float* v, int n,
+                  const Vec3d& a, const double* g, int K, float* w);
+
+/// Index of the smallest of r2[0..n) (the first on ties); n > 0. r2 needs n + kFloatPad
+/// readable entries.
+int nearest(const float* r2, int n);
+
+/// The edge variant's per-point data by the input grid's sorted position: the simple
+/// normal n (unit), the PCA normal m that orients it, v_j. When `oriented`, n is the
+/// input's own normal and is never flipped.
+struct EdgeNormalArrays {
+  const float *nx, *ny, *nz, *mx, *my, *mz, *v;
+  bool oriented;
+};
+
+/// Eq. 10's sum for the neighbours at sorted positions pos[0..n): each simple normal
+/// with the sign of m . ref (flipped where m . ref < 0, unless oriented), written to
+/// (nx, ny, nz) with its v_j to v, and summed. pos needs n + kFloatPad readable
+/// entries that are valid positions; the outputs n + kFloatPad writable.
+Vec3d signed_normal_sum(const int* pos, int n, const EdgeNormalArrays& normals, const float* ref,
+                        float* nx, float* ny, float* nz, float* v);
 
 }  // namespace station::detail

@@ -1,0 +1,243 @@
+// WLOP's vector kernels (reconstruct/wlop_kernels.h) against scalar double
+// references, for every kernel set this CPU can run (the widest is what
+// consolidate uses; the others would run on other CPUs).
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <random>
+#include <vector>
+
+#include "reconstruct/radius_grid.h"
+#include "reconstruct/wlop_kernels.h"
+
+namespace station::detail {
+namespace {
+
+// Restores the default kernel set when a test ends.
+struct VariantGuard {
+  ~VariantGuard() { use_kernel_variant(kernel_variants().front()); }
+};
+
+constexpr int kN = 37;  // not a multiple of any lane count: tails are exercised
+
+struct Offsets {
+  std::vector<float> dx, dy, dz, r2;
+};
+
+// kN offsets within about h of the origin (some beyond h, one at the origin).
+Offsets random_offsets(double h, unsigned seed) {
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<double> u(-1.1 * h, 1.1 * h);
+  Offsets o;
+  for (int k = 0; k < kN + kFloatPad; ++k) {
+    double x = u(rng), y = u(rng), z = 0.2 * u(rng);
+    if (k == 5) x = y = z = 0;
+    o.dx.push_back(float(x));
+    o.dy.push_back(float(y));
+    o.dz.push_back(float(z));
+    o.r2.push_back(float(x * x + y * y + z * z));
+  }
+  return o;
+}
+
+TEST(WlopKernels, VariantsAreListedAndUnknownOnesRejected) {
+  const std::vector<std::string> names = kernel_variants();
+  ASSERT_FALSE(names.empty());
+  EXPECT_EQ(names.back(), "base");
+  EXPECT_THROW(use_kernel_variant("nonsense"), std::invalid_argument);
+}
+
+TEST(WlopKernels, InvertCopyMatchesTheSphericalInversion) {
+  VariantGuard guard;
+  const double h = 0.05, D = 0.4, Q = 0.8, shift = 0.03;
+  const Vec3d a = Vec3d(0.3, -0.2, 0.93).normalized();
+  const Offsets o = random_offsets(h, 7);
+  for (const std::string& name : kernel_variants()) {
+    use_kernel_variant(name);
+    for (int t = 0; t < 3; ++t) {
+      const double Dt = D + t * shift;
+      std::vector<float> ux(kN + kFloatPad), uy(ux), uz(ux), ur2(ux);
+      const int count = invert_copy(o.dx.data(), o.dy.data(), o.dz.data(), o.r2.data(), kN, Dt, Q,
+                                    a, h * h, ux.data(), uy.data(), uz.data(), ur2.data());
+      // f(p, c, r) = c + (2r - |p - c|) (p - c) / |p - c| with x_i at the origin,
+      // c = -Dt a and r such that f(x_i) lies Q from c.
+      const Vec3d c = -Dt * a;
+      const double r = (Q + Dt) / 2;
+      const auto f = [&](const Vec3d& p) {
+        const Vec3d d = p - c;
+        return Vec3d(c + (2 * r - d.norm()) * d / d.norm());
+      };
+      const Vec3d xi = f(Vec3d::Zero());
+      int expected = 0;
+      for (int k = 0; k < kN; ++k) {
+        const Vec3d p(o.dx[k], o.dy[k], o.dz[k]);
+        const Vec3d u = f(p) - xi;
+        // Float: about 1e-7 relative to the offset (copies beyond h are magnified).
+        const double tol = 1e-6 * std::max(h, u.norm());
+        EXPECT_NEAR(ux[k], u.x(), tol) << name << " t " << t << " k " << k;
+        EXPECT_NEAR(uy[k], u.y(), tol) << name << " t " << t << " k " << k;
+        EXPECT_NEAR(uz[k], u.z(), tol) << name << " t " << t << " k " << k;
+        EXPECT_NEAR(ur2[k], u.squaredNorm(), 2 * tol * std::max(h, u.norm())) << name << " t " << t << " k " << k;
+        expected += u.squaredNorm() < h * h;
+      }
+      EXPECT_EQ(count, expected) << name << " t " << t;
+      EXPECT_GT(expected, 3);
+      EXPECT_LT(expected, kN);
+    }
+  }
+}
+
+TEST(WlopKernels, FloatAttractionAndWeightsMatchScalarSums) {
+  VariantGuard guard;
+  const double h = 0.05;
+  const KernelShape shape{h * h, 16 / (h * h), 1e-18 * h * h};
+  const Offsets o = random_offsets(h, 11);
+  std::vector<float> weight(kN + kFloatPad), nx(weight), ny(weight), nz(weight), v(weight);
+  std::mt19937 rng(3);
+  std::uniform_real_distribution<double> u(-1, 1);
+  for (int k = 0; k < kN + kFloatPad; ++k) {
+    weight[k] = float(0.5 + 0.5 * std::abs(u(rng)));
+    const Vec3d n = Vec3d(u(rng), u(rng), u(rng)).normalized();
+    nx[k] = float(n.x());
+    ny[k] = float(n.y());
+    nz[k] = float(n.z());
+    v[k] = float(1 + 10 * std::abs(u(rng)));
+  }
+  const Vec3d a = Vec3d(0.1, 0.7, -0.7).normalized();
+  const double g[3] = {1.6, 1.45, 1.3};
+  for (const std::string& name : kernel_variants()) {
+    use_kernel_variant(name);
+    const KernelSums s = attraction_sum(o.dx.data(), o.dy.data(), o.dz.data(), o.r2.data(),
+                                        weight.data(), kN, shape);
+    double w = 0;
+    Vec3d d = Vec3d::Zero();
+    for (int k = 0; k < kN; ++k) {
+      const double r2 = o.r2[k];
+      if (!(r2 > shape.eps2 && r2 < shape.h2)) continue;
+      const double alpha = std::exp(-r2 * shape.inv_s2) / std::sqrt(r2) * weight[k];
+      w += alpha;
+      d += alpha * Vec3d(o.dx[k], o.dy[k], o.dz[k]);
+    }
+    ASSERT_GT(w, 0);
+    EXPECT_NEAR(s.w, w, 1e-6 * w) << name;
+    EXPECT_LT((s.d - d).norm(), 1e-6 * w * h) << name;
+
+    std::vector<float> out(kN + kFloatPad);
+    edge_weights(nx.data(), ny.data(), nz.data(), v.data(), kN, a, g, 3, out.data());
+    for (int k = 0; k < kN; ++k) {
+      const double c = Vec3d(nx[k], ny[k], nz[k]).dot(a);
+      double S = 0;
+      for (double gt : g) S += 1 / (gt * std::sqrt(1 + (gt * gt - 1) * c * c));
+      const double expected = 1 / (1 + (v[k] - 1) * S);
+      EXPECT_NEAR(out[k], expected, 1e-6 * expected) << name << " k " << k;
+    }
+  }
+}
+
+TEST(WlopKernels, NearestAndSignedNormalSum) {
+  VariantGuard guard;
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<double> u(-1, 1);
+  const int m = 200;  // input points by sorted position
+  std::vector<float> nx(m + kFloatPad), ny(nx), nz(nx), mx(nx), my(nx), mz(nx), v(nx);
+  for (int p = 0; p < m; ++p) {
+    const Vec3d n = Vec3d(u(rng), u(rng), u(rng)).normalized();
+    Vec3d pca = (n + 0.3 * Vec3d(u(rng), u(rng), u(rng))).normalized();
+    nx[p] = float(n.x());
+    ny[p] = float(n.y());
+    nz[p] = float(n.z());
+    mx[p] = float(pca.x());
+    my[p] = float(pca.y());
+    mz[p] = float(pca.z());
+    v[p] = float(p + 1);
+  }
+  std::vector<int> pos(kN + kFloatPad);
+  std::vector<float> r2(kN + kFloatPad);
+  for (int k = 0; k < kN + kFloatPad; ++k) {
+    pos[k] = (k * 7 + 3) % m;
+    r2[k] = float(1 + u(rng));
+  }
+  r2[29] = r2[17] = 0.01f;  // a tie: the first wins
+  r2[kN + 1] = 0.0f;        // past the end: never the answer
+  const float ref[3] = {0.f, 0.6f, 0.8f};
+  for (const std::string& name : kernel_variants()) {
+    use_kernel_variant(name);
+    EXPECT_EQ(nearest(r2.data(), kN), 17) << name;
+    EXPECT_EQ(nearest(r2.data(), 1), 0) << name;
+    for (bool oriented : {false, true}) {
+      const EdgeNormalArrays arrays{nx.data(), ny.data(), nz.data(), mx.data(),
+                                    my.data(), mz.data(), v.data(),  oriented};
+      std::vector<float> ox(kN + kFloatPad), oy(ox), oz(ox), ov(ox);
+      const Vec3d sum = signed_normal_sum(pos.data(), kN, arrays, ref, ox.data(), oy.data(),
+                                          oz.data(), ov.data());
+      Vec3d expected = Vec3d::Zero();
+      int flipped = 0;
+      for (int k = 0; k < kN; ++k) {
+        const int p = pos[k];
+        const double dot = mx[p] * ref[0] + my[p] * ref[1] + mz[p] * ref[2];
+        const double sign = oriented || dot >= 0 ? 1 : -1;
+        flipped += sign < 0;
+        EXPECT_EQ(ox[k], float(sign * nx[p])) << name << " k " << k;
+        EXPECT_EQ(oy[k], float(sign * ny[p])) << name << " k " << k;
+        EXPECT_EQ(oz[k], float(sign * nz[p])) << name << " k " << k;
+        EXPECT_EQ(ov[k], v[p]) << name << " k " << k;
+        expected += sign * Vec3d(nx[p], ny[p], nz[p]);
+      }
+      EXPECT_LT((sum - expected).norm(), 1e-5) << name;
+      if (!oriented) {
+        EXPECT_GT(flipped, 5);
+      }
+    }
+  }
+}
+
+TEST(WlopKernels, GridSumsMatchScalarSums) {
+  VariantGuard guard;
+  std::mt19937 rng(9);
+  std::uniform_real_distribution<double> u(0, 1);
+  std::vector<Vec3d> pts;
+  for (int i = 0; i < 3000; ++i) pts.emplace_back(u(rng), u(rng), 0.1 * u(rng));
+  const double h = 0.08;
+  RadiusGrid grid;
+  grid.build(pts.data(), pts.size(), h);
+  std::vector<double> weight(pts.size() + RadiusGrid::kPad, 0.0);
+  for (std::size_t p = 0; p < pts.size(); ++p) weight[p] = 0.5 + u(rng);
+  const KernelShape shape{h * h, 16 / (h * h), 1e-18 * h * h};
+  const int* ids = grid.ids().data();
+  for (const std::string& name : kernel_variants()) {
+    use_kernel_variant(name);
+    for (int sp : {0, 17, 1500, 2999}) {
+      const Vec3d q = pts[ids[sp]] + Vec3d(0.001, -0.002, 0.0005);
+      double dens = 0, wa = 0, wr = 0;
+      Vec3d da = Vec3d::Zero(), dr = Vec3d::Zero();
+      for (std::size_t p = 0; p < pts.size(); ++p) {
+        const Vec3d d = pts[ids[p]] - q;
+        const double r2 = d.squaredNorm();
+        if (r2 >= h * h) continue;
+        const double theta = std::exp(-r2 * shape.inv_s2);
+        dens += theta;
+        if (r2 > shape.eps2) {
+          wa += theta / std::sqrt(r2) * weight[p];
+          da += theta / std::sqrt(r2) * weight[p] * d;
+        }
+        if (int(p) != sp) {
+          wr += theta * weight[p];
+          dr += theta * weight[p] * d;
+        }
+      }
+      const KernelSums sd = density_sum(grid, q, shape);
+      const KernelSums sa = attraction_sum(grid, weight.data(), q, shape);
+      const KernelSums sr = repulsion_sum(grid, weight.data(), q, shape, sp);
+      EXPECT_NEAR(sd.w, dens, 1e-12 * dens) << name;
+      EXPECT_NEAR(sa.w, wa, 1e-12 * wa) << name;
+      EXPECT_LT((sa.d - da).norm(), 1e-12 * wa * h) << name;
+      EXPECT_NEAR(sr.w, wr, 1e-12 * wr) << name;
+      EXPECT_LT((sr.d - dr).norm(), 1e-12 * wr * h) << name;
+      EXPECT_GT(dens, 1) << name;  // more than q's own term: the sums mean something
+    }
+  }
+}
+
+}  // namespace
+}  // namespace station::detail
