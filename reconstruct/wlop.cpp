@@ -75,26 +75,12 @@ struct Neighbours {
 };
 
 // Collects the grid's points within h of q, in the grid's fixed run order.
-// Every candidate is written and only the ones inside are kept (no branch).
 void gather(const RadiusGrid& grid, const Vec3d& q, double h2, Neighbours& nb) {
   nb.n = 0;
-  const double *xs = grid.xs(), *ys = grid.ys(), *zs = grid.zs();
   grid.for_each_run(q, [&](int b, int e) {
     nb.fit(std::size_t(nb.n + (e - b)));
-    int n = nb.n;
-    int* pos = nb.pos.data();
-    float *dx = nb.dx.data(), *dy = nb.dy.data(), *dz = nb.dz.data(), *r2 = nb.r2.data();
-    for (int p = b; p < e; ++p) {
-      const double x = xs[p] - q.x(), y = ys[p] - q.y(), z = zs[p] - q.z();
-      const double d2 = x * x + y * y + z * z;
-      pos[n] = p;
-      dx[n] = float(x);
-      dy[n] = float(y);
-      dz[n] = float(z);
-      r2[n] = float(d2);
-      n += d2 < h2;
-    }
-    nb.n = n;
+    nb.n = detail::gather_run(grid.xs(), grid.ys(), grid.zs(), b, e, q, h2, nb.n, nb.pos.data(),
+                              nb.dx.data(), nb.dy.data(), nb.dz.data(), nb.r2.data());
   });
 }
 
@@ -127,9 +113,9 @@ struct Padded {
 struct Scratch {
   Neighbours input;
   std::vector<Vec3d> points;  // simple normals' neighbourhood; kTangential's PCA neighbourhood
-  // Edge variant: per neighbour, its simple normal, v_j and the weight 1/v'; the
-  // upsampled, inverted neighbourhood U (eq. 14) as offsets from x'_i, one block of
-  // k_h entries per copy (entry k of each block is neighbour k).
+  // Edge variant: per neighbour, its signed simple normal, v_j and the weight 1/v';
+  // the upsampled, inverted neighbourhood U (eq. 14) as offsets from x'_i, one block
+  // of k_h entries per copy (entry k of each block is neighbour k).
   Padded nx, ny, nz, v, w;
   Padded ux, uy, uz, ur2, uw;
 };
@@ -165,10 +151,10 @@ class Consolidator {
   std::vector<Vec3d> p_;            // input, double
   RadiusGrid input_grid_, x_grid_;  // input: built once; projected: every iteration
   std::vector<double> inv_v_;       // 1 / v_j by input-grid sorted position
-  // Edge variant, by input-grid sorted position (kFloatPad more entries): the
+  // Edge variant, by input-grid sorted position (kFloatPad more records): the
   // simple normal n (eqs. 11-12) with the sign of the PCA normal m, which only
-  // serves to orient it, and v_j.
-  std::vector<float> enx_, eny_, enz_, emx_, emy_, emz_, v_;
+  // serves to orient it, and v_j (detail::EdgeRecord).
+  std::vector<float> records_;
   bool oriented_ = false;  // n are the input's (oriented) normals
   std::vector<Vec3d> x_, x_next_;   // projected set
   std::vector<double> w_;           // w_i by projected-grid sorted position
@@ -219,19 +205,18 @@ void Consolidator::setup() {
   inv_v_.assign(nj_ + RadiusGrid::kPad, 1.0);
   const bool uniform = params_.input_density == InputDensity::kUniform;
   if (edge) {
-    for (std::vector<float>* a : {&enx_, &eny_, &enz_, &emx_, &emy_, &emz_})
-      a->assign(nj_ + detail::kFloatPad, 0.0f);
-    v_.assign(nj_ + detail::kFloatPad, 1.0f);
+    records_.assign((nj_ + detail::kFloatPad) * detail::kRecordFloats, 0.0f);
   }
   // Input densities v_j (eq. 6) and, for the edge variant, the simple normals
   // (eqs. 11-12) with PCA normals that only serve to orient them.
   const auto set_normals = [&](int sp, const Vec3f& n, const Vec3f& m) {
-    enx_[sp] = n.x();
-    eny_[sp] = n.y();
-    enz_[sp] = n.z();
-    emx_[sp] = m.x();
-    emy_[sp] = m.y();
-    emz_[sp] = m.z();
+    float* r = &records_[std::size_t(sp) * detail::kRecordFloats];
+    r[detail::kNx] = n.x();
+    r[detail::kNy] = n.y();
+    r[detail::kNz] = n.z();
+    r[detail::kMx] = m.x();
+    r[detail::kMy] = m.y();
+    r[detail::kMz] = m.z();
   };
   tbb::parallel_for(tbb::blocked_range<int>(0, int(nj_), kGrain), [&](const tbb::blocked_range<int>& r) {
     Scratch& s = scratch_.local();
@@ -243,7 +228,7 @@ void Consolidator::setup() {
       const double v = uniform ? 1.0 : detail::density_sum(input_grid_, q, shape).w;
       inv_v_[sp] = 1.0 / v;
       if (!edge) continue;
-      v_[sp] = float(v);
+      records_[std::size_t(sp) * detail::kRecordFloats + detail::kV] = float(v);
       if (input_normals) {
         const Vec3f n = input_.normals[ids[sp]].normalized();  // zero stays zero
         set_normals(sp, n, n);
@@ -290,12 +275,10 @@ bool Consolidator::edge_e1(const Vec3d& q, const Neighbours& nb, Scratch& s, Vec
   // the PCA normals (smooth across edges, unlike the simple ones), relative to
   // the one of the input point nearest x_i.
   const int nearest = detail::nearest(nb.r2.data(), kh);
-  const int ref_sp = nb.pos[nearest];
-  const float ref[3] = {emx_[ref_sp], emy_[ref_sp], emz_[ref_sp]};
+  const float* ref = &records_[std::size_t(nb.pos[nearest]) * detail::kRecordFloats + detail::kMx];
   float *snx = s.nx.fit(kh), *sny = s.ny.fit(kh), *snz = s.nz.fit(kh), *sv = s.v.fit(kh);
-  const detail::EdgeNormalArrays normals{enx_.data(), eny_.data(), enz_.data(), emx_.data(),
-                                         emy_.data(), emz_.data(), v_.data(),  oriented_};
-  const Vec3d sum = detail::signed_normal_sum(nb.pos.data(), kh, normals, ref, snx, sny, snz, sv);
+  const Vec3d sum = detail::signed_normal_sum(nb.pos.data(), kh, records_.data(), ref, oriented_,
+                                              snx, sny, snz, sv);
   const double agreement = sum.norm();
   if (!(agreement >= kMinNormalAgreement * kh)) return false;  // normals cancel: plain E1
   const Vec3d a = -sum / agreement;                // unit axis, from c_i towards x_i

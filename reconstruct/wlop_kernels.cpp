@@ -47,6 +47,29 @@ __attribute__((target("avx512f"))) inline Lanes<8>::V rsqrt14(Lanes<8>::V x) {
 }
 __attribute__((target("avx512f"))) inline __m512 rsqrt14_f(__m512 x) { return _mm512_maskz_rsqrt14_ps(__mmask16(0xFFFF), x); }
 __attribute__((target("avx"))) inline __m256 rsqrt_f(__m256 x) { return _mm256_rsqrt_ps(x); }
+
+// The eight records (8 floats each) at rec + 8 * pos[0..8), transposed: field f of
+// record l goes to lane l of out[f].
+__attribute__((target("avx2"))) inline void load_records8(const float* rec, const int* pos,
+                                                         __m256 out[8]) {
+  __m256 r[8];
+  for (int l = 0; l < 8; ++l) r[l] = _mm256_loadu_ps(rec + 8 * std::size_t(pos[l]));
+  __m256 t[8], u[8];
+  for (int i = 0; i < 4; ++i) {
+    t[2 * i] = _mm256_unpacklo_ps(r[2 * i], r[2 * i + 1]);
+    t[2 * i + 1] = _mm256_unpackhi_ps(r[2 * i], r[2 * i + 1]);
+  }
+  for (int i = 0; i < 2; ++i) {
+    u[4 * i + 0] = _mm256_shuffle_ps(t[4 * i], t[4 * i + 2], _MM_SHUFFLE(1, 0, 1, 0));
+    u[4 * i + 1] = _mm256_shuffle_ps(t[4 * i], t[4 * i + 2], _MM_SHUFFLE(3, 2, 3, 2));
+    u[4 * i + 2] = _mm256_shuffle_ps(t[4 * i + 1], t[4 * i + 3], _MM_SHUFFLE(1, 0, 1, 0));
+    u[4 * i + 3] = _mm256_shuffle_ps(t[4 * i + 1], t[4 * i + 3], _MM_SHUFFLE(3, 2, 3, 2));
+  }
+  for (int f = 0; f < 4; ++f) {
+    out[f] = _mm256_permute2f128_ps(u[f], u[f + 4], 0x20);
+    out[f + 4] = _mm256_permute2f128_ps(u[f], u[f + 4], 0x31);
+  }
+}
 #endif
 
 template <int W>
@@ -327,32 +350,51 @@ struct FloatKernels {
     return int(idx);
   }
 
+  // Fields 0..6 of the records of pos[0..W) (see EdgeRecord in the header), one
+  // vector per field.
+  static STATION_INLINE void load_records(const float* rec, const int* pos, V out[7]) {
+#if defined(__x86_64__) && defined(__GNUC__)
+    if constexpr (W == 8) {
+      __m256 f[8];
+      load_records8(rec, pos, f);
+      for (int k = 0; k < 7; ++k) out[k] = (V)f[k];
+      return;
+    } else if constexpr (W == 16) {
+      __m256 lo[8], hi[8];
+      load_records8(rec, pos, lo);
+      load_records8(rec, pos + 8, hi);
+      for (int k = 0; k < 7; ++k) {
+        std::memcpy(&out[k], &lo[k], sizeof lo[k]);
+        std::memcpy(reinterpret_cast<char*>(&out[k]) + sizeof lo[k], &hi[k], sizeof hi[k]);
+      }
+      return;
+    }
+#endif
+    float fields[7][W];
+    for (int l = 0; l < W; ++l) {
+      const float* r = rec + 8 * std::size_t(pos[l]);
+      for (int k = 0; k < 7; ++k) fields[k][l] = r[k];
+    }
+    for (int k = 0; k < 7; ++k) std::memcpy(&out[k], fields[k], sizeof out[k]);
+  }
+
   // Eq. 10's signed normal sum; see signed_normal_sum in the header.
-  static STATION_INLINE Vec3d signed_normal_sum(const int* pos, int n, const EdgeNormalArrays& e,
-                                                const float* ref, float* nx, float* ny, float* nz,
-                                                float* v) {
+  static STATION_INLINE Vec3d signed_normal_sum(const int* pos, int n, const float* rec,
+                                                const float* ref, bool oriented, float* nx,
+                                                float* ny, float* nz, float* v) {
     const V lane = lanes();
     V sx{}, sy{}, sz{};
     for (int p = 0; p < n; p += W) {
-      V gnx, gny, gnz, gmx, gmy, gmz, gv;
-      for (int l = 0; l < W; ++l) {
-        const int q = pos[p + l];
-        gnx[l] = e.nx[q];
-        gny[l] = e.ny[q];
-        gnz[l] = e.nz[q];
-        gmx[l] = e.mx[q];
-        gmy[l] = e.my[q];
-        gmz[l] = e.mz[q];
-        gv[l] = e.v[q];
-      }
-      const V dot = gmx * ref[0] + gmy * ref[1] + gmz * ref[2];
+      V f[7];
+      load_records(rec, pos + p, f);
+      const V dot = f[3] * ref[0] + f[4] * ref[1] + f[5] * ref[2];
       // sign = -1 where dot < 0: flip the sign bit of the normal's components.
-      const U flip = e.oriented ? U{} : (negative(dot) << 31);
-      const V fx = (V)((U)gnx ^ flip), fy = (V)((U)gny ^ flip), fz = (V)((U)gnz ^ flip);
+      const U flip = oriented ? U{} : (negative(dot) << 31);
+      const V fx = (V)((U)f[0] ^ flip), fy = (V)((U)f[1] ^ flip), fz = (V)((U)f[2] ^ flip);
       store(nx + p, fx);
       store(ny + p, fy);
       store(nz + p, fz);
-      store(v + p, gv);
+      store(v + p, f[6]);
       const U valid = negative(lane - float(n - p));
       sx += keep(fx, valid);
       sy += keep(fy, valid);
@@ -383,6 +425,85 @@ struct FloatKernels {
   }
 };
 
+// gather_run (see the header). Scalar: every candidate is written and only the
+// ones inside are kept (no branch on the unpredictable comparison).
+int gather_run_scalar(const double* xs, const double* ys, const double* zs, int b, int e,
+                      const Vec3d& q, double h2, int n, int* pos, float* dx, float* dy, float* dz,
+                      float* r2) {
+  for (int p = b; p < e; ++p) {
+    const double x = xs[p] - q.x(), y = ys[p] - q.y(), z = zs[p] - q.z();
+    const double d2 = x * x + y * y + z * z;
+    pos[n] = p;
+    dx[n] = float(x);
+    dy[n] = float(y);
+    dz[n] = float(z);
+    r2[n] = float(d2);
+    n += d2 < h2;
+  }
+  return n;
+}
+
+#ifdef STATION_X86_DISPATCH
+// Left-packing eight candidates at a time: for each 8-bit mask of the lanes inside,
+// the permutation that moves them to the front, in order.
+struct PackTable {
+  alignas(32) int index[256][8];
+  constexpr PackTable() : index{} {
+    for (int m = 0; m < 256; ++m) {
+      int k = 0;
+      for (int l = 0; l < 8; ++l)
+        if (m & (1 << l)) index[m][k++] = l;
+      for (; k < 8; ++k) index[m][k] = 0;
+    }
+  }
+};
+constexpr PackTable kPack;
+
+// The same candidates kept in the same order as the scalar loop, with the same
+// double arithmetic for the test; eight at a time, left-packed with one permutation
+// per array. Reads up to 7 entries past e (the grid's padding covers the last run)
+// and writes up to 8 past the new n.
+__attribute__((target("avx2"))) int gather_run_avx2(const double* xs, const double* ys,
+                                                   const double* zs, int b, int e, const Vec3d& q,
+                                                   double h2, int n, int* pos, float* dx,
+                                                   float* dy, float* dz, float* r2) {
+  const __m256d qx = _mm256_set1_pd(q.x()), qy = _mm256_set1_pd(q.y()), qz = _mm256_set1_pd(q.z());
+  const __m256d hh = _mm256_set1_pd(h2);
+  const __m256i lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+  for (int p = b; p < e; p += 8) {
+    __m128 fx[2], fy[2], fz[2], f2[2];
+    int mask = 0;
+    for (int half = 0; half < 2; ++half) {
+      const int o = p + 4 * half;
+      const __m256d x = _mm256_sub_pd(_mm256_loadu_pd(xs + o), qx);
+      const __m256d y = _mm256_sub_pd(_mm256_loadu_pd(ys + o), qy);
+      const __m256d z = _mm256_sub_pd(_mm256_loadu_pd(zs + o), qz);
+      // No FMA contraction: the same roundings as the scalar x*x + y*y + z*z.
+      const __m256d d2 = _mm256_add_pd(_mm256_add_pd(_mm256_mul_pd(x, x), _mm256_mul_pd(y, y)),
+                                       _mm256_mul_pd(z, z));
+      mask |= _mm256_movemask_pd(_mm256_cmp_pd(d2, hh, _CMP_LT_OQ)) << (4 * half);
+      fx[half] = _mm256_cvtpd_ps(x);
+      fy[half] = _mm256_cvtpd_ps(y);
+      fz[half] = _mm256_cvtpd_ps(z);
+      f2[half] = _mm256_cvtpd_ps(d2);
+    }
+    if (e - p < 8) mask &= (1 << (e - p)) - 1;
+    const __m256i perm = _mm256_load_si256(reinterpret_cast<const __m256i*>(kPack.index[mask]));
+    // (A loop, not a lambda: a lambda would not inherit the target attribute.)
+    float* const outs[4] = {dx, dy, dz, r2};
+    const __m128* const ins[4] = {fx, fy, fz, f2};
+    for (int a = 0; a < 4; ++a) {
+      const __m256 all = _mm256_set_m128(ins[a][1], ins[a][0]);
+      _mm256_storeu_ps(outs[a] + n, _mm256_permutevar8x32_ps(all, perm));
+    }
+    const __m256i ids = _mm256_add_epi32(_mm256_set1_epi32(p), lane);
+    _mm256_storeu_si256(reinterpret_cast<__m256i*>(pos + n), _mm256_permutevar8x32_epi32(ids, perm));
+    n += __builtin_popcount(unsigned(mask));
+  }
+  return n;
+}
+#endif
+
 struct Table {
   KernelSums (*density)(const RadiusGrid&, const Vec3d&, const KernelShape&);
   KernelSums (*attraction)(const RadiusGrid&, const double*, const Vec3d&, const KernelShape&);
@@ -394,11 +515,13 @@ struct Table {
   void (*edge_weights_f)(const float*, const float*, const float*, const float*, int,
                          const Vec3d&, const double*, int, float*);
   int (*nearest)(const float*, int);
-  Vec3d (*signed_normal_sum)(const int*, int, const EdgeNormalArrays&, const float*, float*,
-                             float*, float*, float*);
+  Vec3d (*signed_normal_sum)(const int*, int, const float*, const float*, bool, float*, float*,
+                             float*, float*);
+  int (*gather_run)(const double*, const double*, const double*, int, int, const Vec3d&, double,
+                    int, int*, float*, float*, float*, float*);
 };
 
-#define STATION_KERNEL_TABLE(NAME, W, WF, TARGET)                                                  \
+#define STATION_KERNEL_TABLE(NAME, W, WF, GATHER, TARGET)                                                  \
   TARGET KernelSums NAME##_density(const RadiusGrid& g, const Vec3d& q, const KernelShape& k) { \
     return Kernels<W>::template sums<Mode::kDensity>(g, nullptr, q, k, -1);                     \
   }                                                                                             \
@@ -424,17 +547,18 @@ struct Table {
     FloatKernels<WF>::edge_weights(nx, ny, nz, v, n, a, g, K, w);                               \
   }                                                                                             \
   TARGET int NAME##_nearest(const float* r2, int n) { return FloatKernels<WF>::nearest(r2, n); } \
-  TARGET Vec3d NAME##_normal_sum(const int* pos, int n, const EdgeNormalArrays& e, const float* ref, \
-                                 float* nx, float* ny, float* nz, float* v) {                   \
-    return FloatKernels<WF>::signed_normal_sum(pos, n, e, ref, nx, ny, nz, v);                 \
+  TARGET Vec3d NAME##_normal_sum(const int* pos, int n, const float* rec, const float* ref,     \
+                                 bool o, float* nx, float* ny, float* nz, float* v) {           \
+    return FloatKernels<WF>::signed_normal_sum(pos, n, rec, ref, o, nx, ny, nz, v);            \
   }                                                                                             \
   const Table NAME##_table{NAME##_density,  NAME##_attraction, NAME##_repulsion, NAME##_array_f, \
-                           NAME##_invert_f, NAME##_weights_f,  NAME##_nearest,   NAME##_normal_sum};
+                           NAME##_invert_f, NAME##_weights_f,  NAME##_nearest,   NAME##_normal_sum, \
+                           GATHER};
 
-STATION_KERNEL_TABLE(base, 2, 4, )
+STATION_KERNEL_TABLE(base, 2, 4, gather_run_scalar, )
 #ifdef STATION_X86_DISPATCH
-STATION_KERNEL_TABLE(avx2, 4, 8, __attribute__((target("avx2"))))
-STATION_KERNEL_TABLE(avx512, 8, 16, __attribute__((target("avx512f,avx512dq"))))
+STATION_KERNEL_TABLE(avx2, 4, 8, gather_run_avx2, __attribute__((target("avx2"))))
+STATION_KERNEL_TABLE(avx512, 8, 16, gather_run_avx2, __attribute__((target("avx512f,avx512dq"))))
 #endif
 
 struct Variant {
@@ -500,9 +624,14 @@ int invert_copy(const float* dx, const float* dy, const float* dz, const float* 
 
 int nearest(const float* r2, int n) { return table().nearest(r2, n); }
 
-Vec3d signed_normal_sum(const int* pos, int n, const EdgeNormalArrays& normals, const float* ref,
-                        float* nx, float* ny, float* nz, float* v) {
-  return table().signed_normal_sum(pos, n, normals, ref, nx, ny, nz, v);
+int gather_run(const double* xs, const double* ys, const double* zs, int b, int e, const Vec3d& q,
+               double h2, int n, int* pos, float* dx, float* dy, float* dz, float* r2) {
+  return table().gather_run(xs, ys, zs, b, e, q, h2, n, pos, dx, dy, dz, r2);
+}
+
+Vec3d signed_normal_sum(const int* pos, int n, const float* records, const float* ref,
+                        bool oriented, float* nx, float* ny, float* nz, float* v) {
+  return table().signed_normal_sum(pos, n, records, ref, oriented, nx, ny, nz, v);
 }
 
 KernelSums density_sum(const RadiusGrid& grid, const Vec3d& q, const KernelShape& k) {

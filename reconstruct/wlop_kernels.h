@@ -78,23 +78,31 @@ int invert_copy(const float* dx, const float* dy, const float* dz, const float* 
 void edge_weights(const float* nx, const float* ny, const float* nz, const float* v, int n,
                   const Vec3d& a, const double* g, int K, float* w);
 
+/// Appends to (pos, dx, dy, dz, r2)[n..] the points of sorted positions [b, e) of a
+/// grid's coordinate arrays (xs, ys, zs) strictly within h of q (|p - q|^2 < h2 in
+/// double): position, offset p - q and its squared length, as float, in order.
+/// Returns the new count. Reads up to 7 entries past e (a RadiusGrid's padding
+/// covers them) and may write up to 8 entries past the returned count: the outputs
+/// need room for n + (e - b) + 8 entries.
+int gather_run(const double* xs, const double* ys, const double* zs, int b, int e, const Vec3d& q,
+               double h2, int n, int* pos, float* dx, float* dy, float* dz, float* r2);
+
 /// Index of the smallest of r2[0..n) (the first on ties); n > 0. r2 needs n + kFloatPad
 /// readable entries.
 int nearest(const float* r2, int n);
 
-/// The edge variant's per-point data by the input grid's sorted position: the simple
-/// normal n (unit), the PCA normal m that orients it, v_j. When `oriented`, n is the
-/// input's own normal and is never flipped.
-struct EdgeNormalArrays {
-  const float *nx, *ny, *nz, *mx, *my, *mz, *v;
-  bool oriented;
-};
+/// The edge variant's per-point record, 8 floats by the input grid's sorted
+/// position: the simple normal n (unit), the PCA normal m that orients it, v_j, and
+/// one float of padding (one aligned load reads a record).
+enum EdgeRecord { kNx, kNy, kNz, kMx, kMy, kMz, kV, kRecordFloats = 8 };
 
-/// Eq. 10's sum for the neighbours at sorted positions pos[0..n): each simple normal
-/// with the sign of m . ref (flipped where m . ref < 0, unless oriented), written to
-/// (nx, ny, nz) with its v_j to v, and summed. pos needs n + kFloatPad readable
-/// entries that are valid positions; the outputs n + kFloatPad writable.
-Vec3d signed_normal_sum(const int* pos, int n, const EdgeNormalArrays& normals, const float* ref,
-                        float* nx, float* ny, float* nz, float* v);
+/// Eq. 10's sum for the neighbours at sorted positions pos[0..n): each one's simple
+/// normal with the sign of m . ref (flipped where that is negative, unless
+/// `oriented`: the input's own normals, never flipped), written to (nx, ny, nz) with
+/// its v_j to v, and summed. pos needs n + kFloatPad readable entries, each a valid
+/// record index (gather_run leaves positions below the grid size + 8 past its count;
+/// pad the records accordingly); outputs n + kFloatPad writable.
+Vec3d signed_normal_sum(const int* pos, int n, const float* records, const float* ref,
+                        bool oriented, float* nx, float* ny, float* nz, float* v);
 
 }  // namespace station::detail

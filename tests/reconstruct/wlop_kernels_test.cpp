@@ -139,18 +139,19 @@ TEST(WlopKernels, NearestAndSignedNormalSum) {
   VariantGuard guard;
   std::mt19937 rng(5);
   std::uniform_real_distribution<double> u(-1, 1);
-  const int m = 200;  // input points by sorted position
-  std::vector<float> nx(m + kFloatPad), ny(nx), nz(nx), mx(nx), my(nx), mz(nx), v(nx);
+  const int m = 200;  // records by sorted position
+  std::vector<float> rec((m + kFloatPad) * kRecordFloats, 0.f);
   for (int p = 0; p < m; ++p) {
     const Vec3d n = Vec3d(u(rng), u(rng), u(rng)).normalized();
-    Vec3d pca = (n + 0.3 * Vec3d(u(rng), u(rng), u(rng))).normalized();
-    nx[p] = float(n.x());
-    ny[p] = float(n.y());
-    nz[p] = float(n.z());
-    mx[p] = float(pca.x());
-    my[p] = float(pca.y());
-    mz[p] = float(pca.z());
-    v[p] = float(p + 1);
+    const Vec3d pca = (n + 0.3 * Vec3d(u(rng), u(rng), u(rng))).normalized();
+    float* r = &rec[std::size_t(p) * kRecordFloats];
+    r[kNx] = float(n.x());
+    r[kNy] = float(n.y());
+    r[kNz] = float(n.z());
+    r[kMx] = float(pca.x());
+    r[kMy] = float(pca.y());
+    r[kMz] = float(pca.z());
+    r[kV] = float(p + 1);
   }
   std::vector<int> pos(kN + kFloatPad);
   std::vector<float> r2(kN + kFloatPad);
@@ -166,28 +167,70 @@ TEST(WlopKernels, NearestAndSignedNormalSum) {
     EXPECT_EQ(nearest(r2.data(), kN), 17) << name;
     EXPECT_EQ(nearest(r2.data(), 1), 0) << name;
     for (bool oriented : {false, true}) {
-      const EdgeNormalArrays arrays{nx.data(), ny.data(), nz.data(), mx.data(),
-                                    my.data(), mz.data(), v.data(),  oriented};
       std::vector<float> ox(kN + kFloatPad), oy(ox), oz(ox), ov(ox);
-      const Vec3d sum = signed_normal_sum(pos.data(), kN, arrays, ref, ox.data(), oy.data(),
-                                          oz.data(), ov.data());
+      const Vec3d sum = signed_normal_sum(pos.data(), kN, rec.data(), ref, oriented, ox.data(),
+                                          oy.data(), oz.data(), ov.data());
       Vec3d expected = Vec3d::Zero();
       int flipped = 0;
       for (int k = 0; k < kN; ++k) {
-        const int p = pos[k];
-        const double dot = mx[p] * ref[0] + my[p] * ref[1] + mz[p] * ref[2];
+        const float* r = &rec[std::size_t(pos[k]) * kRecordFloats];
+        const double dot = r[kMx] * ref[0] + r[kMy] * ref[1] + r[kMz] * ref[2];
         const double sign = oriented || dot >= 0 ? 1 : -1;
         flipped += sign < 0;
-        EXPECT_EQ(ox[k], float(sign * nx[p])) << name << " k " << k;
-        EXPECT_EQ(oy[k], float(sign * ny[p])) << name << " k " << k;
-        EXPECT_EQ(oz[k], float(sign * nz[p])) << name << " k " << k;
-        EXPECT_EQ(ov[k], v[p]) << name << " k " << k;
-        expected += sign * Vec3d(nx[p], ny[p], nz[p]);
+        EXPECT_EQ(ox[k], float(sign * r[kNx])) << name << " k " << k;
+        EXPECT_EQ(oy[k], float(sign * r[kNy])) << name << " k " << k;
+        EXPECT_EQ(oz[k], float(sign * r[kNz])) << name << " k " << k;
+        EXPECT_EQ(ov[k], r[kV]) << name << " k " << k;
+        expected += sign * Vec3d(r[kNx], r[kNy], r[kNz]);
       }
       EXPECT_LT((sum - expected).norm(), 1e-5) << name;
       if (!oriented) {
         EXPECT_GT(flipped, 5);
       }
+    }
+  }
+}
+
+TEST(WlopKernels, GatherRunKeepsThePointsWithinHInOrder) {
+  VariantGuard guard;
+  std::mt19937 rng(13);
+  std::uniform_real_distribution<double> u(0, 1);
+  const int m = 203;  // coordinates by sorted position, 8 readable past the end
+  std::vector<double> xs(m + 8), ys(m + 8), zs(m + 8);
+  for (int p = 0; p < m + 8; ++p) {
+    xs[p] = u(rng);
+    ys[p] = u(rng);
+    zs[p] = u(rng);
+  }
+  const Vec3d q(0.5, 0.45, 0.55);
+  const double h2 = 0.35 * 0.35;
+  for (const std::string& name : kernel_variants()) {
+    use_kernel_variant(name);
+    // Two runs appended one after the other, the first ending mid-block.
+    const int runs[2][2] = {{3, 70}, {101, m}};
+    std::vector<int> pos(m + 16, -1);
+    std::vector<float> dx(m + 16), dy(dx), dz(dx), r2(dx);
+    int n = 0;
+    for (const auto& run : runs)
+      n = gather_run(xs.data(), ys.data(), zs.data(), run[0], run[1], q, h2, n, pos.data(),
+                     dx.data(), dy.data(), dz.data(), r2.data());
+    std::vector<int> expected;
+    for (const auto& run : runs)
+      for (int p = run[0]; p < run[1]; ++p) {
+        const double x = xs[p] - q.x(), y = ys[p] - q.y(), z = zs[p] - q.z();
+        if (x * x + y * y + z * z < h2) expected.push_back(p);
+      }
+    ASSERT_EQ(n, int(expected.size())) << name;
+    ASSERT_GT(n, 10);
+    ASSERT_LT(n, m - 80);
+    for (int k = 0; k < n; ++k) {
+      const int p = expected[k];
+      EXPECT_EQ(pos[k], p) << name << " k " << k;
+      EXPECT_EQ(dx[k], float(xs[p] - q.x())) << name << " k " << k;
+      EXPECT_EQ(dy[k], float(ys[p] - q.y())) << name << " k " << k;
+      EXPECT_EQ(dz[k], float(zs[p] - q.z())) << name << " k " << k;
+      const double x = xs[p] - q.x(), y = ys[p] - q.y(), z = zs[p] - q.z();
+      EXPECT_EQ(r2[k], float(x * x + y * y + z * z)) << name << " k " << k;
     }
   }
 }
