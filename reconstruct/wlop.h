@@ -24,7 +24,9 @@
 // (on one machine: the vector width the kernels pick, AVX-512, AVX2 or SSE2, and
 // fused multiply-adds can change the last bits between CPUs). Positions, kernels
 // and sums are double; theta and 1/r come from our own vector exp and rsqrt
-// (about 1 ulp).
+// (about 1 ulp). The edge variant's sums over its inverted neighbourhood (and the
+// offsets gathered for them) are float, about 1e-7 relative to h: offsets of
+// order h need no more, and they run twice the lanes.
 //
 // Conventions the equations leave open (docs/consolidation.md says why):
 // - A pair closer than 1e-9 h is left out of E1 (alpha is singular there; the
