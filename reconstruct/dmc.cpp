@@ -780,35 +780,86 @@ class Dmc {
   }
 
   enum Role : char { kSkip, kMove, kPass };
-  // The pruning of a candidate (see barycentre_step): whether its Omega is searched
-  // (mover) or it passes the flood on (passer). One gradient and, where the surface is
-  // within the band and the point is not next to a moved point, one probe evaluation.
-  bool probe(const Node& nd, char role, bool first_wave) const {
+  // The pruning of a later wave's candidate (see barycentre_step): whether its Omega
+  // is searched (mover) or it passes the flood on (passer). One gradient and, for a
+  // passer within the band, one probe evaluation one h away from the near surface
+  // (movers next to a moved point follow the paper's flood; the first wave's probe
+  // is probe_first_wave).
+  bool probe(const Node& nd, char role) const {
     const Vec3d gr = f_.gradient(nd.pos);
     const double gn = gr.norm();
     if (!(gn > 0) || !std::isfinite(gn)) return role == kMove;  // no usable gradient: search
     const double d = std::abs(nd.val) / gn;
     if (d > 1.3 * h_) return false;
-    // Next to a moved point: the paper's flood (first-wave points are done).
-    if (role == kMove && !first_wave) return true;
+    if (role == kMove) return true;
     const double sgn = nd.val < 0 ? -1.0 : 1.0;  // outside: towards -grad
     const Vec3d n = gr / gn;
-    // Mover: one h past the near surface; passer: one h away from it.
-    const Vec3d x = role == kMove ? Vec3d(nd.pos - sgn * (d + h_) * n) : Vec3d(nd.pos + sgn * h_ * n);
-    double v = g(x);
+    double v = g(Vec3d(nd.pos + sgn * h_ * n));
     if (!std::isfinite(v)) v = h_;
-    return role == kMove ? (v < 0) == (nd.val < 0) : (v < 0) != (nd.val < 0);
+    return (v < 0) != (nd.val < 0);
   }
 
   // The first wave of the flood, in parallel over the blocks: the corners of the crossed
   // cells, each once (mark bits claimed atomically, cleared after), pre-tested and
   // probed; the points whose Omega is to be searched, in key order.
+  // The first wave's pruning (a mover is searched where the part beyond its near
+  // surface is thin: a probe one h past that surface is back on its side), for the
+  // candidates of one block, their gradients and probe values each taken together
+  // (ImplicitFunction::*_near: one octree walk for the lot on the MPU surface).
+  struct ProbeBatch {
+    std::vector<const Node*> nodes;
+    std::vector<Key> keys;
+    std::vector<Vec3d> xs, grads, probes;
+    std::vector<double> values;
+    std::vector<int> probe_of;
+    void clear() {
+      nodes.clear();
+      keys.clear();
+    }
+  };
+  void probe_first_wave(ProbeBatch& batch, std::vector<Key>& todo) const {
+    const std::size_t n = batch.nodes.size();
+    if (n == 0) return;
+    batch.xs.resize(n);
+    batch.grads.resize(n);
+    for (std::size_t i = 0; i < n; ++i) batch.xs[i] = batch.nodes[i]->pos;
+    f_.gradients_near(batch.xs.data(), int(n), batch.grads.data());
+    batch.probes.clear();
+    batch.probe_of.assign(n, -1);
+    for (std::size_t i = 0; i < n; ++i) {
+      const Node& nd = *batch.nodes[i];
+      const Vec3d& gr = batch.grads[i];
+      const double gn = gr.norm();
+      if (!(gn > 0) || !std::isfinite(gn)) {  // no usable gradient: search
+        todo.push_back(batch.keys[i]);
+        continue;
+      }
+      const double d = std::abs(nd.val) / gn;
+      if (d > 1.3 * h_) continue;
+      const double sgn = nd.val < 0 ? -1.0 : 1.0;  // outside: towards -grad
+      batch.probe_of[i] = int(batch.probes.size());
+      batch.probes.push_back(nd.pos - sgn * (d + h_) * (gr / gn));  // one h past the near surface
+    }
+    if (batch.probes.empty()) return;
+    batch.values.resize(batch.probes.size());
+    f_.values_near(batch.probes.data(), int(batch.probes.size()), batch.values.data());
+    for (std::size_t i = 0; i < n; ++i) {
+      if (batch.probe_of[i] < 0) continue;
+      double v = batch.values[std::size_t(batch.probe_of[i])] - opt_.iso;
+      if (!std::isfinite(v)) v = h_;
+      if ((v < 0) == (batch.nodes[i]->val < 0)) todo.push_back(batch.keys[i]);
+    }
+  }
+
   std::vector<Key> first_wave_todo() {
     tbb::enumerable_thread_specific<std::vector<Key>> todo_local;
     tbb::enumerable_thread_specific<std::vector<std::int32_t>> marked_local;
     tbb::enumerable_thread_specific<std::size_t> probed_local(0);
+    tbb::enumerable_thread_specific<ProbeBatch> batch_local;
     parallel(nodes_.block_count(), [&](std::size_t bs) {
       const std::int32_t b = std::int32_t(bs);
+      ProbeBatch& batch = batch_local.local();
+      batch.clear();
       for (std::uint64_t m = nodes_.blk(b).surface; m; m &= m - 1) {
         const int l = __builtin_ctzll(m), li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
         for (int q = 0; q < 8; ++q) {
@@ -827,11 +878,13 @@ class Dmc {
           const std::uint32_t handle = std::uint32_t(cb) << 6 | std::uint32_t(cl);
           if (cheap_candidate(p, handle, nd)) {
             ++probed_local.local();
-            if (probe(nd, kMove, true)) todo_local.local().push_back(p);
+            batch.nodes.push_back(&nd);
+            batch.keys.push_back(p);
           }
           nd.flags |= kSearched;
         }
       }
+      probe_first_wave(batch, todo_local.local());
     });
     std::size_t probed = 0;
     for (std::size_t n : probed_local) probed += n;
@@ -891,7 +944,7 @@ class Dmc {
         }
         // Gradient test and thin probe, in parallel.
         std::vector<char> go(keep.size(), 0);
-        parallel(keep.size(), [&](std::size_t i) { go[i] = probe(*keep_node[i], role[i], false); });
+        parallel(keep.size(), [&](std::size_t i) { go[i] = probe(*keep_node[i], role[i]); });
         st_.gradient_evaluations += keep.size();
         for (std::size_t i = 0; i < keep.size(); ++i)
           if (role[i] == kPass) ++st_.probed, ++st_.evaluations;

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <vector>
 
 #include "core/error.h"
 
@@ -32,6 +33,16 @@ void HalfSpaceClip::values_near(const Vec3d* xs, int n, double* out) const {
 Vec3d HalfSpaceClip::gradient(const Vec3d& x) const {
   const double f = f_.value(x);
   return plane_value(x) >= f || std::isnan(f) ? Vec3d(-up_) : f_.gradient(x);
+}
+
+void HalfSpaceClip::gradients_near(const Vec3d* xs, int n, Vec3d* out) const {
+  std::vector<double> fv(std::size_t(std::max(n, 0)));  // local: f may call back into *_near
+  f_.values_near(xs, n, fv.data());
+  f_.gradients_near(xs, n, out);
+  for (int i = 0; i < n; ++i) {
+    const double f = fv[std::size_t(i)];
+    if (plane_value(xs[i]) >= f || std::isnan(f)) out[i] = -up_;
+  }
 }
 
 bool HalfSpaceClip::trusted(const Vec3d& x) const {

@@ -31,6 +31,8 @@ class HalfSpaceClip : public ImplicitFunction {
   double plane_value(const Vec3d& x) const { return height_ - up_.dot(x); }
   /// value() at each point, f's values taken together (f.values_near).
   void values_near(const Vec3d* xs, int n, double* out) const override;
+  /// gradient() at each point, f's values and gradients taken together.
+  void gradients_near(const Vec3d* xs, int n, Vec3d* out) const override;
 
  private:
   const ImplicitFunction& f_;

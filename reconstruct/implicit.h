@@ -29,6 +29,11 @@ class ImplicitFunction {
   virtual void values_near(const Vec3d* xs, int n, double* out) const {
     for (int i = 0; i < n; ++i) out[i] = value(xs[i]);
   }
+  /// gradient() at n points close together, the same vectors bit for bit (as
+  /// values_near for value()).
+  virtual void gradients_near(const Vec3d* xs, int n, Vec3d* out) const {
+    for (int i = 0; i < n; ++i) out[i] = gradient(xs[i]);
+  }
 };
 
 }  // namespace station

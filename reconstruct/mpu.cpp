@@ -209,10 +209,11 @@ struct MpuSurface::Impl {
     }
   }
 
-  // value() at n points (world units) from one walk: the leaves that may reach the
-  // points' bounding ball, gathered in accumulate()'s depth-first order, then for each
-  // point the same exact test and sum as accumulate() (so the same bits).
-  void values_near(const Vec3d* xs, int n, double* out) const {
+  // value() (or, with grads, gradient()) at n points (world units) from one walk: the
+  // leaves that may reach the points' bounding ball, gathered in accumulate()'s
+  // depth-first order, then for each point the same exact test and sums as
+  // accumulate() and eval() (so the same bits).
+  void near(const Vec3d* xs, int n, double* out, Vec3d* grads) const {
     if (n <= 0) return;
     thread_local std::vector<Vec3d> ys;
     thread_local std::vector<std::int32_t> leaves;
@@ -224,7 +225,13 @@ struct MpuSurface::Impl {
       hi = hi.cwiseMax(ys[std::size_t(i)]);
     }
     if (!lo.allFinite() || !hi.allFinite()) {
-      for (int i = 0; i < n; ++i) out[i] = eval(xs[i], nullptr);
+      for (int i = 0; i < n; ++i) {
+        if (grads) {
+          eval(xs[i], &grads[i]);
+        } else {
+          out[i] = eval(xs[i], nullptr);
+        }
+      }
       return;
     }
     const Vec3d mid = 0.5 * (lo + hi);
@@ -248,16 +255,27 @@ struct MpuSurface::Impl {
     for (int k = 0; k < n; ++k) {
       const Vec3d& y = ys[std::size_t(k)];
       double swq = 0, sw = 0;
+      Vec3d gwq = Vec3d::Zero(), gw = Vec3d::Zero();
       for (const std::int32_t li : leaves) {
         const LeafRecord& leaf = leaf_records[std::size_t(li)];
         Vec3d d;
         double r = 0;
         const double w = leaf_weight(leaf, y, d, r);
         if (w <= 0) continue;
-        swq += w * leaf_fit(leaf, y, nullptr);
-        sw += w;
+        if (grads) {
+          Vec3d gq;
+          const double q = leaf_fit(leaf, y, &gq);
+          add_gradient_terms(leaf, d, r, w, q, gq, swq, sw, gwq, gw);
+        } else {
+          swq += w * leaf_fit(leaf, y, nullptr);
+          sw += w;
+        }
       }
-      out[k] = value_from(y, swq, sw);
+      if (grads) {
+        grads[k] = gradient_from(y, swq, sw, gwq, gw);
+      } else {
+        out[k] = value_from(y, swq, sw);
+      }
     }
   }
 
@@ -323,12 +341,7 @@ struct MpuSurface::Impl {
       if (gwq) {
         Vec3d gq;
         const double q = leaf_fit(leaf, y, &gq);
-        const double t = 1.5 * r / leaf.radius;
-        const Vec3d gwt = r > 0 ? Vec3d(bspline2_deriv(t) * 1.5 / leaf.radius / r * d) : Vec3d::Zero();
-        swq += w * q;
-        sw += w;
-        *gwq += gwt * q + w * gq;
-        *gw += gwt;
+        add_gradient_terms(leaf, d, r, w, q, gq, swq, sw, *gwq, *gw);
       } else {
         swq += w * leaf_fit(leaf, y, nullptr);
         sw += w;
@@ -356,21 +369,35 @@ struct MpuSurface::Impl {
     return swq / sw / scale;
   }
 
+  // One leaf's terms of the sums with gradients (w at y, d = y - its centre, r = |d|,
+  // its fit q and that fit's gradient gq).
+  static void add_gradient_terms(const LeafRecord& leaf, const Vec3d& d, double r, double w,
+                                 double q, const Vec3d& gq, double& swq, double& sw, Vec3d& gwq,
+                                 Vec3d& gw) {
+    const double t = 1.5 * r / leaf.radius;
+    const Vec3d gwt = r > 0 ? Vec3d(bspline2_deriv(t) * 1.5 / leaf.radius / r * d) : Vec3d::Zero();
+    swq += w * q;
+    sw += w;
+    gwq += gwt * q + w * gq;
+    gw += gwt;
+  }
+
+  Vec3d gradient_from(const Vec3d& y, double swq, double sw, const Vec3d& gwq, const Vec3d& gw) const {
+    if (sw <= 1e-300) {
+      const Vec3d d = y - nodes[0].center;
+      const double r = d.norm();
+      return r > 0 ? Vec3d(d / r) : Vec3d::UnitZ();
+    }
+    // Gradient in the normalised frame equals the world one (f_world = f_norm / scale).
+    return (gwq * sw - swq * gw) / (sw * sw);
+  }
+
   double eval(const Vec3d& x, Vec3d* grad) const {
     const Vec3d y = (x - center) * scale;
     double swq = 0, sw = 0;
     Vec3d gwq = Vec3d::Zero(), gw = Vec3d::Zero();
     accumulate(y, swq, sw, grad ? &gwq : nullptr, grad ? &gw : nullptr);
-    if (grad) {
-      if (sw <= 1e-300) {
-        const Vec3d d = y - nodes[0].center;
-        const double r = d.norm();
-        *grad = r > 0 ? Vec3d(d / r) : Vec3d::UnitZ();
-      } else {
-        // Gradient in the normalised frame equals the world one (f_world = f_norm / scale).
-        *grad = (gwq * sw - swq * gw) / (sw * sw);
-      }
-    }
+    if (grad) *grad = gradient_from(y, swq, sw, gwq, gw);
     return value_from(y, swq, sw);
   }
 };
@@ -883,7 +910,10 @@ double MpuSurface::nearest_point_distance(const Vec3d& x) const {
   const auto [id, d] = impl_->index->nearest(((x - impl_->center) * impl_->scale).cast<float>());
   return id < 0 ? std::numeric_limits<double>::infinity() : d / impl_->scale;
 }
-void MpuSurface::values_near(const Vec3d* xs, int n, double* out) const { impl_->values_near(xs, n, out); }
+void MpuSurface::values_near(const Vec3d* xs, int n, double* out) const { impl_->near(xs, n, out, nullptr); }
+void MpuSurface::gradients_near(const Vec3d* xs, int n, Vec3d* out) const {
+  impl_->near(xs, n, nullptr, out);
+}
 bool MpuSurface::may_be_sharp(const Vec3d& x, double radius) const {
   return impl_->may_be_sharp((x - impl_->center) * impl_->scale, radius * impl_->scale);
 }

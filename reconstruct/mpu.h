@@ -133,6 +133,8 @@ class MpuSurface : public ImplicitFunction {
   /// value() at each point, bit for bit, with one octree walk for all (the leaves whose
   /// support reaches the points' bounding ball, in the walk's order).
   void values_near(const Vec3d* xs, int n, double* out) const override;
+  /// gradient() at each point, bit for bit, from one octree walk for all.
+  void gradients_near(const Vec3d* xs, int n, Vec3d* out) const override;
 
   /// Normalised frame: y = (x - center()) * scale(); the bounding cube of the input
   /// points has diagonal 1 there, and epsilon0 is measured in it.

@@ -5,6 +5,7 @@
 #include <cstdint>
 #include <numeric>
 #include <unordered_map>
+#include <vector>
 
 #include "core/error.h"
 #include "core/kdtree.h"
@@ -263,6 +264,45 @@ Vec3d WindingClose::gradient(const Vec3d& x) const {
   if (!std::isfinite(f)) return gs;
   const double s = (0.5 - w) * 2 * t2_;
   return (1 - beta) * gf + beta * gs + (s - f) * gbeta;
+}
+
+void WindingClose::gradients_near(const Vec3d* xs, int n, Vec3d* out) const {
+  // Local buffers: f may itself be a function that calls *_near.
+  const std::size_t m = std::size_t(std::max(n, 0));
+  std::vector<double> beta(m), fv;
+  std::vector<Vec3d> gbeta(m), need, blend_at, gf;
+  for (int i = 0; i < n; ++i) {
+    beta[std::size_t(i)] = blend(xs[i], &gbeta[std::size_t(i)]);
+    if (beta[std::size_t(i)] < 1) need.push_back(xs[i]);
+    if (beta[std::size_t(i)] > 0 && beta[std::size_t(i)] < 1) blend_at.push_back(xs[i]);
+  }
+  gf.resize(need.size());
+  fv.resize(blend_at.size());
+  if (!need.empty()) f_.gradients_near(need.data(), int(need.size()), gf.data());
+  if (!blend_at.empty()) f_.values_near(blend_at.data(), int(blend_at.size()), fv.data());
+  std::size_t k = 0, kb = 0;
+  for (int i = 0; i < n; ++i) {
+    const double b = beta[std::size_t(i)];
+    if (b <= 0) {
+      out[i] = gf[k++];
+      continue;
+    }
+    Vec3d gw;
+    const double w = w_->evaluate(xs[i], &gw);
+    const Vec3d gs = -2 * t2_ * gw;
+    if (b >= 1) {
+      out[i] = gs;
+      continue;
+    }
+    const Vec3d g = gf[k++];
+    const double f = fv[kb++];
+    if (!std::isfinite(f)) {
+      out[i] = gs;
+      continue;
+    }
+    const double s = (0.5 - w) * 2 * t2_;
+    out[i] = (1 - b) * g + b * gs + (s - f) * gbeta[std::size_t(i)];
+  }
 }
 
 }  // namespace station

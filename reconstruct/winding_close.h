@@ -71,6 +71,8 @@ class WindingClose : public ImplicitFunction {
   Vec3d gradient(const Vec3d& x) const override;
   /// value() at each point; f's values (where the blend needs them) taken together.
   void values_near(const Vec3d* xs, int n, double* out) const override;
+  /// gradient() at each point; f's values and gradients (where needed) taken together.
+  void gradients_near(const Vec3d* xs, int n, Vec3d* out) const override;
   bool trusted(const Vec3d& x) const override { return f_.trusted(x); }
   /// The blend with the smooth winding field adds no crease: as f.
   bool may_be_sharp(const Vec3d& x, double radius) const override { return f_.may_be_sharp(x, radius); }

@@ -143,6 +143,37 @@ TEST(WindingClose, ValuesNearAreValueBitForBit) {
   EXPECT_TRUE(std::isnan(out[1]) == std::isnan(surface.value(bad[1])));
 }
 
+TEST(WindingClose, GradientsNearAreGradientBitForBit) {
+  const double r = 0.05;
+  const Cloud cloud = sphere_cloud(4000, r, -0.6, 3);
+  const MpuSurface surface = fit_mpu(cloud);
+  const WindingClose closed(surface, cloud);
+  const HalfSpaceClip clipped(closed, Vec3d(0, 0, 1), -0.7 * r);
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<double> u(-1, 1);
+  const ImplicitFunction* fs[] = {&surface, &closed, &clipped};
+  int checked = 0, blended = 0, plane = 0;
+  for (const Vec3d& centre : {Vec3d(r, 0, 0), Vec3d(0, 0, -0.9 * r), Vec3d(0.3 * r, 0, -0.7 * r), Vec3d(0, 0, 0),
+                              Vec3d(5 * r, 2 * r, 0)}) {
+    for (double box : {0.02 * r, 0.2 * r}) {
+      std::vector<Vec3d> xs;
+      for (int i = 0; i < 125; ++i) xs.push_back(centre + box * Vec3d(u(rng), u(rng), u(rng)));
+      for (const ImplicitFunction* f : fs) {
+        std::vector<Vec3d> out(xs.size());
+        f->gradients_near(xs.data(), int(xs.size()), out.data());
+        for (std::size_t i = 0; i < xs.size(); ++i, ++checked) {
+          ASSERT_EQ(out[i], f->gradient(xs[i])) << "point " << xs[i].transpose();
+          if (f == &closed && out[i] != surface.gradient(xs[i])) ++blended;
+          if (f == &clipped && out[i] == Vec3d(0, 0, -1)) ++plane;
+        }
+      }
+    }
+  }
+  EXPECT_EQ(checked, 5 * 2 * 3 * 125);
+  EXPECT_GT(blended, 50);  // the winding blend's branch was exercised
+  EXPECT_GT(plane, 50);    // and the table plane's
+}
+
 TEST(WindingClose, OpenBottomedScanClosesWithoutFlaring) {
   const double r = 0.05;
   const Cloud cloud = sphere_cloud(4000, r, -0.6, 3);
