@@ -1153,40 +1153,114 @@ class Dmc {
   }
 
   // ---------------------------------------------------------------- crossings
-  // The crossing on the deformed lattice edge from node a to node b.
-  Crossing crossing(const Node& a, const Node& b, int steps) const {
-    double fa = a.val, fb = b.val;
-    double lo = 0, hi = 1, t = fa / (fa - fb);
-    // Illinois regula falsi on f along the deformed edge, keeping the bracket.
-    int side = 0, evals = 0;
-    const double tol = 1e-7 * std::abs(a.val - b.val);
-    for (int it = 0; it < steps; ++it) {
-      const double v = g(a.pos + t * (b.pos - a.pos));
-      ++evals;
-      if (!std::isfinite(v) || std::abs(v) <= tol) break;
-      if ((v < 0) == (a.val < 0)) {
-        lo = t;
-        fa = v;
-        if (side == -1) fb *= 0.5;
-        side = -1;
-      } else {
-        hi = t;
-        fb = v;
-        if (side == 1) fa *= 0.5;
-        side = 1;
-      }
-      t = lo + (hi - lo) * fa / (fa - fb);
-      if (!(t >= lo && t <= hi)) t = 0.5 * (lo + hi);
+  // The crossings on the deformed lattice edges from a[i] to b[i] (i < n, edges close
+  // together: one block's), each by Illinois regula falsi on f along the edge, keeping
+  // the bracket, up to `steps` evaluations; the edges step together so that each
+  // round's values, and the normals at the end, are taken together
+  // (ImplicitFunction::values_near / gradients_near). Each edge's sequence is what it
+  // would be alone.
+  struct CrossingBatch {
+    struct State {
+      double fa, fb, lo, hi, t, tol;
+      int side, evals;
+      bool done;
+    };
+    std::vector<State> state;
+    std::vector<Vec3d> xs, grads;
+    std::vector<double> values;
+    std::vector<int> active;
+  };
+  void crossings(const Node* const* a, const Node* const* b, int n, int steps, CrossingBatch& cb,
+                 Crossing* out) const {
+    if (n <= 0) return;
+    cb.state.resize(std::size_t(n));
+    for (int i = 0; i < n; ++i) {
+      const double fa = a[i]->val, fb = b[i]->val;
+      cb.state[std::size_t(i)] = {fa, fb, 0.0, 1.0, fa / (fa - fb), 1e-7 * std::abs(fa - fb), 0, 0, false};
     }
-    // Kept off the lattice points so no triangle collapses.
-    t = std::clamp(t, 1e-3, 1 - 1e-3);
-    Crossing c;
-    c.evals = evals;
-    c.pos = a.pos + t * (b.pos - a.pos);
-    const Vec3d gr = f_.gradient(c.pos);
-    const double len = gr.norm();
-    c.normal = len > 0 && std::isfinite(len) ? Vec3d(gr / len) : Vec3d::Zero();
-    return c;
+    for (int it = 0; it < steps; ++it) {
+      cb.active.clear();
+      cb.xs.clear();
+      for (int i = 0; i < n; ++i) {
+        const auto& st = cb.state[std::size_t(i)];
+        if (st.done) continue;
+        cb.active.push_back(i);
+        cb.xs.push_back(a[i]->pos + st.t * (b[i]->pos - a[i]->pos));
+      }
+      if (cb.active.empty()) break;
+      cb.values.resize(cb.xs.size());
+      f_.values_near(cb.xs.data(), int(cb.xs.size()), cb.values.data());
+      for (std::size_t k = 0; k < cb.active.size(); ++k) {
+        const int i = cb.active[k];
+        auto& st = cb.state[std::size_t(i)];
+        const double v = cb.values[k] - opt_.iso;
+        ++st.evals;
+        if (!std::isfinite(v) || std::abs(v) <= st.tol) {
+          st.done = true;
+          continue;
+        }
+        if ((v < 0) == (a[i]->val < 0)) {
+          st.lo = st.t;
+          st.fa = v;
+          if (st.side == -1) st.fb *= 0.5;
+          st.side = -1;
+        } else {
+          st.hi = st.t;
+          st.fb = v;
+          if (st.side == 1) st.fa *= 0.5;
+          st.side = 1;
+        }
+        st.t = st.lo + (st.hi - st.lo) * st.fa / (st.fa - st.fb);
+        if (!(st.t >= st.lo && st.t <= st.hi)) st.t = 0.5 * (st.lo + st.hi);
+      }
+    }
+    cb.xs.resize(std::size_t(n));
+    for (int i = 0; i < n; ++i) {
+      // Kept off the lattice points so no triangle collapses.
+      const double t = std::clamp(cb.state[std::size_t(i)].t, 1e-3, 1 - 1e-3);
+      cb.xs[std::size_t(i)] = a[i]->pos + t * (b[i]->pos - a[i]->pos);
+    }
+    cb.grads.resize(std::size_t(n));
+    f_.gradients_near(cb.xs.data(), n, cb.grads.data());
+    for (int i = 0; i < n; ++i) {
+      Crossing& c = out[i];
+      c = Crossing{};
+      c.evals = cb.state[std::size_t(i)].evals;
+      c.pos = cb.xs[std::size_t(i)];
+      const Vec3d& gr = cb.grads[std::size_t(i)];
+      const double len = gr.norm();
+      c.normal = len > 0 && std::isfinite(len) ? Vec3d(gr / len) : Vec3d::Zero();
+    }
+  }
+
+  // One block's edges to cross: ends and where each result goes.
+  struct EdgeBatch {
+    std::vector<const Node*> a, b;
+    std::vector<Crossing*> out;
+    std::vector<Crossing> result;
+    CrossingBatch work;
+    void clear() {
+      a.clear();
+      b.clear();
+      out.clear();
+    }
+    void add(const Node* from, const Node* to, Crossing* where) {
+      a.push_back(from);
+      b.push_back(to);
+      out.push_back(where);
+    }
+  };
+  // Crosses the batch's edges and stores the crossings; returns the evaluations of f.
+  std::size_t solve(EdgeBatch& eb, int steps) const {
+    const int n = int(eb.out.size());
+    eb.result.resize(std::size_t(n));
+    crossings(eb.a.data(), eb.b.data(), n, steps, eb.work, eb.result.data());
+    std::size_t evals = 0;
+    for (int i = 0; i < n; ++i) {
+      *eb.out[std::size_t(i)] = eb.result[std::size_t(i)];
+      evals += std::size_t(eb.result[std::size_t(i)].evals);
+    }
+    return evals;
   }
 
   void mark_stale(Key ek) {
@@ -1227,10 +1301,12 @@ class Dmc {
     }
     nodes_.reserve_crossings(wanted);
     tbb::enumerable_thread_specific<std::size_t> evals_local(0), grads_local(0);
+    tbb::enumerable_thread_specific<EdgeBatch> batch_local;
     parallel(nodes_.block_count(), [&](std::size_t bs) {
       const std::int32_t b = std::int32_t(bs);
       Lattice::Block& B = nodes_.blk(b);
-      std::size_t evals = 0, grads = 0;
+      EdgeBatch& eb = batch_local.local();
+      eb.clear();
       for (int a = 0; a < 3; ++a) {
         for (std::uint64_t m = B.xwant[a]; m; m &= m - 1) {
           const int l = __builtin_ctzll(m);
@@ -1238,15 +1314,12 @@ class Dmc {
           if (slot != Lattice::kNoCrossing && !nodes_.crossing_at(slot).stale) continue;
           if (slot == Lattice::kNoCrossing) slot = nodes_.claim_crossing();
           const auto [db, dl] = nodes_.rel(b, (l & 3) + (a == 0), (l >> 2 & 3) + (a == 1), (l >> 4) + (a == 2));
-          Crossing& x = nodes_.crossing_at(slot);
-          x = crossing(nodes_.node(b, l), nodes_.node(db, dl), opt_.refine_steps);
-          evals += std::size_t(x.evals);
-          ++grads;
+          eb.add(&nodes_.node(b, l), &nodes_.node(db, dl), &nodes_.crossing_at(slot));
         }
         B.xwant[a] = 0;
       }
-      evals_local.local() += evals;
-      grads_local.local() += grads;
+      evals_local.local() += solve(eb, opt_.refine_steps);
+      grads_local.local() += eb.out.size();
     });
     for (std::size_t n : grads_local) st_.gradient_evaluations += n;
     for (std::size_t n : evals_local) st_.evaluations += n;
@@ -1427,9 +1500,12 @@ class Dmc {
     }
     nodes_.reserve_refined(wanted);
     tbb::enumerable_thread_specific<std::size_t> evals_local(0);
+    tbb::enumerable_thread_specific<EdgeBatch> batch_local;
     parallel(nodes_.block_count(), [&](std::size_t bs) {
       const std::int32_t b = std::int32_t(bs);
       Lattice::Block& B = nodes_.blk(b);
+      EdgeBatch& eb = batch_local.local();
+      eb.clear();
       for (int a = 0; a < 3; ++a) {
         for (std::uint64_t m = B.xwant[a]; m; m &= m - 1) {
           const int l = __builtin_ctzll(m);
@@ -1437,13 +1513,12 @@ class Dmc {
           if (!x) throw std::out_of_range("extract_dmc: internal error: crossing not computed");
           const auto [db, dl] = nodes_.rel(b, (l & 3) + (a == 0), (l >> 2 & 3) + (a == 1), (l >> 4) + (a == 2));
           const std::int32_t r = nodes_.claim_refined();
-          Crossing& y = nodes_.refined(r);
-          y = crossing(nodes_.node(b, l), nodes_.node(db, dl), 60);
-          evals_local.local() += std::size_t(y.evals) + 1;
+          eb.add(&nodes_.node(b, l), &nodes_.node(db, dl), &nodes_.refined(r));
           x->refined = r;
         }
         B.xwant[a] = 0;
       }
+      evals_local.local() += solve(eb, 60) + eb.out.size();
     });
     for (std::size_t n : evals_local) st_.evaluations += n;
   }
