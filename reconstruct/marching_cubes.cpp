@@ -566,10 +566,14 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
   mesh.vertices.resize(nverts);
   if (opt.normals) mesh.normals.resize(nverts);
   const auto& ec = mc::edge_corners();
+  tbb::enumerable_thread_specific<std::vector<Vec3d>> at_local, grad_local;
   parallel(lat.blocks.size(), [&](std::size_t bs) {
     const std::int32_t b = std::int32_t(bs);
     const Block& blk = lat.blocks[b];
     // Vertices: linear interpolation, kept off the grid corners so no triangle collapses.
+    // Their normals: the block's gradients taken together (f.gradients_near).
+    std::vector<Vec3d>& at = at_local.local();
+    at.clear();
     std::uint32_t v = blk.vbase;
     for (int a = 0; a < 3; ++a)
       for (std::uint64_t e = blk.edges[a]; e; e &= e - 1, ++v) {
@@ -584,12 +588,17 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
         Vec3d p = vpos(i, j, k);
         p[a] += t * h;
         mesh.vertices[v] = p.cast<float>();
-        if (opt.normals) {
-          const Vec3d g = f.gradient(p);
-          const double len = g.norm();
-          mesh.normals[v] = len > 0 && std::isfinite(len) ? Vec3f((g / len).cast<float>()) : Vec3f::Zero();
-        }
+        if (opt.normals) at.push_back(p);
       }
+    if (!opt.normals || at.empty()) return;
+    std::vector<Vec3d>& grads = grad_local.local();
+    grads.resize(at.size());
+    f.gradients_near(at.data(), int(at.size()), grads.data());
+    for (std::size_t k = 0; k < at.size(); ++k) {
+      const Vec3d& g = grads[k];
+      const double len = g.norm();
+      mesh.normals[blk.vbase + k] = len > 0 && std::isfinite(len) ? Vec3f((g / len).cast<float>()) : Vec3f::Zero();
+    }
   });
   lat.values.clear();
   mesh.faces.resize(nfaces);
