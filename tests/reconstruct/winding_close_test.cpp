@@ -107,49 +107,17 @@ TEST(WindingClose, OpenTubeIsCappedAtItsRimNotAtTheBox) {
   for (const Vec3f& v : m.vertices) EXPECT_LT(std::hypot(v.x(), v.y()), r + h) << v.transpose();
 }
 
-// values_near (one octree walk for a cluster of points) gives value() bit for bit, on
-// the MPU surface and through the wrappers the station puts around it (the table
-// clip, the winding closing), for clusters near the data, in the closed hole, across
-// the table plane and far out.
-TEST(WindingClose, ValuesNearAreValueBitForBit) {
+// values_near and gradients_near (one octree walk for a cluster of points) give
+// value() and gradient() bit for bit, on the MPU surface and through the wrappers the
+// station puts around it (the table clip, the winding closing), for clusters near the
+// data, in the closed hole, across the table plane and far out.
+TEST(WindingClose, NearQueriesAreOneByOneBitForBit) {
   const double r = 0.05;
   const Cloud cloud = sphere_cloud(4000, r, -0.6, 3);
   const MpuSurface surface = fit_mpu(cloud);
   const WindingClose closed(surface, cloud);
   const HalfSpaceClip clipped(closed, Vec3d(0, 0, 1), -0.7 * r);
   std::mt19937 rng(5);
-  std::uniform_real_distribution<double> u(-1, 1);
-  const ImplicitFunction* fs[] = {&surface, &closed, &clipped};
-  int checked = 0;
-  for (const Vec3d& centre : {Vec3d(r, 0, 0), Vec3d(0, 0, -0.9 * r), Vec3d(0.3 * r, 0, -0.7 * r), Vec3d(0, 0, 0),
-                              Vec3d(5 * r, 2 * r, 0)}) {
-    for (double box : {0.02 * r, 0.2 * r}) {
-      std::vector<Vec3d> xs;
-      for (int i = 0; i < 125; ++i) xs.push_back(centre + box * Vec3d(u(rng), u(rng), u(rng)));
-      for (const ImplicitFunction* f : fs) {
-        std::vector<double> out(xs.size());
-        f->values_near(xs.data(), int(xs.size()), out.data());
-        for (std::size_t i = 0; i < xs.size(); ++i, ++checked)
-          ASSERT_EQ(out[i], f->value(xs[i])) << "point " << xs[i].transpose();
-      }
-    }
-  }
-  EXPECT_EQ(checked, 5 * 2 * 3 * 125);
-  // A non-finite point falls back to value() for the cluster.
-  std::vector<Vec3d> bad{Vec3d(r, 0, 0), Vec3d(std::nan(""), 0, 0)};
-  double out[2];
-  surface.values_near(bad.data(), 2, out);
-  EXPECT_EQ(out[0], surface.value(bad[0]));
-  EXPECT_TRUE(std::isnan(out[1]) == std::isnan(surface.value(bad[1])));
-}
-
-TEST(WindingClose, GradientsNearAreGradientBitForBit) {
-  const double r = 0.05;
-  const Cloud cloud = sphere_cloud(4000, r, -0.6, 3);
-  const MpuSurface surface = fit_mpu(cloud);
-  const WindingClose closed(surface, cloud);
-  const HalfSpaceClip clipped(closed, Vec3d(0, 0, 1), -0.7 * r);
-  std::mt19937 rng(7);
   std::uniform_real_distribution<double> u(-1, 1);
   const ImplicitFunction* fs[] = {&surface, &closed, &clipped};
   int checked = 0, blended = 0, plane = 0;
@@ -159,12 +127,15 @@ TEST(WindingClose, GradientsNearAreGradientBitForBit) {
       std::vector<Vec3d> xs;
       for (int i = 0; i < 125; ++i) xs.push_back(centre + box * Vec3d(u(rng), u(rng), u(rng)));
       for (const ImplicitFunction* f : fs) {
-        std::vector<Vec3d> out(xs.size());
-        f->gradients_near(xs.data(), int(xs.size()), out.data());
+        std::vector<double> values(xs.size());
+        std::vector<Vec3d> grads(xs.size());
+        f->values_near(xs.data(), int(xs.size()), values.data());
+        f->gradients_near(xs.data(), int(xs.size()), grads.data());
         for (std::size_t i = 0; i < xs.size(); ++i, ++checked) {
-          ASSERT_EQ(out[i], f->gradient(xs[i])) << "point " << xs[i].transpose();
-          if (f == &closed && out[i] != surface.gradient(xs[i])) ++blended;
-          if (f == &clipped && out[i] == Vec3d(0, 0, -1)) ++plane;
+          ASSERT_EQ(values[i], f->value(xs[i])) << "point " << xs[i].transpose();
+          ASSERT_EQ(grads[i], f->gradient(xs[i])) << "point " << xs[i].transpose();
+          if (f == &closed && grads[i] != surface.gradient(xs[i])) ++blended;
+          if (f == &clipped && grads[i] == Vec3d(0, 0, -1)) ++plane;
         }
       }
     }
@@ -172,6 +143,15 @@ TEST(WindingClose, GradientsNearAreGradientBitForBit) {
   EXPECT_EQ(checked, 5 * 2 * 3 * 125);
   EXPECT_GT(blended, 50);  // the winding blend's branch was exercised
   EXPECT_GT(plane, 50);    // and the table plane's
+  // A non-finite point falls back to one-by-one evaluation for the cluster.
+  std::vector<Vec3d> bad{Vec3d(r, 0, 0), Vec3d(std::nan(""), 0, 0)};
+  double out[2];
+  Vec3d gout[2];
+  surface.values_near(bad.data(), 2, out);
+  surface.gradients_near(bad.data(), 2, gout);
+  EXPECT_EQ(out[0], surface.value(bad[0]));
+  EXPECT_EQ(gout[0], surface.gradient(bad[0]));
+  EXPECT_TRUE(std::isnan(out[1]) == std::isnan(surface.value(bad[1])));
 }
 
 TEST(WindingClose, OpenBottomedScanClosesWithoutFlaring) {
