@@ -30,7 +30,7 @@ struct PipelineConfig {
   } reg;
   struct Consolidate {
     bool enabled = true;
-    std::string method = "wlop";  ///< wlop | edge-wlop
+    std::string method = "edge-wlop";  ///< edge-wlop | wlop (docs/consolidation.md)
     std::size_t points = 20000;   ///< output points (0: ratio x input)
     double ratio = 0.2;
     int iterations = 35;
