@@ -537,7 +537,8 @@ class Runner {
     p.seed = c.seed;
     p.repulsion = c.repulsion == "tangential" ? WlopRepulsion::kTangential : WlopRepulsion::kFull;
     p.threads = cfg_.threads;
-    Progress bar("  consolidate: WLOP iterations", c.iterations, req_.quiet);
+    Progress bar(p.method == WlopMethod::kEdgeWlop ? "  consolidate: edge-WLOP iterations" : "  consolidate: WLOP iterations",
+                 c.iterations, req_.quiet);
     p.progress = [&](int done, int) { bar.update(done); };
     const WlopResult w = consolidate(input, p);
     bar.finish();
