@@ -48,7 +48,8 @@ Vec3d pca_normal(const Vec3d* points, int n) {
   return smallest_eigenvector(cov);
 }
 
-Vec3d simple_normal(const Vec3d* points, int n, int iterations) {
+Vec3d simple_normal(const Vec3d* points, int n, int iterations, Vec3d* pca) {
+  if (pca) *pca = Vec3d::Zero();
   if (n < 3) return Vec3d::Zero();
   Vec3d c = Vec3d::Zero();
   for (int i = 0; i < n; ++i) c += points[i];
@@ -60,6 +61,7 @@ Vec3d simple_normal(const Vec3d* points, int n, int iterations) {
   }
   if (!(cov.trace() > 0)) return Vec3d::Zero();
   Vec3d normal = smallest_eigenvector(cov);
+  if (pca) *pca = normal;
   // Floor on |n . y| so points on the current plane do not get infinite weight.
   const double floor = 1e-3 * std::sqrt(cov.trace() / n);
   for (int it = 0; it < iterations; ++it) {

@@ -25,8 +25,9 @@ Vec3d pca_normal(const Vec3d* points, int n);
 /// of the points (not all the way: the plane is held to the centroid, q_j). Solved
 /// by iteratively reweighted PCA
 /// (weights 1 / max(|n . y_l|, 1e-3 rms spread)) from the PCA normal, `iterations`
-/// times. Arbitrary sign; zero as pca_normal.
-Vec3d simple_normal(const Vec3d* points, int n, int iterations = 6);
+/// times. Arbitrary sign; zero as pca_normal. With `pca`, the PCA normal it started
+/// from (pca_normal's, bit for bit) is stored there too.
+Vec3d simple_normal(const Vec3d* points, int n, int iterations = 6, Vec3d* pca = nullptr);
 
 /// PCA normals of every point over its k nearest points (itself included; k >= 3).
 /// Unit length, arbitrary sign; zero where the neighbourhood is degenerate.

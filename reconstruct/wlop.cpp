@@ -240,8 +240,8 @@ void Consolidator::setup() {
       s.points.clear();
       for (int k = 0; k < nb.n; k += std::max(stride, 1))
         s.points.emplace_back(double(nb.dx[k]), double(nb.dy[k]), double(nb.dz[k]));
-      const Vec3d m = pca_normal(s.points.data(), int(s.points.size()));
-      Vec3d n = simple_normal(s.points.data(), int(s.points.size()), 4);
+      Vec3d m;
+      Vec3d n = simple_normal(s.points.data(), int(s.points.size()), 4, &m);
       if (n.dot(m) < 0) n = -n;
       set_normals(sp, n.cast<float>(), m.cast<float>());
     }

@@ -52,6 +52,10 @@ TEST(Normals, SimpleNormalFollowsTheMajorityFaceAtAnEdge) {
   // the centroid, so the L1 fit leans to the larger face without reaching it.
   EXPECT_GT(std::abs(simple.z()), std::abs(pca.z()) + 0.05) << pca.transpose() << " / "
                                                             << simple.transpose();
+  // Asked for it, simple_normal hands back the PCA normal it started from, bit for bit.
+  Vec3d start;
+  EXPECT_EQ(simple_normal(p.data(), int(p.size()), 6, &start), simple);
+  EXPECT_EQ(start, pca);
 }
 
 TEST(Normals, EstimatedNormalsAreUnitAndIndependentOfThreads) {
