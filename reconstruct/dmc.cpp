@@ -593,8 +593,11 @@ class Dmc {
         pending.insert(pending.end(), v.begin(), v.end());
         v.clear();
       }
-      std::sort(pending.begin(), pending.end(), [](const auto& x, const auto& y) {
-        return x.first != y.first ? x.first < y.first : std::less<const Node*>()(x.second, y.second);
+      // Unique pairs: one order for the same pairs, whatever the thread count.
+      arena_.execute([&] {
+        tbb::parallel_sort(pending.begin(), pending.end(), [](const auto& x, const auto& y) {
+          return x.first != y.first ? x.first < y.first : std::less<const Node*>()(x.second, y.second);
+        });
       });
       groups.clear();
       for (std::size_t i = 0; i < pending.size(); ++i)
@@ -1294,7 +1297,7 @@ class Dmc {
     std::size_t wanted = 0;
     for (std::size_t bs = 0; bs < nodes_.block_count(); ++bs) {
       const Lattice::Block& B = nodes_.blk(std::int32_t(bs));
-      const int n = __builtin_popcountll(B.xwant[0]) + __builtin_popcountll(B.xwant[1]) + __builtin_popcountll(B.xwant[2]);
+      const int n = detail::popcount64(B.xwant[0]) + detail::popcount64(B.xwant[1]) + detail::popcount64(B.xwant[2]);
       if (n == 0) continue;
       nodes_.make_slots(std::int32_t(bs));
       wanted += std::size_t(n);
@@ -1495,8 +1498,8 @@ class Dmc {
     std::size_t wanted = 0;
     for (std::size_t bs = 0; bs < nodes_.block_count(); ++bs) {
       const Lattice::Block& B = nodes_.blk(std::int32_t(bs));
-      wanted += std::size_t(__builtin_popcountll(B.xwant[0]) + __builtin_popcountll(B.xwant[1]) +
-                            __builtin_popcountll(B.xwant[2]));
+      wanted += std::size_t(detail::popcount64(B.xwant[0]) + detail::popcount64(B.xwant[1]) +
+                            detail::popcount64(B.xwant[2]));
     }
     nodes_.reserve_refined(wanted);
     tbb::enumerable_thread_specific<std::size_t> evals_local(0);

@@ -10,6 +10,21 @@
 
 namespace station::detail {
 
+/// Set bits of a 64-bit mask. __builtin_popcountll without -mpopcnt (the x86-64
+/// baseline has no POPCNT) is a call into libgcc, and the lattices count bits for
+/// every vertex id; this is the same count inline (or the instruction when the
+/// build targets it).
+inline int popcount64(std::uint64_t x) {
+#if defined(__POPCNT__) || !defined(__x86_64__)
+  return __builtin_popcountll(x);
+#else
+  x = x - ((x >> 1) & 0x5555555555555555ULL);
+  x = (x & 0x3333333333333333ULL) + ((x >> 2) & 0x3333333333333333ULL);
+  x = (x + (x >> 4)) & 0x0F0F0F0F0F0F0F0FULL;
+  return int((x * 0x0101010101010101ULL) >> 56);
+#endif
+}
+
 /// A small open-addressing (linear probing) hash table from a packed 64-bit
 /// block key to a block's index. Lookups are const and may run concurrently;
 /// inserts may not (the lattices insert in their serial parts only). Which

@@ -2,6 +2,7 @@
 
 #include <tbb/enumerable_thread_specific.h>
 #include <tbb/parallel_for.h>
+#include <tbb/parallel_sort.h>
 #include <tbb/task_arena.h>
 
 #include <Eigen/Geometry>
@@ -373,7 +374,8 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
       claimed.insert(claimed.end(), v.begin(), v.end());
       v.clear();
     }
-    std::sort(claimed.begin(), claimed.end());
+    // Keys unique: one order for any thread count.
+    arena.execute([&] { tbb::parallel_sort(claimed.begin(), claimed.end()); });
     groups.clear();
     for (std::size_t i = 0; i < claimed.size(); ++i)
       if (i == 0 || claimed[i] >> 6 != claimed[i - 1] >> 6) groups.push_back(i);
@@ -549,8 +551,8 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
     Block& blk = lat.blocks[b];
     blk.vbase = std::uint32_t(nverts);
     blk.fbase = std::uint32_t(nfaces);
-    nverts += std::size_t(__builtin_popcountll(blk.edges[0]) + __builtin_popcountll(blk.edges[1]) +
-                          __builtin_popcountll(blk.edges[2]));
+    nverts += std::size_t(detail::popcount64(blk.edges[0]) + detail::popcount64(blk.edges[1]) +
+                          detail::popcount64(blk.edges[2]));
     nfaces += block_faces[b];
   }
   std::vector<std::uint32_t>().swap(block_faces);
@@ -558,7 +560,7 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
     throw InvalidInput("extract_marching_cubes: the mesh is too large (over 2^31 vertices)");
   st.surface_cells = 0;
   for (std::size_t b = 0; b < lat.blocks.size(); ++b)
-    st.surface_cells += std::size_t(__builtin_popcountll(lat.blocks[b].surface));
+    st.surface_cells += std::size_t(detail::popcount64(lat.blocks[b].surface));
 
   // Vertices first; the values are then freed (the faces need only the inside bits),
   // so the lattice's values and the faces are never held together (peak memory).
@@ -616,8 +618,8 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
           const int c0 = ec[tri[t]][0], axis = tri[t] / 4;
           const auto [ob, ol] = lat.at(b, li + (c0 & 1), lj + (c0 >> 1 & 1), lk + (c0 >> 2 & 1));
           const Block& owner = lat.blocks[ob];
-          std::uint32_t id = owner.vbase + std::uint32_t(__builtin_popcountll(owner.edges[axis] & ((std::uint64_t(1) << ol) - 1)));
-          for (int a = 0; a < axis; ++a) id += std::uint32_t(__builtin_popcountll(owner.edges[a]));
+          std::uint32_t id = owner.vbase + std::uint32_t(detail::popcount64(owner.edges[axis] & ((std::uint64_t(1) << ol) - 1)));
+          for (int a = 0; a < axis; ++a) id += std::uint32_t(detail::popcount64(owner.edges[a]));
           face[t] = int(id);
         }
         mesh.faces[fi++] = face;

@@ -460,10 +460,10 @@ struct PackTable {
 constexpr PackTable kPack;
 
 // The same candidates kept in the same order as the scalar loop, with the same
-// double arithmetic for the test; eight at a time, left-packed with one permutation
+// double arithmetic for the test (every CPU with AVX2 has POPCNT); eight at a time, left-packed with one permutation
 // per array. Reads up to 7 entries past e (the grid's padding covers the last run)
 // and writes up to 8 past the new n.
-__attribute__((target("avx2"))) int gather_run_avx2(const double* xs, const double* ys,
+__attribute__((target("avx2,popcnt"))) int gather_run_avx2(const double* xs, const double* ys,
                                                    const double* zs, int b, int e, const Vec3d& q,
                                                    double h2, int n, int* pos, float* dx,
                                                    float* dy, float* dz, float* r2) {
