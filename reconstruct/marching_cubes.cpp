@@ -491,8 +491,14 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
     first_wave = false;
   }
   for (std::size_t e : evaluated_local) st.evaluations += e;
+  // The walk's buffers go before the mesh is allocated (peak memory).
   std::vector<std::uint64_t>().swap(frontier);
   std::vector<std::uint64_t>().swap(next);
+  std::vector<std::uint64_t>().swap(claimed);
+  std::vector<std::size_t>().swap(groups);
+  next_local.clear();
+  deferred_local.clear();
+  claimed_local.clear();
 
   // Blocks in key order (z, y, x): the mesh's vertex and face order, fixed for any
   // thread count.
