@@ -213,7 +213,9 @@ struct FloatLanes {
   typedef unsigned U __attribute__((vector_size(4 * W)));
 };
 
-template <int W>
+// kEstimate: 1/sqrt from the CPU's estimate (x86) or from the bit-level guess (the
+// "wide16" test set runs the AVX-512 lane logic on AVX2 that way).
+template <int W, bool kEstimate = true>
 struct FloatKernels {
   using V = typename FloatLanes<W>::V;
   using U = typename FloatLanes<W>::U;
@@ -265,19 +267,20 @@ struct FloatKernels {
   static STATION_INLINE V rsqrt_positive(V x) {
     V y;
 #if defined(__x86_64__) && defined(__GNUC__)
-    if constexpr (W == 16) {
-      y = (V)rsqrt14_f((__m512)x);
-    } else if constexpr (W == 8) {
-      y = (V)rsqrt_f((__m256)x);
-    } else {
-      y = (V)_mm_rsqrt_ps((__m128)x);
+    if constexpr (kEstimate) {
+      if constexpr (W == 16) {
+        y = (V)rsqrt14_f((__m512)x);
+      } else if constexpr (W == 8) {
+        y = (V)rsqrt_f((__m256)x);
+      } else {
+        y = (V)_mm_rsqrt_ps((__m128)x);
+      }
+      return y * (1.5f - (x * 0.5f) * y * y);
     }
-    return y * (1.5f - (x * 0.5f) * y * y);
-#else
+#endif
     y = (V)((U{} + 0x5f375a86u) - ((U)x >> 1));
     for (int i = 0; i < 3; ++i) y = y * (1.5f - (x * 0.5f) * y * y);
     return y;
-#endif
   }
 
   // See invert_copy in the header; the arithmetic of the double version, with
@@ -521,7 +524,7 @@ struct Table {
                     int, int*, float*, float*, float*, float*);
 };
 
-#define STATION_KERNEL_TABLE(NAME, W, WF, GATHER, TARGET)                                                  \
+#define STATION_KERNEL_TABLE(NAME, W, WF, EST, GATHER, TARGET)                                                  \
   TARGET KernelSums NAME##_density(const RadiusGrid& g, const Vec3d& q, const KernelShape& k) { \
     return Kernels<W>::template sums<Mode::kDensity>(g, nullptr, q, k, -1);                     \
   }                                                                                             \
@@ -535,30 +538,33 @@ struct Table {
   }                                                                                             \
   TARGET KernelSums NAME##_array_f(const float* dx, const float* dy, const float* dz,          \
                                    const float* r2, const float* w, int n, const KernelShape& k) { \
-    return FloatKernels<WF>::attraction(dx, dy, dz, r2, w, n, k);                               \
+    return FloatKernels<WF, EST>::attraction(dx, dy, dz, r2, w, n, k);                               \
   }                                                                                             \
   TARGET int NAME##_invert_f(const float* dx, const float* dy, const float* dz, const float* r2, \
                              int n, double Dt, double Q, const Vec3d& a, double h2, float* ux,  \
                              float* uy, float* uz, float* ur2) {                                \
-    return FloatKernels<WF>::invert_copy(dx, dy, dz, r2, n, Dt, Q, a, h2, ux, uy, uz, ur2);     \
+    return FloatKernels<WF, EST>::invert_copy(dx, dy, dz, r2, n, Dt, Q, a, h2, ux, uy, uz, ur2);     \
   }                                                                                             \
   TARGET void NAME##_weights_f(const float* nx, const float* ny, const float* nz, const float* v, \
                                int n, const Vec3d& a, const double* g, int K, float* w) {       \
-    FloatKernels<WF>::edge_weights(nx, ny, nz, v, n, a, g, K, w);                               \
+    FloatKernels<WF, EST>::edge_weights(nx, ny, nz, v, n, a, g, K, w);                               \
   }                                                                                             \
-  TARGET int NAME##_nearest(const float* r2, int n) { return FloatKernels<WF>::nearest(r2, n); } \
+  TARGET int NAME##_nearest(const float* r2, int n) { return FloatKernels<WF, EST>::nearest(r2, n); } \
   TARGET Vec3d NAME##_normal_sum(const int* pos, int n, const float* rec, const float* ref,     \
                                  bool o, float* nx, float* ny, float* nz, float* v) {           \
-    return FloatKernels<WF>::signed_normal_sum(pos, n, rec, ref, o, nx, ny, nz, v);            \
+    return FloatKernels<WF, EST>::signed_normal_sum(pos, n, rec, ref, o, nx, ny, nz, v);            \
   }                                                                                             \
   const Table NAME##_table{NAME##_density,  NAME##_attraction, NAME##_repulsion, NAME##_array_f, \
                            NAME##_invert_f, NAME##_weights_f,  NAME##_nearest,   NAME##_normal_sum, \
                            GATHER};
 
-STATION_KERNEL_TABLE(base, 2, 4, gather_run_scalar, )
+STATION_KERNEL_TABLE(base, 2, 4, true, gather_run_scalar, )
 #ifdef STATION_X86_DISPATCH
-STATION_KERNEL_TABLE(avx2, 4, 8, gather_run_avx2, __attribute__((target("avx2"))))
-STATION_KERNEL_TABLE(avx512, 8, 16, gather_run_avx2, __attribute__((target("avx512f,avx512dq"))))
+STATION_KERNEL_TABLE(avx2, 4, 8, true, gather_run_avx2, __attribute__((target("avx2"))))
+// Tests only: the AVX-512 set's 16-lane float code (tails, padding, the two-half
+// record transpose) on AVX2 instructions, so that a CPU without AVX-512 checks it too.
+STATION_KERNEL_TABLE(wide16, 4, 16, false, gather_run_avx2, __attribute__((target("avx2"))))
+STATION_KERNEL_TABLE(avx512, 8, 16, true, gather_run_avx2, __attribute__((target("avx512f,avx512dq"))))
 #endif
 
 struct Variant {
@@ -575,6 +581,7 @@ const std::vector<Variant>& variants() {
     if (__builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512dq"))
       v.push_back({"avx512", &avx512_table});
     if (__builtin_cpu_supports("avx2")) v.push_back({"avx2", &avx2_table});
+    if (__builtin_cpu_supports("avx2")) v.push_back({"wide16", &wide16_table});
 #endif
     v.push_back({"base", &base_table});
     return v;

@@ -12,9 +12,10 @@
 
 namespace station::detail {
 
-/// The kernel sets this CPU can run, widest first ("avx512", "avx2", "base"); the
-/// first is used unless use_kernel_variant picks another (for tests: every set can
-/// then be checked on one machine; not to be called while kernels run).
+/// The kernel sets this CPU can run, widest first ("avx512", "avx2", "base"; with
+/// AVX2 also "wide16", the AVX-512 set's 16-lane float code on AVX2 instructions,
+/// for tests); the first is used unless use_kernel_variant picks another (for tests:
+/// every set can then be checked on one machine; not to be called while kernels run).
 /// use_kernel_variant throws std::invalid_argument for a name not in the list.
 std::vector<std::string> kernel_variants();
 void use_kernel_variant(const std::string& name);

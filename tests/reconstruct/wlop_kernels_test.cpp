@@ -5,10 +5,12 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <random>
 #include <vector>
 
 #include "reconstruct/radius_grid.h"
+#include "reconstruct/wlop.h"
 #include "reconstruct/wlop_kernels.h"
 
 namespace station::detail {
@@ -45,7 +47,53 @@ TEST(WlopKernels, VariantsAreListedAndUnknownOnesRejected) {
   const std::vector<std::string> names = kernel_variants();
   ASSERT_FALSE(names.empty());
   EXPECT_EQ(names.back(), "base");
+  const bool avx2 = std::find(names.begin(), names.end(), "avx2") != names.end();
+  const bool wide16 = std::find(names.begin(), names.end(), "wide16") != names.end();
+  EXPECT_EQ(avx2, wide16);  // the AVX-512 lane logic is checked wherever AVX2 runs
+  EXPECT_NE(names.front(), "wide16");
   EXPECT_THROW(use_kernel_variant("nonsense"), std::invalid_argument);
+}
+
+// The whole edge variant on every kernel set: the same points up to float rounding
+// (the sets differ in vector width, lane sums and the 1/sqrt estimate).
+TEST(WlopKernels, EdgeWlopAgreesAcrossKernelSets) {
+  VariantGuard guard;
+  std::mt19937 rng(21);
+  std::normal_distribution<double> g(0, 1);
+  Cloud cloud;
+  while (cloud.size() < 3000) {
+    Vec3d d(g(rng), g(rng), g(rng));
+    d = d.cwiseQuotient(d.cwiseAbs().maxCoeff() * Vec3d::Ones());  // on a cube: edges and corners
+    cloud.points.push_back((d + 0.005 * Vec3d(g(rng), g(rng), g(rng))).cast<float>());
+  }
+  WlopParams p;
+  p.method = WlopMethod::kEdgeWlop;
+  p.target_points = 600;
+  p.iterations = 10;
+  p.estimate_normals = false;
+  std::vector<Vec3d> first;
+  for (const std::string& name : kernel_variants()) {
+    use_kernel_variant(name);
+    const WlopResult r = consolidate(cloud, p);
+    ASSERT_EQ(r.positions.size(), 600u) << name;
+    EXPECT_GT(r.mean_copies, 1.0) << name;
+    if (first.empty()) {
+      first = r.positions;
+      continue;
+    }
+    // Float rounding can tip a discrete choice (the copy count K, the nearest input
+    // point) for a few points; a wrong lane or tail would move points by a good part of h.
+    double worst = 0, mean = 0;
+    for (std::size_t i = 0; i < first.size(); ++i) {
+      const double d = (r.positions[i] - first[i]).norm();
+      worst = std::max(worst, d);
+      mean += d / double(first.size());
+    }
+    EXPECT_LT(worst, 5e-3 * r.radius) << name;
+    EXPECT_LT(mean, 1e-4 * r.radius) << name;
+    std::printf("%s against %s: largest difference %.2g h, mean %.2g h\n", name.c_str(),
+                kernel_variants().front().c_str(), worst / r.radius, mean / r.radius);
+  }
 }
 
 TEST(WlopKernels, InvertCopyMatchesTheSphericalInversion) {
