@@ -802,9 +802,6 @@ class Dmc {
     return (v < 0) != (nd.val < 0);
   }
 
-  // The first wave of the flood, in parallel over the blocks: the corners of the crossed
-  // cells, each once (mark bits claimed atomically, cleared after), pre-tested and
-  // probed; the points whose Omega is to be searched, in key order.
   // The first wave's pruning (a mover is searched where the part beyond its near
   // surface is thin: a probe one h past that surface is back on its side), for the
   // candidates of one block, their gradients and probe values each taken together
@@ -854,6 +851,9 @@ class Dmc {
     }
   }
 
+  // The first wave of the flood, in parallel over the blocks: the corners of the crossed
+  // cells, each once (mark bits claimed atomically, cleared after), pre-tested and
+  // probed a block at a time; the points whose Omega is to be searched, in key order.
   std::vector<Key> first_wave_todo() {
     tbb::enumerable_thread_specific<std::vector<Key>> todo_local;
     tbb::enumerable_thread_specific<std::vector<std::int32_t>> marked_local;
