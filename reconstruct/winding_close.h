@@ -82,6 +82,9 @@ class WindingClose : public ImplicitFunction {
 
  private:
   double blend(const Vec3d& x, Vec3d* grad) const;
+  // Whether every one of the n points is surely within the trust distance t1 of an
+  // input point (one nearest-point query for the cluster): blend() is 0 for all.
+  bool all_trusted(const Vec3d* xs, int n) const;
   const ImplicitFunction& f_;
   const class MpuSurface* mpu_;  // f_ when it is an MPU surface (value and gradient in one walk)
   struct Index;
