@@ -256,21 +256,8 @@ struct MpuSurface::Impl {
       const Vec3d& y = ys[std::size_t(k)];
       double swq = 0, sw = 0;
       Vec3d gwq = Vec3d::Zero(), gw = Vec3d::Zero();
-      for (const std::int32_t li : leaves) {
-        const LeafRecord& leaf = leaf_records[std::size_t(li)];
-        Vec3d d;
-        double r = 0;
-        const double w = leaf_weight(leaf, y, d, r);
-        if (w <= 0) continue;
-        if (grads) {
-          Vec3d gq;
-          const double q = leaf_fit(leaf, y, &gq);
-          add_gradient_terms(leaf, d, r, w, q, gq, swq, sw, gwq, gw);
-        } else {
-          swq += w * leaf_fit(leaf, y, nullptr);
-          sw += w;
-        }
-      }
+      for (const std::int32_t li : leaves)
+        add_leaf(leaf_records[std::size_t(li)], y, swq, sw, grads ? &gwq : nullptr, &gw);
       if (grads) {
         grads[k] = gradient_from(y, swq, sw, gwq, gw);
       } else {
@@ -333,19 +320,7 @@ struct MpuSurface::Impl {
         continue;
       }
       // A leaf: decided exactly.
-      const LeafRecord& leaf = leaf_records[std::size_t(-link - 1)];
-      Vec3d d;
-      double r = 0;
-      const double w = leaf_weight(leaf, y, d, r);
-      if (w <= 0) continue;
-      if (gwq) {
-        Vec3d gq;
-        const double q = leaf_fit(leaf, y, &gq);
-        add_gradient_terms(leaf, d, r, w, q, gq, swq, sw, *gwq, *gw);
-      } else {
-        swq += w * leaf_fit(leaf, y, nullptr);
-        sw += w;
-      }
+      add_leaf(leaf_records[std::size_t(-link - 1)], y, swq, sw, gwq, gw);
     }
   }
 
@@ -369,17 +344,27 @@ struct MpuSurface::Impl {
     return swq / sw / scale;
   }
 
-  // One leaf's terms of the sums with gradients (w at y, d = y - its centre, r = |d|,
-  // its fit q and that fit's gradient gq).
-  static void add_gradient_terms(const LeafRecord& leaf, const Vec3d& d, double r, double w,
-                                 double q, const Vec3d& gq, double& swq, double& sw, Vec3d& gwq,
-                                 Vec3d& gw) {
+  // One leaf's terms of sum w Q and sum w at y (nothing outside its support) and, when
+  // gwq is given, of their gradients (into gwq and gw). accumulate() and near() share it.
+  void add_leaf(const LeafRecord& leaf, const Vec3d& y, double& swq, double& sw, Vec3d* gwq,
+                Vec3d* gw) const {
+    Vec3d d;
+    double r = 0;
+    const double w = leaf_weight(leaf, y, d, r);
+    if (w <= 0) return;
+    if (!gwq) {
+      swq += w * leaf_fit(leaf, y, nullptr);
+      sw += w;
+      return;
+    }
+    Vec3d gq;
+    const double q = leaf_fit(leaf, y, &gq);
     const double t = 1.5 * r / leaf.radius;
     const Vec3d gwt = r > 0 ? Vec3d(bspline2_deriv(t) * 1.5 / leaf.radius / r * d) : Vec3d::Zero();
     swq += w * q;
     sw += w;
-    gwq += gwt * q + w * gq;
-    gw += gwt;
+    *gwq += gwt * q + w * gq;
+    *gw += gwt;
   }
 
   Vec3d gradient_from(const Vec3d& y, double swq, double sw, const Vec3d& gwq, const Vec3d& gw) const {
