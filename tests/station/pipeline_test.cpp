@@ -246,9 +246,12 @@ TEST(Pipeline, MissingInputAndBadStateAreClearErrors) {
 
 TEST(Profile, OverridesAreValidatedLikeTheFileAndNameTheKey) {
   const fs::path profile = test::source_dir() / "config/default.yaml";
-  const StationConfig cfg = load_config(profile, {"reconstruct.resolution=77", "consolidate.method=edge-wlop"});
+  // The run consolidates with edge-WLOP unless told otherwise (profile and built-in default).
+  EXPECT_EQ(load_config(profile, {}).pipeline.consolidate.method, "edge-wlop");
+  EXPECT_EQ(StationConfig{}.pipeline.consolidate.method, "edge-wlop");
+  const StationConfig cfg = load_config(profile, {"reconstruct.resolution=77", "consolidate.method=wlop"});
   EXPECT_EQ(cfg.pipeline.reconstruct.resolution, 77);
-  EXPECT_EQ(cfg.pipeline.consolidate.method, "edge-wlop");
+  EXPECT_EQ(cfg.pipeline.consolidate.method, "wlop");
   auto message = [&](const std::string& kv) {
     try {
       load_config(profile, {kv});
