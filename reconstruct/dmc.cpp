@@ -782,6 +782,51 @@ class Dmc {
     return !(std::abs(nd.val) > 1.3 * h_ * slope * 1.5) || slope == 0;
   }
 
+  // grad f at lattice point p from the lattice values alone: central differences with
+  // its evaluated 6-neighbours (one-sided where one side is missing); false when an
+  // axis has neither. Only before any point moved (the differences assume undeformed
+  // neighbours): the first wave's probe direction.
+  static constexpr double kLinear = 3;
+  bool lattice_gradient(Key p, std::int32_t b, int l, const Node& nd, Vec3d& gr) const {
+    const int loc[3] = {l & 3, l >> 2 & 3, l >> 4};
+    const int at[3] = {ki(p), kj(p), kk(p)};
+    auto value_at = [&](int a, int step, double& v) {
+      int d[3] = {0, 0, 0};
+      d[a] = step;
+      if (!node_in_grid(at[0] + d[0], at[1] + d[1], at[2] + d[2])) return false;
+      const auto [nb, nl] = nodes_.rel(b, loc[0] + d[0], loc[1] + d[1], loc[2] + d[2]);
+      if (nodes_.present(nb, nl)) {
+        v = nodes_.node(nb, nl).val;
+        return true;
+      }
+      if (const double* sv = scan_value(at[0] + d[0], at[1] + d[1], at[2] + d[2])) {
+        v = *sv;
+        return true;
+      }
+      return false;
+    };
+    for (int a = 0; a < 3; ++a) {
+      double vp = 0, vm = 0;
+      const bool hp = value_at(a, 1, vp), hm = value_at(a, -1, vm);
+      if (hp && hm) {
+        // f about linear along the axis: both one-sided differences of one sign, neither
+        // over kLinear times the other (a thin part or a valley between the
+        // neighbours bends it; f's gradient decides there).
+        const double dp = vp - nd.val, dm = nd.val - vm;
+        if (!(dp * dm > 0) || std::max(std::abs(dp), std::abs(dm)) > kLinear * std::min(std::abs(dp), std::abs(dm)))
+          return false;
+        gr[a] = 0.5 * (vp - vm) / h_;
+      } else if (hp) {
+        gr[a] = (vp - nd.val) / h_;
+      } else if (hm) {
+        gr[a] = (nd.val - vm) / h_;
+      } else {
+        return false;
+      }
+    }
+    return true;
+  }
+
   enum Role : char { kSkip, kMove, kPass };
   // The pruning of a later wave's candidate (see barycentre_step): whether its Omega
   // is searched (mover) or it passes the flood on (passer). One gradient and, for a
@@ -804,51 +849,78 @@ class Dmc {
 
   // The first wave's pruning (a mover is searched where the part beyond its near
   // surface is thin: a probe one h past that surface is back on its side), for the
-  // candidates of one block, their gradients and probe values each taken together
-  // (ImplicitFunction::*_near: one octree walk for the lot on the MPU surface).
+  // candidates of one block, in two rounds. First with the lattice's gradient
+  // (lattice_gradient; no evaluation but the probe): a candidate it finds thick (or
+  // beyond 1.3 h) is done. The others (thin there, or no lattice gradient) take the
+  // probe with f's gradient, which decides. Each round's gradients and probes are
+  // taken together (ImplicitFunction::*_near: one octree walk for the lot on the MPU
+  // surface).
   struct ProbeBatch {
     std::vector<const Node*> nodes;
     std::vector<Key> keys;
-    std::vector<Vec3d> xs, grads, probes;
+    std::vector<Vec3d> grads, probes, xs, exact_grads;
     std::vector<double> values;
-    std::vector<int> probe_of;
+    std::vector<int> probe_of, lattice, exact, thin;
+    std::vector<char> has_grad;
     void clear() {
       nodes.clear();
       keys.clear();
+      grads.clear();
+      has_grad.clear();
     }
   };
-  void probe_first_wave(ProbeBatch& batch, std::vector<Key>& todo) const {
-    const std::size_t n = batch.nodes.size();
-    if (n == 0) return;
-    batch.xs.resize(n);
-    batch.grads.resize(n);
-    for (std::size_t i = 0; i < n; ++i) batch.xs[i] = batch.nodes[i]->pos;
-    f_.gradients_near(batch.xs.data(), int(n), batch.grads.data());
+  // One round over batch.nodes[at[i]] with gradients grads[at[i]]: the candidates whose
+  // probe says thin (or whose gradient is unusable) go to `thin`.
+  void probe_round(ProbeBatch& batch, const std::vector<int>& at, std::vector<int>& thin) const {
     batch.probes.clear();
-    batch.probe_of.assign(n, -1);
-    for (std::size_t i = 0; i < n; ++i) {
+    batch.probe_of.assign(at.size(), -1);
+    for (std::size_t t = 0; t < at.size(); ++t) {
+      const std::size_t i = std::size_t(at[t]);
       const Node& nd = *batch.nodes[i];
       const Vec3d& gr = batch.grads[i];
       const double gn = gr.norm();
       if (!(gn > 0) || !std::isfinite(gn)) {  // no usable gradient: search
-        todo.push_back(batch.keys[i]);
+        thin.push_back(at[t]);
         continue;
       }
       const double d = std::abs(nd.val) / gn;
       if (d > 1.3 * h_) continue;
       const double sgn = nd.val < 0 ? -1.0 : 1.0;  // outside: towards -grad
-      batch.probe_of[i] = int(batch.probes.size());
+      batch.probe_of[t] = int(batch.probes.size());
       batch.probes.push_back(nd.pos - sgn * (d + h_) * (gr / gn));  // one h past the near surface
     }
     if (batch.probes.empty()) return;
     batch.values.resize(batch.probes.size());
     f_.values_near(batch.probes.data(), int(batch.probes.size()), batch.values.data());
-    for (std::size_t i = 0; i < n; ++i) {
-      if (batch.probe_of[i] < 0) continue;
-      double v = batch.values[std::size_t(batch.probe_of[i])] - opt_.iso;
+    for (std::size_t t = 0; t < at.size(); ++t) {
+      if (batch.probe_of[t] < 0) continue;
+      double v = batch.values[std::size_t(batch.probe_of[t])] - opt_.iso;
       if (!std::isfinite(v)) v = h_;
-      if ((v < 0) == (batch.nodes[i]->val < 0)) todo.push_back(batch.keys[i]);
+      if ((v < 0) == (batch.nodes[std::size_t(at[t])]->val < 0)) thin.push_back(at[t]);
     }
+  }
+  // Counts: probes taken, f's gradients taken.
+  void probe_first_wave(ProbeBatch& batch, std::vector<Key>& todo, std::size_t& probes, std::size_t& gradients) const {
+    const std::size_t n = batch.nodes.size();
+    if (n == 0) return;
+    std::vector<int>&lattice = batch.lattice, &exact = batch.exact, &thin = batch.thin;
+    lattice.clear();
+    exact.clear();
+    thin.clear();
+    for (std::size_t i = 0; i < n; ++i) (batch.has_grad[i] ? lattice : exact).push_back(int(i));
+    probe_round(batch, lattice, exact);
+    probes += batch.probes.size();
+    if (exact.empty()) return;
+    std::sort(exact.begin(), exact.end());
+    batch.xs.resize(exact.size());
+    batch.exact_grads.resize(exact.size());
+    for (std::size_t t = 0; t < exact.size(); ++t) batch.xs[t] = batch.nodes[std::size_t(exact[t])]->pos;
+    f_.gradients_near(batch.xs.data(), int(exact.size()), batch.exact_grads.data());
+    for (std::size_t t = 0; t < exact.size(); ++t) batch.grads[std::size_t(exact[t])] = batch.exact_grads[t];
+    gradients += exact.size();
+    probe_round(batch, exact, thin);
+    probes += batch.probes.size();
+    for (int i : thin) todo.push_back(batch.keys[std::size_t(i)]);
   }
 
   // The first wave of the flood, in parallel over the blocks: the corners of the crossed
@@ -857,7 +929,7 @@ class Dmc {
   std::vector<Key> first_wave_todo() {
     tbb::enumerable_thread_specific<std::vector<Key>> todo_local;
     tbb::enumerable_thread_specific<std::vector<std::int32_t>> marked_local;
-    tbb::enumerable_thread_specific<std::size_t> probed_local(0);
+    tbb::enumerable_thread_specific<std::size_t> probed_local(0), exact_local(0), probes_local(0);
     tbb::enumerable_thread_specific<ProbeBatch> batch_local;
     parallel(nodes_.block_count(), [&](std::size_t bs) {
       const std::int32_t b = std::int32_t(bs);
@@ -883,17 +955,19 @@ class Dmc {
             ++probed_local.local();
             batch.nodes.push_back(&nd);
             batch.keys.push_back(p);
+            batch.grads.emplace_back();
+            batch.has_grad.push_back(lattice_gradient(p, cb, cl, nd, batch.grads.back()));
           }
           nd.flags |= kSearched;
         }
       }
-      probe_first_wave(batch, todo_local.local());
+      probe_first_wave(batch, todo_local.local(), probes_local.local(), exact_local.local());
     });
     std::size_t probed = 0;
     for (std::size_t n : probed_local) probed += n;
-    st_.gradient_evaluations += probed;
+    for (std::size_t n : exact_local) st_.gradient_evaluations += n;
+    for (std::size_t n : probes_local) st_.evaluations += n;
     st_.probed += probed;
-    st_.evaluations += probed;
     for (const auto& v : marked_local)
       for (std::int32_t b : v) nodes_.blk(b).mark = 0;
     std::vector<Key> todo;
@@ -907,7 +981,8 @@ class Dmc {
   // part's side, which the flood passes through). A candidate is looked at only when
   // the surface may pass through its Omega (|f| / |grad f| within 1.3 h) and the part
   // beyond that surface is thin: a probe one h past the nearest surface point along
-  // -grad f (+grad f for a point inside) is back on the candidate's side. Only then is
+  // -grad f (+grad f for a point inside) is back on the candidate's side (the first
+  // wave asks the lattice's gradient first, probe_first_wave). Only then is
   // Omega sampled (m^3 evaluations). A point already inside a thin part (for the
   // thin-gap flood: outside in a thin gap) passes the flood on when the other side is
   // within h too.
