@@ -1234,9 +1234,13 @@ class Dmc {
   // The crossings on the deformed lattice edges from a[i] to b[i] (i < n, edges close
   // together: one block's), each by Illinois regula falsi on f along the edge, keeping
   // the bracket, up to `steps` evaluations; the edges step together so that each
-  // round's values, and the normals at the end, are taken together
-  // (ImplicitFunction::values_near / gradients_near). Each edge's sequence is what it
-  // would be alone.
+  // round's values are taken together (ImplicitFunction::values_near). Each edge's
+  // sequence is what it would be alone. The normal is grad f at the edge's last
+  // evaluation, taken with that value in the last round (values_gradients_near: one
+  // octree walk for both on the MPU surface): at the crossing itself where that value
+  // was at round-off, else one Illinois update short of it (a tiny fraction of h; the
+  // vertex is the updated point). Edges that stopped before the last round take
+  // gradients_near at the crossing.
   struct CrossingBatch {
     struct State {
       double fa, fb, lo, hi, t, tol;
@@ -1244,14 +1248,17 @@ class Dmc {
       bool done;
     };
     std::vector<State> state;
-    std::vector<Vec3d> xs, grads;
+    std::vector<Vec3d> xs, grads, last_grads, at;
     std::vector<double> values;
     std::vector<int> active;
+    std::vector<char> has_grad;
   };
   void crossings(const Node* const* a, const Node* const* b, int n, int steps, CrossingBatch& cb,
                  Crossing* out) const {
     if (n <= 0) return;
     cb.state.resize(std::size_t(n));
+    cb.grads.resize(std::size_t(n));
+    cb.has_grad.assign(std::size_t(n), 0);
     for (int i = 0; i < n; ++i) {
       const double fa = a[i]->val, fb = b[i]->val;
       cb.state[std::size_t(i)] = {fa, fb, 0.0, 1.0, fa / (fa - fb), 1e-7 * std::abs(fa - fb), 0, 0, false};
@@ -1267,10 +1274,20 @@ class Dmc {
       }
       if (cb.active.empty()) break;
       cb.values.resize(cb.xs.size());
-      f_.values_near(cb.xs.data(), int(cb.xs.size()), cb.values.data());
+      const bool last = it + 1 == steps;
+      if (last) {
+        cb.last_grads.resize(cb.xs.size());
+        f_.values_gradients_near(cb.xs.data(), int(cb.xs.size()), cb.values.data(), cb.last_grads.data());
+      } else {
+        f_.values_near(cb.xs.data(), int(cb.xs.size()), cb.values.data());
+      }
       for (std::size_t k = 0; k < cb.active.size(); ++k) {
         const int i = cb.active[k];
         auto& st = cb.state[std::size_t(i)];
+        if (last) {
+          cb.grads[std::size_t(i)] = cb.last_grads[k];
+          cb.has_grad[std::size_t(i)] = 1;
+        }
         const double v = cb.values[k] - opt_.iso;
         ++st.evals;
         if (!std::isfinite(v) || std::abs(v) <= st.tol) {
@@ -1298,8 +1315,17 @@ class Dmc {
       const double t = std::clamp(cb.state[std::size_t(i)].t, 1e-3, 1 - 1e-3);
       cb.xs[std::size_t(i)] = a[i]->pos + t * (b[i]->pos - a[i]->pos);
     }
-    cb.grads.resize(std::size_t(n));
-    f_.gradients_near(cb.xs.data(), n, cb.grads.data());
+    // Gradients at the crossings of the edges without one (stopped early), together.
+    cb.active.clear();
+    for (int i = 0; i < n; ++i)
+      if (!cb.has_grad[std::size_t(i)]) cb.active.push_back(i);
+    if (!cb.active.empty()) {
+      cb.at.resize(cb.active.size());
+      cb.last_grads.resize(cb.active.size());
+      for (std::size_t k = 0; k < cb.active.size(); ++k) cb.at[k] = cb.xs[std::size_t(cb.active[k])];
+      f_.gradients_near(cb.at.data(), int(cb.at.size()), cb.last_grads.data());
+      for (std::size_t k = 0; k < cb.active.size(); ++k) cb.grads[std::size_t(cb.active[k])] = cb.last_grads[k];
+    }
     for (int i = 0; i < n; ++i) {
       Crossing& c = out[i];
       c = Crossing{};

@@ -37,11 +37,19 @@ Vec3d HalfSpaceClip::gradient(const Vec3d& x) const {
 
 void HalfSpaceClip::gradients_near(const Vec3d* xs, int n, Vec3d* out) const {
   std::vector<double> fv(std::size_t(std::max(n, 0)));  // local: f may call back into *_near
-  f_.values_near(xs, n, fv.data());
-  f_.gradients_near(xs, n, out);
+  f_.values_gradients_near(xs, n, fv.data(), out);
   for (int i = 0; i < n; ++i) {
     const double f = fv[std::size_t(i)];
     if (plane_value(xs[i]) >= f || std::isnan(f)) out[i] = -up_;
+  }
+}
+
+void HalfSpaceClip::values_gradients_near(const Vec3d* xs, int n, double* values, Vec3d* grads) const {
+  f_.values_gradients_near(xs, n, values, grads);
+  for (int i = 0; i < n; ++i) {
+    const double f = values[i], p = plane_value(xs[i]);
+    if (p >= f || std::isnan(f)) grads[i] = -up_;
+    values[i] = clip(f, p);
   }
 }
 

@@ -33,6 +33,8 @@ class HalfSpaceClip : public ImplicitFunction {
   void values_near(const Vec3d* xs, int n, double* out) const override;
   /// gradient() at each point, f's values and gradients taken together.
   void gradients_near(const Vec3d* xs, int n, Vec3d* out) const override;
+  /// Both from one values_gradients_near of f.
+  void values_gradients_near(const Vec3d* xs, int n, double* values, Vec3d* grads) const override;
 
  private:
   const ImplicitFunction& f_;

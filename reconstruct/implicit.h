@@ -34,6 +34,12 @@ class ImplicitFunction {
   virtual void gradients_near(const Vec3d* xs, int n, Vec3d* out) const {
     for (int i = 0; i < n; ++i) out[i] = gradient(xs[i]);
   }
+  /// values_near and gradients_near at the same n points, the same bits; a function
+  /// that finds both in one pass overrides it (the MPU surface: one octree walk).
+  virtual void values_gradients_near(const Vec3d* xs, int n, double* values, Vec3d* grads) const {
+    values_near(xs, n, values);
+    gradients_near(xs, n, grads);
+  }
 };
 
 }  // namespace station

@@ -209,7 +209,7 @@ struct MpuSurface::Impl {
     }
   }
 
-  // value() (or, with grads, gradient()) at n points (world units) from one walk: the
+  // value() (with out) and gradient() (with grads) at n points (world units) from one walk: the
   // leaves that may reach the points' bounding ball, gathered in accumulate()'s
   // depth-first order, then for each point the same exact test and sums as
   // accumulate() and eval() (so the same bits).
@@ -226,11 +226,8 @@ struct MpuSurface::Impl {
     }
     if (!lo.allFinite() || !hi.allFinite()) {
       for (int i = 0; i < n; ++i) {
-        if (grads) {
-          eval(xs[i], &grads[i]);
-        } else {
-          out[i] = eval(xs[i], nullptr);
-        }
+        const double v = eval(xs[i], grads ? &grads[i] : nullptr);
+        if (out) out[i] = v;
       }
       return;
     }
@@ -258,11 +255,8 @@ struct MpuSurface::Impl {
       Vec3d gwq = Vec3d::Zero(), gw = Vec3d::Zero();
       for (const std::int32_t li : leaves)
         add_leaf(leaf_records[std::size_t(li)], y, swq, sw, grads ? &gwq : nullptr, &gw);
-      if (grads) {
-        grads[k] = gradient_from(y, swq, sw, gwq, gw);
-      } else {
-        out[k] = value_from(y, swq, sw);
-      }
+      if (grads) grads[k] = gradient_from(y, swq, sw, gwq, gw);
+      if (out) out[k] = value_from(y, swq, sw);
     }
   }
 
@@ -898,6 +892,9 @@ double MpuSurface::nearest_point_distance(const Vec3d& x) const {
 void MpuSurface::values_near(const Vec3d* xs, int n, double* out) const { impl_->near(xs, n, out, nullptr); }
 void MpuSurface::gradients_near(const Vec3d* xs, int n, Vec3d* out) const {
   impl_->near(xs, n, nullptr, out);
+}
+void MpuSurface::values_gradients_near(const Vec3d* xs, int n, double* values, Vec3d* grads) const {
+  impl_->near(xs, n, values, grads);
 }
 bool MpuSurface::may_be_sharp(const Vec3d& x, double radius) const {
   return impl_->may_be_sharp((x - impl_->center) * impl_->scale, radius * impl_->scale);

@@ -135,6 +135,8 @@ class MpuSurface : public ImplicitFunction {
   void values_near(const Vec3d* xs, int n, double* out) const override;
   /// gradient() at each point, bit for bit, from one octree walk for all.
   void gradients_near(const Vec3d* xs, int n, Vec3d* out) const override;
+  /// Both, bit for bit, from one octree walk.
+  void values_gradients_near(const Vec3d* xs, int n, double* values, Vec3d* grads) const override;
 
   /// Normalised frame: y = (x - center()) * scale(); the bounding cube of the input
   /// points has diagonal 1 there, and epsilon0 is measured in it.

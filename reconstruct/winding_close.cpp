@@ -289,6 +289,15 @@ Vec3d WindingClose::gradient(const Vec3d& x) const {
   return (1 - beta) * gf + beta * gs + (s - f) * gbeta;
 }
 
+void WindingClose::values_gradients_near(const Vec3d* xs, int n, double* values, Vec3d* grads) const {
+  if (all_trusted(xs, n)) {  // beta = 0 throughout (see values_near)
+    f_.values_gradients_near(xs, n, values, grads);
+    return;
+  }
+  values_near(xs, n, values);
+  gradients_near(xs, n, grads);
+}
+
 void WindingClose::gradients_near(const Vec3d* xs, int n, Vec3d* out) const {
   if (all_trusted(xs, n)) {  // beta = 0 throughout (see values_near)
     f_.gradients_near(xs, n, out);

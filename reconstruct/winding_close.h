@@ -73,6 +73,8 @@ class WindingClose : public ImplicitFunction {
   void values_near(const Vec3d* xs, int n, double* out) const override;
   /// gradient() at each point; f's values and gradients (where needed) taken together.
   void gradients_near(const Vec3d* xs, int n, Vec3d* out) const override;
+  /// Both; f's in one values_gradients_near where the cluster is surely trusted.
+  void values_gradients_near(const Vec3d* xs, int n, double* values, Vec3d* grads) const override;
   bool trusted(const Vec3d& x) const override { return f_.trusted(x); }
   /// The blend with the smooth winding field adds no crease: as f.
   bool may_be_sharp(const Vec3d& x, double radius) const override { return f_.may_be_sharp(x, radius); }

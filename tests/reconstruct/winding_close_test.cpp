@@ -107,8 +107,8 @@ TEST(WindingClose, OpenTubeIsCappedAtItsRimNotAtTheBox) {
   for (const Vec3f& v : m.vertices) EXPECT_LT(std::hypot(v.x(), v.y()), r + h) << v.transpose();
 }
 
-// values_near and gradients_near (one octree walk for a cluster of points) give
-// value() and gradient() bit for bit, on the MPU surface and through the wrappers the
+// values_near, gradients_near and values_gradients_near (one octree walk for a
+// cluster of points) give value() and gradient() bit for bit, on the MPU surface and through the wrappers the
 // station puts around it (the table clip, the winding closing), for clusters near the
 // data, in the closed hole, across the table plane and far out.
 TEST(WindingClose, NearQueriesAreOneByOneBitForBit) {
@@ -131,9 +131,14 @@ TEST(WindingClose, NearQueriesAreOneByOneBitForBit) {
         std::vector<Vec3d> grads(xs.size());
         f->values_near(xs.data(), int(xs.size()), values.data());
         f->gradients_near(xs.data(), int(xs.size()), grads.data());
+        std::vector<double> both_values(xs.size());
+        std::vector<Vec3d> both_grads(xs.size());
+        f->values_gradients_near(xs.data(), int(xs.size()), both_values.data(), both_grads.data());
         for (std::size_t i = 0; i < xs.size(); ++i, ++checked) {
           ASSERT_EQ(values[i], f->value(xs[i])) << "point " << xs[i].transpose();
           ASSERT_EQ(grads[i], f->gradient(xs[i])) << "point " << xs[i].transpose();
+          ASSERT_EQ(both_values[i], values[i]) << "point " << xs[i].transpose();
+          ASSERT_EQ(both_grads[i], grads[i]) << "point " << xs[i].transpose();
           if (f == &closed && grads[i] != surface.gradient(xs[i])) ++blended;
           if (f == &clipped && grads[i] == Vec3d(0, 0, -1)) ++plane;
         }
@@ -152,6 +157,12 @@ TEST(WindingClose, NearQueriesAreOneByOneBitForBit) {
   EXPECT_EQ(out[0], surface.value(bad[0]));
   EXPECT_EQ(gout[0], surface.gradient(bad[0]));
   EXPECT_TRUE(std::isnan(out[1]) == std::isnan(surface.value(bad[1])));
+  double both_out[2];
+  Vec3d both_gout[2];
+  surface.values_gradients_near(bad.data(), 2, both_out, both_gout);
+  EXPECT_EQ(both_out[0], out[0]);
+  EXPECT_EQ(both_gout[0], gout[0]);
+  EXPECT_TRUE(std::isnan(both_out[1]) == std::isnan(out[1]));
 }
 
 TEST(WindingClose, OpenBottomedScanClosesWithoutFlaring) {
