@@ -14,6 +14,7 @@
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
+#include <limits>
 #include <memory>
 #include <stdexcept>
 #include <unordered_map>
@@ -1253,7 +1254,9 @@ class Dmc {
     std::vector<int> active;
     std::vector<char> has_grad;
   };
-  void crossings(const Node* const* a, const Node* const* b, int n, int steps, CrossingBatch& cb,
+  // `done_error`: the estimated error (fraction of the edge) below which a Newton step
+  // ends the refinement (0: only round-off does).
+  void crossings(const Node* const* a, const Node* const* b, int n, int steps, double done_error, CrossingBatch& cb,
                  Crossing* out) const {
     if (n <= 0) return;
     cb.state.resize(std::size_t(n));
@@ -1274,20 +1277,14 @@ class Dmc {
       }
       if (cb.active.empty()) break;
       cb.values.resize(cb.xs.size());
-      const bool last = it + 1 == steps;
-      if (last) {
-        cb.last_grads.resize(cb.xs.size());
-        f_.values_gradients_near(cb.xs.data(), int(cb.xs.size()), cb.values.data(), cb.last_grads.data());
-      } else {
-        f_.values_near(cb.xs.data(), int(cb.xs.size()), cb.values.data());
-      }
+      cb.last_grads.resize(cb.xs.size());
+      f_.values_gradients_near(cb.xs.data(), int(cb.xs.size()), cb.values.data(), cb.last_grads.data());
       for (std::size_t k = 0; k < cb.active.size(); ++k) {
         const int i = cb.active[k];
         auto& st = cb.state[std::size_t(i)];
-        if (last) {
-          cb.grads[std::size_t(i)] = cb.last_grads[k];
-          cb.has_grad[std::size_t(i)] = 1;
-        }
+        const Vec3d& gr = cb.last_grads[k];
+        cb.grads[std::size_t(i)] = gr;
+        cb.has_grad[std::size_t(i)] = 1;
         const double v = cb.values[k] - opt_.iso;
         ++st.evals;
         if (!std::isfinite(v) || std::abs(v) <= st.tol) {
@@ -1305,8 +1302,30 @@ class Dmc {
           if (st.side == 1) st.fa *= 0.5;
           st.side = 1;
         }
-        st.t = st.lo + (st.hi - st.lo) * st.fa / (st.fa - st.fb);
-        if (!(st.t >= st.lo && st.t <= st.hi)) st.t = 0.5 * (st.lo + st.hi);
+        // Newton along the edge (f's derivative along it from the gradient), kept
+        // inside the bracket; else the Illinois step.
+        const double slope = gr.dot(b[i]->pos - a[i]->pos);
+        const double tn = st.t - v / slope;
+        // The Newton step's error, (q'' / 2 q') dt^2 for q = f along the edge, q''
+        // from how far the secants to the edge's ends stray from the tangent (a kink
+        // shows as a large q''): below done_error (fraction of the edge) the crossing
+        // is done; above kNewtonTrust the quadratic model is not trusted and the
+        // Illinois step is taken.
+        double est = std::numeric_limits<double>::infinity();
+        if (tn > st.lo && tn < st.hi) {
+          const double t0 = st.t, fa0 = a[i]->val, fb0 = b[i]->val;
+          double curv = 0;
+          if (t0 > 1e-3) curv = std::max(curv, std::abs(2 * (slope - (v - fa0) / t0) / t0));
+          if (t0 < 1 - 1e-3) curv = std::max(curv, std::abs(2 * ((fb0 - v) / (1 - t0) - slope) / (1 - t0)));
+          est = curv / (2 * std::abs(slope)) * (tn - t0) * (tn - t0);
+        }
+        if (est <= kNewtonTrust) {
+          st.t = tn;
+          if (est <= done_error) st.done = true;
+        } else {
+          st.t = st.lo + (st.hi - st.lo) * st.fa / (st.fa - st.fb);
+          if (!(st.t >= st.lo && st.t <= st.hi)) st.t = 0.5 * (st.lo + st.hi);
+        }
       }
     }
     cb.xs.resize(std::size_t(n));
@@ -1355,10 +1374,12 @@ class Dmc {
     }
   };
   // Crosses the batch's edges and stores the crossings; returns the evaluations of f.
-  std::size_t solve(EdgeBatch& eb, int steps) const {
+  static constexpr double kNewtonDone = 1e-4;  // mesh crossings: 1e-4 of the edge
+  static constexpr double kNewtonTrust = 1e-2;  // Newton trusted up to 1e-2 of the edge
+  std::size_t solve(EdgeBatch& eb, int steps, double done_error = kNewtonDone) const {
     const int n = int(eb.out.size());
     eb.result.resize(std::size_t(n));
-    crossings(eb.a.data(), eb.b.data(), n, steps, eb.work, eb.result.data());
+    crossings(eb.a.data(), eb.b.data(), n, steps, done_error, eb.work, eb.result.data());
     std::size_t evals = 0;
     for (int i = 0; i < n; ++i) {
       *eb.out[std::size_t(i)] = eb.result[std::size_t(i)];
@@ -1622,7 +1643,7 @@ class Dmc {
         }
         B.xwant[a] = 0;
       }
-      evals_local.local() += solve(eb, 60) + eb.out.size();
+      evals_local.local() += solve(eb, 60, 0.0) + eb.out.size();
     });
     for (std::size_t n : evals_local) st_.evaluations += n;
   }

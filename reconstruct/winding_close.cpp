@@ -294,8 +294,45 @@ void WindingClose::values_gradients_near(const Vec3d* xs, int n, double* values,
     f_.values_gradients_near(xs, n, values, grads);
     return;
   }
-  values_near(xs, n, values);
-  gradients_near(xs, n, grads);
+  // As values_near and gradients_near, with f's values and gradients taken together.
+  // Local buffers: f may itself be a function that calls *_near.
+  const std::size_t m = std::size_t(std::max(n, 0));
+  std::vector<double> beta(m), fv;
+  std::vector<Vec3d> gbeta(m), need, gf;
+  for (int i = 0; i < n; ++i) {
+    beta[std::size_t(i)] = blend(xs[i], &gbeta[std::size_t(i)]);
+    if (beta[std::size_t(i)] < 1) need.push_back(xs[i]);
+  }
+  fv.resize(need.size());
+  gf.resize(need.size());
+  if (!need.empty()) f_.values_gradients_near(need.data(), int(need.size()), fv.data(), gf.data());
+  std::size_t k = 0;
+  for (int i = 0; i < n; ++i) {
+    const double b = beta[std::size_t(i)];
+    if (b <= 0) {
+      values[i] = fv[k];
+      grads[i] = gf[k++];
+      continue;
+    }
+    Vec3d gw;
+    const double w = w_->evaluate(xs[i], &gw);
+    const double s = (0.5 - w) * 2 * t2_;
+    const Vec3d gs = -2 * t2_ * gw;
+    if (b >= 1) {
+      values[i] = s;
+      grads[i] = gs;
+      continue;
+    }
+    const double f = fv[k];
+    const Vec3d g = gf[k++];
+    if (!std::isfinite(f)) {
+      values[i] = s;
+      grads[i] = gs;
+      continue;
+    }
+    values[i] = (1 - b) * f + b * s;
+    grads[i] = (1 - b) * g + b * gs + (s - f) * gbeta[std::size_t(i)];
+  }
 }
 
 void WindingClose::gradients_near(const Vec3d* xs, int n, Vec3d* out) const {
