@@ -7,6 +7,7 @@
 #include <Eigen/Eigenvalues>
 #include <Eigen/Geometry>
 #include <algorithm>
+#include <cstdint>
 #include <cmath>
 #include <limits>
 #include <unordered_map>
@@ -129,13 +130,15 @@ std::vector<Vec3f> pca_normals(const PointIndex& index, int k, const Vec3f& view
   std::vector<Vec3f> normals(pts.size(), Vec3f::Zero());
   tbb::parallel_for(tbb::blocked_range<std::size_t>(0, pts.size(), 256),
                     [&](const tbb::blocked_range<std::size_t>& r) {
+                      // Buffers per task, not per point (k-NN without allocation).
+                      std::vector<std::uint32_t> idx(std::size_t(std::max(k, 0)));
+                      std::vector<float> dsq(idx.size());
+                      std::vector<Vec3d> local(idx.size());
                       for (std::size_t i = r.begin(); i != r.end(); ++i) {
-                        const auto nn = index.knn(pts[i], k);
+                        const int found = index.knn_into(pts[i], k, idx.data(), dsq.data());
                         Vec3f n = (viewpoint - pts[i]).normalized();  // fallback: face the sensor
-                        std::vector<Vec3d> local;
-                        local.reserve(nn.size());
-                        for (const auto& [j, d] : nn) local.push_back(pts[j].cast<double>());
-                        const Vec3d pca = pca_normal(local.data(), int(local.size()));
+                        for (int m = 0; m < found; ++m) local[std::size_t(m)] = pts[idx[std::size_t(m)]].cast<double>();
+                        const Vec3d pca = pca_normal(local.data(), found);
                         if (pca.squaredNorm() > 0) n = pca.cast<float>();
                         if (n.dot(viewpoint - pts[i]) < 0) n = -n;
                         normals[i] = n;
@@ -206,6 +209,10 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
   const double d_end = params.max_distance_end;
   double d_max = std::max(params.max_distance_start, d_end);
   Eigen::Matrix4d T = initial;
+  // Each source point's last correspondence: at the next pose its distance bounds
+  // the nearest-neighbour search (the nearest point is at most that far), which
+  // prunes most of the k-d tree; the correspondences are the same.
+  std::vector<std::int32_t> last(source.points.size(), -1);
 
   // One pass of correspondences + normal equations at the current T and d_max.
   const auto linearise = [&](const Eigen::Matrix4d& Tc, double dmax, std::size_t stride) {
@@ -221,7 +228,11 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
           for (std::size_t k = r.begin(); k != r.end(); ++k) {
             const std::size_t i = k * stride;
             const Vec3f p = R * source.points[i] + t;
-            const auto [j, dist] = target.index->nearest_within(p, float(dmax));
+            float bound = float(dmax);
+            // (A relative margin over float rounding keeps the last point itself inside.)
+            if (last[i] >= 0) bound = std::min(bound, (p - tp[std::size_t(last[i])]).norm() * (1 + 1e-5f));
+            const auto [j, dist] = target.index->nearest_within(p, bound);
+            if (j >= 0) last[i] = j;
             if (j < 0 || dist > dmax) continue;
             const Vec3f& n = tn[j];
             Vec3f ns = Vec3f::Zero();

@@ -1,5 +1,6 @@
 #include "core/kdtree.h"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <limits>
@@ -83,6 +84,12 @@ std::vector<std::pair<int, float>> PointIndex::knn(const Vec3f& q, int k) const 
   out.reserve(found);
   for (std::size_t i = 0; i < found; ++i) out.emplace_back(int(idx[i]), std::sqrt(dist_sq[i]));
   return out;
+}
+
+int PointIndex::knn_into(const Vec3f& q, int k, std::uint32_t* index, float* distance_sq) const {
+  if (!impl_->tree || k <= 0) return 0;
+  const std::size_t n = std::min<std::size_t>(std::size_t(k), impl_->points.size());
+  return int(impl_->tree->knnSearch(q.data(), n, index, distance_sq));
 }
 
 std::vector<std::pair<int, float>> PointIndex::radius_search(const Vec3f& q, float radius, bool sorted) const {

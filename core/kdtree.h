@@ -2,6 +2,7 @@
 // Nearest-neighbour index over a fixed set of 3-D points (nanoflann inside;
 // kept out of this header so including it stays cheap). Queries are const and
 // thread-safe.
+#include <cstdint>
 #include <memory>
 #include <utility>
 #include <vector>
@@ -28,6 +29,9 @@ class PointIndex {
   std::pair<int, float> nearest_within(const Vec3f& q, float max_distance) const;
   /// The k nearest (fewer if the set is smaller), closest first: (index, distance).
   std::vector<std::pair<int, float>> knn(const Vec3f& q, int k) const;
+  /// The same k nearest without allocating: indices and squared distances into the
+  /// caller's arrays (room for k each), closest first; returns how many were found.
+  int knn_into(const Vec3f& q, int k, std::uint32_t* index, float* distance_sq) const;
   /// All points within `radius` (Euclidean), closest first.
   std::vector<std::pair<int, float>> radius(const Vec3f& q, float radius) const;
   /// The same points in the index's own order (deterministic for the index, not

@@ -96,6 +96,26 @@ TEST(PointIndex, KnnOrderedAndMatchesBruteForce) {
   }
 }
 
+TEST(PointIndex, KnnIntoMatchesKnn) {
+  const auto pts = random_points(2000, 14);
+  PointIndex index(pts);
+  std::uint32_t idx[16];
+  float dsq[16];
+  for (const Vec3f& q : random_points(100, 15)) {
+    const auto ref = index.knn(q, 16);
+    ASSERT_EQ(index.knn_into(q, 16, idx, dsq), 16);
+    for (int k = 0; k < 16; ++k) {
+      EXPECT_EQ(int(idx[k]), ref[std::size_t(k)].first) << "rank " << k;
+      EXPECT_EQ(std::sqrt(dsq[k]), ref[std::size_t(k)].second);
+    }
+  }
+  // Fewer points than asked for, none asked for, an empty set.
+  PointIndex small(random_points(5, 16));
+  EXPECT_EQ(small.knn_into(Vec3f::Zero(), 16, idx, dsq), 5);
+  EXPECT_EQ(small.knn_into(Vec3f::Zero(), 0, idx, dsq), 0);
+  EXPECT_EQ(PointIndex(std::vector<Vec3f>{}).knn_into(Vec3f::Zero(), 4, idx, dsq), 0);
+}
+
 TEST(PointIndex, KnnReturnsFewerWhenSetIsSmall) {
   const auto pts = random_points(5, 6);
   PointIndex index(pts);
