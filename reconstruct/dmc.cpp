@@ -787,7 +787,7 @@ class Dmc {
   // its evaluated 6-neighbours (one-sided where one side is missing); false when an
   // axis has neither. Only before any point moved (the differences assume undeformed
   // neighbours): the first wave's probe direction.
-  static constexpr double kLinear = 3;
+  static constexpr double kLinear = 3, kTangent = 0.25;
   bool lattice_gradient(Key p, std::int32_t b, int l, const Node& nd, Vec3d& gr) const {
     const int loc[3] = {l & 3, l >> 2 & 3, l >> 4};
     const int at[3] = {ki(p), kj(p), kk(p)};
@@ -806,16 +806,15 @@ class Dmc {
       }
       return false;
     };
+    double dps[3], dms[3];
+    bool both[3];
     for (int a = 0; a < 3; ++a) {
       double vp = 0, vm = 0;
       const bool hp = value_at(a, 1, vp), hm = value_at(a, -1, vm);
+      both[a] = hp && hm;
       if (hp && hm) {
-        // f about linear along the axis: both one-sided differences of one sign, neither
-        // over kLinear times the other (a thin part or a valley between the
-        // neighbours bends it; f's gradient decides there).
-        const double dp = vp - nd.val, dm = nd.val - vm;
-        if (!(dp * dm > 0) || std::max(std::abs(dp), std::abs(dm)) > kLinear * std::min(std::abs(dp), std::abs(dm)))
-          return false;
+        dps[a] = vp - nd.val;
+        dms[a] = nd.val - vm;
         gr[a] = 0.5 * (vp - vm) / h_;
       } else if (hp) {
         gr[a] = (vp - nd.val) / h_;
@@ -824,6 +823,18 @@ class Dmc {
       } else {
         return false;
       }
+    }
+    // f about linear along each axis that carries the gradient: both one-sided
+    // differences of one sign, neither over kLinear times the other (a thin part or a
+    // valley between the neighbours bends it; f's gradient decides there). An axis
+    // whose differences are both under kTangent of the gradient's size per cell runs
+    // along the surface: its component is small whatever its sign.
+    const double g = gr.norm() * h_;
+    for (int a = 0; a < 3; ++a) {
+      if (!both[a]) continue;
+      const double lo = std::min(std::abs(dps[a]), std::abs(dms[a])), hi = std::max(std::abs(dps[a]), std::abs(dms[a]));
+      if (hi <= kTangent * g) continue;
+      if (!(dps[a] * dms[a] > 0) || hi > kLinear * lo) return false;
     }
     return true;
   }
