@@ -1246,13 +1246,14 @@ class Dmc {
   // The crossings on the deformed lattice edges from a[i] to b[i] (i < n, edges close
   // together: one block's), each by Illinois regula falsi on f along the edge, keeping
   // the bracket, up to `steps` evaluations; the edges step together so that each
-  // round's values are taken together (ImplicitFunction::values_near). Each edge's
-  // sequence is what it would be alone. The normal is grad f at the edge's last
-  // evaluation, taken with that value in the last round (values_gradients_near: one
-  // octree walk for both on the MPU surface): at the crossing itself where that value
-  // was at round-off, else one Illinois update short of it (a tiny fraction of h; the
-  // vertex is the updated point). Edges that stopped before the last round take
-  // gradients_near at the crossing.
+  // round's values and gradients are taken together (ImplicitFunction::
+  // values_gradients_near: one octree walk for both on the MPU surface). Each edge's
+  // sequence is what it would be alone. The next point is the Newton step along the
+  // edge while it stays in the bracket and its estimated error is under kNewtonTrust,
+  // else the Illinois step. The normal is grad f at the edge's last evaluation: at the
+  // crossing itself where that value was at round-off, else one step short of it (a
+  // tiny fraction of h; the vertex is the stepped point). Edges never evaluated (none
+  // when steps > 0) take gradients_near at the crossing.
   struct CrossingBatch {
     struct State {
       double fa, fb, lo, hi, t, tol;
@@ -1266,10 +1267,11 @@ class Dmc {
     std::vector<char> has_grad;
   };
   // `done_error`: the estimated error (fraction of the edge) below which a Newton step
-  // ends the refinement (0: only round-off does).
-  void crossings(const Node* const* a, const Node* const* b, int n, int steps, double done_error, CrossingBatch& cb,
+  // ends the refinement (0: only round-off does). Returns the gradients taken.
+  std::size_t crossings(const Node* const* a, const Node* const* b, int n, int steps, double done_error, CrossingBatch& cb,
                  Crossing* out) const {
-    if (n <= 0) return;
+    if (n <= 0) return 0;
+    std::size_t gradients = 0;
     cb.state.resize(std::size_t(n));
     cb.grads.resize(std::size_t(n));
     cb.has_grad.assign(std::size_t(n), 0);
@@ -1290,6 +1292,7 @@ class Dmc {
       cb.values.resize(cb.xs.size());
       cb.last_grads.resize(cb.xs.size());
       f_.values_gradients_near(cb.xs.data(), int(cb.xs.size()), cb.values.data(), cb.last_grads.data());
+      gradients += cb.xs.size();
       for (std::size_t k = 0; k < cb.active.size(); ++k) {
         const int i = cb.active[k];
         auto& st = cb.state[std::size_t(i)];
@@ -1345,7 +1348,7 @@ class Dmc {
       const double t = std::clamp(cb.state[std::size_t(i)].t, 1e-3, 1 - 1e-3);
       cb.xs[std::size_t(i)] = a[i]->pos + t * (b[i]->pos - a[i]->pos);
     }
-    // Gradients at the crossings of the edges without one (stopped early), together.
+    // Gradients at the crossings of the edges without one, together.
     cb.active.clear();
     for (int i = 0; i < n; ++i)
       if (!cb.has_grad[std::size_t(i)]) cb.active.push_back(i);
@@ -1355,6 +1358,7 @@ class Dmc {
       for (std::size_t k = 0; k < cb.active.size(); ++k) cb.at[k] = cb.xs[std::size_t(cb.active[k])];
       f_.gradients_near(cb.at.data(), int(cb.at.size()), cb.last_grads.data());
       for (std::size_t k = 0; k < cb.active.size(); ++k) cb.grads[std::size_t(cb.active[k])] = cb.last_grads[k];
+      gradients += cb.active.size();
     }
     for (int i = 0; i < n; ++i) {
       Crossing& c = out[i];
@@ -1365,6 +1369,7 @@ class Dmc {
       const double len = gr.norm();
       c.normal = len > 0 && std::isfinite(len) ? Vec3d(gr / len) : Vec3d::Zero();
     }
+    return gradients;
   }
 
   // One block's edges to cross: ends and where each result goes.
@@ -1384,13 +1389,14 @@ class Dmc {
       out.push_back(where);
     }
   };
-  // Crosses the batch's edges and stores the crossings; returns the evaluations of f.
-  static constexpr double kNewtonDone = 1e-4;  // mesh crossings: 1e-4 of the edge
+  // Crosses the batch's edges and stores the crossings; returns the values of f taken
+  // and adds the gradients taken to `gradients`.
+  static constexpr double kNewtonDone = 1e-4;   // mesh crossings: done at 1e-4 of the edge
   static constexpr double kNewtonTrust = 1e-2;  // Newton trusted up to 1e-2 of the edge
-  std::size_t solve(EdgeBatch& eb, int steps, double done_error = kNewtonDone) const {
+  std::size_t solve(EdgeBatch& eb, int steps, double done_error, std::size_t& gradients) const {
     const int n = int(eb.out.size());
     eb.result.resize(std::size_t(n));
-    crossings(eb.a.data(), eb.b.data(), n, steps, done_error, eb.work, eb.result.data());
+    gradients += crossings(eb.a.data(), eb.b.data(), n, steps, done_error, eb.work, eb.result.data());
     std::size_t evals = 0;
     for (int i = 0; i < n; ++i) {
       *eb.out[std::size_t(i)] = eb.result[std::size_t(i)];
@@ -1454,8 +1460,7 @@ class Dmc {
         }
         B.xwant[a] = 0;
       }
-      evals_local.local() += solve(eb, opt_.refine_steps);
-      grads_local.local() += eb.out.size();
+      evals_local.local() += solve(eb, opt_.refine_steps, kNewtonDone, grads_local.local());
     });
     for (std::size_t n : grads_local) st_.gradient_evaluations += n;
     for (std::size_t n : evals_local) st_.evaluations += n;
@@ -1635,7 +1640,7 @@ class Dmc {
                             detail::popcount64(B.xwant[2]));
     }
     nodes_.reserve_refined(wanted);
-    tbb::enumerable_thread_specific<std::size_t> evals_local(0);
+    tbb::enumerable_thread_specific<std::size_t> evals_local(0), grads_local(0);
     tbb::enumerable_thread_specific<EdgeBatch> batch_local;
     parallel(nodes_.block_count(), [&](std::size_t bs) {
       const std::int32_t b = std::int32_t(bs);
@@ -1654,9 +1659,10 @@ class Dmc {
         }
         B.xwant[a] = 0;
       }
-      evals_local.local() += solve(eb, 60, 0.0) + eb.out.size();
+      evals_local.local() += solve(eb, 60, 0.0, grads_local.local());
     });
     for (std::size_t n : evals_local) st_.evaluations += n;
+    for (std::size_t n : grads_local) st_.gradient_evaluations += n;
   }
 
   std::vector<Key> feature_step() {

@@ -46,14 +46,17 @@ struct DmcOptions : MarchingCubesOptions {
   /// near its edge and corner fits). false: wherever the crossing normals say so, which on
   /// a noisy scan also takes bends of the smooth surface for edges (docs/dmc.md).
   bool features_where_sharp = true;
-  /// At most this many regula-falsi (Illinois) steps on f refine each crossing after the
-  /// linear interpolation (fewer once |f| is at round-off). Cells with a suspected sharp
-  /// feature refine their crossings to round-off for the feature planes.
+  /// At most this many evaluations of f (value and gradient together) refine each
+  /// crossing after the linear interpolation: Newton steps along the edge, kept in the
+  /// bracket (Illinois steps where Newton's quadratic model is not trusted); fewer once
+  /// |f| is at round-off or the Newton step's estimated error is under 1e-4 of the edge.
+  /// Cells with a suspected sharp feature refine their crossings to round-off for the
+  /// feature planes.
   int refine_steps = 2;
 };
 
 struct DmcStats : MarchingCubesStats {
-  std::size_t gradient_evaluations = 0;  ///< f.gradient calls (search pruning, normals)
+  std::size_t gradient_evaluations = 0;  ///< gradients of f taken (search pruning, crossings)
   std::size_t probed = 0;            ///< lattice points given the thin-part probe
   std::size_t searched = 0;          ///< lattice points whose Omega was sampled at step s
   std::size_t moved_barycentre = 0;  ///< moved into thin inside parts (step 1)
