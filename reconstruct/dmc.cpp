@@ -412,23 +412,51 @@ class Dmc {
     keys.resize(m);
     evaluate(fresh);
   }
-  // Lattice values of the entered points `fresh` (block << 6 | local index), in parallel.
-  void evaluate(const std::vector<std::uint32_t>& fresh) {
+  // f at xs[i] into out[i], in parallel, consecutive points of one block (block_of(i))
+  // taken together by values_near (the same values as value()), at most 192 at a time.
+  template <class BlockOf>
+  void values_by_block(const std::vector<Vec3d>& xs, std::vector<double>& out, BlockOf&& block_of) {
+    out.resize(xs.size());
+    std::vector<std::size_t> runs;
+    for (std::size_t i = 0; i < xs.size(); ++i)
+      if (i == 0 || block_of(i) != block_of(i - 1) || i - runs.back() >= 192) runs.push_back(i);
+    runs.push_back(xs.size());
+    parallel(runs.size() - 1, [&](std::size_t r) {
+      f_.values_near(xs.data() + runs[r], int(runs[r + 1] - runs[r]), out.data() + runs[r]);
+    });
+  }
+
+  // Lattice values of the entered points `fresh` (block << 6 | local index), in
+  // parallel, a block's points taken together (values_near; the same values).
+  void evaluate(std::vector<std::uint32_t> fresh) {
+    std::sort(fresh.begin(), fresh.end());
+    std::vector<std::size_t> runs;  // first handle of each block
+    for (std::size_t i = 0; i < fresh.size(); ++i)
+      if (i == 0 || fresh[i] >> 6 != fresh[i - 1] >> 6) runs.push_back(i);
+    runs.push_back(fresh.size());
     tbb::enumerable_thread_specific<std::size_t> count(0);
-    parallel(fresh.size(), [&](std::size_t i) {
-      const std::int32_t b = std::int32_t(fresh[i] >> 6);
-      const int l = int(fresh[i] & 63);
-      Node& nd = nodes_.node(b, l);
-      nd.val = initial_value(nodes_.point(b, l), nd, count.local());
+    parallel(runs.size() - 1, [&](std::size_t r) {
+      Vec3d xs[64];
+      double vs[64];
+      Node* at[64];
+      int n = 0;
+      for (std::size_t i = runs[r]; i < runs[r + 1]; ++i) {
+        const std::int32_t b = std::int32_t(fresh[i] >> 6);
+        const int l = int(fresh[i] & 63);
+        Node& nd = nodes_.node(b, l);
+        const Key p = nodes_.point(b, l);
+        if (const double* v = scan_value(ki(p), kj(p), kk(p))) {
+          nd.val = *v;
+          continue;
+        }
+        at[n] = &nd;
+        xs[n++] = nd.pos;
+      }
+      f_.values_near(xs, n, vs);
+      for (int i = 0; i < n; ++i) at[i]->val = lattice_value_from(vs[i], at[i]->flags);
+      count.local() += std::size_t(n);
     });
     for (std::size_t n : count) st_.evaluations += n;
-  }
-  // The value of a node just entered at its lattice point p: a scan line's where p is on
-  // one (the same value), else f there (counted in `evals`).
-  double initial_value(Key p, const Node& nd, std::size_t& evals) const {
-    if (const double* v = scan_value(ki(p), kj(p), kk(p))) return *v;
-    ++evals;
-    return lattice_value(nd.pos, nd.flags);
   }
   double lattice_value(const Vec3d& pos, std::uint8_t flags) const { return lattice_value_from(f_.value(pos), flags); }
   // The lattice value from f at the point.
@@ -1733,11 +1761,15 @@ class Dmc {
       apply.push_back(q);
       want.push_back(inside);
     }
+    // f at the new places, a block's proposals taken together (values_near; apply is
+    // in key order, so a block's are consecutive).
     std::vector<double> v(apply.size());
-    parallel(apply.size(), [&](std::size_t i) {
-      double x = g(apply[i].pos);
-      v[i] = std::isfinite(x) ? x : h_;
-    });
+    {
+      std::vector<Vec3d> xs(apply.size());
+      for (std::size_t i = 0; i < apply.size(); ++i) xs[i] = apply[i].pos;
+      values_by_block(xs, v, [&](std::size_t i) { return BlockIndex::block_of(apply[i].node); });
+      for (double& x : v) x = std::isfinite(x - opt_.iso) ? x - opt_.iso : h_;
+    }
     st_.evaluations += apply.size();
     // MC takes a lattice edge between two inside points as inside. A point turned inside
     // whose edge to an inside neighbour leaves the solid (two slabs' rims across a thin
@@ -1771,13 +1803,19 @@ class Dmc {
       }
     }
     std::vector<char> leaves(checks.size(), 0);
-    parallel(checks.size(), [&](std::size_t c) {
-      const Vec3d& a = apply[checks[c].first].pos;
-      for (double t : {0.25, 0.5, 0.75}) {
-        const double x = g(a + t * (checks[c].second - a));
-        if (!(x < 0)) leaves[c] = 1;
+    {
+      // Three points along each edge, a block's checks taken together (checks are in
+      // proposal order, so a block's are consecutive).
+      std::vector<Vec3d> xs(3 * checks.size());
+      std::vector<double> vs(xs.size());
+      for (std::size_t c = 0; c < checks.size(); ++c) {
+        const Vec3d& a = apply[checks[c].first].pos;
+        for (int k = 0; k < 3; ++k) xs[3 * c + std::size_t(k)] = a + 0.25 * (k + 1) * (checks[c].second - a);
       }
-    });
+      values_by_block(xs, vs, [&](std::size_t i) { return BlockIndex::block_of(apply[checks[i / 3].first].node); });
+      for (std::size_t i = 0; i < xs.size(); ++i)
+        if (!(vs[i] - opt_.iso < 0)) leaves[i / 3] = 1;
+    }
     st_.evaluations += 3 * checks.size();
     std::vector<char> veto(apply.size(), 0);
     for (std::size_t c = 0; c < checks.size(); ++c)
