@@ -867,19 +867,26 @@ class Dmc {
     return true;
   }
 
+  // How far from its lattice point Omega reaches towards a plane of unit normal n
+  // (h/2 |n|_1), plus kReachSlack h for the first-order distance's error: a point whose
+  // near surface (|f| / |grad f| away along n) lies beyond has no sample of the other
+  // side in Omega, and its search would find nothing.
+  static constexpr double kReachSlack = 0.25;
+  double omega_reach(const Vec3d& n) const { return h_ * (0.5 * n.cwiseAbs().sum() + kReachSlack); }
+
   enum Role : char { kSkip, kMove, kPass };
   // The pruning of a later wave's candidate (see barycentre_step): whether its Omega
-  // is searched (mover) or it passes the flood on (passer). One gradient and, for a
-  // passer within the band, one probe evaluation one h away from the near surface
-  // (movers next to a moved point follow the paper's flood; the first wave's probe
-  // is probe_first_wave).
+  // is searched (mover: its near surface within omega_reach) or it passes the flood on
+  // (passer). One gradient and, for a passer within the band, one probe evaluation one
+  // h away from the near surface (movers next to a moved point follow the paper's
+  // flood; the first wave's probe is probe_first_wave).
   bool probe(const Node& nd, char role) const {
     const Vec3d gr = f_.gradient(nd.pos);
     const double gn = gr.norm();
     if (!(gn > 0) || !std::isfinite(gn)) return role == kMove;  // no usable gradient: search
     const double d = std::abs(nd.val) / gn;
     if (d > 1.3 * h_) return false;
-    if (role == kMove) return true;
+    if (role == kMove) return d <= omega_reach(gr / gn);
     const double sgn = nd.val < 0 ? -1.0 : 1.0;  // outside: towards -grad
     const Vec3d n = gr / gn;
     double v = g(Vec3d(nd.pos + sgn * h_ * n));
@@ -1361,6 +1368,7 @@ class Dmc {
           if (t0 < 1 - 1e-3) curv = std::max(curv, std::abs(2 * ((fb0 - v) / (1 - t0) - slope) / (1 - t0)));
           est = curv / (2 * std::abs(slope)) * (tn - t0) * (tn - t0);
         }
+        const double t_before = st.t;
         if (est <= kNewtonTrust) {
           st.t = tn;
           if (est <= done_error) st.done = true;
@@ -1368,6 +1376,9 @@ class Dmc {
           st.t = st.lo + (st.hi - st.lo) * st.fa / (st.fa - st.fb);
           if (!(st.t >= st.lo && st.t <= st.hi)) st.t = 0.5 * (st.lo + st.hi);
         }
+        // Located to kLocated of the edge (the step or the bracket): done, even where
+        // f's own round-off (a blend, a far-field sum) keeps |f| above tol.
+        if (std::abs(st.t - t_before) <= kLocated || st.hi - st.lo <= kLocated) st.done = true;
       }
     }
     cb.xs.resize(std::size_t(n));
@@ -1421,6 +1432,7 @@ class Dmc {
   // and adds the gradients taken to `gradients`.
   static constexpr double kNewtonDone = 1e-4;   // mesh crossings: done at 1e-4 of the edge
   static constexpr double kNewtonTrust = 1e-2;  // Newton trusted up to 1e-2 of the edge
+  static constexpr double kLocated = 1e-9;      // a crossing this close (of the edge) is done
   std::size_t solve(EdgeBatch& eb, int steps, double done_error, std::size_t& gradients) const {
     const int n = int(eb.out.size());
     eb.result.resize(std::size_t(n));
