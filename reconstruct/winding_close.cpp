@@ -162,6 +162,83 @@ double WindingNumber::evaluate(const Vec3d& x, Vec3d* grad) const {
   return sum / kFourPi;
 }
 
+void WindingNumber::evaluate_near(const Vec3d* xs, int n, double* w, Vec3d* grads) const {
+  if (n <= 0) return;
+  const auto& nodes = impl_->nodes;
+  const auto& pts = impl_->pts;
+  Vec3d lo = Vec3d::Constant(std::numeric_limits<double>::infinity()), hi = -lo;
+  for (int i = 0; i < n; ++i) {
+    lo = lo.cwiseMin(xs[i]);
+    hi = hi.cwiseMax(xs[i]);
+  }
+  if (nodes.empty() || n == 1 || !lo.allFinite() || !hi.allFinite()) {
+    for (int i = 0; i < n; ++i) w[i] = evaluate(xs[i], grads ? &grads[i] : nullptr);
+    return;
+  }
+  const Vec3d mid = 0.5 * (lo + hi);
+  double rb = 0;
+  for (int i = 0; i < n; ++i) rb = std::max(rb, (xs[i] - mid).norm());
+  // Per point sums, filled in the order evaluate() fills them: the same depth-first
+  // walk (children pushed left then right), one point's contributions in that order.
+  thread_local std::vector<double> sum;
+  thread_local std::vector<Vec3d> g;
+  sum.assign(std::size_t(n), 0.0);
+  g.assign(std::size_t(n), Vec3d::Zero());
+  auto add = [&](int i, const Vec3d& D, const Vec3d& r) {
+    const double r2 = r.squaredNorm();
+    if (!(r2 > 0)) return;
+    const double inv3 = 1.0 / (r2 * std::sqrt(r2));
+    const double dr = D.dot(r);
+    sum[std::size_t(i)] += dr * inv3;
+    if (grads) g[std::size_t(i)] += (3 * dr / r2 * r - D) * inv3;
+  };
+  // One point through the subtree of `root`, as evaluate() walks it, with `base`
+  // entries already on evaluate()'s stack (its depth limit then drops the same nodes).
+  auto one = [&](int i, int root, int base) {
+    const Vec3d& x = xs[i];
+    int stack[128];
+    int top = 0;
+    stack[top++] = root;
+    while (top > 0) {
+      const WNode& nd = nodes[std::size_t(stack[--top])];
+      const Vec3d d = nd.centre - x;
+      if (d.squaredNorm() > kFarRatio * kFarRatio * nd.radius * nd.radius) {
+        add(i, nd.dipole, d);
+      } else if (nd.left < 0) {
+        for (int k = nd.begin; k < nd.end; ++k) add(i, pts[std::size_t(k)].dipole, pts[std::size_t(k)].p - x);
+      } else if (base + top + 2 <= 128) {
+        stack[top++] = nd.left;
+        stack[top++] = nd.right;
+      }
+    }
+  };
+  int stack[128];
+  int top = 0;
+  stack[top++] = 0;
+  while (top > 0) {
+    const int id = stack[--top];
+    const WNode& nd = nodes[std::size_t(id)];
+    const double dc = (nd.centre - mid).norm(), reach = kFarRatio * nd.radius;
+    // A margin over the rounding of the distances: where the cluster is not clearly
+    // on one side, every point decides for itself.
+    const double margin = 1e-9 * (dc + rb + reach) + 1e-300;
+    if (dc - rb > reach + margin) {  // far from every point
+      for (int i = 0; i < n; ++i) add(i, nd.dipole, nd.centre - xs[i]);
+    } else if (dc + rb < reach - margin && nd.left >= 0) {  // near every point
+      if (top + 2 <= 128) {
+        stack[top++] = nd.left;
+        stack[top++] = nd.right;
+      }
+    } else {
+      for (int i = 0; i < n; ++i) one(i, id, top);
+    }
+  }
+  for (int i = 0; i < n; ++i) {
+    w[i] = sum[std::size_t(i)] / kFourPi;
+    if (grads) grads[i] = g[std::size_t(i)] / kFourPi;
+  }
+}
+
 // ---- WindingClose -------------------------------------------------------------------
 
 struct WindingClose::Index {
@@ -235,6 +312,27 @@ bool WindingClose::all_trusted(const Vec3d* xs, int n) const {
   return d + rb + 1e-4 * t1_ + 1e-6 * mid.norm() < t1_;
 }
 
+void WindingClose::winding_where_blended(const Vec3d* xs, int n, const std::vector<double>& beta,
+                                         std::vector<double>& w, std::vector<Vec3d>* grads) const {
+  w.assign(std::size_t(std::max(n, 0)), 0.0);
+  if (grads) grads->assign(w.size(), Vec3d::Zero());
+  std::vector<Vec3d> at;
+  std::vector<int> which;
+  for (int i = 0; i < n; ++i)
+    if (beta[std::size_t(i)] > 0) {
+      at.push_back(xs[i]);
+      which.push_back(i);
+    }
+  if (at.empty()) return;
+  std::vector<double> wv(at.size());
+  std::vector<Vec3d> gv(grads ? at.size() : 0);
+  w_->evaluate_near(at.data(), int(at.size()), wv.data(), grads ? gv.data() : nullptr);
+  for (std::size_t k = 0; k < at.size(); ++k) {
+    w[std::size_t(which[k])] = wv[k];
+    if (grads) (*grads)[std::size_t(which[k])] = gv[k];
+  }
+}
+
 void WindingClose::values_near(const Vec3d* xs, int n, double* out) const {
   // Within the trust distance throughout: beta = 0 for every point (what blend()
   // would find one query at a time), so g = f.
@@ -251,6 +349,8 @@ void WindingClose::values_near(const Vec3d* xs, int n, double* out) const {
   }
   fv.resize(need.size());
   if (!need.empty()) f_.values_near(need.data(), int(need.size()), fv.data());
+  std::vector<double> wv;
+  winding_where_blended(xs, n, beta, wv, nullptr);
   std::size_t k = 0;
   for (int i = 0; i < n; ++i) {
     const double b = beta[std::size_t(i)];
@@ -258,7 +358,7 @@ void WindingClose::values_near(const Vec3d* xs, int n, double* out) const {
       out[i] = fv[k++];
       continue;
     }
-    const double s = (0.5 - (*w_)(xs[i])) * 2 * t2_;
+    const double s = (0.5 - wv[std::size_t(i)]) * 2 * t2_;
     if (b >= 1) {
       out[i] = s;
       continue;
@@ -306,6 +406,9 @@ void WindingClose::values_gradients_near(const Vec3d* xs, int n, double* values,
   fv.resize(need.size());
   gf.resize(need.size());
   if (!need.empty()) f_.values_gradients_near(need.data(), int(need.size()), fv.data(), gf.data());
+  std::vector<double> wv;
+  std::vector<Vec3d> gwv;
+  winding_where_blended(xs, n, beta, wv, &gwv);
   std::size_t k = 0;
   for (int i = 0; i < n; ++i) {
     const double b = beta[std::size_t(i)];
@@ -314,8 +417,8 @@ void WindingClose::values_gradients_near(const Vec3d* xs, int n, double* values,
       grads[i] = gf[k++];
       continue;
     }
-    Vec3d gw;
-    const double w = w_->evaluate(xs[i], &gw);
+    const Vec3d& gw = gwv[std::size_t(i)];
+    const double w = wv[std::size_t(i)];
     const double s = (0.5 - w) * 2 * t2_;
     const Vec3d gs = -2 * t2_ * gw;
     if (b >= 1) {
@@ -353,6 +456,9 @@ void WindingClose::gradients_near(const Vec3d* xs, int n, Vec3d* out) const {
   fv.resize(blend_at.size());
   if (!need.empty()) f_.gradients_near(need.data(), int(need.size()), gf.data());
   if (!blend_at.empty()) f_.values_near(blend_at.data(), int(blend_at.size()), fv.data());
+  std::vector<double> wv;
+  std::vector<Vec3d> gwv;
+  winding_where_blended(xs, n, beta, wv, &gwv);
   std::size_t k = 0, kb = 0;
   for (int i = 0; i < n; ++i) {
     const double b = beta[std::size_t(i)];
@@ -360,8 +466,8 @@ void WindingClose::gradients_near(const Vec3d* xs, int n, Vec3d* out) const {
       out[i] = gf[k++];
       continue;
     }
-    Vec3d gw;
-    const double w = w_->evaluate(xs[i], &gw);
+    const Vec3d& gw = gwv[std::size_t(i)];
+    const double w = wv[std::size_t(i)];
     const Vec3d gs = -2 * t2_ * gw;
     if (b >= 1) {
       out[i] = gs;

@@ -38,6 +38,10 @@ class WindingNumber {
   double operator()(const Vec3d& x) const;
   /// w(x) and, when grad is given, its gradient (analytic, from the same sum).
   double evaluate(const Vec3d& x, Vec3d* grad) const;
+  /// evaluate() at n points close together, the same bits, from one walk of the tree
+  /// where the points agree on a node (all far: its dipole; all near: its children)
+  /// and one point at a time below a node where they do not. grads may be null.
+  void evaluate_near(const Vec3d* xs, int n, double* w, Vec3d* grads) const;
   /// Points after the voxel reduction.
   std::size_t size() const;
 
@@ -87,6 +91,10 @@ class WindingClose : public ImplicitFunction {
   // Whether every one of the n points is surely within the trust distance t1 of an
   // input point (one nearest-point query for the cluster): blend() is 0 for all.
   bool all_trusted(const Vec3d* xs, int n) const;
+  // w (and its gradient, with grads) at the points whose blend weight beta is above 0,
+  // taken together (WindingNumber::evaluate_near); 0 elsewhere.
+  void winding_where_blended(const Vec3d* xs, int n, const std::vector<double>& beta, std::vector<double>& w,
+                             std::vector<Vec3d>* grads) const;
   const ImplicitFunction& f_;
   const class MpuSurface* mpu_;  // f_ when it is an MPU surface (value and gradient in one walk)
   struct Index;

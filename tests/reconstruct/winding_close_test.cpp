@@ -60,6 +60,41 @@ TEST(WindingNumber, OneInsideZeroOutsideHalfAcrossAHole) {
   EXPECT_THROW(WindingNumber(open.points, open.normals, 0), InvalidInput);
 }
 
+// evaluate_near gives evaluate()'s bits for clusters of every size: tight ones (the
+// whole cluster on one side of most nodes), ones as wide as the cloud (mixed at the
+// top of the tree), one point, and a cluster with a non-finite point; with and
+// without gradients.
+TEST(WindingNumber, EvaluateNearIsEvaluateBitForBit) {
+  const Cloud open = sphere_cloud(10000, 1.0, 0.0, 2);
+  const WindingNumber h(open.points, open.normals, 0.05);
+  std::mt19937 rng(11);
+  std::uniform_real_distribution<double> u(-1, 1);
+  int checked = 0;
+  for (const Vec3d& centre : {Vec3d(0, 0, 0), Vec3d(0.98, 0, 0.1), Vec3d(0, 0, -1.2), Vec3d(3, 2, 1)})
+    for (double box : {1e-3, 0.02, 0.3, 2.0})
+      for (int count : {1, 7, 125}) {
+        std::vector<Vec3d> xs;
+        for (int i = 0; i < count; ++i) xs.push_back(centre + box * Vec3d(u(rng), u(rng), u(rng)));
+        std::vector<double> w(xs.size()), w2(xs.size());
+        std::vector<Vec3d> g(xs.size());
+        h.evaluate_near(xs.data(), count, w.data(), g.data());
+        h.evaluate_near(xs.data(), count, w2.data(), nullptr);
+        for (int i = 0; i < count; ++i, ++checked) {
+          Vec3d ge;
+          const double we = h.evaluate(xs[std::size_t(i)], &ge);
+          ASSERT_EQ(w[std::size_t(i)], we) << xs[std::size_t(i)].transpose() << " box " << box;
+          ASSERT_EQ(w2[std::size_t(i)], we);
+          ASSERT_EQ(g[std::size_t(i)], ge) << xs[std::size_t(i)].transpose() << " box " << box;
+        }
+      }
+  EXPECT_EQ(checked, 4 * 4 * (1 + 7 + 125));
+  std::vector<Vec3d> bad{Vec3d(0.1, 0, 0), Vec3d(std::nan(""), 0, 0)};
+  double w[2];
+  h.evaluate_near(bad.data(), 2, w, nullptr);
+  EXPECT_EQ(w[0], h(bad[0]));
+  EXPECT_TRUE(std::isnan(w[1]) == std::isnan(h(bad[1])));
+}
+
 // A cup upside down, as a turntable sees it: the side and the top of a cylinder,
 // no bottom. MPU's fits on the side continue the tube below the rim until the
 // extraction box stops them; the winding number spans the rim instead.
