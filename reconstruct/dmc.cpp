@@ -787,25 +787,34 @@ class Dmc {
   // First-wave pruning from the lattice values alone (no evaluation): a point whose |f|
   // exceeds 1.5 * 1.3 h times the largest difference quotient to its evaluated
   // 6-neighbours is too far from the surface for its Omega to reach it.
+  // The lattice value of p's neighbour `step` (+-1) along `axis` (p is point l of block
+  // b), through the links: its node's, or its scan line's; false when it was never
+  // evaluated or is outside the grid.
+  bool neighbour_value(Key p, std::int32_t b, int l, int axis, int step, double& v) const {
+    int d[3] = {ki(p), kj(p), kk(p)};
+    d[axis] += step;
+    if (!node_in_grid(d[0], d[1], d[2])) return false;
+    int r[3] = {l & 3, l >> 2 & 3, l >> 4};
+    r[axis] += step;
+    const auto [nb, nl] = nodes_.rel(b, r[0], r[1], r[2]);
+    if (nodes_.present(nb, nl)) {
+      v = nodes_.node(nb, nl).val;
+      return true;
+    }
+    if (const double* sv = scan_value(d[0], d[1], d[2])) {
+      v = *sv;
+      return true;
+    }
+    return false;
+  }
+
   bool cheap_candidate(Key p, std::uint32_t handle, const Node& nd) const {
     const std::int32_t b = std::int32_t(handle >> 6);
-    const int l = int(handle & 63), loc[3] = {l & 3, l >> 2 & 3, l >> 4};
+    const int l = int(handle & 63);
     double slope = 0;
     for (int q = 0; q < 6; ++q) {
-      int d[3] = {ki(p), kj(p), kk(p)};
-      d[q / 2] += q % 2 ? 1 : -1;
-      if (!node_in_grid(d[0], d[1], d[2])) continue;
-      int r[3] = {loc[0], loc[1], loc[2]};
-      r[q / 2] += q % 2 ? 1 : -1;
-      const auto [nb, nl] = nodes_.rel(b, r[0], r[1], r[2]);
       double v;
-      if (nodes_.present(nb, nl)) {
-        v = nodes_.node(nb, nl).val;
-      } else if (const double* sv = scan_value(d[0], d[1], d[2])) {
-        v = *sv;
-      } else {
-        continue;
-      }
+      if (!neighbour_value(p, b, l, q / 2, q % 2 ? 1 : -1, v)) continue;
       slope = std::max(slope, std::abs(v - nd.val) / h_);
     }
     return !(std::abs(nd.val) > 1.3 * h_ * slope * 1.5) || slope == 0;
@@ -817,28 +826,11 @@ class Dmc {
   // neighbours): the first wave's probe direction.
   static constexpr double kLinear = 3, kTangent = 0.25;
   bool lattice_gradient(Key p, std::int32_t b, int l, const Node& nd, Vec3d& gr) const {
-    const int loc[3] = {l & 3, l >> 2 & 3, l >> 4};
-    const int at[3] = {ki(p), kj(p), kk(p)};
-    auto value_at = [&](int a, int step, double& v) {
-      int d[3] = {0, 0, 0};
-      d[a] = step;
-      if (!node_in_grid(at[0] + d[0], at[1] + d[1], at[2] + d[2])) return false;
-      const auto [nb, nl] = nodes_.rel(b, loc[0] + d[0], loc[1] + d[1], loc[2] + d[2]);
-      if (nodes_.present(nb, nl)) {
-        v = nodes_.node(nb, nl).val;
-        return true;
-      }
-      if (const double* sv = scan_value(at[0] + d[0], at[1] + d[1], at[2] + d[2])) {
-        v = *sv;
-        return true;
-      }
-      return false;
-    };
     double dps[3], dms[3];
     bool both[3];
     for (int a = 0; a < 3; ++a) {
       double vp = 0, vm = 0;
-      const bool hp = value_at(a, 1, vp), hm = value_at(a, -1, vm);
+      const bool hp = neighbour_value(p, b, l, a, 1, vp), hm = neighbour_value(p, b, l, a, -1, vm);
       both[a] = hp && hm;
       if (hp && hm) {
         dps[a] = vp - nd.val;
@@ -1299,7 +1291,6 @@ class Dmc {
     std::vector<Vec3d> xs, grads, last_grads, at;
     std::vector<double> values;
     std::vector<int> active;
-    std::vector<char> has_grad;
   };
   // `done_error`: the estimated error (fraction of the edge) below which a Newton step
   // ends the refinement (0: only round-off does). Returns the gradients taken.
@@ -1309,7 +1300,6 @@ class Dmc {
     std::size_t gradients = 0;
     cb.state.resize(std::size_t(n));
     cb.grads.resize(std::size_t(n));
-    cb.has_grad.assign(std::size_t(n), 0);
     for (int i = 0; i < n; ++i) {
       const double fa = a[i]->val, fb = b[i]->val;
       cb.state[std::size_t(i)] = {fa, fb, 0.0, 1.0, fa / (fa - fb), 1e-7 * std::abs(fa - fb), 0, 0, false};
@@ -1333,7 +1323,6 @@ class Dmc {
         auto& st = cb.state[std::size_t(i)];
         const Vec3d& gr = cb.last_grads[k];
         cb.grads[std::size_t(i)] = gr;
-        cb.has_grad[std::size_t(i)] = 1;
         const double v = cb.values[k] - opt_.iso;
         ++st.evals;
         if (!std::isfinite(v) || std::abs(v) <= st.tol) {
@@ -1387,10 +1376,11 @@ class Dmc {
       const double t = std::clamp(cb.state[std::size_t(i)].t, 1e-3, 1 - 1e-3);
       cb.xs[std::size_t(i)] = a[i]->pos + t * (b[i]->pos - a[i]->pos);
     }
-    // Gradients at the crossings of the edges without one, together.
+    // Gradients at the crossings of the edges never evaluated (each evaluation took
+    // one), together.
     cb.active.clear();
     for (int i = 0; i < n; ++i)
-      if (!cb.has_grad[std::size_t(i)]) cb.active.push_back(i);
+      if (cb.state[std::size_t(i)].evals == 0) cb.active.push_back(i);
     if (!cb.active.empty()) {
       cb.at.resize(cb.active.size());
       cb.last_grads.resize(cb.active.size());

@@ -394,7 +394,11 @@ void WindingClose::values_gradients_near(const Vec3d* xs, int n, double* values,
     f_.values_gradients_near(xs, n, values, grads);
     return;
   }
-  // As values_near and gradients_near, with f's values and gradients taken together.
+  blended_values_gradients(xs, n, values, grads);
+}
+
+void WindingClose::blended_values_gradients(const Vec3d* xs, int n, double* values, Vec3d* grads) const {
+  // As values_near, with f's values and gradients taken together.
   // Local buffers: f may itself be a function that calls *_near.
   const std::size_t m = std::size_t(std::max(n, 0));
   std::vector<double> beta(m), fv;
@@ -443,45 +447,9 @@ void WindingClose::gradients_near(const Vec3d* xs, int n, Vec3d* out) const {
     f_.gradients_near(xs, n, out);
     return;
   }
-  // Local buffers: f may itself be a function that calls *_near.
-  const std::size_t m = std::size_t(std::max(n, 0));
-  std::vector<double> beta(m), fv;
-  std::vector<Vec3d> gbeta(m), need, blend_at, gf;
-  for (int i = 0; i < n; ++i) {
-    beta[std::size_t(i)] = blend(xs[i], &gbeta[std::size_t(i)]);
-    if (beta[std::size_t(i)] < 1) need.push_back(xs[i]);
-    if (beta[std::size_t(i)] > 0 && beta[std::size_t(i)] < 1) blend_at.push_back(xs[i]);
-  }
-  gf.resize(need.size());
-  fv.resize(blend_at.size());
-  if (!need.empty()) f_.gradients_near(need.data(), int(need.size()), gf.data());
-  if (!blend_at.empty()) f_.values_near(blend_at.data(), int(blend_at.size()), fv.data());
-  std::vector<double> wv;
-  std::vector<Vec3d> gwv;
-  winding_where_blended(xs, n, beta, wv, &gwv);
-  std::size_t k = 0, kb = 0;
-  for (int i = 0; i < n; ++i) {
-    const double b = beta[std::size_t(i)];
-    if (b <= 0) {
-      out[i] = gf[k++];
-      continue;
-    }
-    const Vec3d& gw = gwv[std::size_t(i)];
-    const double w = wv[std::size_t(i)];
-    const Vec3d gs = -2 * t2_ * gw;
-    if (b >= 1) {
-      out[i] = gs;
-      continue;
-    }
-    const Vec3d g = gf[k++];
-    const double f = fv[kb++];
-    if (!std::isfinite(f)) {
-      out[i] = gs;
-      continue;
-    }
-    const double s = (0.5 - w) * 2 * t2_;
-    out[i] = (1 - b) * g + b * gs + (s - f) * gbeta[std::size_t(i)];
-  }
+  // The blend's gradient needs f's values where it blends: both together.
+  std::vector<double> values(std::size_t(std::max(n, 0)));
+  blended_values_gradients(xs, n, values.data(), out);
 }
 
 }  // namespace station

@@ -75,7 +75,8 @@ class WindingClose : public ImplicitFunction {
   Vec3d gradient(const Vec3d& x) const override;
   /// value() at each point; f's values (where the blend needs them) taken together.
   void values_near(const Vec3d* xs, int n, double* out) const override;
-  /// gradient() at each point; f's values and gradients (where needed) taken together.
+  /// gradient() at each point; f's values and gradients (where needed) taken together
+  /// (through the blend where the cluster is not surely trusted).
   void gradients_near(const Vec3d* xs, int n, Vec3d* out) const override;
   /// Both; f's in one values_gradients_near where the cluster is surely trusted.
   void values_gradients_near(const Vec3d* xs, int n, double* values, Vec3d* grads) const override;
@@ -91,6 +92,8 @@ class WindingClose : public ImplicitFunction {
   // Whether every one of the n points is surely within the trust distance t1 of an
   // input point (one nearest-point query for the cluster): blend() is 0 for all.
   bool all_trusted(const Vec3d* xs, int n) const;
+  // values_gradients_near through the blend for every point (no trusted shortcut).
+  void blended_values_gradients(const Vec3d* xs, int n, double* values, Vec3d* grads) const;
   // w (and its gradient, with grads) at the points whose blend weight beta is above 0,
   // taken together (WindingNumber::evaluate_near); 0 elsewhere.
   void winding_where_blended(const Vec3d* xs, int n, const std::vector<double>& beta, std::vector<double>& w,

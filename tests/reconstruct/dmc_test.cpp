@@ -132,6 +132,19 @@ struct Slot : ImplicitFunction {
   }
 };
 
+// A lumpy sphere r = 1 + 0.1 sin 5x cos 4y sampled at an icosphere's vertices, with
+// the sphere's normals (approximate, enough for these fits).
+Cloud lumpy_sphere_cloud(int level) {
+  const Mesh ico = test::icosphere(level, 1.0);
+  Cloud cloud;
+  for (const Vec3f& v : ico.vertices) {
+    const float r = 1.0f + 0.1f * std::sin(5 * v.x()) * std::cos(4 * v.y());
+    cloud.points.push_back(v * r);
+    cloud.normals.push_back(v.normalized());
+  }
+  return cloud;
+}
+
 // Every undirected edge in exactly two faces, used once in each direction (closed,
 // consistently oriented 2-manifold).
 int bad_edges(const Mesh& m) {
@@ -227,14 +240,7 @@ TEST(Dmc, SphereIsClosedManifoldAndOnTheSurface) {
 // sphere and on an MPU surface, and never worse at the worst vertex.
 TEST(Dmc, RefinedCrossingsLieOnTheSurface) {
   const Sphere s(Vec3d(0.1, -0.05, 0.02), 0.8);
-  const Mesh ico = test::icosphere(4, 1.0);
-  Cloud cloud;
-  for (const Vec3f& v : ico.vertices) {
-    const float r = 1.0f + 0.1f * std::sin(5 * v.x()) * std::cos(4 * v.y());
-    cloud.points.push_back(v * r);
-    cloud.normals.push_back(v.normalized());
-  }
-  const MpuSurface mpu = fit_mpu(cloud);
+  const MpuSurface mpu = fit_mpu(lumpy_sphere_cloud(4));
   struct Err {
     double mean = 0, worst = 0;
   };
@@ -626,14 +632,7 @@ TEST(DmcTiming, DISABLED_AnalyticFunctions) {
                   ds.seconds_barycentre, ds.seconds_features, ds.seconds_mesh);
     }
   // An MPU surface (evaluations dear): a torus-like lumpy sphere sampled from a mesh.
-  const Mesh ico = test::icosphere(5, 1.0);
-  Cloud cloud;
-  for (const Vec3f& v : ico.vertices) {
-    const float r = 1.0f + 0.1f * std::sin(5 * v.x()) * std::cos(4 * v.y());
-    cloud.points.push_back(v * r);
-    cloud.normals.push_back(v.normalized());  // approximate, enough for timing
-  }
-  const MpuSurface mpu = fit_mpu(cloud);
+  const MpuSurface mpu = fit_mpu(lumpy_sphere_cloud(5));
   for (int r : res) {
     const auto t0 = std::chrono::steady_clock::now();
     MarchingCubesStats ms;
