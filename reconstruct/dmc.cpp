@@ -784,9 +784,6 @@ class Dmc {
     return true;
   }
 
-  // First-wave pruning from the lattice values alone (no evaluation): a point whose |f|
-  // exceeds 1.5 * 1.3 h times the largest difference quotient to its evaluated
-  // 6-neighbours is too far from the surface for its Omega to reach it.
   // The lattice value of p's neighbour `step` (+-1) along `axis` (p is point l of block
   // b), through the links: its node's, or its scan line's; false when it was never
   // evaluated or is outside the grid.
@@ -808,16 +805,25 @@ class Dmc {
     return false;
   }
 
-  bool cheap_candidate(Key p, std::uint32_t handle, const Node& nd) const {
-    const std::int32_t b = std::int32_t(handle >> 6);
-    const int l = int(handle & 63);
+  // The lattice values of p's six neighbours (q = 2 * axis + (step > 0)), read once for
+  // both first-wave tests; has[q] false where neighbour_value has none.
+  struct Neighbours {
+    double v[6];
+    bool has[6];
+  };
+  void neighbour_values(Key p, std::int32_t b, int l, Neighbours& nb) const {
+    for (int q = 0; q < 6; ++q) nb.has[q] = neighbour_value(p, b, l, q / 2, q % 2 ? 1 : -1, nb.v[q]);
+  }
+  // First-wave pruning from the lattice values alone (no evaluation): a point whose |f|
+  // exceeds 1.5 * 1.3 h times the largest difference quotient to its evaluated
+  // 6-neighbours is too far from the surface for its Omega to reach it.
+  static bool cheap_candidate(const Node& nd, const Neighbours& nb, double h) {
     double slope = 0;
     for (int q = 0; q < 6; ++q) {
-      double v;
-      if (!neighbour_value(p, b, l, q / 2, q % 2 ? 1 : -1, v)) continue;
-      slope = std::max(slope, std::abs(v - nd.val) / h_);
+      if (!nb.has[q]) continue;
+      slope = std::max(slope, std::abs(nb.v[q] - nd.val) / h);
     }
-    return !(std::abs(nd.val) > 1.3 * h_ * slope * 1.5) || slope == 0;
+    return !(std::abs(nd.val) > 1.3 * h * slope * 1.5) || slope == 0;
   }
 
   // grad f at lattice point p from the lattice values alone: central differences with
@@ -825,12 +831,12 @@ class Dmc {
   // axis has neither. Only before any point moved (the differences assume undeformed
   // neighbours): the first wave's probe direction.
   static constexpr double kLinear = 3, kTangent = 0.25;
-  bool lattice_gradient(Key p, std::int32_t b, int l, const Node& nd, Vec3d& gr) const {
+  bool lattice_gradient(const Node& nd, const Neighbours& nb, Vec3d& gr) const {
     double dps[3], dms[3];
     bool both[3];
     for (int a = 0; a < 3; ++a) {
-      double vp = 0, vm = 0;
-      const bool hp = neighbour_value(p, b, l, a, 1, vp), hm = neighbour_value(p, b, l, a, -1, vm);
+      const double vp = nb.has[2 * a + 1] ? nb.v[2 * a + 1] : 0, vm = nb.has[2 * a] ? nb.v[2 * a] : 0;
+      const bool hp = nb.has[2 * a + 1], hm = nb.has[2 * a];
       both[a] = hp && hm;
       if (hp && hm) {
         dps[a] = vp - nd.val;
@@ -989,13 +995,14 @@ class Dmc {
           // Outside points move into thin parts, inside points into thin gaps.
           if (nd.val < 0 ? !opt_.thin_gaps : !opt_.barycentre) continue;
           const Key p = nodes_.point(cb, cl);
-          const std::uint32_t handle = std::uint32_t(cb) << 6 | std::uint32_t(cl);
-          if (cheap_candidate(p, handle, nd)) {
+          Neighbours nb;
+          neighbour_values(p, cb, cl, nb);
+          if (cheap_candidate(nd, nb, h_)) {
             ++probed_local.local();
             batch.nodes.push_back(&nd);
             batch.keys.push_back(p);
             batch.grads.emplace_back();
-            batch.has_grad.push_back(lattice_gradient(p, cb, cl, nd, batch.grads.back()));
+            batch.has_grad.push_back(lattice_gradient(nd, nb, batch.grads.back()));
           }
           nd.flags |= kSearched;
         }
