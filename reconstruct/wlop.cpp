@@ -393,9 +393,12 @@ void Consolidator::iterate(bool last) {
         continue;
       }
       isolated_[i] = 0;
-      // E2 of eq. 3 with beta = -theta (eta(r) / r = -1); the signs cancel. The
-      // sums are over x_r - x_i, so E2 = -d / w.
-      const KernelSums e2 = detail::repulsion_sum(x_grid_, w_.data(), q, shape, sp);
+      // E2 of eq. 3; the sums are over x_r - x_i, so E2 = -d / w. beta = theta / r
+      // has E1's form (a pair closer than 1e-9 h left out, x_i itself with it);
+      // beta = -theta (eq. 5 as printed): the signs cancel.
+      const KernelSums e2 = params_.repulsion_weight == RepulsionWeight::kOriginal
+                                ? detail::attraction_sum(x_grid_, w_.data(), q, shape)
+                                : detail::repulsion_sum(x_grid_, w_.data(), q, shape, sp);
       Vec3d next = e1;
       if (e2.w > 0) {
         Vec3d step = -params_.mu * e2.d / e2.w;

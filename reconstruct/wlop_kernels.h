@@ -42,12 +42,13 @@ struct KernelShape {
 KernelSums density_sum(const RadiusGrid& grid, const Vec3d& q, const KernelShape& k);
 
 /// a_p = theta(r) / r * weight[p] (weight by sorted position; eq. 2's alpha_ij / v_j
-/// with weight = 1 / v_j), over eps2 < r^2 < h^2.
+/// with weight = 1 / v_j, or eq. 3's w_r beta_ir with beta = theta / r and weight =
+/// w_r), over eps2 < r^2 < h^2.
 KernelSums attraction_sum(const RadiusGrid& grid, const double* weight, const Vec3d& q,
                           const KernelShape& k);
 
-/// a_p = theta(r) * weight[p] (eq. 3's w_r |beta_ir| with weight = w_r) over r^2 < h^2,
-/// leaving out sorted position `self`.
+/// a_p = theta(r) * weight[p] (eq. 3's w_r |beta_ir| with eq. 5's printed beta = -theta
+/// and weight = w_r) over r^2 < h^2, leaving out sorted position `self`.
 KernelSums repulsion_sum(const RadiusGrid& grid, const double* weight, const Vec3d& q,
                          const KernelShape& k, int self);
 

@@ -977,6 +977,7 @@ struct ConsolidateArgs {
   int iterations = 35;
   double radius = 0;
   std::string repulsion = "full";
+  std::string repulsion_weight = "original";
   unsigned seed = 1;
 };
 
@@ -992,6 +993,7 @@ int cmd_consolidate(const Common& c, const ConsolidateArgs& a) {
   p.iterations = a.iterations;
   p.radius = a.radius;
   p.repulsion = a.repulsion == "tangential" ? WlopRepulsion::kTangential : WlopRepulsion::kFull;
+  p.repulsion_weight = a.repulsion_weight == "printed" ? RepulsionWeight::kPrinted : RepulsionWeight::kOriginal;
   p.seed = a.seed;
   p.threads = cfg.threads;
   if (!c.json)
@@ -1311,6 +1313,10 @@ int run_cli(int argc, char** argv) {
                    "wlop's repulsion: full (as printed) or tangential (no part along the local normal: "
                    "less drift off the surface)")
       ->capture_default_str()->check(CLI::IsMember({"full", "tangential"}));
+  cons->add_option("--repulsion-weight", cons_args.repulsion_weight,
+                   "the repulsion's beta: original (theta / r, WLOP's own: close pairs separate) or printed "
+                   "(-theta, eq. 5 as the paper prints it)")
+      ->capture_default_str()->check(CLI::IsMember({"original", "printed"}));
   cons->add_option("--seed", cons_args.seed, "seed of the initial subset")->capture_default_str();
 
   FitArgs fit_args;

@@ -152,7 +152,8 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
       r.fail("register.fuse_distance", "must be 0..0.1 (metres; 0: the views' point spacing)");
   }
   if (const YAML::Node n = root["consolidate"]) {
-    r.check_keys(n, "consolidate", {"enabled", "method", "points", "ratio", "iterations", "seed", "repulsion"});
+    r.check_keys(n, "consolidate", {"enabled", "method", "points", "ratio", "iterations", "seed", "repulsion",
+                                     "repulsion_weight"});
     auto& c = p.consolidate;
     if (n["enabled"]) c.enabled = r.boolean(n["enabled"], "consolidate.enabled");
     if (n["method"]) c.method = r.text(n["method"], "consolidate.method");
@@ -160,6 +161,9 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
     if (n["repulsion"]) c.repulsion = r.text(n["repulsion"], "consolidate.repulsion");
     if (c.repulsion != "full" && c.repulsion != "tangential")
       r.fail("consolidate.repulsion", "must be full or tangential");
+    if (n["repulsion_weight"]) c.repulsion_weight = r.text(n["repulsion_weight"], "consolidate.repulsion_weight");
+    if (c.repulsion_weight != "original" && c.repulsion_weight != "printed")
+      r.fail("consolidate.repulsion_weight", "must be original or printed");
     if (n["points"]) {
       const int v = r.integer(n["points"], "consolidate.points");
       if (v < 0) r.fail("consolidate.points", "must not be negative");

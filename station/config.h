@@ -38,6 +38,9 @@ struct PipelineConfig {
     /// wlop's repulsion: full (eq. 1 as printed) | tangential (no part along the local
     /// normal: less drift off the surface; reconstruct/wlop.h WlopRepulsion)
     std::string repulsion = "full";
+    /// E2's beta: original (theta / r, WLOP's own) | printed (-theta, eq. 5 as printed;
+    /// reconstruct/wlop.h RepulsionWeight)
+    std::string repulsion_weight = "original";
   } consolidate;
   struct Reconstruct {
     std::string surface = "mpu";    ///< mpu | sdm

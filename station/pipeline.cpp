@@ -182,7 +182,8 @@ std::string consolidate_params(const PipelineConfig& p) {
   const auto& c = p.consolidate;
   std::ostringstream s;
   s << "consolidate/method=" << c.method << ";points=" << c.points << ";ratio=" << fmt("%.17g", c.ratio)
-    << ";iterations=" << c.iterations << ";seed=" << c.seed << ";repulsion=" << c.repulsion;
+    << ";iterations=" << c.iterations << ";seed=" << c.seed << ";repulsion=" << c.repulsion
+    << ";repulsion_weight=" << c.repulsion_weight;
   return s.str();
 }
 std::string surface_params(const PipelineConfig& p) {
@@ -536,6 +537,7 @@ class Runner {
     p.iterations = c.iterations;
     p.seed = c.seed;
     p.repulsion = c.repulsion == "tangential" ? WlopRepulsion::kTangential : WlopRepulsion::kFull;
+    p.repulsion_weight = c.repulsion_weight == "printed" ? RepulsionWeight::kPrinted : RepulsionWeight::kOriginal;
     p.threads = cfg_.threads;
     Progress bar(p.method == WlopMethod::kEdgeWlop ? "  consolidate: edge-WLOP iterations" : "  consolidate: WLOP iterations",
                  c.iterations, req_.quiet);

@@ -69,12 +69,15 @@ WlopParams plain(std::size_t target, double radius, int iterations) {
 
 // Straightforward WLOP (methods.md section 1, eqs. 1-9): every sum over all pairs,
 // in index order, with the header's conventions (strictly within h; E1 leaves out
-// pairs closer than 1e-9 h; a point with no input point within h stays).
+// pairs closer than 1e-9 h, and so does E2 with beta = theta |eta'| / r; a point with
+// no input point within h stays). printed_beta: beta = theta eta / r, eq. 5 as printed.
 std::vector<Vec3d> reference_wlop(const std::vector<Vec3d>& p, std::vector<Vec3d> x, double h,
-                                  double mu, int iterations, bool input_density = true) {
+                                  double mu, int iterations, bool input_density = true,
+                                  bool printed_beta = false) {
   const double s2 = (h / 4) * (h / 4);
   auto theta = [&](double r) { return std::exp(-r * r / s2); };
   auto eta = [](double r) { return -r; };
+  auto eta_slope = [](double) { return -1.0; };  // d eta / dr
   std::vector<double> v(p.size(), 1.0);
   for (std::size_t j = 0; j < p.size(); ++j)
     for (std::size_t k = 0; k < p.size(); ++k) {
@@ -109,7 +112,13 @@ std::vector<Vec3d> reference_wlop(const std::vector<Vec3d>& p, std::vector<Vec3d
       for (std::size_t r = 0; r < x.size(); ++r) {
         const double d = (x[i] - x[r]).norm();
         if (r == i || d >= h) continue;
-        const double beta = d > 0 ? theta(d) * eta(d) / d : -1.0;  // eta(r)/r = -1
+        double beta;
+        if (printed_beta) {
+          beta = d > 0 ? theta(d) * eta(d) / d : -1.0;  // eta(r)/r = -1
+        } else {
+          if (d <= 1e-9 * h) continue;
+          beta = theta(d) * std::abs(eta_slope(d)) / d;
+        }
         num2 += (x[i] - x[r]) * (w[r] * beta);
         den2 += w[r] * beta;
       }
@@ -147,6 +156,19 @@ TEST(Wlop, MatchesAllPairsReference) {
   EXPECT_GT(moved, 0.01);  // the points did move: the comparison means something
   for (std::size_t i = 0; i < ref.size(); ++i)
     EXPECT_EQ(r.cloud.points[i], r.positions[i].cast<float>());
+
+  // Eq. 5 as printed (beta = -theta) against its own reference; the two betas differ.
+  WlopParams printed = params;
+  printed.repulsion_weight = RepulsionWeight::kPrinted;
+  const WlopResult rp = consolidate(in, printed);
+  const std::vector<Vec3d> ref_p = reference_wlop(p, x0, h, params.mu, 10, true, true);
+  double worst_p = 0, apart = 0;
+  for (std::size_t i = 0; i < ref_p.size(); ++i) {
+    worst_p = std::max(worst_p, (rp.positions[i] - ref_p[i]).norm());
+    apart = std::max(apart, (ref_p[i] - ref[i]).norm());
+  }
+  EXPECT_LT(worst_p, 1e-9);
+  EXPECT_GT(apart, 1e-3);
 }
 
 TEST(Wlop, UniformInputDensityMatchesReference) {
@@ -244,6 +266,25 @@ TEST(Wlop, DefaultRadiusEvensOutMore) {
   const WlopResult r = consolidate(in, plain(4000, 0, 35));
   const double u_out = uniformity(onto_unit_sphere(r.cloud.points), 4 * M_PI);
   EXPECT_GT(u_out, 0.6);
+}
+
+TEST(Wlop, OriginalRepulsionWeightSeparatesClosePairs) {
+  // At a radius well above the output spacing (h/4 = 0.055 against a spacing of about
+  // 0.06), eq. 5's printed beta = -theta lets points pair up: a neighbour's push
+  // shrinks with its distance. WLOP's own beta = theta / r keeps pushing as a pair
+  // closes (reconstruct/wlop.h RepulsionWeight).
+  const Cloud in = uneven_sphere(20000, 0.01, 7);
+  WlopParams params = plain(4000, 0.22, 35);
+  const WlopResult original = consolidate(in, params);
+  params.repulsion_weight = RepulsionWeight::kPrinted;
+  const WlopResult printed = consolidate(in, params);
+  const double u_original = uniformity(onto_unit_sphere(original.cloud.points), 4 * M_PI);
+  const double u_printed = uniformity(onto_unit_sphere(printed.cloud.points), 4 * M_PI);
+  std::cout << "uniformity at h = 0.22: beta = theta / r " << u_original << ", printed " << u_printed
+            << "; accuracy " << mean_sphere_distance(original.cloud.points) << ", "
+            << mean_sphere_distance(printed.cloud.points) << "\n";
+  EXPECT_GT(u_original, u_printed + 0.1);
+  EXPECT_LT(mean_sphere_distance(original.cloud.points), 1.2 * mean_sphere_distance(printed.cloud.points));
 }
 
 TEST(Wlop, DefaultRadiusIsScaleInvariant) {
