@@ -169,6 +169,13 @@ void run_wlop_cases(const Options& options, Report& report) {
     wide.radius = 2 * radius;
     cgal_case("WLOP 100k -> 20k, v_j = 1, h = 2R (CGAL's Gaussian)", in100k, few, wide);
   }
+  // Eq. 5's printed beta = -theta instead of WLOP's theta / r (RepulsionWeight, the
+  // default): close pairs barely separate at this radius.
+  {
+    WlopParams printed = like_cgal;
+    printed.repulsion_weight = RepulsionWeight::kPrinted;
+    cgal_case("WLOP 100k -> 20k, v_j = 1, beta as printed (-theta)", in100k, few, printed);
+  }
 
   // Our default WLOP (input density weights of eq. 6) against the same CGAL call, 100k.
   {
