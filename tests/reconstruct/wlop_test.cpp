@@ -364,6 +364,33 @@ TEST(EdgeWlop, SharperThanWlopOnFandisk) {
   EXPECT_GT(u_e, u_in + 0.1) << u_in << " -> " << u_e;
 }
 
+// Plain WLOP and edge-WLOP of `in` at radius h (0: the default) on a reference mesh:
+// edge errors within 2h of its sharp edges, accuracies and surface uniformities, of
+// the input too; printed under `label`.
+struct WlopAndEdge {
+  WlopResult w, e;
+  EdgeError ew, ee;
+  double acc_in, acc_w, acc_e, u_in, u_w, u_e;
+};
+WlopAndEdge run_both(const Cloud& in, const Mesh& reference, std::size_t target, double h, const char* label) {
+  WlopAndEdge r;
+  r.w = consolidate(in, plain(target, h, 35));
+  r.e = consolidate(in, edge(target, h, 35));
+  const double used = r.e.radius;
+  r.ew = edge_error(r.w.cloud.points, reference, 2 * used);
+  r.ee = edge_error(r.e.cloud.points, reference, 2 * used);
+  r.acc_in = mean_distance_to_mesh(in.points, reference);
+  r.acc_w = mean_distance_to_mesh(r.w.cloud.points, reference);
+  r.acc_e = mean_distance_to_mesh(r.e.cloud.points, reference);
+  r.u_in = surface_uniformity(in.points, reference);
+  r.u_w = surface_uniformity(r.w.cloud.points, reference);
+  r.u_e = surface_uniformity(r.e.cloud.points, reference);
+  std::cout << label << ", h " << used << ": edge error wlop " << r.ew.mean << " edge-wlop " << r.ee.mean
+            << "; accuracy input " << r.acc_in << " wlop " << r.acc_w << " edge-wlop " << r.acc_e
+            << "; uniformity input " << r.u_in << " wlop " << r.u_w << " edge-wlop " << r.u_e << "\n";
+  return r;
+}
+
 TEST(EdgeWlop, SharperThanWlopOnBlade) {
   // CGAL's fan-blade part (tests/data/consolidation/README.md): 130 long, 10 wide
   // and 0.65 thick, so 0.3 % of d_bb (sigma = 0.39) is 60 % of the thickness and the
@@ -375,20 +402,9 @@ TEST(EdgeWlop, SharperThanWlopOnBlade) {
   const Mesh blade = read_mesh(test::source_dir() / "tests/data/consolidation/blade.off");
   const double dbb = bounding_box(blade.vertices).diagonal();
   const Cloud in = noisy_uneven_sample(blade, 20000, 0.003 * dbb, 24);
-  const double h = 4 * dbb / std::sqrt(100000.0);
-  const WlopResult w = consolidate(in, plain(4000, h, 35));
-  const WlopResult e = consolidate(in, edge(4000, h, 35));
-  const EdgeError ew = edge_error(w.cloud.points, blade, 2 * h);
-  const EdgeError ee = edge_error(e.cloud.points, blade, 2 * h);
-  const double acc_in = mean_distance_to_mesh(in.points, blade);
-  const double acc_w = mean_distance_to_mesh(w.cloud.points, blade);
-  const double acc_e = mean_distance_to_mesh(e.cloud.points, blade);
-  const double u_in = surface_uniformity(in.points, blade);
-  const double u_w = surface_uniformity(w.cloud.points, blade);
-  const double u_e = surface_uniformity(e.cloud.points, blade);
-  std::cout << "blade, h " << h << ": edge error wlop " << ew.mean << " edge-wlop " << ee.mean
-            << "; accuracy input " << acc_in << " wlop " << acc_w << " edge-wlop " << acc_e
-            << "; uniformity input " << u_in << " wlop " << u_w << " edge-wlop " << u_e << "\n";
+  const WlopAndEdge r = run_both(in, blade, 4000, 4 * dbb / std::sqrt(100000.0), "blade 20k -> 4k");
+  const EdgeError &ew = r.ew, &ee = r.ee;
+  const double acc_in = r.acc_in, acc_e = r.acc_e, u_in = r.u_in, u_w = r.u_w, u_e = r.u_e;
   ASSERT_GT(ee.count, 1000u);
   EXPECT_LT(ee.mean, 0.75 * ew.mean) << ew.mean << " vs " << ee.mean;
   // Edge-WLOP keeps the input's accuracy here (within 3 %) rather than improving
@@ -396,7 +412,7 @@ TEST(EdgeWlop, SharperThanWlopOnBlade) {
   EXPECT_LT(acc_e, 1.05 * acc_in) << acc_in << " -> " << acc_e;
   EXPECT_GT(u_w, u_in + 0.05) << u_in << " -> " << u_w;
   EXPECT_GT(u_e, u_in + 0.05) << u_in << " -> " << u_e;
-  for (const Vec3d& p : e.positions) ASSERT_TRUE(p.allFinite());
+  for (const Vec3d& p : r.e.positions) ASSERT_TRUE(p.allFinite());
 }
 
 TEST(EdgeWlop, BladeAtTheIssuesSetting) {
@@ -409,20 +425,11 @@ TEST(EdgeWlop, BladeAtTheIssuesSetting) {
   const Mesh blade = read_mesh(test::source_dir() / "tests/data/consolidation/blade.off");
   const double dbb = bounding_box(blade.vertices).diagonal();
   const Cloud in = noisy_uneven_sample(blade, 100000, 0.003 * dbb, 24);
-  const WlopResult w = consolidate(in, plain(20000, 0, 35));
-  const WlopResult e = consolidate(in, edge(20000, 0, 35));
-  ASSERT_EQ(e.output_points, 20000u);
-  const double h = e.radius;  // 4 d_bb / sqrt(100000), d_bb of the noisy input
-  const EdgeError ew = edge_error(w.cloud.points, blade, 2 * h);
-  const EdgeError ee = edge_error(e.cloud.points, blade, 2 * h);
-  const double acc_in = mean_distance_to_mesh(in.points, blade);
-  const double acc_e = mean_distance_to_mesh(e.cloud.points, blade);
-  const double u_in = surface_uniformity(in.points, blade);
-  const double u_w = surface_uniformity(w.cloud.points, blade);
-  const double u_e = surface_uniformity(e.cloud.points, blade);
-  std::cout << "blade 100k -> 20k, h " << h << ": edge error wlop " << ew.mean << " edge-wlop " << ee.mean
-            << "; accuracy input " << acc_in << " edge-wlop " << acc_e << "; uniformity input " << u_in
-            << " wlop " << u_w << " edge-wlop " << u_e << "\n";
+  // h = 0: the default, 4 d_bb / sqrt(100000) with d_bb of the noisy input.
+  const WlopAndEdge r = run_both(in, blade, 20000, 0, "blade 100k -> 20k");
+  ASSERT_EQ(r.e.output_points, 20000u);
+  const EdgeError &ew = r.ew, &ee = r.ee;
+  const double acc_in = r.acc_in, acc_e = r.acc_e, u_in = r.u_in, u_w = r.u_w, u_e = r.u_e;
   ASSERT_GT(ee.count, 5000u);
   EXPECT_LT(ee.mean, 0.75 * ew.mean);
   EXPECT_LT(acc_e, acc_in);
