@@ -89,7 +89,11 @@ class KeySet {
 
 using detail::Chunked;
 
-enum : std::uint8_t { kFixed = 1, kSearched = 2, kBary = 4, kGap = 8, kCorner = 16, kEdge = 32 };
+// kPassedPart / kPassedGap: the point has passed the thin part's (gap's) flood on
+// (barycentre_step; once each).
+enum : std::uint8_t {
+  kFixed = 1, kSearched = 2, kBary = 4, kGap = 8, kCorner = 16, kEdge = 32, kPassedPart = 64, kPassedGap = 128
+};
 
 struct Node {
   Vec3d pos;
@@ -1039,7 +1043,6 @@ class Dmc {
     bool first_wave = true;
     // Which flood reached each candidate: 1 thin part (inside), 2 thin gap (outside).
     std::vector<std::uint8_t> cand_by;
-    std::unordered_set<Key> passed;
     while (first_wave || !cand.empty()) {
       std::vector<Key> todo, through;
       if (first_wave) {
@@ -1048,24 +1051,37 @@ class Dmc {
         std::vector<Key> keep;
         std::vector<Node*> keep_node;
         std::vector<char> role;
-        for (std::size_t ci = 0; ci < cand.size(); ++ci) {
-          const Key p = cand[ci];
+        // Which floods each candidate takes on (bit kind) and as what (bit kind << 2:
+        // mover), in parallel: a wave's candidates are distinct points, so each
+        // iteration reads and marks its own node only. Then kept in candidate order.
+        std::vector<std::uint8_t> take(cand.size(), 0);
+        std::vector<Node*> cand_node(cand.size());
+        parallel(cand.size(), [&](std::size_t ci) {
           Node& nd = nodes_.node(std::int32_t(cand_h[ci] >> 6), int(cand_h[ci] & 63));
-          if (nd.flags & kFixed) continue;
+          cand_node[ci] = &nd;
+          if (nd.flags & kFixed) return;
           const bool inside = nd.val < 0;
           const std::uint8_t by = cand_by[ci];
+          std::uint8_t t = 0;
           for (std::uint8_t kind = 1; kind <= 2; ++kind) {
             if (!(by & kind)) continue;
             if (kind == 1 ? !opt_.barycentre : !opt_.thin_gaps) continue;
             // Moves: outside points into thin parts, inside points into thin gaps.
             const bool mover = (kind == 1) != inside;
-            if (mover ? (nd.flags & kSearched) != 0 : passed.count(p * 2 + kind) > 0) continue;
-            if (!mover) passed.insert(p * 2 + kind);
-            keep.push_back(p);
-            keep_node.push_back(&nd);
-            role.push_back(mover ? kMove : kPass);
+            const std::uint8_t passed = kind == 1 ? kPassedPart : kPassedGap;
+            if (mover ? (nd.flags & kSearched) != 0 : (nd.flags & passed) != 0) continue;
+            if (!mover) nd.flags |= passed;
+            t |= std::uint8_t(kind | (mover ? kind << 2 : 0));
           }
-        }
+          take[ci] = t;
+        });
+        for (std::size_t ci = 0; ci < cand.size(); ++ci)
+          for (std::uint8_t kind = 1; kind <= 2; ++kind) {
+            if (!(take[ci] & kind)) continue;
+            keep.push_back(cand[ci]);
+            keep_node.push_back(cand_node[ci]);
+            role.push_back(take[ci] & (kind << 2) ? kMove : kPass);
+          }
         // Gradient test and thin probe, in parallel.
         std::vector<char> go(keep.size(), 0);
         parallel(keep.size(), [&](std::size_t i) { go[i] = probe(*keep_node[i], role[i]); });
