@@ -34,6 +34,13 @@ Key key(std::int64_t i, std::int64_t j, std::int64_t k) { return Key(i) | Key(j)
 int ki(Key k) { return int(k & 0x1FFFFF); }
 int kj(Key k) { return int(k >> 21 & 0x1FFFFF); }
 int kk(Key k) { return int(k >> 42 & 0x1FFFFF); }
+// std::lround (halves away from zero) without the library call for lattice
+// coordinates in [0, 2^31): truncation is the floor there and y - floor(y) is exact.
+std::int64_t round_coordinate(double y) {
+  if (!(y >= 0 && y < 2147483648.0)) return std::lround(y);
+  const std::int64_t t = std::int64_t(y);
+  return t + (y - double(t) >= 0.5 ? 1 : 0);
+}
 Key corner_key(Key cell, int q) { return key(ki(cell) + (q & 1), kj(cell) + (q >> 1 & 1), kk(cell) + (q >> 2 & 1)); }
 
 // Lattice points grouped in blocks of 4^3: a small hash from block to block index.
@@ -1188,7 +1195,7 @@ class Dmc {
           for (int st = 1; st <= kSteps; ++st) {
             const double t = double(st) / kSteps;
             const Vec3d y = ((x0 + t * (x1 - x0)) - lo_) / h_;
-            const Key cur = key(std::lround(y.x()), std::lround(y.y()), std::lround(y.z()));
+            const Key cur = key(round_coordinate(y.x()), round_coordinate(y.y()), round_coordinate(y.z()));
             if (cur == last) continue;
             if (last != p) props.emplace_back(last, x0 + 0.5 * (t_in + t - 1.0 / kSteps) * (x1 - x0));
             last = cur;
