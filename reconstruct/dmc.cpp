@@ -759,7 +759,8 @@ class Dmc {
     const double step = h_ / m_;
     Vec3d sum = Vec3d::Zero();
     int count = 0;
-    std::vector<std::pair<Vec3d, double>> hits;
+    thread_local std::vector<std::pair<Vec3d, double>> hits;
+    hits.clear();
     // All m^3 samples at once: f may share work between them (values_near).
     thread_local std::vector<Vec3d> xs;
     thread_local std::vector<double> vs;
