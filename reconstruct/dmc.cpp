@@ -1251,7 +1251,10 @@ class Dmc {
   void prune_islands(std::vector<Key>& moved) {
     constexpr std::size_t kMinIsland = 4;
     std::sort(moved.begin(), moved.end());
-    std::unordered_set<Key> is_moved(moved.begin(), moved.end()), done;
+    // A point is in `moved` exactly when its node carries kBary or kGap; `done` by its
+    // place in the sorted list.
+    std::vector<char> done(moved.size(), 0);
+    auto place = [&](Key q) { return std::size_t(std::lower_bound(moved.begin(), moved.end(), q) - moved.begin()); };
     std::vector<Key> revert;
     auto neighbours = [&](Key p, std::vector<Key>& out) {
       out.clear();
@@ -1263,11 +1266,12 @@ class Dmc {
     };
     std::vector<Key> nb;
     Node tmp;
-    for (Key s : moved) {
-      if (done.count(s)) continue;
+    for (std::size_t si = 0; si < moved.size(); ++si) {
+      const Key s = moved[si];
+      if (done[si]) continue;
       const std::uint8_t kind = nodes_.at(s).flags & (kBary | kGap);
       std::vector<Key> comp{s}, stack{s};
-      done.insert(s);
+      done[si] = 1;
       bool anchored = false;
       while (!stack.empty()) {
         const Key p = stack.back();
@@ -1276,8 +1280,11 @@ class Dmc {
         for (Key q : nb) {
           const Node* it = known(q, tmp);
           if (it == nullptr) continue;
-          if (is_moved.count(q)) {
-            if ((it->flags & (kBary | kGap)) == kind && done.insert(q).second) {
+          if (it->flags & (kBary | kGap)) {
+            if ((it->flags & (kBary | kGap)) != kind) continue;
+            char& seen = done[place(q)];
+            if (!seen) {
+              seen = 1;
               comp.push_back(q);
               stack.push_back(q);
             }
@@ -1294,10 +1301,10 @@ class Dmc {
       nd.flags &= std::uint8_t(~(kBary | kGap));
       nd.pos = upos(p);
       nd.val = original_.at(p);
-      is_moved.erase(p);
     }
     st_.reverted = revert.size();
-    moved.erase(std::remove_if(moved.begin(), moved.end(), [&](Key p) { return !is_moved.count(p); }), moved.end());
+    moved.erase(std::remove_if(moved.begin(), moved.end(), [&](Key p) { return !(nodes_.at(p).flags & (kBary | kGap)); }),
+                moved.end());
   }
 
   // ---------------------------------------------------------------- crossings
