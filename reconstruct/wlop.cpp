@@ -110,6 +110,36 @@ struct Padded {
   float* data() { return v.data(); }
 };
 
+bool position_less(const Vec3d& a, const Vec3d& b) {
+  return a.x() != b.x() ? a.x() < b.x() : a.y() != b.y() ? a.y() < b.y() : a.z() < b.z();
+}
+
+// Whether two of the subset's points share a position.
+bool has_coincident(const std::vector<Vec3d>& p, const std::vector<int>& subset) {
+  std::vector<Vec3d> q;
+  q.reserve(subset.size());
+  for (int j : subset) q.push_back(p[std::size_t(j)]);
+  std::sort(q.begin(), q.end(), position_less);
+  for (std::size_t i = 1; i < q.size(); ++i)
+    if (q[i] == q[i - 1]) return true;
+  return false;
+}
+
+// The lowest index of each distinct position, ascending.
+std::vector<int> first_occurrences(const std::vector<Vec3d>& p) {
+  std::vector<int> order(p.size());
+  for (std::size_t j = 0; j < p.size(); ++j) order[j] = int(j);
+  std::sort(order.begin(), order.end(), [&](int a, int b) {
+    const Vec3d &pa = p[std::size_t(a)], &pb = p[std::size_t(b)];
+    return pa == pb ? a < b : position_less(pa, pb);
+  });
+  std::vector<int> first;
+  for (std::size_t i = 0; i < order.size(); ++i)
+    if (i == 0 || p[std::size_t(order[i])] != p[std::size_t(order[i - 1])]) first.push_back(order[i]);
+  std::sort(first.begin(), first.end());
+  return first;
+}
+
 struct Scratch {
   Neighbours input;
   std::vector<Vec3d> points;  // simple normals' neighbourhood; kTangential's PCA neighbourhood
@@ -247,8 +277,23 @@ void Consolidator::setup() {
     }
   });
 
-  // Initial projected set: a seeded random subset of the input.
-  const std::vector<int> subset = initial_subset(nj_, ni_, params_.seed);
+  // Initial projected set: a seeded random subset of the input, of distinct positions.
+  // Two picks of one position (an input point given twice) would get the same E1 and
+  // E2 in every iteration, a coincident pair being left out of E2 (or giving it no
+  // offset), and stay one point counted twice. Then the subset is drawn from the first
+  // occurrence of each position instead (the same draw where the input has no
+  // duplicates); with fewer positions than requested, all of them are taken.
+  std::vector<int> subset = initial_subset(nj_, ni_, params_.seed);
+  if (has_coincident(p_, subset)) {
+    const std::vector<int> distinct = first_occurrences(p_);
+    if (distinct.size() < ni_) {
+      ni_ = distinct.size();
+      result_.output_points = ni_;
+      result_.clamped = true;
+    }
+    subset = initial_subset(distinct.size(), ni_, params_.seed);
+    for (int& j : subset) j = distinct[std::size_t(j)];
+  }
   x_.resize(ni_);
   for (std::size_t i = 0; i < ni_; ++i) x_[i] = p_[subset[i]];
   x_next_.resize(ni_);

@@ -216,7 +216,9 @@ struct WlopResult {
 
   std::size_t input_points = 0;      ///< |J|
   std::size_t requested_points = 0;  ///< |I| asked for (target_points or ratio * |J|)
-  bool clamped = false;              ///< requested more than |J|; |I| = |J|
+  /// Requested more than |J|, or than the input's distinct positions when the initial
+  /// subset had to avoid duplicates (see consolidate); |I| is then that count.
+  bool clamped = false;
   std::size_t output_points = 0;     ///< |I|
   int iterations = 0;                ///< iterations run
   double radius = 0;                 ///< h used (absolute)

@@ -1024,8 +1024,8 @@ int cmd_consolidate(const Common& c, const ConsolidateArgs& a) {
                 r.input_points, r.cloud.size(), a.method.c_str(), r.iterations, r.radius,
                 r.seconds, a.out.c_str());
     if (r.clamped)
-      std::printf("note: asked for %zu points but the input has %zu; all were projected\n",
-                  r.requested_points, r.input_points);
+      std::printf("note: asked for %zu points but the input has %zu distinct ones; all were projected\n",
+                  r.requested_points, r.output_points);
   }
   return 0;
 }

@@ -611,6 +611,40 @@ TEST(WlopInput, FewerPointsThanRequestedProjectsThemAll) {
   for (const Vec3f& p : r.cloud.points) ASSERT_TRUE(p.allFinite());
 }
 
+// An input point given twice, picked twice for the initial subset, would move as one
+// point counted twice (the same E1 and E2 in every iteration).
+TEST(WlopInput, DuplicatedPointsGiveDistinctOutputPoints) {
+  const Cloud once = uneven_sphere(3000, 0.01, 12);
+  Cloud twice;
+  for (const Vec3f& p : once.points) {
+    twice.points.push_back(p);
+    twice.points.push_back(p);
+  }
+  auto coincident_pairs = [](const WlopResult& r) {
+    std::vector<Vec3d> q = r.positions;
+    std::sort(q.begin(), q.end(), [](const Vec3d& a, const Vec3d& b) {
+      return std::lexicographical_compare(a.data(), a.data() + 3, b.data(), b.data() + 3);
+    });
+    int n = 0;
+    for (std::size_t i = 1; i < q.size(); ++i) n += q[i] == q[i - 1];
+    return n;
+  };
+  for (const WlopMethod method : {WlopMethod::kWlop, WlopMethod::kEdgeWlop}) {
+    WlopParams params = plain(1500, 0, 10);
+    params.method = method;
+    const WlopResult r = consolidate(twice, params);
+    EXPECT_EQ(r.output_points, 1500u);
+    EXPECT_FALSE(r.clamped);
+    EXPECT_EQ(coincident_pairs(r), 0);
+  }
+  // More points requested than there are distinct positions: all of them, once each.
+  const WlopResult all = consolidate(twice, plain(4000, 0, 5));
+  EXPECT_TRUE(all.clamped);
+  EXPECT_EQ(all.output_points, 3000u);
+  EXPECT_EQ(all.cloud.size(), 3000u);
+  EXPECT_EQ(coincident_pairs(all), 0);
+}
+
 TEST(WlopInput, Rejected) {
   EXPECT_THROW(consolidate(Cloud{}, {}), InvalidInput);
   Cloud same;
