@@ -1171,7 +1171,9 @@ class Dmc {
   void bridge(std::vector<Key>& moved) {
     std::sort(moved.begin(), moved.end());
     // In parallel over runs of `moved`; the runs' proposals joined in order (the same
-    // list as one serial pass: its order picks among equal keys below).
+    // list as one serial pass). Below, among proposals for one key, the one std::sort
+    // leaves first is taken: not the first in this list (the sort is not stable), but
+    // the same for the same list, so the same for any thread count.
     constexpr std::size_t kRun = 256;
     std::vector<std::vector<std::pair<Key, Vec3d>>> run_props((moved.size() + kRun - 1) / kRun);
     parallel(run_props.size(), [&](std::size_t ri) {
