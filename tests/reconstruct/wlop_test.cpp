@@ -370,13 +370,26 @@ WlopAndEdge run_both(const Cloud& in, const Mesh& reference, std::size_t target,
   return r;
 }
 
+// One of the bundled CAD parts (tests/data/consolidation/NAME.off) and n points
+// sampled unevenly from it with 0.3 % of its diagonal as noise.
+struct SampledPart {
+  Mesh mesh;
+  double dbb;
+  Cloud in;
+};
+SampledPart sampled_part(const char* name, int n, unsigned seed) {
+  SampledPart s;
+  s.mesh = read_mesh(test::source_dir() / "tests/data/consolidation" / (std::string(name) + ".off"));
+  s.dbb = bounding_box(s.mesh.vertices).diagonal();
+  s.in = noisy_uneven_sample(s.mesh, n, 0.003 * s.dbb, seed);
+  return s;
+}
+
 TEST(EdgeWlop, SharperThanWlopOnFandisk) {
   // Hoppe's fandisk (tests/data/consolidation/README.md), 20k points sampled
   // unevenly with 0.3 % noise, consolidated to 4000 at the default h.
-  const Mesh fandisk = read_mesh(test::source_dir() / "tests/data/consolidation/fandisk.off");
-  const double dbb = bounding_box(fandisk.vertices).diagonal();
-  const Cloud in = noisy_uneven_sample(fandisk, 20000, 0.003 * dbb, 23);
-  const WlopAndEdge r = run_both(in, fandisk, 4000, 0, "fandisk 20k -> 4k");
+  const SampledPart fandisk = sampled_part("fandisk", 20000, 23);
+  const WlopAndEdge r = run_both(fandisk.in, fandisk.mesh, 4000, 0, "fandisk 20k -> 4k");
   ASSERT_GT(r.ee.count, 1000u);
   EXPECT_LT(r.ee.mean, 0.75 * r.ew.mean) << r.ew.mean << " vs " << r.ee.mean;
   EXPECT_LT(r.acc_e, r.acc_in);
@@ -388,10 +401,8 @@ TEST(EdgeWlop, FandiskAtTheIssuesSetting) {
   // The issue's literal setting: 100k points (uneven, 0.3 % noise) to 20,000 at the
   // default h. Plain WLOP's accuracy with the whole E2 is about twice the input's here
   // (its drift off the surface; --repulsion tangential removes it).
-  const Mesh fandisk = read_mesh(test::source_dir() / "tests/data/consolidation/fandisk.off");
-  const double dbb = bounding_box(fandisk.vertices).diagonal();
-  const Cloud in = noisy_uneven_sample(fandisk, 100000, 0.003 * dbb, 41);
-  const WlopAndEdge r = run_both(in, fandisk, 20000, 0, "fandisk 100k -> 20k");
+  const SampledPart fandisk = sampled_part("fandisk", 100000, 41);
+  const WlopAndEdge r = run_both(fandisk.in, fandisk.mesh, 20000, 0, "fandisk 100k -> 20k");
   ASSERT_GT(r.ee.count, 5000u);
   EXPECT_LT(r.ee.mean, 0.75 * r.ew.mean);
   EXPECT_LT(r.acc_e, r.acc_in);
@@ -407,10 +418,8 @@ TEST(EdgeWlop, SharperThanWlopOnBlade) {
   // the default h of the issue's 100k-point sample. At this input's own default h
   // (3.7, over 5 times the thickness) E1 mixes both faces and the rim and both
   // methods lose evenness (docs/consolidation.md).
-  const Mesh blade = read_mesh(test::source_dir() / "tests/data/consolidation/blade.off");
-  const double dbb = bounding_box(blade.vertices).diagonal();
-  const Cloud in = noisy_uneven_sample(blade, 20000, 0.003 * dbb, 24);
-  const WlopAndEdge r = run_both(in, blade, 4000, 4 * dbb / std::sqrt(100000.0), "blade 20k -> 4k");
+  const SampledPart blade = sampled_part("blade", 20000, 24);
+  const WlopAndEdge r = run_both(blade.in, blade.mesh, 4000, 4 * blade.dbb / std::sqrt(100000.0), "blade 20k -> 4k");
   ASSERT_GT(r.ee.count, 1000u);
   EXPECT_LT(r.ee.mean, 0.75 * r.ew.mean) << r.ew.mean << " vs " << r.ee.mean;
   // Edge-WLOP keeps the input's accuracy here (within 3 %) rather than improving
@@ -428,11 +437,9 @@ TEST(EdgeWlop, BladeAtTheIssuesSetting) {
   // WLOP's own beta = theta / r keeps them apart (docs/consolidation.md, "The
   // repulsion weight beta"). Plain WLOP's accuracy with the whole E2 is about twice
   // the input's (its drift off the surface; --repulsion tangential removes it).
-  const Mesh blade = read_mesh(test::source_dir() / "tests/data/consolidation/blade.off");
-  const double dbb = bounding_box(blade.vertices).diagonal();
-  const Cloud in = noisy_uneven_sample(blade, 100000, 0.003 * dbb, 24);
+  const SampledPart blade = sampled_part("blade", 100000, 24);
   // h = 0: the default, 4 d_bb / sqrt(100000) with d_bb of the noisy input.
-  const WlopAndEdge r = run_both(in, blade, 20000, 0, "blade 100k -> 20k");
+  const WlopAndEdge r = run_both(blade.in, blade.mesh, 20000, 0, "blade 100k -> 20k");
   ASSERT_EQ(r.e.output_points, 20000u);
   ASSERT_GT(r.ee.count, 5000u);
   EXPECT_LT(r.ee.mean, 0.75 * r.ew.mean);
