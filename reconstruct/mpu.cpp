@@ -799,7 +799,9 @@ MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
 
 double suggest_epsilon0(const Cloud& cloud, int k, double factor) {
   if (k < 10 || !(factor > 0)) throw InvalidInput("suggest_epsilon0: k >= 10 and factor > 0 needed");
-  if (int(cloud.size()) < k) throw InvalidInput("suggest_epsilon0: fewer than k points");
+  if (int(cloud.size()) < k)
+    throw InvalidInput("suggest_epsilon0: " + std::to_string(cloud.size()) + " points, fewer than the " +
+                       std::to_string(k) + " needed to estimate the noise level");
   if (!all_finite(cloud.points)) throw InvalidInput("suggest_epsilon0: non-finite point coordinates");
   const Aabb box = bounding_box(cloud.points);
   const double side = (box.max - box.min).cast<double>().maxCoeff();

@@ -914,6 +914,10 @@ void prepare(const Mesh& template_mesh, const Cloud& target_in, const SdmParams&
                        " control points, at least " + std::to_string(need) +
                        " needed for a template of " + std::to_string(nv) + " vertices");
   if (!all_finite(target_in.points)) throw InvalidInput("target: non-finite coordinates");
+  {
+    const Aabb tb = bounding_box(target_in.points);
+    if (!((tb.max - tb.min).maxCoeff() > 0)) throw InvalidInput("target: all points coincide");
+  }
   if (!params.selection_weights.empty()) {
     if (params.selection_weights.size() != target_in.size())
       throw InvalidInput("sdm: selection_weights must hold one weight per control point");

@@ -5,7 +5,9 @@
 
 #include <CLI/CLI.hpp>
 #include <Eigen/Geometry>
+#include <algorithm>
 #include <atomic>
+#include <cctype>
 #include <chrono>
 #include <csignal>
 #include <unistd.h>
@@ -106,6 +108,41 @@ void print_summary(JsonObject j) {
 
 double seconds_since(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+// The library names the data it complains about by role ("target: 3 control points...",
+// "mesh: empty", "suggest_epsilon0: 3 points..."); at the command line the message must
+// name the file. A message that already names the input or the output, or an option
+// ("--..."), stays as it is; one that starts with a role in `roles` names that role's
+// file; any other names the input.
+template <class Fn>
+int naming_the_file(const std::string& in, const std::string& out, Fn&& fn,
+                    const std::vector<std::pair<std::string, std::string>>& roles = {}) {
+  try {
+    return fn();
+  } catch (const InvalidInput& e) {
+    const std::string what = e.what();
+    const auto names = [&](const std::string& path) { return !path.empty() && what.find(path) != std::string::npos; };
+    if (what.rfind("--", 0) == 0 || names(in) || names(out)) throw;
+    std::string file = in;
+    for (const auto& [role, path] : roles)
+      if (what.rfind(role, 0) == 0) file = path;
+    if (file.empty() || names(file)) throw;
+    throw InvalidInput(file + ": " + what);
+  }
+}
+
+// An output's format is checked before the work, not after it: `kind` names what is
+// written ("a cloud", "a mesh"), `exts` the lower-case extensions it can be written as.
+void check_output_name(const std::string& out, const char* kind, std::initializer_list<const char*> exts) {
+  std::string ext = fs::path(out).extension().string();
+  std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char ch) { return char(std::tolower(ch)); });
+  std::string list;
+  for (const char* e : exts) {
+    if (ext == e) return;
+    list += std::string(list.empty() ? "" : " or ") + e;
+  }
+  throw InvalidInput(out + ": " + kind + " is written as " + list + "; name the output that way");
 }
 
 DeviceRegistry make_registry() {
@@ -703,6 +740,7 @@ struct RegisterArgs {
 };
 
 int cmd_register(const Common& c, const RegisterArgs& a) {
+  check_output_name(a.out, "a cloud", {".ply"});
   std::vector<std::string> overrides;
   if (!a.objective.empty()) overrides.push_back("register.objective=" + a.objective);
   if (a.no_global) overrides.push_back("register.global=false");
@@ -840,6 +878,7 @@ struct FitArgs {
 
 int cmd_fit(const Common& c, const FitArgs& a) {
   const auto t0 = std::chrono::steady_clock::now();
+  check_output_name(a.out, "a mesh", {".ply", ".obj"});
   StationConfig cfg = load_common(c);
   auto threads = limit_threads(cfg.threads);
   const Cloud target = read_cloud(a.in);
@@ -983,6 +1022,7 @@ struct ConsolidateArgs {
 
 int cmd_consolidate(const Common& c, const ConsolidateArgs& a) {
   const auto t0 = std::chrono::steady_clock::now();
+  check_output_name(a.out, "a cloud", {".ply"});
   StationConfig cfg = load_common(c);
   const Cloud input = read_cloud(a.in);
   const double t_read = seconds_since(t0);
@@ -1046,6 +1086,7 @@ struct ReconstructArgs {
 
 int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
   const auto t0 = std::chrono::steady_clock::now();
+  check_output_name(a.out, "a mesh", {".ply", ".obj"});
   StationConfig cfg = load_common(c);
   Cloud input = read_cloud(a.in);
   const double t_read = seconds_since(t0);
@@ -1393,10 +1434,12 @@ int run_cli(int argc, char** argv) {
       return cmd_eval(c_eval, eval_a, eval_b, eval_samples, eval_seed, eval_pm);
     }
     if (*import) return cmd_import(c_import, import_args);
-    if (*cons) return cmd_consolidate(c_cons, cons_args);
-    if (*rec) return cmd_reconstruct(c_rec, rec_args);
-    if (*fitc) return cmd_fit(c_fit, fit_args);
-    if (*parc) return cmd_parameterise(c_par, par_args);
+    if (*cons) return naming_the_file(cons_args.in, cons_args.out, [&] { return cmd_consolidate(c_cons, cons_args); });
+    if (*rec) return naming_the_file(rec_args.in, rec_args.out, [&] { return cmd_reconstruct(c_rec, rec_args); });
+    if (*fitc)
+      return naming_the_file(fit_args.in, fit_args.out, [&] { return cmd_fit(c_fit, fit_args); },
+                             {{"template:", fit_args.templ}, {"landmark ", fit_args.landmarks}});
+    if (*parc) return naming_the_file(par_args.in, par_args.out, [&] { return cmd_parameterise(c_par, par_args); });
     if (*reg) return cmd_register(c_reg, reg_args);
     if (*cal_tt) return cmd_calibrate_turntable(c_cal, cal_session, cal_out);
     if (*cal_cam) return cmd_calibrate_camera(c_cam, cam_images, cam_board, cam_square, cam_out);

@@ -312,6 +312,10 @@ TEST(Sdm, BadInputIsRefusedClearly) {
   Cloud nan = target;
   nan.points[7].x() = std::nanf("");
   EXPECT_NE(message(sphere, nan).find("non-finite"), std::string::npos);
+  // Every control point at one place: the template would collapse onto it.
+  Cloud same = target;
+  for (Vec3f& q : same.points) q = Vec3f(1, 2, 3);
+  EXPECT_NE(message(sphere, same).find("all points coincide"), std::string::npos);
   // Landmarks out of range / pinned twice.
   EXPECT_NE(message(sphere, target, {{100000, Vec3f::Zero()}}).find("landmark 0"), std::string::npos);
   EXPECT_NE(message(sphere, target, {{1, Vec3f::Zero()}, {1, Vec3f::Ones()}}).find("landmark 1"),

@@ -371,6 +371,35 @@ TEST(Cli, BadInputGivesOneLineErrorsNamingTheCulprit) {
 
   r = run("scan --views 0");
   EXPECT_EQ(r.code, 2);
+
+  // The library's complaints about a cloud name its file at the command line, and an
+  // output that cannot be written in its format is refused before the work; neither
+  // leaves an output behind.
+  const auto write_cloud = [&](const std::string& name, const char* rows) {
+    std::ofstream t((dir / name).string());
+    t << "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+         "end_header\n"
+      << rows;
+    return (dir / name).string();
+  };
+  const std::string tiny = write_cloud("tiny.ply", "0 0 0\n1 0 0\n0 1 0\n");
+  const std::string same = write_cloud("same.ply", "1 2 3\n1 2 3\n1 2 3\n");
+  for (const auto& [cmd, in] : {std::pair<std::string, std::string>{"reconstruct", tiny}, {"fit", tiny},
+                                {"consolidate --method edge-wlop", same}}) {
+    const std::string out = (dir / "out.ply").string();
+    r = run(cmd + " --json " + in + " -o " + out);
+    EXPECT_EQ(r.code, 1) << cmd;
+    EXPECT_EQ(r.out.rfind("station: " + in + ": ", 0), 0u) << cmd << ": " << r.out;
+    EXPECT_EQ(std::count(r.out.begin(), r.out.end(), '\n'), 1) << cmd << ": " << r.out;
+    EXPECT_FALSE(std::filesystem::exists(out)) << cmd;
+  }
+  for (const std::string cmd : {"consolidate", "reconstruct"}) {
+    const std::string out = (dir / "out.xyz").string();
+    r = run(cmd + " " + repo("data/mustard_bottle/textured.obj") + " -o " + out);
+    EXPECT_EQ(r.code, 1) << cmd;
+    EXPECT_NE(r.out.find(out + ": a "), std::string::npos) << cmd << ": " << r.out;
+    EXPECT_FALSE(std::filesystem::exists(out)) << cmd;
+  }
 }
 
 TEST(Cli, ExistingSessionIsNeverOverwritten) {
