@@ -272,6 +272,15 @@ int run_job(const StationConfig& cfg, const Common& c, const RunArgs& a) {
     std::printf("mesh: %s\n", r.mesh.c_str());
     if (!r.report.empty()) std::printf("report: %s\n", r.report.c_str());
   }
+  // Views that failed registration (named by the register stage's warnings, also when
+  // it was reused) make a partial result, as for `station register`.
+  for (const StageRecord& s : r.stages)
+    if (s.name == "register" && s.figures.count("failed_views") && s.figures.at("failed_views") > 0) {
+      if (!c.json)
+        std::fprintf(stderr, "run: %.0f of %.0f views failed registration; the mesh is made from the others\n",
+                     s.figures.at("failed_views"), s.figures.count("views") ? s.figures.at("views") : 0.0);
+      return 3;
+    }
   return 0;
 }
 

@@ -402,6 +402,27 @@ TEST(Cli, BadInputGivesOneLineErrorsNamingTheCulprit) {
   }
 }
 
+// A view that cannot be read fails alone: `run` makes the mesh from the others and
+// exits 3 (a partial result, as `register` does), also when the register stage is reused.
+TEST(Cli, RunWithABrokenViewIsAPartialResult) {
+  test::TempDir dir;
+  const std::string sess = (dir / "s").string(), out = (dir / "run").string();
+  ASSERT_EQ(run("scan -o " + sess + " --views 12 --set width=320 --set height=240").code, 0);
+  {
+    std::ofstream bad(sess + "/view_002.ply", std::ios::trunc);
+    bad << "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\n"
+           "end_header\nnan nan nan\n";
+  }
+  const std::string small = " --set consolidate.points=3000 --set reconstruct.resolution=48";
+  CmdResult r = run("run " + sess + " -o " + out + small);
+  EXPECT_EQ(r.code, 3) << r.out;
+  EXPECT_NE(r.out.find("view_002.ply"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("1 of 12 views failed registration"), std::string::npos) << r.out;
+  EXPECT_TRUE(std::filesystem::exists(out + "/mesh.ply"));
+  r = run("run " + sess + " -o " + out + small + " --resume --json");
+  EXPECT_EQ(r.code, 3) << r.out;
+}
+
 TEST(Cli, ExistingSessionIsNeverOverwritten) {
   test::TempDir dir;
   const std::string out = (dir / "s").string();
