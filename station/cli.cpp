@@ -1440,7 +1440,9 @@ int run_cli(int argc, char** argv) {
     if (*replay) return cmd_replay(c_replay, replay_src, replay_out);
     if (*eval) {
       if (eval_pm.edge_radius > 0) eval_pm.enabled = true;
-      return cmd_eval(c_eval, eval_a, eval_b, eval_samples, eval_seed, eval_pm);
+      // A's points are what the metrics measure: a complaint without a role names A.
+      return naming_the_file(eval_a, eval_b, [&] { return cmd_eval(c_eval, eval_a, eval_b, eval_samples, eval_seed, eval_pm); },
+                             {{"A:", eval_a}, {"B:", eval_b}});
     }
     if (*import) return cmd_import(c_import, import_args);
     if (*cons) return naming_the_file(cons_args.in, cons_args.out, [&] { return cmd_consolidate(c_cons, cons_args); });

@@ -393,6 +393,17 @@ TEST(Cli, BadInputGivesOneLineErrorsNamingTheCulprit) {
     EXPECT_EQ(std::count(r.out.begin(), r.out.end(), '\n'), 1) << cmd << ": " << r.out;
     EXPECT_FALSE(std::filesystem::exists(out)) << cmd;
   }
+  const std::string none = (dir / "none.ply").string();
+  {
+    std::ofstream t(none);
+    t << "ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\nproperty float z\n"
+         "end_header\n";
+  }
+  for (const std::string& args : {none + " " + tiny, tiny + " " + none}) {
+    r = run("eval " + args);
+    EXPECT_EQ(r.code, 1) << args;
+    EXPECT_EQ(r.out.rfind("station: " + none + ": ", 0), 0u) << r.out;
+  }
   for (const std::string cmd : {"consolidate", "reconstruct"}) {
     const std::string out = (dir / "out.xyz").string();
     r = run(cmd + " " + repo("data/mustard_bottle/textured.obj") + " -o " + out);
