@@ -294,14 +294,31 @@ int capture_into(Session& session, Scanner& scanner, Turntable& turntable,
                  std::chrono::steady_clock::time_point t0) {
   Progress bar(command, params.views, c.json);
   std::signal(SIGINT, on_sigint);
-  CaptureResult res = run_capture(
-      scanner, turntable, session, params,
-      [&](const CaptureProgress& p) {
-        char note[96];
-        std::snprintf(note, sizeof note, "view %d at %.1f deg: %zu points", p.view, p.angle_deg, p.points);
-        bar.update(p.view + 1, note);
-      },
-      &g_stop);
+  CaptureResult res;
+  try {
+    res = run_capture(
+        scanner, turntable, session, params,
+        [&](const CaptureProgress& p) {
+          char note[96];
+          std::snprintf(note, sizeof note, "view %d at %.1f deg: %zu points", p.view, p.angle_deg, p.points);
+          bar.update(p.view + 1, note);
+        },
+        &g_stop);
+  } catch (const Error& e) {
+    std::signal(SIGINT, SIG_DFL);
+    // The views recorded before the failure are in the session (each one committed to
+    // its manifest as it came): say so, and how to go on.
+    const std::size_t kept = session.manifest().views.size();
+    std::string next = "; the " + std::to_string(kept) + " views recorded before it are kept in " +
+                       session.dir().string();
+    if (std::string(command) == "scan")
+      next += ": continue with: station scan --resume -o " + session.dir().string();
+    if (kept == 0) next = "; nothing was recorded in " + session.dir().string();
+    if (dynamic_cast<const DeviceError*>(&e)) throw DeviceError(e.what() + next);
+    if (dynamic_cast<const IoError*>(&e)) throw IoError(e.what() + next);
+    if (dynamic_cast<const FormatError*>(&e)) throw FormatError(e.what() + next);
+    throw InvalidInput(e.what() + next);
+  }
   std::signal(SIGINT, SIG_DFL);
   scanner.close();
   turntable.close();

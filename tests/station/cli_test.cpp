@@ -432,6 +432,13 @@ TEST(Cli, RunWithABrokenViewIsAPartialResult) {
   EXPECT_TRUE(std::filesystem::exists(out + "/mesh.ply"));
   r = run("run " + sess + " -o " + out + small + " --resume --json");
   EXPECT_EQ(r.code, 3) << r.out;
+  // Replaying the recording stops at the broken view; the message says what is kept.
+  const std::string again = (dir / "again").string();
+  r = run("replay " + sess + " -o " + again);
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_NE(r.out.find("view_002.ply"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("the 2 views recorded before it are kept in " + again), std::string::npos) << r.out;
+  EXPECT_EQ(read_manifest(again).views.size(), 2u);
 }
 
 TEST(Cli, ExistingSessionIsNeverOverwritten) {
