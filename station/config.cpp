@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <map>
 
 #include "core/error.h"
 #include "drivers/registry.h"
@@ -19,7 +20,14 @@ namespace fs = std::filesystem;
 
 struct Reader {
   std::string file;
+  /// The keys given on the command line (dotted key -> "key=value" of --set): a bad
+  /// value there is the option's fault, not the profile's.
+  std::map<std::string, std::string> overridden;
   [[noreturn]] void fail(const std::string& key, const std::string& what) const {
+    const std::string bare = key.substr(0, key.find('['));
+    for (const auto& [k, kv] : overridden)
+      if (k == bare || k.rfind(bare + ".", 0) == 0)
+        throw InvalidInput("--set " + kv + ": " + (k == key ? "" : key + ": ") + what);
     throw FormatError(file + ": " + key + ": " + what);
   }
   double number(const YAML::Node& n, const std::string& key) const {
@@ -241,7 +249,7 @@ fs::path default_config_path() {
 StationConfig load_config(const fs::path& path, const std::vector<std::string>& overrides) {
   StationConfig cfg;
   cfg.source = path;
-  Reader r{path.empty() ? std::string("built-in profile") : path.string()};
+  Reader r{path.empty() ? std::string("built-in profile") : path.string(), {}};
   YAML::Node root;
   if (!path.empty()) {
     try {
@@ -253,7 +261,10 @@ StationConfig load_config(const fs::path& path, const std::vector<std::string>& 
       throw IoError(path.string() + ": cannot read");
     }
   }
-  for (const std::string& kv : overrides) apply_override(root, kv);
+  for (const std::string& kv : overrides) {
+    apply_override(root, kv);
+    r.overridden[kv.substr(0, kv.find('='))] = kv;
+  }
   if (root.IsNull()) return cfg;
   r.check_keys(root, "", {"scanner", "turntable", "capture", "register", "consolidate", "reconstruct",
                           "sdm", "threads"});

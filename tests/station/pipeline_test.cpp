@@ -260,15 +260,15 @@ TEST(Profile, OverridesAreValidatedLikeTheFileAndNameTheKey) {
     }
     return std::string("no error");
   };
-  EXPECT_NE(message("reconstruct.resolutoin=5").find("reconstruct.resolutoin: unknown key"), std::string::npos);
-  EXPECT_NE(message("reconstruct.resolution=2").find("reconstruct.resolution: must be 8..4096"), std::string::npos);
+  EXPECT_NE(message("reconstruct.resolutoin=5").find("--set reconstruct.resolutoin=5: unknown key"), std::string::npos);
+  EXPECT_NE(message("reconstruct.resolution=2").find("--set reconstruct.resolution=2: must be 8..4096"), std::string::npos);
   EXPECT_NE(message("reconstruct.hole=maybe").find("reconstruct.hole"), std::string::npos);
-  EXPECT_NE(message("consolidate.ratio=abc").find("consolidate.ratio: not a number"), std::string::npos);
-  EXPECT_NE(message("nosuch.key=1").find("nosuch: unknown key"), std::string::npos);
-  EXPECT_NE(message("register.objective=sideways").find("register.objective: must be"), std::string::npos);
+  EXPECT_NE(message("consolidate.ratio=abc").find("--set consolidate.ratio=abc: not a number"), std::string::npos);
+  EXPECT_NE(message("nosuch.key=1").find("--set nosuch.key=1: nosuch: unknown key"), std::string::npos);
+  EXPECT_NE(message("register.objective=sideways").find("--set register.objective=sideways: must be"), std::string::npos);
   EXPECT_NE(message("register.global=perhaps").find("register.global"), std::string::npos);
-  EXPECT_NE(message("register.fuse_distance=-1").find("register.fuse_distance: must be"), std::string::npos);
-  EXPECT_NE(message("register.rigid_turntable=maybe").find("register.rigid_turntable: must be auto, on or off"),
+  EXPECT_NE(message("register.fuse_distance=-1").find("--set register.fuse_distance=-1: must be"), std::string::npos);
+  EXPECT_NE(message("register.rigid_turntable=maybe").find("--set register.rigid_turntable=maybe: must be auto, on or off"),
             std::string::npos);
   EXPECT_EQ(registration_params(load_config(profile, {"register.rigid_turntable=off"}).pipeline).rigid_turntable,
             RigidTurntable::kOff);
@@ -281,10 +281,26 @@ TEST(Profile, OverridesAreValidatedLikeTheFileAndNameTheKey) {
   EXPECT_EQ(g.pipeline.reg.fuse_distance, 0.0005);
   EXPECT_TRUE(registration_params(g.pipeline).fuse);
   EXPECT_TRUE(g.pipeline.reg.global);
-  EXPECT_NE(message("consolidate.repulsion=sideways").find("consolidate.repulsion: must be"), std::string::npos);
+  EXPECT_NE(message("consolidate.repulsion=sideways").find("--set consolidate.repulsion=sideways: must be"), std::string::npos);
   EXPECT_EQ(load_config(profile, {"consolidate.repulsion=tangential"}).pipeline.consolidate.repulsion, "tangential");
   EXPECT_FALSE(load_config(profile, {"reconstruct.colour_edges=false"}).pipeline.reconstruct.colour_edges);
   EXPECT_NE(message("resolution").find("expected section.key=value"), std::string::npos);
+  // A bad --set names the option, not the profile (the file is fine); the file's own
+  // mistakes still name the file.
+  EXPECT_EQ(message("reconstruct.resolution=2").find(profile.string()), std::string::npos);
+  EXPECT_EQ(message("reconstruct.resolution=2").rfind("--set ", 0), 0u);
+  {
+    test::TempDir dir;
+    const fs::path bad = dir / "bad.yaml";
+    { std::ofstream(bad) << "consolidate:\n  points: -1\n"; }
+    try {
+      load_config(bad, {"reconstruct.resolution=64"});
+      ADD_FAILURE() << "expected an error";
+    } catch (const Error& e) {
+      EXPECT_EQ(std::string(e.what()), bad.string() + ": consolidate.points: must not be negative");
+    }
+  }
+
   // The default profile documents every key it accepts, and loads as is.
   const StationConfig d = load_config(profile);
   EXPECT_EQ(d.pipeline.reconstruct.resolution, 128);
