@@ -1126,20 +1126,49 @@ class Dmc {
       for (Key p : through) spread.emplace_back(p, nodes_.at(p).val < 0 ? 1 : 2);
       // Next wave: the 26 neighbours, each once, with the floods that reached it (mark
       // bits for the thin part's flood, mark2 for the thin gap's); the new points are
-      // entered and evaluated.
-      std::vector<std::int32_t> touched;
-      for (const auto& [p, kind] : spread) {
+      // entered and evaluated. Marked in parallel (bits set atomically; a block is listed
+      // by the caller that set the first bit of one of its masks); the neighbours in
+      // blocks that do not exist yet (few: the walk made the blocks around the surface)
+      // are marked after, serially, their blocks created. The touched blocks are then
+      // taken in block order, so the candidates' order does not depend on the threads
+      // (nothing below depends on it: each candidate reads and writes its own node).
+      auto mark = [&](std::int32_t nb, int nl, std::uint8_t kind, std::vector<std::int32_t>& touched_out) {
+        Lattice::Block& B = nodes_.blk(nb);
+        const std::uint64_t bit = std::uint64_t(1) << nl;
+        if (!(__atomic_fetch_or(kind == 1 ? &B.mark : &B.mark2, bit, __ATOMIC_RELAXED))) touched_out.push_back(nb);
+      };
+      tbb::enumerable_thread_specific<std::vector<std::int32_t>> touched_local;
+      tbb::enumerable_thread_specific<std::vector<std::pair<std::size_t, int>>> missing_local;  // (spread item, q)
+      parallel(spread.size(), [&](std::size_t si) {
+        const auto [p, kind] = spread[si];
         const std::int32_t b = nodes_.block_of(p);
         const int l = Lattice::local(p);
+        std::vector<std::int32_t>& touched_here = touched_local.local();
         for (int q = 0; q < 27; ++q) {
           const int dx = q % 3 - 1, dy = q / 3 % 3 - 1, dz = q / 9 - 1;
           if (q == 13 || !node_in_grid(ki(p) + dx, kj(p) + dy, kk(p) + dz)) continue;
-          const auto [nb, nl] = nodes_.rel_get(b, (l & 3) + dx, (l >> 2 & 3) + dy, (l >> 4) + dz);
-          Lattice::Block& B = nodes_.blk(nb);
-          if (!(B.mark | B.mark2)) touched.push_back(nb);
-          (kind == 1 ? B.mark : B.mark2) |= std::uint64_t(1) << nl;
+          const auto [nb, nl] = nodes_.rel(b, (l & 3) + dx, (l >> 2 & 3) + dy, (l >> 4) + dz);
+          if (nb < 0) {
+            missing_local.local().emplace_back(si, q);
+            continue;
+          }
+          mark(nb, nl, kind, touched_here);
         }
+      });
+      std::vector<std::int32_t> touched;
+      for (const auto& v : touched_local) touched.insert(touched.end(), v.begin(), v.end());
+      std::vector<std::pair<std::size_t, int>> missing;  // in spread order: blocks made as in one serial pass
+      for (const auto& v : missing_local) missing.insert(missing.end(), v.begin(), v.end());
+      std::sort(missing.begin(), missing.end());
+      for (const auto& [si, q] : missing) {
+        const auto [p, kind] = spread[si];
+        const int l = Lattice::local(p);
+        const auto [nb, nl] = nodes_.rel_get(nodes_.block_of(p), (l & 3) + q % 3 - 1, (l >> 2 & 3) + q / 3 % 3 - 1,
+                                             (l >> 4) + q / 9 - 1);
+        mark(nb, nl, kind, touched);
       }
+      std::sort(touched.begin(), touched.end());
+      touched.erase(std::unique(touched.begin(), touched.end()), touched.end());
       cand.clear();
       cand_h.clear();
       cand_by.clear();
@@ -1253,50 +1282,42 @@ class Dmc {
   void prune_islands(std::vector<Key>& moved) {
     constexpr std::size_t kMinIsland = 4;
     std::sort(moved.begin(), moved.end());
-    // A point is in `moved` exactly when its node carries kBary or kGap; `done` by its
-    // place in the sorted list.
-    std::vector<char> done(moved.size(), 0);
-    auto place = [&](Key q) { return std::size_t(std::lower_bound(moved.begin(), moved.end(), q) - moved.begin()); };
-    std::vector<Key> revert;
-    auto neighbours = [&](Key p, std::vector<Key>& out) {
-      out.clear();
-      for (int q = 0; q < 6; ++q) {
-        int d[3] = {ki(p), kj(p), kk(p)};
-        d[q / 2] += q % 2 ? 1 : -1;
-        if (node_in_grid(d[0], d[1], d[2])) out.push_back(key(d[0], d[1], d[2]));
-      }
-    };
-    std::vector<Key> nb;
-    Node tmp;
-    for (std::size_t si = 0; si < moved.size(); ++si) {
+    // Each point on its own, in parallel: a walk over its group (moved points of its
+    // kind, 6-connected) that stops once the group has kMinIsland points or touches an
+    // unmoved point of the new side. A walk that runs out first has seen its whole group,
+    // small and unanchored: the point moves back. The same points as walking each group
+    // once (a point is in `moved` exactly when its node carries kBary or kGap).
+    std::vector<char> back(moved.size(), 0);
+    parallel(moved.size(), [&](std::size_t si) {
       const Key s = moved[si];
-      if (done[si]) continue;
       const std::uint8_t kind = nodes_.at(s).flags & (kBary | kGap);
-      std::vector<Key> comp{s}, stack{s};
-      done[si] = 1;
-      bool anchored = false;
-      while (!stack.empty()) {
-        const Key p = stack.back();
-        stack.pop_back();
-        neighbours(p, nb);
-        for (Key q : nb) {
-          const Node* it = known(q, tmp);
+      Key group[kMinIsland];
+      std::size_t n = 1, next = 0;
+      group[0] = s;
+      Node tmp;
+      while (next < n) {
+        const Key p = group[next++];
+        for (int q = 0; q < 6; ++q) {
+          int d[3] = {ki(p), kj(p), kk(p)};
+          d[q / 2] += q % 2 ? 1 : -1;
+          if (!node_in_grid(d[0], d[1], d[2])) continue;
+          const Key r = key(d[0], d[1], d[2]);
+          const Node* it = known(r, tmp);
           if (it == nullptr) continue;
           if (it->flags & (kBary | kGap)) {
-            if ((it->flags & (kBary | kGap)) != kind) continue;
-            char& seen = done[place(q)];
-            if (!seen) {
-              seen = 1;
-              comp.push_back(q);
-              stack.push_back(q);
-            }
+            if ((it->flags & (kBary | kGap)) != kind || std::find(group, group + n, r) != group + n) continue;
+            if (n + 1 == kMinIsland) return;  // a group this large is a thin part
+            group[n++] = r;
           } else if ((it->val < 0) == (kind == kBary)) {
-            anchored = true;
+            return;  // anchored
           }
         }
       }
-      if (!anchored && comp.size() < kMinIsland) revert.insert(revert.end(), comp.begin(), comp.end());
-    }
+      back[si] = 1;
+    });
+    std::vector<Key> revert;
+    for (std::size_t si = 0; si < moved.size(); ++si)
+      if (back[si]) revert.push_back(moved[si]);
     for (Key p : revert) {
       Node& nd = nodes_.at(p);
       --(nd.flags & kGap ? st_.moved_gap : st_.moved_barycentre);
