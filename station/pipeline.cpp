@@ -388,19 +388,19 @@ class Runner {
     int index = 0;
     if (session_) {
       key = hash_hex(key + register_params(cfg_.pipeline));
-      stage(++index, total, "register", key, "merged.ply", [&](StageRecord& r) { do_register(r); });
+      stage(++index, total, "register", req_.input, key, "merged.ply", [&](StageRecord& r) { do_register(r); });
       cloud_file = req_.out_dir / "merged.ply";
       if (stopped()) return finish_interrupted();
     }
     if (cfg_.pipeline.consolidate.enabled) {
       key = hash_hex(key + consolidate_params(cfg_.pipeline));
-      stage(++index, total, "consolidate", key, "consolidated.ply",
+      stage(++index, total, "consolidate", cloud_file, key, "consolidated.ply",
             [&](StageRecord& r) { do_consolidate(r, cloud_file); });
       cloud_file = req_.out_dir / "consolidated.ply";
       if (stopped()) return finish_interrupted();
     }
     key = hash_hex(key + surface_params(cfg_.pipeline));
-    stage(++index, total, "surface", key, "mesh.ply", [&](StageRecord& r) { do_surface(r, cloud_file); });
+    stage(++index, total, "surface", cloud_file, key, "mesh.ply", [&](StageRecord& r) { do_surface(r, cloud_file); });
     result_.mesh = req_.out_dir / "mesh.ply";
     if (req_.report) {
       say("run: writing the report");
@@ -420,9 +420,10 @@ class Runner {
     if (!req_.quiet) std::fprintf(stderr, "%s\n", line.c_str());
   }
 
+  /// Runs stage `name` on `input` (a cloud or the session), unless its output can be kept.
   template <class F>
-  void stage(int index, int total, const std::string& name, const std::string& key, const std::string& output,
-             F&& work) {
+  void stage(int index, int total, const std::string& name, const fs::path& input, const std::string& key,
+             const std::string& output, F&& work) {
     const fs::path out = req_.out_dir / output;
     if (const StageRecord* old = old_.find(name); old && old->key == key && old->output == output && fs::exists(out)) {
       if (hash_file(out) == old->output_hash) {
@@ -443,7 +444,15 @@ class Runner {
     r.output = output;
     reset_peak_rss();
     const auto t0 = Clock::now();
-    work(r);
+    try {
+      work(r);
+    } catch (const InvalidInput& e) {
+      // The library names its data by role ("fit_mpu: 0 points..."); the run names the
+      // stage's input file, and the stage unless the message starts with it.
+      const std::string what = e.what();
+      if (what.find(input.string()) != std::string::npos) throw;
+      throw InvalidInput(input.string() + ": " + (what.rfind(name + ":", 0) == 0 ? "" : name + ": ") + what);
+    }
     r.seconds = seconds_since(t0);
     r.peak_rss_mb = peak_rss_mb();
     r.output_hash = hash_file(out);

@@ -393,6 +393,10 @@ TEST(Cli, BadInputGivesOneLineErrorsNamingTheCulprit) {
     EXPECT_EQ(std::count(r.out.begin(), r.out.end(), '\n'), 1) << cmd << ": " << r.out;
     EXPECT_FALSE(std::filesystem::exists(out)) << cmd;
   }
+  // The run names the stage and its input.
+  r = run("run --quiet " + same + " -o " + (dir / "run_same").string());
+  EXPECT_EQ(r.code, 1);
+  EXPECT_EQ(r.out.rfind("station: " + same + ": consolidate: ", 0), 0u) << r.out;
   const std::string none = (dir / "none.ply").string();
   {
     std::ofstream t(none);
