@@ -9,6 +9,7 @@
 #include <cstdio>
 
 #include "core/error.h"
+#include "core/texture.h"
 
 namespace station {
 
@@ -29,8 +30,10 @@ CameraCalibration calibrate_camera(const std::vector<fs::path>& images, const Ch
   for (const fs::path& file : images) {
     CameraImageResult res;
     res.file = file.string();
-    if (!fs::exists(file)) throw IoError(file.string() + ": cannot open: no such file");
-    const cv::Mat img = cv::imread(file.string(), cv::IMREAD_GRAYSCALE);
+    const std::string bytes = read_image_file(file);
+    const cv::Mat img = bytes.empty() ? cv::Mat()
+                                      : cv::imdecode(cv::Mat(1, int(bytes.size()), CV_8U, const_cast<char*>(bytes.data())),
+                                                     cv::IMREAD_GRAYSCALE);
     if (img.empty()) throw FormatError(file.string() + ": not a readable image");
     if (size.width == 0) size = img.size();
     if (img.size() != size)

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <string_view>
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
@@ -10,9 +11,25 @@
 
 namespace station {
 
+std::string read_image_file(const fs::path& path) {
+  std::string bytes = read_file_bytes(path);
+  const auto starts = [&](std::string_view magic) { return bytes.compare(0, magic.size(), magic) == 0; };
+  // Markers are looked for in the last KiB: some writers pad after them.
+  const auto ends_with = [&](std::string_view marker) {
+    return bytes.find(marker, bytes.size() > 1024 ? bytes.size() - 1024 : 0) != std::string::npos;
+  };
+  if (starts("\xFF\xD8") && !ends_with("\xFF\xD9"))
+    throw FormatError(path.string() + ": truncated JPEG (no end-of-image marker)");
+  if (starts("\x89PNG\r\n\x1A\n") && !ends_with("IEND"))
+    throw FormatError(path.string() + ": truncated PNG (no IEND chunk)");
+  return bytes;
+}
+
 Texture load_texture(const fs::path& path) {
-  cv::Mat bgr = cv::imread(path.string(), cv::IMREAD_COLOR);
-  if (bgr.empty()) throw IoError(path.string() + ": cannot read the texture image");
+  const std::string bytes = read_image_file(path);
+  const cv::Mat encoded(1, int(bytes.size()), CV_8U, const_cast<char*>(bytes.data()));
+  cv::Mat bgr = bytes.empty() ? cv::Mat() : cv::imdecode(encoded, cv::IMREAD_COLOR);
+  if (bgr.empty()) throw FormatError(path.string() + ": not a readable image");
   cv::Mat rgb;
   cv::cvtColor(bgr, rgb, cv::COLOR_BGR2RGB);
   Texture t;

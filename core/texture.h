@@ -3,6 +3,7 @@
 // OpenCV decodes the image; it stays out of this header.
 #include <cstdint>
 #include <filesystem>
+#include <string>
 #include <vector>
 
 #include "core/io.h"
@@ -17,8 +18,15 @@ struct Texture {
 };
 
 /// Loads a texture image (PNG, JPEG, ...) as RGB; IoError naming the path when it
-/// cannot be read or decoded.
+/// cannot be read, FormatError when it is truncated (read_image_file) or cannot be
+/// decoded.
 Texture load_texture(const std::filesystem::path& path);
+
+/// The bytes of an image file, for a decoder: IoError naming the path when it cannot
+/// be read, FormatError when a JPEG or PNG is cut short (no end-of-image marker or IEND
+/// chunk near its end). Decoders fill a cut image with grey and say nothing, so the
+/// check is made here, before them.
+std::string read_image_file(const std::filesystem::path& path);
 
 /// Bilinear texture lookup with wrap-around addressing. Texel (column i, row j)
 /// has its centre at u = (i + 0.5) / width, v = 1 - (j + 0.5) / height, i.e.

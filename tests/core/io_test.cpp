@@ -13,6 +13,7 @@
 #include <unordered_map>
 
 #include "core/error.h"
+#include "core/texture.h"
 #include "test_util.h"
 
 namespace station {
@@ -708,6 +709,29 @@ TEST(IoFiles, WriteMeshChecksExtension) {
   EXPECT_NE(msg.find("a.stl"), std::string::npos);
   EXPECT_FALSE(fs::exists(dir / "a.stl"));
   EXPECT_THROW(write_mesh(dir / "missing" / "a.ply", m), IoError);
+}
+
+// Decoders fill a cut JPEG or PNG with grey and report nothing: a texture or a camera
+// image cut short must be an error naming the file, not wrong colours.
+TEST(Texture, TruncatedImagesAreRefusedNamingTheFile) {
+  test::TempDir dir;
+  for (const char* rel : {"data/mustard_bottle/texture_map.jpg", "tests/data/kinect_frames/frame0_depth.png"}) {
+    const std::string whole = read_file_bytes(test::source_dir() / rel);
+    const fs::path cut = dir / (std::string("cut") + fs::path(rel).extension().string());
+    { std::ofstream(cut, std::ios::binary) << whole.substr(0, whole.size() / 2); }
+    EXPECT_EQ(read_image_file(test::source_dir() / rel).size(), whole.size());
+    try {
+      load_texture(cut);
+      ADD_FAILURE() << rel << ": a cut image loaded";
+    } catch (const FormatError& e) {
+      EXPECT_NE(std::string(e.what()).find(cut.string() + ": truncated"), std::string::npos) << e.what();
+    }
+  }
+  const Texture t = load_texture(test::source_dir() / "data/mustard_bottle/texture_map.jpg");
+  EXPECT_FALSE(t.empty());
+  EXPECT_THROW(load_texture(dir / "missing.jpg"), IoError);
+  { std::ofstream(dir / "junk.png", std::ios::binary) << "not an image at all"; }
+  EXPECT_THROW(load_texture(dir / "junk.png"), FormatError);
 }
 
 }  // namespace
