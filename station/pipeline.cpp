@@ -367,10 +367,18 @@ class Runner {
     session_ = is_session(req_.input);
     result_.session = session_;
     std::error_code ec;
+    const fs::path state_file = req_.out_dir / kStateFile;
+    // The run writes merged.ply, mesh.ply, report.html... into its folder: never into a
+    // session (a scan's own merged.ply would be replaced) or over files it did not write.
+    if (fs::is_directory(req_.out_dir, ec) && !fs::exists(state_file, ec)) {
+      if (is_session(req_.out_dir))
+        throw InvalidInput(req_.out_dir.string() + ": holds a scan session; write the run to another folder");
+      if (fs::directory_iterator(req_.out_dir, ec) != fs::directory_iterator())
+        throw InvalidInput(req_.out_dir.string() + ": not empty and not a run folder; choose another folder");
+    }
     fs::create_directories(req_.out_dir, ec);
     if (ec || !fs::is_directory(req_.out_dir))
       throw IoError(req_.out_dir.string() + ": cannot create the run folder" + (ec ? ": " + ec.message() : ""));
-    const fs::path state_file = req_.out_dir / kStateFile;
     if (fs::exists(state_file)) {
       if (!req_.resume)
         throw InvalidInput(req_.out_dir.string() +

@@ -204,6 +204,29 @@ TEST_F(PipelineTest, ACloudRunsWithoutRegistration) {
   EXPECT_TRUE(res.report.empty());
 }
 
+// The run's folder never is the session's (the scan's own merged.ply would be
+// replaced), nor a folder holding files the run did not write.
+TEST_F(PipelineTest, TheRunWritesNeitherIntoASessionNorOverOtherFiles) {
+  const std::string merged = read_file_bytes(session() / "merged.ply");
+  try {
+    run_pipeline(config(), request(session()));
+    FAIL() << "ran into the session";
+  } catch (const InvalidInput& e) {
+    EXPECT_NE(std::string(e.what()).find("holds a scan session"), std::string::npos) << e.what();
+  }
+  EXPECT_EQ(read_file_bytes(session() / "merged.ply"), merged);
+  EXPECT_FALSE(fs::exists(session() / "run.yaml"));
+  test::TempDir out("station-run");
+  { std::ofstream(out.path() / "mesh.ply") << "someone else's"; }
+  try {
+    run_pipeline(config(), request(out.path()));
+    FAIL() << "ran over another file";
+  } catch (const InvalidInput& e) {
+    EXPECT_NE(std::string(e.what()).find("not empty and not a run folder"), std::string::npos) << e.what();
+  }
+  EXPECT_EQ(read_file_bytes(out.path() / "mesh.ply"), "someone else's");
+}
+
 TEST_F(PipelineTest, SdmSurfaceGivesTheTemplatesConnectivity) {
   test::TempDir out("station-run");
   RunRequest r = request(out.path());
