@@ -132,9 +132,34 @@ int naming_the_file(const std::string& in, const std::string& out, Fn&& fn,
   }
 }
 
+// An output never replaces a recording: the manifest, a view file or a view's colour
+// image of a session in any folder above it (all checked before the work).
+void check_not_a_recording(const std::string& out) {
+  if (out.empty()) return;
+  std::error_code ec;
+  const fs::path p = fs::absolute(out, ec).lexically_normal();
+  for (fs::path dir = p.parent_path();; dir = dir.parent_path()) {
+    const fs::path manifest = dir / kManifestName;
+    if (fs::is_regular_file(manifest, ec)) {
+      bool recorded = p == manifest;
+      try {
+        for (const ViewRecord& v : manifest_from_yaml(read_file_bytes(manifest), manifest.string()).views)
+          recorded = recorded || p == (dir / v.file).lexically_normal() ||
+                     (!v.color_image.empty() && p == (dir / v.color_image).lexically_normal());
+      } catch (const Error&) {
+        // An unreadable manifest lists nothing to compare with; the manifest itself is guarded.
+      }
+      if (recorded)
+        throw InvalidInput(out + ": part of the session recorded in " + dir.string() + "; write the output elsewhere");
+    }
+    if (dir.empty() || dir == dir.root_path()) break;
+  }
+}
+
 // An output's format is checked before the work, not after it: `kind` names what is
 // written ("a cloud", "a mesh"), `exts` the lower-case extensions it can be written as.
 void check_output_name(const std::string& out, const char* kind, std::initializer_list<const char*> exts) {
+  check_not_a_recording(out);
   std::string ext = fs::path(out).extension().string();
   std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char ch) { return char(std::tolower(ch)); });
   std::string list;
@@ -767,6 +792,7 @@ struct RegisterArgs {
 
 int cmd_register(const Common& c, const RegisterArgs& a) {
   check_output_name(a.out, "a cloud", {".ply"});
+  check_not_a_recording(a.poses_out);
   std::vector<std::string> overrides;
   if (!a.objective.empty()) overrides.push_back("register.objective=" + a.objective);
   if (a.no_global) overrides.push_back("register.global=false");
@@ -801,6 +827,7 @@ int cmd_register(const Common& c, const RegisterArgs& a) {
 }
 
 int cmd_calibrate_turntable(const Common& c, const std::string& session_dir, const std::string& out) {
+  check_not_a_recording(out);
   StationConfig cfg = load_common(c);
   auto threads = limit_threads(cfg.threads);
   const Session session = Session::open(session_dir);
@@ -863,6 +890,7 @@ std::string fmt_double(double v) {
 
 int cmd_calibrate_camera(const Common& c, const std::vector<std::string>& images, const std::string& board,
                          double square, const std::string& out) {
+  check_not_a_recording(out);
   ChessboardSpec spec;
   spec.square = square;
   if (std::sscanf(board.c_str(), "%dx%d", &spec.inner_cols, &spec.inner_rows) != 2)
@@ -997,6 +1025,8 @@ int cmd_parameterise(const Common& c, const ParameteriseArgs& a) {
   StationConfig cfg = load_common(c);
   auto threads = limit_threads(cfg.threads);
   if (fs::path(a.out).extension() != ".obj") throw InvalidInput(a.out + ": the output must be .obj (it carries the UVs)");
+  check_not_a_recording(a.out);
+  check_not_a_recording(a.mapped);
   const SimpleSurface surface = a.onto == "plane" ? SimpleSurface::kPlane
                                 : a.onto == "cylinder" ? SimpleSurface::kCylinder
                                                        : SimpleSurface::kSphere;

@@ -436,6 +436,19 @@ TEST(Cli, RunWithABrokenViewIsAPartialResult) {
   EXPECT_TRUE(std::filesystem::exists(out + "/mesh.ply"));
   r = run("run " + sess + " -o " + out + small + " --resume --json");
   EXPECT_EQ(r.code, 3) << r.out;
+  // No output replaces a recording: a view file, a colour image or the manifest.
+  const std::string view1 = read_file_bytes(sess + "/view_001.ply");
+  for (const std::string& args : {"register " + sess + " -o " + sess + "/view_001.ply",
+                                  "consolidate " + sess + "/view_003.ply -o " + sess + "/./view_001.ply",
+                                  "register " + sess + " -o " + (dir / "m.ply").string() + " --poses-out " + sess +
+                                      "/session.yaml",
+                                  "reconstruct " + sess + "/view_003.ply -o " + sess + "/view_001.png"}) {
+    r = run(args);
+    EXPECT_EQ(r.code, 1) << args;
+    EXPECT_NE(r.out.find("part of the session recorded in"), std::string::npos) << args << ": " << r.out;
+  }
+  EXPECT_EQ(read_file_bytes(sess + "/view_001.ply"), view1);
+  EXPECT_EQ(read_manifest(sess).views.size(), 12u);
   // Replaying the recording stops at the broken view; the message says what is kept.
   const std::string again = (dir / "again").string();
   r = run("replay " + sess + " -o " + again);
