@@ -1177,6 +1177,7 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
   const Aabb box = extraction_box(surface);
   mo.seeds = surface.points();
   mo.close_at_box = true;
+  check_extraction_fits(f, box, a.resolution, mo, "--resolution " + std::to_string(a.resolution));
   Mesh mesh;
   DmcStats dstats;
   if (a.extractor == "dmc") {

@@ -619,6 +619,7 @@ class Runner {
     mo.seeds = surface.points();
     mo.close_at_box = true;
     const ImplicitFunction& f = clip ? static_cast<const ImplicitFunction&>(*clip) : closed;
+    check_extraction_fits(f, box, c.resolution, mo, "reconstruct.resolution " + std::to_string(c.resolution));
     Mesh mesh;
     if (c.extractor == "dmc") {
       DmcOptions dopt;
@@ -714,6 +715,35 @@ class Runner {
 };
 
 }  // namespace
+
+void check_extraction_fits(const ImplicitFunction& f, const Aabb& box, int resolution,
+                           const MarchingCubesOptions& options, const std::string& what,
+                           double available_bytes) {
+  constexpr int kCoarse = 64;
+  if (resolution <= 512) return;
+  double available = available_bytes;
+  if (available < 0) {
+    available = 0;
+    std::ifstream meminfo("/proc/meminfo");
+    double kb = 0;
+    for (std::string line; std::getline(meminfo, line);)
+      if (std::sscanf(line.c_str(), "MemAvailable: %lf kB", &kb) == 1) available = kb * 1024;
+  }
+  if (!(available > 0)) return;
+  MarchingCubesStats st;
+  const Mesh coarse = extract_marching_cubes(f, box, kCoarse, options, &st);
+  const double scale = double(resolution) / kCoarse;
+  const double faces = double(coarse.faces.size()) * scale * scale;
+  const double need = faces * kExtractionBytesPerFace;
+  if (need <= 0.85 * available) return;
+  const int finest = int(kCoarse * std::sqrt(0.85 * available / (kExtractionBytesPerFace * double(coarse.faces.size()))));
+  char buf[256];
+  std::snprintf(buf, sizeof buf,
+                ": the mesh would have about %.0f M faces and need about %.1f GiB; %.1f GiB are available: use at "
+                "most %d",
+                faces / 1e6, need / 1073741824.0, available / 1073741824.0, finest);
+  throw InvalidInput(what + buf);
+}
 
 RunResult run_pipeline(const StationConfig& config, const RunRequest& request) {
   return Runner(config, request).run();

@@ -65,6 +65,23 @@ RegistrationParams registration_params(const PipelineConfig& pipeline);
 
 RunResult run_pipeline(const StationConfig& config, const RunRequest& request);
 
+class ImplicitFunction;
+struct Aabb;
+struct MarchingCubesOptions;
+/// Before an extraction finer than 512 cells: marching cubes at 64 cells counts the
+/// faces, which grow with the square of the resolution, and the peak memory is
+/// estimated from them (kExtractionBytesPerFace). InvalidInput naming `what` (e.g.
+/// "--resolution 4096"), with the finest resolution that would fit, when that is more
+/// than 85 % of `available_bytes` (< 0: the machine's MemAvailable from /proc/meminfo;
+/// no check when it cannot be read).
+void check_extraction_fits(const ImplicitFunction& f, const Aabb& box, int resolution,
+                           const MarchingCubesOptions& options, const std::string& what,
+                           double available_bytes = -1);
+/// Peak bytes per output face of `station reconstruct` (MPU + DMC) at high resolution,
+/// measured on a 3,000-point sphere: 159 at 1024 cells (8.2 M faces, 1.3 GB), 128 at
+/// 4096 (131 M faces, 16.7 GB).
+inline constexpr double kExtractionBytesPerFace = 150;
+
 /// 64-bit FNV-1a over bytes, as 16 hex digits (stage keys; not cryptographic).
 std::string hash_hex(const std::string& bytes);
 /// hash_hex of a file's contents (IoError naming it when unreadable).

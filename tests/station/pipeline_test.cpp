@@ -14,6 +14,8 @@
 #include "capture/registration.h"
 #include "core/error.h"
 #include "core/io.h"
+#include "reconstruct/implicit.h"
+#include "reconstruct/marching_cubes.h"
 #include "station/config.h"
 #include "station/pipeline.h"
 #include "test_util.h"
@@ -225,6 +227,34 @@ TEST_F(PipelineTest, TheRunWritesNeitherIntoASessionNorOverOtherFiles) {
     EXPECT_NE(std::string(e.what()).find("not empty and not a run folder"), std::string::npos) << e.what();
   }
   EXPECT_EQ(read_file_bytes(out.path() / "mesh.ply"), "someone else's");
+}
+
+// A resolution whose mesh would not fit in memory is refused before the extraction,
+// with the finest one that would fit.
+TEST(Pipeline, AnExtractionTooLargeForTheMemoryIsRefused) {
+  struct Ball : ImplicitFunction {
+    double value(const Vec3d& x) const override { return x.norm() - 0.8; }
+    Vec3d gradient(const Vec3d& x) const override { return x.normalized(); }
+  } ball;
+  Aabb box;
+  box.min = Vec3f(-1, -1, -1);
+  box.max = Vec3f(1, 1, 1);
+  MarchingCubesOptions mo;
+  mo.threads = 2;
+  // At 64 cells the ball has about 17,000 faces: at 2048 about 17.5 M, 2.6 GB.
+  EXPECT_NO_THROW(check_extraction_fits(ball, box, 2048, mo, "--resolution 2048", 64.0 * 1073741824));
+  EXPECT_NO_THROW(check_extraction_fits(ball, box, 512, mo, "--resolution 512", 1.0));  // not checked
+  try {
+    check_extraction_fits(ball, box, 2048, mo, "--resolution 2048", 1073741824.0);
+    FAIL() << "2048 cells fitted in 1 GiB";
+  } catch (const InvalidInput& e) {
+    const std::string what = e.what();
+    EXPECT_EQ(what.rfind("--resolution 2048: the mesh would have about ", 0), 0u) << what;
+    const int finest = std::stoi(what.substr(what.rfind(' ') + 1));
+    EXPECT_GT(finest, 512) << what;
+    EXPECT_LT(finest, 2048) << what;
+    EXPECT_NO_THROW(check_extraction_fits(ball, box, finest, mo, "--resolution", 1073741824.0)) << what;
+  }
 }
 
 TEST_F(PipelineTest, SdmSurfaceGivesTheTemplatesConnectivity) {
