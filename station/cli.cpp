@@ -1177,7 +1177,8 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
   const Aabb box = extraction_box(surface);
   mo.seeds = surface.points();
   mo.close_at_box = true;
-  check_extraction_fits(f, box, a.resolution, mo, "--resolution " + std::to_string(a.resolution));
+  const double expected = check_extraction_fits(f, box, a.resolution, mo, "--resolution " + std::to_string(a.resolution));
+  if (expected > 0 && !c.json) std::fprintf(stderr, "reconstruct: about %.1f M faces expected\n", expected / 1e6);
   Mesh mesh;
   DmcStats dstats;
   if (a.extractor == "dmc") {

@@ -619,7 +619,9 @@ class Runner {
     mo.seeds = surface.points();
     mo.close_at_box = true;
     const ImplicitFunction& f = clip ? static_cast<const ImplicitFunction&>(*clip) : closed;
-    check_extraction_fits(f, box, c.resolution, mo, "reconstruct.resolution " + std::to_string(c.resolution));
+    if (const double faces = check_extraction_fits(f, box, c.resolution, mo,
+                                                   "reconstruct.resolution " + std::to_string(c.resolution)))
+      say("  surface: about " + fmt("%.1f", faces / 1e6) + " M faces expected");
     Mesh mesh;
     if (c.extractor == "dmc") {
       DmcOptions dopt;
@@ -716,11 +718,11 @@ class Runner {
 
 }  // namespace
 
-void check_extraction_fits(const ImplicitFunction& f, const Aabb& box, int resolution,
+double check_extraction_fits(const ImplicitFunction& f, const Aabb& box, int resolution,
                            const MarchingCubesOptions& options, const std::string& what,
                            double available_bytes) {
   constexpr int kCoarse = 64;
-  if (resolution <= 512) return;
+  if (resolution <= 512) return 0;
   double available = available_bytes;
   if (available < 0) {
     available = 0;
@@ -729,13 +731,13 @@ void check_extraction_fits(const ImplicitFunction& f, const Aabb& box, int resol
     for (std::string line; std::getline(meminfo, line);)
       if (std::sscanf(line.c_str(), "MemAvailable: %lf kB", &kb) == 1) available = kb * 1024;
   }
-  if (!(available > 0)) return;
+  if (!(available > 0)) return 0;
   MarchingCubesStats st;
   const Mesh coarse = extract_marching_cubes(f, box, kCoarse, options, &st);
   const double scale = double(resolution) / kCoarse;
   const double faces = double(coarse.faces.size()) * scale * scale;
   const double need = faces * kExtractionBytesPerFace;
-  if (need <= 0.85 * available) return;
+  if (need <= 0.85 * available) return faces;
   const int finest = int(kCoarse * std::sqrt(0.85 * available / (kExtractionBytesPerFace * double(coarse.faces.size()))));
   char buf[256];
   std::snprintf(buf, sizeof buf,

@@ -73,8 +73,8 @@ struct MarchingCubesOptions;
 /// estimated from them (kExtractionBytesPerFace). InvalidInput naming `what` (e.g.
 /// "--resolution 4096"), with the finest resolution that would fit, when that is more
 /// than 85 % of `available_bytes` (< 0: the machine's MemAvailable from /proc/meminfo;
-/// no check when it cannot be read).
-void check_extraction_fits(const ImplicitFunction& f, const Aabb& box, int resolution,
+/// no check when it cannot be read). Returns the estimated faces (0 when not checked).
+double check_extraction_fits(const ImplicitFunction& f, const Aabb& box, int resolution,
                            const MarchingCubesOptions& options, const std::string& what,
                            double available_bytes = -1);
 /// Peak bytes per output face of `station reconstruct` (MPU + DMC) at high resolution,

@@ -241,9 +241,13 @@ TEST(Pipeline, AnExtractionTooLargeForTheMemoryIsRefused) {
   box.max = Vec3f(1, 1, 1);
   MarchingCubesOptions mo;
   mo.threads = 2;
-  // At 64 cells the ball has about 17,000 faces: at 2048 about 17.5 M, 2.6 GB.
-  EXPECT_NO_THROW(check_extraction_fits(ball, box, 2048, mo, "--resolution 2048", 64.0 * 1073741824));
-  EXPECT_NO_THROW(check_extraction_fits(ball, box, 512, mo, "--resolution 512", 1.0));  // not checked
+  // At 2048 cells the ball has about 25 M faces, 3.5 GiB.
+  // The estimate: marching cubes makes about 3 faces per cell area of a sphere.
+  const double cell = 2.0 / 2048, sphere = 4 * 3.14159265358979 * 0.8 * 0.8;
+  const double faces = check_extraction_fits(ball, box, 2048, mo, "--resolution 2048", 64.0 * 1073741824);
+  EXPECT_GT(faces, 2.0 * sphere / (cell * cell));
+  EXPECT_LT(faces, 3.5 * sphere / (cell * cell));
+  EXPECT_EQ(check_extraction_fits(ball, box, 512, mo, "--resolution 512", 1.0), 0.0);  // not checked
   try {
     check_extraction_fits(ball, box, 2048, mo, "--resolution 2048", 1073741824.0);
     FAIL() << "2048 cells fitted in 1 GiB";
