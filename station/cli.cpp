@@ -1024,8 +1024,7 @@ int cmd_parameterise(const Common& c, const ParameteriseArgs& a) {
   const auto t0 = std::chrono::steady_clock::now();
   StationConfig cfg = load_common(c);
   auto threads = limit_threads(cfg.threads);
-  if (fs::path(a.out).extension() != ".obj") throw InvalidInput(a.out + ": the output must be .obj (it carries the UVs)");
-  check_not_a_recording(a.out);
+  check_output_name(a.out, "a mesh with UVs", {".obj"});
   check_not_a_recording(a.mapped);
   const SimpleSurface surface = a.onto == "plane" ? SimpleSurface::kPlane
                                 : a.onto == "cylinder" ? SimpleSurface::kCylinder

@@ -732,8 +732,7 @@ double check_extraction_fits(const ImplicitFunction& f, const Aabb& box, int res
       if (std::sscanf(line.c_str(), "MemAvailable: %lf kB", &kb) == 1) available = kb * 1024;
   }
   if (!(available > 0)) return 0;
-  MarchingCubesStats st;
-  const Mesh coarse = extract_marching_cubes(f, box, kCoarse, options, &st);
+  const Mesh coarse = extract_marching_cubes(f, box, kCoarse, options);
   const double scale = double(resolution) / kCoarse;
   const double faces = double(coarse.faces.size()) * scale * scale;
   const double need = faces * kExtractionBytesPerFace;
