@@ -218,6 +218,7 @@ class Registrar {
     pp.intensity = p_.icp.objective == IcpObjective::kColored || p_.final_objective == IcpObjective::kColored;
     views_.resize(n);
     feats_.resize(n);
+    report("prepare", 0, int(n));
     for (std::size_t i = 0; i < n; ++i) {
       views_[i] = prepare_view(clouds_[i], pp);
       ViewDiagnostics& d = res_.views[i];
@@ -267,6 +268,7 @@ class Registrar {
   void estimate_axis(const std::vector<int>& with_angle) {
     const int m = int(with_angle.size());
     if (m < 2) return;
+    report("axis", 0, 2);
     Vec3d c = Vec3d::Zero();
     for (int i : with_angle) c += centroid(views_[i].points);
     c /= double(m);
@@ -300,7 +302,6 @@ class Registrar {
                                p_.early_convergence_scale);
       double score = 0;
       for (const IcpResult& x : r) score += x.converged ? x.fitness : 0.0;
-      report("axis", 0, 2);
       if (score > best_score + 1e-9) {
         best_score = score;
         best = axis;
@@ -475,6 +476,7 @@ class Registrar {
       res_.poses[anchor] = Eigen::Matrix4d::Identity();
       res_.views[anchor].initial = InitialPoseSource::kGlobal;
       std::vector<int> chain = {anchor};
+      if (todo.size() > 1) report("global", 0, int(todo.size() - 1));
       for (std::size_t k = 1; k < todo.size(); ++k) {
         const int i = todo[k];
         GlobalAlign best;
@@ -503,6 +505,7 @@ class Registrar {
     }
     // Off-turntable views: against the model of the posed ones.
     const PreparedView model = model_of(have);
+    report("global", 0, int(todo.size()));
     const FeatureView model_feat = make_feature_view(model.points, model.normals, global_params());
     for (std::size_t k = 0; k < todo.size(); ++k) {
       const int i = todo[k];
@@ -530,6 +533,7 @@ class Registrar {
         a.push_back(i);
     const int m = int(a.size());
     if (m < 3) return;
+    report("angles", 0, 1);
     std::vector<Pair> pairs;
     std::vector<Eigen::Matrix4d> init;
     for (int k = 0; k < m; ++k) {
@@ -606,6 +610,7 @@ class Registrar {
     std::optional<Vec3d> axis_dir;
     if (res_.axis) axis_dir = res_.axis->direction.normalized();
     std::vector<bool> has_edge(m_.views.size(), false);
+    report("refine", 0, std::max(1, p_.rounds));
     for (int round = 0; round < std::max(1, p_.rounds); ++round) {
       std::vector<Eigen::Matrix4d> init;
       for (const Pair& pr : pairs) init.push_back(rigid_inverse(res_.poses[pr.from]) * res_.poses[pr.to]);
@@ -615,7 +620,6 @@ class Registrar {
           run_pairs(pairs, init, std::max(start, end), end,
                     last ? std::optional<IcpObjective>(p_.final_objective) : std::nullopt,
                     last ? 1.0 : p_.early_convergence_scale);
-      report("icp", round + 1, p_.rounds);
 
       std::vector<PoseGraphEdge> edges;
       std::vector<int> edge_pair;  // index into pairs, -1 for prior edges
@@ -749,7 +753,7 @@ class Registrar {
         pd.graph_translation = g.edge_translation[e];
         has_edge[kept[e].from] = has_edge[kept[e].to] = true;
       }
-      report("pose graph", round + 1, p_.rounds);
+      report("refine", round + 1, std::max(1, p_.rounds));
     }
     if (rigid_rejected_) {
       std::ostringstream w;
@@ -848,6 +852,9 @@ class Registrar {
       res_.median_object_translation_error = median_of(object_trans);
     }
     pair_residuals();
+    const int to_merge = int(std::count(usable_.begin(), usable_.end(), true));
+    int merged = 0;
+    report("merge", 0, to_merge);
     // Merge: colours only when every merged view has them (a cloud's colours are all or none).
     bool colors = true;
     for (std::size_t i = 0; i < n; ++i)
@@ -869,7 +876,7 @@ class Registrar {
       }
       transform_cloud(c, res_.poses[i]);
       moved.push_back(std::move(c));
-      report("merge", int(i + 1), int(n));
+      report("merge", ++merged, to_merge);
     }
     // Concatenation, or fusion of the overlaps; either way attributes are kept
     // only when every view has them.

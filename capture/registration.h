@@ -138,7 +138,10 @@ struct RegistrationParams {
 };
 
 struct RegistrationProgress {
-  std::string stage;  ///< "prepare", "axis", "icp", "pose graph", "merge"
+  /// "prepare", "axis", "global", "angles", "refine" (ICP and pose graph, a step per
+  /// round), "merge". Each stage reports done = 0 before its work starts, then after
+  /// each step, so the time from a stage's first report to the next stage's is its own.
+  std::string stage;
   int done = 0;
   int total = 0;
 };

@@ -5,8 +5,10 @@
 #include <gtest/gtest.h>
 
 #include <Eigen/Geometry>
+#include <algorithm>
 #include <chrono>
 #include <fstream>
+#include <set>
 #include <sstream>
 
 #include "core/error.h"
@@ -128,10 +130,24 @@ TEST(Registration, BadViewsFailAloneAndAreNamed) {
   bad.angle_deg = 192;
   session.add_view(far, bad);
   const Session reopened = Session::open(session.dir());
-  std::vector<std::string> stages;
+  std::vector<RegistrationProgress> reports;
   const RegistrationResult r =
-      register_session(reopened, {}, [&](const RegistrationProgress& p) { stages.push_back(p.stage); });
+      register_session(reopened, {}, [&](const RegistrationProgress& p) { reports.push_back(p); });
   ASSERT_EQ(r.failed_views, (std::vector<int>{6, 7, 8}));
+  // Progress: each stage announces itself (done 0) before its work and ends at its
+  // total, so a progress bar times each stage's own work (the refinement's ICP was
+  // shown as "icp done in 0.0s" and its time under the stage before).
+  std::vector<std::string> stages;
+  for (std::size_t k = 0; k < reports.size(); ++k) {
+    const RegistrationProgress& p = reports[k];
+    if (k == 0 || reports[k - 1].stage != p.stage) {
+      EXPECT_EQ(p.done, 0) << p.stage;
+      stages.push_back(p.stage);
+    }
+    if (k + 1 == reports.size() || reports[k + 1].stage != p.stage) EXPECT_EQ(p.done, p.total) << p.stage;
+  }
+  EXPECT_EQ(std::set<std::string>(stages.begin(), stages.end()).size(), stages.size()) << "a stage came back";
+  EXPECT_NE(std::find(stages.begin(), stages.end(), "refine"), stages.end());
   EXPECT_NE(r.views[6].message.find("views[6] (view_006.ply): empty view"), std::string::npos) << r.views[6].message;
   EXPECT_NE(r.views[7].message.find("views[7]"), std::string::npos) << r.views[7].message;
   // The PLY reader already refuses NaN coordinates: the view is unreadable.
