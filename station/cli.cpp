@@ -1165,7 +1165,9 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
   mo.untrusted = a.holes == "open" ? UntrustedRegions::kLeaveOpen : UntrustedRegions::kClose;
   mo.threads = cfg.threads;
   MarchingCubesStats stats;
-  if (!c.json) std::fprintf(stderr, "reconstruct: marching cubes at resolution %d...\n", a.resolution);
+  if (!c.json)
+    std::fprintf(stderr, "reconstruct: %s at resolution %d...\n",
+                 a.extractor == "dmc" ? "Deformed Marching Cubes" : "marching cubes", a.resolution);
   const auto t2 = std::chrono::steady_clock::now();
   // Far from the data, inside and outside by the cloud's winding number rather than
   // MPU's extrapolation (profile reconstruct.winding_close; reconstruct/winding_close.h).

@@ -613,7 +613,8 @@ class Runner {
       r.figures["table_height"] = lowest;
       say("  surface: closed flat at the table plane (lowest point along the turntable axis)");
     }
-    say("  surface: extracting at resolution " + std::to_string(c.resolution));
+    say("  surface: extracting at resolution " + std::to_string(c.resolution) + " (" +
+        (c.extractor == "dmc" ? "Deformed Marching Cubes" : "marching cubes") + ")");
     // The box and seeds of the MpuSurface overloads of the extractors.
     const Aabb box = extraction_box(surface);
     mo.seeds = surface.points();
