@@ -8,7 +8,6 @@
 
 #include <algorithm>
 #include <array>
-#include <unordered_map>
 #include <chrono>
 #include <cmath>
 #include <numeric>
@@ -562,25 +561,6 @@ struct Engine {
     return best;
   }
 
-  // Faces across the three edges of each face (-1 on a boundary).
-  std::vector<std::array<int, 3>> face_neighbours() const {
-    std::unordered_map<std::uint64_t, std::pair<int, int>> edge;  // key -> (face, slot)
-    std::vector<std::array<int, 3>> nb(faces.size(), {-1, -1, -1});
-    for (int fi = 0; fi < int(faces.size()); ++fi)
-      for (int k = 0; k < 3; ++k) {
-        const int a = faces[fi][k], b = faces[fi][(k + 1) % 3];
-        const std::uint64_t key = (std::uint64_t(std::min(a, b)) << 32) | std::uint32_t(std::max(a, b));
-        auto it = edge.find(key);
-        if (it == edge.end()) {
-          edge.emplace(key, std::make_pair(fi, k));
-        } else {
-          nb[fi][k] = it->second.first;
-          nb[it->second.first][it->second.second] = fi;
-        }
-      }
-    return nb;
-  }
-
   // Fold repair (not in the paper): the vertices of folded faces and their rings are
   // moved to their neighbours' centroid (umbrella smoothing) until no face is folded
   // or `iterations` passes are spent. Returns the folded faces left.
@@ -619,8 +599,7 @@ struct Engine {
   // Self-intersection repair (not in the paper): the vertices of intersecting faces
   // and two rings around them are smoothed, then folds repaired, until none is left
   // or `iterations` rounds are spent. Returns the intersecting pairs left.
-  int repair_intersections(const std::vector<std::vector<int>>& classes,
-                           const std::vector<std::array<int, 3>>& fnb, int iterations) {
+  int repair_intersections(const std::vector<std::vector<int>>& classes, int iterations) {
     std::vector<char> mark(pos.size());
     std::vector<Vec3f> next(pos.size());
     for (int it = 0;; ++it) {
@@ -631,14 +610,13 @@ struct Engine {
         for (int k = 0; k < 3; ++k) mark[faces[a][k]] = mark[faces[b][k]] = 1;
       grow(mark, 1 + it / 3);
       for (int pass = 0; pass < 2; ++pass) smooth_marked(classes, mark, next);
-      repair_folds(classes, fnb, P.repair_iterations);
+      repair_folds(classes, P.repair_iterations);
     }
   }
 
-  int repair_folds(const std::vector<std::vector<int>>& classes,
-                   const std::vector<std::array<int, 3>>& fnb, int iterations) {
+  int repair_folds(const std::vector<std::vector<int>>& classes, int iterations) {
     const int nf = int(faces.size()), nv = int(pos.size());
-    std::vector<Vec3f> fn(nf);
+    std::vector<Vec3f> fn(nf), vn(nv);
     std::vector<char> mark(nv);
     std::vector<Vec3f> next(nv);
     int folded = 0;
@@ -650,12 +628,13 @@ struct Engine {
         fn[fi] = l > 0 ? Vec3f(n / l) : Vec3f::Zero();
       }
       std::fill(mark.begin(), mark.end(), 0);
+      std::fill(vn.begin(), vn.end(), Vec3f::Zero());
+      for (int fi = 0; fi < nf; ++fi)
+        for (int k = 0; k < 3; ++k) vn[faces[fi][k]] += fn[fi];
       folded = 0;
       for (int fi = 0; fi < nf; ++fi) {
-        Vec3f sum = Vec3f::Zero();
-        for (int k = 0; k < 3; ++k)
-          if (fnb[fi][k] >= 0) sum += fn[fnb[fi][k]];
-        if (fn[fi].isZero() || fn[fi].dot(sum) < 0) {
+        const Face& f = faces[fi];
+        if (sdm_detail::folded(fn[fi], vn[f[0]] + vn[f[1]] + vn[f[2]])) {
           ++folded;
           for (int k = 0; k < 3; ++k) mark[faces[fi][k]] = 1;
         }
@@ -669,8 +648,7 @@ struct Engine {
 
   // Phase-2 rounds until D < theta_e, max_rounds, or two stalled rounds; ends in the
   // best state seen. Returns the rounds run; D in dg.mean_distance.
-  int run_rounds(int max_rounds, const std::vector<std::vector<int>>& classes,
-                 const std::vector<std::array<int, 3>>& fnb, SdmDiagnostics& dg,
+  int run_rounds(int max_rounds, const std::vector<std::vector<int>>& classes, SdmDiagnostics& dg,
                  const SdmProgress& progress) {
     double prev = std::numeric_limits<double>::max();
     std::vector<Vec3f> next(pos.size());
@@ -702,7 +680,7 @@ struct Engine {
           grid->update(v);
         }
       }
-      repair_folds(classes, fnb, P.repair_iterations);
+      repair_folds(classes, P.repair_iterations);
     }
     // Keep the best state seen (the last round's moves may have made D worse).
     if (dg.mean_distance > best_d) {
@@ -715,23 +693,22 @@ struct Engine {
 
   void energy_phase(SdmDiagnostics& dg, const SdmProgress& progress) {
     const auto classes = colour_classes();
-    const auto fnb = face_neighbours();
     dg.colours = int(classes.size());
     double edge = 0;
     for (const Face& f : faces) edge += (pos[f[0]] - pos[f[1]]).norm();
     theta = float(P.theta_e * edge / std::max<std::size_t>(1, faces.size()));
     dg.distance_after_som = assign().mean_distance;
-    repair_folds(classes, fnb, P.repair_iterations);
-    repair_intersections(classes, fnb, P.repair_iterations);
-    int rounds = run_rounds(P.max_energy_rounds, classes, fnb, dg, progress);
+    repair_folds(classes, P.repair_iterations);
+    repair_intersections(classes, P.repair_iterations);
+    int rounds = run_rounds(P.max_energy_rounds, classes, dg, progress);
     // Intersections repaired by smoothing, then a few rounds to bring the smoothed
     // parts back onto the target; twice at most.
     for (int k = 0; k < 2; ++k) {
       if (self_intersecting_pairs(pos, faces).empty()) break;
-      repair_intersections(classes, fnb, P.repair_iterations);
-      rounds += run_rounds(5, classes, fnb, dg, progress);
+      repair_intersections(classes, P.repair_iterations);
+      rounds += run_rounds(5, classes, dg, progress);
     }
-    dg.self_intersections = repair_intersections(classes, fnb, P.repair_iterations);
+    dg.self_intersections = repair_intersections(classes, P.repair_iterations);
     dg.mean_distance = assign().mean_distance;
     dg.energy_rounds = rounds;
   }

@@ -193,8 +193,9 @@ SdmResult fit_sdm_icosphere(int level, const Cloud& target, const SdmParams& par
 /// InvalidInput unless 0 <= level <= 7.
 Mesh make_icosphere_template(int level);
 
-/// Faces whose unit normal has a negative dot product with the sum of the unit
-/// normals of the faces across its three edges (a fold), plus degenerate faces.
+/// Faces whose unit normal has a negative dot product with the sum of its three
+/// corners' vertex normals (each the sum of the unit normals of the faces at that
+/// corner, its own included): a fold; plus degenerate faces.
 int count_folded_faces(const Mesh& mesh);
 
 /// Pairs of faces that intersect and share no vertex, plus pairs sharing exactly one

@@ -20,6 +20,16 @@ Adjacency build_adjacency(int vertex_count, const std::vector<Face>& faces);
 /// the unit sphere when `normalise`). make_icosphere_template applies it `level` times.
 void subdivide_midpoint(std::vector<Vec3f>& v, std::vector<Face>& f, bool normalise);
 
+/// A face of unit normal n (zero when degenerate) is folded when it faces against
+/// the surface around it: n . (the sum of its three corners' vertex normals) < 0, a
+/// vertex normal being the sum of the unit normals of the faces at it, the face's
+/// own included. (Against the faces across its edges alone, every face of a
+/// tetrahedron or of a square pyramid counts as folded: their normals sum to
+/// minus its own, and the repair then shrank such meshes to a point.)
+inline bool folded(const Vec3f& n, const Vec3f& corner_normals) {
+  return n.isZero() || n.dot(corner_normals) < 0;
+}
+
 /// Squared distance from p to triangle (a, b, c).
 float point_triangle_dist2(const Vec3f& p, const Vec3f& a, const Vec3f& b, const Vec3f& c);
 

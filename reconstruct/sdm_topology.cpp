@@ -216,32 +216,20 @@ int count_folded_faces(const Mesh& mesh) {
   const int nf = int(mesh.faces.size());
   std::vector<Vec3f> fn(nf);
   int bad = 0;
-  std::unordered_map<std::uint64_t, std::array<int, 2>> edge_faces;
-  edge_faces.reserve(nf * 2);
   for (int fi = 0; fi < nf; ++fi) {
     const Face& f = mesh.faces[fi];
     const Vec3f n = (mesh.vertices[f[1]] - mesh.vertices[f[0]])
                         .cross(mesh.vertices[f[2]] - mesh.vertices[f[0]]);
     const float len = n.norm();
     fn[fi] = len > 0 ? Vec3f(n / len) : Vec3f::Zero();
-    for (int k = 0; k < 3; ++k) {
-      const int a = f[k], b = f[(k + 1) % 3];
-      const std::uint64_t key = (std::uint64_t(std::min(a, b)) << 32) | std::uint32_t(std::max(a, b));
-      auto it = edge_faces.find(key);
-      if (it == edge_faces.end())
-        edge_faces[key] = {fi, -1};
-      else
-        it->second[1] = fi;
-    }
   }
-  std::vector<Vec3f> sum(nf, Vec3f::Zero());
-  for (const auto& [key, e] : edge_faces) {
-    if (e[1] < 0) continue;
-    sum[e[0]] += fn[e[1]];
-    sum[e[1]] += fn[e[0]];
-  }
+  std::vector<Vec3f> vn(mesh.vertices.size(), Vec3f::Zero());
   for (int fi = 0; fi < nf; ++fi)
-    if (fn[fi].isZero() || fn[fi].dot(sum[fi]) < 0) ++bad;
+    for (int k = 0; k < 3; ++k) vn[mesh.faces[fi][k]] += fn[fi];
+  for (int fi = 0; fi < nf; ++fi) {
+    const Face& f = mesh.faces[fi];
+    if (sdm_detail::folded(fn[fi], vn[f[0]] + vn[f[1]] + vn[f[2]])) ++bad;
+  }
   return bad;
 }
 

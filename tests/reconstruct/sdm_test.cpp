@@ -382,6 +382,38 @@ TEST(SdmParameterise, SphereGivesOneToOneMapAndUvs) {
   }
 }
 
+// Low-poly meshes: the fold test used to compare a face with the faces across its
+// edges only, and on a tetrahedron or a square pyramid (valence-3 corners) those
+// normals sum against every face; the repair then smoothed the mesh into a point
+// (all four vertices at one spot, every face "flipped").
+TEST(SdmParameterise, LowPolyMeshesMapOntoTheSphere) {
+  Mesh tet;
+  tet.vertices = {Vec3f(1, 1, 1), Vec3f(-1, -1, 1), Vec3f(-1, 1, -1), Vec3f(1, -1, -1)};
+  tet.faces = {Face(0, 2, 1), Face(0, 1, 3), Face(0, 3, 2), Face(1, 2, 3)};
+  EXPECT_EQ(count_folded_faces(tet), 0);
+  Mesh pyramid;
+  pyramid.vertices = {Vec3f(1, 1, 0), Vec3f(-1, 1, 0), Vec3f(-1, -1, 0), Vec3f(1, -1, 0), Vec3f(0, 0, 1.5f)};
+  pyramid.faces = {Face(0, 1, 4), Face(1, 2, 4), Face(2, 3, 4), Face(3, 0, 4), Face(0, 2, 1), Face(0, 3, 2)};
+  EXPECT_EQ(count_folded_faces(pyramid), 0);
+  SdmParams p;
+  p.threads = 2;
+  for (const Mesh* m : {&tet, &pyramid}) {
+    SCOPED_TRACE(m->vertices.size());
+    ASSERT_TRUE(mesh_topology(*m).closed_manifold());
+    const ParameterisationResult r = sdm_parameterise(*m, SimpleSurface::kSphere, p);
+    EXPECT_EQ(count_folded_faces(r.mesh), 0);
+    for (const Face& f : r.mesh.faces) {  // every face faces outwards on the sphere
+      const Vec3f n = (r.mesh.vertices[f[1]] - r.mesh.vertices[f[0]])
+                          .cross(r.mesh.vertices[f[2]] - r.mesh.vertices[f[0]]);
+      EXPECT_GT(n.dot(r.mesh.vertices[f[0]] + r.mesh.vertices[f[1]] + r.mesh.vertices[f[2]]), 0);
+    }
+    // The vertices spread over the sphere: no two within 30 degrees of each other.
+    for (std::size_t i = 0; i < r.mesh.vertices.size(); ++i)
+      for (std::size_t j = i + 1; j < r.mesh.vertices.size(); ++j)
+        EXPECT_LT(r.mesh.vertices[i].normalized().dot(r.mesh.vertices[j].normalized()), std::cos(0.5236f)) << i << " " << j;
+  }
+}
+
 TEST(SdmParameterise, CylinderWithCaps) {
   const Mesh m = lumpy(3, Vec3f(0.5f, 0.5f, 1.2f));
   SdmParams p;
