@@ -32,6 +32,10 @@ constexpr double kLastRowTolerance = 1e-9;
 // Values this close to unit length are kept bit-for-bit so that written
 // manifests round-trip exactly.
 constexpr double kUnitTolerance = 1e-12;
+// Turntable angles (degrees) beyond this many are not a recording: 1e308 passed
+// as finite, turned into inf in radians and gave NaN poses.
+constexpr double kMaxAngleDeg = 1e6;
+const char* const kAngleRange = "beyond +-1e6 degrees";
 
 // ---- numbers ------------------------------------------------------------------
 
@@ -145,7 +149,9 @@ void check_manifest(const SessionManifest& m, Report&& report) {
   }
   if (m.planned_views < 0) report("plan.views", "must not be negative");
   if (!std::isfinite(m.start_deg)) report("plan.start_deg", "not finite");
+  if (std::abs(m.start_deg) > kMaxAngleDeg) report("plan.start_deg", kAngleRange);
   if (!std::isfinite(m.step_deg)) report("plan.step_deg", "not finite");
+  if (std::abs(m.step_deg) > kMaxAngleDeg) report("plan.step_deg", kAngleRange);
   std::map<std::string, std::size_t> seen;
   for (std::size_t i = 0; i < m.views.size(); ++i) {
     const ViewRecord& v = m.views[i];
@@ -155,6 +161,7 @@ void check_manifest(const SessionManifest& m, Report&& report) {
     if (!inserted)
       report(at + ".file", "\"" + v.file + "\" is also views[" + std::to_string(it->second) + "].file");
     if (v.angle_deg && !std::isfinite(*v.angle_deg)) report(at + ".angle_deg", "not finite");
+    if (v.angle_deg && std::abs(*v.angle_deg) > kMaxAngleDeg) report(at + ".angle_deg", kAngleRange);
     if (v.initial_pose)
       if (auto p = pose_problem(*v.initial_pose); !p.empty()) report(at + ".initial_pose", p);
     if (v.reference_pose)
@@ -260,6 +267,12 @@ class ManifestReader {
     fail(path, "not a number");
   }
 
+  double angle(const YAML::Node& n, const std::string& path) const {
+    const double v = number(n, path);
+    if (std::abs(v) > kMaxAngleDeg) fail(path, kAngleRange);
+    return v;
+  }
+
   long long integer(const YAML::Node& n, const std::string& path) const {
     long long v = 0;
     if (!n.IsScalar() || !parse_integer(n.Scalar(), v)) fail(path, "not an integer");
@@ -322,8 +335,8 @@ class ManifestReader {
     m.planned_views = int(views);
     m.start_deg = 0;
     m.step_deg = views > 0 ? 360.0 / double(views) : 0.0;
-    if (const YAML::Node s = n["start_deg"]; !absent(s)) m.start_deg = number(s, path + ".start_deg");
-    if (const YAML::Node s = n["step_deg"]; !absent(s)) m.step_deg = number(s, path + ".step_deg");
+    if (const YAML::Node s = n["start_deg"]; !absent(s)) m.start_deg = angle(s, path + ".start_deg");
+    if (const YAML::Node s = n["step_deg"]; !absent(s)) m.step_deg = angle(s, path + ".step_deg");
   }
 
   Eigen::Matrix4d pose(const YAML::Node& n, const std::string& path) const {
@@ -357,7 +370,7 @@ class ManifestReader {
     ViewRecord v;
     v.file = str(required(n, "file", at), at + ".file");
     if (auto p = relative_path_problem(v.file); !p.empty()) fail(at + ".file", p);
-    if (const YAML::Node x = n["angle_deg"]; !absent(x)) v.angle_deg = number(x, at + ".angle_deg");
+    if (const YAML::Node x = n["angle_deg"]; !absent(x)) v.angle_deg = angle(x, at + ".angle_deg");
     if (const YAML::Node x = n["initial_pose"]; !absent(x)) v.initial_pose = pose(x, at + ".initial_pose");
     if (const YAML::Node x = n["reference_pose"]; !absent(x))
       v.reference_pose = pose(x, at + ".reference_pose");

@@ -331,6 +331,7 @@ TEST(ManifestValidation, AxisAndPlan) {
                       "turntable_axis.point[1]: not a number");
   expect_format_error(replaced(kValid, "point: [0, 0.1, 0.6], ", ""), "turntable_axis.point: missing");
   expect_format_error(replaced(kValid, "step_deg: 30", "step_deg: -.inf"), "plan.step_deg: not finite");
+  expect_format_error(replaced(kValid, "step_deg: 30", "step_deg: 1e300"), "plan.step_deg: beyond +-1e6 degrees");
   expect_format_error(replaced(kValid, "views: 12", "views: -1"), "plan.views: must be a non-negative");
 }
 
@@ -345,6 +346,13 @@ TEST(ManifestValidation, ViewNumbers) {
                       "views[1].angle_deg: not finite");
   expect_format_error(replaced(kValid, "angle_deg: 30", "angle_deg: 1e999"),
                       "views[1].angle_deg: number out of range");
+  // Finite, but no turntable reports it (1e308 deg became inf in radians: NaN poses).
+  expect_format_error(replaced(kValid, "angle_deg: 30", "angle_deg: 1e308"),
+                      "views[1].angle_deg: beyond +-1e6 degrees");
+  expect_format_error(replaced(kValid, "angle_deg: 30", "angle_deg: -2e6"),
+                      "views[1].angle_deg: beyond +-1e6 degrees");
+  EXPECT_EQ(*manifest_from_yaml(replaced(kValid, "angle_deg: 30", "angle_deg: 7230"), "t").views[1].angle_deg,
+            7230.0);  // many turns are fine
   expect_format_error(replaced(kValid, "angle_deg: 30", "angle_deg: 30deg"),
                       "views[1].angle_deg: not a number");
   expect_format_error(replaced(kValid, "angle_deg: 30", "angle_deg: +-30"),
@@ -453,6 +461,9 @@ TEST(ManifestValidation, WriterRefusesInvalidManifests) {
   EXPECT_THROW(manifest_to_yaml(m), InvalidInput);
   m = full_manifest();
   m.axis->direction = Vec3d::Zero();
+  EXPECT_THROW(manifest_to_yaml(m), InvalidInput);
+  m = full_manifest();
+  m.views[1].angle_deg = 1e308;
   EXPECT_THROW(manifest_to_yaml(m), InvalidInput);
 }
 
