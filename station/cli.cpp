@@ -528,6 +528,15 @@ int cmd_eval(const Common& c, const std::string& a, const std::string& b, int sa
   EvalInput ia, ib;
   read_eval_input(a, ia);
   read_eval_input(b, ib);
+  // Inputs of very different sizes are most often in different units (a mesh in
+  // millimetres against a scan in metres): the distances then mean nothing.
+  const double da = bounding_box(ia.textured.mesh.vertices).diagonal();
+  const double db = bounding_box(ib.textured.mesh.vertices).diagonal();
+  if (da > 0 && db > 0 && std::max(da / db, db / da) > 10)
+    std::fprintf(stderr,
+                 "warning: %s is %.0fx the size of %s (bounding-box diagonals %.4g and %.4g): different units?\n",
+                 (da > db ? a : b).c_str(), std::max(da / db, db / da), (da > db ? b : a).c_str(), std::max(da, db),
+                 std::min(da, db));
   std::optional<PointsMetrics> pm;
   if (pm_args.enabled) pm = points_metrics(ia, ib, pm_args, cfg.threads);
   const Shape sa = ia.shape(), sb = ib.shape();

@@ -306,6 +306,16 @@ TEST(Cli, EvalPointsMetrics) {
   EXPECT_NE(r.out.find("B must be a mesh"), std::string::npos) << r.out;
   r = run("eval " + shell_ply + " " + cube_ply + " --edge-radius -1");
   EXPECT_EQ(r.code, 2) << r.out;
+  EXPECT_EQ(r.out.find("different units"), std::string::npos) << r.out;
+  // The same cube in millimetres: the sizes differ 1000x, which eval points out.
+  Mesh cube_mm = cube;
+  for (Vec3f& v : cube_mm.vertices) v *= 1000.f;
+  const std::string cube_mm_ply = (dir / "cube_mm.ply").string();
+  write_ply(cube_mm_ply, cube_mm);
+  r = run("eval " + shell_ply + " " + cube_mm_ply + " --samples 1000");
+  EXPECT_EQ(r.code, 0) << r.out;
+  EXPECT_NE(r.out.find("cube_mm.ply is 990x the size of"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("different units?"), std::string::npos) << r.out;
 
   // End to end on the fandisk (d_bb 1.45) with 0.3 % noise: edge-WLOP's points keep
   // the sharp edges better.
