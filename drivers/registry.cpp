@@ -84,30 +84,33 @@ const DeviceRegistry::Entry* DeviceRegistry::find(const DeviceUri& uri, DeviceKi
   return wide;
 }
 
-namespace {
-std::string known_list(const std::vector<DeviceInfo>& infos, DeviceKind kind) {
-  std::string s;
-  for (const auto& i : infos)
-    if (i.kind == kind) s += (s.empty() ? "" : ", ") + i.uri;
-  return s.empty() ? "none" : s;
+std::string DeviceRegistry::unknown(const std::string& text, DeviceKind kind) const {
+  // The URI forms this build can open (a scheme-wide entry as "scheme:...") and the
+  // devices attached now: a user who typed serial:/dev/ttyUSB0 learns of horus:.
+  std::string supported, attached;
+  for (const Entry& e : entries_) {
+    if (kind == DeviceKind::kScanner ? !e.scanner : !e.turntable) continue;
+    const std::string form = e.prefix.back() == ':' ? e.prefix + "..." : e.prefix;
+    if (supported.find(form) == std::string::npos) supported += (supported.empty() ? "" : ", ") + form;
+  }
+  for (const DeviceInfo& i : list())
+    if (i.kind == kind) attached += (attached.empty() ? "" : ", ") + i.uri;
+  return text + ": unknown " + (kind == DeviceKind::kScanner ? "scanner" : "turntable") + " (supported: " +
+         (supported.empty() ? "none" : supported) + "; attached now: " + (attached.empty() ? "none" : attached) +
+         "; see `station devices`)";
 }
-}  // namespace
 
 std::unique_ptr<Scanner> DeviceRegistry::make_scanner(const std::string& text) {
   DeviceUri uri = parse_device_uri(text);
   const Entry* e = find(uri, DeviceKind::kScanner);
-  if (!e)
-    throw DeviceError(text + ": unknown scanner (known: " +
-                      known_list(list(), DeviceKind::kScanner) + "; see `station devices`)");
+  if (!e) throw DeviceError(unknown(text, DeviceKind::kScanner));
   return e->scanner(uri, context_);
 }
 
 std::unique_ptr<Turntable> DeviceRegistry::make_turntable(const std::string& text) {
   DeviceUri uri = parse_device_uri(text);
   const Entry* e = find(uri, DeviceKind::kTurntable);
-  if (!e)
-    throw DeviceError(text + ": unknown turntable (known: " +
-                      known_list(list(), DeviceKind::kTurntable) + "; see `station devices`)");
+  if (!e) throw DeviceError(unknown(text, DeviceKind::kTurntable));
   return e->turntable(uri, context_);
 }
 

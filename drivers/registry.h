@@ -65,6 +65,8 @@ class DeviceRegistry {
     Lister lister;
   };
   const Entry* find(const DeviceUri& uri, DeviceKind kind) const;
+  /// "URI: unknown scanner (supported: ...; attached now: ...; see `station devices`)".
+  std::string unknown(const std::string& text, DeviceKind kind) const;
   std::vector<Entry> entries_;
   DeviceContext context_;
 };
