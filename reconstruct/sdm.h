@@ -226,8 +226,10 @@ struct ParameterisationResult {
 /// plane: (x + 1) / 2, (y + 1) / 2 (boundary loop pinned to the unit circle by arc
 /// length); sphere: longitude / 2 pi, colatitude / pi; cylinder: angle / 2 pi and
 /// the arc length along the profile (bottom cap centre 0, rims 1/4 and 3/4, top cap
-/// centre 1). Mesh has no UV field, so they are returned beside it.
+/// centre 1). Mesh has no UV field, so they are returned beside it. `progress` as for
+/// fit_sdm.
 ParameterisationResult sdm_parameterise(const Mesh& mesh, SimpleSurface surface,
-                                        const SdmParams& params = {}, int control_points = 0);
+                                        const SdmParams& params = {}, int control_points = 0,
+                                        const SdmProgress& progress = {});
 
 }  // namespace station

@@ -89,7 +89,8 @@ std::vector<int> boundary_loop(const Mesh& mesh) {
 }  // namespace
 
 ParameterisationResult sdm_parameterise(const Mesh& mesh, SimpleSurface surface,
-                                        const SdmParams& params, int control_points) {
+                                        const SdmParams& params, int control_points,
+                                        const SdmProgress& progress) {
   if (mesh.vertices.empty() || mesh.faces.empty()) throw InvalidInput("mesh: empty");
   if (!all_finite(mesh.vertices)) throw InvalidInput("mesh: non-finite coordinates");
   if (control_points < 0) throw InvalidInput("sdm_parameterise: control_points < 0");
@@ -98,7 +99,7 @@ ParameterisationResult sdm_parameterise(const Mesh& mesh, SimpleSurface surface,
   ParameterisationResult out;
   if (surface == SimpleSurface::kSphere || surface == SimpleSurface::kCylinder) {
     const Cloud cps = surface == SimpleSurface::kSphere ? sphere_points(n) : cylinder_points(n);
-    SdmResult r = fit_sdm(mesh, cps, params);
+    SdmResult r = fit_sdm(mesh, cps, params, {}, progress);
     out.mesh = std::move(r.mesh);
     out.diagnostics = r.diagnostics;
     out.uv.resize(nv);
@@ -180,7 +181,7 @@ ParameterisationResult sdm_parameterise(const Mesh& mesh, SimpleSurface surface,
   dg.template_vertices = nv;
   dg.template_faces = int(mesh.faces.size());
   dg.control_points = n;
-  SdmResult r = sdm_detail::run_sdm(initial, cps, p, {}, pinned, {}, dg);
+  SdmResult r = sdm_detail::run_sdm(initial, cps, p, {}, pinned, progress, dg);
   out.mesh = std::move(r.mesh);
   out.diagnostics = r.diagnostics;
   out.uv.resize(nv);

@@ -1042,7 +1042,12 @@ int cmd_parameterise(const Common& c, const ParameteriseArgs& a) {
   if (mesh.faces.empty()) throw InvalidInput(a.in + ": no faces (parameterise needs a mesh)");
   SdmParams sp;
   sp.threads = cfg.threads;
-  const ParameterisationResult r = sdm_parameterise(mesh, surface, sp, a.control_points);
+  Progress bar("parameterise: SDM", 100, c.json);
+  const ParameterisationResult r =
+      sdm_parameterise(mesh, surface, sp, a.control_points, [&](const std::string& phase, double f) {
+        bar.update(int(std::lround(100 * f)), phase);
+      });
+  bar.finish();
   Mesh textured = mesh;
   textured.normals.clear();
   const auto uv = corner_uvs(mesh, r.uv, surface != SimpleSurface::kPlane);
@@ -1103,7 +1108,11 @@ int cmd_consolidate(const Common& c, const ConsolidateArgs& a) {
   if (!c.json)
     std::fprintf(stderr, "consolidate: %s, %zu points, %s, %d iterations...\n", a.in.c_str(),
                  input.size(), a.method.c_str(), a.iterations);
+  Progress bar(p.method == WlopMethod::kEdgeWlop ? "consolidate: edge-WLOP iterations" : "consolidate: WLOP iterations",
+               a.iterations, c.json);
+  p.progress = [&](int done, int) { bar.update(done); };
   const WlopResult r = consolidate(input, p);
+  bar.finish();
   write_ply(a.out, r.cloud);
   if (c.json) {
     print_summary(JsonObject()
