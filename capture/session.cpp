@@ -161,7 +161,8 @@ void check_manifest(const SessionManifest& m, Report&& report) {
     if (!inserted)
       report(at + ".file", "\"" + v.file + "\" is also views[" + std::to_string(it->second) + "].file");
     if (v.angle_deg && !std::isfinite(*v.angle_deg)) report(at + ".angle_deg", "not finite");
-    if (v.angle_deg && std::abs(*v.angle_deg) > kMaxAngleDeg) report(at + ".angle_deg", kAngleRange);
+    if (v.angle_deg && std::abs(*v.angle_deg) > kMaxAngleDeg)
+      report(at + ".angle_deg", kAngleRange);
     if (v.initial_pose)
       if (auto p = pose_problem(*v.initial_pose); !p.empty()) report(at + ".initial_pose", p);
     if (v.reference_pose)
@@ -335,7 +336,8 @@ class ManifestReader {
     m.planned_views = int(views);
     m.start_deg = 0;
     m.step_deg = views > 0 ? 360.0 / double(views) : 0.0;
-    if (const YAML::Node s = n["start_deg"]; !absent(s)) m.start_deg = angle(s, path + ".start_deg");
+    if (const YAML::Node s = n["start_deg"]; !absent(s))
+      m.start_deg = angle(s, path + ".start_deg");
     if (const YAML::Node s = n["step_deg"]; !absent(s)) m.step_deg = angle(s, path + ".step_deg");
   }
 

@@ -91,13 +91,14 @@ std::string DeviceRegistry::unknown(const std::string& text, DeviceKind kind) co
   for (const Entry& e : entries_) {
     if (kind == DeviceKind::kScanner ? !e.scanner : !e.turntable) continue;
     const std::string form = e.prefix.back() == ':' ? e.prefix + "..." : e.prefix;
-    if (supported.find(form) == std::string::npos) supported += (supported.empty() ? "" : ", ") + form;
+    if (supported.find(form) == std::string::npos)
+      supported += (supported.empty() ? "" : ", ") + form;
   }
   for (const DeviceInfo& i : list())
     if (i.kind == kind) attached += (attached.empty() ? "" : ", ") + i.uri;
-  return text + ": unknown " + (kind == DeviceKind::kScanner ? "scanner" : "turntable") + " (supported: " +
-         (supported.empty() ? "none" : supported) + "; attached now: " + (attached.empty() ? "none" : attached) +
-         "; see `station devices`)";
+  return text + ": unknown " + (kind == DeviceKind::kScanner ? "scanner" : "turntable") +
+         " (supported: " + (supported.empty() ? "none" : supported) +
+         "; attached now: " + (attached.empty() ? "none" : attached) + "; see `station devices`)";
 }
 
 std::unique_ptr<Scanner> DeviceRegistry::make_scanner(const std::string& text) {

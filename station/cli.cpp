@@ -534,9 +534,10 @@ int cmd_eval(const Common& c, const std::string& a, const std::string& b, int sa
   const double db = bounding_box(ib.textured.mesh.vertices).diagonal();
   if (da > 0 && db > 0 && std::max(da / db, db / da) > 10)
     std::fprintf(stderr,
-                 "warning: %s is %.0fx the size of %s (bounding-box diagonals %.4g and %.4g): different units?\n",
-                 (da > db ? a : b).c_str(), std::max(da / db, db / da), (da > db ? b : a).c_str(), std::max(da, db),
-                 std::min(da, db));
+                 "warning: %s is %.0fx the size of %s (bounding-box diagonals %.4g and %.4g): "
+                 "different units?\n",
+                 (da > db ? a : b).c_str(), std::max(da / db, db / da), (da > db ? b : a).c_str(),
+                 std::max(da, db), std::min(da, db));
   std::optional<PointsMetrics> pm;
   if (pm_args.enabled) pm = points_metrics(ia, ib, pm_args, cfg.threads);
   const Shape sa = ia.shape(), sb = ib.shape();
@@ -1043,10 +1044,9 @@ int cmd_parameterise(const Common& c, const ParameteriseArgs& a) {
   SdmParams sp;
   sp.threads = cfg.threads;
   Progress bar("parameterise: SDM", 100, c.json);
-  const ParameterisationResult r =
-      sdm_parameterise(mesh, surface, sp, a.control_points, [&](const std::string& phase, double f) {
-        bar.update(int(std::lround(100 * f)), phase);
-      });
+  const ParameterisationResult r = sdm_parameterise(
+      mesh, surface, sp, a.control_points,
+      [&](const std::string& phase, double f) { bar.update(int(std::lround(100 * f)), phase); });
   bar.finish();
   Mesh textured = mesh;
   textured.normals.clear();
@@ -1108,7 +1108,8 @@ int cmd_consolidate(const Common& c, const ConsolidateArgs& a) {
   if (!c.json)
     std::fprintf(stderr, "consolidate: %s, %zu points, %s, %d iterations...\n", a.in.c_str(),
                  input.size(), a.method.c_str(), a.iterations);
-  Progress bar(p.method == WlopMethod::kEdgeWlop ? "consolidate: edge-WLOP iterations" : "consolidate: WLOP iterations",
+  Progress bar(p.method == WlopMethod::kEdgeWlop ? "consolidate: edge-WLOP iterations"
+                                                 : "consolidate: WLOP iterations",
                a.iterations, c.json);
   p.progress = [&](int done, int) { bar.update(done); };
   const WlopResult r = consolidate(input, p);

@@ -144,9 +144,12 @@ TEST(Registration, BadViewsFailAloneAndAreNamed) {
       EXPECT_EQ(p.done, 0) << p.stage;
       stages.push_back(p.stage);
     }
-    if (k + 1 == reports.size() || reports[k + 1].stage != p.stage) EXPECT_EQ(p.done, p.total) << p.stage;
+    if (k + 1 == reports.size() || reports[k + 1].stage != p.stage) {
+      EXPECT_EQ(p.done, p.total) << p.stage;
+    }
   }
-  EXPECT_EQ(std::set<std::string>(stages.begin(), stages.end()).size(), stages.size()) << "a stage came back";
+  EXPECT_EQ(std::set<std::string>(stages.begin(), stages.end()).size(), stages.size())
+      << "a stage came back";
   EXPECT_NE(std::find(stages.begin(), stages.end(), "refine"), stages.end());
   EXPECT_NE(r.views[6].message.find("views[6] (view_006.ply): empty view"), std::string::npos) << r.views[6].message;
   EXPECT_NE(r.views[7].message.find("views[7]"), std::string::npos) << r.views[7].message;

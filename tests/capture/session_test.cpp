@@ -331,7 +331,8 @@ TEST(ManifestValidation, AxisAndPlan) {
                       "turntable_axis.point[1]: not a number");
   expect_format_error(replaced(kValid, "point: [0, 0.1, 0.6], ", ""), "turntable_axis.point: missing");
   expect_format_error(replaced(kValid, "step_deg: 30", "step_deg: -.inf"), "plan.step_deg: not finite");
-  expect_format_error(replaced(kValid, "step_deg: 30", "step_deg: 1e300"), "plan.step_deg: beyond +-1e6 degrees");
+  expect_format_error(replaced(kValid, "step_deg: 30", "step_deg: 1e300"),
+                      "plan.step_deg: beyond +-1e6 degrees");
   expect_format_error(replaced(kValid, "views: 12", "views: -1"), "plan.views: must be a non-negative");
 }
 
@@ -351,7 +352,9 @@ TEST(ManifestValidation, ViewNumbers) {
                       "views[1].angle_deg: beyond +-1e6 degrees");
   expect_format_error(replaced(kValid, "angle_deg: 30", "angle_deg: -2e6"),
                       "views[1].angle_deg: beyond +-1e6 degrees");
-  EXPECT_EQ(*manifest_from_yaml(replaced(kValid, "angle_deg: 30", "angle_deg: 7230"), "t").views[1].angle_deg,
+  EXPECT_EQ(*manifest_from_yaml(replaced(kValid, "angle_deg: 30", "angle_deg: 7230"), "t")
+                 .views[1]
+                 .angle_deg,
             7230.0);  // many turns are fine
   expect_format_error(replaced(kValid, "angle_deg: 30", "angle_deg: 30deg"),
                       "views[1].angle_deg: not a number");

@@ -33,8 +33,10 @@ TEST(RealDevices, SerialTurntablesByUri) {
       std::string::npos);
   // A scheme the station has no driver for names the ones it has, attached or not.
   const std::string unknown = message([&] { reg.make_turntable("serial:/dev/ttyUSB0"); });
-  EXPECT_NE(unknown.find("serial:/dev/ttyUSB0: unknown turntable (supported: horus:..., fabscan:...; attached now: "),
-            std::string::npos) << unknown;
+  EXPECT_NE(unknown.find("serial:/dev/ttyUSB0: unknown turntable (supported: horus:..., "
+                         "fabscan:...; attached now: "),
+            std::string::npos)
+      << unknown;
 }
 
 TEST(RealDevices, ListsWithoutOpeningSerialPorts) {

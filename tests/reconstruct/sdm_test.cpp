@@ -392,8 +392,10 @@ TEST(SdmParameterise, LowPolyMeshesMapOntoTheSphere) {
   tet.faces = {Face(0, 2, 1), Face(0, 1, 3), Face(0, 3, 2), Face(1, 2, 3)};
   EXPECT_EQ(count_folded_faces(tet), 0);
   Mesh pyramid;
-  pyramid.vertices = {Vec3f(1, 1, 0), Vec3f(-1, 1, 0), Vec3f(-1, -1, 0), Vec3f(1, -1, 0), Vec3f(0, 0, 1.5f)};
-  pyramid.faces = {Face(0, 1, 4), Face(1, 2, 4), Face(2, 3, 4), Face(3, 0, 4), Face(0, 2, 1), Face(0, 3, 2)};
+  pyramid.vertices = {Vec3f(1, 1, 0), Vec3f(-1, 1, 0), Vec3f(-1, -1, 0), Vec3f(1, -1, 0),
+                      Vec3f(0, 0, 1.5f)};
+  pyramid.faces = {Face(0, 1, 4), Face(1, 2, 4), Face(2, 3, 4),
+                   Face(3, 0, 4), Face(0, 2, 1), Face(0, 3, 2)};
   EXPECT_EQ(count_folded_faces(pyramid), 0);
   SdmParams p;
   p.threads = 2;
@@ -410,7 +412,9 @@ TEST(SdmParameterise, LowPolyMeshesMapOntoTheSphere) {
     // The vertices spread over the sphere: no two within 30 degrees of each other.
     for (std::size_t i = 0; i < r.mesh.vertices.size(); ++i)
       for (std::size_t j = i + 1; j < r.mesh.vertices.size(); ++j)
-        EXPECT_LT(r.mesh.vertices[i].normalized().dot(r.mesh.vertices[j].normalized()), std::cos(0.5236f)) << i << " " << j;
+        EXPECT_LT(r.mesh.vertices[i].normalized().dot(r.mesh.vertices[j].normalized()),
+                  std::cos(0.5236f))
+            << i << " " << j;
   }
 }
 

@@ -134,7 +134,8 @@ TEST(Cli, ParameteriseWritesUvsFromTheSphere) {
   EXPECT_LT(worst_v, 0.01);
   EXPECT_LT(worst_span, 0.2);
   // Without --json: the SDM's progress (the bundled bottle takes 14 s), then the summary.
-  const CmdResult text = run("parameterise " + (dir / "lumpy.ply").string() + " -o " + (dir / "uv2.obj").string());
+  const CmdResult text =
+      run("parameterise " + (dir / "lumpy.ply").string() + " -o " + (dir / "uv2.obj").string());
   ASSERT_EQ(text.code, 0) << text.out;
   EXPECT_NE(text.out.find("parameterise: SDM done in"), std::string::npos) << text.out;
   const CmdResult plane = run("parameterise " + (dir / "lumpy.ply").string() + " -o " + (dir / "p.obj").string() +
@@ -338,8 +339,10 @@ TEST(Cli, EvalPointsMetrics) {
             (m == 1 ? "edge-wlop" : "wlop") + (m == 2 ? " --repulsion tangential" : ""));
     ASSERT_EQ(r.code, 0) << r.out;
     // Progress on stderr (a 3 M-point cloud took 38 s without a line).
-    EXPECT_NE(r.out.find(m == 1 ? "consolidate: edge-WLOP iterations done in" : "consolidate: WLOP iterations done in"),
-              std::string::npos) << r.out;
+    EXPECT_NE(r.out.find(m == 1 ? "consolidate: edge-WLOP iterations done in"
+                                : "consolidate: WLOP iterations done in"),
+              std::string::npos)
+        << r.out;
     r = run("eval " + out + " " + fandisk + " --samples 1000 --edge-radius 0.08 --json");
     ASSERT_EQ(r.code, 0) << r.out;
     edge[m] = json_number(r.out, "edge_error");
