@@ -173,6 +173,7 @@ CaptureResult run_capture(Scanner& scanner, Turntable& turntable, Session& sessi
   session.save();
 
   if (result.resumed_from == 0) turntable.home();
+  else scanner.resume_at(std::uint64_t(result.resumed_from));
   for (int k = result.resumed_from; k < params.views; ++k) {
     if (stop && stop->load()) {
       result.interrupted = true;

@@ -87,6 +87,10 @@ class Scanner {
   /// Blocks until a frame is available; DeviceError on failure or time-out.
   virtual Frame grab() = 0;
   virtual std::string uri() const = 0;
+  /// A resumed capture (after open()): the next grab is the session's view `view`.
+  /// Real devices ignore it; the simulator keys its noise by the frame number, so
+  /// that a resumed scan records the views an uninterrupted one would have.
+  virtual void resume_at(std::uint64_t view) { (void)view; }
 };
 
 class Turntable {

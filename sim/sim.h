@@ -7,7 +7,9 @@
 // pinhole range camera; views are ray cast through a BVH. The turntable disk
 // hides the object's underside as a real one does. Depth noise is Gaussian
 // along the ray with sigma(z) = noise + noise_quadratic * z^2, plus dropouts and
-// colour noise; all seeded.
+// colour noise; all seeded, and keyed by the frame's number in the scan (a
+// resumed scan continues at its view, Scanner::resume_at: it records the views
+// an uninterrupted scan would have).
 //
 // Replay mode ("sim:replay?session=DIR"): a recorded session played back frame
 // by frame (points in the scanner frame, colour image when recorded).

@@ -171,6 +171,8 @@ class SyntheticScanner final : public Scanner {
     return caps;
   }
 
+  void resume_at(std::uint64_t view) override { frame_index_ = view; }
+
   Frame grab() override {
     if (!scene_) throw DeviceError(uri_.text + ": grab() before open()");
     Frame f = scene_->render(bench_->angle_deg(), frame_index_++);

@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 #include <tbb/global_control.h>
 
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <fstream>
@@ -10,6 +11,7 @@
 #include <opencv2/imgcodecs.hpp>
 
 #include "capture/capture.h"
+#include "capture/session.h"
 #include "core/bvh.h"
 #include "core/error.h"
 #include "core/io.h"
@@ -270,6 +272,44 @@ TEST_F(SyntheticSphere, SameSeedSameFramesWhateverTheThreadCount) {
   rig.scanner->close();
   rig.scanner->open();
   EXPECT_EQ(rig.scanner->grab().depth, a.depth);
+}
+
+// A scan stopped after two views and resumed by a new process records the views an
+// uninterrupted scan does (the frame counter restarted at 0 on open(), so the resumed
+// views had the noise of frames 0, 1, ...).
+TEST_F(SyntheticSphere, AResumedScanRecordsTheSameViews) {
+  const std::string q = "&noise=0.001&dropout=0.1&color_noise=3&width=160&height=120";
+  CaptureParams p;
+  p.views = 4;
+  {
+    Rig rig = make_rig(sphere(), q, true);
+    Session whole = Session::create(dir_ / "whole", {});
+    run_capture(*rig.scanner, *rig.turntable, whole, p);
+  }
+  {
+    Rig rig = make_rig(sphere(), q, true);
+    Session part = Session::create(dir_ / "part", {});
+    std::atomic<bool> stop{false};
+    run_capture(*rig.scanner, *rig.turntable, part, p,
+                [&](const CaptureProgress& pr) { stop = pr.view == 1; }, &stop);
+  }
+  ASSERT_EQ(Session::open(dir_ / "part").manifest().views.size(), 2u);
+  {
+    Rig rig = make_rig(sphere(), q, true);
+    Session part = Session::open(dir_ / "part");
+    EXPECT_EQ(run_capture(*rig.scanner, *rig.turntable, part, p).recorded, 2);
+  }
+  const Session whole = Session::open(dir_ / "whole"), part = Session::open(dir_ / "part");
+  ASSERT_EQ(part.manifest().views.size(), 4u);
+  for (std::size_t i = 0; i < 4; ++i) {
+    const ViewRecord& a = whole.manifest().views[i];
+    const ViewRecord& b = part.manifest().views[i];
+    EXPECT_DOUBLE_EQ(*a.angle_deg, *b.angle_deg) << i;
+    EXPECT_EQ(read_file_bytes(dir_ / "whole" / a.file), read_file_bytes(dir_ / "part" / b.file)) << i;
+    EXPECT_EQ(read_file_bytes(dir_ / "whole" / a.color_image),
+              read_file_bytes(dir_ / "part" / b.color_image))
+        << i;
+  }
 }
 
 // Distance from q to the surface of the box [lo, hi].
