@@ -336,8 +336,9 @@ int capture_into(Session& session, Scanner& scanner, Turntable& turntable,
     const std::size_t kept = session.manifest().views.size();
     std::string next = "; the " + std::to_string(kept) + " views recorded before it are kept in " +
                        session.dir().string();
-    if (std::string(command) == "scan")
-      next += ": continue with: station scan --resume -o " + session.dir().string();
+    // A replay resumes the same way: the session names its scanner (sim:replay).
+    next += ": once the cause is fixed, continue with: station scan --resume -o " +
+            session.dir().string();
     if (kept == 0) next = "; nothing was recorded in " + session.dir().string();
     if (dynamic_cast<const DeviceError*>(&e)) throw DeviceError(e.what() + next);
     if (dynamic_cast<const IoError*>(&e)) throw IoError(e.what() + next);

@@ -475,6 +475,8 @@ TEST(Cli, RunWithABrokenViewIsAPartialResult) {
   EXPECT_EQ(r.code, 1) << r.out;
   EXPECT_NE(r.out.find("view_002.ply"), std::string::npos) << r.out;
   EXPECT_NE(r.out.find("the 2 views recorded before it are kept in " + again), std::string::npos) << r.out;
+  // and how to go on (the replayed session names its scanner, so scan --resume continues it).
+  EXPECT_NE(r.out.find("continue with: station scan --resume -o " + again), std::string::npos) << r.out;
   EXPECT_EQ(read_manifest(again).views.size(), 2u);
 }
 
