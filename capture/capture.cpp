@@ -202,6 +202,14 @@ CaptureResult run_capture(Scanner& scanner, Turntable& turntable, Session& sessi
   return result;
 }
 
+std::string resume_hint(const Session& session, const Turntable& turntable) {
+  std::string hint = "continue with: station scan --resume -o " + session.dir().string();
+  if (turntable.uri().rfind("sim:", 0) != 0)
+    hint += " (first turn the table back to where it stood when the scan started: its zero is "
+            "wherever it stands when reopened)";
+  return hint;
+}
+
 MergeResult merge_by_turntable(const Session& session) {
   const SessionManifest& m = session.manifest();
   if (!m.axis)

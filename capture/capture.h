@@ -79,6 +79,12 @@ CaptureResult run_capture(Scanner& scanner, Turntable& turntable, Session& sessi
                           const std::function<void(const CaptureProgress&)>& progress = {},
                           const std::atomic<bool>* stop = nullptr);
 
+/// How to go on after an interrupted capture into `session`: "continue with:
+/// station scan --resume -o DIR", and for a real turntable (no end stop: reopened,
+/// its zero is wherever it stands) the advice to turn it back to where it stood
+/// when the scan started. The simulated turntable needs no such advice.
+std::string resume_hint(const Session& session, const Turntable& turntable);
+
 struct MergeResult {
   Cloud cloud;
   int merged_views = 0;

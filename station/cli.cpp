@@ -337,8 +337,7 @@ int capture_into(Session& session, Scanner& scanner, Turntable& turntable,
     std::string next = "; the " + std::to_string(kept) + " views recorded before it are kept in " +
                        session.dir().string();
     // A replay resumes the same way: the session names its scanner (sim:replay).
-    next += ": once the cause is fixed, continue with: station scan --resume -o " +
-            session.dir().string();
+    next += ": once the cause is fixed, " + resume_hint(session, turntable);
     if (kept == 0) next = "; nothing was recorded in " + session.dir().string();
     if (dynamic_cast<const DeviceError*>(&e)) throw DeviceError(e.what() + next);
     if (dynamic_cast<const IoError*>(&e)) throw IoError(e.what() + next);
@@ -349,8 +348,8 @@ int capture_into(Session& session, Scanner& scanner, Turntable& turntable,
   scanner.close();
   turntable.close();
   if (res.interrupted) {
-    std::fprintf(stderr, "%s: interrupted after %zu views; continue with: station scan --resume -o %s\n",
-                 session.dir().c_str(), session.manifest().views.size(), session.dir().c_str());
+    std::fprintf(stderr, "%s: interrupted after %zu views; %s\n", session.dir().c_str(),
+                 session.manifest().views.size(), resume_hint(session, turntable).c_str());
     return 130;
   }
   bar.finish();

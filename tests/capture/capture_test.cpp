@@ -191,6 +191,26 @@ TEST(Capture, UnpluggedScannerThenResumeLosesNoView) {
   EXPECT_EQ(merge_by_turntable(done).merged_views, 12);
 }
 
+// A real turntable has no end stop: its zero after reopening is where it stands,
+// so the hint says to turn it back first (the docs said "to the last view's angle",
+// which offsets every resumed view); the simulated one needs no such advice.
+TEST(Capture, ResumeHintAsksForTheTableAtItsStart) {
+  test::TempDir dir;
+  Session s = Session::create(dir / "s", {});
+  FakeTurntable real;
+  const std::string hint = resume_hint(s, real);
+  EXPECT_EQ(hint.rfind("continue with: station scan --resume -o " + (dir / "s").string(), 0), 0u)
+      << hint;
+  EXPECT_NE(hint.find("turn the table back to where it stood when the scan started"),
+            std::string::npos)
+      << hint;
+  class SimTable : public FakeTurntable {
+   public:
+    std::string uri() const override { return "sim:turntable?steps=3200"; }
+  } sim;
+  EXPECT_EQ(resume_hint(s, sim), "continue with: station scan --resume -o " + (dir / "s").string());
+}
+
 TEST(Capture, StopFlagInterruptsBetweenViewsAndResumes) {
   test::TempDir dir;
   FakeTurntable table;
