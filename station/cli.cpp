@@ -1108,9 +1108,7 @@ int cmd_consolidate(const Common& c, const ConsolidateArgs& a) {
   if (!c.json)
     std::fprintf(stderr, "consolidate: %s, %zu points, %s, %d iterations...\n", a.in.c_str(),
                  input.size(), a.method.c_str(), a.iterations);
-  Progress bar(p.method == WlopMethod::kEdgeWlop ? "consolidate: edge-WLOP iterations"
-                                                 : "consolidate: WLOP iterations",
-               a.iterations, c.json);
+  Progress bar(std::string("consolidate: ") + wlop_label(a.method) + " iterations", a.iterations, c.json);
   p.progress = [&](int done, int) { bar.update(done); };
   const WlopResult r = consolidate(input, p);
   bar.finish();
@@ -1185,8 +1183,8 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
   mo.threads = cfg.threads;
   MarchingCubesStats stats;
   if (!c.json)
-    std::fprintf(stderr, "reconstruct: %s at resolution %d...\n",
-                 a.extractor == "dmc" ? "Deformed Marching Cubes" : "marching cubes", a.resolution);
+    std::fprintf(stderr, "reconstruct: %s at resolution %d...\n", extractor_label(a.extractor),
+                 a.resolution);
   const auto t2 = std::chrono::steady_clock::now();
   // Far from the data, inside and outside by the cloud's winding number rather than
   // MPU's extrapolation (profile reconstruct.winding_close; reconstruct/winding_close.h).

@@ -556,8 +556,7 @@ class Runner {
     p.repulsion = c.repulsion == "tangential" ? WlopRepulsion::kTangential : WlopRepulsion::kFull;
     p.repulsion_weight = c.repulsion_weight == "printed" ? RepulsionWeight::kPrinted : RepulsionWeight::kOriginal;
     p.threads = cfg_.threads;
-    Progress bar(p.method == WlopMethod::kEdgeWlop ? "  consolidate: edge-WLOP iterations" : "  consolidate: WLOP iterations",
-                 c.iterations, req_.quiet);
+    Progress bar(std::string("  consolidate: ") + wlop_label(c.method) + " iterations", c.iterations, req_.quiet);
     p.progress = [&](int done, int) { bar.update(done); };
     const WlopResult w = consolidate(input, p);
     bar.finish();
@@ -614,7 +613,7 @@ class Runner {
       say("  surface: closed flat at the table plane (lowest point along the turntable axis)");
     }
     say("  surface: extracting at resolution " + std::to_string(c.resolution) + " (" +
-        (c.extractor == "dmc" ? "Deformed Marching Cubes" : "marching cubes") + ")");
+        extractor_label(c.extractor) + ")");
     // The box and seeds of the MpuSurface overloads of the extractors.
     const Aabb box = extraction_box(surface);
     mo.seeds = surface.points();
@@ -746,6 +745,12 @@ double check_extraction_fits(const ImplicitFunction& f, const Aabb& box, int res
                 faces / 1e6, need / 1073741824.0, available / 1073741824.0, finest);
   throw InvalidInput(what + buf);
 }
+
+const char* extractor_label(const std::string& extractor) {
+  return extractor == "dmc" ? "Deformed Marching Cubes" : "marching cubes";
+}
+
+const char* wlop_label(const std::string& method) { return method == "edge-wlop" ? "edge-WLOP" : "WLOP"; }
 
 RunResult run_pipeline(const StationConfig& config, const RunRequest& request) {
   return Runner(config, request).run();

@@ -82,6 +82,12 @@ double check_extraction_fits(const ImplicitFunction& f, const Aabb& box, int res
 /// 4096 (131 M faces, 16.7 GB).
 inline constexpr double kExtractionBytesPerFace = 150;
 
+/// How progress lines name a mesh extractor (profile reconstruct.extractor: "dmc" |
+/// "mc") and a consolidation method (consolidate.method: "edge-wlop" | "wlop"), in
+/// `station run` and in the single-stage commands alike.
+const char* extractor_label(const std::string& extractor);
+const char* wlop_label(const std::string& method);
+
 /// 64-bit FNV-1a over bytes, as 16 hex digits (stage keys; not cryptographic).
 std::string hash_hex(const std::string& bytes);
 /// hash_hex of a file's contents (IoError naming it when unreadable).
