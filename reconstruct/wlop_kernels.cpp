@@ -1,6 +1,8 @@
 #include "reconstruct/wlop_kernels.h"
 
 #include <atomic>
+#include <cstdio>
+#include <cstdlib>
 #include <cstring>
 #include <limits>
 #include <stdexcept>
@@ -13,11 +15,20 @@
 
 // Vector loops written once with GCC/Clang vector extensions and instantiated at
 // the CPU's native width: 8 doubles (AVX-512), 4 (AVX2) or 2 (SSE2, the x86-64
-// baseline and the fallback elsewhere), picked once at run time. Non-native widths
-// are not an option, and neither are vector comparisons: GCC turns them into
-// scalar code whenever the mask has to live in a register. Masks are made from
-// sign bits instead (a < b <=> a - b < 0 for finite doubles) and applied with AND,
-// which also zeroes whatever NaN or infinity a masked-out lane computed.
+// baseline and the fallback elsewhere), picked once at run time; floats twice
+// that. Every set gives the same bits, on any machine (docs/determinism.md):
+// - sums run over one logical width of 8 doubles (16 floats) on every set. A set
+//   narrower than that keeps 8 / W accumulators and hands a run's consecutive
+//   blocks to them in turn, so logical lane L always sums the candidates at L,
+//   L + 8, L + 16, ... of each run, in the same order, and the lanes are added up
+//   in the same order at the end (a skipped block only adds zeros);
+// - no hardware estimates (their bits differ between ISAs and between vendors);
+// - no FMA contraction (the build has -ffp-contract=off; AVX-512 implies FMA).
+// Non-native vector widths would cost lanes at every run's tail. Vector
+// comparisons are avoided: GCC turns them into scalar code whenever the mask has
+// to live in a register. Masks are made from sign bits instead (a < b <=> a - b <
+// 0 for finite doubles) and applied with AND, which also zeroes whatever NaN or
+// infinity a masked-out lane computed.
 #pragma GCC diagnostic ignored "-Wpsabi"
 
 #if defined(__x86_64__) && defined(__GNUC__)
@@ -39,15 +50,6 @@ struct Lanes {
 enum class Mode { kDensity, kAttraction, kRepulsion };
 
 #if defined(__x86_64__) && defined(__GNUC__)
-// AVX-512's 14-bit reciprocal square root estimate: two Newton steps then give
-// full precision, against four from the bit-level guess. Only ever inlined into
-// the AVX-512 kernels.
-__attribute__((target("avx512f"))) inline Lanes<8>::V rsqrt14(Lanes<8>::V x) {
-  return (Lanes<8>::V)_mm512_maskz_rsqrt14_pd(__mmask8(0xFF), (__m512d)x);
-}
-__attribute__((target("avx512f"))) inline __m512 rsqrt14_f(__m512 x) { return _mm512_maskz_rsqrt14_ps(__mmask16(0xFFFF), x); }
-__attribute__((target("avx"))) inline __m256 rsqrt_f(__m256 x) { return _mm256_rsqrt_ps(x); }
-
 // The eight records (8 floats each) at rec + 8 * pos[0..8), transposed: field f of
 // record l goes to lane l of out[f].
 __attribute__((target("avx2"))) inline void load_records8(const float* rec, const int* pos,
@@ -72,6 +74,10 @@ __attribute__((target("avx2"))) inline void load_records8(const float* rec, cons
 }
 #endif
 
+// The logical widths of every kernel set (see the top of this file).
+constexpr int kDoubleLanes = 8;
+constexpr int kFloatLanes = 16;
+
 template <int W>
 struct Kernels {
   using V = typename Lanes<W>::V;
@@ -84,11 +90,6 @@ struct Kernels {
     return v;
   }
   static STATION_INLINE V splat(double x) { return V{} + x; }
-  static STATION_INLINE double lane_sum(V v) {
-    double s = 0;
-    for (int l = 0; l < W; ++l) s += v[l];
-    return s;
-  }
 
   // All ones where v < 0 (sign bit set), else zero.
   static STATION_INLINE U negative(V v) { return U{} - ((U)v >> 63); }
@@ -123,16 +124,10 @@ struct Kernels {
 
   // 1 / sqrt(x) for x > 0 to about 1 ulp: the bit-level first guess (relative
   // error < 3.5 %) and four Newton steps, each squaring the error. Cheaper than a
-  // vector sqrt and divide. Garbage (possibly NaN) for x = 0; masked by callers.
+  // vector sqrt and divide, and the same bits on every ISA (a hardware estimate
+  // is not). Garbage (possibly NaN) for x = 0; masked by callers.
   static STATION_INLINE V rsqrt_positive(V x) {
     const V half = x * 0.5;
-#if defined(__x86_64__) && defined(__GNUC__)
-    if constexpr (W == 8) {
-      V y = rsqrt14(x);
-      for (int i = 0; i < 2; ++i) y = y * (1.5 - half * y * y);
-      return y;
-    }
-#endif
     V y = (V)((U{} + 0x5fe6eb50c7b537a9ULL) - ((U)x >> 1));
     for (int i = 0; i < 4; ++i) y = y * (1.5 - half * y * y);
     return y;
@@ -141,6 +136,16 @@ struct Kernels {
   struct Acc {
     V w{}, x{}, y{}, z{};
   };
+  // Accumulators that make up the logical width (see the top of this file).
+  static constexpr int kSets = kDoubleLanes / W;
+  static_assert(kSets * W == kDoubleLanes, "the native width must divide the logical one");
+  // Logical lanes 0, 1, ..., kDoubleLanes - 1 of field m, added up in that order.
+  static STATION_INLINE double lane_sum(const Acc* acc, V Acc::*m) {
+    double s = 0;
+    for (int a = 0; a < kSets; ++a)
+      for (int l = 0; l < W; ++l) s += (acc[a].*m)[l];
+    return s;
+  }
 
   // One block of W lanes starting at sorted position p; `valid` lanes from the
   // first are in the run (W for full blocks).
@@ -181,19 +186,22 @@ struct Kernels {
                                         const KernelShape& k, int self) {
     const double *xs = grid.xs(), *ys = grid.ys(), *zs = grid.zs();
     const V qx = splat(q.x()), qy = splat(q.y()), qz = splat(q.z());
-    Acc acc;
+    Acc acc[kSets];
     RadiusGrid::Run runs[RadiusGrid::kMaxRuns];
     const int count = grid.runs(q, runs);
     for (int run = 0; run < count; ++run) {
       const int b = runs[run].begin, e = runs[run].end;
-      int p = b;
-      for (; p + W <= e; p += W)
-        block<mode, false>(xs, ys, zs, weight, qx, qy, qz, k, p, W, self, acc);
-      if (p < e) block<mode, true>(xs, ys, zs, weight, qx, qy, qz, k, p, e - p, self, acc);
+      int p = b, set = 0;
+      for (; p + W <= e; p += W) {
+        block<mode, false>(xs, ys, zs, weight, qx, qy, qz, k, p, W, self, acc[set]);
+        if constexpr (kSets > 1) set = set + 1 == kSets ? 0 : set + 1;
+      }
+      if (p < e) block<mode, true>(xs, ys, zs, weight, qx, qy, qz, k, p, e - p, self, acc[set]);
     }
     KernelSums out;
-    out.w = lane_sum(acc.w);
-    if (mode != Mode::kDensity) out.d = Vec3d(lane_sum(acc.x), lane_sum(acc.y), lane_sum(acc.z));
+    out.w = lane_sum(acc, &Acc::w);
+    if (mode != Mode::kDensity)
+      out.d = Vec3d(lane_sum(acc, &Acc::x), lane_sum(acc, &Acc::y), lane_sum(acc, &Acc::z));
     return out;
   }
 };
@@ -205,17 +213,14 @@ struct Kernels {
 // taken per lane in float (at most a few hundred terms a lane) and across lanes in
 // double. This part of the edge variant is bound by the arithmetic per neighbour
 // and copy (a reciprocal square root twice, an exponential once), which float
-// halves per lane and shortens (a degree-7 polynomial, one Newton step after the
-// hardware estimate).
+// halves per lane and shortens (a degree-7 polynomial, three Newton steps).
 template <int W>
 struct FloatLanes {
   typedef float V __attribute__((vector_size(4 * W)));
   typedef unsigned U __attribute__((vector_size(4 * W)));
 };
 
-// kEstimate: 1/sqrt from the CPU's estimate (x86) or from the bit-level guess (the
-// "wide16" test set runs the AVX-512 lane logic on AVX2 that way).
-template <int W, bool kEstimate = true>
+template <int W>
 struct FloatKernels {
   using V = typename FloatLanes<W>::V;
   using U = typename FloatLanes<W>::U;
@@ -228,9 +233,18 @@ struct FloatKernels {
   }
   static STATION_INLINE void store(float* p, V v) { std::memcpy(p, &v, sizeof v); }
   static STATION_INLINE V splat(float x) { return V{} + x; }
-  static STATION_INLINE double lane_sum(V v) {
+  // Accumulators that make up the logical width, as in Kernels: block j of a loop
+  // over p = 0, W, 2W, ... adds into accumulator j mod kSets.
+  static constexpr int kSets = kFloatLanes / W;
+  static_assert(kSets * W == kFloatLanes, "the native width must divide the logical one");
+  static STATION_INLINE int next(int set) {
+    if constexpr (kSets == 1) return 0;
+    return set + 1 == kSets ? 0 : set + 1;
+  }
+  static STATION_INLINE double lane_sum(const V* v) {
     double s = 0;
-    for (int l = 0; l < W; ++l) s += double(v[l]);
+    for (int a = 0; a < kSets; ++a)
+      for (int l = 0; l < W; ++l) s += double(v[a][l]);
     return s;
   }
   static STATION_INLINE U negative(V v) { return U{} - ((U)v >> 31); }
@@ -261,23 +275,12 @@ struct FloatKernels {
     return p * (V)bits;
   }
 
-  // 1 / sqrt(x) for x > 0, float precision: the CPU's estimate (12 bits with SSE and
-  // AVX, 14 with AVX-512) and one Newton step; elsewhere the bit-level guess and
-  // three. Garbage for x = 0; masked by callers.
+  // 1 / sqrt(x) for x > 0, float precision: the bit-level guess and three Newton
+  // steps (the same bits on every ISA; the CPU's estimate is 12 bits with SSE and
+  // AVX, 14 with AVX-512, and differs between vendors). Garbage for x = 0; masked
+  // by callers.
   static STATION_INLINE V rsqrt_positive(V x) {
     V y;
-#if defined(__x86_64__) && defined(__GNUC__)
-    if constexpr (kEstimate) {
-      if constexpr (W == 16) {
-        y = (V)rsqrt14_f((__m512)x);
-      } else if constexpr (W == 8) {
-        y = (V)rsqrt_f((__m256)x);
-      } else {
-        y = (V)_mm_rsqrt_ps((__m128)x);
-      }
-      return y * (1.5f - (x * 0.5f) * y * y);
-    }
-#endif
     y = (V)((U{} + 0x5f375a86u) - ((U)x >> 1));
     for (int i = 0; i < 3; ++i) y = y * (1.5f - (x * 0.5f) * y * y);
     return y;
@@ -312,7 +315,9 @@ struct FloatKernels {
       store(ur2 + p, d2);
       inside += keep(splat(1.0f), negative(d2 - hh) & negative(lane - float(n - p)));
     }
-    return int(lane_sum(inside));
+    int count = 0;  // whole numbers: exact in any order
+    for (int l = 0; l < W; ++l) count += int(inside[l]);
+    return count;
   }
 
   static STATION_INLINE void edge_weights(const float* nxs, const float* nys, const float* nzs,
@@ -386,8 +391,8 @@ struct FloatKernels {
                                                 const float* ref, bool oriented, float* nx,
                                                 float* ny, float* nz, float* v) {
     const V lane = lanes();
-    V sx{}, sy{}, sz{};
-    for (int p = 0; p < n; p += W) {
+    V sx[kSets] = {}, sy[kSets] = {}, sz[kSets] = {};
+    for (int p = 0, set = 0; p < n; p += W, set = next(set)) {
       V f[7];
       load_records(rec, pos + p, f);
       const V dot = f[3] * ref[0] + f[4] * ref[1] + f[5] * ref[2];
@@ -399,9 +404,9 @@ struct FloatKernels {
       store(nz + p, fz);
       store(v + p, f[6]);
       const U valid = negative(lane - float(n - p));
-      sx += keep(fx, valid);
-      sy += keep(fy, valid);
-      sz += keep(fz, valid);
+      sx[set] += keep(fx, valid);
+      sy[set] += keep(fy, valid);
+      sz[set] += keep(fz, valid);
     }
     return Vec3d(lane_sum(sx), lane_sum(sy), lane_sum(sz));
   }
@@ -411,15 +416,15 @@ struct FloatKernels {
                                               const KernelShape& k) {
     const V lane = lanes();
     const float h2 = float(k.h2), eps2 = float(k.eps2), inv_s2 = float(k.inv_s2);
-    V w{}, x{}, y{}, z{};
-    for (int p = 0; p < n; p += W) {
+    V w[kSets] = {}, x[kSets] = {}, y[kSets] = {}, z[kSets] = {};
+    for (int p = 0, set = 0; p < n; p += W, set = next(set)) {
       const V r2 = load(r2s + p);
       const U inside = negative(r2 - h2) & negative(eps2 - r2) & negative(lane - float(n - p));
       const V a = keep(exp_nonpositive(r2 * -inv_s2) * rsqrt_positive(r2) * load(weight + p), inside);
-      w += a;
-      x += a * load(dx + p);
-      y += a * load(dy + p);
-      z += a * load(dz + p);
+      w[set] += a;
+      x[set] += a * load(dx + p);
+      y[set] += a * load(dy + p);
+      z[set] += a * load(dz + p);
     }
     KernelSums out;
     out.w = lane_sum(w);
@@ -524,7 +529,7 @@ struct Table {
                     int, int*, float*, float*, float*, float*);
 };
 
-#define STATION_KERNEL_TABLE(NAME, W, WF, EST, GATHER, TARGET)                                                  \
+#define STATION_KERNEL_TABLE(NAME, W, WF, GATHER, TARGET)                                                  \
   TARGET KernelSums NAME##_density(const RadiusGrid& g, const Vec3d& q, const KernelShape& k) { \
     return Kernels<W>::template sums<Mode::kDensity>(g, nullptr, q, k, -1);                     \
   }                                                                                             \
@@ -538,33 +543,30 @@ struct Table {
   }                                                                                             \
   TARGET KernelSums NAME##_array_f(const float* dx, const float* dy, const float* dz,          \
                                    const float* r2, const float* w, int n, const KernelShape& k) { \
-    return FloatKernels<WF, EST>::attraction(dx, dy, dz, r2, w, n, k);                               \
+    return FloatKernels<WF>::attraction(dx, dy, dz, r2, w, n, k);                               \
   }                                                                                             \
   TARGET int NAME##_invert_f(const float* dx, const float* dy, const float* dz, const float* r2, \
                              int n, double Dt, double Q, const Vec3d& a, double h2, float* ux,  \
                              float* uy, float* uz, float* ur2) {                                \
-    return FloatKernels<WF, EST>::invert_copy(dx, dy, dz, r2, n, Dt, Q, a, h2, ux, uy, uz, ur2);     \
+    return FloatKernels<WF>::invert_copy(dx, dy, dz, r2, n, Dt, Q, a, h2, ux, uy, uz, ur2);     \
   }                                                                                             \
   TARGET void NAME##_weights_f(const float* nx, const float* ny, const float* nz, const float* v, \
                                int n, const Vec3d& a, const double* g, int K, float* w) {       \
-    FloatKernels<WF, EST>::edge_weights(nx, ny, nz, v, n, a, g, K, w);                               \
+    FloatKernels<WF>::edge_weights(nx, ny, nz, v, n, a, g, K, w);                               \
   }                                                                                             \
-  TARGET int NAME##_nearest(const float* r2, int n) { return FloatKernels<WF, EST>::nearest(r2, n); } \
+  TARGET int NAME##_nearest(const float* r2, int n) { return FloatKernels<WF>::nearest(r2, n); } \
   TARGET Vec3d NAME##_normal_sum(const int* pos, int n, const float* rec, const float* ref,     \
                                  bool o, float* nx, float* ny, float* nz, float* v) {           \
-    return FloatKernels<WF, EST>::signed_normal_sum(pos, n, rec, ref, o, nx, ny, nz, v);            \
+    return FloatKernels<WF>::signed_normal_sum(pos, n, rec, ref, o, nx, ny, nz, v);            \
   }                                                                                             \
   const Table NAME##_table{NAME##_density,  NAME##_attraction, NAME##_repulsion, NAME##_array_f, \
                            NAME##_invert_f, NAME##_weights_f,  NAME##_nearest,   NAME##_normal_sum, \
                            GATHER};
 
-STATION_KERNEL_TABLE(base, 2, 4, true, gather_run_scalar, )
+STATION_KERNEL_TABLE(base, 2, 4, gather_run_scalar, )
 #ifdef STATION_X86_DISPATCH
-STATION_KERNEL_TABLE(avx2, 4, 8, true, gather_run_avx2, __attribute__((target("avx2"))))
-// Tests only: the AVX-512 set's 16-lane float code (tails, padding, the two-half
-// record transpose) on AVX2 instructions, so that a CPU without AVX-512 checks it too.
-STATION_KERNEL_TABLE(wide16, 4, 16, false, gather_run_avx2, __attribute__((target("avx2"))))
-STATION_KERNEL_TABLE(avx512, 8, 16, true, gather_run_avx2, __attribute__((target("avx512f,avx512dq"))))
+STATION_KERNEL_TABLE(avx2, 4, 8, gather_run_avx2, __attribute__((target("avx2"))))
+STATION_KERNEL_TABLE(avx512, 8, 16, gather_run_avx2, __attribute__((target("avx512f,avx512dq"))))
 #endif
 
 struct Variant {
@@ -572,16 +574,20 @@ struct Variant {
   const Table* table;
 };
 
-// The kernel sets this CPU can run, widest first.
+// The kernel sets this CPU can run, the default first: AVX2 before AVX-512. With
+// the same bits on every set, AVX-512 gains nothing: without its 14-bit 1/sqrt
+// estimate and FMA its eight-lane blocks waste more lanes at the grid runs' short
+// tails, and on the Xeon of 2026-12-03 it was 7-8 % slower than AVX2 (plain WLOP
+// 0.46 against 0.43 s of iterations, edge-WLOP 0.63 against 0.58 s,
+// docs/determinism.md).
 const std::vector<Variant>& variants() {
   static const std::vector<Variant> all = [] {
     std::vector<Variant> v;
 #ifdef STATION_X86_DISPATCH
     __builtin_cpu_init();
+    if (__builtin_cpu_supports("avx2")) v.push_back({"avx2", &avx2_table});
     if (__builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512dq"))
       v.push_back({"avx512", &avx512_table});
-    if (__builtin_cpu_supports("avx2")) v.push_back({"avx2", &avx2_table});
-    if (__builtin_cpu_supports("avx2")) v.push_back({"wide16", &wide16_table});
 #endif
     v.push_back({"base", &base_table});
     return v;
@@ -589,8 +595,23 @@ const std::vector<Variant>& variants() {
   return all;
 }
 
+// The default set, or the one STATION_WLOP_KERNELS names (all sets give the same
+// bits; the variable is there to show that on a whole run, and to time them).
+const Table* initial_table() {
+  const char* want = std::getenv("STATION_WLOP_KERNELS");
+  if (!want || !*want) return variants().front().table;
+  std::string have;
+  for (const Variant& v : variants()) {
+    if (v.name == std::string(want)) return v.table;
+    have += std::string(have.empty() ? "" : ", ") + v.name;
+  }
+  std::fprintf(stderr, "warning: STATION_WLOP_KERNELS=%s is not a kernel set of this CPU (%s); using %s\n",
+               want, have.c_str(), variants().front().name);
+  return variants().front().table;
+}
+
 std::atomic<const Table*>& current() {
-  static std::atomic<const Table*> chosen{variants().front().table};
+  static std::atomic<const Table*> chosen{initial_table()};
   return chosen;
 }
 

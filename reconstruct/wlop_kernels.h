@@ -2,8 +2,10 @@
 // Internal to reconstruct/: the inner sums of WLOP (methods.md section 1) over a
 // RadiusGrid's points within h of a query, in double precision, eight lanes at
 // a time. theta(r) = exp(-r^2 / (h/4)^2) (eq. 8). The lanes are summed in a fixed
-// order, so a result depends on the grid and the query alone (not on the CPU's
-// vector width: every ISA runs the same eight-lane arithmetic).
+// order, so a result depends on the grid and the query alone, not on the CPU:
+// every kernel set runs the same eight-lane (double) and sixteen-lane (float)
+// arithmetic, with no hardware estimates and no FMA contraction, and gives the
+// same bits (docs/determinism.md; tests/reconstruct/wlop_kernels_test.cpp checks).
 #include <string>
 #include <vector>
 
@@ -12,10 +14,12 @@
 
 namespace station::detail {
 
-/// The kernel sets this CPU can run, widest first ("avx512", "avx2", "base"; with
-/// AVX2 also "wide16", the AVX-512 set's 16-lane float code on AVX2 instructions,
-/// for tests); the first is used unless use_kernel_variant picks another (for tests:
-/// every set can then be checked on one machine; not to be called while kernels run).
+/// The kernel sets this CPU can run, the default first ("avx2", "avx512", "base":
+/// AVX2 is the faster of the two where both run). They differ in speed only, never
+/// in a bit of the results. The first is used unless the environment variable
+/// STATION_WLOP_KERNELS names another (a name this CPU lacks gets a warning on
+/// stderr and the first) or use_kernel_variant picks one (for tests: every set can
+/// then be checked on one machine; not to be called while kernels run).
 /// use_kernel_variant throws std::invalid_argument for a name not in the list.
 std::vector<std::string> kernel_variants();
 void use_kernel_variant(const std::string& name);

@@ -17,6 +17,7 @@
 #include "reconstruct/implicit.h"
 #include "reconstruct/marching_cubes.h"
 #include "station/config.h"
+#include "reconstruct/wlop_kernels.h"
 #include "station/pipeline.h"
 #include "test_util.h"
 
@@ -204,6 +205,35 @@ TEST_F(PipelineTest, ACloudRunsWithoutRegistration) {
   EXPECT_EQ(names(res), (std::vector<std::string>{"consolidate", "surface"}));
   EXPECT_FALSE(res.session);
   EXPECT_TRUE(res.report.empty());
+}
+
+// Same input, same output on any machine: the whole run (register, edge-WLOP,
+// MPU + DMC + colour) under every WLOP kernel set this CPU has writes the same
+// bytes (the sets an AVX2 and an AVX-512 machine pick; docs/determinism.md).
+TEST_F(PipelineTest, EveryKernelSetWritesTheSameMesh) {
+  struct Restore {
+    ~Restore() { detail::use_kernel_variant(detail::kernel_variants().front()); }
+  } restore;
+  std::string first, first_cloud;
+  for (const std::string& name : detail::kernel_variants()) {
+    detail::use_kernel_variant(name);
+    test::TempDir out("station-run-" + name);
+    RunRequest r = request(out.path());
+    r.report = false;
+    const RunResult res = run_pipeline(config({"consolidate.method=edge-wlop"}), r);
+    const std::string mesh = read_file_bytes(res.mesh);
+    const std::string cloud = read_file_bytes(out.path() / "consolidated.ply");
+    ASSERT_GT(mesh.size(), 1000u) << name;
+    if (first.empty()) {
+      first = mesh;
+      first_cloud = cloud;
+      continue;
+    }
+    EXPECT_TRUE(cloud == first_cloud) << name << ": consolidated.ply differs from "
+                                      << detail::kernel_variants().front() << "'s";
+    EXPECT_TRUE(mesh == first) << name << ": mesh.ply differs from " << detail::kernel_variants().front() << "'s";
+  }
+  if (detail::kernel_variants().size() == 1) GTEST_SKIP() << "one kernel set on this CPU: nothing to compare";
 }
 
 // The run's folder never is the session's (the scan's own merged.ply would be
