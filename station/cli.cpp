@@ -16,6 +16,7 @@
 #include <iostream>
 #include <map>
 #include <memory>
+#include <optional>
 #include <sstream>
 
 #include "capture/capture.h"
@@ -39,11 +40,11 @@
 #include "sim/sim.h"
 #include "station/config.h"
 #include "station/json.h"
+#include "station/params.h"
 #include "station/pipeline.h"
-#include "reconstruct/mesh_clean.h"
 #include "reconstruct/dmc.h"
 #include "reconstruct/sdm.h"
-#include "reconstruct/winding_close.h"
+#include "reconstruct/surface.h"
 #include "reconstruct/colour_edges.h"
 #include "reconstruct/colour_function.h"
 #include "drivers/real_devices.h"
@@ -72,11 +73,21 @@ extern "C" void on_sigint(int) {
   [[maybe_unused]] auto n = ::write(2, msg, sizeof msg - 1);
 }
 
+/// A bad value of a command-line option: a usage error (exit 2), as CLI11's own.
+class UsageError : public InvalidInput {
+ public:
+  using InvalidInput::InvalidInput;
+};
+
 /// Options every subcommand takes.
 struct Common {
   std::string config;
   int threads = -1;
   bool json = false;
+  /// Profile overrides from the command's profile options (station/params.h), in
+  /// the order given, and how the user spelled each ("--resolution 5").
+  std::vector<std::string> overrides;
+  std::map<std::string, std::string> spelled;
 };
 
 void add_common(CLI::App* cmd, Common& c) {
@@ -85,9 +96,52 @@ void add_common(CLI::App* cmd, Common& c) {
   cmd->add_flag("--json", c.json, "print a one-line JSON summary on stdout");
 }
 
-StationConfig load_common(const Common& c, const std::vector<std::string>& overrides = {}) {
-  StationConfig cfg =
-      load_config(c.config.empty() ? default_config_path() : fs::path(c.config), overrides);
+/// The command's options that stand for profile keys (station/params.h): each
+/// becomes an override of its key, checked by the profile's rules.
+void add_profile_options(CLI::App* cmd, const std::string& command, Common& c) {
+  static const std::map<std::string, std::string> defaults = profile_values(default_config_path());
+  for (const ProfileOption& o : profile_options()) {
+    if (o.command != command) continue;
+    const auto d = defaults.find(o.key);
+    const std::string help = o.help + " (profile " + o.key +
+                             (d != defaults.end() && o.flag_value.empty() ? "; default " + d->second : "") + ")";
+    if (!o.flag_value.empty()) {
+      cmd->add_flag_callback(
+          o.option,
+          [&c, o] {
+            c.overrides.push_back(o.key + "=" + o.flag_value);
+            c.spelled[c.overrides.back()] = o.option;
+          },
+          help);
+      continue;
+    }
+    CLI::Option* opt = cmd->add_option_function<std::string>(
+        o.option,
+        [&c, o](const std::string& v) {
+          c.overrides.push_back(o.key + "=" + v);
+          c.spelled[c.overrides.back()] = o.option + " " + v;
+          for (const std::string& i : o.implies) c.overrides.push_back(i);
+        },
+        help);
+    if (!o.choices.empty()) opt->check(CLI::IsMember(o.choices));
+  }
+}
+
+/// The profile with the command's overrides: `extra` (e.g. --set's) first, then the
+/// profile options', so an option beats a --set of the same key. A bad value names
+/// the option as given.
+StationConfig load_common(const Common& c, const std::vector<std::string>& extra = {}) {
+  std::vector<std::string> overrides = extra;
+  overrides.insert(overrides.end(), c.overrides.begin(), c.overrides.end());
+  StationConfig cfg;
+  try {
+    cfg = load_config(c.config.empty() ? default_config_path() : fs::path(c.config), overrides);
+  } catch (const InvalidInput& e) {
+    const std::string what = e.what();
+    for (const auto& [kv, option] : c.spelled)
+      if (what.rfind("--set " + kv + ":", 0) == 0) throw UsageError(option + what.substr(6 + kv.size()));
+    throw;
+  }
   if (c.threads >= 0) cfg.threads = c.threads;
   return cfg;
 }
@@ -220,7 +274,6 @@ int cmd_devices(const Common& c) {
 struct ScanArgs {
   std::string out = "out/scan";
   bool resume = false;
-  int views = 0;
   std::string scanner, turntable;
   std::vector<std::string> set;
   bool run = false;  ///< go on with `station run` into <session>/run
@@ -232,17 +285,7 @@ struct RunArgs {
   std::string in, out;
   bool resume = false, quiet = false, no_report = false;
   std::vector<std::string> set;
-  std::string surface, hole, extractor;
 };
-
-/// Profile overrides from --set and the shorthand options.
-std::vector<std::string> run_overrides(const RunArgs& a) {
-  std::vector<std::string> o = a.set;
-  if (!a.surface.empty()) o.push_back("reconstruct.surface=" + a.surface);
-  if (!a.hole.empty()) o.push_back("reconstruct.hole=" + a.hole);
-  if (!a.extractor.empty()) o.push_back("reconstruct.extractor=" + a.extractor);
-  return o;
-}
 
 int run_job(const StationConfig& cfg, const Common& c, const RunArgs& a) {
   RunRequest req;
@@ -310,7 +353,7 @@ int run_job(const StationConfig& cfg, const Common& c, const RunArgs& a) {
 }
 
 int cmd_run(const Common& c, const RunArgs& a) {
-  StationConfig cfg = load_common(c, run_overrides(a));
+  StationConfig cfg = load_common(c, a.set);
   return run_job(cfg, c, a);
 }
 
@@ -390,7 +433,6 @@ int cmd_scan(const Common& c, const ScanArgs& a) {
     const auto eq = kv.find('=');
     cfg.scanner_options[kv.substr(0, eq)] = kv.substr(eq + 1);
   }
-  if (a.views > 0) cfg.capture.views = a.views;
   std::string scanner_uri = a.scanner.empty() ? compose_uri(cfg.scanner_uri, cfg.scanner_options) : a.scanner;
   std::string turntable_uri =
       a.turntable.empty() ? compose_uri(cfg.turntable_uri, cfg.turntable_options) : a.turntable;
@@ -796,20 +838,13 @@ void print_registration(const RegistrationResult& r) {
 }
 
 struct RegisterArgs {
-  std::string session, out, poses_out, objective, rigid_turntable;
-  bool no_global = false, no_angle_check = false, fuse = false;
+  std::string session, out, poses_out;
 };
 
 int cmd_register(const Common& c, const RegisterArgs& a) {
   check_output_name(a.out, "a cloud", {".ply"});
   check_not_a_recording(a.poses_out);
-  std::vector<std::string> overrides;
-  if (!a.objective.empty()) overrides.push_back("register.objective=" + a.objective);
-  if (a.no_global) overrides.push_back("register.global=false");
-  if (a.no_angle_check) overrides.push_back("register.check_angles=false");
-  if (a.fuse) overrides.push_back("register.fuse=true");
-  if (!a.rigid_turntable.empty()) overrides.push_back("register.rigid_turntable=" + a.rigid_turntable);
-  StationConfig cfg = load_common(c, overrides);
+  StationConfig cfg = load_common(c);
   auto threads = limit_threads(cfg.threads);
   const std::string& session_dir = a.session;
   const std::string& out = a.out;
@@ -1079,36 +1114,20 @@ int cmd_parameterise(const Common& c, const ParameteriseArgs& a) {
 
 struct ConsolidateArgs {
   std::string in, out;
-  std::size_t points = 0;
-  double ratio = 0.2;
-  std::string method = "wlop";
-  int iterations = 35;
-  double radius = 0;
-  std::string repulsion = "full";
-  std::string repulsion_weight = "original";
-  unsigned seed = 1;
 };
 
 int cmd_consolidate(const Common& c, const ConsolidateArgs& a) {
   const auto t0 = std::chrono::steady_clock::now();
   check_output_name(a.out, "a cloud", {".ply"});
   StationConfig cfg = load_common(c);
+  const auto& pc = cfg.pipeline.consolidate;
   const Cloud input = read_cloud(a.in);
   const double t_read = seconds_since(t0);
-  WlopParams p;
-  p.method = a.method == "edge-wlop" ? WlopMethod::kEdgeWlop : WlopMethod::kWlop;
-  p.target_points = a.points;
-  p.ratio = a.ratio;
-  p.iterations = a.iterations;
-  p.radius = a.radius;
-  p.repulsion = a.repulsion == "tangential" ? WlopRepulsion::kTangential : WlopRepulsion::kFull;
-  p.repulsion_weight = a.repulsion_weight == "printed" ? RepulsionWeight::kPrinted : RepulsionWeight::kOriginal;
-  p.seed = a.seed;
-  p.threads = cfg.threads;
+  WlopParams p = wlop_params(cfg.pipeline, cfg.threads);
   if (!c.json)
     std::fprintf(stderr, "consolidate: %s, %zu points, %s, %d iterations...\n", a.in.c_str(),
-                 input.size(), a.method.c_str(), a.iterations);
-  Progress bar(std::string("consolidate: ") + wlop_label(a.method) + " iterations", a.iterations, c.json);
+                 input.size(), pc.method.c_str(), pc.iterations);
+  Progress bar(std::string("consolidate: ") + wlop_label(pc.method) + " iterations", pc.iterations, c.json);
   p.progress = [&](int done, int) { bar.update(done); };
   const WlopResult r = consolidate(input, p);
   bar.finish();
@@ -1118,7 +1137,7 @@ int cmd_consolidate(const Common& c, const ConsolidateArgs& a) {
                       .add("command", "consolidate")
                       .add("input", a.in)
                       .add("output", a.out)
-                      .add("method", a.method)
+                      .add("method", pc.method)
                       .add("input_points", r.input_points)
                       .add("output_points", r.cloud.size())
                       .add("clamped", r.clamped)
@@ -1133,7 +1152,7 @@ int cmd_consolidate(const Common& c, const ConsolidateArgs& a) {
                                             .add("total", seconds_since(t0))));
   } else {
     std::printf("consolidate: %zu -> %zu points (%s, %d iterations, h = %.6g) in %.2fs -> %s\n",
-                r.input_points, r.cloud.size(), a.method.c_str(), r.iterations, r.radius,
+                r.input_points, r.cloud.size(), pc.method.c_str(), r.iterations, r.radius,
                 r.seconds, a.out.c_str());
     if (r.clamped)
       std::printf("note: asked for %zu points but the input has %zu distinct ones; all were projected\n",
@@ -1146,109 +1165,48 @@ int cmd_consolidate(const Common& c, const ConsolidateArgs& a) {
 
 struct ReconstructArgs {
   std::string in, out;
-  int resolution = 128;
-  std::string holes = "close";
-  double epsilon = 0;  ///< 0: from the cloud's noise level (suggest_epsilon0)
-  bool no_colour = false;
-  bool no_colour_edges = false;
-  double min_component = 0.01;
-  std::string extractor = "dmc";
-  std::string colour = "mpu";
+  /// The turntable axis in the cloud's frame, "x,y,z" (run.yaml's register figures
+  /// up_x, up_y, up_z): enables the table plane. Empty: none.
+  std::string up;
 };
+
+std::optional<Vec3d> parse_up(const std::string& text) {
+  if (text.empty()) return std::nullopt;
+  Vec3d v;
+  char comma1 = 0, comma2 = 0, rest = 0;
+  if (std::sscanf(text.c_str(), "%lf %c %lf %c %lf %c", &v.x(), &comma1, &v.y(), &comma2, &v.z(), &rest) != 5 ||
+      comma1 != ',' || comma2 != ',' || !v.allFinite() || !(v.norm() > 0))
+    throw InvalidInput("--up " + text + ": expected a non-zero direction x,y,z");
+  return v;
+}
 
 int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
   const auto t0 = std::chrono::steady_clock::now();
   check_output_name(a.out, "a mesh", {".ply", ".obj"});
   StationConfig cfg = load_common(c);
+  const auto& rc = cfg.pipeline.reconstruct;
+  SurfaceParams sp = surface_params(cfg.pipeline, cfg.threads);
+  if (rc.table_plane) sp.table_up = parse_up(a.up);
+  sp.resolution_name = "--resolution " + std::to_string(rc.resolution);
+  sp.note = [&](const std::string& line) {
+    if (!c.json) std::fprintf(stderr, "%s\n", surface_note(a.in, line, "reconstruct: ", "note: ").c_str());
+  };
   Cloud input = read_cloud(a.in);
+  const std::size_t points = input.size();
   const double t_read = seconds_since(t0);
-  bool estimated = false;
-  if (!input.has_normals()) {
-    // MPU needs oriented normals: estimate them (PCA) and orient them consistently.
-    if (!c.json) std::fprintf(stderr, "note: %s has no normals; estimating them (PCA, MST orientation)\n", a.in.c_str());
-    input.normals = estimate_normals(input.points, 12, cfg.threads);
-    orient_normals_mst(input.points, input.normals, 12);
-    estimated = true;
-  }
-  MpuParams mp;
-  // The paper's 1e-4 suits clean data only; noisy scans get a tolerance from their noise.
-  mp.epsilon0 = a.epsilon > 0 ? a.epsilon : std::max(mp.epsilon0, suggest_epsilon0(input));
-  mp.threads = cfg.threads;
-  if (!c.json) std::fprintf(stderr, "reconstruct: fitting MPU to %zu points...\n", input.size());
-  const auto t1 = std::chrono::steady_clock::now();
-  const MpuSurface surface = fit_mpu(input, mp);
-  const double t_fit = seconds_since(t1);
-  MarchingCubesOptions mo;
-  mo.untrusted = a.holes == "open" ? UntrustedRegions::kLeaveOpen : UntrustedRegions::kClose;
-  mo.threads = cfg.threads;
-  MarchingCubesStats stats;
-  if (!c.json)
-    std::fprintf(stderr, "reconstruct: %s at resolution %d...\n", extractor_label(a.extractor),
-                 a.resolution);
-  const auto t2 = std::chrono::steady_clock::now();
-  // Far from the data, inside and outside by the cloud's winding number rather than
-  // MPU's extrapolation (profile reconstruct.winding_close; reconstruct/winding_close.h).
-  std::unique_ptr<WindingClose> winding;
-  if (a.holes == "close" && cfg.pipeline.reconstruct.winding_close)
-    winding = std::make_unique<WindingClose>(surface, input);
-  const ImplicitFunction& f = winding ? static_cast<const ImplicitFunction&>(*winding) : surface;
-  const Aabb box = extraction_box(surface);
-  mo.seeds = surface.points();
-  mo.close_at_box = true;
-  const double expected = check_extraction_fits(f, box, a.resolution, mo, "--resolution " + std::to_string(a.resolution));
-  if (expected > 0 && !c.json) std::fprintf(stderr, "reconstruct: about %.1f M faces expected\n", expected / 1e6);
-  Mesh mesh;
-  DmcStats dstats;
-  if (a.extractor == "dmc") {
-    DmcOptions dopt;
-    static_cast<MarchingCubesOptions&>(dopt) = mo;
-    mesh = extract_dmc(f, box, a.resolution, dopt, &dstats);
-    stats = dstats;
-  } else {
-    mesh = extract_marching_cubes(f, box, a.resolution, mo, &stats);
-  }
-  const double t_extract = seconds_since(t2);
-  if (mesh.faces.empty()) throw InvalidInput(a.in + ": the reconstructed surface is empty");
-  const ComponentFilterStats pieces = remove_small_components(mesh, a.min_component);
-  if (pieces.removed_components > 0 && !c.json)
-    std::fprintf(stderr, "reconstruct: removed %zu small pieces (%zu faces)\n", pieces.removed_components,
-                 pieces.removed_faces);
-  const auto t3 = std::chrono::steady_clock::now();
-  const bool colour = input.has_colors() && !a.no_colour;
-  double e_col = -1;
-  std::size_t colour_edges_split = 0;
-  if (colour && a.colour == "nearest") {
-    transfer_colors(mesh, input, {4, cfg.threads});
-  } else if (colour) {
-    ColourParams cp;
-    cp.threads = cfg.threads;
-    const ColourFunction cf = fit_colour(input, cp);
-    colour_mesh(mesh, cf, surface, input, cfg.threads);
-    if (!a.no_colour_edges) {
-      ColourEdgeParams ep;
-      ep.threads = cfg.threads;
-      colour_edges_split = sharpen_colour_edges(mesh, cf, ep).split_edges;
-    }
-    e_col = cf.diagnostics().e_col;
-    if (!c.json)
-      std::fprintf(stderr, "reconstruct: colour function: %zu cells smooth (A), %zu split at a boundary (B), e_col %.4f\n",
-                   cf.diagnostics().leaves_by_type[0], cf.diagnostics().leaves_by_type[1], e_col);
-    if (!c.json && colour_edges_split > 0)
-      std::fprintf(stderr, "reconstruct: %zu edges split at colour boundaries\n", colour_edges_split);
-  } else if (!a.no_colour && !c.json) {
-    std::fprintf(stderr, "note: %s has no colours; the mesh is left uncoloured\n", a.in.c_str());
-  }
-  write_mesh(a.out, mesh);
-  const MpuDiagnostics& d = surface.diagnostics();
+  const SurfaceResult r = reconstruct_surface(std::move(input), sp);
+  write_mesh(a.out, r.mesh);
+  const MpuDiagnostics& d = r.mpu;
   if (c.json) {
+    const DmcStats& ds = r.dmc;
     print_summary(JsonObject()
                       .add("command", "reconstruct")
                       .add("input", a.in)
                       .add("output", a.out)
-                      .add("points", input.size())
-                      .add("normals_estimated", estimated)
-                      .add("vertices", mesh.vertices.size())
-                      .add("faces", mesh.faces.size())
+                      .add("points", points)
+                      .add("normals_estimated", r.normals_estimated)
+                      .add("vertices", r.mesh.vertices.size())
+                      .add("faces", r.mesh.faces.size())
                       .add("leaves", d.leaves)
                       .add("leaves_by_type", JsonObject()
                                                  .add("bivariate", d.leaves_by_type[0])
@@ -1256,38 +1214,40 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
                                                  .add("edge", d.leaves_by_type[2])
                                                  .add("corner", d.leaves_by_type[3]))
                       .add("unconverged_leaves", d.unconverged_leaves)
-                      .add("removed_pieces", pieces.removed_components)
-                      .add("epsilon0", mp.epsilon0)
-                      .add("cell_size", stats.cell_size)
-                      .add("colours", colour)
-                      .add("extractor", a.extractor)
-                      .add("winding_close", bool(winding))
+                      .add("removed_pieces", r.pieces.removed_components)
+                      .add("epsilon0", r.epsilon0)
+                      .add("cell_size", r.extraction.cell_size)
+                      .add("colours", r.coloured)
+                      .add("extractor", rc.extractor)
+                      .add("winding_close", r.winding_points > 0)
+                      .add("table_plane", bool(r.table_height))
                       .add("dmc", JsonObject()
-                                      .add("probed", dstats.probed)
-                                      .add("searched", dstats.searched)
-                                      .add("moved_barycentre", dstats.moved_barycentre)
-                                      .add("moved_corner", dstats.moved_corner)
-                                      .add("moved_edge", dstats.moved_edge)
-                                      .add("smooth_cells", dstats.smooth_cells)
-                                      .add("seconds_traversal", dstats.seconds_traversal)
-                                      .add("seconds_barycentre", dstats.seconds_barycentre)
-                                      .add("seconds_features", dstats.seconds_features)
-                                      .add("seconds_mesh", dstats.seconds_mesh))
-                      .add("colour_method", colour ? a.colour : std::string("none"))
-                      .add("e_col", e_col)
-                      .add("colour_edges_split", colour_edges_split)
+                                      .add("probed", ds.probed)
+                                      .add("searched", ds.searched)
+                                      .add("moved_barycentre", ds.moved_barycentre)
+                                      .add("moved_corner", ds.moved_corner)
+                                      .add("moved_edge", ds.moved_edge)
+                                      .add("smooth_cells", ds.smooth_cells)
+                                      .add("seconds_traversal", ds.seconds_traversal)
+                                      .add("seconds_barycentre", ds.seconds_barycentre)
+                                      .add("seconds_features", ds.seconds_features)
+                                      .add("seconds_mesh", ds.seconds_mesh))
+                      .add("colour_method", r.coloured ? rc.colour_method : std::string("none"))
+                      .add("e_col", r.colour ? r.colour->e_col : -1.0)
+                      .add("colour_edges_split", r.colour_edges_split)
                       .add("timings_s", JsonObject()
                                             .add("read", t_read)
-                                            .add("fit", t_fit)
-                                            .add("extract", t_extract)
-                                            .add("colour", colour ? seconds_since(t3) : 0.0)
+                                            .add("fit", r.seconds.normals + r.seconds.fit)
+                                            .add("extract", r.seconds.closing + r.seconds.extract)
+                                            .add("colour", r.seconds.colour)
                                             .add("total", seconds_since(t0))));
   } else {
     std::printf("MPU: %zu leaves (bivariate %zu, quadric %zu, edge %zu, corner %zu), fit %.2fs\n",
                 d.leaves, d.leaves_by_type[0], d.leaves_by_type[1], d.leaves_by_type[2],
-                d.leaves_by_type[3], t_fit);
+                d.leaves_by_type[3], r.seconds.fit);
     std::printf("reconstruct: %zu vertices, %zu faces (cell %.4g, extract %.2fs) -> %s\n",
-                mesh.vertices.size(), mesh.faces.size(), stats.cell_size, t_extract, a.out.c_str());
+                r.mesh.vertices.size(), r.mesh.faces.size(), r.extraction.cell_size, r.seconds.extract,
+                a.out.c_str());
   }
   return 0;
 }
@@ -1308,7 +1268,7 @@ int run_cli(int argc, char** argv) {
   add_common(scan, c_scan);
   scan->add_option("-o,--out", scan_args.out, "session folder to write (or resume)")->capture_default_str();
   scan->add_flag("--resume", scan_args.resume, "continue an interrupted scan in --out");
-  scan->add_option("--views", scan_args.views, "views over 360 degrees (overrides the profile)")->check(CLI::Range(1, 3600));
+  add_profile_options(scan, "scan", c_scan);
   scan->add_option("--scanner", scan_args.scanner, "scanner URI (overrides the profile)");
   scan->add_option("--turntable", scan_args.turntable, "turntable URI (overrides the profile)");
   scan->add_option("--set", scan_args.set,
@@ -1324,11 +1284,7 @@ int run_cli(int argc, char** argv) {
   runc->add_flag("--resume", run_args.resume,
                  "continue a run in --out: finished stages whose inputs and parameters are unchanged are kept");
   runc->add_option("--set", run_args.set, "profile override section.key=value (repeatable), e.g. --set reconstruct.resolution=192");
-  runc->add_option("--surface", run_args.surface, "surface method (reconstruct.surface)")->check(CLI::IsMember({"mpu", "sdm"}));
-  runc->add_option("--hole", run_args.hole,
-                   "unseen underside: close (smooth, watertight) or keep (left open where there is no data)")
-      ->check(CLI::IsMember({"close", "keep"}));
-  runc->add_option("--extractor", run_args.extractor, "mesh extraction (reconstruct.extractor)")->check(CLI::IsMember({"mc", "dmc"}));
+  add_profile_options(runc, "run", c_run);
   runc->add_flag("--quiet", run_args.quiet, "no progress output");
   runc->add_flag("--no-report", run_args.no_report, "do not write report.html");
 
@@ -1379,19 +1335,7 @@ int run_cli(int argc, char** argv) {
   reg->add_option("session", reg_args.session, "session folder")->required();
   reg->add_option("-o,--out", reg_args.out, "merged cloud (.ply)")->required();
   reg->add_option("--poses-out", reg_args.poses_out, "write the refined poses and diagnostics (YAML)");
-  reg->add_option("--objective", reg_args.objective,
-                  "ICP objective (profile register.objective; default point-to-plane); colored needs coloured views")
-      ->check(CLI::IsMember(registration_objectives()));
-  reg->add_flag("--no-global", reg_args.no_global,
-                "no global registration by features: views without an angle or pose fail");
-  reg->add_flag("--no-angle-check", reg_args.no_angle_check, "trust the commanded turntable angles");
-  reg->add_option("--rigid-turntable", reg_args.rigid_turntable,
-                  "hold the views on one rigid turntable axis: auto (when it fits the free poses), on, off "
-                  "(profile register.rigid_turntable; default auto)")
-      ->check(CLI::IsMember({"auto", "on", "off"}));
-  reg->add_flag("--fuse", reg_args.fuse,
-                "average overlapping points of different views in the merge (profile register.fuse, "
-                "register.fuse_distance; default off)");
+  add_profile_options(reg, "register", c_reg);
 
   std::string cal_session, cal_out;
   Common c_cal;
@@ -1418,23 +1362,8 @@ int run_cli(int argc, char** argv) {
   add_common(cons, c_cons);
   cons->add_option("input", cons_args.in, "input cloud (.ply .pcd .obj .off)")->required();
   cons->add_option("-o,--out", cons_args.out, "output cloud (.ply)")->required();
-  auto* pts = cons->add_option("--points", cons_args.points, "output point count |I|");
-  cons->add_option("--ratio", cons_args.ratio, "output points as a fraction of the input (when --points is not given)")
-      ->capture_default_str()->check(CLI::Range(1e-9, 1.0))->excludes(pts);
-  cons->add_option("--method", cons_args.method, "wlop or edge-wlop (keeps sharp edges)")
-      ->capture_default_str()->check(CLI::IsMember({"wlop", "edge-wlop"}));
-  cons->add_option("--iterations", cons_args.iterations, "iterations k")->capture_default_str()->check(CLI::NonNegativeNumber);
-  cons->add_option("--radius", cons_args.radius, "support radius h in input units (0 = 4 d_bb / sqrt(|J|))")
-      ->capture_default_str()->check(CLI::NonNegativeNumber);
-  cons->add_option("--repulsion", cons_args.repulsion,
-                   "wlop's repulsion: full (as printed) or tangential (no part along the local normal: "
-                   "less drift off the surface)")
-      ->capture_default_str()->check(CLI::IsMember({"full", "tangential"}));
-  cons->add_option("--repulsion-weight", cons_args.repulsion_weight,
-                   "the repulsion's beta: original (theta / r, WLOP's own: close pairs separate) or printed "
-                   "(-theta, eq. 5 as the paper prints it)")
-      ->capture_default_str()->check(CLI::IsMember({"original", "printed"}));
-  cons->add_option("--seed", cons_args.seed, "seed of the initial subset")->capture_default_str();
+  add_profile_options(cons, "consolidate", c_cons);
+  cons->get_option("--ratio")->excludes(cons->get_option("--points"));
 
   FitArgs fit_args;
   Common c_fit;
@@ -1468,31 +1397,15 @@ int run_cli(int argc, char** argv) {
 
   ReconstructArgs rec_args;
   Common c_rec;
-  auto* rec = app.add_subcommand("reconstruct", "Fit an MPU implicit surface to a cloud and mesh it (marching cubes)");
+  auto* rec = app.add_subcommand("reconstruct", "Fit an MPU implicit surface with colour to a cloud and mesh it (Deformed Marching Cubes)");
   add_common(rec, c_rec);
   rec->add_option("input", rec_args.in, "cloud with normals (estimated when missing)")->required();
   rec->add_option("-o,--out", rec_args.out, "mesh (.ply or .obj)")->required();
-  rec->add_option("--resolution", rec_args.resolution, "grid cells along the longest side")
-      ->capture_default_str()->check(CLI::Range(4, 4096));
-  rec->add_option("--holes", rec_args.holes, "where there is no data: close (smooth, watertight) or open")
-      ->capture_default_str()->check(CLI::IsMember({"close", "open"}));
-  rec->add_option("--epsilon", rec_args.epsilon,
-                  "MPU fit tolerance epsilon_0, relative to the unit-diagonal box (default: from the "
-                  "cloud's noise level, at least the paper's 1e-4)")
-      ->check(CLI::Range(1e-7, 1e-1));
-  rec->add_flag("--no-colour", rec_args.no_colour, "do not colour the mesh from the input's colours");
-  rec->add_flag("--no-colour-edges", rec_args.no_colour_edges,
-                "keep the extracted faces: do not split edges at colour boundaries (then a face that a "
-                "boundary crosses blends both colours)");
-  rec->add_option("--extractor", rec_args.extractor,
-                  "dmc: Deformed Marching Cubes (thin parts, sharp edges; docs/dmc.md) or mc: plain marching cubes")
-      ->capture_default_str()->check(CLI::IsMember({"dmc", "mc"}));
-  rec->add_option("--colour", rec_args.colour,
-                  "mpu: the MPU colour function (sharp colour boundaries; docs/colour.md) or nearest: k-NN transfer")
-      ->capture_default_str()->check(CLI::IsMember({"mpu", "nearest"}));
-  rec->add_option("--min-component", rec_args.min_component,
-                  "drop mesh pieces smaller than this fraction of the largest piece's area (0 keeps all)")
-      ->capture_default_str()->check(CLI::Range(0.0, 1.0));
+  add_profile_options(rec, "reconstruct", c_rec);
+  rec->add_option("--up", rec_args.up,
+                  "the turntable axis in the cloud's frame, x,y,z (a run's register figures up_x, up_y, up_z): "
+                  "with --hole close the underside closes flat at the table plane (profile "
+                  "reconstruct.table_plane)");
 
   try {
     app.parse(argc, argv);
@@ -1521,6 +1434,9 @@ int run_cli(int argc, char** argv) {
     if (*reg) return cmd_register(c_reg, reg_args);
     if (*cal_tt) return cmd_calibrate_turntable(c_cal, cal_session, cal_out);
     if (*cal_cam) return cmd_calibrate_camera(c_cam, cam_images, cam_board, cam_square, cam_out);
+  } catch (const UsageError& e) {
+    std::fprintf(stderr, "station: %s\n", e.what());
+    return 2;
   } catch (const Error& e) {
     std::fprintf(stderr, "station: %s\n", e.what());
     return 1;

@@ -160,8 +160,8 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
       r.fail("register.fuse_distance", "must be 0..0.1 (metres; 0: the views' point spacing)");
   }
   if (const YAML::Node n = root["consolidate"]) {
-    r.check_keys(n, "consolidate", {"enabled", "method", "points", "ratio", "iterations", "seed", "repulsion",
-                                     "repulsion_weight"});
+    r.check_keys(n, "consolidate", {"enabled", "method", "points", "ratio", "iterations", "radius", "seed",
+                                     "repulsion", "repulsion_weight"});
     auto& c = p.consolidate;
     if (n["enabled"]) c.enabled = r.boolean(n["enabled"], "consolidate.enabled");
     if (n["method"]) c.method = r.text(n["method"], "consolidate.method");
@@ -182,6 +182,8 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
     if (n["iterations"]) c.iterations = r.integer(n["iterations"], "consolidate.iterations");
     if (c.iterations < 1 || c.iterations > 1000) r.fail("consolidate.iterations", "must be 1..1000");
     if (n["seed"]) c.seed = unsigned(r.integer(n["seed"], "consolidate.seed"));
+    if (n["radius"]) c.radius = r.number(n["radius"], "consolidate.radius");
+    if (c.radius < 0) r.fail("consolidate.radius", "must not be negative (0: 4 d_bb / sqrt(|J|))");
   }
   if (const YAML::Node n = root["reconstruct"]) {
     r.check_keys(n, "reconstruct", {"surface", "resolution", "epsilon0", "extractor", "hole", "colour", "colour_method", "colour_multi",
@@ -244,6 +246,26 @@ std::string compose_uri(const std::string& uri, const DeviceOptions& options) {
 fs::path default_config_path() {
   fs::path p = fs::path(STATION_SOURCE_DIR) / "config" / "default.yaml";
   return fs::exists(p) ? p : fs::path();
+}
+
+namespace {
+void flatten(const YAML::Node& n, const std::string& prefix, std::map<std::string, std::string>& out) {
+  if (n.IsMap()) {
+    for (const auto& kv : n) flatten(kv.second, (prefix.empty() ? "" : prefix + ".") + kv.first.as<std::string>(), out);
+  } else if (n.IsScalar()) {
+    out[prefix] = n.Scalar();
+  }
+}
+}  // namespace
+
+std::map<std::string, std::string> profile_values(const fs::path& path) {
+  std::map<std::string, std::string> out;
+  try {
+    flatten(YAML::LoadFile(path.string()), "", out);
+  } catch (const std::exception&) {
+    out.clear();
+  }
+  return out;
 }
 
 StationConfig load_config(const fs::path& path, const std::vector<std::string>& overrides) {

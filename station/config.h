@@ -1,6 +1,7 @@
 #pragma once
 // Station profiles (config/*.yaml). Every key is documented in config/default.yaml.
 #include <filesystem>
+#include <map>
 #include <string>
 #include <vector>
 
@@ -34,6 +35,7 @@ struct PipelineConfig {
     std::size_t points = 20000;   ///< output points (0: ratio x input)
     double ratio = 0.2;
     int iterations = 35;
+    double radius = 0;            ///< support radius h, input units; 0 = 4 d_bb / sqrt(|J|)
     unsigned seed = 1;
     /// wlop's repulsion: full (eq. 1 as printed) | tangential (no part along the local
     /// normal: less drift off the surface; reconstruct/wlop.h WlopRepulsion)
@@ -90,6 +92,10 @@ StationConfig load_config(const std::filesystem::path& path,
 /// The profile used when --config is not given: config/default.yaml of the
 /// source tree the binary was built from, if it is there; else built-in defaults.
 std::filesystem::path default_config_path();
+
+/// The leaf values of a profile file as dotted keys ("reconstruct.resolution" ->
+/// "128"), as written there; empty when the file cannot be read (for --help).
+std::map<std::string, std::string> profile_values(const std::filesystem::path& path);
 
 /// The names `register.objective` accepts (see PipelineConfig::Register), in one
 /// place for the profile check and the CLI's --objective.

@@ -18,18 +18,11 @@
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "core/io.h"
-#include "core/normals.h"
-#include "reconstruct/color_transfer.h"
-#include "reconstruct/colour_edges.h"
 #include "reconstruct/colour_function.h"
-#include "reconstruct/dmc.h"
-#include "reconstruct/half_space_clip.h"
-#include "reconstruct/winding_close.h"
 #include "reconstruct/sdm.h"
-#include "reconstruct/marching_cubes.h"
-#include "reconstruct/mesh_clean.h"
-#include "reconstruct/mpu.h"
+#include "reconstruct/surface.h"
 #include "reconstruct/wlop.h"
+#include "station/params.h"
 #include "station/progress.h"
 #include "station/render.h"
 #include "station/report.h"
@@ -169,7 +162,7 @@ std::string fmt(const char* f, double v) {
 }
 
 /// Parameters of a stage as text: part of its key.
-std::string register_params(const PipelineConfig& p) {
+std::string register_key(const PipelineConfig& p) {
   std::ostringstream s;
   s << "register/neighbors=" << p.reg.neighbors << ";rounds=" << p.reg.rounds
     << ";loop=" << p.reg.loop_closure << ";voxel=" << fmt("%.17g", p.reg.voxel_rel)
@@ -178,15 +171,16 @@ std::string register_params(const PipelineConfig& p) {
     << ";rigid_turntable=" << p.reg.rigid_turntable;
   return s.str();
 }
-std::string consolidate_params(const PipelineConfig& p) {
+std::string consolidate_key(const PipelineConfig& p) {
   const auto& c = p.consolidate;
   std::ostringstream s;
   s << "consolidate/method=" << c.method << ";points=" << c.points << ";ratio=" << fmt("%.17g", c.ratio)
     << ";iterations=" << c.iterations << ";seed=" << c.seed << ";repulsion=" << c.repulsion
     << ";repulsion_weight=" << c.repulsion_weight;
+  if (c.radius > 0) s << ";radius=" << fmt("%.17g", c.radius);  // (absent from keys of earlier runs)
   return s.str();
 }
-std::string surface_params(const PipelineConfig& p) {
+std::string surface_key(const PipelineConfig& p) {
   const auto& c = p.reconstruct;
   std::ostringstream s;
   s << "surface/" << c.surface << ";resolution=" << c.resolution << ";epsilon0=" << fmt("%.17g", c.epsilon0)
@@ -395,19 +389,19 @@ class Runner {
     const int total = (session_ ? 1 : 0) + (cfg_.pipeline.consolidate.enabled ? 1 : 0) + 1;
     int index = 0;
     if (session_) {
-      key = hash_hex(key + register_params(cfg_.pipeline));
+      key = hash_hex(key + register_key(cfg_.pipeline));
       stage(++index, total, "register", req_.input, key, "merged.ply", [&](StageRecord& r) { do_register(r); });
       cloud_file = req_.out_dir / "merged.ply";
       if (stopped()) return finish_interrupted();
     }
     if (cfg_.pipeline.consolidate.enabled) {
-      key = hash_hex(key + consolidate_params(cfg_.pipeline));
+      key = hash_hex(key + consolidate_key(cfg_.pipeline));
       stage(++index, total, "consolidate", cloud_file, key, "consolidated.ply",
             [&](StageRecord& r) { do_consolidate(r, cloud_file); });
       cloud_file = req_.out_dir / "consolidated.ply";
       if (stopped()) return finish_interrupted();
     }
-    key = hash_hex(key + surface_params(cfg_.pipeline));
+    key = hash_hex(key + surface_key(cfg_.pipeline));
     stage(++index, total, "surface", cloud_file, key, "mesh.ply", [&](StageRecord& r) { do_surface(r, cloud_file); });
     result_.mesh = req_.out_dir / "mesh.ply";
     if (req_.report) {
@@ -547,15 +541,7 @@ class Runner {
     const Cloud input = read_cloud(in);
     if (input.empty()) throw InvalidInput(in.string() + ": empty cloud");
     const auto& c = cfg_.pipeline.consolidate;
-    WlopParams p;
-    p.method = c.method == "edge-wlop" ? WlopMethod::kEdgeWlop : WlopMethod::kWlop;
-    p.target_points = c.points;
-    p.ratio = c.ratio;
-    p.iterations = c.iterations;
-    p.seed = c.seed;
-    p.repulsion = c.repulsion == "tangential" ? WlopRepulsion::kTangential : WlopRepulsion::kFull;
-    p.repulsion_weight = c.repulsion_weight == "printed" ? RepulsionWeight::kPrinted : RepulsionWeight::kOriginal;
-    p.threads = cfg_.threads;
+    WlopParams p = wlop_params(cfg_.pipeline, cfg_.threads);
     Progress bar(std::string("  consolidate: ") + wlop_label(c.method) + " iterations", c.iterations, req_.quiet);
     p.progress = [&](int done, int) { bar.update(done); };
     const WlopResult w = consolidate(input, p);
@@ -573,106 +559,37 @@ class Runner {
     Cloud input = read_cloud(in);
     if (input.empty()) throw InvalidInput(in.string() + ": empty cloud");
     if (c.surface == "sdm") return do_sdm(r, in, input);
-    if (!input.has_normals()) {
-      say("  note: " + in.string() + " has no normals; estimating them (PCA, MST orientation)");
-      input.normals = estimate_normals(input.points, 12, cfg_.threads);
-      orient_normals_mst(input.points, input.normals, 12);
-    }
-    MpuParams mp;
-    mp.epsilon0 = c.epsilon0 > 0 ? c.epsilon0 : std::max(mp.epsilon0, suggest_epsilon0(input));
-    mp.threads = cfg_.threads;
-    say("  surface: MPU on " + std::to_string(input.size()) + " points (epsilon0 " + fmt("%.3g", mp.epsilon0) + ")");
-    const MpuSurface surface = fit_mpu(input, mp);
-    MarchingCubesOptions mo;
-    mo.untrusted = c.hole == "keep" ? UntrustedRegions::kLeaveOpen : UntrustedRegions::kClose;
-    mo.threads = cfg_.threads;
-    MarchingCubesStats stats;
+    SurfaceParams sp = surface_params(cfg_.pipeline, cfg_.threads);
     // The table plane (docs/run.md): a session's object frame knows its up, and
     // the object rests on the table, so nothing of it lies below its lowest point.
-    std::optional<Vec3d> up;
-    for (const StageRecord& s : result_.stages)
-      if (s.name == "register" && s.figures.count("up_x"))
-        up = Vec3d(s.figures.at("up_x"), s.figures.at("up_y"), s.figures.at("up_z"));
-    // Far from the data, inside and outside by the winding number of the oriented
-    // cloud instead of MPU's extrapolation (reconstruct/winding_close.h).
-    std::unique_ptr<WindingClose> winding;
-    if (c.winding_close && c.hole == "close") {
-      winding = std::make_unique<WindingClose>(surface, input);
-      r.figures["winding_points"] = double(winding->winding_points());
-      say("  surface: unseen parts closed by the winding number (" + std::to_string(winding->winding_points()) +
-          " clusters, beyond " + fmt("%.3g", winding->trust_distance()) + " of the data)");
-    }
-    const ImplicitFunction& closed = winding ? static_cast<const ImplicitFunction&>(*winding) : surface;
-    std::unique_ptr<HalfSpaceClip> clip;
-    if (c.table_plane && c.hole == "close" && up && up->norm() > 0) {
-      const Vec3d u = up->normalized();
-      double lowest = std::numeric_limits<double>::infinity();
-      for (const Vec3f& p : input.points) lowest = std::min(lowest, u.dot(p.cast<double>()));
-      clip = std::make_unique<HalfSpaceClip>(closed, u, lowest);
-      r.figures["table_height"] = lowest;
-      say("  surface: closed flat at the table plane (lowest point along the turntable axis)");
-    }
-    say("  surface: extracting at resolution " + std::to_string(c.resolution) + " (" +
-        extractor_label(c.extractor) + ")");
-    // The box and seeds of the MpuSurface overloads of the extractors.
-    const Aabb box = extraction_box(surface);
-    mo.seeds = surface.points();
-    mo.close_at_box = true;
-    const ImplicitFunction& f = clip ? static_cast<const ImplicitFunction&>(*clip) : closed;
-    if (const double faces = check_extraction_fits(f, box, c.resolution, mo,
-                                                   "reconstruct.resolution " + std::to_string(c.resolution)))
-      say("  surface: about " + fmt("%.1f", faces / 1e6) + " M faces expected");
-    Mesh mesh;
-    if (c.extractor == "dmc") {
-      DmcOptions dopt;
-      static_cast<MarchingCubesOptions&>(dopt) = mo;
-      DmcStats dstats;
-      mesh = extract_dmc(f, box, c.resolution, dopt, &dstats);
-      stats = dstats;
-    } else {
-      mesh = extract_marching_cubes(f, box, c.resolution, mo, &stats);
-    }
-    if (mesh.faces.empty()) throw InvalidInput(in.string() + ": the reconstructed surface is empty");
-    const ComponentFilterStats pieces = remove_small_components(mesh, c.min_component);
-    if (pieces.removed_components > 0)
-      say("  surface: removed " + std::to_string(pieces.removed_components) + " small pieces (" +
-          std::to_string(pieces.removed_faces) + " faces)");
-    r.figures["removed_pieces"] = double(pieces.removed_components);
-    const bool colour = c.colour && input.has_colors();
-    if (colour && c.colour_method == "nearest") {
-      transfer_colors(mesh, input, {4, cfg_.threads});
-    } else if (colour) {
-      say("  surface: colour function on " + std::to_string(input.size()) + " points");
-      ColourParams cp;
-      cp.threads = cfg_.threads;
-      cp.multi_colour = c.colour_multi;
-      cp.noise_robust = c.colour_noise_robust;
-      const ColourFunction cf = fit_colour(input, cp);
-      r.figures["colour_nearest_vertices"] = double(colour_mesh(mesh, cf, surface, input, cfg_.threads));
-      if (c.colour_edges) {
-        ColourEdgeParams ep;
-        ep.threads = cfg_.threads;
-        r.figures["colour_edges_split"] = double(sharpen_colour_edges(mesh, cf, ep).split_edges);
-      }
-      const ColourDiagnostics& cd = cf.diagnostics();
-      r.figures["colour_leaves_a"] = double(cd.leaves_by_type[0]);
-      r.figures["colour_leaves_b"] = double(cd.leaves_by_type[1]);
-      r.figures["e_col"] = cd.e_col;
+    if (c.table_plane)
+      for (const StageRecord& s : result_.stages)
+        if (s.name == "register" && s.figures.count("up_x"))
+          sp.table_up = Vec3d(s.figures.at("up_x"), s.figures.at("up_y"), s.figures.at("up_z"));
+    sp.resolution_name = "reconstruct.resolution " + std::to_string(c.resolution);
+    sp.boundary_flags = true;
+    sp.note = [&](const std::string& line) { say(surface_note(in, line, "  surface: ", "  note: ")); };
+    const SurfaceResult sr = reconstruct_surface(std::move(input), sp);
+    if (sr.winding_points > 0) r.figures["winding_points"] = double(sr.winding_points);
+    if (sr.table_height) r.figures["table_height"] = *sr.table_height;
+    r.figures["removed_pieces"] = double(sr.pieces.removed_components);
+    if (sr.colour) {
+      r.figures["colour_nearest_vertices"] = double(sr.colour_nearest_vertices);
+      if (c.colour_edges) r.figures["colour_edges_split"] = double(sr.colour_edges_split);
+      r.figures["colour_leaves_a"] = double(sr.colour->leaves_by_type[0]);
+      r.figures["colour_leaves_b"] = double(sr.colour->leaves_by_type[1]);
+      r.figures["e_col"] = sr.colour->e_col;
       // Where the colour function splits cells at a boundary (Type B), for the report.
-      std::vector<std::uint8_t> b(mesh.vertices.size());
-      for (std::size_t i = 0; i < b.size(); ++i)
-        b[i] = cf.dominant_type(mesh.vertices[i].cast<double>()) == ColourCellType::kB;
-      std::string bytes(b.begin(), b.end());
-      write_file_atomic(req_.out_dir / "colour_boundary.bin", bytes);
-    } else if (c.colour) say("  note: " + in.string() + " has no colours; the mesh is left uncoloured");
-    write_ply(req_.out_dir / "mesh.ply", mesh);
-    const MpuDiagnostics& d = surface.diagnostics();
-    r.figures["leaves"] = double(d.leaves);
-    r.figures["epsilon0"] = mp.epsilon0;
-    r.figures["cell_size"] = stats.cell_size;
-    r.figures["vertices"] = double(mesh.vertices.size());
-    r.figures["faces"] = double(mesh.faces.size());
-    r.figures["coloured"] = colour ? 1 : 0;
+      write_file_atomic(req_.out_dir / "colour_boundary.bin",
+                        std::string(sr.colour_boundary.begin(), sr.colour_boundary.end()));
+    }
+    write_ply(req_.out_dir / "mesh.ply", sr.mesh);
+    r.figures["leaves"] = double(sr.mpu.leaves);
+    r.figures["epsilon0"] = sr.epsilon0;
+    r.figures["cell_size"] = sr.extraction.cell_size;
+    r.figures["vertices"] = double(sr.mesh.vertices.size());
+    r.figures["faces"] = double(sr.mesh.faces.size());
+    r.figures["coloured"] = sr.coloured ? 1 : 0;
   }
 
   /// The SDM alternative: a level-L icosphere fitted to the cloud (reconstruct/sdm.h),
@@ -718,65 +635,8 @@ class Runner {
 
 }  // namespace
 
-double check_extraction_fits(const ImplicitFunction& f, const Aabb& box, int resolution,
-                           const MarchingCubesOptions& options, const std::string& what,
-                           double available_bytes) {
-  constexpr int kCoarse = 64;
-  if (resolution <= 512) return 0;
-  double available = available_bytes;
-  if (available < 0) {
-    available = 0;
-    std::ifstream meminfo("/proc/meminfo");
-    double kb = 0;
-    for (std::string line; std::getline(meminfo, line);)
-      if (std::sscanf(line.c_str(), "MemAvailable: %lf kB", &kb) == 1) available = kb * 1024;
-  }
-  if (!(available > 0)) return 0;
-  const Mesh coarse = extract_marching_cubes(f, box, kCoarse, options);
-  const double scale = double(resolution) / kCoarse;
-  const double faces = double(coarse.faces.size()) * scale * scale;
-  const double need = faces * kExtractionBytesPerFace;
-  if (need <= 0.85 * available) return faces;
-  const int finest = int(kCoarse * std::sqrt(0.85 * available / (kExtractionBytesPerFace * double(coarse.faces.size()))));
-  char buf[256];
-  std::snprintf(buf, sizeof buf,
-                ": the mesh would have about %.0f M faces and need about %.1f GiB; %.1f GiB are available: use at "
-                "most %d",
-                faces / 1e6, need / 1073741824.0, available / 1073741824.0, finest);
-  throw InvalidInput(what + buf);
-}
-
-const char* extractor_label(const std::string& extractor) {
-  return extractor == "dmc" ? "Deformed Marching Cubes" : "marching cubes";
-}
-
-const char* wlop_label(const std::string& method) { return method == "edge-wlop" ? "edge-WLOP" : "WLOP"; }
-
 RunResult run_pipeline(const StationConfig& config, const RunRequest& request) {
   return Runner(config, request).run();
-}
-
-RegistrationParams registration_params(const PipelineConfig& p) {
-  RegistrationParams r;
-  r.neighbors = p.reg.neighbors;
-  r.rounds = p.reg.rounds;
-  r.loop_closure = p.reg.loop_closure;
-  r.voxel_rel = p.reg.voxel_rel;
-  r.global_registration = p.reg.global;
-  r.check_angles = p.reg.check_angles;
-  r.rigid_turntable = parse_rigid_turntable(p.reg.rigid_turntable);
-  r.fuse = p.reg.fuse;
-  r.fuse_distance = p.reg.fuse_distance;
-  IcpObjective o = IcpObjective::kPointToPlane;
-  if (p.reg.objective == "symmetric") o = IcpObjective::kSymmetric;
-  else if (p.reg.objective == "point-to-point") o = IcpObjective::kPointToPoint;
-  else if (p.reg.objective == "colored") o = IcpObjective::kColored;
-  else if (p.reg.objective == "generalized") o = IcpObjective::kGeneralized;
-  else if (p.reg.objective != "point-to-plane")
-    throw InvalidInput("register.objective: unknown objective '" + p.reg.objective + "'");
-  r.icp.objective = o;
-  r.final_objective = o;
-  return r;
 }
 
 }  // namespace station

@@ -58,35 +58,7 @@ struct RunResult {
 
 /// Runs (or resumes) the job. InvalidInput/IoError/FormatError name the file or
 /// folder at fault; on a failed write the outputs of earlier stages stay intact.
-struct RegistrationParams;
-/// The registration parameters of a profile's `register` section (also used
-/// by `station register` and `station calibrate turntable`).
-RegistrationParams registration_params(const PipelineConfig& pipeline);
-
 RunResult run_pipeline(const StationConfig& config, const RunRequest& request);
-
-class ImplicitFunction;
-struct Aabb;
-struct MarchingCubesOptions;
-/// Before an extraction finer than 512 cells: marching cubes at 64 cells counts the
-/// faces, which grow with the square of the resolution, and the peak memory is
-/// estimated from them (kExtractionBytesPerFace). InvalidInput naming `what` (e.g.
-/// "--resolution 4096"), with the finest resolution that would fit, when that is more
-/// than 85 % of `available_bytes` (< 0: the machine's MemAvailable from /proc/meminfo;
-/// no check when it cannot be read). Returns the estimated faces (0 when not checked).
-double check_extraction_fits(const ImplicitFunction& f, const Aabb& box, int resolution,
-                           const MarchingCubesOptions& options, const std::string& what,
-                           double available_bytes = -1);
-/// Peak bytes per output face of `station reconstruct` (MPU + DMC) at high resolution,
-/// measured on a 3,000-point sphere: 159 at 1024 cells (8.2 M faces, 1.3 GB), 128 at
-/// 4096 (131 M faces, 16.7 GB).
-inline constexpr double kExtractionBytesPerFace = 150;
-
-/// How progress lines name a mesh extractor (profile reconstruct.extractor: "dmc" |
-/// "mc") and a consolidation method (consolidate.method: "edge-wlop" | "wlop"), in
-/// `station run` and in the single-stage commands alike.
-const char* extractor_label(const std::string& extractor);
-const char* wlop_label(const std::string& method);
 
 /// 64-bit FNV-1a over bytes, as 16 hex digits (stage keys; not cryptographic).
 std::string hash_hex(const std::string& bytes);

@@ -18,6 +18,8 @@
 #include "reconstruct/marching_cubes.h"
 #include "station/config.h"
 #include "reconstruct/wlop_kernels.h"
+#include "reconstruct/surface.h"
+#include "station/params.h"
 #include "station/pipeline.h"
 #include "test_util.h"
 
@@ -234,6 +236,49 @@ TEST_F(PipelineTest, EveryKernelSetWritesTheSameMesh) {
     EXPECT_TRUE(mesh == first) << name << ": mesh.ply differs from " << detail::kernel_variants().front() << "'s";
   }
   if (detail::kernel_variants().size() == 1) GTEST_SKIP() << "one kernel set on this CPU: nothing to compare";
+}
+
+// One surface composition (reconstruct/surface.h) and one vocabulary
+// (station/params.h): `station reconstruct` on the run's consolidated cloud, with
+// the same profile (and the run's turntable axis as --up), writes the run's
+// mesh.ply byte for byte. The profile sets keys the two copies used to treat
+// differently (colour_multi, colour_noise_robust, table_plane, the consolidation
+// method).
+TEST_F(PipelineTest, ReconstructCommandAndRunBuildTheSameMesh) {
+  test::TempDir dir("station-same-mesh");
+  const fs::path profile = dir.path() / "profile.yaml";
+  {
+    std::ofstream f(profile);
+    f << "consolidate:\n  method: edge-wlop\n  points: 3000\n  iterations: 15\n"
+         "reconstruct:\n  resolution: 48\n  colour_multi: true\n  colour_noise_robust: true\n"
+         "  min_component: 0.02\n  table_plane: true\n";
+  }
+  const StationConfig cfg = load_config(profile);
+  RunRequest r = request(dir.path() / "run");
+  r.report = false;
+  const RunResult res = run_pipeline(cfg, r);
+  ASSERT_EQ(res.stages.size(), 3u);
+  const auto& reg = res.stages[0].figures;
+  ASSERT_TRUE(reg.count("up_x"));
+  ASSERT_TRUE(res.stages[2].figures.count("table_height"));  // the table plane was used
+  char up[128];
+  std::snprintf(up, sizeof up, "%.17g,%.17g,%.17g", reg.at("up_x"), reg.at("up_y"), reg.at("up_z"));
+  const fs::path mesh = dir.path() / "reconstructed.ply";
+  const std::string cmd = std::string(STATION_BINARY) + " reconstruct " +
+                          (dir.path() / "run" / "consolidated.ply").string() + " -o " + mesh.string() +
+                          " --config " + profile.string() + " --up " + up + " > /dev/null 2>&1";
+  ASSERT_EQ(std::system(cmd.c_str()), 0) << cmd;
+  const std::string a = read_file_bytes(res.mesh), b = read_file_bytes(mesh);
+  ASSERT_GT(a.size(), 1000u);
+  EXPECT_TRUE(a == b) << "station reconstruct and station run's surface stage differ";
+  // Without the axis there is no table plane, and the mesh is another one: the
+  // comparison above can fail.
+  const fs::path flat = dir.path() / "no-table.ply";
+  const std::string cmd2 = std::string(STATION_BINARY) + " reconstruct " +
+                           (dir.path() / "run" / "consolidated.ply").string() + " -o " + flat.string() +
+                           " --config " + profile.string() + " > /dev/null 2>&1";
+  ASSERT_EQ(std::system(cmd2.c_str()), 0) << cmd2;
+  EXPECT_FALSE(read_file_bytes(flat) == a);
 }
 
 // The run's folder never is the session's (the scan's own merged.ply would be

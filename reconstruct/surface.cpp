@@ -1,0 +1,192 @@
+#include "reconstruct/surface.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <fstream>
+#include <limits>
+#include <memory>
+
+#include "core/error.h"
+#include "core/normals.h"
+#include "reconstruct/color_transfer.h"
+#include "reconstruct/colour_edges.h"
+#include "reconstruct/half_space_clip.h"
+#include "reconstruct/winding_close.h"
+
+namespace station {
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+double seconds_since(Clock::time_point t0) {
+  return std::chrono::duration<double>(Clock::now() - t0).count();
+}
+
+std::string fmt(const char* f, double v) {
+  char buf[64];
+  std::snprintf(buf, sizeof buf, f, v);
+  return buf;
+}
+
+}  // namespace
+
+const char* extractor_label(Extractor extractor) {
+  return extractor == Extractor::kDmc ? "Deformed Marching Cubes" : "marching cubes";
+}
+
+std::string surface_note(const std::string& input, const std::string& line, const std::string& prefix,
+                         const std::string& note_prefix) {
+  if (line.rfind("no normals", 0) == 0) return note_prefix + input + " has " + line;
+  if (line.rfind("the cloud has", 0) == 0) return note_prefix + input + line.substr(9);
+  return prefix + line;
+}
+
+SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
+  const auto t0 = Clock::now();
+  const auto note = [&](const std::string& line) {
+    if (p.note) p.note(line);
+  };
+  if (input.empty()) throw InvalidInput("reconstruct_surface: empty cloud");
+  SurfaceResult out;
+  if (!input.has_normals()) {
+    // MPU needs oriented normals: estimate them (PCA) and orient them consistently.
+    note("no normals; estimating them (PCA, MST orientation)");
+    input.normals = estimate_normals(input.points, 12, p.threads);
+    orient_normals_mst(input.points, input.normals, 12);
+    out.normals_estimated = true;
+  }
+  out.seconds.normals = seconds_since(t0);
+
+  MpuParams mp;
+  // The paper's 1e-4 suits clean data only; noisy scans get a tolerance from their noise.
+  mp.epsilon0 = p.epsilon0 > 0 ? p.epsilon0 : std::max(mp.epsilon0, suggest_epsilon0(input));
+  mp.threads = p.threads;
+  out.epsilon0 = mp.epsilon0;
+  note("MPU on " + std::to_string(input.size()) + " points (epsilon0 " + fmt("%.3g", mp.epsilon0) + ")");
+  const auto t1 = Clock::now();
+  const MpuSurface surface = fit_mpu(input, mp);
+  out.mpu = surface.diagnostics();
+  out.seconds.fit = seconds_since(t1);
+
+  const auto t2 = Clock::now();
+  const bool close = p.hole == HoleMode::kClose;
+  std::unique_ptr<WindingClose> winding;
+  if (close && p.winding_close) {
+    winding = std::make_unique<WindingClose>(surface, input);
+    out.winding_points = winding->winding_points();
+    out.winding_trust = winding->trust_distance();
+    note("unseen parts closed by the winding number (" + std::to_string(out.winding_points) +
+         " clusters, beyond " + fmt("%.3g", out.winding_trust) + " of the data)");
+  }
+  const ImplicitFunction& closed = winding ? static_cast<const ImplicitFunction&>(*winding) : surface;
+  std::unique_ptr<HalfSpaceClip> clip;
+  if (close && p.table_up && p.table_up->norm() > 0) {
+    const Vec3d u = p.table_up->normalized();
+    double lowest = std::numeric_limits<double>::infinity();
+    for (const Vec3f& q : input.points) lowest = std::min(lowest, u.dot(q.cast<double>()));
+    clip = std::make_unique<HalfSpaceClip>(closed, u, lowest);
+    out.table_height = lowest;
+    note("closed flat at the table plane (lowest point along the turntable axis)");
+  }
+  const ImplicitFunction& f = clip ? static_cast<const ImplicitFunction&>(*clip) : closed;
+  out.seconds.closing = seconds_since(t2);
+
+  MarchingCubesOptions mo;
+  mo.untrusted = close ? UntrustedRegions::kClose : UntrustedRegions::kLeaveOpen;
+  mo.threads = p.threads;
+  // The box and seeds of the MpuSurface overloads of the extractors.
+  const Aabb box = extraction_box(surface);
+  mo.seeds = surface.points();
+  mo.close_at_box = true;
+  note("extracting at resolution " + std::to_string(p.resolution) + " (" + extractor_label(p.extractor) + ")");
+  const auto t3 = Clock::now();
+  out.expected_faces = check_extraction_fits(
+      f, box, p.resolution, mo,
+      p.resolution_name.empty() ? "resolution " + std::to_string(p.resolution) : p.resolution_name);
+  if (out.expected_faces > 0) note("about " + fmt("%.1f", out.expected_faces / 1e6) + " M faces expected");
+  Mesh mesh;
+  if (p.extractor == Extractor::kDmc) {
+    DmcOptions dopt;
+    static_cast<MarchingCubesOptions&>(dopt) = mo;
+    mesh = extract_dmc(f, box, p.resolution, dopt, &out.dmc);
+    out.extraction = out.dmc;
+  } else {
+    mesh = extract_marching_cubes(f, box, p.resolution, mo, &out.extraction);
+  }
+  out.seconds.extract = seconds_since(t3);
+  if (mesh.faces.empty()) throw InvalidInput("the reconstructed surface is empty");
+  out.pieces = remove_small_components(mesh, p.min_component);
+  if (out.pieces.removed_components > 0)
+    note("removed " + std::to_string(out.pieces.removed_components) + " small pieces (" +
+         std::to_string(out.pieces.removed_faces) + " faces)");
+
+  const auto t4 = Clock::now();
+  out.coloured = p.colour && input.has_colors();
+  if (out.coloured && p.colour_method == ColourMethod::kNearest) {
+    transfer_colors(mesh, input, {4, p.threads});
+  } else if (out.coloured) {
+    note("colour function on " + std::to_string(input.size()) + " points");
+    ColourParams cp;
+    cp.threads = p.threads;
+    cp.multi_colour = p.colour_multi;
+    cp.noise_robust = p.colour_noise_robust;
+    const ColourFunction cf = fit_colour(input, cp);
+    out.colour_nearest_vertices = colour_mesh(mesh, cf, surface, input, p.threads);
+    if (p.colour_edges) {
+      ColourEdgeParams ep;
+      ep.threads = p.threads;
+      out.colour_edges_split = sharpen_colour_edges(mesh, cf, ep).split_edges;
+    }
+    out.colour = cf.diagnostics();
+    note("colour function: " + std::to_string(out.colour->leaves_by_type[0]) + " cells smooth (A), " +
+         std::to_string(out.colour->leaves_by_type[1]) + " split at a boundary (B), e_col " +
+         fmt("%.4f", out.colour->e_col) +
+         (out.colour_edges_split ? "; " + std::to_string(out.colour_edges_split) + " edges split at colour boundaries"
+                                 : std::string()));
+    if (p.boundary_flags) {
+      out.colour_boundary.resize(mesh.vertices.size());
+      for (std::size_t i = 0; i < mesh.vertices.size(); ++i)
+        out.colour_boundary[i] = cf.dominant_type(mesh.vertices[i].cast<double>()) == ColourCellType::kB;
+    }
+  } else if (p.colour) {
+    note("the cloud has no colours; the mesh is left uncoloured");
+  }
+  out.seconds.colour = seconds_since(t4);
+  out.mesh = std::move(mesh);
+  out.seconds.total = seconds_since(t0);
+  return out;
+}
+
+double check_extraction_fits(const ImplicitFunction& f, const Aabb& box, int resolution,
+                             const MarchingCubesOptions& options, const std::string& what,
+                             double available_bytes) {
+  constexpr int kCoarse = 64;
+  if (resolution <= 512) return 0;
+  double available = available_bytes;
+  if (available < 0) {
+    available = 0;
+    std::ifstream meminfo("/proc/meminfo");
+    double kb = 0;
+    for (std::string line; std::getline(meminfo, line);)
+      if (std::sscanf(line.c_str(), "MemAvailable: %lf kB", &kb) == 1) available = kb * 1024;
+  }
+  if (!(available > 0)) return 0;
+  const Mesh coarse = extract_marching_cubes(f, box, kCoarse, options);
+  const double scale = double(resolution) / kCoarse;
+  const double faces = double(coarse.faces.size()) * scale * scale;
+  const double need = faces * kExtractionBytesPerFace;
+  if (need <= 0.85 * available) return faces;
+  const int finest =
+      int(kCoarse * std::sqrt(0.85 * available / (kExtractionBytesPerFace * double(coarse.faces.size()))));
+  char buf[256];
+  std::snprintf(buf, sizeof buf,
+                ": the mesh would have about %.0f M faces and need about %.1f GiB; %.1f GiB are available: use at "
+                "most %d",
+                faces / 1e6, need / 1073741824.0, available / 1073741824.0, finest);
+  throw InvalidInput(what + buf);
+}
+
+}  // namespace station

@@ -1,0 +1,113 @@
+#pragma once
+// The surface stage, composed once for every caller (`station reconstruct`, the
+// surface stage of `station run`, the benches): a cloud with (or without)
+// normals -> MPU implicit surface -> closing of the unseen parts (winding number)
+// -> table plane -> extraction (Deformed Marching Cubes or marching cubes) ->
+// small pieces dropped -> colour (MPU colour function, or nearest-neighbour
+// transfer) -> edges split at colour boundaries. docs/architecture.md.
+#include <cstdint>
+#include <functional>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "core/geometry.h"
+#include "reconstruct/colour_function.h"
+#include "reconstruct/dmc.h"
+#include "reconstruct/marching_cubes.h"
+#include "reconstruct/mesh_clean.h"
+#include "reconstruct/mpu.h"
+
+namespace station {
+
+enum class Extractor { kDmc, kMarchingCubes };
+enum class HoleMode { kClose, kKeep };
+enum class ColourMethod { kMpu, kNearest };
+
+struct SurfaceParams {
+  /// MPU tolerance epsilon_0; 0: from the cloud's noise level (suggest_epsilon0),
+  /// at least MpuParams' default (the paper's 1e-4).
+  double epsilon0 = 0;
+  int resolution = 128;  ///< cells along the longest side of the extraction box
+  Extractor extractor = Extractor::kDmc;
+  /// The unseen parts: closed smoothly (watertight), or left open where there is no data.
+  HoleMode hole = HoleMode::kClose;
+  /// With kClose: far from the data, inside and outside by the winding number of the
+  /// oriented cloud, not MPU's extrapolation (reconstruct/winding_close.h).
+  bool winding_close = true;
+  /// With kClose: the table plane. The object rests on a table whose normal is `up`
+  /// (the turntable axis in the cloud's frame): no surface below the cloud's lowest
+  /// point along it, so the underside closes flat there. Unset: no table plane.
+  std::optional<Vec3d> table_up;
+  bool colour = true;  ///< colour the mesh when the cloud has colours
+  ColourMethod colour_method = ColourMethod::kMpu;
+  bool colour_multi = false;         ///< colour function: 3+ colours per cell (junctions)
+  bool colour_noise_robust = false;  ///< colour function: no boundaries invented by noise
+  /// Split mesh edges at colour boundaries (reconstruct/colour_edges.h; kMpu only).
+  bool colour_edges = true;
+  /// Drop pieces below this fraction of the largest piece's area (0 keeps all).
+  double min_component = 0.01;
+  /// Also flag, per vertex, where a colour-boundary (Type B) cell dominates (the
+  /// report's picture). kMpu only.
+  bool boundary_flags = false;
+  /// How a too fine resolution is named in the memory check's error (e.g.
+  /// "--resolution 4096"); empty: "resolution N".
+  std::string resolution_name;
+  int threads = 0;  ///< 0 = all cores; the mesh does not depend on it
+  /// Progress lines (what is being done, with its figures); may be empty.
+  std::function<void(const std::string&)> note;
+};
+
+struct SurfaceTimings {
+  double normals = 0, fit = 0, closing = 0, extract = 0, colour = 0, total = 0;  ///< seconds
+};
+
+struct SurfaceResult {
+  Mesh mesh;
+  bool normals_estimated = false;  ///< the cloud had none: PCA + MST orientation
+  double epsilon0 = 0;             ///< the tolerance used
+  MpuDiagnostics mpu;
+  std::size_t winding_points = 0;  ///< clusters of the winding closing (0: not used)
+  double winding_trust = 0;        ///< its trust distance
+  std::optional<double> table_height;  ///< the table plane's height along up, when clipped
+  double expected_faces = 0;       ///< the memory check's estimate (0: not checked)
+  MarchingCubesStats extraction;   ///< cell size and counts (either extractor)
+  DmcStats dmc;                    ///< DMC's own counts (zero with marching cubes)
+  ComponentFilterStats pieces;
+  bool coloured = false;
+  std::size_t colour_nearest_vertices = 0;  ///< kMpu: vertices coloured from the nearest point
+  std::size_t colour_edges_split = 0;
+  std::optional<ColourDiagnostics> colour;  ///< kMpu
+  std::vector<std::uint8_t> colour_boundary;  ///< with boundary_flags: 1 per Type B vertex
+  SurfaceTimings seconds;
+};
+
+/// The whole surface stage on `cloud` (normals estimated when missing). InvalidInput
+/// for an empty cloud, an empty surface, or a resolution whose mesh would not fit in
+/// the memory available (check_extraction_fits).
+SurfaceResult reconstruct_surface(Cloud cloud, const SurfaceParams& params);
+
+/// Before an extraction finer than 512 cells: marching cubes at 64 cells counts the
+/// faces, which grow with the square of the resolution, and the peak memory is
+/// estimated from them (kExtractionBytesPerFace). InvalidInput naming `what` (e.g.
+/// "--resolution 4096"), with the finest resolution that would fit, when that is more
+/// than 85 % of `available_bytes` (< 0: the machine's MemAvailable from /proc/meminfo;
+/// no check when it cannot be read). Returns the estimated faces (0 when not checked).
+double check_extraction_fits(const ImplicitFunction& f, const Aabb& box, int resolution,
+                             const MarchingCubesOptions& options, const std::string& what,
+                             double available_bytes = -1);
+/// Peak bytes per output face of the surface stage (MPU + DMC) at high resolution,
+/// measured on a 3,000-point sphere: 159 at 1024 cells (8.2 M faces, 1.3 GB), 128 at
+/// 4096 (131 M faces, 16.7 GB).
+inline constexpr double kExtractionBytesPerFace = 150;
+
+/// How progress lines name an extractor, everywhere.
+const char* extractor_label(Extractor extractor);
+
+/// A SurfaceParams::note line as a command prints it: `prefix` + line, except the
+/// notes about the input (no normals, no colours), which become `note_prefix` +
+/// "FILE has no ..." naming `input`.
+std::string surface_note(const std::string& input, const std::string& line, const std::string& prefix,
+                         const std::string& note_prefix);
+
+}  // namespace station
