@@ -13,7 +13,7 @@
 
 #include "core/io.h"
 #include "harness.h"
-#include "reconstruct/eval.h"
+#include "eval/eval.h"
 
 namespace station::bench {
 

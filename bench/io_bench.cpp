@@ -16,7 +16,7 @@
 #include "core/io.h"
 #include "core/texture.h"
 #include "harness.h"
-#include "reconstruct/eval.h"
+#include "eval/eval.h"
 #include "sim/bench.h"
 
 namespace station::bench {

@@ -26,13 +26,13 @@
 #include <pcl/point_types.h>
 #include <pcl/registration/gicp.h>
 
-#include "capture/icp.h"
-#include "capture/registration.h"
+#include "registration/icp.h"
+#include "registration/registration.h"
 #include "capture/session.h"
 #include "core/io.h"
 #include "core/stanford_conf.h"
 #include "harness.h"
-#include "reconstruct/eval.h"
+#include "eval/eval.h"
 
 namespace station::bench {
 

@@ -12,7 +12,7 @@
 #include "core/io.h"
 #include "core/stanford_conf.h"
 #include "harness.h"
-#include "reconstruct/eval.h"
+#include "eval/eval.h"
 #include "reconstruct/sdm.h"
 
 namespace station::bench {

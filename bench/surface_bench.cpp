@@ -26,7 +26,7 @@
 #include "reconstruct/colour_edges.h"
 #include "reconstruct/colour_function.h"
 #include "reconstruct/dmc.h"
-#include "reconstruct/eval.h"
+#include "eval/eval.h"
 #include "reconstruct/marching_cubes.h"
 #include "reconstruct/mesh_clean.h"
 #include "reconstruct/mpu.h"

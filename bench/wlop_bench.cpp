@@ -27,8 +27,8 @@
 
 #include "core/io.h"
 #include "harness.h"
-#include "reconstruct/consolidation_metrics.h"
-#include "reconstruct/eval.h"
+#include "eval/consolidation_metrics.h"
+#include "eval/eval.h"
 #include "reconstruct/wlop.h"
 
 namespace station::bench {

@@ -57,13 +57,6 @@ struct CaptureResult {
 /// Non-finite values are dropped.
 Cloud frame_to_cloud(const Frame& frame, double normal_max_depth_jump = 0.05);
 
-/// Rigid transform taking scanner-frame points into the turntable frame at
-/// angle 0: origin at axis.point, z along axis.direction, x towards the scanner
-/// (the scanner's origin projected onto the table plane). A view taken at table
-/// angle a maps to the object frame with rotate_z(-a) * table_from_scanner.
-Eigen::Matrix4d table_from_scanner(const TurntableAxis& axis);
-/// The turntable prior: object frame <- scanner frame for a view at `angle_deg`.
-Eigen::Matrix4d turntable_pose(const TurntableAxis& axis, double angle_deg);
 
 /// Keeps the points inside the working volume (scanner frame in and out).
 Cloud crop_to_volume(const Cloud& cloud, const TurntableAxis& axis, const WorkingVolume& volume);

@@ -12,7 +12,7 @@
 #include <vector>
 
 #include "core/geometry.h"
-#include "drivers/scanner.h"
+#include "core/camera.h"
 
 namespace station {
 

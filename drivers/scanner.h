@@ -10,31 +10,11 @@
 #include <string>
 #include <vector>
 
+#include "core/camera.h"
 #include "core/geometry.h"
 
 namespace station {
 
-/// Pinhole intrinsics of a range or colour camera, in pixels, with Brown-Conrady
-/// lens distortion in OpenCV's order and convention (k1, k2, p1, p2, k3): a ray
-/// with normalised coordinates (x, y) = (X/Z, Y/Z) lands on pixel
-/// (fx x_d + cx, fy y_d + cy), where (x_d, y_d) is (x, y) distorted.
-struct Intrinsics {
-  int width = 0, height = 0;
-  double fx = 0, fy = 0, cx = 0, cy = 0;
-  std::array<double, 5> distortion{};  ///< k1, k2, p1, p2, k3; all zero = none
-  bool valid() const { return width > 0 && height > 0 && fx > 0 && fy > 0; }
-  bool distorted() const {
-    for (double d : distortion)
-      if (d != 0) return true;
-    return false;
-  }
-};
-
-/// Normalised undistorted ray (x, y) = (X/Z, Y/Z) of pixel (u, v): inverts the
-/// distortion by fixed-point iteration (exact to ~1e-12 for ordinary lenses).
-Eigen::Vector2d pixel_to_ray(const Intrinsics& k, double u, double v);
-/// Pixel of the ray (x, y) = (X/Z, Y/Z), distortion applied.
-Eigen::Vector2d ray_to_pixel(const Intrinsics& k, double x, double y);
 
 /// One grab. A range camera fills `depth` (metres along the optical axis,
 /// row-major width*height, 0 = no return); a device that measures points
@@ -53,14 +33,6 @@ struct Frame {
   bool has_color() const { return !color.empty(); }
 };
 
-/// Turntable rotation axis in the scanner frame (metres; direction unit length,
-/// pointing up, from the table top towards the object; `point` lies on the table
-/// top). Positive angles turn the table counter-clockwise seen from above
-/// (right-handed about `direction`).
-struct TurntableAxis {
-  Vec3d point = Vec3d::Zero();
-  Vec3d direction = -Vec3d::UnitY();
-};
 
 struct ScannerCapabilities {
   bool depth = false;   ///< delivers depth images

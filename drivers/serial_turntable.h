@@ -4,6 +4,7 @@
 #include <set>
 #include <string>
 
+#include "drivers/options.h"
 #include "drivers/scanner.h"
 
 namespace station {
@@ -27,14 +28,6 @@ struct StepperConfig {
 /// missing or a value is malformed.
 StepperConfig stepper_config_from_options(const DeviceOptions& options, const std::string& uri);
 
-/// Option readers: DeviceError "URI: option KEY=VALUE: problem" on bad values.
-double option_number(const DeviceOptions& options, const std::string& key, double fallback,
-                     double min, double max, const std::string& uri);
-int option_integer(const DeviceOptions& options, const std::string& key, int fallback, int min,
-                   int max, const std::string& uri);
-/// DeviceError naming the first key not in `known`.
-void reject_unknown_options(const DeviceOptions& options, const std::set<std::string>& known,
-                            const std::string& uri);
 
 /// Angle wrapped to [0, 360).
 double wrap_degrees(double degrees);

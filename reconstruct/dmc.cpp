@@ -21,8 +21,8 @@
 #include <unordered_set>
 
 #include "core/error.h"
-#include "reconstruct/lattice_storage.h"
-#include "reconstruct/mc_tables.h"
+#include "reconstruct/detail/lattice_storage.h"
+#include "reconstruct/detail/mc_tables.h"
 #include "reconstruct/mpu.h"
 
 namespace station {

@@ -17,8 +17,8 @@
 #include <tuple>
 
 #include "core/error.h"
-#include "reconstruct/lattice_storage.h"
-#include "reconstruct/mc_tables.h"
+#include "reconstruct/detail/lattice_storage.h"
+#include "reconstruct/detail/mc_tables.h"
 #include "reconstruct/mpu.h"
 
 namespace station {

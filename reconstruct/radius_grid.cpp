@@ -1,4 +1,4 @@
-#include "reconstruct/radius_grid.h"
+#include "reconstruct/detail/radius_grid.h"
 
 #include <algorithm>
 #include <limits>

@@ -19,7 +19,7 @@
 #include "core/error.h"
 #include "core/kdtree.h"
 #include "core/normals.h"
-#include "reconstruct/sdm_internal.h"
+#include "reconstruct/detail/sdm_internal.h"
 
 namespace station {
 namespace sdm_detail {

@@ -14,7 +14,7 @@
 
 #include "core/error.h"
 #include "reconstruct/sdm.h"
-#include "reconstruct/sdm_internal.h"
+#include "reconstruct/detail/sdm_internal.h"
 
 namespace station {
 

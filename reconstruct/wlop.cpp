@@ -16,8 +16,8 @@
 #include "core/error.h"
 #include "core/kdtree.h"
 #include "core/normals.h"
-#include "reconstruct/radius_grid.h"
-#include "reconstruct/wlop_kernels.h"
+#include "reconstruct/detail/radius_grid.h"
+#include "reconstruct/detail/wlop_kernels.h"
 
 namespace station {
 

@@ -1,4 +1,4 @@
-#include "reconstruct/wlop_kernels.h"
+#include "reconstruct/detail/wlop_kernels.h"
 
 #include <atomic>
 #include <cstdio>

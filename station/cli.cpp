@@ -20,8 +20,8 @@
 #include <sstream>
 
 #include "capture/capture.h"
-#include "capture/axis_calibration.h"
-#include "capture/registration.h"
+#include "registration/axis_calibration.h"
+#include "registration/registration.h"
 #include "capture/session.h"
 #include "core/atomic_file.h"
 #include "core/error.h"
@@ -31,8 +31,8 @@
 #include "drivers/registry.h"
 #include "drivers/v4l2_probe.h"
 #include "reconstruct/color_transfer.h"
-#include "reconstruct/consolidation_metrics.h"
-#include "reconstruct/eval.h"
+#include "eval/consolidation_metrics.h"
+#include "eval/eval.h"
 #include "reconstruct/marching_cubes.h"
 #include "reconstruct/mpu.h"
 #include "core/normals.h"

@@ -1,6 +1,6 @@
 #include "station/params.h"
 
-#include "capture/registration.h"
+#include "registration/registration.h"
 #include "core/error.h"
 #include "reconstruct/surface.h"
 #include "reconstruct/wlop.h"

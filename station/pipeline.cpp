@@ -13,7 +13,7 @@
 #include <optional>
 #include <sstream>
 
-#include "capture/registration.h"
+#include "registration/registration.h"
 #include "capture/session.h"
 #include "core/atomic_file.h"
 #include "core/error.h"

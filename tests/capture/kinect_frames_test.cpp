@@ -10,7 +10,7 @@
 #include <map>
 
 #include "capture/capture.h"
-#include "capture/icp.h"
+#include "registration/icp.h"
 #include "test_util.h"
 
 namespace station {

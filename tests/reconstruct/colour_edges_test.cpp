@@ -12,7 +12,7 @@
 #include <utility>
 
 #include "core/error.h"
-#include "reconstruct/eval.h"
+#include "eval/eval.h"
 #include "test_util.h"
 
 namespace station {

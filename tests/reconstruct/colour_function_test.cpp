@@ -18,7 +18,7 @@
 #include "core/stanford_conf.h"
 #include "core/texture.h"
 #include "reconstruct/color_transfer.h"
-#include "reconstruct/eval.h"
+#include "eval/eval.h"
 #include "reconstruct/marching_cubes.h"
 #include "reconstruct/mpu.h"
 #include "test_util.h"

@@ -16,7 +16,7 @@
 
 #include "core/bvh.h"
 #include "core/error.h"
-#include "reconstruct/eval.h"
+#include "eval/eval.h"
 #include "reconstruct/marching_cubes.h"
 #include "reconstruct/mpu.h"
 #include "test_util.h"

@@ -9,7 +9,7 @@
 #include <set>
 
 #include "core/error.h"
-#include "reconstruct/mc_tables.h"
+#include "reconstruct/detail/mc_tables.h"
 
 namespace station {
 namespace {

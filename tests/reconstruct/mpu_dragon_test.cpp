@@ -12,7 +12,7 @@
 #include "core/io.h"
 #include "core/stanford_conf.h"
 #include "core/normals.h"
-#include "reconstruct/eval.h"
+#include "eval/eval.h"
 #include "reconstruct/marching_cubes.h"
 #include "reconstruct/mesh_clean.h"
 #include "reconstruct/mpu.h"

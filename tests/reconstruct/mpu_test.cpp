@@ -11,7 +11,7 @@
 #include <set>
 
 #include "core/error.h"
-#include "reconstruct/eval.h"
+#include "eval/eval.h"
 #include "reconstruct/marching_cubes.h"
 #include "test_util.h"
 

@@ -13,7 +13,7 @@
 #include "core/io.h"
 #include "core/stanford_conf.h"
 #include "core/kdtree.h"
-#include "reconstruct/eval.h"
+#include "eval/eval.h"
 #include "test_util.h"
 
 namespace station {

@@ -9,9 +9,9 @@
 #include <random>
 #include <vector>
 
-#include "reconstruct/radius_grid.h"
+#include "reconstruct/detail/radius_grid.h"
 #include "reconstruct/wlop.h"
-#include "reconstruct/wlop_kernels.h"
+#include "reconstruct/detail/wlop_kernels.h"
 
 namespace station::detail {
 namespace {

@@ -9,8 +9,8 @@
 
 #include "core/error.h"
 #include "core/io.h"
-#include "reconstruct/consolidation_metrics.h"
-#include "reconstruct/eval.h"
+#include "eval/consolidation_metrics.h"
+#include "eval/eval.h"
 #include "test_util.h"
 
 namespace station {

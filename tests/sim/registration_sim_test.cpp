@@ -5,7 +5,7 @@
 #include <random>
 
 #include "capture/capture.h"
-#include "capture/registration.h"
+#include "registration/registration.h"
 #include "core/io.h"
 #include "sim/sim.h"
 #include "sim_test_util.h"

@@ -14,8 +14,8 @@
 
 #include "capture/session.h"
 #include "core/io.h"
-#include "reconstruct/consolidation_metrics.h"
-#include "reconstruct/eval.h"
+#include "eval/consolidation_metrics.h"
+#include "eval/eval.h"
 #include "test_util.h"
 
 namespace station {

@@ -11,13 +11,13 @@
 #include <fstream>
 #include <regex>
 
-#include "capture/registration.h"
+#include "registration/registration.h"
 #include "core/error.h"
 #include "core/io.h"
 #include "reconstruct/implicit.h"
 #include "reconstruct/marching_cubes.h"
 #include "station/config.h"
-#include "reconstruct/wlop_kernels.h"
+#include "reconstruct/detail/wlop_kernels.h"
 #include "reconstruct/surface.h"
 #include "station/params.h"
 #include "station/pipeline.h"

@@ -16,7 +16,7 @@
 #include "sim/sim.h"
 #include "station/config.h"
 #include "station/params.h"
-#include "capture/registration.h"
+#include "registration/registration.h"
 #include "core/io.h"
 #include "reconstruct/surface.h"
 #include "reconstruct/wlop.h"

@@ -1,5 +1,5 @@
 // Turntable axis fitting (capture/axis_calibration.h).
-#include "capture/axis_calibration.h"
+#include "registration/axis_calibration.h"
 
 #include <gtest/gtest.h>
 

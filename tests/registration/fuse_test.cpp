@@ -1,5 +1,5 @@
 // Fusion of overlapping views in the merge (capture/fuse.h).
-#include "capture/fuse.h"
+#include "registration/fuse.h"
 
 #include <gtest/gtest.h>
 #include <tbb/global_control.h>

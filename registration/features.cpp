@@ -1,4 +1,4 @@
-#include "capture/features.h"
+#include "registration/features.h"
 
 #include <tbb/parallel_for.h>
 

@@ -18,7 +18,7 @@
 #include <string>
 #include <vector>
 
-#include "drivers/scanner.h"
+#include "core/camera.h"
 
 namespace station {
 

@@ -1,4 +1,4 @@
-#include "capture/pose_graph.h"
+#include "registration/pose_graph.h"
 
 #include <Eigen/Cholesky>
 #include <Eigen/Geometry>

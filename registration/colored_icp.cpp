@@ -1,4 +1,4 @@
-#include "capture/colored_icp.h"
+#include "registration/colored_icp.h"
 
 #include <tbb/parallel_for.h>
 

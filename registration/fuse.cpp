@@ -1,4 +1,4 @@
-#include "capture/fuse.h"
+#include "registration/fuse.h"
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>

@@ -1,6 +1,8 @@
+#include "core/camera.h"
+
 #include <cmath>
 
-#include "drivers/scanner.h"
+#include <Eigen/Geometry>
 
 namespace station {
 
@@ -30,6 +32,31 @@ Eigen::Vector2d pixel_to_ray(const Intrinsics& k, double u, double v) {
     if (step.squaredNorm() < 1e-28) break;
   }
   return x;
+}
+
+Eigen::Matrix4d table_from_scanner(const TurntableAxis& axis) {
+  const Vec3d z = axis.direction.normalized();
+  // The scanner sits at the origin of its own frame.
+  Vec3d x = -axis.point;
+  x -= x.dot(z) * z;
+  if (x.norm() < 1e-9) {  // scanner on the axis (looking straight down): any x will do
+    x = z.unitOrthogonal();
+  }
+  x.normalize();
+  const Vec3d y = z.cross(x);
+  Eigen::Matrix4d T = Eigen::Matrix4d::Identity();
+  T.block<1, 3>(0, 0) = x.transpose();
+  T.block<1, 3>(1, 0) = y.transpose();
+  T.block<1, 3>(2, 0) = z.transpose();
+  T.block<3, 1>(0, 3) = -(T.block<3, 3>(0, 0) * axis.point);
+  return T;
+}
+
+Eigen::Matrix4d turntable_pose(const TurntableAxis& axis, double angle_deg) {
+  Eigen::Matrix4d R = Eigen::Matrix4d::Identity();
+  R.block<3, 3>(0, 0) =
+      Eigen::AngleAxisd(-angle_deg * M_PI / 180.0, Vec3d::UnitZ()).toRotationMatrix();
+  return R * table_from_scanner(axis);
 }
 
 }  // namespace station

@@ -1,5 +1,5 @@
 // Per-view preparation and point-to-plane ICP (capture/icp.h) on analytic clouds.
-#include "capture/icp.h"
+#include "registration/icp.h"
 
 #include <gtest/gtest.h>
 

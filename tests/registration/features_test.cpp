@@ -1,13 +1,13 @@
 // FPFH descriptors (capture/features.h): invariant to rigid motion, equal on
 // equal local shapes, different on different ones, bad input rejected.
-#include "capture/features.h"
+#include "registration/features.h"
 
 #include <gtest/gtest.h>
 
 #include <Eigen/Geometry>
 #include <numeric>
 
-#include "capture/icp.h"
+#include "registration/icp.h"
 #include "core/error.h"
 #include "core/io.h"
 #include "core/kdtree.h"

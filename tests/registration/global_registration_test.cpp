@@ -1,7 +1,7 @@
 // Global registration by features (capture/global_registration.h) and its use
 // in register_views: the bundled dragon with nothing but the clouds, a wrong
 // commanded angle, an off-turntable view.
-#include "capture/global_registration.h"
+#include "registration/global_registration.h"
 
 #include <gtest/gtest.h>
 
@@ -11,7 +11,7 @@
 #include <sstream>
 
 #include "capture/capture.h"
-#include "capture/registration.h"
+#include "registration/registration.h"
 #include "core/error.h"
 #include "core/io.h"
 #include "core/stanford_conf.h"

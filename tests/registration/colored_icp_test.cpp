@@ -1,15 +1,15 @@
 // Coloured ICP (Park et al. 2017; capture/colored_icp.h, IcpObjective::kColored):
 // a textured plane slid along itself, where geometry alone cannot see the
 // motion, and the colour gradients against an analytic ramp.
-#include "capture/colored_icp.h"
+#include "registration/colored_icp.h"
 
 #include <gtest/gtest.h>
 
 #include <Eigen/Geometry>
 #include <cmath>
 
-#include "capture/icp.h"
-#include "capture/registration.h"
+#include "registration/icp.h"
+#include "registration/registration.h"
 #include "core/error.h"
 #include "core/kdtree.h"
 

@@ -13,7 +13,7 @@
 #include <Eigen/Core>
 #include <vector>
 
-#include "capture/icp.h"
+#include "registration/icp.h"
 
 namespace station {
 

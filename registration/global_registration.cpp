@@ -1,4 +1,4 @@
-#include "capture/global_registration.h"
+#include "registration/global_registration.h"
 
 #include <Eigen/Geometry>
 #include <algorithm>
@@ -6,7 +6,7 @@
 #include <random>
 #include <set>
 
-#include "capture/icp.h"
+#include "registration/icp.h"
 #include "core/error.h"
 #include "core/kdtree.h"
 

@@ -1,4 +1,4 @@
-#include "reconstruct/eval.h"
+#include "eval/eval.h"
 
 #include <gtest/gtest.h>
 

@@ -32,10 +32,10 @@
 #include <string>
 #include <vector>
 
-#include "capture/axis_calibration.h"
-#include "capture/fuse.h"
-#include "capture/global_registration.h"
-#include "capture/icp.h"
+#include "registration/axis_calibration.h"
+#include "registration/fuse.h"
+#include "registration/global_registration.h"
+#include "registration/icp.h"
 #include "capture/session.h"
 
 namespace station {

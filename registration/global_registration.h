@@ -16,7 +16,7 @@
 #include <string>
 #include <vector>
 
-#include "capture/features.h"
+#include "registration/features.h"
 #include "core/geometry.h"
 
 namespace station {

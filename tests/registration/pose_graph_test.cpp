@@ -1,5 +1,5 @@
 // Pose-graph optimisation (capture/pose_graph.h).
-#include "capture/pose_graph.h"
+#include "registration/pose_graph.h"
 
 #include <gtest/gtest.h>
 

@@ -1,6 +1,6 @@
 // Registration of a session (capture/registration.h): the bundled dragon and
 // bad input. ICP, pose graph and axis pieces have their own test files.
-#include "capture/registration.h"
+#include "registration/registration.h"
 
 #include <gtest/gtest.h>
 

@@ -1,4 +1,4 @@
-#include "capture/axis_calibration.h"
+#include "registration/axis_calibration.h"
 
 #include <Eigen/Eigenvalues>
 #include <Eigen/Geometry>

@@ -1,4 +1,4 @@
-#include "reconstruct/consolidation_metrics.h"
+#include "eval/consolidation_metrics.h"
 
 #include <algorithm>
 #include <cmath>

@@ -1,4 +1,4 @@
-#include "capture/icp.h"
+#include "registration/icp.h"
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
@@ -12,7 +12,7 @@
 #include <limits>
 #include <unordered_map>
 
-#include "capture/colored_icp.h"
+#include "registration/colored_icp.h"
 #include "core/kdtree.h"
 #include "core/normals.h"
 

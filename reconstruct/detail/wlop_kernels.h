@@ -10,7 +10,7 @@
 #include <vector>
 
 #include "core/geometry.h"
-#include "reconstruct/radius_grid.h"
+#include "reconstruct/detail/radius_grid.h"
 
 namespace station::detail {
 

@@ -7,7 +7,7 @@
 #include <cmath>
 #include <random>
 
-#include "capture/icp.h"
+#include "registration/icp.h"
 
 namespace station {
 namespace {

@@ -1,4 +1,4 @@
-#include "capture/registration.h"
+#include "registration/registration.h"
 
 #include <tbb/parallel_for.h>
 #include <yaml-cpp/yaml.h>
@@ -14,8 +14,8 @@
 #include <tuple>
 #include <utility>
 
-#include "capture/capture.h"
-#include "capture/pose_graph.h"
+#include "core/camera.h"
+#include "registration/pose_graph.h"
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "core/kdtree.h"
