@@ -44,6 +44,14 @@ std::string surface_note(const std::string& input, const std::string& line, cons
   return prefix + line;
 }
 
+ColourParams colour_params(const SurfaceParams& p) {
+  ColourParams cp;
+  cp.threads = p.threads;
+  cp.multi_colour = p.colour_multi;
+  cp.noise_robust = p.colour_noise_robust;
+  return cp;
+}
+
 SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
   const auto t0 = Clock::now();
   const auto note = [&](const std::string& line) {
@@ -129,11 +137,7 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
     transfer_colors(mesh, input, {4, p.threads});
   } else if (out.coloured) {
     note("colour function on " + std::to_string(input.size()) + " points");
-    ColourParams cp;
-    cp.threads = p.threads;
-    cp.multi_colour = p.colour_multi;
-    cp.noise_robust = p.colour_noise_robust;
-    const ColourFunction cf = fit_colour(input, cp);
+    const ColourFunction cf = fit_colour(input, colour_params(p));
     out.colour_nearest_vertices = colour_mesh(mesh, cf, surface, input, p.threads);
     if (p.colour_edges) {
       ColourEdgeParams ep;

@@ -82,6 +82,9 @@ struct SurfaceResult {
   SurfaceTimings seconds;
 };
 
+/// The colour function's parameters of the surface stage (also the SDM surface's).
+ColourParams colour_params(const SurfaceParams& params);
+
 /// The whole surface stage on `cloud` (normals estimated when missing). InvalidInput
 /// for an empty cloud, an empty surface, or a resolution whose mesh would not fit in
 /// the memory available (check_extraction_fits).

@@ -609,11 +609,8 @@ class Runner {
     Mesh mesh = fit.mesh;
     const bool colour = c.colour && input.has_colors();
     if (colour) {
-      ColourParams cp;
-      cp.threads = cfg_.threads;
-      cp.multi_colour = c.colour_multi;
-      cp.noise_robust = c.colour_noise_robust;
-      colour_mesh(mesh, fit_colour(input, cp), cfg_.threads);
+      colour_mesh(mesh, fit_colour(input, colour_params(surface_params(cfg_.pipeline, cfg_.threads))),
+                  cfg_.threads);
     }
     write_ply(req_.out_dir / "mesh.ply", mesh);
     const SdmDiagnostics& d = fit.diagnostics;

@@ -4,7 +4,11 @@
 #include <atomic>
 #include <map>
 #include <random>
+#include <sys/wait.h>
 #include <unistd.h>
+
+#include <array>
+#include <cstdio>
 
 namespace station::test {
 
@@ -82,6 +86,19 @@ int open_edges(const Mesh& m) {
   int bad = 0;
   for (const auto& [e, n] : uses) bad += n != 2;
   return bad;
+}
+
+CommandResult run_command(const std::string& command) {
+  const std::string cmd = command + " 2>&1";
+  CommandResult r;
+  FILE* p = ::popen(cmd.c_str(), "r");
+  if (!p) return r;
+  std::array<char, 4096> buf;
+  std::size_t n;
+  while ((n = std::fread(buf.data(), 1, buf.size(), p)) > 0) r.out.append(buf.data(), n);
+  const int status = ::pclose(p);
+  r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  return r;
 }
 
 }  // namespace station::test

@@ -31,4 +31,12 @@ int open_edges(const Mesh& m);
 /// Repository root (for bundled data).
 std::filesystem::path source_dir();
 
+/// Runs a shell command; its stdout and stderr together, and its exit code (-1 when
+/// it did not exit normally).
+struct CommandResult {
+  int code = -1;
+  std::string out;
+};
+CommandResult run_command(const std::string& command);
+
 }  // namespace station::test

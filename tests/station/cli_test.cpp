@@ -21,23 +21,9 @@
 namespace station {
 namespace {
 
-struct CmdResult {
-  int code = -1;
-  std::string out;  // stdout + stderr
-};
+using CmdResult = test::CommandResult;
 
-CmdResult run(const std::string& args) {
-  const std::string cmd = std::string(STATION_BINARY) + " " + args + " 2>&1";
-  CmdResult r;
-  FILE* p = ::popen(cmd.c_str(), "r");
-  if (!p) return r;
-  std::array<char, 4096> buf;
-  std::size_t n;
-  while ((n = std::fread(buf.data(), 1, buf.size(), p)) > 0) r.out.append(buf.data(), n);
-  const int status = ::pclose(p);
-  r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  return r;
-}
+CmdResult run(const std::string& args) { return test::run_command(std::string(STATION_BINARY) + " " + args); }
 
 double json_number(const std::string& json, const std::string& key) {
   std::smatch m;

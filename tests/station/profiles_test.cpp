@@ -87,15 +87,7 @@ bool is_profile_only(const std::string& key) {
 }
 
 std::string help_of(const std::string& command) {
-  const std::string cmd = std::string(STATION_BINARY) + " " + command + " --help 2>&1";
-  std::string out;
-  FILE* p = ::popen(cmd.c_str(), "r");
-  if (!p) return out;
-  char buf[4096];
-  std::size_t n;
-  while ((n = std::fread(buf, 1, sizeof buf, p)) > 0) out.append(buf, n);
-  ::pclose(p);
-  return out;
+  return test::run_command(std::string(STATION_BINARY) + " " + command + " --help").out;
 }
 
 // One vocabulary (station/params.h, docs/parameters.md): every key of the default
