@@ -6,6 +6,7 @@
 #include <thread>
 
 #include "core/error.h"
+#include "core/threads.h"
 
 namespace station {
 namespace {
@@ -174,7 +175,7 @@ CaptureResult run_capture(Scanner& scanner, Turntable& turntable, Session& sessi
     if (progress) progress({k, params.views, angle, cloud.size()});
   }
   result.seconds =
-      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+      seconds_since(t0);
   return result;
 }
 

@@ -13,6 +13,7 @@
 
 #include "core/error.h"
 #include "core/kdtree.h"
+#include "core/threads.h"
 
 namespace station {
 
@@ -20,7 +21,7 @@ namespace {
 
 int arena_threads(int threads) {
   if (threads < 0) throw InvalidInput("normals: threads must be >= 0");
-  return threads == 0 ? tbb::this_task_arena::max_concurrency() : threads;
+  return worker_threads(threads);
 }
 
 // Smallest-eigenvalue eigenvector of a symmetric 3x3 matrix. The closed form:

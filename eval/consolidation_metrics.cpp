@@ -15,6 +15,7 @@
 #include "core/bvh.h"
 #include "core/error.h"
 #include "core/kdtree.h"
+#include "core/threads.h"
 
 namespace station {
 
@@ -27,7 +28,7 @@ void check_points(const std::vector<Vec3f>& points, const char* what) {
 
 int arena_threads(int threads, const char* what) {
   if (threads < 0) throw InvalidInput(std::string(what) + ": threads must be >= 0");
-  return threads == 0 ? tbb::this_task_arena::max_concurrency() : threads;
+  return worker_threads(threads);
 }
 
 // Closest points of the mesh to the points, in point order.

@@ -17,6 +17,7 @@
 #include "core/bvh.h"
 #include "core/error.h"
 #include "core/kdtree.h"
+#include "core/threads.h"
 
 namespace station {
 
@@ -303,7 +304,7 @@ EvalResult evaluate(const Shape& a, const Shape& b, const EvalParams& params) {
   const Side side_b = prepare(b, "B", params.b_surface_color);
 
   const int threads =
-      params.threads > 0 ? params.threads : tbb::this_task_arena::max_concurrency();
+      worker_threads(std::max(params.threads, 0));
   tbb::task_arena arena(threads);
   EvalResult result;
   arena.execute([&] {

@@ -10,6 +10,7 @@
 #include <tbb/task_arena.h>
 
 #include "core/error.h"
+#include "core/threads.h"
 #include "reconstruct/lab.h"
 
 namespace station {
@@ -72,7 +73,7 @@ ColourEdgeStats sharpen_colour_edges(Mesh& mesh, const ColourFunction& f, const 
   if (splits.empty()) return stats;
 
   // Bisect each: the colour at the midpoint is nearer u's or v's end colour.
-  const int threads = params.threads > 0 ? params.threads : tbb::this_task_arena::max_concurrency();
+  const int threads = worker_threads(std::max(params.threads, 0));
   tbb::task_arena arena(threads);
   arena.execute([&] {
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, splits.size(), 64), [&](const auto& range) {

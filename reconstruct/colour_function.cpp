@@ -17,6 +17,7 @@
 #include "core/error.h"
 #include "core/kdtree.h"
 #include "core/normals.h"
+#include "core/threads.h"
 
 namespace station {
 namespace {
@@ -153,10 +154,6 @@ struct Node {
   int leaf = -1;
   int depth = 0;
 };
-
-int arena_threads(int threads) {
-  return threads == 0 ? tbb::this_task_arena::max_concurrency() : threads;
-}
 
 }  // namespace
 
@@ -789,7 +786,7 @@ ColourFunction fit_colour(const Cloud& cloud, const ColourParams& params) {
   for (std::size_t i = 0; i < cloud.size(); ++i) s.labs[i] = rgb_to_lab(cloud.colors[i]);
   s.index = std::make_unique<PointIndex>(s.points);
 
-  tbb::task_arena arena(arena_threads(p.threads));
+  tbb::task_arena arena(worker_threads(p.threads));
   arena.execute([&] {
     // Breadth-first, level by level: cells fitted in parallel into their own slots,
     // children appended in cell order (deterministic for any thread count).
@@ -900,7 +897,7 @@ Rgb ColourFunction::rgb(const Vec3d& x) const { return lab_to_rgb(lab(x)); }
 
 std::vector<Rgb> ColourFunction::rgbs(const std::vector<Vec3f>& xs) const {
   std::vector<Rgb> out(xs.size());
-  tbb::task_arena arena(arena_threads(impl_ ? impl_->params.threads : 0));
+  tbb::task_arena arena(worker_threads(impl_ ? impl_->params.threads : 0));
   arena.execute([&] {
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, xs.size(), 256), [&](const auto& r) {
       for (std::size_t i = r.begin(); i != r.end(); ++i) out[i] = rgb(xs[i].cast<double>());
@@ -929,7 +926,7 @@ double ColourFunction::e_col(const Cloud& coloured, int threads) const {
   coloured.check_consistent("e_col cloud");
   if (!coloured.has_colors() || coloured.empty()) throw InvalidInput("e_col: the cloud has no colours");
   std::vector<double> err(coloured.size());
-  tbb::task_arena arena(arena_threads(threads));
+  tbb::task_arena arena(worker_threads(threads));
   arena.execute([&] {
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, coloured.size(), 256), [&](const auto& r) {
       for (std::size_t i = r.begin(); i != r.end(); ++i) {
@@ -974,7 +971,7 @@ std::size_t colour_mesh(Mesh& mesh, const ColourFunction& f, const ImplicitFunct
 
 void colour_mesh(Mesh& mesh, const ColourFunction& f, int threads) {
   mesh.colors.assign(mesh.vertices.size(), Rgb{});
-  tbb::task_arena arena(arena_threads(threads));
+  tbb::task_arena arena(worker_threads(threads));
   arena.execute([&] {
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, mesh.vertices.size(), 256), [&](const auto& r) {
       for (std::size_t i = r.begin(); i != r.end(); ++i) mesh.colors[i] = f.rgb(mesh.vertices[i].cast<double>());

@@ -2,12 +2,12 @@
 
 #include "reconstruct/detail/dmc_internal.h"
 #include "reconstruct/mpu.h"
+#include "core/threads.h"
 
 namespace station::detail::dmc {
 
 Mesh Dmc::run(DmcStats* stats) {
   using Clock = std::chrono::steady_clock;
-  auto since = [](Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); };
   auto t0 = Clock::now();
   {
     std::vector<std::uint64_t> start;
@@ -15,13 +15,13 @@ Mesh Dmc::run(DmcStats* stats) {
       start.push_back(std::uint64_t(nodes_.block(ki(c) >> 2, kj(c) >> 2, kk(c) >> 2)) << 6 | std::uint64_t(Lattice::local(c)));
     traverse(start, !opt_.seeds.empty());
   }
-  st_.seconds_traversal = since(t0);
+  st_.seconds_traversal = seconds_since(t0);
 
   t0 = Clock::now();
   std::vector<Key> moved;
   if (opt_.barycentre || opt_.thin_gaps) moved = barycentre_step();
   if (!moved.empty()) update_surface(moved);
-  st_.seconds_barycentre = since(t0);
+  st_.seconds_barycentre = seconds_since(t0);
   t0 = Clock::now();
 
   bool crossings_done = false;
@@ -41,11 +41,11 @@ Mesh Dmc::run(DmcStats* stats) {
         }
     }
   }
-  st_.seconds_features = since(t0);
+  st_.seconds_features = seconds_since(t0);
   t0 = Clock::now();
   if (!crossings_done) compute_crossings();
   Mesh mesh = build_mesh();
-  st_.seconds_mesh = since(t0);
+  st_.seconds_mesh = seconds_since(t0);
   if (stats) *stats = st_;
   return mesh;
 }

@@ -17,6 +17,7 @@
 #include <tuple>
 
 #include "core/error.h"
+#include "core/threads.h"
 #include "reconstruct/detail/lattice_storage.h"
 #include "reconstruct/detail/mc_tables.h"
 #include "reconstruct/mpu.h"
@@ -252,7 +253,7 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
 
   MarchingCubesStats st;
   st.cell_size = h;
-  const int threads = opt.threads == 0 ? tbb::this_task_arena::max_concurrency() : opt.threads;
+  const int threads = worker_threads(opt.threads);
   if (opt.threads < 0) throw InvalidInput("extract_marching_cubes: threads must be >= 0");
   tbb::task_arena arena(threads);
   auto parallel = [&](std::size_t count, auto&& fn) {

@@ -13,6 +13,7 @@
 #include "core/error.h"
 #include "core/kdtree.h"
 #include "core/normals.h"
+#include "core/threads.h"
 
 namespace station {
 namespace {
@@ -662,10 +663,6 @@ CellFit fit_cell(const MpuSurface::Impl& s, const Vec3d& o, double half) {
   return cf;
 }
 
-int arena_threads(int threads) {
-  return threads == 0 ? tbb::this_task_arena::max_concurrency() : threads;
-}
-
 }  // namespace
 
 MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
@@ -711,7 +708,7 @@ MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
   for (const Vec3f& p : s.world_points) s.points.push_back(((p.cast<double>() - s.center) * s.scale).cast<float>());
   s.index = std::make_unique<PointIndex>(s.points);
 
-  tbb::task_arena arena(arena_threads(params.threads));
+  tbb::task_arena arena(worker_threads(params.threads));
   arena.execute([&] {
     // Mean spacing from every point's nearest neighbour (trust measure).
     std::vector<double> nnd(s.points.size());
@@ -791,7 +788,7 @@ MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
   s.build_walk();
   s.diag.cells = s.nodes.size();
   while (s.diag.leaves_by_depth.size() > 1 && s.diag.leaves_by_depth.back() == 0) s.diag.leaves_by_depth.pop_back();
-  s.diag.fit_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  s.diag.fit_seconds = seconds_since(t0);
   MpuSurface out;
   out.impl_ = std::move(impl);
   return out;
@@ -867,7 +864,7 @@ double MpuSurface::value_gradient(const Vec3d& x, Vec3d& grad) const { return im
 
 std::vector<double> MpuSurface::values(const std::vector<Vec3d>& xs) const {
   std::vector<double> out(xs.size());
-  tbb::task_arena arena(arena_threads(impl_->params.threads));
+  tbb::task_arena arena(worker_threads(impl_->params.threads));
   arena.execute([&] {
     tbb::parallel_for(std::size_t(0), xs.size(), [&](std::size_t i) { out[i] = value(xs[i]); });
   });
@@ -875,7 +872,7 @@ std::vector<double> MpuSurface::values(const std::vector<Vec3d>& xs) const {
 }
 std::vector<Vec3d> MpuSurface::gradients(const std::vector<Vec3d>& xs) const {
   std::vector<Vec3d> out(xs.size());
-  tbb::task_arena arena(arena_threads(impl_->params.threads));
+  tbb::task_arena arena(worker_threads(impl_->params.threads));
   arena.execute([&] {
     tbb::parallel_for(std::size_t(0), xs.size(), [&](std::size_t i) { out[i] = gradient(xs[i]); });
   });

@@ -19,6 +19,7 @@
 #include "core/error.h"
 #include "core/kdtree.h"
 #include "core/normals.h"
+#include "core/threads.h"
 #include "reconstruct/detail/sdm_internal.h"
 
 namespace station {
@@ -26,10 +27,6 @@ namespace sdm_detail {
 namespace {
 
 using Clock = std::chrono::steady_clock;
-double seconds_since(Clock::time_point t0) {
-  return std::chrono::duration<double>(Clock::now() - t0).count();
-}
-
 // Uniform grid over the vertices with O(1) moves (a doubly linked list per cell):
 // the nearest-vertex index that is updated, not rebuilt, as vertices move.
 // Vertices outside the box are kept in the nearest border cell; distances to a cell
@@ -1019,7 +1016,7 @@ SdmResult fit_sdm_icosphere(int level, const Cloud& target_in, const SdmParams& 
   out.diagnostics.energy_rounds += cd.energy_rounds;
   out.diagnostics.seconds_energy += cd.seconds_energy;
   out.diagnostics.seconds_total =
-      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+      seconds_since(t0);
   return out;
 }
 

@@ -10,6 +10,7 @@
 
 #include "core/error.h"
 #include "core/normals.h"
+#include "core/threads.h"
 #include "reconstruct/color_transfer.h"
 #include "reconstruct/colour_edges.h"
 #include "reconstruct/half_space_clip.h"
@@ -20,10 +21,6 @@ namespace station {
 namespace {
 
 using Clock = std::chrono::steady_clock;
-
-double seconds_since(Clock::time_point t0) {
-  return std::chrono::duration<double>(Clock::now() - t0).count();
-}
 
 std::string fmt(const char* f, double v) {
   char buf[64];

@@ -16,6 +16,7 @@
 #include "core/error.h"
 #include "core/kdtree.h"
 #include "core/normals.h"
+#include "core/threads.h"
 #include "reconstruct/detail/radius_grid.h"
 #include "reconstruct/detail/wlop_kernels.h"
 
@@ -27,10 +28,6 @@ using detail::KernelShape;
 using detail::KernelSums;
 using detail::RadiusGrid;
 using Clock = std::chrono::steady_clock;
-
-double seconds_since(Clock::time_point t0) {
-  return std::chrono::duration<double>(Clock::now() - t0).count();
-}
 
 // Pairs closer than this (relative to h) are left out of E1: alpha = theta / r is
 // singular at r = 0, and every initial x_i sits exactly on its input point.
@@ -196,7 +193,7 @@ class Consolidator {
 void Consolidator::run() {
   const auto t0 = Clock::now();
   const int threads =
-      params_.threads == 0 ? tbb::this_task_arena::max_concurrency() : params_.threads;
+      worker_threads(params_.threads);
   tbb::task_arena arena(threads);
   arena.execute([&] {
     auto t = Clock::now();

@@ -15,6 +15,7 @@
 #include <utility>
 
 #include "core/camera.h"
+#include "core/threads.h"
 #include "registration/pose_graph.h"
 #include "core/atomic_file.h"
 #include "core/error.h"
@@ -61,10 +62,6 @@ std::pair<double, double> relative_pose_error(const Eigen::Matrix4d& A0, const E
 namespace {
 
 using Clock = std::chrono::steady_clock;
-double seconds_since(Clock::time_point t0) {
-  return std::chrono::duration<double>(Clock::now() - t0).count();
-}
-
 double median_of(std::vector<double> v) {
   if (v.empty()) return 0;
   std::sort(v.begin(), v.end());

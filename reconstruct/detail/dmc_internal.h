@@ -25,6 +25,7 @@
 #include <unordered_set>
 
 #include "core/error.h"
+#include "core/threads.h"
 #include "reconstruct/detail/lattice_storage.h"
 #include "reconstruct/detail/mc_tables.h"
 #include "reconstruct/mpu.h"
@@ -326,7 +327,7 @@ struct Proposal {
 class Dmc {
  public:
   Dmc(const ImplicitFunction& f, const Aabb& box, int resolution, const DmcOptions& opt)
-      : f_(f), opt_(opt), arena_(opt.threads == 0 ? tbb::this_task_arena::max_concurrency() : opt.threads) {
+      : f_(f), opt_(opt), arena_(worker_threads(opt.threads)) {
     lo_ = box.min.cast<double>();
     const Vec3d ext = (box.max - box.min).cast<double>();
     h_ = ext.maxCoeff() / resolution;

@@ -1,0 +1,160 @@
+#include "station/commands.h"
+
+#include <sys/resource.h>
+#include <tbb/global_control.h>
+
+#include <CLI/CLI.hpp>
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <atomic>
+#include <cctype>
+#include <chrono>
+#include <csignal>
+#include <unistd.h>
+#include <cstdio>
+#include <fstream>
+#include <iostream>
+#include <map>
+#include <memory>
+#include <optional>
+#include <sstream>
+
+#include "capture/capture.h"
+#include "capture/session.h"
+#include "core/error.h"
+#include "core/io.h"
+#include "drivers/real_devices.h"
+#include "drivers/registry.h"
+#include "reconstruct/sdm.h"
+#include "registration/registration.h"
+#include "sim/sim.h"
+#include "station/config.h"
+#include "station/json.h"
+#include "station/params.h"
+
+namespace station::cli {
+
+void add_common(CLI::App* cmd, Common& c) {
+  cmd->add_option("--config", c.config, "YAML profile (default: config/default.yaml)");
+  cmd->add_option("--threads", c.threads, "worker threads (0 = all cores)")->check(CLI::NonNegativeNumber);
+  cmd->add_flag("--json", c.json, "print a one-line JSON summary on stdout");
+}
+
+void add_profile_options(CLI::App* cmd, const std::string& command, Common& c) {
+  static const std::map<std::string, std::string> defaults = profile_values(default_config_path());
+  for (const ProfileOption& o : profile_options()) {
+    if (o.command != command) continue;
+    const auto d = defaults.find(o.key);
+    const std::string help = o.help + " (profile " + o.key +
+                             (d != defaults.end() && o.flag_value.empty() ? "; default " + d->second : "") + ")";
+    if (!o.flag_value.empty()) {
+      cmd->add_flag_callback(
+          o.option,
+          [&c, o] {
+            c.overrides.push_back(o.key + "=" + o.flag_value);
+            c.spelled[c.overrides.back()] = o.option;
+          },
+          help);
+      continue;
+    }
+    CLI::Option* opt = cmd->add_option_function<std::string>(
+        o.option,
+        [&c, o](const std::string& v) {
+          c.overrides.push_back(o.key + "=" + v);
+          c.spelled[c.overrides.back()] = o.option + " " + v;
+          for (const std::string& i : o.implies) c.overrides.push_back(i);
+        },
+        help);
+    if (!o.choices.empty()) opt->check(CLI::IsMember(o.choices));
+  }
+}
+
+StationConfig load_common(const Common& c, const std::vector<std::string>& extra) {
+  std::vector<std::string> overrides = extra;
+  overrides.insert(overrides.end(), c.overrides.begin(), c.overrides.end());
+  StationConfig cfg;
+  try {
+    cfg = load_config(c.config.empty() ? default_config_path() : fs::path(c.config), overrides);
+  } catch (const InvalidInput& e) {
+    const std::string what = e.what();
+    for (const auto& [kv, option] : c.spelled)
+      if (what.rfind("--set " + kv + ":", 0) == 0) throw UsageError(option + what.substr(6 + kv.size()));
+    throw;
+  }
+  if (c.threads >= 0) cfg.threads = c.threads;
+  return cfg;
+}
+
+std::unique_ptr<tbb::global_control> limit_threads(int threads) {
+  if (threads <= 0) return nullptr;
+  return std::make_unique<tbb::global_control>(tbb::global_control::max_allowed_parallelism,
+                                               std::size_t(threads));
+}
+
+void print_summary(JsonObject j) {
+  rusage ru{};
+  ::getrusage(RUSAGE_SELF, &ru);
+  j.add("peak_rss_mb", double(ru.ru_maxrss) / 1024.0);
+  std::printf("%s\n", j.str().c_str());
+}
+
+void check_not_a_recording(const std::string& out) {
+  if (out.empty()) return;
+  std::error_code ec;
+  const fs::path p = fs::absolute(out, ec).lexically_normal();
+  for (fs::path dir = p.parent_path();; dir = dir.parent_path()) {
+    const fs::path manifest = dir / kManifestName;
+    if (fs::is_regular_file(manifest, ec)) {
+      bool recorded = p == manifest;
+      try {
+        for (const ViewRecord& v : manifest_from_yaml(read_file_bytes(manifest), manifest.string()).views)
+          recorded = recorded || p == (dir / v.file).lexically_normal() ||
+                     (!v.color_image.empty() && p == (dir / v.color_image).lexically_normal());
+      } catch (const Error&) {
+        // An unreadable manifest lists nothing to compare with; the manifest itself is guarded.
+      }
+      if (recorded)
+        throw InvalidInput(out + ": part of the session recorded in " + dir.string() + "; write the output elsewhere");
+    }
+    if (dir.empty() || dir == dir.root_path()) break;
+  }
+}
+
+void check_output_name(const std::string& out, const char* kind, std::initializer_list<const char*> exts) {
+  check_not_a_recording(out);
+  std::string ext = fs::path(out).extension().string();
+  std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char ch) { return char(std::tolower(ch)); });
+  std::string list;
+  for (const char* e : exts) {
+    if (ext == e) return;
+    list += std::string(list.empty() ? "" : " or ") + e;
+  }
+  throw InvalidInput(out + ": " + kind + " is written as " + list + "; name the output that way");
+}
+
+DeviceRegistry make_registry() {
+  DeviceRegistry reg;
+  register_sim_devices(reg);
+  register_real_devices(reg);  // serial turntables, V4L2 cameras (drivers/real_devices.h)
+  return reg;
+}
+
+JsonObject write_merged(const Session& session, const fs::path& out, bool quiet) {
+  JsonObject j;
+  if (!session.manifest().axis) {
+    if (!quiet)
+      std::fprintf(stderr, "note: %s has no turntable axis; merged cloud not written\n",
+                   session.dir().c_str());
+    return j.add_null("path");
+  }
+  MergeResult merged = merge_by_turntable(session);
+  if (merged.cloud.empty()) throw InvalidInput(session.dir().string() + ": no points in any view");
+  write_ply(out, merged.cloud);
+  return j.add("path", out.string())
+      .add("points", merged.cloud.size())
+      .add("views", merged.merged_views)
+      .add("skipped_views", merged.skipped_views)
+      .add("colours", merged.cloud.has_colors());
+}
+
+}  // namespace station::cli

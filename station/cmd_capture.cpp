@@ -1,0 +1,340 @@
+#include "station/commands.h"
+
+#include <sys/resource.h>
+#include <tbb/global_control.h>
+
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <atomic>
+#include <cctype>
+#include <chrono>
+#include <csignal>
+#include <unistd.h>
+#include <cstdio>
+#include <fstream>
+#include <iostream>
+#include <map>
+#include <memory>
+#include <optional>
+#include <sstream>
+
+#include "capture/capture.h"
+#include "capture/session.h"
+#include "core/error.h"
+#include "core/io.h"
+#include "core/stanford_conf.h"
+#include "core/threads.h"
+#include "drivers/registry.h"
+#include "reconstruct/sdm.h"
+#include "registration/registration.h"
+#include "station/config.h"
+#include "station/json.h"
+#include "station/pipeline.h"
+#include "station/progress.h"
+
+namespace station::cli {
+
+namespace {
+
+std::atomic<bool> g_stop{false};
+
+/// First Ctrl-C: stop after the step in progress (a view, a stage); second: abort now.
+extern "C" void on_sigint(int) {
+  if (g_stop) {
+    std::signal(SIGINT, SIG_DFL);
+    std::raise(SIGINT);
+    return;
+  }
+  g_stop = true;
+  static const char msg[] = "\nstopping after the step in progress (Ctrl-C again to abort now)\n";
+  [[maybe_unused]] auto n = ::write(2, msg, sizeof msg - 1);
+}
+
+int run_job(const StationConfig& cfg, const Common& c, const RunArgs& a) {
+  RunRequest req;
+  req.input = a.in;
+  req.out_dir = a.out;
+  req.resume = a.resume;
+  req.quiet = a.quiet || c.json;
+  req.report = !a.no_report;
+  req.stop = &g_stop;
+  g_stop = false;
+  std::signal(SIGINT, on_sigint);
+  RunResult r;
+  try {
+    r = run_pipeline(cfg, req);
+  } catch (const IoError& e) {
+    std::signal(SIGINT, SIG_DFL);
+    // A failed write (full disk...) leaves every finished stage's output in place.
+    throw IoError(std::string(e.what()) + "; finished stages in " + a.out +
+                  " are intact: free space and rerun with --resume");
+  }
+  std::signal(SIGINT, SIG_DFL);
+  if (r.interrupted) {
+    std::fprintf(stderr, "run: interrupted after %zu stages; continue with: station run %s -o %s --resume\n",
+                 r.stages.size(), a.in.c_str(), a.out.c_str());
+    return 130;
+  }
+  if (c.json) {
+    JsonObject stages;
+    for (const StageRecord& s : r.stages) {
+      JsonObject st;
+      st.add("seconds", s.seconds).add("peak_rss_mb", s.peak_rss_mb).add("reused", s.reused).add("output", s.output);
+      JsonObject figs;
+      for (const auto& [k, v] : s.figures) figs.add(k, v);
+      st.add("figures", figs);
+      stages.add(s.name, st);
+    }
+    print_summary(JsonObject()
+                      .add("command", "run")
+                      .add("input", a.in)
+                      .add("out", a.out)
+                      .add("mesh", r.mesh.string())
+                      .add("report", r.report.string())
+                      .add("stages", stages));
+  } else if (!a.quiet) {
+    double total = 0;
+    std::printf("%-12s %9s %10s %7s\n", "stage", "time s", "peak MiB", "reused");
+    for (const StageRecord& s : r.stages) {
+      std::printf("%-12s %9.2f %10.0f %7s\n", s.name.c_str(), s.seconds, s.peak_rss_mb, s.reused ? "yes" : "no");
+      total += s.seconds;
+    }
+    std::printf("%-12s %9.2f\n", "total", total);
+    std::printf("mesh: %s\n", r.mesh.c_str());
+    if (!r.report.empty()) std::printf("report: %s\n", r.report.c_str());
+  }
+  // Views that failed registration (named by the register stage's warnings, also when
+  // it was reused) make a partial result, as for `station register`.
+  for (const StageRecord& s : r.stages)
+    if (s.name == "register" && s.figures.count("failed_views") && s.figures.at("failed_views") > 0) {
+      if (!c.json)
+        std::fprintf(stderr, "run: %.0f of %.0f views failed registration; the mesh is made from the others\n",
+                     s.figures.at("failed_views"), s.figures.count("views") ? s.figures.at("views") : 0.0);
+      return 3;
+    }
+  return 0;
+}
+
+int capture_into(Session& session, Scanner& scanner, Turntable& turntable,
+                 const CaptureParams& params, const Common& c, const char* command,
+                 std::chrono::steady_clock::time_point t0) {
+  Progress bar(command, params.views, c.json);
+  std::signal(SIGINT, on_sigint);
+  CaptureResult res;
+  try {
+    res = run_capture(
+        scanner, turntable, session, params,
+        [&](const CaptureProgress& p) {
+          char note[96];
+          std::snprintf(note, sizeof note, "view %d at %.1f deg: %zu points", p.view, p.angle_deg, p.points);
+          bar.update(p.view + 1, note);
+        },
+        &g_stop);
+  } catch (const Error& e) {
+    std::signal(SIGINT, SIG_DFL);
+    // The views recorded before the failure are in the session (each one committed to
+    // its manifest as it came): say so, and how to go on.
+    const std::size_t kept = session.manifest().views.size();
+    std::string next = "; the " + std::to_string(kept) + " views recorded before it are kept in " +
+                       session.dir().string();
+    // A replay resumes the same way: the session names its scanner (sim:replay).
+    next += ": once the cause is fixed, " + resume_hint(session, turntable);
+    if (kept == 0) next = "; nothing was recorded in " + session.dir().string();
+    if (dynamic_cast<const DeviceError*>(&e)) throw DeviceError(e.what() + next);
+    if (dynamic_cast<const IoError*>(&e)) throw IoError(e.what() + next);
+    if (dynamic_cast<const FormatError*>(&e)) throw FormatError(e.what() + next);
+    throw InvalidInput(e.what() + next);
+  }
+  std::signal(SIGINT, SIG_DFL);
+  scanner.close();
+  turntable.close();
+  if (res.interrupted) {
+    std::fprintf(stderr, "%s: interrupted after %zu views; %s\n", session.dir().c_str(),
+                 session.manifest().views.size(), resume_hint(session, turntable).c_str());
+    return 130;
+  }
+  bar.finish();
+  const double t_capture = seconds_since(t0);
+  const auto t1 = std::chrono::steady_clock::now();
+  JsonObject merged = write_merged(session, session.dir() / "merged.ply", c.json);
+  JsonObject j;
+  j.add("command", command)
+      .add("session", session.dir().string())
+      .add("views", session.manifest().views.size())
+      .add("recorded", res.recorded)
+      .add("resumed_from", res.resumed_from)
+      .add("points", res.points)
+      .add("merged", merged)
+      .add("timings_s", JsonObject().add("capture", t_capture).add("merge", seconds_since(t1)));
+  if (c.json) {
+    print_summary(j);
+  } else {
+    std::printf("%s: %zu views (%d new, %zu points) in %s\n", command,
+                session.manifest().views.size(), res.recorded, res.points, session.dir().c_str());
+    if (session.manifest().axis) std::printf("merged by turntable: %s\n", (session.dir() / "merged.ply").c_str());
+  }
+  return 0;
+}
+
+}  // namespace
+
+int cmd_devices(const Common& c) {
+  load_common(c);
+  DeviceRegistry reg = make_registry();
+  JsonObject j;
+  int n = 0;
+  for (const DeviceInfo& d : reg.list()) {
+    const char* kind = d.kind == DeviceKind::kScanner ? "scanner" : "turntable";
+    if (!c.json)
+      std::printf("%-10s %-40s %s%s\n", kind, d.uri.c_str(), d.description.c_str(),
+                  d.available ? "" : " (unavailable)");
+    j.add(d.uri, JsonObject().add("kind", kind).add("description", d.description).add("available", d.available));
+    ++n;
+  }
+  if (c.json) print_summary(JsonObject().add("command", "devices").add("count", n).add("devices", j));
+  return 0;
+}
+
+int cmd_run(const Common& c, const RunArgs& a) {
+  StationConfig cfg = load_common(c, a.set);
+  return run_job(cfg, c, a);
+}
+
+int cmd_scan(const Common& c, const ScanArgs& a) {
+  const auto t0 = std::chrono::steady_clock::now();
+  // --set section.key=value overrides the profile; a plain key=value is a scanner option.
+  std::vector<std::string> profile_set, scanner_set;
+  for (const std::string& kv : a.set) {
+    const auto eq = kv.find('=');
+    if (eq == std::string::npos || eq == 0) throw InvalidInput("--set " + kv + ": expected key=value");
+    (kv.substr(0, eq).find('.') != std::string::npos ? profile_set : scanner_set).push_back(kv);
+  }
+  StationConfig cfg = load_common(c, profile_set);
+  auto threads = limit_threads(cfg.threads);
+  for (const std::string& kv : scanner_set) {
+    const auto eq = kv.find('=');
+    cfg.scanner_options[kv.substr(0, eq)] = kv.substr(eq + 1);
+  }
+  std::string scanner_uri = a.scanner.empty() ? compose_uri(cfg.scanner_uri, cfg.scanner_options) : a.scanner;
+  std::string turntable_uri =
+      a.turntable.empty() ? compose_uri(cfg.turntable_uri, cfg.turntable_options) : a.turntable;
+  const fs::path dir = a.out;
+  std::optional<Session> session;
+  if (a.resume) {
+    session = Session::open(dir);
+    const SessionManifest& m = session->manifest();
+    // Resume with the devices and the plan the session was started with.
+    if (a.scanner.empty() && !m.scanner.empty()) scanner_uri = m.scanner;
+    if (a.turntable.empty() && !m.turntable.empty()) turntable_uri = m.turntable;
+    if (m.planned_views > 0) {
+      cfg.capture.views = m.planned_views;
+      cfg.capture.start_deg = m.start_deg;
+      cfg.capture.step_deg = m.step_deg;
+    }
+    if (int(m.views.size()) >= cfg.capture.views) {
+      if (!c.json) std::printf("%s: already complete (%zu views)\n", dir.c_str(), m.views.size());
+    }
+  }
+  DeviceRegistry reg = make_registry();
+  auto scanner = reg.make_scanner(scanner_uri);
+  auto turntable = reg.make_turntable(turntable_uri);
+  scanner->open();
+  turntable->open();
+  if (!session) {
+    SessionManifest m;
+    m.scanner = scanner_uri;
+    m.turntable = turntable_uri;
+    session = Session::create(dir, m);
+  }
+  const int code = capture_into(*session, *scanner, *turntable, cfg.capture, c, "scan", t0);
+  if (code != 0 || !a.run) return code;
+  RunArgs ra;
+  ra.in = dir.string();
+  ra.out = (dir / "run").string();
+  ra.resume = fs::exists(dir / "run" / "run.yaml");
+  return run_job(cfg, c, ra);
+}
+
+int cmd_replay(const Common& c, const std::string& source, const std::string& out) {
+  const auto t0 = std::chrono::steady_clock::now();
+  StationConfig cfg = load_common(c);
+  auto threads = limit_threads(cfg.threads);
+  Session src = Session::open(source);
+  const SessionManifest& sm = src.manifest();
+  if (sm.views.empty()) throw InvalidInput(source + ": the session has no views to replay");
+  CaptureParams params = cfg.capture;
+  params.views = sm.planned_views > 0 ? sm.planned_views : int(sm.views.size());
+  params.start_deg = sm.planned_views > 0 ? sm.start_deg : 0;
+  params.step_deg = sm.planned_views > 0 ? sm.step_deg : 360.0 / params.views;
+  params.views = std::min<int>(params.views, int(sm.views.size()));
+  params.crop = false;  // a recording is replayed as it was recorded
+  params.axis = sm.axis;
+  DeviceRegistry reg = make_registry();
+  const std::string scanner_uri = compose_uri("sim:replay", {{"session", fs::absolute(source).string()}});
+  auto scanner = reg.make_scanner(scanner_uri);
+  auto turntable = reg.make_turntable("sim:turntable");
+  scanner->open();
+  turntable->open();
+  SessionManifest m;
+  m.scanner = scanner_uri;
+  m.turntable = "sim:turntable";
+  m.units = sm.units;
+  m.intrinsics = sm.intrinsics;
+  Session dst = Session::create(out, m);
+  return capture_into(dst, *scanner, *turntable, params, c, "replay", t0);
+}
+
+int cmd_import(const Common& c, const ImportArgs& a) {
+  const auto t0 = std::chrono::steady_clock::now();
+  load_common(c);
+  if (a.every < 1) throw InvalidInput("--every must be at least 1");
+  std::map<std::string, Eigen::Matrix4d> poses;
+  if (!a.stanford_conf.empty())
+    for (const StanfordScan& scan : read_stanford_conf(a.stanford_conf)) poses[scan.file] = scan.pose;
+  // Read everything first: a bad file aborts before anything is written.
+  std::vector<Cloud> clouds;
+  for (const std::string& f : a.files) {
+    Cloud cl = read_cloud(f);
+    if (a.every > 1) {
+      Cloud s;
+      for (std::size_t i = 0; i < cl.size(); i += a.every) {
+        s.points.push_back(cl.points[i]);
+        if (cl.has_normals()) s.normals.push_back(cl.normals[i]);
+        if (cl.has_colors()) s.colors.push_back(cl.colors[i]);
+      }
+      cl = std::move(s);
+    }
+    clouds.push_back(std::move(cl));
+  }
+  SessionManifest m;
+  m.scanner = "import";
+  m.units = a.units;
+  if (a.has_step) {
+    m.planned_views = int(a.files.size());
+    m.start_deg = a.start;
+    m.step_deg = a.step;
+  }
+  Session s = Session::create(a.out, m);
+  Progress bar("import", int(a.files.size()), c.json);
+  std::size_t total = 0;
+  for (std::size_t i = 0; i < a.files.size(); ++i) {
+    ViewRecord rec;
+    if (a.has_step) rec.angle_deg = std::fmod(a.start + a.step * double(i), 360.0);
+    const std::string name = fs::path(a.files[i]).filename().string();
+    auto it = poses.find(name);
+    if (it != poses.end()) rec.reference_pose = it->second;
+    else if (!poses.empty()) std::fprintf(stderr, "note: %s has no pose in %s\n", name.c_str(), a.stanford_conf.c_str());
+    s.add_view(clouds[i], rec);
+    total += clouds[i].size();
+    bar.update(int(i) + 1, name);
+  }
+  bar.finish();
+  if (c.json)
+    print_summary(JsonObject().add("command", "import").add("session", a.out).add("views", a.files.size())
+                      .add("points", total).add("timings_s", JsonObject().add("import", seconds_since(t0))));
+  else
+    std::printf("import: %zu views, %zu points -> %s\n", a.files.size(), total, a.out.c_str());
+  return 0;
+}
+
+}  // namespace station::cli

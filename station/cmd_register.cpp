@@ -1,0 +1,293 @@
+#include "station/commands.h"
+
+#include <sys/resource.h>
+#include <tbb/global_control.h>
+
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <atomic>
+#include <cctype>
+#include <chrono>
+#include <csignal>
+#include <unistd.h>
+#include <cstdio>
+#include <fstream>
+#include <iostream>
+#include <map>
+#include <memory>
+#include <optional>
+#include <sstream>
+
+#include "capture/camera_calibration.h"
+#include "capture/session.h"
+#include "core/atomic_file.h"
+#include "core/error.h"
+#include "core/io.h"
+#include "reconstruct/sdm.h"
+#include "registration/axis_calibration.h"
+#include "registration/registration.h"
+#include "station/config.h"
+#include "station/json.h"
+#include "station/params.h"
+#include "station/progress.h"
+
+namespace station::cli {
+
+namespace {
+
+/// Registers a session with a progress bar; shared by `register` and `calibrate`.
+RegistrationResult register_with_progress(const Session& session, const RegistrationParams& params, bool quiet) {
+  std::unique_ptr<Progress> bar;
+  std::string stage;
+  RegistrationResult r = register_session(session, params, [&](const RegistrationProgress& p) {
+    if (p.stage != stage) {
+      if (bar) bar->finish();
+      stage = p.stage;
+      bar = std::make_unique<Progress>("register: " + stage, p.total, quiet);
+    }
+    bar->update(p.done);
+  });
+  if (bar) bar->finish();
+  for (int v : r.failed_views)
+    if (!quiet) std::fprintf(stderr, "warning: %s\n", r.views[v].message.c_str());
+  for (const std::string& w : r.warnings)
+    if (!quiet) std::fprintf(stderr, "warning: %s\n", w.c_str());
+  if (r.degenerate && !quiet) std::fprintf(stderr, "note: %s\n", r.degeneracy_message.c_str());
+  return r;
+}
+
+JsonObject registration_json(const RegistrationResult& r) {
+  JsonObject j;
+  j.add("views", r.views.size()).add("failed_views", r.failed_views.size()).add("degenerate", r.degenerate);
+  j.add("warnings", r.warnings);
+  j.add("pair_rmse_m", r.mean_pair_rmse);
+  j.add("rigid_turntable", JsonObject()
+                               .add("used", r.rigid_turntable)
+                               .add("deviation_deg", r.rigid_deviation_deg)
+                               .add("deviation_m", r.rigid_deviation));
+  if (r.fuse_distance > 0)
+    j.add("fuse", JsonObject()
+                      .add("distance_m", r.fuse_distance)
+                      .add("input_points", r.fuse.input)
+                      .add("fused_points", r.fuse.fused)
+                      .add("output_points", r.fuse.output));
+  if (r.views_with_reference > 0) {
+    JsonObject ref;
+    ref.add("views", r.views_with_reference)
+        .add("max_rotation_deg", r.max_rotation_error_deg)
+        .add("median_rotation_deg", r.median_rotation_error_deg)
+        .add("max_translation_m", r.max_translation_error)
+        .add("median_translation_m", r.median_translation_error)
+        .add("max_object_translation_m", r.max_object_translation_error)
+        .add("median_object_translation_m", r.median_object_translation_error);
+    // The same pairs' residual under the reference poses: which poses fit the scans better.
+    if (r.mean_reference_pair_rmse) ref.add("pair_rmse_m", *r.mean_reference_pair_rmse);
+    j.add("reference", ref);
+  }
+  JsonObject per_view;
+  for (std::size_t i = 0; i < r.views.size(); ++i) {
+    const ViewDiagnostics& v = r.views[i];
+    JsonObject o;
+    o.add("registered", v.registered).add("initial", to_string(v.initial)).add("points", v.points)
+        .add("angle_rejected", v.angle_rejected);
+    if (v.rotation_error_deg) o.add("rotation_error_deg", *v.rotation_error_deg);
+    if (v.translation_error) o.add("translation_error_m", *v.translation_error);
+    if (v.object_translation_error) o.add("object_translation_error_m", *v.object_translation_error);
+    if (!v.message.empty()) o.add("message", v.message);
+    per_view.add(std::to_string(i), o);
+  }
+  j.add("per_view", per_view);
+  // Pairs of the last round (earlier rounds refine the same pairs).
+  JsonObject per_pair;
+  const int last_round = r.pairs.empty() ? 0 : r.pairs.back().round;
+  for (const PairDiagnostics& p : r.pairs) {
+    if (p.round != last_round) continue;
+    JsonObject o;
+    o.add("converged", p.converged).add("fitness", p.fitness).add("inlier_rmse_m", p.inlier_rmse)
+        .add("correspondences", p.correspondences).add("iterations", p.iterations)
+        .add("loop_closure", p.loop_closure).add("degenerate", p.degenerate);
+    for (const PairResidual& pr : r.pair_residuals)
+      if (pr.from == p.from && pr.to == p.to) {
+        o.add("residual_rmse_m", pr.rmse);
+        if (pr.reference_rmse) o.add("reference_residual_rmse_m", *pr.reference_rmse);
+      }
+    if (!p.message.empty()) o.add("message", p.message);
+    per_pair.add(std::to_string(p.from) + "-" + std::to_string(p.to), o);
+  }
+  j.add("per_pair", per_pair);
+  j.add("timings_s", JsonObject()
+                         .add("prepare", r.seconds_prepare)
+                         .add("initial", r.seconds_initial)
+                         .add("refine", r.seconds_refine)
+                         .add("merge", r.seconds_merge)
+                         .add("total", r.seconds_total));
+  return j;
+}
+
+void print_registration(const RegistrationResult& r) {
+  std::printf("%-5s %-10s %-16s %9s %12s %14s\n", "view", "status", "initial pose", "points",
+              "rot err deg", "trans err mm");
+  for (std::size_t i = 0; i < r.views.size(); ++i) {
+    const ViewDiagnostics& v = r.views[i];
+    char rot[32] = "-", tr[32] = "-";
+    if (v.rotation_error_deg) std::snprintf(rot, sizeof rot, "%.3f", *v.rotation_error_deg);
+    if (v.translation_error) std::snprintf(tr, sizeof tr, "%.3f", *v.translation_error * 1000);
+    std::printf("%-5zu %-10s %-16s %9zu %12s %14s\n", i,
+                v.registered ? (v.angle_rejected ? "ok*" : "ok") : "FAILED",
+                to_string(v.initial), v.points, rot, tr);
+  }
+  if (r.views_with_reference > 0)
+    std::printf("against reference poses (%d views, relative to view 0): rotation max %.3f deg, "
+                "median %.3f deg; translation max %.3f mm, median %.3f mm\n",
+                r.views_with_reference, r.max_rotation_error_deg, r.median_rotation_error_deg,
+                r.max_translation_error * 1000, r.median_translation_error * 1000);
+  if (r.views_with_reference > 0)
+    std::printf("  translation at the object (each view's centroid): max %.3f mm, median %.3f mm\n",
+                r.max_object_translation_error * 1000, r.median_object_translation_error * 1000);
+  if (r.rigid_turntable)
+    std::printf("rigid turntable: the views lie on one axis (at most %.3f deg / %.3f mm from the free poses)\n",
+                r.rigid_deviation_deg, r.rigid_deviation * 1000);
+  if (!r.pair_residuals.empty()) {
+    std::printf("pair residual (RMS point-to-plane over %zu refined pairs): %.4f mm",
+                r.pair_residuals.size(), r.mean_pair_rmse * 1000);
+    if (r.mean_reference_pair_rmse)
+      std::printf("; under the reference poses %.4f mm", *r.mean_reference_pair_rmse * 1000);
+    std::printf("\n");
+  }
+  for (const ViewDiagnostics& v : r.views)
+    if (v.angle_rejected) {
+      std::printf("ok*: the commanded turntable angle was wrong; the pose comes from global registration\n");
+      break;
+    }
+}
+
+std::string fmt_double(double v) {
+  char buf[32];
+  std::snprintf(buf, sizeof buf, "%.4f", v);
+  return buf;
+}
+
+}  // namespace
+
+int cmd_register(const Common& c, const RegisterArgs& a) {
+  check_output_name(a.out, "a cloud", {".ply"});
+  check_not_a_recording(a.poses_out);
+  StationConfig cfg = load_common(c);
+  auto threads = limit_threads(cfg.threads);
+  const std::string& session_dir = a.session;
+  const std::string& out = a.out;
+  const std::string& poses_out = a.poses_out;
+  const Session session = Session::open(session_dir);
+  const RegistrationResult r = register_with_progress(session, registration_params(cfg.pipeline), c.json);
+  if (r.merged.empty()) throw InvalidInput(session_dir + ": no view could be registered");
+  write_ply(out, r.merged);
+  if (!poses_out.empty()) write_poses_yaml(poses_out, r, session.manifest());
+  if (c.json) {
+    JsonObject j = registration_json(r);
+    j.add("command", "register").add("session", session_dir).add("output", out)
+        .add("points", r.merged.size());
+    if (!poses_out.empty()) j.add("poses", poses_out);
+    print_summary(j);
+  } else {
+    print_registration(r);
+    if (r.fuse_distance > 0)
+      std::printf("fused %zu of %zu points into earlier views' points (within %.3f mm)\n", r.fuse.fused,
+                  r.fuse.input, r.fuse_distance * 1000);
+    std::printf("register: %zu of %zu views, %zu points -> %s\n", r.views.size() - r.failed_views.size(),
+                r.views.size(), r.merged.size(), out.c_str());
+  }
+  return r.failed_views.empty() ? 0 : 3;
+}
+
+int cmd_calibrate_turntable(const Common& c, const std::string& session_dir, const std::string& out) {
+  check_not_a_recording(out);
+  StationConfig cfg = load_common(c);
+  auto threads = limit_threads(cfg.threads);
+  const Session session = Session::open(session_dir);
+  const SessionManifest& m = session.manifest();
+  // The axis is fitted to free poses: on poses held on one rigid turntable the
+  // tilt and translation residuals would be zero by construction, and they are
+  // what tells a wobbling table or a shifting object.
+  RegistrationParams rp = registration_params(cfg.pipeline);
+  rp.rigid_turntable = RigidTurntable::kOff;
+  const RegistrationResult r = register_with_progress(session, rp, c.json);
+  std::vector<Eigen::Matrix4d> poses;
+  std::vector<double> angles;
+  for (std::size_t i = 0; i < m.views.size(); ++i) {
+    if (!m.views[i].angle_deg || !r.views[i].registered) continue;
+    poses.push_back(r.poses[i]);
+    angles.push_back(*m.views[i].angle_deg);
+  }
+  if (poses.size() < 2)
+    throw InvalidInput(session_dir + ": fewer than two registered views with turntable angles");
+  AxisFitParams fp;
+  if (m.axis) fp.point_near = m.axis->point;
+  const AxisFitResult fit = calibrate_axis(poses, angles, fp);
+  if (!fit.ok) throw InvalidInput(session_dir + ": turntable axis not determined: " + fit.message);
+  // A profile fragment: copy its `capture.axis` into a bench profile.
+  char buf[512];
+  std::snprintf(buf, sizeof buf,
+                "# Turntable axis calibrated from %s (scanner frame, metres)\n"
+                "# rms residuals: angle %.4f deg, tilt %.4f deg, translation %.4f mm\n"
+                "capture:\n  axis:\n    point: [%.9g, %.9g, %.9g]\n    direction: [%.9g, %.9g, %.9g]\n",
+                session_dir.c_str(), fit.rms_angle_deg, fit.rms_tilt_deg, fit.rms_translation * 1000,
+                fit.axis.point.x(), fit.axis.point.y(), fit.axis.point.z(), fit.axis.direction.x(),
+                fit.axis.direction.y(), fit.axis.direction.z());
+  if (!out.empty()) write_file_atomic(out, std::string(buf));
+  if (c.json) {
+    print_summary(JsonObject()
+                      .add("command", "calibrate turntable")
+                      .add("session", session_dir)
+                      .add("point", std::vector<double>{fit.axis.point.x(), fit.axis.point.y(), fit.axis.point.z()})
+                      .add("direction", std::vector<double>{fit.axis.direction.x(), fit.axis.direction.y(), fit.axis.direction.z()})
+                      .add("rms_angle_deg", fit.rms_angle_deg)
+                      .add("rms_tilt_deg", fit.rms_tilt_deg)
+                      .add("rms_translation_m", fit.rms_translation)
+                      .add("views", poses.size()));
+  } else {
+    std::printf("%s", buf);
+    std::printf("%-5s %12s %10s %14s\n", "view", "angle deg", "tilt deg", "trans mm");
+    for (std::size_t i = 0; i < fit.residuals.size(); ++i)
+      std::printf("%-5zu %12.4f %10.4f %14.4f\n", i, fit.residuals[i].angle_deg, fit.residuals[i].tilt_deg,
+                  fit.residuals[i].translation * 1000);
+    if (!out.empty()) std::printf("written: %s\n", out.c_str());
+  }
+  return 0;
+}
+
+int cmd_calibrate_camera(const Common& c, const std::vector<std::string>& images, const std::string& board,
+                         double square, const std::string& out) {
+  check_not_a_recording(out);
+  ChessboardSpec spec;
+  spec.square = square;
+  if (std::sscanf(board.c_str(), "%dx%d", &spec.inner_cols, &spec.inner_rows) != 2)
+    throw InvalidInput("--board " + board + ": expected COLSxROWS, e.g. 9x6");
+  std::vector<fs::path> files(images.begin(), images.end());
+  if (!c.json) std::fprintf(stderr, "calibrate camera: finding the chessboard in %zu images...\n", files.size());
+  const CameraCalibration cal = calibrate_camera(files, spec);
+  const std::string fragment = camera_profile_fragment(cal, std::to_string(files.size()) + " images");
+  if (!out.empty()) write_file_atomic(out, fragment);
+  const Intrinsics& k = cal.intrinsics;
+  if (c.json) {
+    std::vector<double> per;
+    for (const CameraImageResult& r : cal.images) per.push_back(r.used ? r.rms_px : -1);
+    print_summary(JsonObject()
+                      .add("command", "calibrate camera")
+                      .add("images", cal.images.size())
+                      .add("used_images", cal.used_images)
+                      .add("rms_px", cal.rms_px)
+                      .add("per_image_rms_px", per)
+                      .add("intrinsics", std::vector<double>{double(k.width), double(k.height), k.fx, k.fy, k.cx, k.cy})
+                      .add("distortion", std::vector<double>(k.distortion.begin(), k.distortion.end())));
+  } else {
+    std::printf("%s", fragment.c_str());
+    std::printf("%-40s %8s %s\n", "image", "rms px", "");
+    for (const CameraImageResult& r : cal.images)
+      std::printf("%-40s %8s %s\n", r.file.c_str(), r.used ? fmt_double(r.rms_px).c_str() : "-",
+                  r.used ? (r.rms_px > 3 * cal.rms_px ? "<- suspicious" : "") : r.message.c_str());
+    if (!out.empty()) std::printf("written: %s\n", out.c_str());
+  }
+  return 0;
+}
+
+}  // namespace station::cli

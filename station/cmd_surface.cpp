@@ -1,0 +1,297 @@
+#include "station/commands.h"
+
+#include <sys/resource.h>
+#include <tbb/global_control.h>
+
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <atomic>
+#include <cctype>
+#include <chrono>
+#include <csignal>
+#include <unistd.h>
+#include <cstdio>
+#include <fstream>
+#include <iostream>
+#include <map>
+#include <memory>
+#include <optional>
+#include <sstream>
+
+#include "core/error.h"
+#include "core/io.h"
+#include "core/threads.h"
+#include "reconstruct/colour_function.h"
+#include "reconstruct/dmc.h"
+#include "reconstruct/mpu.h"
+#include "reconstruct/sdm.h"
+#include "reconstruct/surface.h"
+#include "reconstruct/wlop.h"
+#include "registration/registration.h"
+#include "station/config.h"
+#include "station/json.h"
+#include "station/params.h"
+#include "station/progress.h"
+
+namespace station::cli {
+
+namespace {
+
+/// Per-corner UVs from per-vertex ones; on the sphere and the cylinder u wraps at 1,
+/// so a face that straddles the seam gets its small u values raised by 1 (texture
+/// repeat then samples the right side) instead of spanning the whole image.
+std::vector<Vec2f> corner_uvs(const Mesh& mesh, const std::vector<Vec2f>& uv, bool wrap_u) {
+  std::vector<Vec2f> out;
+  out.reserve(3 * mesh.faces.size());
+  for (const Face& f : mesh.faces) {
+    Vec2f t[3] = {uv[f[0]], uv[f[1]], uv[f[2]]};
+    if (wrap_u) {
+      const float hi = std::max({t[0].x(), t[1].x(), t[2].x()});
+      for (Vec2f& c : t)
+        if (hi - c.x() > 0.5f) c.x() += 1.f;
+    }
+    out.insert(out.end(), t, t + 3);
+  }
+  return out;
+}
+
+std::optional<Vec3d> parse_up(const std::string& text) {
+  if (text.empty()) return std::nullopt;
+  Vec3d v;
+  char comma1 = 0, comma2 = 0, rest = 0;
+  if (std::sscanf(text.c_str(), "%lf %c %lf %c %lf %c", &v.x(), &comma1, &v.y(), &comma2, &v.z(), &rest) != 5 ||
+      comma1 != ',' || comma2 != ',' || !v.allFinite() || !(v.norm() > 0))
+    throw InvalidInput("--up " + text + ": expected a non-zero direction x,y,z");
+  return v;
+}
+
+}  // namespace
+
+int cmd_fit(const Common& c, const FitArgs& a) {
+  const auto t0 = std::chrono::steady_clock::now();
+  check_output_name(a.out, "a mesh", {".ply", ".obj"});
+  StationConfig cfg = load_common(c);
+  auto threads = limit_threads(cfg.threads);
+  const Cloud target = read_cloud(a.in);
+  std::vector<Landmark> landmarks;
+  if (!a.landmarks.empty()) landmarks = read_landmarks(a.landmarks);
+  SdmParams sp;
+  sp.threads = cfg.threads;
+  Progress bar("fit: SDM", 100, c.json);
+  const SdmProgress progress = [&](const std::string& phase, double f) {
+    bar.update(int(std::lround(100 * f)), phase);
+  };
+  SdmResult fit;
+  if (a.templ.rfind("icosphere:", 0) == 0) {
+    int level = -1;
+    try {
+      level = std::stoi(a.templ.substr(10));
+    } catch (const std::exception&) {
+    }
+    if (level < 0 || level > 7) throw InvalidInput("--template " + a.templ + ": expected icosphere:L with L in 0..7");
+    fit = fit_sdm_icosphere(level, target, sp, landmarks, progress);
+  } else {
+    fit = fit_sdm(read_mesh(a.templ), target, sp, landmarks, progress);
+  }
+  bar.finish();
+  Mesh mesh = fit.mesh;
+  const bool colour = target.has_colors() && !a.no_colour;
+  if (colour) {
+    ColourParams cp;
+    cp.threads = cfg.threads;
+    colour_mesh(mesh, fit_colour(target, cp), cfg.threads);
+  }
+  write_mesh(a.out, mesh);
+  const SdmDiagnostics& d = fit.diagnostics;
+  if (c.json) {
+    print_summary(JsonObject()
+                      .add("command", "fit")
+                      .add("input", a.in)
+                      .add("output", a.out)
+                      .add("template", a.templ)
+                      .add("vertices", mesh.vertices.size())
+                      .add("faces", mesh.faces.size())
+                      .add("control_points", d.control_points)
+                      .add("mean_distance", d.mean_distance)
+                      .add("mean_distance_rel", d.diagonal > 0 ? d.mean_distance / d.diagonal : 0.0)
+                      .add("flipped_faces", d.flipped_faces)
+                      .add("self_intersections", d.self_intersections)
+                      .add("landmarks", landmarks.size())
+                      .add("colours", colour)
+                      .add("timings_s", JsonObject()
+                                            .add("som", d.seconds_som)
+                                            .add("energy", d.seconds_energy)
+                                            .add("total", seconds_since(t0))));
+  } else {
+    std::printf("fit: %zu vertices onto %d control points: mean distance %.4g (%.3f %% of the diagonal), "
+                "%d flipped faces, %d self-intersections, %.2fs -> %s\n",
+                mesh.vertices.size(), d.control_points, d.mean_distance,
+                d.diagonal > 0 ? 100 * d.mean_distance / d.diagonal : 0.0, d.flipped_faces, d.self_intersections,
+                d.seconds_total, a.out.c_str());
+  }
+  return 0;
+}
+
+int cmd_parameterise(const Common& c, const ParameteriseArgs& a) {
+  const auto t0 = std::chrono::steady_clock::now();
+  StationConfig cfg = load_common(c);
+  auto threads = limit_threads(cfg.threads);
+  check_output_name(a.out, "a mesh with UVs", {".obj"});
+  check_not_a_recording(a.mapped);
+  const SimpleSurface surface = a.onto == "plane" ? SimpleSurface::kPlane
+                                : a.onto == "cylinder" ? SimpleSurface::kCylinder
+                                                       : SimpleSurface::kSphere;
+  const Mesh mesh = read_mesh(a.in);
+  if (mesh.faces.empty()) throw InvalidInput(a.in + ": no faces (parameterise needs a mesh)");
+  SdmParams sp;
+  sp.threads = cfg.threads;
+  Progress bar("parameterise: SDM", 100, c.json);
+  const ParameterisationResult r = sdm_parameterise(
+      mesh, surface, sp, a.control_points,
+      [&](const std::string& phase, double f) { bar.update(int(std::lround(100 * f)), phase); });
+  bar.finish();
+  Mesh textured = mesh;
+  textured.normals.clear();
+  const auto uv = corner_uvs(mesh, r.uv, surface != SimpleSurface::kPlane);
+  // Each write is atomic: a failure leaves no half-written file.
+  if (!a.mapped.empty()) write_mesh(a.mapped, r.mesh);
+  write_obj(a.out, textured, uv);
+  const SdmDiagnostics& d = r.diagnostics;
+  if (c.json) {
+    print_summary(JsonObject()
+                      .add("command", "parameterise")
+                      .add("input", a.in)
+                      .add("output", a.out)
+                      .add("onto", a.onto)
+                      .add("vertices", mesh.vertices.size())
+                      .add("faces", mesh.faces.size())
+                      .add("control_points", d.control_points)
+                      .add("flipped_faces", d.flipped_faces)
+                      .add("self_intersections", d.self_intersections)
+                      .add("timings_s", JsonObject().add("total", seconds_since(t0))));
+  } else {
+    std::printf("parameterise: %zu vertices onto the %s (%d control points), %d flipped faces, %.2fs -> %s\n",
+                mesh.vertices.size(), a.onto.c_str(), d.control_points, d.flipped_faces, seconds_since(t0),
+                a.out.c_str());
+  }
+  return 0;
+}
+
+int cmd_consolidate(const Common& c, const ConsolidateArgs& a) {
+  const auto t0 = std::chrono::steady_clock::now();
+  check_output_name(a.out, "a cloud", {".ply"});
+  StationConfig cfg = load_common(c);
+  const auto& pc = cfg.pipeline.consolidate;
+  const Cloud input = read_cloud(a.in);
+  const double t_read = seconds_since(t0);
+  WlopParams p = wlop_params(cfg.pipeline, cfg.threads);
+  if (!c.json)
+    std::fprintf(stderr, "consolidate: %s, %zu points, %s, %d iterations...\n", a.in.c_str(),
+                 input.size(), pc.method.c_str(), pc.iterations);
+  Progress bar(std::string("consolidate: ") + wlop_label(pc.method) + " iterations", pc.iterations, c.json);
+  p.progress = [&](int done, int) { bar.update(done); };
+  const WlopResult r = consolidate(input, p);
+  bar.finish();
+  write_ply(a.out, r.cloud);
+  if (c.json) {
+    print_summary(JsonObject()
+                      .add("command", "consolidate")
+                      .add("input", a.in)
+                      .add("output", a.out)
+                      .add("method", pc.method)
+                      .add("input_points", r.input_points)
+                      .add("output_points", r.cloud.size())
+                      .add("clamped", r.clamped)
+                      .add("iterations", r.iterations)
+                      .add("radius", r.radius)
+                      .add("isolated_points", r.isolated_points)
+                      .add("timings_s", JsonObject()
+                                            .add("read", t_read)
+                                            .add("setup", r.seconds_setup)
+                                            .add("iterations", r.seconds_iterations)
+                                            .add("attributes", r.seconds_attributes)
+                                            .add("total", seconds_since(t0))));
+  } else {
+    std::printf("consolidate: %zu -> %zu points (%s, %d iterations, h = %.6g) in %.2fs -> %s\n",
+                r.input_points, r.cloud.size(), pc.method.c_str(), r.iterations, r.radius,
+                r.seconds, a.out.c_str());
+    if (r.clamped)
+      std::printf("note: asked for %zu points but the input has %zu distinct ones; all were projected\n",
+                  r.requested_points, r.output_points);
+  }
+  return 0;
+}
+
+int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
+  const auto t0 = std::chrono::steady_clock::now();
+  check_output_name(a.out, "a mesh", {".ply", ".obj"});
+  StationConfig cfg = load_common(c);
+  const auto& rc = cfg.pipeline.reconstruct;
+  SurfaceParams sp = surface_params(cfg.pipeline, cfg.threads);
+  if (rc.table_plane) sp.table_up = parse_up(a.up);
+  sp.resolution_name = "--resolution " + std::to_string(rc.resolution);
+  sp.note = [&](const std::string& line) {
+    if (!c.json) std::fprintf(stderr, "%s\n", surface_note(a.in, line, "reconstruct: ", "note: ").c_str());
+  };
+  Cloud input = read_cloud(a.in);
+  const std::size_t points = input.size();
+  const double t_read = seconds_since(t0);
+  const SurfaceResult r = reconstruct_surface(std::move(input), sp);
+  write_mesh(a.out, r.mesh);
+  const MpuDiagnostics& d = r.mpu;
+  if (c.json) {
+    const DmcStats& ds = r.dmc;
+    print_summary(JsonObject()
+                      .add("command", "reconstruct")
+                      .add("input", a.in)
+                      .add("output", a.out)
+                      .add("points", points)
+                      .add("normals_estimated", r.normals_estimated)
+                      .add("vertices", r.mesh.vertices.size())
+                      .add("faces", r.mesh.faces.size())
+                      .add("leaves", d.leaves)
+                      .add("leaves_by_type", JsonObject()
+                                                 .add("bivariate", d.leaves_by_type[0])
+                                                 .add("quadric", d.leaves_by_type[1])
+                                                 .add("edge", d.leaves_by_type[2])
+                                                 .add("corner", d.leaves_by_type[3]))
+                      .add("unconverged_leaves", d.unconverged_leaves)
+                      .add("removed_pieces", r.pieces.removed_components)
+                      .add("epsilon0", r.epsilon0)
+                      .add("cell_size", r.extraction.cell_size)
+                      .add("colours", r.coloured)
+                      .add("extractor", rc.extractor)
+                      .add("winding_close", r.winding_points > 0)
+                      .add("table_plane", bool(r.table_height))
+                      .add("dmc", JsonObject()
+                                      .add("probed", ds.probed)
+                                      .add("searched", ds.searched)
+                                      .add("moved_barycentre", ds.moved_barycentre)
+                                      .add("moved_corner", ds.moved_corner)
+                                      .add("moved_edge", ds.moved_edge)
+                                      .add("smooth_cells", ds.smooth_cells)
+                                      .add("seconds_traversal", ds.seconds_traversal)
+                                      .add("seconds_barycentre", ds.seconds_barycentre)
+                                      .add("seconds_features", ds.seconds_features)
+                                      .add("seconds_mesh", ds.seconds_mesh))
+                      .add("colour_method", r.coloured ? rc.colour_method : std::string("none"))
+                      .add("e_col", r.colour ? r.colour->e_col : -1.0)
+                      .add("colour_edges_split", r.colour_edges_split)
+                      .add("timings_s", JsonObject()
+                                            .add("read", t_read)
+                                            .add("fit", r.seconds.normals + r.seconds.fit)
+                                            .add("extract", r.seconds.closing + r.seconds.extract)
+                                            .add("colour", r.seconds.colour)
+                                            .add("total", seconds_since(t0))));
+  } else {
+    std::printf("MPU: %zu leaves (bivariate %zu, quadric %zu, edge %zu, corner %zu), fit %.2fs\n",
+                d.leaves, d.leaves_by_type[0], d.leaves_by_type[1], d.leaves_by_type[2],
+                d.leaves_by_type[3], r.seconds.fit);
+    std::printf("reconstruct: %zu vertices, %zu faces (cell %.4g, extract %.2fs) -> %s\n",
+                r.mesh.vertices.size(), r.mesh.faces.size(), r.extraction.cell_size, r.seconds.extract,
+                a.out.c_str());
+  }
+  return 0;
+}
+
+}  // namespace station::cli
