@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
 #include <queue>
 #include <tuple>
 
@@ -81,19 +82,26 @@ Vec3d simple_normal(const Vec3d* points, int n, int iterations, Vec3d* pca) {
 std::vector<Vec3f> estimate_normals(const std::vector<Vec3f>& points, int k, int threads) {
   if (k < 3) throw InvalidInput("normals: k must be >= 3");
   if (!all_finite(points)) throw InvalidInput("normals: non-finite coordinates");
+  if (points.empty()) return {};
+  return estimate_normals(PointIndex(points), k, threads);
+}
+
+std::vector<Vec3f> estimate_normals(const PointIndex& index, int k, int threads) {
+  if (k < 3) throw InvalidInput("normals: k must be >= 3");
+  const std::vector<Vec3f>& points = index.points();
   std::vector<Vec3f> normals(points.size(), Vec3f::Zero());
-  if (points.empty()) return normals;
-  const PointIndex index(points);
   tbb::task_arena arena(arena_threads(threads));
   arena.execute([&] {
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, points.size(), 256),
                       [&](const tbb::blocked_range<std::size_t>& range) {
-                        std::vector<Vec3d> nb;
+                        // Buffers per task, not per point (k-NN without allocation).
+                        std::vector<std::uint32_t> idx(static_cast<std::size_t>(k));
+                        std::vector<float> dsq(idx.size());
+                        std::vector<Vec3d> nb(idx.size());
                         for (std::size_t i = range.begin(); i < range.end(); ++i) {
-                          nb.clear();
-                          for (const auto& [j, d] : index.knn(points[i], k))
-                            nb.push_back(points[j].cast<double>());
-                          normals[i] = pca_normal(nb.data(), int(nb.size())).cast<float>();
+                          const int found = index.knn_into(points[i], k, idx.data(), dsq.data());
+                          for (int m = 0; m < found; ++m) nb[std::size_t(m)] = points[idx[std::size_t(m)]].cast<double>();
+                          normals[i] = pca_normal(nb.data(), found).cast<float>();
                         }
                       });
   });

@@ -10,6 +10,8 @@
 
 namespace station {
 
+class PointIndex;
+
 /// Unit normal of the least-squares plane through points[0..n) (PCA: the
 /// eigenvector of the smallest eigenvalue of their covariance). Arbitrary sign;
 /// zero when n < 3 or the points do not span a plane's worth of directions
@@ -33,6 +35,9 @@ Vec3d simple_normal(const Vec3d* points, int n, int iterations = 6, Vec3d* pca =
 /// Unit length, arbitrary sign; zero where the neighbourhood is degenerate.
 /// Parallel over points; the result does not depend on `threads` (0 = all cores).
 std::vector<Vec3f> estimate_normals(const std::vector<Vec3f>& points, int k, int threads = 0);
+
+/// The same over an index of the points already built (its points, in its order).
+std::vector<Vec3f> estimate_normals(const PointIndex& index, int k, int threads = 0);
 
 /// Orients `normals` (one per point, any signs) consistently by propagation over a
 /// minimum spanning tree of the symmetric k-nearest-neighbour graph with edge cost

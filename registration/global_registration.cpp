@@ -8,6 +8,7 @@
 
 #include "registration/icp.h"
 #include "core/error.h"
+#include "core/sampling.h"
 #include "core/kdtree.h"
 
 namespace station {

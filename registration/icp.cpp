@@ -15,6 +15,7 @@
 #include "registration/colored_icp.h"
 #include "core/kdtree.h"
 #include "core/normals.h"
+#include "core/sampling.h"
 
 namespace station {
 
@@ -64,86 +65,15 @@ double rotation_angle_deg(const Eigen::Matrix4d& T) {
   return std::atan2(s, c) / kDeg;
 }
 
-std::vector<Vec3f> voxel_downsample(const std::vector<Vec3f>& points, double voxel_size) {
-  if (voxel_size <= 0) return points;
-  struct Acc {
-    Vec3d sum = Vec3d::Zero();
-    int n = 0;
-    std::size_t first = 0;  // first point index: gives a deterministic output order
-  };
-  std::unordered_map<std::uint64_t, Acc> cells;
-  cells.reserve(points.size() / 2 + 1);
-  const double inv = 1.0 / voxel_size;
-  for (std::size_t i = 0; i < points.size(); ++i) {
-    const Vec3f& p = points[i];
-    // 21 bits per axis (offset so negatives pack): +-1 km at 1 mm voxels.
-    const auto key_of = [&](float c) {
-      return std::uint64_t(std::int64_t(std::floor(c * inv)) + (1 << 20)) & 0x1fffff;
-    };
-    const std::uint64_t key = key_of(p.x()) | (key_of(p.y()) << 21) | (key_of(p.z()) << 42);
-    auto [it, fresh] = cells.try_emplace(key);
-    if (fresh) it->second.first = i;
-    it->second.sum += p.cast<double>();
-    ++it->second.n;
-  }
-  std::vector<std::pair<std::size_t, Vec3f>> out;
-  out.reserve(cells.size());
-  for (const auto& [key, acc] : cells) out.emplace_back(acc.first, (acc.sum / acc.n).cast<float>());
-  std::sort(out.begin(), out.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
-  std::vector<Vec3f> result;
-  result.reserve(out.size());
-  for (auto& [i, p] : out) result.push_back(p);
-  return result;
-}
-
-std::vector<std::size_t> statistical_inliers(const std::vector<Vec3f>& points, int k,
-                                             double std_ratio) {
-  std::vector<std::size_t> keep;
-  if (k <= 0 || points.size() <= std::size_t(k) + 1) {
-    keep.resize(points.size());
-    for (std::size_t i = 0; i < points.size(); ++i) keep[i] = i;
-    return keep;
-  }
-  const PointIndex index(points);
-  std::vector<double> mean_dist(points.size());
-  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, points.size(), 512),
-                    [&](const tbb::blocked_range<std::size_t>& r) {
-                      for (std::size_t i = r.begin(); i != r.end(); ++i) {
-                        const auto nn = index.knn(points[i], k + 1);  // includes the point itself
-                        double s = 0;
-                        for (std::size_t j = 1; j < nn.size(); ++j) s += nn[j].second;
-                        mean_dist[i] = nn.size() > 1 ? s / double(nn.size() - 1) : 0.0;
-                      }
-                    });
-  double mean = 0, sq = 0;
-  for (double d : mean_dist) mean += d;
-  mean /= double(points.size());
-  for (double d : mean_dist) sq += (d - mean) * (d - mean);
-  const double threshold = mean + std_ratio * std::sqrt(sq / double(points.size()));
-  for (std::size_t i = 0; i < points.size(); ++i)
-    if (mean_dist[i] <= threshold) keep.push_back(i);
-  return keep;
-}
-
 std::vector<Vec3f> pca_normals(const PointIndex& index, int k, const Vec3f& viewpoint) {
   const std::vector<Vec3f>& pts = index.points();
-  std::vector<Vec3f> normals(pts.size(), Vec3f::Zero());
-  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, pts.size(), 256),
-                    [&](const tbb::blocked_range<std::size_t>& r) {
-                      // Buffers per task, not per point (k-NN without allocation).
-                      std::vector<std::uint32_t> idx(std::size_t(std::max(k, 0)));
-                      std::vector<float> dsq(idx.size());
-                      std::vector<Vec3d> local(idx.size());
-                      for (std::size_t i = r.begin(); i != r.end(); ++i) {
-                        const int found = index.knn_into(pts[i], k, idx.data(), dsq.data());
-                        Vec3f n = (viewpoint - pts[i]).normalized();  // fallback: face the sensor
-                        for (int m = 0; m < found; ++m) local[std::size_t(m)] = pts[idx[std::size_t(m)]].cast<double>();
-                        const Vec3d pca = pca_normal(local.data(), found);
-                        if (pca.squaredNorm() > 0) n = pca.cast<float>();
-                        if (n.dot(viewpoint - pts[i]) < 0) n = -n;
-                        normals[i] = n;
-                      }
-                    });
+  std::vector<Vec3f> normals =
+      k >= 3 ? estimate_normals(index, k) : std::vector<Vec3f>(pts.size(), Vec3f::Zero());
+  for (std::size_t i = 0; i < pts.size(); ++i) {
+    Vec3f& n = normals[i];
+    if (n.squaredNorm() == 0) n = (viewpoint - pts[i]).normalized();  // fallback: face the sensor
+    if (n.dot(viewpoint - pts[i]) < 0) n = -n;
+  }
   return normals;
 }
 

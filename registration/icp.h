@@ -65,16 +65,9 @@ struct PreparedView {
   std::size_t dropped_outliers = 0;
 };
 
-/// Voxel-grid downsampling: one point per occupied voxel (the centroid of its
-/// points), in a deterministic order. `voxel_size` <= 0 returns the points as they are.
-std::vector<Vec3f> voxel_downsample(const std::vector<Vec3f>& points, double voxel_size);
-
-/// Indices of the points kept by statistical outlier removal (Rusu et al. 2008).
-std::vector<std::size_t> statistical_inliers(const std::vector<Vec3f>& points, int k,
-                                             double std_ratio);
-
 /// PCA normals (smallest eigenvector of the k-neighbour covariance), oriented
-/// towards `viewpoint` (the sensor; the scanner-frame origin for raw views).
+/// towards `viewpoint` (the sensor; the scanner-frame origin for raw views): core/normals.h's
+/// estimate_normals, with the direction to the viewpoint where a neighbourhood is degenerate.
 std::vector<Vec3f> pca_normals(const PointIndex& index, int k, const Vec3f& viewpoint);
 
 /// Runs the preparation above. Never throws on empty input: an empty view gives

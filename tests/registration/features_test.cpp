@@ -9,6 +9,7 @@
 
 #include "registration/icp.h"
 #include "core/error.h"
+#include "core/sampling.h"
 #include "core/io.h"
 #include "core/kdtree.h"
 #include "test_util.h"
