@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "core/io.h"
+#include "core/mesh_topology.h"
 #include "core/stanford_conf.h"
 #include "harness.h"
 #include "eval/eval.h"

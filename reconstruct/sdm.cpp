@@ -631,7 +631,7 @@ struct Engine {
       folded = 0;
       for (int fi = 0; fi < nf; ++fi) {
         const Face& f = faces[fi];
-        if (sdm_detail::folded(fn[fi], vn[f[0]] + vn[f[1]] + vn[f[2]])) {
+        if (face_folded(fn[fi], vn[f[0]] + vn[f[1]] + vn[f[2]])) {
           ++folded;
           for (int k = 0; k < 3; ++k) mark[faces[fi][k]] = 1;
         }

@@ -122,23 +122,6 @@ struct SdmParams {
   int threads = 0;
 };
 
-/// Combinatorial facts about a triangle mesh.
-struct MeshTopology {
-  int vertices = 0, edges = 0, faces = 0;
-  int euler = 0;                ///< V - E + F
-  int components = 0;           ///< connected components (over faces' edges)
-  int boundary_edges = 0;       ///< edges with one face
-  int nonmanifold_edges = 0;    ///< edges with three or more faces
-  int misoriented_edges = 0;    ///< interior edges whose two faces run it the same way
-  int nonmanifold_vertices = 0; ///< vertices whose faces do not form one fan
-  int unused_vertices = 0;      ///< vertices in no face
-  bool closed_manifold() const {
-    return boundary_edges == 0 && nonmanifold_edges == 0 && nonmanifold_vertices == 0;
-  }
-  /// Genus of a closed, connected, oriented manifold ((2 - euler) / 2); -1 otherwise.
-  int genus() const;
-};
-MeshTopology mesh_topology(const Mesh& mesh);
 
 struct SdmDiagnostics {
   int template_vertices = 0, template_faces = 0, control_points = 0;
@@ -193,15 +176,6 @@ SdmResult fit_sdm_icosphere(int level, const Cloud& target, const SdmParams& par
 /// InvalidInput unless 0 <= level <= 7.
 Mesh make_icosphere_template(int level);
 
-/// Faces whose unit normal has a negative dot product with the sum of its three
-/// corners' vertex normals (each the sum of the unit normals of the faces at that
-/// corner, its own included): a fold; plus degenerate faces.
-int count_folded_faces(const Mesh& mesh);
-
-/// Pairs of faces that intersect and share no vertex, plus pairs sharing exactly one
-/// vertex whose opposite edge crosses the other face (uniform-grid broad phase,
-/// segment-triangle narrow phase; coplanar overlaps are not counted).
-int count_self_intersections(const Mesh& mesh);
 
 /// Landmarks from a text file: one "vertex_index x y z" per line; blank lines and
 /// lines starting with '#' are skipped. IoError when unreadable, FormatError

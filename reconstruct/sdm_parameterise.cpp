@@ -8,6 +8,7 @@
 #include <map>
 
 #include "core/error.h"
+#include "core/mesh_topology.h"
 #include "reconstruct/sdm.h"
 #include "reconstruct/detail/sdm_internal.h"
 

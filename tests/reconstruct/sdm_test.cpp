@@ -11,6 +11,7 @@
 
 #include "core/error.h"
 #include "core/io.h"
+#include "core/mesh_topology.h"
 #include "core/stanford_conf.h"
 #include "core/kdtree.h"
 #include "eval/eval.h"
