@@ -45,7 +45,7 @@ void generate_pcd(const Options& options, const fs::path& path) {
   SyntheticParams params;
   params.mesh = obj.string();
   params.dropout = 0.01;
-  params.color_noise = 2;
+  params.colour_noise = 2;
   const sim::Scene scene(std::move(textured), std::move(texture), params);
   const Frame frame = scene.render(0.0, 0);
   const Intrinsics& k = frame.intrinsics;
@@ -64,9 +64,9 @@ void generate_pcd(const Options& options, const fs::path& path) {
       } else {
         p.x = p.y = p.z = nan;
       }
-      p.r = frame.color[3 * i];
-      p.g = frame.color[3 * i + 1];
-      p.b = frame.color[3 * i + 2];
+      p.r = frame.colour[3 * i];
+      p.g = frame.colour[3 * i + 1];
+      p.b = frame.colour[3 * i + 2];
     }
   if (pcl::io::savePCDFileBinaryCompressed(path.string(), cloud) < 0)
     throw IoError(path.string() + ": PCL could not write it");

@@ -324,7 +324,7 @@ void bench_mesh(const Options& options, Report& report, const std::string& label
 void run_raycast_cases(const Options& options, Report& report) {
   SyntheticParams params;  // the default profile's camera (config/default.yaml)
   params.dropout = 0.01;
-  params.color_noise = 2;
+  params.colour_noise = 2;
 
   {
     const fs::path obj = options.source_dir / "data" / "mustard_bottle" / "textured.obj";

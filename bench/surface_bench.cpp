@@ -67,7 +67,7 @@ Cloud sample_textured(const TexturedMesh& tm, const Texture& texture, int count,
   Cloud cloud;
   cloud.points.reserve(count);
   cloud.normals.reserve(count);
-  cloud.colors.reserve(count);
+  cloud.colours.reserve(count);
   for (int i = 0; i < count; ++i) {
     const double pick = unit(rng) * total;
     const int f = int(std::min<std::size_t>(
@@ -84,7 +84,7 @@ Cloud sample_textured(const TexturedMesh& tm, const Texture& texture, int count,
     }
     cloud.points.push_back(p);
     cloud.normals.push_back(n.normalized());
-    cloud.colors.push_back(surface_color(tm, texture, f, u, v));
+    cloud.colours.push_back(surface_colour(tm, texture, f, u, v));
   }
   return cloud;
 }
@@ -94,7 +94,7 @@ open3d::geometry::PointCloud to_open3d(const Cloud& cloud) {
   out.points_.reserve(cloud.size());
   for (const Vec3f& p : cloud.points) out.points_.push_back(p.cast<double>());
   for (const Vec3f& n : cloud.normals) out.normals_.push_back(n.cast<double>());
-  for (const Rgb& c : cloud.colors) out.colors_.emplace_back(c.r / 255.0, c.g / 255.0, c.b / 255.0);
+  for (const Rgb& c : cloud.colours) out.colors_.emplace_back(c.r / 255.0, c.g / 255.0, c.b / 255.0);
   return out;
 }
 
@@ -105,7 +105,7 @@ Mesh from_open3d(const open3d::geometry::TriangleMesh& in) {
   for (const Eigen::Vector3i& f : in.triangles_) out.faces.push_back(f);
   for (const Eigen::Vector3d& n : in.vertex_normals_) out.normals.push_back(n.cast<float>());
   auto byte = [](double x) { return std::uint8_t(std::lround(std::clamp(x, 0.0, 1.0) * 255.0)); };
-  for (const Eigen::Vector3d& c : in.vertex_colors_) out.colors.push_back(Rgb{byte(c[0]), byte(c[1]), byte(c[2])});
+  for (const Eigen::Vector3d& c : in.vertex_colors_) out.colours.push_back(Rgb{byte(c[0]), byte(c[1]), byte(c[2])});
   return out;
 }
 
@@ -230,7 +230,7 @@ void run_surface_cases(const Options& options, Report& report) {
 
   EvalParams eval;
   eval.threads = threads;
-  eval.b_surface_color = [&](int f, double u, double v) { return surface_color(reference, texture, f, u, v); };
+  eval.b_surface_colour = [&](int f, double u, double v) { return surface_colour(reference, texture, f, u, v); };
   // Two colour errors: against the texture (B = the reference mesh's samples, which
   // hold print finer than any input sampling) and the paper's e_col (methods.md): at
   // every input point, the mesh's colour at its closest point against the point's own.
@@ -241,8 +241,8 @@ void run_surface_cases(const Options& options, Report& report) {
     const EvalResult ri = evaluate(mesh, input, at_input);
     return "mean distance to the reference " + mm(r.a_to_b.mean) + " (" + pct(r.a_to_b.mean / diagonal) +
            " of the diagonal), Chamfer " + mm(r.chamfer) + ", e_col against the texture " +
-           (r.color_error ? format_fixed(*r.color_error, 4) : std::string("-")) + ", at the input points " +
-           (ri.color_error ? significant(*ri.color_error) : std::string("-"));
+           (r.colour_error ? format_fixed(*r.colour_error, 4) : std::string("-")) + ", at the input points " +
+           (ri.colour_error ? significant(*ri.colour_error) : std::string("-"));
   };
 
   // ---- the mustard rows: 100k at depth 8, 1M at depth 10 ------------------------
@@ -361,7 +361,7 @@ void run_surface_cases(const Options& options, Report& report) {
       const Vec3d p = radius * d;
       sphere.points.push_back(p.cast<float>());
       sphere.normals.push_back(d.cast<float>());
-      sphere.colors.push_back(plane.dot(p) - offset > 0 ? blue : red);
+      sphere.colours.push_back(plane.dot(p) - offset > 0 ? blue : red);
     }
     const double sphere_diagonal = 2 * radius * std::sqrt(3.0);
     const open3d::geometry::PointCloud pcd = to_open3d(sphere);
@@ -393,7 +393,7 @@ void run_surface_cases(const Options& options, Report& report) {
     at_input.threads = threads;
     auto e_col = [&](const Mesh& mesh) {
       const EvalResult r = evaluate(mesh, sphere, at_input);
-      return r.color_error ? significant(*r.color_error) : std::string("-");
+      return r.colour_error ? significant(*r.colour_error) : std::string("-");
     };
     report.note(label + ": r = 5 cm, " + std::to_string(c.points / 1000) +
                 "k points, exact normals, red / blue split by a tilted plane (sharp): colour coordinate t of a "

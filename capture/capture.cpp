@@ -25,13 +25,13 @@ Cloud frame_to_cloud(const Frame& frame, double max_jump) {
   Cloud out;
   if (!frame.has_depth()) {
     out.points.reserve(frame.points.size());
-    const bool n = frame.points.has_normals(), c = frame.points.has_colors();
+    const bool n = frame.points.has_normals(), c = frame.points.has_colours();
     for (std::size_t i = 0; i < frame.points.size(); ++i) {
       const Vec3f& p = frame.points.points[i];
       if (!p.allFinite()) continue;
       out.points.push_back(p);
       if (n) out.normals.push_back(frame.points.normals[i]);
-      if (c) out.colors.push_back(frame.points.colors[i]);
+      if (c) out.colours.push_back(frame.points.colours[i]);
     }
     return out;
   }
@@ -61,9 +61,9 @@ Cloud frame_to_cloud(const Frame& frame, double max_jump) {
     return Vec3f(float((u - K.cx) * d / K.fx), float((v - K.cy) * d / K.fy), d);
   };
   // Colour is used when the image is registered pixel for pixel with the depth.
-  const Intrinsics& C = frame.color_intrinsics;
-  const bool colour = frame.has_color() && C.width == w && C.height == h &&
-                      frame.color.size() == std::size_t(w) * h * 3;
+  const Intrinsics& C = frame.colour_intrinsics;
+  const bool colour = frame.has_colour() && C.width == w && C.height == h &&
+                      frame.colour.size() == std::size_t(w) * h * 3;
   for (int v = 0; v < h; ++v) {
     for (int u = 0; u < w; ++u) {
       const float d = depth_at(u, v);
@@ -93,7 +93,7 @@ Cloud frame_to_cloud(const Frame& frame, double max_jump) {
       out.normals.push_back(n);
       if (colour) {
         const std::size_t k = (std::size_t(v) * w + u) * 3;
-        out.colors.push_back({frame.color[k], frame.color[k + 1], frame.color[k + 2]});
+        out.colours.push_back({frame.colour[k], frame.colour[k + 1], frame.colour[k + 2]});
       }
     }
   }
@@ -113,7 +113,7 @@ Cloud crop_to_volume(const Cloud& cloud, const TurntableAxis& axis, const Workin
     if (q.head<2>().squaredNorm() > r2) continue;
     out.points.push_back(cloud.points[i]);
     if (cloud.has_normals()) out.normals.push_back(cloud.normals[i]);
-    if (cloud.has_colors()) out.colors.push_back(cloud.colors[i]);
+    if (cloud.has_colours()) out.colours.push_back(cloud.colours[i]);
   }
   return out;
 }
@@ -167,9 +167,9 @@ CaptureResult run_capture(Scanner& scanner, Turntable& turntable, Session& sessi
     rec.angle_deg = turntable.angle();  // what the table reports, not what was asked
     rec.reference_pose = frame.reference_pose;
     rec.timestamp = frame.timestamp > 0 ? std::optional<double>(frame.timestamp) : std::nullopt;
-    const bool colour_image = frame.has_color() && frame.color_intrinsics.valid();
-    session.add_view(cloud, rec, colour_image ? frame.color : std::vector<std::uint8_t>{},
-                     frame.color_intrinsics.width, frame.color_intrinsics.height);
+    const bool colour_image = frame.has_colour() && frame.colour_intrinsics.valid();
+    session.add_view(cloud, rec, colour_image ? frame.colour : std::vector<std::uint8_t>{},
+                     frame.colour_intrinsics.width, frame.colour_intrinsics.height);
     ++result.recorded;
     result.points += cloud.size();
     if (progress) progress({k, params.views, angle, cloud.size()});
@@ -205,13 +205,13 @@ MergeResult merge_by_turntable(const Session& session) {
     }
     transform_cloud(view, turntable_pose(*m.axis, *m.views[i].angle_deg));
     const bool n = view.has_normals() && (out.cloud.empty() || out.cloud.has_normals());
-    const bool c = view.has_colors() && (out.cloud.empty() || out.cloud.has_colors());
+    const bool c = view.has_colours() && (out.cloud.empty() || out.cloud.has_colours());
     // Attributes survive only when every merged view carries them.
     if (!n) out.cloud.normals.clear();
-    if (!c) out.cloud.colors.clear();
+    if (!c) out.cloud.colours.clear();
     out.cloud.points.insert(out.cloud.points.end(), view.points.begin(), view.points.end());
     if (n) out.cloud.normals.insert(out.cloud.normals.end(), view.normals.begin(), view.normals.end());
-    if (c) out.cloud.colors.insert(out.cloud.colors.end(), view.colors.begin(), view.colors.end());
+    if (c) out.cloud.colours.insert(out.cloud.colours.end(), view.colours.begin(), view.colours.end());
     ++out.merged_views;
   }
   return out;

@@ -167,8 +167,8 @@ void check_manifest(const SessionManifest& m, Report&& report) {
       if (auto p = pose_problem(*v.initial_pose); !p.empty()) report(at + ".initial_pose", p);
     if (v.reference_pose)
       if (auto p = pose_problem(*v.reference_pose); !p.empty()) report(at + ".reference_pose", p);
-    if (!v.color_image.empty())
-      if (auto p = relative_path_problem(v.color_image); !p.empty()) report(at + ".color_image", p);
+    if (!v.colour_image.empty())
+      if (auto p = relative_path_problem(v.colour_image); !p.empty()) report(at + ".color_image", p);
     if (v.timestamp && !std::isfinite(*v.timestamp)) report(at + ".timestamp", "not finite");
   }
 }
@@ -377,8 +377,8 @@ class ManifestReader {
     if (const YAML::Node x = n["reference_pose"]; !absent(x))
       v.reference_pose = pose(x, at + ".reference_pose");
     if (const YAML::Node x = n["color_image"]; !absent(x)) {
-      v.color_image = str(x, at + ".color_image");
-      if (auto p = relative_path_problem(v.color_image); !p.empty()) fail(at + ".color_image", p);
+      v.colour_image = str(x, at + ".color_image");
+      if (auto p = relative_path_problem(v.colour_image); !p.empty()) fail(at + ".color_image", p);
     }
     if (const YAML::Node x = n["timestamp"]; !absent(x)) v.timestamp = number(x, at + ".timestamp");
     if (const YAML::Node x = n["points"]; !absent(x)) {
@@ -526,9 +526,9 @@ std::string manifest_to_yaml(const SessionManifest& m) {
         out << YAML::Key << "reference_pose" << YAML::Value;
         emit_pose(out, *v.reference_pose);
       }
-      if (!v.color_image.empty()) {
+      if (!v.colour_image.empty()) {
         out << YAML::Key << "color_image" << YAML::Value;
-        emit_string(out, v.color_image);
+        emit_string(out, v.colour_image);
       }
       if (v.timestamp) {
         out << YAML::Key << "timestamp" << YAML::Value;
@@ -616,14 +616,14 @@ Session Session::open(const fs::path& dir) {
 }
 
 std::size_t Session::add_view(const Cloud& cloud, ViewRecord record,
-                              const std::vector<std::uint8_t>& color_rgb, int color_width,
-                              int color_height) {
-  const bool has_color = !color_rgb.empty();
-  if (has_color && (color_width <= 0 || color_height <= 0 ||
-                    color_rgb.size() != std::size_t(color_width) * std::size_t(color_height) * 3))
-    throw InvalidInput("add_view: colour image is " + std::to_string(color_rgb.size()) +
-                       " bytes, expected width*height*3 with width " + std::to_string(color_width) +
-                       " and height " + std::to_string(color_height));
+                              const std::vector<std::uint8_t>& colour_rgb, int colour_width,
+                              int colour_height) {
+  const bool has_colour = !colour_rgb.empty();
+  if (has_colour && (colour_width <= 0 || colour_height <= 0 ||
+                    colour_rgb.size() != std::size_t(colour_width) * std::size_t(colour_height) * 3))
+    throw InvalidInput("add_view: colour image is " + std::to_string(colour_rgb.size()) +
+                       " bytes, expected width*height*3 with width " + std::to_string(colour_width) +
+                       " and height " + std::to_string(colour_height));
 
   // Names already committed to the manifest are never overwritten (an imported
   // or hand-edited manifest may use view_NNN names out of order). Files on disk
@@ -632,7 +632,7 @@ std::size_t Session::add_view(const Cloud& cloud, ViewRecord record,
   std::set<std::string> taken;
   for (const ViewRecord& v : manifest_.views) {
     taken.insert(path_key(v.file));
-    if (!v.color_image.empty()) taken.insert(path_key(v.color_image));
+    if (!v.colour_image.empty()) taken.insert(path_key(v.colour_image));
   }
   const std::size_t index = manifest_.views.size();
   std::string ply, png;
@@ -642,10 +642,10 @@ std::size_t Session::add_view(const Cloud& cloud, ViewRecord record,
     ply = buf;
     std::snprintf(buf, sizeof buf, "view_%03zu.png", n);
     png = buf;
-    if (!taken.count(ply) && !(has_color && taken.count(png))) break;
+    if (!taken.count(ply) && !(has_colour && taken.count(png))) break;
   }
   record.file = ply;
-  if (has_color) record.color_image = png;
+  if (has_colour) record.colour_image = png;
   record.points = cloud.size();
 
   // Validate the record (with the rest) before touching the disk; on any failure
@@ -656,13 +656,13 @@ std::size_t Session::add_view(const Cloud& cloud, ViewRecord record,
       throw InvalidInput("add_view: " + path + ": " + problem);
     });
     write_ply(dir_ / ply, cloud, PlyFormat::kBinaryLittleEndian);
-    if (has_color) {
+    if (has_colour) {
       // OpenCV encodes BGR; swap channels by hand (no imgproc dependency).
-      cv::Mat bgr(color_height, color_width, CV_8UC3);
-      for (int y = 0; y < color_height; ++y) {
-        const std::uint8_t* src = color_rgb.data() + std::size_t(y) * color_width * 3;
+      cv::Mat bgr(colour_height, colour_width, CV_8UC3);
+      for (int y = 0; y < colour_height; ++y) {
+        const std::uint8_t* src = colour_rgb.data() + std::size_t(y) * colour_width * 3;
         std::uint8_t* dst = bgr.ptr<std::uint8_t>(y);
-        for (int x = 0; x < color_width; ++x) {
+        for (int x = 0; x < colour_width; ++x) {
           dst[3 * x + 0] = src[3 * x + 2];
           dst[3 * x + 1] = src[3 * x + 1];
           dst[3 * x + 2] = src[3 * x + 0];

@@ -28,7 +28,7 @@ struct ViewRecord {
   std::optional<double> angle_deg;     ///< turntable angle; empty for off-turntable views
   std::optional<Eigen::Matrix4d> initial_pose;    ///< prior for registration
   std::optional<Eigen::Matrix4d> reference_pose;  ///< truth, for measuring errors only
-  std::string color_image;             ///< relative path of a PNG/JPEG, empty when none
+  std::string colour_image;             ///< relative path of a PNG/JPEG, empty when none
   std::optional<double> timestamp;     ///< seconds since the Unix epoch
   std::size_t points = 0;              ///< point count (informational; 0 = unknown)
 };
@@ -76,8 +76,8 @@ class Session {
   /// when given: RGB rows, width*height*3 bytes), appends the record (file names
   /// filled in) and rewrites the manifest. Returns the view's index.
   std::size_t add_view(const Cloud& cloud, ViewRecord record,
-                       const std::vector<std::uint8_t>& color_rgb = {}, int color_width = 0,
-                       int color_height = 0);
+                       const std::vector<std::uint8_t>& colour_rgb = {}, int colour_width = 0,
+                       int colour_height = 0);
   /// Reads view i's cloud (FormatError/IoError naming the file).
   Cloud load_view(std::size_t i) const;
   /// Rewrites the manifest (atomic).

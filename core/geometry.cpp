@@ -21,15 +21,15 @@ std::string size_problem(const char* what, const char* attribute, std::size_t go
 void Cloud::check_consistent(const char* what) const {
   if (!normals.empty() && normals.size() != points.size())
     throw InvalidInput(size_problem(what, "normals", normals.size(), points.size()));
-  if (!colors.empty() && colors.size() != points.size())
-    throw InvalidInput(size_problem(what, "colours", colors.size(), points.size()));
+  if (!colours.empty() && colours.size() != points.size())
+    throw InvalidInput(size_problem(what, "colours", colours.size(), points.size()));
 }
 
 void Mesh::check_consistent(const char* what) const {
   if (!normals.empty() && normals.size() != vertices.size())
     throw InvalidInput(size_problem(what, "normals", normals.size(), vertices.size()));
-  if (!colors.empty() && colors.size() != vertices.size())
-    throw InvalidInput(size_problem(what, "colours", colors.size(), vertices.size()));
+  if (!colours.empty() && colours.size() != vertices.size())
+    throw InvalidInput(size_problem(what, "colours", colours.size(), vertices.size()));
   const auto n = static_cast<long long>(vertices.size());
   for (std::size_t f = 0; f < faces.size(); ++f) {
     for (int k = 0; k < 3; ++k) {
@@ -45,7 +45,7 @@ Cloud Mesh::as_cloud() const {
   Cloud c;
   c.points = vertices;
   c.normals = normals;
-  c.colors = colors;
+  c.colours = colours;
   return c;
 }
 

@@ -26,12 +26,12 @@ struct Rgb {
 struct Cloud {
   std::vector<Vec3f> points;
   std::vector<Vec3f> normals;
-  std::vector<Rgb> colors;
+  std::vector<Rgb> colours;
 
   std::size_t size() const { return points.size(); }
   bool empty() const { return points.empty(); }
   bool has_normals() const { return !normals.empty(); }
-  bool has_colors() const { return !colors.empty(); }
+  bool has_colours() const { return !colours.empty(); }
   /// Throws InvalidInput if normals/colours are present but sized differently.
   void check_consistent(const char* what = "cloud") const;
 };
@@ -42,10 +42,10 @@ struct Mesh {
   std::vector<Vec3f> vertices;
   std::vector<Face> faces;
   std::vector<Vec3f> normals;
-  std::vector<Rgb> colors;
+  std::vector<Rgb> colours;
 
   bool has_normals() const { return !normals.empty(); }
-  bool has_colors() const { return !colors.empty(); }
+  bool has_colours() const { return !colours.empty(); }
   /// Throws InvalidInput on attribute size mismatch or out-of-range face indices.
   void check_consistent(const char* what = "mesh") const;
   /// The vertices (with their normals and colours) as a cloud.

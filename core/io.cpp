@@ -94,7 +94,7 @@ void put_int(std::string& out, long long v) {
 }
 
 std::string ply_bytes(const std::vector<Vec3f>& pts, const std::vector<Vec3f>& normals,
-                      const std::vector<Rgb>& colors, const std::vector<Face>* faces,
+                      const std::vector<Rgb>& colours, const std::vector<Face>* faces,
                       PlyFormat format) {
   const bool binary = format == PlyFormat::kBinaryLittleEndian;
   std::string out;
@@ -103,20 +103,20 @@ std::string ply_bytes(const std::vector<Vec3f>& pts, const std::vector<Vec3f>& n
   out += " 1.0\ncomment turntable station\nelement vertex " + std::to_string(pts.size()) +
          "\nproperty float x\nproperty float y\nproperty float z\n";
   if (!normals.empty()) out += "property float nx\nproperty float ny\nproperty float nz\n";
-  if (!colors.empty()) out += "property uchar red\nproperty uchar green\nproperty uchar blue\n";
+  if (!colours.empty()) out += "property uchar red\nproperty uchar green\nproperty uchar blue\n";
   if (faces)
     out += "element face " + std::to_string(faces->size()) + "\nproperty list uchar int vertex_indices\n";
   out += "end_header\n";
 
-  const std::size_t per_vertex = 12 + (normals.empty() ? 0 : 12) + (colors.empty() ? 0 : 3);
+  const std::size_t per_vertex = 12 + (normals.empty() ? 0 : 12) + (colours.empty() ? 0 : 3);
   out.reserve(out.size() + pts.size() * (binary ? per_vertex : 3 * per_vertex) +
               (faces ? faces->size() * (binary ? 13 : 30) : 0));
   for (std::size_t i = 0; i < pts.size(); ++i) {
     if (binary) {
       put_le(out, pts[i].data(), 12);
       if (!normals.empty()) put_le(out, normals[i].data(), 12);
-      if (!colors.empty()) {
-        const unsigned char c[3] = {colors[i].r, colors[i].g, colors[i].b};
+      if (!colours.empty()) {
+        const unsigned char c[3] = {colours[i].r, colours[i].g, colours[i].b};
         put_le(out, c, 3);
       }
     } else {
@@ -129,8 +129,8 @@ std::string ply_bytes(const std::vector<Vec3f>& pts, const std::vector<Vec3f>& n
           out += ' ';
           put_float(out, normals[i][k]);
         }
-      if (!colors.empty()) {
-        for (int c : {int(colors[i].r), int(colors[i].g), int(colors[i].b)}) {
+      if (!colours.empty()) {
+        for (int c : {int(colours[i].r), int(colours[i].g), int(colours[i].b)}) {
           out += ' ';
           put_int(out, c);
         }
@@ -213,7 +213,7 @@ TexturedMesh parse_any_mesh(const fs::path& path, const std::string& bytes) {
       Cloud c = parse_pcd(bytes, name);
       t.mesh.vertices = std::move(c.points);
       t.mesh.normals = std::move(c.normals);
-      t.mesh.colors = std::move(c.colors);
+      t.mesh.colours = std::move(c.colours);
       return t;
     }
     case Format::kUnknown: break;
@@ -234,13 +234,13 @@ TexturedMesh read_textured_mesh(const fs::path& path) {
 void write_ply(const fs::path& path, const Mesh& mesh, PlyFormat format) {
   const std::string what = path.string();
   mesh.check_consistent(what.c_str());
-  write_file_atomic(path, ply_bytes(mesh.vertices, mesh.normals, mesh.colors, &mesh.faces, format));
+  write_file_atomic(path, ply_bytes(mesh.vertices, mesh.normals, mesh.colours, &mesh.faces, format));
 }
 
 void write_ply(const fs::path& path, const Cloud& cloud, PlyFormat format) {
   const std::string what = path.string();
   cloud.check_consistent(what.c_str());
-  write_file_atomic(path, ply_bytes(cloud.points, cloud.normals, cloud.colors, nullptr, format));
+  write_file_atomic(path, ply_bytes(cloud.points, cloud.normals, cloud.colours, nullptr, format));
 }
 
 void write_obj(const fs::path& path, const Mesh& mesh) { write_obj(path, mesh, {}); }
@@ -262,8 +262,8 @@ void write_obj(const fs::path& path, const Mesh& mesh, const std::vector<Vec2f>&
       out += ' ';
       put_float(out, mesh.vertices[i][k]);
     }
-    if (mesh.has_colors()) {
-      const Rgb& c = mesh.colors[i];
+    if (mesh.has_colours()) {
+      const Rgb& c = mesh.colours[i];
       for (int ch : {int(c.r), int(c.g), int(c.b)}) {
         out += ' ';
         put_float(out, static_cast<float>(ch) / 255.f);

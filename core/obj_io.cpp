@@ -180,7 +180,7 @@ TexturedMesh parse_obj(std::string_view bytes, const std::string& name, const fs
     // Everything else (o, g, s, l, p, vp, curves...) carries nothing we keep.
   }
 
-  if (all_coloured && !mesh.vertices.empty()) mesh.colors = std::move(colours);
+  if (all_coloured && !mesh.vertices.empty()) mesh.colours = std::move(colours);
   if (!corners.empty() && every_vt) {
     out.corner_uv.reserve(corners.size());
     for (const Corner& k : corners) out.corner_uv.push_back(uvs[k.vt]);

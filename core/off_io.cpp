@@ -118,7 +118,7 @@ Mesh parse_off(std::string_view bytes, const std::string& name) {
                             io_detail::to_channel(c[2], !integral)});
     }
   }
-  if (all_coloured && nv > 0) mesh.colors = std::move(colours);
+  if (all_coloured && nv > 0) mesh.colours = std::move(colours);
 
   mesh.faces.reserve(static_cast<std::size_t>(nf));
   std::vector<int> poly;

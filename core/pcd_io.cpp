@@ -254,7 +254,7 @@ void add_point(Cloud& c, const Layout& L, double x, double y, double z, const Ve
     format_error(name, "point " + std::to_string(index) + ": infinite coordinate");
   c.points.push_back(p);
   if (L.nx >= 0) c.normals.push_back(n);
-  if (L.rgb >= 0) c.colors.push_back(unpack_rgb(rgb));
+  if (L.rgb >= 0) c.colours.push_back(unpack_rgb(rgb));
 }
 
 /// Points in a binary buffer; `at(i, f)` gives the bytes of field f of point i.
@@ -263,7 +263,7 @@ Cloud read_binary_points(const PcdHeader& h, const Layout& L, const At& at, cons
   Cloud c;
   c.points.reserve(h.points);
   if (L.nx >= 0) c.normals.reserve(h.points);
-  if (L.rgb >= 0) c.colors.reserve(h.points);
+  if (L.rgb >= 0) c.colours.reserve(h.points);
   const auto& F = h.fields;
   for (std::uint64_t i = 0; i < h.points; ++i) {
     Vec3f n = Vec3f::Zero();
@@ -295,7 +295,7 @@ Cloud read_ascii(std::string_view data, const PcdHeader& h, const Layout& L, con
   Cloud c;
   c.points.reserve(h.points);
   if (L.nx >= 0) c.normals.reserve(h.points);
-  if (L.rgb >= 0) c.colors.reserve(h.points);
+  if (L.rgb >= 0) c.colours.reserve(h.points);
 
   io_detail::LineReader lines(data);
   std::vector<std::string_view> tok(static_cast<std::size_t>(ntok));

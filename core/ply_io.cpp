@@ -329,7 +329,7 @@ void read_vertices(Source& src, const Element& e, const VertexLayout& L, Mesh& m
   const bool normals = L.nx >= 0, colours = L.r >= 0;
   mesh.vertices.reserve(e.count);
   if (normals) mesh.normals.reserve(e.count);
-  if (colours) mesh.colors.reserve(e.count);
+  if (colours) mesh.colours.reserve(e.count);
   std::vector<double> v(e.props.size(), 0.0);
   for (std::uint64_t i = 0; i < e.count; ++i) {
     src.begin("vertex", i);
@@ -346,7 +346,7 @@ void read_vertices(Source& src, const Element& e, const VertexLayout& L, Mesh& m
       mesh.normals.emplace_back(static_cast<float>(v[L.nx]), static_cast<float>(v[L.ny]),
                                 static_cast<float>(v[L.nz]));
     if (colours)
-      mesh.colors.push_back(Rgb{io_detail::to_channel(v[L.r], L.unit_colour),
+      mesh.colours.push_back(Rgb{io_detail::to_channel(v[L.r], L.unit_colour),
                                 io_detail::to_channel(v[L.g], L.unit_colour),
                                 io_detail::to_channel(v[L.b], L.unit_colour)});
   }

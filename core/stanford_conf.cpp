@@ -55,17 +55,17 @@ Cloud merge_stanford_scans(const std::filesystem::path& conf, int every) {
     for (std::size_t i = 0; i < c.size(); i += every) {
       kept.points.push_back(c.points[i]);
       if (c.has_normals()) kept.normals.push_back(c.normals[i]);
-      if (c.has_colors()) kept.colors.push_back(c.colors[i]);
+      if (c.has_colours()) kept.colours.push_back(c.colours[i]);
     }
     transform_cloud(kept, s.pose);
     normals = normals && kept.has_normals();
-    colours = colours && kept.has_colors();
+    colours = colours && kept.has_colours();
     all.points.insert(all.points.end(), kept.points.begin(), kept.points.end());
     all.normals.insert(all.normals.end(), kept.normals.begin(), kept.normals.end());
-    all.colors.insert(all.colors.end(), kept.colors.begin(), kept.colors.end());
+    all.colours.insert(all.colours.end(), kept.colours.begin(), kept.colours.end());
   }
   if (!normals) all.normals.clear();
-  if (!colours) all.colors.clear();
+  if (!colours) all.colours.clear();
   return all;
 }
 

@@ -69,7 +69,7 @@ Rgb sample_texture(const Texture& texture, double u, double v) {
   return {out[0], out[1], out[2]};
 }
 
-Rgb surface_color(const TexturedMesh& mesh, const Texture& texture, int face, double u,
+Rgb surface_colour(const TexturedMesh& mesh, const Texture& texture, int face, double u,
                   double v) {
   const double w0 = 1.0 - u - v;
   if (!texture.empty() && !mesh.corner_uv.empty()) {
@@ -77,9 +77,9 @@ Rgb surface_color(const TexturedMesh& mesh, const Texture& texture, int face, do
     return sample_texture(texture, w0 * uv[0].x() + u * uv[1].x() + v * uv[2].x(),
                           w0 * uv[0].y() + u * uv[1].y() + v * uv[2].y());
   }
-  if (mesh.mesh.has_colors()) {
+  if (mesh.mesh.has_colours()) {
     const Face& f = mesh.mesh.faces[face];
-    const Rgb &a = mesh.mesh.colors[f[0]], &b = mesh.mesh.colors[f[1]], &c = mesh.mesh.colors[f[2]];
+    const Rgb &a = mesh.mesh.colours[f[0]], &b = mesh.mesh.colours[f[1]], &c = mesh.mesh.colours[f[2]];
     auto mix = [&](std::uint8_t x, std::uint8_t y, std::uint8_t z) {
       return std::uint8_t(std::clamp(std::lround(w0 * x + u * y + v * z), 0L, 255L));
     };

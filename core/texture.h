@@ -37,6 +37,6 @@ Rgb sample_texture(const Texture& texture, double u, double v);
 /// Colour of a mesh surface point given by face and barycentrics (point =
 /// (1-u-v) a + u b + v c): the texture through the corner UVs when both are
 /// present, else interpolated vertex colours, else black.
-Rgb surface_color(const TexturedMesh& mesh, const Texture& texture, int face, double u, double v);
+Rgb surface_colour(const TexturedMesh& mesh, const Texture& texture, int face, double u, double v);
 
 }  // namespace station

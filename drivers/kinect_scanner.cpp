@@ -148,10 +148,10 @@ KinectOptions kinect_options(const std::string& path, const DeviceOptions& o,
         throw DeviceError(uri + ": option " + key +
                           ": not used with depth_format=registered (colour is registered to "
                           "depth and shares fx fy cx cy)");
-    k.color_intrinsics = k.depth_intrinsics;
+    k.colour_intrinsics = k.depth_intrinsics;
   } else {
-    k.color_intrinsics = default_intrinsics(525.0);
-    read_intrinsics(o, "color_", k.color_intrinsics, uri);
+    k.colour_intrinsics = default_intrinsics(525.0);
+    read_intrinsics(o, "color_", k.colour_intrinsics, uri);
   }
   return k;
 }
@@ -260,7 +260,7 @@ void KinectScanner::configure(const DeviceOptions& options) {
 ScannerCapabilities KinectScanner::capabilities() const {
   ScannerCapabilities c;
   c.depth = true;
-  c.color = true;
+  c.colour = true;
   c.intrinsics = opts_.depth_intrinsics;
   return c;
 }
@@ -302,8 +302,8 @@ Frame KinectScanner::grab() {
     for (std::size_t i = 0; i < depth_raw_.size(); ++i)
       f.depth[i] = static_cast<float>(depth_raw_[i]) * 0.001f;
   }
-  f.color_intrinsics = opts_.color_intrinsics;
-  f.color = rgb_;
+  f.colour_intrinsics = opts_.colour_intrinsics;
+  f.colour = rgb_;
   return f;
 }
 

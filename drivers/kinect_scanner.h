@@ -109,7 +109,7 @@ struct KinectOptions {
   int timeout_ms = 2000;
   int discard = 2;
   Intrinsics depth_intrinsics;  ///< filled with the format's defaults unless given
-  Intrinsics color_intrinsics;
+  Intrinsics colour_intrinsics;
 };
 /// Parses and checks the options; DeviceError "WHO: option ...: problem".
 KinectOptions kinect_options(const std::string& path, const DeviceOptions& options,

@@ -33,7 +33,7 @@ class Openni2Api final : public OpenniApi {
   }
 
   Result open(const std::string& uri, int width, int height, bool registration, StreamInfo& depth,
-              StreamInfo& color) override {
+              StreamInfo& colour) override {
     if (!initialized_) return {-1, "not initialised"};
     if (device_.open(uri.c_str()) != openni::STATUS_OK) return failure();
     if (registration) {
@@ -47,15 +47,15 @@ class Openni2Api final : public OpenniApi {
     Result r = make_stream(depth_, openni::SENSOR_DEPTH, openni::PIXEL_FORMAT_DEPTH_1_MM, width,
                            height, depth);
     if (!r.ok()) return r;
-    return make_stream(color_, openni::SENSOR_COLOR, openni::PIXEL_FORMAT_RGB888, width, height,
-                       color);
+    return make_stream(colour_, openni::SENSOR_COLOR, openni::PIXEL_FORMAT_RGB888, width, height,
+                       colour);
   }
 
   Result read(Frames& out, int timeout_ms) override {
-    bool got_depth = false, got_color = false;
-    openni::VideoStream* streams[2] = {&depth_, &color_};
+    bool got_depth = false, got_colour = false;
+    openni::VideoStream* streams[2] = {&depth_, &colour_};
     const auto deadline = std::chrono::steady_clock::now() + std::chrono::milliseconds(timeout_ms);
-    while (!(got_depth && got_color)) {
+    while (!(got_depth && got_colour)) {
       const long long left = std::chrono::duration_cast<std::chrono::milliseconds>(
                                  deadline - std::chrono::steady_clock::now())
                                  .count();
@@ -78,20 +78,20 @@ class Openni2Api final : public OpenniApi {
                       static_cast<std::size_t>(w) * 2);
         got_depth = true;
       } else {
-        out.color_width = w;
-        out.color_height = h;
+        out.colour_width = w;
+        out.colour_height = h;
         out.rgb.resize(static_cast<std::size_t>(w) * h * 3);
         for (int v = 0; v < h; ++v)
           std::memcpy(out.rgb.data() + static_cast<std::size_t>(v) * w * 3, data + v * stride,
                       static_cast<std::size_t>(w) * 3);
-        got_color = true;
+        got_colour = true;
       }
     }
     return {};
   }
 
   void close() override {
-    for (openni::VideoStream* s : {&depth_, &color_})
+    for (openni::VideoStream* s : {&depth_, &colour_})
       if (s->isValid()) {
         s->stop();
         s->destroy();
@@ -140,7 +140,7 @@ class Openni2Api final : public OpenniApi {
 
   bool initialized_ = false;
   openni::Device device_;
-  openni::VideoStream depth_, color_;
+  openni::VideoStream depth_, colour_;
 };
 
 }  // namespace

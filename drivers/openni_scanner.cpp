@@ -14,8 +14,8 @@ struct OpenniScanner::Parsed {
   int width = 0, height = 0;
   int timeout_ms = 2000;
   int discard = 1;
-  bool has_depth_k = false, has_color_k = false;
-  Intrinsics depth_k, color_k;  ///< from options (fx.. only; sizes come from the stream)
+  bool has_depth_k = false, has_colour_k = false;
+  Intrinsics depth_k, colour_k;  ///< from options (fx.. only; sizes come from the stream)
 };
 
 namespace {
@@ -81,14 +81,14 @@ std::unique_ptr<OpenniScanner::Parsed> parse(const DeviceOptions& o, const std::
     p->depth_k = read_k(o, "", who);
     p->has_depth_k = true;
   }
-  const bool color_given = has_any(o, "color_") || o.count("color_distortion");
-  if (color_given && p->registration)
+  const bool colour_given = has_any(o, "color_") || o.count("color_distortion");
+  if (colour_given && p->registration)
     throw DeviceError(who +
                       ": color_* intrinsics are not used with registration=on (colour "
                       "shares the depth intrinsics)");
-  if (color_given) {
-    p->color_k = read_k(o, "color_", who);
-    p->has_color_k = true;
+  if (colour_given) {
+    p->colour_k = read_k(o, "color_", who);
+    p->has_colour_k = true;
   }
   return p;
 }
@@ -180,13 +180,13 @@ void OpenniScanner::open() {
   try {
     depth_k_ = stream_intrinsics(ds, p_->has_depth_k, p_->depth_k, who_, "depth", "");
     if (p_->registration) {
-      color_k_ = depth_k_;
+      colour_k_ = depth_k_;
       if (cs.width != ds.width || cs.height != ds.height)
         fail("registration=on needs colour and depth of one size (depth " +
              std::to_string(ds.width) + "x" + std::to_string(ds.height) + ", colour " +
              std::to_string(cs.width) + "x" + std::to_string(cs.height) + ")");
     } else {
-      color_k_ = stream_intrinsics(cs, p_->has_color_k, p_->color_k, who_, "colour", "color_");
+      colour_k_ = stream_intrinsics(cs, p_->has_colour_k, p_->colour_k, who_, "colour", "color_");
     }
   } catch (const DeviceError&) {
     api_->close();
@@ -214,7 +214,7 @@ void OpenniScanner::configure(const DeviceOptions& options) {
 ScannerCapabilities OpenniScanner::capabilities() const {
   ScannerCapabilities c;
   c.depth = true;
-  c.color = true;
+  c.colour = true;
   c.intrinsics = depth_k_;
   return c;
 }
@@ -240,8 +240,8 @@ Frame OpenniScanner::grab() {
   }
   if (fr.width != depth_k_.width || fr.height != depth_k_.height ||
       fr.depth_mm.size() != static_cast<std::size_t>(fr.width) * fr.height ||
-      fr.rgb.size() != static_cast<std::size_t>(fr.color_width) * fr.color_height * 3 ||
-      fr.color_width != color_k_.width || fr.color_height != color_k_.height)
+      fr.rgb.size() != static_cast<std::size_t>(fr.colour_width) * fr.colour_height * 3 ||
+      fr.colour_width != colour_k_.width || fr.colour_height != colour_k_.height)
     throw DeviceError(who_ + ": frame of an unexpected size");
   Frame f;
   f.timestamp =
@@ -249,8 +249,8 @@ Frame OpenniScanner::grab() {
   f.intrinsics = depth_k_;
   f.depth.resize(fr.depth_mm.size());
   for (std::size_t i = 0; i < fr.depth_mm.size(); ++i) f.depth[i] = fr.depth_mm[i] * 0.001f;
-  f.color_intrinsics = color_k_;
-  f.color = std::move(fr.rgb);
+  f.colour_intrinsics = colour_k_;
+  f.colour = std::move(fr.rgb);
   return f;
 }
 

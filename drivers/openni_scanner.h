@@ -42,7 +42,7 @@ class OpenniApi {
   struct Frames {
     int width = 0, height = 0;
     std::vector<std::uint16_t> depth_mm;
-    int color_width = 0, color_height = 0;
+    int colour_width = 0, colour_height = 0;
     std::vector<std::uint8_t> rgb;
   };
   virtual ~OpenniApi() = default;
@@ -51,7 +51,7 @@ class OpenniApi {
   /// Opens the device, creates depth (DEPTH_1_MM) and colour (RGB888) streams
   /// at width x height (0: keep the current mode), sets registration, starts.
   virtual Result open(const std::string& device_uri, int width, int height, bool registration,
-                      StreamInfo& depth, StreamInfo& color) = 0;
+                      StreamInfo& depth, StreamInfo& colour) = 0;
   /// Waits until it has a new depth and a new colour frame.
   virtual Result read(Frames& out, int timeout_ms) = 0;
   virtual void close() = 0;
@@ -80,7 +80,7 @@ class OpenniScanner final : public Scanner {
   std::unique_ptr<Parsed> p_;
   std::unique_ptr<OpenniApi> api_;
   bool open_ = false;
-  Intrinsics depth_k_, color_k_;
+  Intrinsics depth_k_, colour_k_;
 };
 
 void register_openni(DeviceRegistry& registry,

@@ -25,19 +25,19 @@ struct Frame {
   Intrinsics intrinsics;
   std::vector<float> depth;
   Cloud points;
-  Intrinsics color_intrinsics;
-  std::vector<std::uint8_t> color;
+  Intrinsics colour_intrinsics;
+  std::vector<std::uint8_t> colour;
   double timestamp = 0;  ///< seconds since the Unix epoch
   std::optional<Eigen::Matrix4d> reference_pose;  ///< truth known to a simulator (object frame <- scanner frame)
   bool has_depth() const { return !depth.empty(); }
-  bool has_color() const { return !color.empty(); }
+  bool has_colour() const { return !colour.empty(); }
 };
 
 
 struct ScannerCapabilities {
   bool depth = false;   ///< delivers depth images
   bool points = false;  ///< delivers points directly
-  bool color = false;   ///< delivers a colour image
+  bool colour = false;   ///< delivers a colour image
   Intrinsics intrinsics;
   /// Bench calibration the device knows itself (the simulator does); real
   /// devices leave it empty and the profile supplies it.

@@ -30,7 +30,7 @@ constexpr std::uint32_t kPreference[] = {V4L2_PIX_FMT_Z16, V4L2_PIX_FMT_Y16, V4L
                                          V4L2_PIX_FMT_MJPEG};
 
 bool is_depth(std::uint32_t f) { return f == V4L2_PIX_FMT_Z16 || f == V4L2_PIX_FMT_Y16; }
-bool is_color(std::uint32_t f) {
+bool is_colour(std::uint32_t f) {
   return f == V4L2_PIX_FMT_YUYV || f == V4L2_PIX_FMT_MJPEG || f == V4L2_PIX_FMT_JPEG;
 }
 
@@ -118,7 +118,7 @@ void depth16_to_metres(const std::uint8_t* src, int width, int height, int strid
   }
 }
 
-std::vector<std::uint8_t> register_color_to_depth(const std::vector<float>& depth,
+std::vector<std::uint8_t> register_colour_to_depth(const std::vector<float>& depth,
                                                   const Intrinsics& dk,
                                                   const std::vector<std::uint8_t>& rgb,
                                                   const Intrinsics& ck,
@@ -230,7 +230,7 @@ void V4l2Stream::start(const Settings& s) {
       if (std::find(formats.begin(), formats.end(), want) == formats.end())
         throw DeviceError(who_ + ": " + path_ + ": format " + fourcc_text(want) +
                           " not offered (offers " + format_list(formats) + ")");
-      if (!is_depth(want) && !is_color(want))
+      if (!is_depth(want) && !is_colour(want))
         throw DeviceError(who_ + ": format " + fourcc_text(want) +
                           " not supported (supported: Z16, Y16, YUYV, MJPG)");
     }
@@ -396,8 +396,8 @@ V4l2Stream::Raw V4l2Stream::next_frame() {
 bool V4l2NodeInfo::has_depth() const {
   return std::any_of(formats.begin(), formats.end(), is_depth);
 }
-bool V4l2NodeInfo::has_color() const {
-  return std::any_of(formats.begin(), formats.end(), is_color);
+bool V4l2NodeInfo::has_colour() const {
+  return std::any_of(formats.begin(), formats.end(), is_colour);
 }
 
 std::vector<V4l2NodeInfo> describe_v4l2_nodes(SysCalls& sys,
@@ -430,11 +430,11 @@ std::vector<V4l2NodeInfo> describe_v4l2_nodes(SysCalls& sys,
 // ---- the scanner ---------------------------------------------------------------
 
 struct V4l2Camera::Parsed {
-  std::string path, color_path, card;
-  V4l2Stream::Settings main, color;
+  std::string path, colour_path, card;
+  V4l2Stream::Settings main, colour;
   double depth_scale = 0.001;
-  Intrinsics k, color_k;
-  bool has_k = false, has_color_k = false;
+  Intrinsics k, colour_k;
+  bool has_k = false, has_colour_k = false;
   std::optional<std::array<double, 12>> extrinsics;
 };
 
@@ -469,7 +469,7 @@ std::unique_ptr<V4l2Camera::Parsed> V4l2Camera::parse(const DeviceUri& uri) {
       s.white_balance = option_integer(o, "white_balance", 0, 1000, 20000, who);
   };
   fill(p->main, "");
-  fill(p->color, "color_");
+  fill(p->colour, "color_");
   p->depth_scale = option_number(o, "depth_scale", 0.001, 1e-9, 1e3, who);
   auto intr = [&](Intrinsics& k, const std::string& prefix) {
     const char* keys[] = {"fx", "fy", "cx", "cy"};
@@ -501,8 +501,8 @@ std::unique_ptr<V4l2Camera::Parsed> V4l2Camera::parse(const DeviceUri& uri) {
     return true;
   };
   p->has_k = intr(p->k, "");
-  p->has_color_k = intr(p->color_k, "color_");
-  if (o.count("color")) p->color_path = o.at("color");
+  p->has_colour_k = intr(p->colour_k, "color_");
+  if (o.count("color")) p->colour_path = o.at("color");
   if (o.count("card")) p->card = o.at("card");
   if (o.count("extrinsics")) {
     std::array<double, 12> m{};
@@ -540,11 +540,11 @@ void V4l2Camera::configure(const DeviceOptions& options) {
 void V4l2Camera::open() {
   if (main_) return;
   const std::string& who = uri_.text;
-  std::string main_path = p_->path, color_path = p_->color_path;
+  std::string main_path = p_->path, colour_path = p_->colour_path;
   if (main_path == "auto") {
     const auto nodes = describe_v4l2_nodes(*sys_, paths_.empty() ? v4l2_device_paths() : paths_);
     const V4l2NodeInfo* depth = nullptr;
-    const V4l2NodeInfo* color = nullptr;
+    const V4l2NodeInfo* colour = nullptr;
     for (const auto& n : nodes) {
       if (!p_->card.empty() && n.card.find(p_->card) == std::string::npos) continue;
       if (!depth && n.has_depth()) depth = &n;
@@ -552,15 +552,15 @@ void V4l2Camera::open() {
     for (const auto& n : nodes) {
       if (!p_->card.empty() && n.card.find(p_->card) == std::string::npos) continue;
       if (depth && n.card != depth->card) continue;
-      if (!color && n.has_color() && (!depth || n.path != depth->path)) color = &n;
+      if (!colour && n.has_colour() && (!depth || n.path != depth->path)) colour = &n;
     }
-    if (!depth && !color)
+    if (!depth && !colour)
       throw DeviceError(
           who + ": no V4L2 node with a Z16, Y16, YUYV or MJPG capture format" +
           (p_->card.empty() ? std::string() : " on a card matching '" + p_->card + "'") +
           " (found " + std::to_string(nodes.size()) + " capture nodes)");
-    main_path = depth ? depth->path : color->path;
-    if (depth && color && color_path.empty()) color_path = color->path;
+    main_path = depth ? depth->path : colour->path;
+    if (depth && colour && colour_path.empty()) colour_path = colour->path;
   }
   main_ = std::make_unique<V4l2Stream>(sys_, main_path, who);
   try {
@@ -582,21 +582,21 @@ void V4l2Camera::open() {
       throw DeviceError(who +
                         ": depth node needs intrinsics fx, fy, cx, cy in the profile or URI "
                         "(plain V4L2 does not report them)");
-    if (!color_path.empty()) {
+    if (!colour_path.empty()) {
       if (!main_is_depth_)
         throw DeviceError(who + ": option color pairs a colour node with a depth node, but " +
                           main_path + " delivers " + fourcc_text(main_->fourcc()));
-      color_ = std::make_unique<V4l2Stream>(sys_, color_path, who);
-      color_->start(p_->color);
-      if (!is_color(color_->fourcc()))
-        throw DeviceError(who + ": colour node " + color_path + " delivers " +
-                          fourcc_text(color_->fourcc()) + ", not a colour format");
-      if (p_->has_color_k) {
-        p_->color_k.width = p_->color.width > 0 ? p_->color.width : color_->width();
-        p_->color_k.height = p_->color.height > 0 ? p_->color.height : color_->height();
-        check_k(p_->color_k, *color_, "color_");
+      colour_ = std::make_unique<V4l2Stream>(sys_, colour_path, who);
+      colour_->start(p_->colour);
+      if (!is_colour(colour_->fourcc()))
+        throw DeviceError(who + ": colour node " + colour_path + " delivers " +
+                          fourcc_text(colour_->fourcc()) + ", not a colour format");
+      if (p_->has_colour_k) {
+        p_->colour_k.width = p_->colour.width > 0 ? p_->colour.width : colour_->width();
+        p_->colour_k.height = p_->colour.height > 0 ? p_->colour.height : colour_->height();
+        check_k(p_->colour_k, *colour_, "color_");
       }
-      if (p_->extrinsics && !p_->has_color_k)
+      if (p_->extrinsics && !p_->has_colour_k)
         throw DeviceError(
             who + ": extrinsics need the colour intrinsics color_fx, color_fy, color_cx, color_cy");
     } else if (p_->extrinsics) {
@@ -609,7 +609,7 @@ void V4l2Camera::open() {
 }
 
 void V4l2Camera::close() {
-  color_.reset();
+  colour_.reset();
   main_.reset();
 }
 
@@ -617,9 +617,9 @@ ScannerCapabilities V4l2Camera::capabilities() const {
   ScannerCapabilities c;
   const bool depth =
       main_ ? main_is_depth_
-            : (p_->main.format == "Z16" || p_->main.format == "Y16" || !p_->color_path.empty());
+            : (p_->main.format == "Z16" || p_->main.format == "Y16" || !p_->colour_path.empty());
   c.depth = depth;
-  c.color = main_ ? (!main_is_depth_ || color_ != nullptr) : (!depth || !p_->color_path.empty());
+  c.colour = main_ ? (!main_is_depth_ || colour_ != nullptr) : (!depth || !p_->colour_path.empty());
   if (depth && p_->has_k) c.intrinsics = p_->k;
   return c;
 }
@@ -641,20 +641,20 @@ Frame V4l2Camera::grab() {
     depth16_to_metres(raw.data, raw.width, raw.height, raw.stride, p_->depth_scale, f.depth);
     f.intrinsics = p_->k;
   } else {
-    to_rgb(raw, uri_.text, f.color);
-    f.color_intrinsics = p_->has_k ? p_->k : Intrinsics{raw.width, raw.height, 0, 0, 0, 0};
+    to_rgb(raw, uri_.text, f.colour);
+    f.colour_intrinsics = p_->has_k ? p_->k : Intrinsics{raw.width, raw.height, 0, 0, 0, 0};
   }
-  if (color_) {
-    const V4l2Stream::Raw c = color_->next_frame();
+  if (colour_) {
+    const V4l2Stream::Raw c = colour_->next_frame();
     std::vector<std::uint8_t> rgb;
     to_rgb(c, uri_.text, rgb);
     if (p_->extrinsics) {
-      f.color = register_color_to_depth(f.depth, p_->k, rgb, p_->color_k, *p_->extrinsics);
-      f.color_intrinsics = p_->k;
+      f.colour = register_colour_to_depth(f.depth, p_->k, rgb, p_->colour_k, *p_->extrinsics);
+      f.colour_intrinsics = p_->k;
     } else {
-      f.color = std::move(rgb);
-      f.color_intrinsics =
-          p_->has_color_k ? p_->color_k : Intrinsics{c.width, c.height, 0, 0, 0, 0};
+      f.colour = std::move(rgb);
+      f.colour_intrinsics =
+          p_->has_colour_k ? p_->colour_k : Intrinsics{c.width, c.height, 0, 0, 0, 0};
     }
   }
   f.timestamp =
@@ -673,7 +673,7 @@ void register_v4l2_camera(DeviceRegistry& registry, std::shared_ptr<SysCalls> sy
       [sys] {
         std::vector<DeviceInfo> out;
         for (const auto& n : describe_v4l2_nodes(*sys, v4l2_device_paths())) {
-          const bool usable = n.has_depth() || n.has_color();
+          const bool usable = n.has_depth() || n.has_colour();
           out.push_back({"v4l2:" + n.path, DeviceKind::kScanner,
                          n.card + " (" + n.driver + "): " + format_list(n.formats) +
                              (n.has_depth() ? "; depth: give fx, fy, cx, cy" : ""),

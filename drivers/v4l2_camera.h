@@ -54,11 +54,11 @@ void depth16_to_metres(const std::uint8_t* src, int width, int height, int strid
 /// Colour registered to the depth image: each depth pixel is back-projected,
 /// moved by `depth_to_color` (3x4, row-major) and projected into the colour
 /// image; pixels without depth or outside the colour image are black.
-std::vector<std::uint8_t> register_color_to_depth(const std::vector<float>& depth,
+std::vector<std::uint8_t> register_colour_to_depth(const std::vector<float>& depth,
                                                   const Intrinsics& depth_k,
                                                   const std::vector<std::uint8_t>& rgb,
-                                                  const Intrinsics& color_k,
-                                                  const std::array<double, 12>& depth_to_color);
+                                                  const Intrinsics& colour_k,
+                                                  const std::array<double, 12>& depth_to_colour);
 
 /// FourCC as text ("YUYV").
 std::string fourcc_text(std::uint32_t fourcc);
@@ -117,7 +117,7 @@ struct V4l2NodeInfo {
   std::string path, card, driver;
   std::vector<std::uint32_t> formats;
   bool has_depth() const;
-  bool has_color() const;
+  bool has_colour() const;
 };
 std::vector<V4l2NodeInfo> describe_v4l2_nodes(SysCalls& sys, const std::vector<std::string>& paths);
 
@@ -141,7 +141,7 @@ class V4l2Camera final : public Scanner {
   DeviceUri uri_;
   std::vector<std::string> paths_;
   std::unique_ptr<Parsed> p_;
-  std::unique_ptr<V4l2Stream> main_, color_;
+  std::unique_ptr<V4l2Stream> main_, colour_;
   bool main_is_depth_ = false;
 };
 

@@ -47,7 +47,7 @@ double uniform01(std::mt19937& rng) {
 struct Queries {
   std::vector<Vec3f> points;
   std::vector<Vec3f> normals;  ///< unit (or NaN = unusable); empty when none
-  std::vector<Vec3f> colors;   ///< RGB in [0,1]; empty when none
+  std::vector<Vec3f> colours;   ///< RGB in [0,1]; empty when none
 };
 
 std::vector<Vec3f> face_normals(const Mesh& mesh) {
@@ -62,10 +62,10 @@ std::vector<Vec3f> face_normals(const Mesh& mesh) {
 }
 
 // Area-uniform samples with float colours (kept unrounded for the colour error).
-using SurfaceColor = std::function<Rgb(int, double, double)>;
+using SurfaceColour = std::function<Rgb(int, double, double)>;
 
 Queries sample_surface(const Mesh& mesh, int count, unsigned seed, const std::string& what,
-                       const SurfaceColor& surface_color = {}) {
+                       const SurfaceColour& surface_colour = {}) {
   if (count < 0) throw InvalidInput(what + ": negative sample count");
   if (mesh.faces.empty()) throw InvalidInput(what + ": mesh has no faces");
   mesh.check_consistent(what.c_str());
@@ -84,11 +84,11 @@ Queries sample_surface(const Mesh& mesh, int count, unsigned seed, const std::st
     throw InvalidInput(what + ": mesh has zero or non-finite area");
 
   const std::vector<Vec3f> fn = face_normals(mesh);
-  const bool colored = surface_color || mesh.has_colors();
+  const bool coloured = surface_colour || mesh.has_colours();
   Queries out;
   out.points.resize(count);
   out.normals.resize(count);
-  if (colored) out.colors.resize(count);
+  if (coloured) out.colours.resize(count);
 
   std::mt19937 rng(seed);
   for (int i = 0; i < count; ++i) {
@@ -107,12 +107,12 @@ Queries sample_surface(const Mesh& mesh, int count, unsigned seed, const std::st
                      w2 * mesh.vertices[t[2]].cast<double>())
                         .cast<float>();
     out.normals[i] = fn[f];
-    if (surface_color)
-      out.colors[i] = to_unit_rgb(surface_color(int(f), w1, w2));
-    else if (colored)
-      out.colors[i] = float(w0) * to_unit_rgb(mesh.colors[t[0]]) +
-                      float(w1) * to_unit_rgb(mesh.colors[t[1]]) +
-                      float(w2) * to_unit_rgb(mesh.colors[t[2]]);
+    if (surface_colour)
+      out.colours[i] = to_unit_rgb(surface_colour(int(f), w1, w2));
+    else if (coloured)
+      out.colours[i] = float(w0) * to_unit_rgb(mesh.colours[t[0]]) +
+                      float(w1) * to_unit_rgb(mesh.colours[t[1]]) +
+                      float(w2) * to_unit_rgb(mesh.colours[t[2]]);
   }
   return out;
 }
@@ -124,9 +124,9 @@ Queries cloud_queries(const Cloud& cloud) {
     q.normals.resize(cloud.size());
     for (std::size_t i = 0; i < cloud.size(); ++i) q.normals[i] = unit_or_nan(cloud.normals[i]);
   }
-  if (cloud.has_colors()) {
-    q.colors.resize(cloud.size());
-    for (std::size_t i = 0; i < cloud.size(); ++i) q.colors[i] = to_unit_rgb(cloud.colors[i]);
+  if (cloud.has_colours()) {
+    q.colours.resize(cloud.size());
+    for (std::size_t i = 0; i < cloud.size(); ++i) q.colours[i] = to_unit_rgb(cloud.colours[i]);
   }
   return q;
 }
@@ -137,15 +137,15 @@ struct Side {
   std::string name;
   const Mesh* mesh = nullptr;
   Cloud cloud;  // used when mesh is null
-  SurfaceColor surface_color;  // only with a mesh
+  SurfaceColour surface_colour;  // only with a mesh
 
   bool has_normals() const { return mesh || cloud.has_normals(); }
-  bool has_colors() const {
-    return mesh ? bool(surface_color) || mesh->has_colors() : cloud.has_colors();
+  bool has_colours() const {
+    return mesh ? bool(surface_colour) || mesh->has_colours() : cloud.has_colours();
   }
 };
 
-Side prepare(const Shape& shape, const std::string& name, const SurfaceColor& surface_color) {
+Side prepare(const Shape& shape, const std::string& name, const SurfaceColour& surface_colour) {
   Side side;
   side.name = name;
   if (const Mesh* m = std::get_if<Mesh>(&shape)) {
@@ -154,11 +154,11 @@ Side prepare(const Shape& shape, const std::string& name, const SurfaceColor& su
     if (!all_finite(m->vertices)) throw InvalidInput(name + ": non-finite coordinates");
     if (!m->faces.empty()) {
       side.mesh = m;
-      side.surface_color = surface_color;
+      side.surface_colour = surface_colour;
     } else {
       side.cloud.points = m->vertices;
       side.cloud.normals = m->normals;
-      side.cloud.colors = m->colors;
+      side.cloud.colours = m->colours;
     }
   } else {
     const Cloud& c = std::get<Cloud>(shape);
@@ -177,19 +177,19 @@ class Target {
   struct Hit {
     double distance;
     Vec3f normal;  ///< unit or NaN
-    Vec3f color;   ///< RGB in [0,1]; unset without colours
+    Vec3f colour;   ///< RGB in [0,1]; unset without colours
   };
 
   explicit Target(const Side& side) : side_(side) {
     if (side.mesh) {
       bvh_ = std::make_unique<TriangleBvh>(*side.mesh);
       normals_ = face_normals(*side.mesh);
-      if (side.mesh->has_colors())
-        for (const Rgb& c : side.mesh->colors) colors_.push_back(to_unit_rgb(c));
+      if (side.mesh->has_colours())
+        for (const Rgb& c : side.mesh->colours) colours_.push_back(to_unit_rgb(c));
     } else {
       index_ = std::make_unique<PointIndex>(side.cloud.points);
       for (const Vec3f& n : side.cloud.normals) normals_.push_back(unit_or_nan(n));
-      for (const Rgb& c : side.cloud.colors) colors_.push_back(to_unit_rgb(c));
+      for (const Rgb& c : side.cloud.colours) colours_.push_back(to_unit_rgb(c));
     }
   }
 
@@ -199,12 +199,12 @@ class Target {
       const ClosestPoint cp = bvh_->closest_point(q.cast<double>());
       h.distance = cp.distance;
       h.normal = normals_[cp.face];
-      if (side_.surface_color) {
-        h.color = to_unit_rgb(side_.surface_color(cp.face, cp.u, cp.v));
-      } else if (!colors_.empty()) {
+      if (side_.surface_colour) {
+        h.colour = to_unit_rgb(side_.surface_colour(cp.face, cp.u, cp.v));
+      } else if (!colours_.empty()) {
         const Face& t = side_.mesh->faces[cp.face];
-        h.color = float(1 - cp.u - cp.v) * colors_[t[0]] + float(cp.u) * colors_[t[1]] +
-                  float(cp.v) * colors_[t[2]];
+        h.colour = float(1 - cp.u - cp.v) * colours_[t[0]] + float(cp.u) * colours_[t[1]] +
+                  float(cp.v) * colours_[t[2]];
       }
     } else {
       const int i = index_->nearest(q).first;
@@ -212,7 +212,7 @@ class Target {
       // small distances between nearly coincident shapes.
       h.distance = (q.cast<double>() - side_.cloud.points[i].cast<double>()).norm();
       if (!normals_.empty()) h.normal = normals_[i];
-      if (!colors_.empty()) h.color = colors_[i];
+      if (!colours_.empty()) h.colour = colours_[i];
     }
     return h;
   }
@@ -222,29 +222,29 @@ class Target {
   std::unique_ptr<TriangleBvh> bvh_;
   std::unique_ptr<PointIndex> index_;
   std::vector<Vec3f> normals_;
-  std::vector<Vec3f> colors_;
+  std::vector<Vec3f> colours_;
 };
 
 struct Directed {
   DirectedStats stats;
   std::optional<double> normal_consistency;
-  std::optional<double> color_error;
+  std::optional<double> colour_error;
 };
 
 // Distances (and normal/colour agreement) from every query point to the target.
 // Each query writes only its own slot and the sums run in index order, so the
 // result does not depend on the thread count or scheduling.
-Directed measure(const Queries& from, const Target& to, bool with_normals, bool with_colors) {
+Directed measure(const Queries& from, const Target& to, bool with_normals, bool with_colours) {
   const std::size_t n = from.points.size();
   std::vector<double> dist(n);
   std::vector<float> ndot(with_normals ? n : 0);
-  std::vector<float> cerr(with_colors ? n : 0);
+  std::vector<float> cerr(with_colours ? n : 0);
   tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 256), [&](const auto& range) {
     for (std::size_t i = range.begin(); i != range.end(); ++i) {
       const Target::Hit h = to.query(from.points[i]);
       dist[i] = h.distance;
       if (with_normals) ndot[i] = std::abs(from.normals[i].dot(h.normal));  // NaN if unusable
-      if (with_colors) cerr[i] = (from.colors[i] - h.color).cwiseAbs().sum();
+      if (with_colours) cerr[i] = (from.colours[i] - h.colour).cwiseAbs().sum();
     }
   });
 
@@ -275,10 +275,10 @@ Directed measure(const Queries& from, const Target& to, bool with_normals, bool 
       }
     if (c > 0) d.normal_consistency = s / double(c);
   }
-  if (with_colors) {
+  if (with_colours) {
     double s = 0;
     for (float v : cerr) s += v;
-    d.color_error = s / double(n);
+    d.colour_error = s / double(n);
   }
   return d;
 }
@@ -290,9 +290,9 @@ Cloud sample_mesh(const Mesh& mesh, int count, unsigned seed) {
   Cloud c;
   c.points = std::move(q.points);
   c.normals = std::move(q.normals);
-  for (const Vec3f& col : q.colors) {
+  for (const Vec3f& col : q.colours) {
     auto to8 = [](float v) { return std::uint8_t(std::lround(std::clamp(v, 0.f, 1.f) * 255.f)); };
-    c.colors.push_back(Rgb{to8(col.x()), to8(col.y()), to8(col.z())});
+    c.colours.push_back(Rgb{to8(col.x()), to8(col.y()), to8(col.z())});
   }
   return c;
 }
@@ -300,8 +300,8 @@ Cloud sample_mesh(const Mesh& mesh, int count, unsigned seed) {
 EvalResult evaluate(const Shape& a, const Shape& b, const EvalParams& params) {
   if (params.mesh_samples <= 0) throw InvalidInput("eval: mesh_samples must be positive");
   if (params.threads < 0) throw InvalidInput("eval: threads must be >= 0");
-  const Side side_a = prepare(a, "A", params.a_surface_color);
-  const Side side_b = prepare(b, "B", params.b_surface_color);
+  const Side side_a = prepare(a, "A", params.a_surface_colour);
+  const Side side_b = prepare(b, "B", params.b_surface_colour);
 
   const int threads =
       worker_threads(std::max(params.threads, 0));
@@ -314,7 +314,7 @@ EvalResult evaluate(const Shape& a, const Shape& b, const EvalParams& params) {
     // are independent, so they overlap.
     auto queries_of = [&](const Side& s, Queries& q) {
       q = s.mesh ? sample_surface(*s.mesh, params.mesh_samples, params.seed, s.name,
-                                  s.surface_color)
+                                  s.surface_colour)
                  : cloud_queries(s.cloud);
     };
     tbb::parallel_invoke([&] { queries_of(side_a, qa); }, [&] { queries_of(side_b, qb); },
@@ -322,10 +322,10 @@ EvalResult evaluate(const Shape& a, const Shape& b, const EvalParams& params) {
                          [&] { tb = std::make_unique<Target>(side_b); });
 
     const bool normals = side_a.has_normals() && side_b.has_normals();
-    const bool colors = side_a.has_colors() && side_b.has_colors();
+    const bool colours = side_a.has_colours() && side_b.has_colours();
     // e_col is taken at B's (the reference's) points only, see eval.h.
     const Directed ab = measure(qa, *tb, normals, false);
-    const Directed ba = measure(qb, *ta, normals, colors);
+    const Directed ba = measure(qb, *ta, normals, colours);
 
     result.a_to_b = ab.stats;
     result.b_to_a = ba.stats;
@@ -336,7 +336,7 @@ EvalResult evaluate(const Shape& a, const Shape& b, const EvalParams& params) {
       result.normal_consistency = 0.5 * (*ab.normal_consistency + *ba.normal_consistency);
     else if (ab.normal_consistency || ba.normal_consistency)
       result.normal_consistency = ab.normal_consistency ? ab.normal_consistency : ba.normal_consistency;
-    result.color_error = ba.color_error;
+    result.colour_error = ba.colour_error;
   });
   return result;
 }
@@ -346,10 +346,10 @@ ColourTransition measure_colour_transition(const Mesh& mesh,
                                            const Rgb& a, const Rgb& b, double cell) {
   const Vec3d ca(a.r, a.g, a.b), axis = Vec3d(b.r, b.g, b.b) - ca;
   ColourTransition out;
-  out.vertices = std::min(mesh.vertices.size(), mesh.colors.size());
+  out.vertices = std::min(mesh.vertices.size(), mesh.colours.size());
   std::vector<double> band;
   for (std::size_t i = 0; i < out.vertices; ++i) {
-    const double t = (Vec3d(mesh.colors[i].r, mesh.colors[i].g, mesh.colors[i].b) - ca).dot(axis) / axis.squaredNorm();
+    const double t = (Vec3d(mesh.colours[i].r, mesh.colours[i].g, mesh.colours[i].b) - ca).dot(axis) / axis.squaredNorm();
     const double s = signed_distance(mesh.vertices[i].cast<double>());
     if (t > 0.1 && t < 0.9) {
       band.push_back(std::abs(s));

@@ -20,7 +20,7 @@ struct EvalParams {
   /// with point = (1-u-v) a + u b + v c), e.g. from a texture (core/texture.h
   /// surface_color). When set, it replaces the mesh's vertex colours and makes the
   /// mesh count as coloured; ignored for clouds. Must be thread-safe.
-  std::function<Rgb(int face, double u, double v)> a_surface_color, b_surface_color;
+  std::function<Rgb(int face, double u, double v)> a_surface_colour, b_surface_colour;
 };
 
 struct DirectedStats {
@@ -47,7 +47,7 @@ struct EvalResult {
   /// reconstructed colour, so with A = the reconstruction and B = the reference input
   /// (`station eval RESULT REFERENCE`) this is the paper's e_col. A's colour at a point:
   /// a mesh's vertex colours interpolated at the closest point, a cloud's nearest point.
-  std::optional<double> color_error;
+  std::optional<double> colour_error;
 };
 
 /// Distances from A's points (or samples) to B's surface (B a mesh: exact point-to-

@@ -48,12 +48,12 @@ ColourEdgeStats sharpen_colour_edges(Mesh& mesh, const ColourFunction& f, const 
     throw InvalidInput("colour edges: min_difference and end_tolerance must be >= 0, threads >= 0");
   ColourEdgeStats stats;
   stats.faces_before = stats.faces_after = mesh.faces.size();
-  if (!mesh.has_colors() || mesh.faces.empty()) return stats;
+  if (!mesh.has_colours() || mesh.faces.empty()) return stats;
   const double threshold = params.min_difference > 0 ? params.min_difference : f.params().gamma;
 
   const std::size_t nv = mesh.vertices.size();
   std::vector<Lab> vlab(nv);
-  for (std::size_t i = 0; i < nv; ++i) vlab[i] = rgb_to_lab(mesh.colors[i]);
+  for (std::size_t i = 0; i < nv; ++i) vlab[i] = rgb_to_lab(mesh.colours[i]);
 
   // Candidate edges: ends more than the threshold apart, each once (sorted keys).
   std::vector<Split> splits;
@@ -111,7 +111,7 @@ ColourEdgeStats sharpen_colour_edges(Mesh& mesh, const ColourFunction& f, const 
   // when it is zero).
   auto append = [&](const Vec3f& p, const Rgb& colour, const Vec3f& normal, std::size_t fallback) {
     mesh.vertices.push_back(p);
-    mesh.colors.push_back(colour);
+    mesh.colours.push_back(colour);
     if (normals) {
       const float len = normal.norm();
       mesh.normals.push_back(len > 0 ? Vec3f(normal / len) : mesh.normals[fallback]);

@@ -1,5 +1,5 @@
 #include "reconstruct/colour_function.h"
-#include "reconstruct/color_transfer.h"
+#include "reconstruct/colour_transfer.h"
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
@@ -746,7 +746,7 @@ CellResult fit_cell(const Impl& s, const Vec3d& o, double half, int depth) {
 ColourFunction fit_colour(const Cloud& cloud, const ColourParams& params) {
   const auto t0 = std::chrono::steady_clock::now();
   cloud.check_consistent("colour_function input");
-  if (!cloud.has_colors()) throw InvalidInput("colour_function: the cloud has no colours");
+  if (!cloud.has_colours()) throw InvalidInput("colour_function: the cloud has no colours");
   if (cloud.empty()) throw InvalidInput("colour_function: empty cloud");
   const ColourParams& p = params;
   if (!(p.alpha > 0.5) || !(p.lambda > 0) || p.n_min < 1 || p.n_max < p.n_min || !(p.gamma > 0) ||
@@ -783,7 +783,7 @@ ColourFunction fit_colour(const Cloud& cloud, const ColourParams& params) {
     }
   }
   s.labs.resize(cloud.size());
-  for (std::size_t i = 0; i < cloud.size(); ++i) s.labs[i] = rgb_to_lab(cloud.colors[i]);
+  for (std::size_t i = 0; i < cloud.size(); ++i) s.labs[i] = rgb_to_lab(cloud.colours[i]);
   s.index = std::make_unique<PointIndex>(s.points);
 
   tbb::task_arena arena(worker_threads(p.threads));
@@ -924,7 +924,7 @@ ColourCellType ColourFunction::dominant_type(const Vec3d& x) const {
 
 double ColourFunction::e_col(const Cloud& coloured, int threads) const {
   coloured.check_consistent("e_col cloud");
-  if (!coloured.has_colors() || coloured.empty()) throw InvalidInput("e_col: the cloud has no colours");
+  if (!coloured.has_colours() || coloured.empty()) throw InvalidInput("e_col: the cloud has no colours");
   std::vector<double> err(coloured.size());
   tbb::task_arena arena(worker_threads(threads));
   arena.execute([&] {
@@ -932,7 +932,7 @@ double ColourFunction::e_col(const Cloud& coloured, int threads) const {
       for (std::size_t i = r.begin(); i != r.end(); ++i) {
         const auto f = srgb(coloured.points[i].cast<double>());
         // The paper converts the point's L*a*b* back to RGB: the identity to rounding.
-        const auto c = lab_to_srgb(rgb_to_lab(coloured.colors[i]));
+        const auto c = lab_to_srgb(rgb_to_lab(coloured.colours[i]));
         err[i] = std::abs(f[0] - c[0]) + std::abs(f[1] - c[1]) + std::abs(f[2] - c[2]);
       }
     });
@@ -963,18 +963,18 @@ std::size_t colour_mesh(Mesh& mesh, const ColourFunction& f, const ImplicitFunct
     }
   if (n == 0) return 0;
   Mesh nn = mesh;
-  transfer_colors(nn, coloured_points, {4, threads});
+  transfer_colours(nn, coloured_points, {4, threads});
   for (std::size_t i = 0; i < mesh.vertices.size(); ++i)
-    if (untrusted[i]) mesh.colors[i] = nn.colors[i];
+    if (untrusted[i]) mesh.colours[i] = nn.colours[i];
   return n;
 }
 
 void colour_mesh(Mesh& mesh, const ColourFunction& f, int threads) {
-  mesh.colors.assign(mesh.vertices.size(), Rgb{});
+  mesh.colours.assign(mesh.vertices.size(), Rgb{});
   tbb::task_arena arena(worker_threads(threads));
   arena.execute([&] {
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, mesh.vertices.size(), 256), [&](const auto& r) {
-      for (std::size_t i = r.begin(); i != r.end(); ++i) mesh.colors[i] = f.rgb(mesh.vertices[i].cast<double>());
+      for (std::size_t i = r.begin(); i != r.end(); ++i) mesh.colours[i] = f.rgb(mesh.vertices[i].cast<double>());
     });
   });
 }

@@ -185,14 +185,14 @@ class ColourFunction {
 /// inconsistent attributes, all points equal, or a parameter out of range.
 ColourFunction fit_colour(const Cloud& coloured_points, const ColourParams& params = {});
 
-/// Sets mesh.colors from f at the vertices (parallel; 0 = all cores).
+/// Sets mesh.colours from f at the vertices (parallel; 0 = all cores).
 void colour_mesh(Mesh& mesh, const ColourFunction& f, int threads = 0);
 
 /// The same, except at vertices where `surface` is not trusted (no data near, e.g.
 /// a closed underside the scanner never saw): there the local fits would only
 /// extrapolate (quadratics drift to colours the object does not have), so those
 /// vertices take the inverse-distance mean of the 4 nearest input colours
-/// (reconstruct/color_transfer.h). Returns how many vertices did. On the demo's
+/// (reconstruct/colour_transfer.h). Returns how many vertices did. On the demo's
 /// mustard bottle e_col against the true texture goes 0.114 -> 0.091 (k-NN alone: 0.093).
 std::size_t colour_mesh(Mesh& mesh, const ColourFunction& f, const ImplicitFunction& surface,
                         const Cloud& coloured_points, int threads = 0);

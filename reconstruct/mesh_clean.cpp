@@ -78,7 +78,7 @@ ComponentFilterStats remove_small_components(Mesh& mesh, double min_area_fractio
     remap[v] = int(out.vertices.size());
     out.vertices.push_back(mesh.vertices[v]);
     if (mesh.has_normals()) out.normals.push_back(mesh.normals[v]);
-    if (mesh.has_colors()) out.colors.push_back(mesh.colors[v]);
+    if (mesh.has_colours()) out.colours.push_back(mesh.colours[v]);
   }
   for (Face& f : faces) f = Face(remap[f[0]], remap[f[1]], remap[f[2]]);
   out.faces = std::move(faces);

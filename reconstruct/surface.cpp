@@ -11,7 +11,7 @@
 #include "core/error.h"
 #include "core/normals.h"
 #include "core/threads.h"
-#include "reconstruct/color_transfer.h"
+#include "reconstruct/colour_transfer.h"
 #include "reconstruct/colour_edges.h"
 #include "reconstruct/half_space_clip.h"
 #include "reconstruct/winding_close.h"
@@ -129,9 +129,9 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
          std::to_string(out.pieces.removed_faces) + " faces)");
 
   const auto t4 = Clock::now();
-  out.coloured = p.colour && input.has_colors();
+  out.coloured = p.colour && input.has_colours();
   if (out.coloured && p.colour_method == ColourMethod::kNearest) {
-    transfer_colors(mesh, input, {4, p.threads});
+    transfer_colours(mesh, input, {4, p.threads});
   } else if (out.coloured) {
     note("colour function on " + std::to_string(input.size()) + " points");
     const ColourFunction cf = fit_colour(input, colour_params(p));

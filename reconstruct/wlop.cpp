@@ -210,7 +210,7 @@ void Consolidator::run() {
     result_.positions = x_;
     result_.cloud.points.resize(ni_);
     for (std::size_t i = 0; i < ni_; ++i) result_.cloud.points[i] = x_[i].cast<float>();
-    if (input_.has_colors()) colours();
+    if (input_.has_colours()) colours();
     if (params_.estimate_normals) normals();
     result_.seconds_attributes = seconds_since(t);
   });
@@ -479,7 +479,7 @@ void Consolidator::iterate(bool last) {
 
 void Consolidator::colours() {
   const std::vector<Vec3d>& x = x_;
-  std::vector<Rgb>& out = result_.cloud.colors;
+  std::vector<Rgb>& out = result_.cloud.colours;
   out.assign(ni_, Rgb{});
   const int* ids = input_grid_.ids().data();
   std::vector<char> missing(ni_, 0);
@@ -494,7 +494,7 @@ void Consolidator::colours() {
       for (int k = 0; k < nb.n; ++k) {
         const double r2 = std::max(double(nb.r2[k]), kernel_.eps2);
         const double a = kernel_.theta(r2) / std::sqrt(r2) * inv_v_[nb.pos[k]];
-        const Rgb& c = input_.colors[ids[nb.pos[k]]];
+        const Rgb& c = input_.colours[ids[nb.pos[k]]];
         sw += a;
         sr += a * c.r;
         sg += a * c.g;
@@ -513,7 +513,7 @@ void Consolidator::colours() {
   if (std::find(missing.begin(), missing.end(), 1) == missing.end()) return;
   const PointIndex index(input_.points);
   for (std::size_t i = 0; i < ni_; ++i)
-    if (missing[i]) out[i] = input_.colors[index.nearest(result_.cloud.points[i]).first];
+    if (missing[i]) out[i] = input_.colours[index.nearest(result_.cloud.points[i]).first];
 }
 
 void Consolidator::normals() {

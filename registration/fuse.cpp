@@ -41,13 +41,13 @@ struct Kept {
 }  // namespace
 
 Cloud fuse_clouds(const std::vector<Cloud>& clouds, double distance, FuseStats* stats) {
-  bool normals = true, colors = true;
+  bool normals = true, colours = true;
   std::size_t input = 0;
   for (const Cloud& c : clouds) {
     input += c.size();
     if (c.empty()) continue;
     normals = normals && c.has_normals();
-    colors = colors && c.has_colors();
+    colours = colours && c.has_colours();
   }
   const bool fuse = distance > 0 && std::isfinite(distance);
   const double inv = fuse ? 1.0 / distance : 0.0;
@@ -63,7 +63,7 @@ Cloud fuse_clouds(const std::vector<Cloud>& clouds, double distance, FuseStats* 
         if (!c.points[i].allFinite()) continue;
         out.points.push_back(c.points[i]);
         if (normals) out.normals.push_back(c.normals[i]);
-        if (colors) out.colors.push_back(c.colors[i]);
+        if (colours) out.colours.push_back(c.colours[i]);
       }
     if (stats) *stats = FuseStats{input, out.size(), 0};
     return out;
@@ -149,10 +149,10 @@ Cloud fuse_clouds(const std::vector<Cloud>& clouds, double distance, FuseStats* 
         else if (nv.dot(k.first_normal) < 0) nv = -nv;
         k.sum_normal += nv;
       }
-      if (colors) {
-        k.sum_rgb[0] += c.colors[i].r;
-        k.sum_rgb[1] += c.colors[i].g;
-        k.sum_rgb[2] += c.colors[i].b;
+      if (colours) {
+        k.sum_rgb[0] += c.colours[i].r;
+        k.sum_rgb[1] += c.colours[i].g;
+        k.sum_rgb[2] += c.colours[i].b;
       }
       ++k.count;
       k.mean = (k.sum_pos / double(k.count)).cast<float>();
@@ -187,13 +187,13 @@ Cloud fuse_clouds(const std::vector<Cloud>& clouds, double distance, FuseStats* 
                                         : Vec3f(k.first_normal.cast<float>()));
     }
   }
-  if (colors && !kept.empty()) {
-    out.colors.reserve(kept.size());
+  if (colours && !kept.empty()) {
+    out.colours.reserve(kept.size());
     const auto channel = [](double sum, int count) {
       return std::uint8_t(std::lround(std::clamp(sum / double(count), 0.0, 255.0)));
     };
     for (const Kept& k : kept)
-      out.colors.push_back(
+      out.colours.push_back(
           Rgb{channel(k.sum_rgb[0], k.count), channel(k.sum_rgb[1], k.count), channel(k.sum_rgb[2], k.count)});
   }
   if (stats) {

@@ -12,7 +12,7 @@
 #include <limits>
 #include <unordered_map>
 
-#include "registration/colored_icp.h"
+#include "registration/coloured_icp.h"
 #include "core/kdtree.h"
 #include "core/normals.h"
 #include "core/sampling.h"
@@ -86,11 +86,11 @@ PreparedView prepare_view(const Cloud& cloud, const PrepareParams& params) {
     finite.points.push_back(cloud.points[i]);
     if (cloud.has_normals() && cloud.normals.size() == cloud.size())
       finite.normals.push_back(cloud.normals[i]);
-    if (cloud.has_colors() && cloud.colors.size() == cloud.size())
-      finite.colors.push_back(cloud.colors[i]);
+    if (cloud.has_colours() && cloud.colours.size() == cloud.size())
+      finite.colours.push_back(cloud.colours[i]);
   }
   if (finite.normals.size() != finite.size()) finite.normals.clear();
-  if (finite.colors.size() != finite.size()) finite.colors.clear();
+  if (finite.colours.size() != finite.size()) finite.colours.clear();
   v.dropped_nonfinite = cloud.size() - finite.size();
 
   const std::vector<std::size_t> keep =
@@ -99,14 +99,14 @@ PreparedView prepare_view(const Cloud& cloud, const PrepareParams& params) {
   for (std::size_t i : keep) {
     v.full.points.push_back(finite.points[i]);
     if (finite.has_normals()) v.full.normals.push_back(finite.normals[i]);
-    if (finite.has_colors()) v.full.colors.push_back(finite.colors[i]);
+    if (finite.has_colours()) v.full.colours.push_back(finite.colours[i]);
   }
   v.points = voxel_downsample(v.full.points, params.voxel_size);
   v.index = std::make_shared<PointIndex>(v.points);
   v.normals = pca_normals(*v.index, params.normal_neighbors, Vec3f::Zero());
-  if (params.intensity && v.full.has_colors() && !v.points.empty()) {
+  if (params.intensity && v.full.has_colours() && !v.points.empty()) {
     const PointIndex full_index(v.full.points);
-    v.intensity = sample_intensity(v.points, full_index, intensities(v.full.colors), 0.5 * params.voxel_size);
+    v.intensity = sample_intensity(v.points, full_index, intensities(v.full.colours), 0.5 * params.voxel_size);
     v.intensity_gradient = intensity_gradients(*v.index, v.normals, v.intensity, params.normal_neighbors);
   }
   return v;
@@ -129,10 +129,10 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
   const double cos_max = std::cos(params.max_normal_angle_deg * kDeg);
   const bool symmetric = params.objective == IcpObjective::kSymmetric;
   const bool point_to_point = params.objective == IcpObjective::kPointToPoint;
-  const bool colored = params.objective == IcpObjective::kColored &&
+  const bool coloured = params.objective == IcpObjective::kColoured &&
                        source.intensity.size() == source.points.size() &&
                        target.intensity.size() == tp.size() && target.intensity_gradient.size() == tp.size();
-  const double lambda = std::clamp(params.colored_lambda, 0.0, 1.0);
+  const double lambda = std::clamp(params.coloured_lambda, 0.0, 1.0);
   const bool generalized = params.objective == IcpObjective::kGeneralized;
   const double eps = std::clamp(params.gicp_epsilon, 1e-6, 1.0);
   const double shrink = std::clamp(params.shrink, 0.05, 1.0);
@@ -214,10 +214,10 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
               // Huber weight: quadratic near zero, linear beyond the threshold.
               const double a = std::abs(res_plane);
               const double w = (huber > 0 && a > huber) ? huber / a : 1.0;
-              const double wg = colored ? lambda : 1.0;
+              const double wg = coloured ? lambda : 1.0;
               acc.A.noalias() += wg * w * J * J.transpose();
               acc.b.noalias() += wg * w * J * res_plane;
-              if (colored) {
+              if (coloured) {
                 // Photometric term: the target's intensity continued along its
                 // tangent plane to p's projection, against the source intensity.
                 const Vec3d q = tp[j].cast<double>();
@@ -272,7 +272,7 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
       return res;
     }
     if (at_end) ++end_iterations;
-    if (colored || end_iterations > kUndampedEndIterations) {
+    if (coloured || end_iterations > kUndampedEndIterations) {
       // The photometric term can make the nearest neighbours flip back and
       // forth (a period-2 cycle on regular samplings): a step that reverses
       // the previous one halves the step length from then on. Geometric
@@ -304,7 +304,7 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
   res.fitness = double(fin.n) / double(source.points.size());
   res.inlier_rmse = fin.n ? std::sqrt(fin.sq_euclid / double(fin.n)) : 0.0;
   res.plane_rmse = fin.n ? std::sqrt(fin.sq_plane / double(fin.n)) : 0.0;
-  res.hessian = colored && lambda > 0 ? Matrix6d(fin.A / lambda) : fin.A;
+  res.hessian = coloured && lambda > 0 ? Matrix6d(fin.A / lambda) : fin.A;
   if (fin.n < std::size_t(std::max(params.min_correspondences, 6))) {
     res.message = "too few correspondences at the end (" + std::to_string(fin.n) + ")";
   } else if (res.fitness < params.min_fitness) {

@@ -58,7 +58,7 @@ struct PreparedView {
   std::shared_ptr<PointIndex> index; ///< over `points`
   /// Only with PrepareParams::intensity and a cloud with colours (else empty): intensity in [0, 1] of each
   /// registration point (mean over its voxel's neighbourhood) and its
-  /// tangent-plane gradient (capture/colored_icp.h), for IcpObjective::kColored.
+  /// tangent-plane gradient (capture/coloured_icp.h), for IcpObjective::kColored.
   std::vector<float> intensity;
   std::vector<Vec3f> intensity_gradient;
   std::size_t dropped_nonfinite = 0;
@@ -80,10 +80,10 @@ enum class IcpObjective {
   kSymmetric,     ///< (p - q) . (n_p + n_q), linearised (Rusinkiewicz 2019, "A symmetric objective function for ICP")
   kPointToPoint,  ///< |p - q|^2 (Besl & McKay 1992), same linearised solver
   /// Point-to-plane + photometric term (Park, Zhou & Koltun 2017, "Colored
-  /// point cloud registration revisited"; capture/colored_icp.h). Needs
+  /// point cloud registration revisited"; capture/coloured_icp.h). Needs
   /// `intensity` on both views and `intensity_gradient` on the target; without
   /// them it runs as point-to-plane.
-  kColored,
+  kColoured,
   /// Generalized ICP (Segal, Haehnel & Thrun 2009, "Generalized-ICP"): the
   /// plane-to-plane Mahalanobis distance r^T (C_q + R C_p R^T)^-1 r with
   /// plane-like covariances I - (1 - eps) n n^T from the views' normals
@@ -110,7 +110,7 @@ struct IcpParams {
   double huber_fraction = 0.3;
   /// kColored: weight lambda of the geometric term, (1 - lambda) on the colour
   /// term (the paper's and Open3D's 0.968; residuals in metres and in [0, 1] intensity).
-  double colored_lambda = 0.968;
+  double coloured_lambda = 0.968;
   /// kGeneralized: covariance eigenvalue along the normal (the others are 1),
   /// Segal's epsilon (0.001, as in the paper and PCL).
   double gicp_epsilon = 1e-3;

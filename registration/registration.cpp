@@ -212,7 +212,7 @@ class Registrar {
     pp.outlier_neighbors = p_.outlier_neighbors;
     pp.outlier_std_ratio = p_.outlier_std_ratio;
     pp.normal_neighbors = p_.normal_neighbors;
-    pp.intensity = p_.icp.objective == IcpObjective::kColored || p_.final_objective == IcpObjective::kColored;
+    pp.intensity = p_.icp.objective == IcpObjective::kColoured || p_.final_objective == IcpObjective::kColoured;
     views_.resize(n);
     feats_.resize(n);
     report("prepare", 0, int(n));
@@ -853,16 +853,16 @@ class Registrar {
     int merged = 0;
     report("merge", 0, to_merge);
     // Merge: colours only when every merged view has them (a cloud's colours are all or none).
-    bool colors = true;
+    bool colours = true;
     for (std::size_t i = 0; i < n; ++i)
-      if (usable_[i] && !views_[i].full.has_colors()) colors = false;
+      if (usable_[i] && !views_[i].full.has_colours()) colours = false;
     std::vector<Cloud> moved;
     std::vector<double> spacings;
     for (std::size_t i = 0; i < n; ++i) {
       if (!usable_[i]) continue;
       Cloud c = std::move(views_[i].full);  // not needed after the merge: no second copy of every view
       if (p_.fuse && !(p_.fuse_distance > 0)) spacings.push_back(median_spacing(c.points));
-      if (!colors) c.colors.clear();
+      if (!colours) c.colours.clear();
       if (!c.has_normals() && p_.merge_normals) {
         const PointIndex index(c.points);
         c.normals = pca_normals(index, p_.normal_neighbors, Vec3f::Zero());

@@ -74,8 +74,8 @@ Eigen::Matrix4d rotate_z_deg(double degrees) {
 
 namespace {
 
-constexpr Rgb kDiskColor{128, 128, 128};
-constexpr Rgb kDefaultColor{200, 200, 200};  // light grey for meshes without colour
+constexpr Rgb kDiskColour{128, 128, 128};
+constexpr Rgb kDefaultColour{200, 200, 200};  // light grey for meshes without colour
 
 // Scales the mesh into the object frame and moves it into the placed frame.
 TexturedMesh place(TexturedMesh m, const SyntheticParams& params, Vec3d& offset) {
@@ -102,7 +102,7 @@ Scene::Scene(TexturedMesh mesh, Texture texture, const SyntheticParams& params)
       params_(params) {
   // UVs only count when there is one per face corner.
   if (mesh_.corner_uv.size() != 3 * mesh_.mesh.faces.size()) mesh_.corner_uv.clear();
-  if (mesh_.mesh.colors.size() != mesh_.mesh.vertices.size()) mesh_.mesh.colors.clear();
+  if (mesh_.mesh.colours.size() != mesh_.mesh.vertices.size()) mesh_.mesh.colours.clear();
   float zmin = std::numeric_limits<float>::max(), zmax = -zmin;
   for (const Face& f : mesh_.mesh.faces)
     for (int k = 0; k < 3; ++k) {
@@ -168,9 +168,9 @@ Frame Scene::render(double angle_deg, std::uint64_t frame_index) const {
   const int w = p.width, h = p.height;
   Frame frame;
   frame.intrinsics = k;
-  frame.color_intrinsics = k;
+  frame.colour_intrinsics = k;
   frame.depth.assign(std::size_t(w) * h, 0.f);
-  if (p.color) frame.color.assign(std::size_t(w) * h * 3, 0);
+  if (p.colour) frame.colour.assign(std::size_t(w) * h * 3, 0);
   frame.reference_pose = object_from_camera(angle_deg);
 
   // Cast in the placed frame: the object stays put and the camera turns the
@@ -182,7 +182,7 @@ Frame Scene::render(double angle_deg, std::uint64_t frame_index) const {
   const double disk_r2 = p.table_radius * p.table_radius;
   const std::uint64_t seed = p.seed;
   const bool use_texture = !texture_.empty() && !mesh_.corner_uv.empty();
-  const bool use_vertex_colors = mesh_.mesh.has_colors();
+  const bool use_vertex_colours = mesh_.mesh.has_colours();
 
   tbb::parallel_for(tbb::blocked_range<int>(0, h), [&](const tbb::blocked_range<int>& rows) {
     for (int row = rows.begin(); row != rows.end(); ++row) {
@@ -211,19 +211,19 @@ Frame Scene::render(double angle_deg, std::uint64_t frame_index) const {
             frame.depth[pixel] = z > 0 ? float(z) : 0.f;
           }
         }
-        if (!p.color) continue;
-        Rgb c = kDiskColor;
+        if (!p.colour) continue;
+        Rgb c = kDiskColour;
         if (hit) {
-          c = use_texture || use_vertex_colors
-                  ? surface_color(mesh_, texture_, hit->face, hit->u, hit->v)
-                  : kDefaultColor;
+          c = use_texture || use_vertex_colours
+                  ? surface_colour(mesh_, texture_, hit->face, hit->u, hit->v)
+                  : kDefaultColour;
         }
-        std::uint8_t* out = &frame.color[pixel * 3];
+        std::uint8_t* out = &frame.colour[pixel * 3];
         const std::uint8_t channels[3] = {c.r, c.g, c.b};
         for (int ch = 0; ch < 3; ++ch) {
           double value = channels[ch];
-          if (p.color_noise > 0)
-            value += p.color_noise * gaussian(seed, frame_index, pixel, 3 + 2 * ch);
+          if (p.colour_noise > 0)
+            value += p.colour_noise * gaussian(seed, frame_index, pixel, 3 + 2 * ch);
           out[ch] = std::uint8_t(std::clamp(std::lround(value), 0L, 255L));
         }
       }

@@ -54,7 +54,7 @@ class ReplayScanner final : public Scanner {
     caps.points = true;
     if (!session_) return caps;
     const SessionManifest& m = session_->manifest();
-    for (const ViewRecord& v : m.views) caps.color = caps.color || !v.color_image.empty();
+    for (const ViewRecord& v : m.views) caps.colour = caps.colour || !v.colour_image.empty();
     if (m.intrinsics) caps.intrinsics = *m.intrinsics;
     caps.axis = m.axis;
     return caps;
@@ -79,7 +79,7 @@ class ReplayScanner final : public Scanner {
       throw DeviceError(uri_.text + ": " + e.what());
     }
     if (m.intrinsics) frame.intrinsics = *m.intrinsics;
-    if (!rec.color_image.empty()) load_color(session_->dir() / rec.color_image, frame);
+    if (!rec.colour_image.empty()) load_colour(session_->dir() / rec.colour_image, frame);
     frame.timestamp = rec.timestamp ? *rec.timestamp
                                     : std::chrono::duration<double>(
                                           std::chrono::system_clock::now().time_since_epoch())
@@ -122,24 +122,24 @@ class ReplayScanner final : public Scanner {
   }
 
   // Colour images are recorded as PNG; frames carry RGB rows.
-  void load_color(const fs::path& path, Frame& frame) const {
+  void load_colour(const fs::path& path, Frame& frame) const {
     Texture image;
     try {
       image = load_texture(path);
     } catch (const IoError& e) {
       throw DeviceError(uri_.text + ": " + e.what());
     }
-    frame.color = std::move(image.rgb);
+    frame.colour = std::move(image.rgb);
     const int cols = image.width, rows = image.height;
     // Recorded intrinsics describe the colour image when the sizes agree;
     // otherwise only its size is known (no calibration is invented).
     const auto& k = session_->manifest().intrinsics;
     if (k && k->width == cols && k->height == rows) {
-      frame.color_intrinsics = *k;
+      frame.colour_intrinsics = *k;
     } else {
-      frame.color_intrinsics = Intrinsics{};
-      frame.color_intrinsics.width = cols;
-      frame.color_intrinsics.height = rows;
+      frame.colour_intrinsics = Intrinsics{};
+      frame.colour_intrinsics.width = cols;
+      frame.colour_intrinsics.height = rows;
     }
   }
 

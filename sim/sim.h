@@ -42,11 +42,11 @@ struct SyntheticParams {
   double noise = 0.0005;        ///< [noise] depth sigma constant term
   double noise_quadratic = 0;   ///< [noise_quadratic] depth sigma growth, sigma += k z^2
   double dropout = 0.0;         ///< [dropout] probability a pixel returns nothing
-  double color_noise = 0.0;     ///< [color_noise] sigma of per-channel colour noise (0-255 units)
+  double colour_noise = 0.0;     ///< [color_noise] sigma of per-channel colour noise (0-255 units)
   double table_radius = 0.15;   ///< [table_radius] turntable disk radius (rendered grey)
   double max_range = 3.0;       ///< [max_range] beyond it: no return
   unsigned seed = 1;            ///< [seed]
-  bool color = true;            ///< [color] render a colour image
+  bool colour = true;            ///< [color] render a colour image
 };
 
 /// Parses the options map; DeviceError naming the key on an unknown key or bad value.

@@ -95,8 +95,8 @@ SyntheticParams synthetic_params_from_options(const DeviceOptions& options,
       p.dropout = num();
       check(p.dropout >= 0 && p.dropout <= 1, "must be in [0, 1]");
     } else if (key == "color_noise") {
-      p.color_noise = num();
-      check(p.color_noise >= 0, "must be >= 0");
+      p.colour_noise = num();
+      check(p.colour_noise >= 0, "must be >= 0");
     } else if (key == "table_radius") {
       p.table_radius = num();
       check(p.table_radius >= 0, "must be >= 0");
@@ -109,7 +109,7 @@ SyntheticParams synthetic_params_from_options(const DeviceOptions& options,
             "must be in [0, 4294967295]");
       p.seed = unsigned(n);
     } else if (key == "color") {
-      p.color = parse_bool_option(uri, key, value);
+      p.colour = parse_bool_option(uri, key, value);
     } else {
       unknown_option(uri, key, kKnown);
     }
@@ -159,7 +159,7 @@ class SyntheticScanner final : public Scanner {
   ScannerCapabilities capabilities() const override {
     ScannerCapabilities caps;
     caps.depth = true;
-    caps.color = params_.color;
+    caps.colour = params_.colour;
     // Intrinsics depend on the options only. The axis depends on where the camera
     // aims: known up front with an explicit target_height, else (mesh mid-height)
     // once the mesh is loaded by open().

@@ -109,7 +109,7 @@ void check_not_a_recording(const std::string& out) {
       try {
         for (const ViewRecord& v : manifest_from_yaml(read_file_bytes(manifest), manifest.string()).views)
           recorded = recorded || p == (dir / v.file).lexically_normal() ||
-                     (!v.color_image.empty() && p == (dir / v.color_image).lexically_normal());
+                     (!v.colour_image.empty() && p == (dir / v.colour_image).lexically_normal());
       } catch (const Error&) {
         // An unreadable manifest lists nothing to compare with; the manifest itself is guarded.
       }
@@ -154,7 +154,7 @@ JsonObject write_merged(const Session& session, const fs::path& out, bool quiet)
       .add("points", merged.cloud.size())
       .add("views", merged.merged_views)
       .add("skipped_views", merged.skipped_views)
-      .add("colours", merged.cloud.has_colors());
+      .add("colours", merged.cloud.has_colours());
 }
 
 }  // namespace station::cli

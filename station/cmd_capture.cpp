@@ -300,7 +300,7 @@ int cmd_import(const Common& c, const ImportArgs& a) {
       for (std::size_t i = 0; i < cl.size(); i += a.every) {
         s.points.push_back(cl.points[i]);
         if (cl.has_normals()) s.normals.push_back(cl.normals[i]);
-        if (cl.has_colors()) s.colors.push_back(cl.colors[i]);
+        if (cl.has_colours()) s.colours.push_back(cl.colours[i]);
       }
       cl = std::move(s);
     }

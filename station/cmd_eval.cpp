@@ -43,9 +43,9 @@ struct EvalInput {
     return textured.mesh.as_cloud();
   }
   /// The texture as a surface colour, when there is one.
-  std::function<Rgb(int, double, double)> surface_color() const {
+  std::function<Rgb(int, double, double)> surface_colour() const {
     if (texture.empty() || textured.corner_uv.empty()) return {};
-    return [this](int f, double u, double v) { return station::surface_color(textured, texture, f, u, v); };
+    return [this](int f, double u, double v) { return station::surface_colour(textured, texture, f, u, v); };
   }
 };
 
@@ -107,8 +107,8 @@ int cmd_eval(const Common& c, const std::string& a, const std::string& b, int sa
   if (pm_args.enabled) pm = points_metrics(ia, ib, pm_args, cfg.threads);
   const Shape sa = ia.shape(), sb = ib.shape();
   EvalParams params;
-  params.a_surface_color = ia.surface_color();
-  params.b_surface_color = ib.surface_color();
+  params.a_surface_colour = ia.surface_colour();
+  params.b_surface_colour = ib.surface_colour();
   params.mesh_samples = samples;
   params.seed = seed;
   params.threads = cfg.threads;
@@ -121,7 +121,7 @@ int cmd_eval(const Common& c, const std::string& a, const std::string& b, int sa
     j.add("command", "eval").add("a", a).add("b", b).add("chamfer", r.chamfer)
         .add("hausdorff", r.hausdorff).add("p95", r.p95).add("a_to_b", ab).add("b_to_a", ba);
     if (r.normal_consistency) j.add("normal_consistency", *r.normal_consistency); else j.add_null("normal_consistency");
-    if (r.color_error) j.add("color_error", *r.color_error); else j.add_null("color_error");
+    if (r.colour_error) j.add("color_error", *r.colour_error); else j.add_null("color_error");
     if (pm) {
       JsonObject p;
       p.add("points", pm->points).add("accuracy", pm->accuracy).add("uniformity", pm->surface_uniformity)
@@ -148,7 +148,7 @@ int cmd_eval(const Common& c, const std::string& a, const std::string& b, int sa
     std::printf("chamfer (mean symmetric) %.6g\nhausdorff %.6g\np95 %.6g\n", r.chamfer, r.hausdorff, r.p95);
     if (r.normal_consistency) std::printf("normal consistency %.4f\n", *r.normal_consistency);
     else std::printf("normal consistency: n/a (normals missing)\n");
-    if (r.color_error) std::printf("colour error e_col %.6g\n", *r.color_error);
+    if (r.colour_error) std::printf("colour error e_col %.6g\n", *r.colour_error);
     else std::printf("colour error: n/a (colours missing on one side)\n");
     if (pm) {
       std::printf("points metrics (%zu points of A against mesh B):\n", pm->points);

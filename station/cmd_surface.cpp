@@ -95,7 +95,7 @@ int cmd_fit(const Common& c, const FitArgs& a) {
   }
   bar.finish();
   Mesh mesh = fit.mesh;
-  const bool colour = target.has_colors() && !a.no_colour;
+  const bool colour = target.has_colours() && !a.no_colour;
   if (colour) {
     ColourParams cp;
     cp.threads = cfg.threads;

@@ -162,7 +162,7 @@ RegistrationParams registration_params(const PipelineConfig& p) {
   IcpObjective o = IcpObjective::kPointToPlane;
   if (p.reg.objective == "symmetric") o = IcpObjective::kSymmetric;
   else if (p.reg.objective == "point-to-point") o = IcpObjective::kPointToPoint;
-  else if (p.reg.objective == "colored") o = IcpObjective::kColored;
+  else if (p.reg.objective == "colored") o = IcpObjective::kColoured;
   else if (p.reg.objective == "generalized") o = IcpObjective::kGeneralized;
   else if (p.reg.objective != "point-to-plane")
     throw InvalidInput("register.objective: unknown objective '" + p.reg.objective + "'");

@@ -210,7 +210,7 @@ Cloud thin(const Cloud& c, std::size_t max_points) {
     const std::size_t i = std::size_t(k * step);
     out.points.push_back(c.points[i]);
     if (c.has_normals()) out.normals.push_back(c.normals[i]);
-    if (c.has_colors()) out.colors.push_back(c.colors[i]);
+    if (c.has_colours()) out.colours.push_back(c.colours[i]);
   }
   return out;
 }
@@ -312,13 +312,13 @@ void write_report(const fs::path& out_dir, const fs::path& input, bool session, 
     ReportSection s;
     s.title = "Mesh";
     s.text = std::to_string(m.vertices.size()) + " vertices, " + std::to_string(m.faces.size()) + " faces. " +
-             run.mesh.filename().string() + ", from four sides" + (m.has_colors() ? ", with and without colour." : ".");
+             run.mesh.filename().string() + ", from four sides" + (m.has_colours() ? ", with and without colour." : ".");
     const char* names[] = {"front", "left", "back", "right"};
     for (int q = 0; q < 4; ++q) {
       RenderOptions o;
-      if (m.has_colors())
+      if (m.has_colours())
         s.figures.push_back({std::string(names[q]) + ", colour", encode_png(render_mesh(m, view_from_side(q, box, 300, up), o))});
-      o.use_colors = false;
+      o.use_colours = false;
       s.figures.push_back({std::string(names[q]) + ", shape", encode_png(render_mesh(m, view_from_side(q, box, 300, up), o))});
     }
     sections.push_back(s);
@@ -329,10 +329,10 @@ void write_report(const fs::path& out_dir, const fs::path& input, bool session, 
       const std::string flags = read_file_bytes(bfile);
       if (flags.size() == m.vertices.size()) {
         Mesh marked = m;
-        marked.colors.resize(marked.vertices.size());
+        marked.colours.resize(marked.vertices.size());
         std::size_t nb = 0;
         for (std::size_t i = 0; i < flags.size(); ++i) {
-          marked.colors[i] = flags[i] ? Rgb{220, 30, 30} : Rgb{210, 210, 210};
+          marked.colours[i] = flags[i] ? Rgb{220, 30, 30} : Rgb{210, 210, 210};
           nb += flags[i] != 0;
         }
         ReportSection b;
@@ -607,7 +607,7 @@ class Runner {
     });
     bar.finish();
     Mesh mesh = fit.mesh;
-    const bool colour = c.colour && input.has_colors();
+    const bool colour = c.colour && input.has_colours();
     if (colour) {
       colour_mesh(mesh, fit_colour(input, colour_params(surface_params(cfg_.pipeline, cfg_.threads))),
                   cfg_.threads);

@@ -108,7 +108,7 @@ Image render_mesh(const Mesh& mesh, const RenderView& view, const RenderOptions&
   std::vector<Vec3d> s(mesh.vertices.size());
   for (std::size_t i = 0; i < s.size(); ++i) s[i] = proj.project(mesh.vertices[i]);
   std::vector<double> zbuf(std::size_t(view.width) * view.height, std::numeric_limits<double>::infinity());
-  const bool colours = o.use_colors && mesh.colors.size() == mesh.vertices.size();
+  const bool colours = o.use_colours && mesh.colours.size() == mesh.vertices.size();
   for (const Face& f : mesh.faces) {
     if ((f.array() < 0).any() || (f.array() >= int(s.size())).any()) continue;
     const Vec3d &a = s[f[0]], &b = s[f[1]], &c = s[f[2]];
@@ -136,7 +136,7 @@ Image render_mesh(const Mesh& mesh, const RenderView& view, const RenderOptions&
         zb = z;
         Rgb col = o.base;
         if (colours) {
-          const Rgb &ca = mesh.colors[f[0]], &cb = mesh.colors[f[1]], &cc = mesh.colors[f[2]];
+          const Rgb &ca = mesh.colours[f[0]], &cb = mesh.colours[f[1]], &cc = mesh.colours[f[2]];
           auto mix = [&](std::uint8_t u, std::uint8_t v, std::uint8_t t) {
             return std::uint8_t(std::clamp(std::lround(w0 * u + w1 * v + w2 * t), 0L, 255L));
           };
@@ -149,14 +149,14 @@ Image render_mesh(const Mesh& mesh, const RenderView& view, const RenderOptions&
 }
 
 Image render_points(const Cloud& cloud, const RenderView& view, const RenderOptions& o,
-                    const std::vector<Rgb>* colors) {
+                    const std::vector<Rgb>* colours) {
   if (view.width <= 0 || view.height <= 0) throw InvalidInput("render: empty image size");
   Image img(view.width, view.height, o.background);
   const Projector proj(view, box_of(view, cloud.points));
   std::vector<double> zbuf(std::size_t(view.width) * view.height, std::numeric_limits<double>::infinity());
-  const std::vector<Rgb>* cols = colors && colors->size() == cloud.size()
-                                     ? colors
-                                     : (o.use_colors && cloud.colors.size() == cloud.size() ? &cloud.colors
+  const std::vector<Rgb>* cols = colours && colours->size() == cloud.size()
+                                     ? colours
+                                     : (o.use_colours && cloud.colours.size() == cloud.size() ? &cloud.colours
                                                                                            : nullptr);
   const bool normals = cloud.normals.size() == cloud.size();
   const int r0 = -(o.point_size - 1) / 2, r1 = o.point_size / 2;

@@ -44,7 +44,7 @@ struct RenderOptions {
   Rgb background{255, 255, 255};
   /// Used where the geometry has no colours, or when use_colors is false.
   Rgb base{200, 200, 205};
-  bool use_colors = true;
+  bool use_colours = true;
   /// Lambert shading with a light at the eye: c * (ambient + (1 - ambient) |n . l|).
   bool shade = true;
   double ambient = 0.3;
@@ -65,7 +65,7 @@ Image render_mesh(const Mesh& mesh, const RenderView& view, const RenderOptions&
 /// Draws points as squares of options.point_size. `colors` (optional, one per point)
 /// overrides the cloud's own colours; normals shade when present.
 Image render_points(const Cloud& cloud, const RenderView& view, const RenderOptions& options = {},
-                    const std::vector<Rgb>* colors = nullptr);
+                    const std::vector<Rgb>* colours = nullptr);
 
 /// PNG bytes of the image (InvalidInput on an empty image).
 std::string encode_png(const Image& image);

@@ -105,16 +105,16 @@ TEST(FrameToCloud, BackProjectsDepthWithSensorFacingNormals) {
   f.depth.assign(48, 2.0f);
   f.depth[0] = 0;                                   // no return
   f.depth[1] = std::numeric_limits<float>::quiet_NaN();  // broken pixel
-  f.color_intrinsics = f.intrinsics;
-  f.color.assign(48 * 3, 7);
+  f.colour_intrinsics = f.intrinsics;
+  f.colour.assign(48 * 3, 7);
   const Cloud c = frame_to_cloud(f);
   ASSERT_EQ(c.size(), 46u);
   ASSERT_TRUE(c.has_normals());
-  ASSERT_TRUE(c.has_colors());
+  ASSERT_TRUE(c.has_colours());
   for (std::size_t i = 0; i < c.size(); ++i) {
     EXPECT_FLOAT_EQ(c.points[i].z(), 2.0f);
     EXPECT_NEAR(c.normals[i].z(), -1.0f, 1e-5);
-    EXPECT_EQ(c.colors[i].g, 7);
+    EXPECT_EQ(c.colours[i].g, 7);
   }
   // Pixel (u=7, v=5): x = (7 - 3.5) * 2 / 10.
   EXPECT_NEAR(c.points.back().x(), 0.7f, 1e-6);

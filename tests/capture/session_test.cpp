@@ -55,7 +55,7 @@ SessionManifest full_manifest() {
   a.angle_deg = 0.0;
   a.initial_pose = awkward_pose(0.1, Vec3d(1, 2, 3), Vec3d(1e-300, -0.0, 1.0 / 7.0));
   a.reference_pose = awkward_pose(M_PI / 3, Vec3d(0, 1, 0), Vec3d(5e-324, 1e300, -2.5));
-  a.color_image = "view_000.png";
+  a.colour_image = "view_000.png";
   a.timestamp = 1763776800.25;
   a.points = 30512;
   m.views.push_back(a);
@@ -115,7 +115,7 @@ void expect_same(const SessionManifest& a, const SessionManifest& b) {
     if (x.reference_pose) {
       EXPECT_TRUE(same_bits(*x.reference_pose, *y.reference_pose));
     }
-    EXPECT_EQ(x.color_image, y.color_image);
+    EXPECT_EQ(x.colour_image, y.colour_image);
     ASSERT_EQ(x.timestamp.has_value(), y.timestamp.has_value());
     if (x.timestamp) {
       EXPECT_TRUE(same_bits(*x.timestamp, *y.timestamp));
@@ -173,7 +173,7 @@ Cloud small_cloud(int n, float offset) {
   for (int i = 0; i < n; ++i) {
     c.points.push_back(Vec3f(offset + 0.001f * i, -0.5f * i, 1.0f / (i + 1)));
     c.normals.push_back(Vec3f(0, 0, 1));
-    c.colors.push_back(Rgb{std::uint8_t(i), std::uint8_t(2 * i), 200});
+    c.colours.push_back(Rgb{std::uint8_t(i), std::uint8_t(2 * i), 200});
   }
   return c;
 }
@@ -235,7 +235,7 @@ TEST(ManifestRoundTrip, HandWrittenExample) {
   Eigen::Matrix4d ref = Eigen::Matrix4d::Identity();
   ref.topRightCorner<3, 1>() = Vec3d(0.1, 0.2, 0.3);
   EXPECT_EQ(*m.views[0].reference_pose, ref);
-  EXPECT_EQ(m.views[0].color_image, "view_000.png");
+  EXPECT_EQ(m.views[0].colour_image, "view_000.png");
   EXPECT_EQ(*m.views[0].timestamp, 1763776800.25);
   EXPECT_EQ(m.views[0].points, 30512u);
   EXPECT_EQ(m.views[1].file, "view_001.ply");
@@ -624,8 +624,8 @@ TEST(Session, AddViewAndReopen) {
     const std::size_t idx = i == 1 ? s.add_view(clouds.back(), r, rgb, 2, 1) : s.add_view(clouds.back(), r);
     EXPECT_EQ(idx, std::size_t(i));
   }
-  EXPECT_EQ(s.manifest().views[1].color_image, "view_001.png");
-  EXPECT_TRUE(s.manifest().views[0].color_image.empty());
+  EXPECT_EQ(s.manifest().views[1].colour_image, "view_001.png");
+  EXPECT_TRUE(s.manifest().views[0].colour_image.empty());
 
   const Session back = Session::open(dir.path());
   expect_same(s.manifest(), back.manifest());

@@ -25,9 +25,9 @@ TEST(Geometry, CloudConsistencyChecksAttributeSizes) {
     EXPECT_NE(std::string(e.what()).find("normals"), std::string::npos);
   }
   c.normals.clear();
-  c.colors = {Rgb{1, 2, 3}, Rgb{}, Rgb{}};
+  c.colours = {Rgb{1, 2, 3}, Rgb{}, Rgb{}};
   EXPECT_THROW(c.check_consistent(), InvalidInput);
-  c.colors.pop_back();
+  c.colours.pop_back();
   EXPECT_NO_THROW(c.check_consistent());
 }
 
@@ -39,21 +39,21 @@ TEST(Geometry, MeshConsistencyChecksFaceIndices) {
   m.faces.back() = Face(-1, 1, 2);
   EXPECT_THROW(m.check_consistent(), InvalidInput);
   m.faces.pop_back();
-  m.colors.resize(7);
+  m.colours.resize(7);
   EXPECT_THROW(m.check_consistent(), InvalidInput);
-  m.colors.resize(8);
+  m.colours.resize(8);
   m.normals.resize(9);
   EXPECT_THROW(m.check_consistent(), InvalidInput);
 }
 
 TEST(Geometry, AsCloudKeepsVertexAttributes) {
   Mesh m = test::box(Vec3f::Zero(), Vec3f::Ones());
-  m.colors.assign(m.vertices.size(), Rgb{9, 8, 7});
+  m.colours.assign(m.vertices.size(), Rgb{9, 8, 7});
   const Cloud c = m.as_cloud();
   EXPECT_EQ(c.points, m.vertices);
   EXPECT_TRUE(c.normals.empty());
-  ASSERT_EQ(c.colors.size(), 8u);
-  EXPECT_EQ(c.colors[5], (Rgb{9, 8, 7}));
+  ASSERT_EQ(c.colours.size(), 8u);
+  EXPECT_EQ(c.colours[5], (Rgb{9, 8, 7}));
 }
 
 TEST(Geometry, BoundingBox) {

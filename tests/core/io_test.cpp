@@ -77,14 +77,14 @@ Mesh coloured_sphere() {
   m.normals = vertex_normals(m);
   std::mt19937 rng(7);
   for (std::size_t i = 0; i < m.vertices.size(); ++i)
-    m.colors.push_back(Rgb{std::uint8_t(rng()), std::uint8_t(rng()), std::uint8_t(rng())});
+    m.colours.push_back(Rgb{std::uint8_t(rng()), std::uint8_t(rng()), std::uint8_t(rng())});
   return m;
 }
 
 void expect_same_mesh(const Mesh& a, const Mesh& b) {
   EXPECT_EQ(a.vertices, b.vertices);
   EXPECT_EQ(a.normals, b.normals);
-  EXPECT_EQ(a.colors, b.colors);
+  EXPECT_EQ(a.colours, b.colours);
   EXPECT_EQ(a.faces, b.faces);
 }
 
@@ -162,14 +162,14 @@ TEST(IoPly, CloudRoundTripHasNoFaces) {
   test::TempDir dir;
   Cloud c;
   c.points = {Vec3f(1e-7f, -3.25f, 1e6f), Vec3f(0, 0, 0)};
-  c.colors = {Rgb{0, 128, 255}, Rgb{1, 2, 3}};
+  c.colours = {Rgb{0, 128, 255}, Rgb{1, 2, 3}};
   for (PlyFormat f : {PlyFormat::kBinaryLittleEndian, PlyFormat::kAscii}) {
     write_ply(dir / "c.ply", c, f);
     EXPECT_EQ(slurp(dir / "c.ply").find("element face"), std::string::npos);
     const Cloud r = read_cloud(dir / "c.ply");
     EXPECT_EQ(r.points, c.points);
     EXPECT_TRUE(r.normals.empty());
-    EXPECT_EQ(r.colors, c.colors);
+    EXPECT_EQ(r.colours, c.colours);
   }
 }
 
@@ -205,8 +205,8 @@ TEST(IoPly, BigEndianWithMixedTypes) {
   EXPECT_EQ(m.vertices[0], Vec3f(0.5f, -7, 1.5f));
   EXPECT_EQ(m.vertices[1], Vec3f(-1.25f, 300, 2.5f));
   EXPECT_EQ(m.vertices[2], Vec3f(3, 0, -0.125f));
-  ASSERT_EQ(m.colors.size(), 3u);
-  EXPECT_EQ(m.colors[2], (Rgb{20, 200, 255}));
+  ASSERT_EQ(m.colours.size(), 3u);
+  EXPECT_EQ(m.colours[2], (Rgb{20, 200, 255}));
   ASSERT_EQ(m.faces.size(), 1u);
   EXPECT_EQ(m.faces[0], Face(2, 0, 1));
 }
@@ -220,9 +220,9 @@ TEST(IoPly, PropertyOrderTypesAndPolygons) {
   ASSERT_EQ(m.normals.size(), 6u);
   EXPECT_EQ(m.normals[0], Vec3f(0, 0, 1));  // nx ny nz listed as nz nx ny
   EXPECT_EQ(m.normals[4], Vec3f(1, 0, 0));
-  ASSERT_EQ(m.colors.size(), 6u);  // float colours in [0,1] scaled to 0..255
-  EXPECT_EQ(m.colors[0], (Rgb{0, 128, 255}));
-  EXPECT_EQ(m.colors[3], (Rgb{255, 51, 255}));
+  ASSERT_EQ(m.colours.size(), 6u);  // float colours in [0,1] scaled to 0..255
+  EXPECT_EQ(m.colours[0], (Rgb{0, 128, 255}));
+  EXPECT_EQ(m.colours[3], (Rgb{255, 51, 255}));
   // A quad (2 triangles) and a pentagon (3), fan-triangulated.
   ASSERT_EQ(m.faces.size(), 5u);
   EXPECT_EQ(m.faces[0], Face(0, 1, 2));
@@ -237,7 +237,7 @@ TEST(IoPly, UnknownElementWithListsIsSkipped) {
   ASSERT_EQ(m.vertices.size(), 4u);
   EXPECT_EQ(m.vertices[3], Vec3f(1, 1, 0.5f));
   EXPECT_TRUE(m.faces.empty());
-  EXPECT_TRUE(m.colors.empty());
+  EXPECT_TRUE(m.colours.empty());
 }
 
 TEST(IoPly, BinaryUnknownElementsBeforeAndAfterVertices) {
@@ -277,9 +277,9 @@ TEST(IoPly, ReadsCrlfAsciiAndAliases) {
   const Mesh m = parse_ply(b, "crlf.ply");
   ASSERT_EQ(m.vertices.size(), 2u);
   EXPECT_EQ(m.vertices[1], Vec3f(7, -8, -9));
-  ASSERT_EQ(m.colors.size(), 2u);
-  EXPECT_EQ(m.colors[0], (Rgb{4, 5, 6}));
-  EXPECT_EQ(m.colors[1], (Rgb{255, 0, 0}));  // clamped
+  ASSERT_EQ(m.colours.size(), 2u);
+  EXPECT_EQ(m.colours[0], (Rgb{4, 5, 6}));
+  EXPECT_EQ(m.colours[1], (Rgb{255, 0, 0}));  // clamped
 }
 
 const std::string kAsciiHead =
@@ -361,11 +361,11 @@ TEST(IoPcd, AsciiDropsNanPointsAndDecodesRgb) {
   ASSERT_EQ(c.size(), 4u);
   EXPECT_EQ(c.points[0], Vec3f(0, 0, 1));
   EXPECT_EQ(c.points[3], Vec3f(1.5f, -1, 2.5f));
-  ASSERT_EQ(c.colors.size(), 4u);
-  EXPECT_EQ(c.colors[0], (Rgb{255, 0, 0}));
-  EXPECT_EQ(c.colors[1], (Rgb{0, 255, 0}));
-  EXPECT_EQ(c.colors[2], (Rgb{0, 0, 255}));
-  EXPECT_EQ(c.colors[3], (Rgb{0x12, 0x34, 0x56}));
+  ASSERT_EQ(c.colours.size(), 4u);
+  EXPECT_EQ(c.colours[0], (Rgb{255, 0, 0}));
+  EXPECT_EQ(c.colours[1], (Rgb{0, 255, 0}));
+  EXPECT_EQ(c.colours[2], (Rgb{0, 0, 255}));
+  EXPECT_EQ(c.colours[3], (Rgb{0x12, 0x34, 0x56}));
   EXPECT_TRUE(c.normals.empty());
 }
 
@@ -378,8 +378,8 @@ TEST(IoPcd, AsciiFloatEncodedRgb) {
   s.precision(9);
   s << pcd_header("x y z rgb", "4 4 4 4", "F F F F", "1 1 1 1", 1, 1, "ascii") << "1 2 3 " << as_float << "\n";
   const Cloud c = parse_pcd(s.str(), "f.pcd");
-  ASSERT_EQ(c.colors.size(), 1u);
-  EXPECT_EQ(c.colors[0], (Rgb{255, 128, 0}));
+  ASSERT_EQ(c.colours.size(), 1u);
+  EXPECT_EQ(c.colours[0], (Rgb{255, 128, 0}));
 }
 
 /// Builds one binary point: x y z (F4), a 3-byte padding field, rgb (F4 with packed bits), normal (F4 x3).
@@ -403,9 +403,9 @@ void expect_bin_points(const Cloud& c) {
   ASSERT_EQ(c.size(), 2u);
   EXPECT_EQ(c.points[0], Vec3f(1, 2, 3));
   EXPECT_EQ(c.points[1], Vec3f(-1, 0.5f, 2));
-  ASSERT_EQ(c.colors.size(), 2u);
-  EXPECT_EQ(c.colors[0], (Rgb{0x10, 0x20, 0x30}));
-  EXPECT_EQ(c.colors[1], (Rgb{0xab, 0xcd, 0xef}));
+  ASSERT_EQ(c.colours.size(), 2u);
+  EXPECT_EQ(c.colours[0], (Rgb{0x10, 0x20, 0x30}));
+  EXPECT_EQ(c.colours[1], (Rgb{0xab, 0xcd, 0xef}));
   ASSERT_EQ(c.normals.size(), 2u);
   EXPECT_EQ(c.normals[1], Vec3f(1, 0, 0));
 }
@@ -463,9 +463,9 @@ TEST(IoPcd, CompressedFixtureFromIndependentEncoder) {
   EXPECT_EQ(c.points[0], Vec3f(0, 0, 1));
   EXPECT_EQ(c.points[1], Vec3f(1, -0.5f, 3));  // pixel 2
   EXPECT_EQ(c.points[9], Vec3f(5.5f, -2.75f, 12));
-  ASSERT_EQ(c.colors.size(), 10u);
-  EXPECT_EQ(c.colors[1], (Rgb{20, 40, 253}));
-  EXPECT_EQ(c.colors[9], (Rgb{110, 220, 244}));
+  ASSERT_EQ(c.colours.size(), 10u);
+  EXPECT_EQ(c.colours[1], (Rgb{20, 40, 253}));
+  EXPECT_EQ(c.colours[9], (Rgb{110, 220, 244}));
   ASSERT_EQ(c.normals.size(), 10u);
   EXPECT_EQ(c.normals[4], Vec3f(0, 0, 1));
 }
@@ -525,12 +525,12 @@ TEST(IoObj, RoundTripWithColoursAndNormals) {
   write_obj(dir / "m.obj", m);
   const Mesh r = read_mesh(dir / "m.obj");
   EXPECT_EQ(r.vertices, m.vertices);
-  EXPECT_EQ(r.colors, m.colors);
+  EXPECT_EQ(r.colours, m.colours);
   EXPECT_EQ(r.faces, m.faces);
   ASSERT_EQ(r.normals.size(), m.normals.size());
   for (std::size_t i = 0; i < m.normals.size(); ++i) EXPECT_TRUE(r.normals[i].isApprox(m.normals[i], 1e-6f));
 
-  m.colors.clear();
+  m.colours.clear();
   m.normals.clear();
   write_mesh(dir / "plain.OBJ", m);
   const std::string text = slurp(dir / "plain.OBJ");
@@ -622,17 +622,17 @@ TEST(IoOff, ColouredFixture) {
   ASSERT_EQ(m.faces.size(), 3u);
   EXPECT_EQ(m.faces[1], Face(0, 2, 3));
   EXPECT_EQ(m.faces[2], Face(0, 2, 3));
-  ASSERT_EQ(m.colors.size(), 4u);
-  EXPECT_EQ(m.colors[1], (Rgb{0, 255, 0}));
-  EXPECT_EQ(m.colors[3], (Rgb{10, 20, 30}));
+  ASSERT_EQ(m.colours.size(), 4u);
+  EXPECT_EQ(m.colours[1], (Rgb{0, 255, 0}));
+  EXPECT_EQ(m.colours[3], (Rgb{10, 20, 30}));
 }
 
 TEST(IoOff, VariantsAndErrors) {
   const Mesh m = parse_off("OFF 3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n", "inline.off");
   EXPECT_EQ(m.faces.size(), 1u);
   const Mesh c = parse_off("COFF\n1 0 0\n0 0 0 1.0 0.5 0 1\n", "f.off");
-  ASSERT_EQ(c.colors.size(), 1u);
-  EXPECT_EQ(c.colors[0], (Rgb{255, 128, 0}));
+  ASSERT_EQ(c.colours.size(), 1u);
+  EXPECT_EQ(c.colours[0], (Rgb{255, 128, 0}));
   const Mesh n = parse_off("NOFF\n1 0 0\n0 0 0 0 1 0\n", "n.off");
   ASSERT_EQ(n.normals.size(), 1u);
   EXPECT_EQ(n.normals[0], Vec3f(0, 1, 0));
@@ -688,7 +688,7 @@ TEST(IoFiles, DispatchByExtensionAndMagic) {
 
   // Mesh files as clouds, PCD as a face-less mesh, PLY as an untextured mesh.
   EXPECT_EQ(read_cloud(dir / "box.obj").points, m.vertices);
-  EXPECT_EQ(read_cloud(fixture("coloured.off")).colors.size(), 4u);
+  EXPECT_EQ(read_cloud(fixture("coloured.off")).colours.size(), 4u);
   const Mesh pm = read_mesh(fixture("organised_compressed.pcd"));
   EXPECT_EQ(pm.vertices.size(), 10u);
   EXPECT_TRUE(pm.faces.empty());

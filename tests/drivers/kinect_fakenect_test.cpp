@@ -123,7 +123,7 @@ TEST(Fakenect, GrabsTheRecordedFrames) {
     ASSERT_EQ(f.intrinsics.height, 480);
     EXPECT_DOUBLE_EQ(f.intrinsics.cx, 320);
     ASSERT_EQ(f.depth.size(), 640u * 480u);
-    ASSERT_EQ(f.color.size(), 640u * 480u * 3u);
+    ASSERT_EQ(f.colour.size(), 640u * 480u * 3u);
     std::size_t valid = 0;
     for (std::size_t p = 0; p < f.depth.size(); ++p) {
       ASSERT_EQ(f.depth[p], kinect_disparity_to_metres(rec[i].raw[p]))
@@ -131,7 +131,7 @@ TEST(Fakenect, GrabsTheRecordedFrames) {
       valid += f.depth[p] > 0;
     }
     EXPECT_GT(valid, 200000u) << "frame " << i;
-    EXPECT_EQ(f.color, rec[i].rgb) << "frame " << i;
+    EXPECT_EQ(f.colour, rec[i].rgb) << "frame " << i;
     if (i == 0) {
       // The accelerometer record before the first frame says -5 degrees.
       ASSERT_TRUE(kinect->tilt_degrees());
@@ -200,7 +200,7 @@ TEST(Fakenect, RecordsASessionAndKeepsItWhenTheDeviceGoes) {
     EXPECT_DOUBLE_EQ(*v.angle_deg, 90.0 * i);
     EXPECT_GT(v.points, 200000u);
     std::printf("[ KINECT   ] view %zu: %zu points\n", i, v.points);
-    EXPECT_FALSE(v.color_image.empty());
+    EXPECT_FALSE(v.colour_image.empty());
     EXPECT_TRUE(std::filesystem::exists(dir / "session" / v.file));
   }
 }

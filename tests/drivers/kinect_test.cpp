@@ -144,7 +144,7 @@ TEST(KinectOptions, DefaultsAreTheRegisteredColourCamera) {
   EXPECT_DOUBLE_EQ(o.depth_intrinsics.fy, 525);
   EXPECT_DOUBLE_EQ(o.depth_intrinsics.cx, 319.5);
   EXPECT_DOUBLE_EQ(o.depth_intrinsics.cy, 239.5);
-  EXPECT_DOUBLE_EQ(o.color_intrinsics.fx, 525);
+  EXPECT_DOUBLE_EQ(o.colour_intrinsics.fx, 525);
   EXPECT_FALSE(o.depth_intrinsics.distorted());
 }
 
@@ -155,8 +155,8 @@ TEST(KinectOptions, UnregisteredDepthUsesTheIrCameraAndOwnColourIntrinsics) {
   EXPECT_EQ(o.index, 1);
   EXPECT_EQ(o.depth_format, KinectDepthFormat::kMillimetres);
   EXPECT_DOUBLE_EQ(o.depth_intrinsics.fx, 580);
-  EXPECT_DOUBLE_EQ(o.color_intrinsics.fx, 530);
-  EXPECT_DOUBLE_EQ(o.color_intrinsics.fy, 525);
+  EXPECT_DOUBLE_EQ(o.colour_intrinsics.fx, 530);
+  EXPECT_DOUBLE_EQ(o.colour_intrinsics.fy, 525);
   EXPECT_DOUBLE_EQ(o.depth_intrinsics.distortion[0], 0.1);
   EXPECT_DOUBLE_EQ(o.depth_intrinsics.distortion[4], 0.05);
 }
@@ -215,18 +215,18 @@ TEST(KinectScanner, GrabsRegisteredMillimetresAndRgb) {
   EXPECT_FLOAT_EQ(f.depth[1], 1.234f);
   EXPECT_FLOAT_EQ(f.depth[kPixels - 1], 1.234f);
   EXPECT_EQ(f.depth[0], 0.0f);  // 0 mm = no data
-  ASSERT_EQ(f.color.size(), static_cast<std::size_t>(kPixels) * 3);
-  EXPECT_EQ(f.color[0], 1);
-  EXPECT_EQ(f.color[2], 3);
-  EXPECT_EQ(f.color[3], 200);
+  ASSERT_EQ(f.colour.size(), static_cast<std::size_t>(kPixels) * 3);
+  EXPECT_EQ(f.colour[0], 1);
+  EXPECT_EQ(f.colour[2], 3);
+  EXPECT_EQ(f.colour[3], 200);
   EXPECT_EQ(f.intrinsics.width, 640);
   EXPECT_DOUBLE_EQ(f.intrinsics.fx, 525);
-  EXPECT_DOUBLE_EQ(f.color_intrinsics.fx, f.intrinsics.fx);
-  EXPECT_DOUBLE_EQ(f.color_intrinsics.cx, f.intrinsics.cx);
+  EXPECT_DOUBLE_EQ(f.colour_intrinsics.fx, f.intrinsics.fx);
+  EXPECT_DOUBLE_EQ(f.colour_intrinsics.cx, f.intrinsics.cx);
   EXPECT_GT(f.timestamp, 1.5e9);
   const ScannerCapabilities c = k->capabilities();
   EXPECT_TRUE(c.depth);
-  EXPECT_TRUE(c.color);
+  EXPECT_TRUE(c.colour);
   EXPECT_FALSE(c.points);
   k->close();
   EXPECT_FALSE(s->is_open);
@@ -244,10 +244,10 @@ TEST(KinectScanner, DiscardsTheFirstFramesOfEachStreamEveryGrab) {
   k->open();
   Frame f = k->grab();
   EXPECT_FLOAT_EQ(f.depth[5], 0.3f);
-  EXPECT_EQ(f.color[5], 3);
+  EXPECT_EQ(f.colour[5], 3);
   f = k->grab();
   EXPECT_FLOAT_EQ(f.depth[5], 0.7f);
-  EXPECT_EQ(f.color[5], 7);
+  EXPECT_EQ(f.colour[5], 7);
 }
 
 TEST(KinectScanner, Raw11BitBecomesMetres) {
@@ -260,7 +260,7 @@ TEST(KinectScanner, Raw11BitBecomesMetres) {
   EXPECT_FLOAT_EQ(f.depth[3], kinect_disparity_to_metres(800));
   EXPECT_NEAR(f.depth[3], 1.0 / (3.3309495161 - 0.0030711016 * 800), 1e-6);
   EXPECT_DOUBLE_EQ(f.intrinsics.fx, 600);
-  EXPECT_DOUBLE_EQ(f.color_intrinsics.fx, 525);  // colour keeps its own camera
+  EXPECT_DOUBLE_EQ(f.colour_intrinsics.fx, 525);  // colour keeps its own camera
 }
 
 TEST(KinectScanner, OpenErrorsNameTheDevice) {

@@ -15,7 +15,7 @@ struct OniState {
   OpenniApi::Result init_result, open_result;
   std::vector<std::string> uris = {"1d27/0601@2/3"};
   OpenniApi::StreamInfo depth{640, 480, 1.0226f, 0.7966f};  // Xtion-like: 58.6 x 45.6 deg
-  OpenniApi::StreamInfo color{640, 480, 1.0226f, 0.7966f};
+  OpenniApi::StreamInfo colour{640, 480, 1.0226f, 0.7966f};
   std::deque<OpenniApi::Result> reads;  ///< results of read(); empty = ok
   std::uint16_t depth_value = 1500;
   std::string opened;
@@ -35,7 +35,7 @@ class FakeOpenni final : public OpenniApi {
     s_->registration = reg;
     s_->asked_width = w;
     d = s_->depth;
-    c = s_->color;
+    c = s_->colour;
     if (s_->open_result.ok()) s_->is_open = true;
     return s_->open_result;
   }
@@ -50,9 +50,9 @@ class FakeOpenni final : public OpenniApi {
     f.height = s_->depth.height;
     f.depth_mm.assign(static_cast<std::size_t>(f.width) * f.height,
                       static_cast<std::uint16_t>(s_->depth_value + s_->reads_done));
-    f.color_width = s_->color.width;
-    f.color_height = s_->color.height;
-    f.rgb.assign(static_cast<std::size_t>(f.color_width) * f.color_height * 3, 77);
+    f.colour_width = s_->colour.width;
+    f.colour_height = s_->colour.height;
+    f.rgb.assign(static_cast<std::size_t>(f.colour_width) * f.colour_height * 3, 77);
     return {};
   }
   void close() override { s_->is_open = false; }
@@ -86,11 +86,11 @@ TEST(OpenniScanner, IntrinsicsFromTheFieldOfViewAndRegisteredColour) {
   EXPECT_EQ(s->reads_done, 2);
   ASSERT_EQ(f.depth.size(), 640u * 480u);
   EXPECT_FLOAT_EQ(f.depth[10], 1.502f);
-  EXPECT_EQ(f.color.size(), 640u * 480u * 3u);
+  EXPECT_EQ(f.colour.size(), 640u * 480u * 3u);
   EXPECT_NEAR(f.intrinsics.fx, 320.0 / std::tan(1.0226 / 2), 1e-3);
   EXPECT_NEAR(f.intrinsics.fy, 240.0 / std::tan(0.7966 / 2), 1e-3);
   EXPECT_DOUBLE_EQ(f.intrinsics.cx, 319.5);
-  EXPECT_DOUBLE_EQ(f.color_intrinsics.fx, f.intrinsics.fx);
+  EXPECT_DOUBLE_EQ(f.colour_intrinsics.fx, f.intrinsics.fx);
   EXPECT_EQ(k->capabilities().intrinsics.width, 640);
 }
 
@@ -127,8 +127,8 @@ TEST(OpenniScanner, OptionsAndErrorsNameTheDevice) {
   EXPECT_FALSE(nofov->is_open);
 
   auto sizes = std::make_shared<OniState>();
-  sizes->color.width = 1280;
-  sizes->color.height = 1024;
+  sizes->colour.width = 1280;
+  sizes->colour.height = 1024;
   auto ks = make(sizes, "0");
   EXPECT_NE(
       error_of([&] { ks->open(); }).find("registration=on needs colour and depth of one size"),
@@ -136,8 +136,8 @@ TEST(OpenniScanner, OptionsAndErrorsNameTheDevice) {
   auto ks2 = make(sizes, "0?registration=off&discard=0");
   ks2->open();
   const Frame f = ks2->grab();
-  EXPECT_EQ(f.color_intrinsics.width, 1280);
-  EXPECT_NEAR(f.color_intrinsics.fx, 640.0 / std::tan(1.0226 / 2), 1e-3);
+  EXPECT_EQ(f.colour_intrinsics.width, 1280);
+  EXPECT_NEAR(f.colour_intrinsics.fx, 640.0 / std::tan(1.0226 / 2), 1e-3);
   EXPECT_NEAR(f.intrinsics.fx, 320.0 / std::tan(1.0226 / 2), 1e-3);
 }
 

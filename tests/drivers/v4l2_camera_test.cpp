@@ -141,7 +141,7 @@ TEST(V4l2Conversions, RegistrationShiftsByTheBaseline) {
   for (int v = 0; v < 2; ++v)
     for (int u = 0; u < 40; ++u) rgb[(v * 40 + u) * 3] = static_cast<std::uint8_t>(u * 5);
   const std::array<double, 12> m{1, 0, 0, -0.1, 0, 1, 0, 0, 0, 0, 1, 0};
-  const auto out = register_color_to_depth(depth, k, rgb, k, m);
+  const auto out = register_colour_to_depth(depth, k, rgb, k, m);
   EXPECT_EQ(out[(40 + 25) * 3], (25 - 10) * 5);
   EXPECT_EQ(out[(40 + 10) * 3], 0);  // u - 10 = 0: colour column 0 has value 0
   EXPECT_EQ(out[5 * 3], 0);          // no depth
@@ -155,7 +155,7 @@ TEST(V4l2Camera, StreamsDepthInMetresThroughRequeuedBuffers) {
   cam->open();
   const auto caps = cam->capabilities();
   EXPECT_TRUE(caps.depth);
-  EXPECT_FALSE(caps.color);
+  EXPECT_FALSE(caps.colour);
   for (int s = 0; s < 7; ++s) {  // more grabs than the 3 buffers: each goes back to the queue
     const Frame f = cam->grab();
     ASSERT_EQ(f.depth.size(), 12u);
@@ -163,7 +163,7 @@ TEST(V4l2Camera, StreamsDepthInMetresThroughRequeuedBuffers) {
     EXPECT_DOUBLE_EQ(f.intrinsics.fy, 101);
     EXPECT_EQ(f.depth[0], 0.0f);
     EXPECT_NEAR(f.depth[2 * 4 + 3], (1000 + 100 * s + 20 + 3) * 0.001, 1e-6);
-    EXPECT_FALSE(f.has_color());
+    EXPECT_FALSE(f.has_colour());
     EXPECT_GT(f.timestamp, 1.6e9);
   }
   const auto& node = r.k->nodes["/dev/video2"];
@@ -181,10 +181,10 @@ TEST(V4l2Camera, ColourNodePrefersYuyvAndSetsFixedExposureAndWhiteBalance) {
   const Frame f0 = cam->grab();
   const Frame f1 = cam->grab();
   EXPECT_FALSE(f0.has_depth());
-  ASSERT_EQ(f0.color.size(), 4u * 3 * 3);
-  EXPECT_EQ(f0.color_intrinsics.width, 4);
-  EXPECT_EQ(f0.color[0], 0);   // Y = 16: black
-  EXPECT_EQ(f1.color[7], 23);  // Y = 36: 1.164 * 20 = 23
+  ASSERT_EQ(f0.colour.size(), 4u * 3 * 3);
+  EXPECT_EQ(f0.colour_intrinsics.width, 4);
+  EXPECT_EQ(f0.colour[0], 0);   // Y = 16: black
+  EXPECT_EQ(f1.colour[7], 23);  // Y = 36: 1.164 * 20 = 23
   const auto& n = r.k->nodes["/dev/video4"];
   EXPECT_EQ(n.fourcc, V4L2_PIX_FMT_YUYV);
   EXPECT_EQ(n.controls.at(V4L2_CID_EXPOSURE_AUTO), V4L2_EXPOSURE_MANUAL);
@@ -199,12 +199,12 @@ TEST(V4l2Camera, ConfigureFromTheProfileReopensWithTheNewSettings) {
   cam->open();
   cam->configure({{"exposure", "80"}});
   EXPECT_EQ(r.k->nodes["/dev/video4"].controls.at(V4L2_CID_EXPOSURE_ABSOLUTE), 80);
-  EXPECT_TRUE(cam->grab().has_color());
+  EXPECT_TRUE(cam->grab().has_colour());
   EXPECT_NE(message([&] {
               cam->configure({{"exposur", "80"}});
             }).find("unknown option 'exposur'"),
             std::string::npos);
-  EXPECT_TRUE(cam->grab().has_color());  // a rejected option changes nothing
+  EXPECT_TRUE(cam->grab().has_colour());  // a rejected option changes nothing
   cam->configure({{"white_balance", "5000"}});
   EXPECT_EQ(r.k->nodes["/dev/video4"].controls.at(V4L2_CID_WHITE_BALANCE_TEMPERATURE), 5000);
 }
@@ -222,10 +222,10 @@ TEST(V4l2Camera, MjpegNode) {
   auto cam = r.camera("v4l2:/dev/video4?format=MJPG");
   cam->open();
   const Frame f = cam->grab();
-  ASSERT_EQ(f.color.size(), 36u);
-  EXPECT_NEAR(f.color[0], 200, 4);
-  EXPECT_NEAR(f.color[1], 120, 4);
-  EXPECT_NEAR(f.color[2], 40, 4);
+  ASSERT_EQ(f.colour.size(), 36u);
+  EXPECT_NEAR(f.colour[0], 200, 4);
+  EXPECT_NEAR(f.colour[1], 120, 4);
+  EXPECT_NEAR(f.colour[2], 40, 4);
 }
 
 TEST(V4l2Camera, DepthAndColourPairRegisteredWithExtrinsics) {
@@ -234,14 +234,14 @@ TEST(V4l2Camera, DepthAndColourPairRegisteredWithExtrinsics) {
                       "&color_fx=100&color_fy=101&color_cx=1.5&color_cy=1"
                       "&extrinsics=1,0,0,0,0,1,0,0,0,0,1,0");
   cam->open();
-  EXPECT_TRUE(cam->capabilities().color);
+  EXPECT_TRUE(cam->capabilities().colour);
   cam->grab();
   const Frame f = cam->grab();
   ASSERT_EQ(f.depth.size(), 12u);
-  ASSERT_EQ(f.color.size(), 36u);
-  EXPECT_EQ(f.color_intrinsics.fx, f.intrinsics.fx);  // registered to depth
-  EXPECT_EQ(f.color[0], 0);                           // pixel without depth: black
-  EXPECT_EQ(f.color[3 * 5], 23);                      // identity: same pixel, Y = 36
+  ASSERT_EQ(f.colour.size(), 36u);
+  EXPECT_EQ(f.colour_intrinsics.fx, f.intrinsics.fx);  // registered to depth
+  EXPECT_EQ(f.colour[0], 0);                           // pixel without depth: black
+  EXPECT_EQ(f.colour[3 * 5], 23);                      // identity: same pixel, Y = 36
 }
 
 TEST(V4l2Camera, AutoPicksNodesByFormatNotNumber) {
@@ -250,8 +250,8 @@ TEST(V4l2Camera, AutoPicksNodesByFormatNotNumber) {
   cam->open();
   const Frame f = cam->grab();
   EXPECT_TRUE(f.has_depth());
-  EXPECT_TRUE(f.has_color());  // /dev/video4 paired, the metadata node skipped
-  EXPECT_EQ(f.color_intrinsics.width, 4);
+  EXPECT_TRUE(f.has_colour());  // /dev/video4 paired, the metadata node skipped
+  EXPECT_EQ(f.colour_intrinsics.width, 4);
   EXPECT_NE(
       message([&] { r.camera("v4l2:auto?card=Kinect")->open(); }).find("card matching 'Kinect'"),
       std::string::npos);
@@ -364,7 +364,7 @@ TEST(V4l2Camera, RegistryMakesAndListsCameras) {
   register_v4l2_camera(reg, r.k);
   auto cam = reg.make_scanner(std::string("v4l2:/dev/video4"));
   cam->open();
-  EXPECT_TRUE(cam->grab().has_color());
+  EXPECT_TRUE(cam->grab().has_colour());
 }
 
 }  // namespace

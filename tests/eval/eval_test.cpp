@@ -36,8 +36,8 @@ Eigen::Matrix3f some_rotation() {
   return Eigen::AngleAxisf(0.7f, Vec3f(1, 2, 3).normalized()).toRotationMatrix();
 }
 
-Mesh colored(Mesh m, Rgb c) {
-  m.colors.assign(m.vertices.size(), c);
+Mesh coloured(Mesh m, Rgb c) {
+  m.colours.assign(m.vertices.size(), c);
   return m;
 }
 
@@ -48,7 +48,7 @@ TEST(SampleMesh, PointsLieOnTheSurfaceWithFaceNormals) {
   const Cloud c = sample_mesh(sphere, 5000, 7);
   ASSERT_EQ(c.size(), 5000u);
   ASSERT_EQ(c.normals.size(), 5000u);
-  EXPECT_FALSE(c.has_colors());
+  EXPECT_FALSE(c.has_colours());
   for (std::size_t i = 0; i < c.size(); ++i) {
     // Level 3 chords sag at most ~1 % below the radius; never above it.
     EXPECT_LE(c.points[i].norm(), 2.0f + 1e-5f);
@@ -94,11 +94,11 @@ TEST(SampleMesh, InterpolatesColours) {
   Mesh t;
   t.vertices = {Vec3f(0, 0, 0), Vec3f(1, 0, 0), Vec3f(0, 1, 0)};
   t.faces = {Face(0, 1, 2)};
-  t.colors = {Rgb{255, 0, 0}, Rgb{0, 255, 0}, Rgb{0, 0, 255}};
+  t.colours = {Rgb{255, 0, 0}, Rgb{0, 255, 0}, Rgb{0, 0, 255}};
   const Cloud c = sample_mesh(t, 2000, 5);
-  ASSERT_EQ(c.colors.size(), 2000u);
+  ASSERT_EQ(c.colours.size(), 2000u);
   for (std::size_t i = 0; i < c.size(); ++i) {
-    const Rgb& k = c.colors[i];
+    const Rgb& k = c.colours[i];
     EXPECT_NEAR(int(k.r) + int(k.g) + int(k.b), 255, 2);
     // Green weight is the barycentric of vertex 1, i.e. the x coordinate here.
     EXPECT_NEAR(k.g / 255.0, c.points[i].x(), 1.0 / 255 + 1e-6);
@@ -142,7 +142,7 @@ TEST(Evaluate, ConcentricSpheres) {
   EXPECT_EQ(r.b_to_a.count, 50000u);
   ASSERT_TRUE(r.normal_consistency.has_value());
   EXPECT_NEAR(*r.normal_consistency, 1.0, 1e-3);
-  EXPECT_FALSE(r.color_error.has_value());
+  EXPECT_FALSE(r.colour_error.has_value());
 }
 
 TEST(Evaluate, ShiftedPlaneMeshes) {
@@ -232,18 +232,18 @@ TEST(Evaluate, FacelessMeshIsItsVertexCloud) {
 
 TEST(Evaluate, ColourErrorOfAConstantOffset) {
   const Mesh m = icosphere(3);
-  const Mesh a = colored(m, Rgb{100, 50, 200}), b = colored(m, Rgb{151, 50, 200});
+  const Mesh a = coloured(m, Rgb{100, 50, 200}), b = coloured(m, Rgb{151, 50, 200});
   const EvalResult r = evaluate(a, b, params_with(10000));
-  ASSERT_TRUE(r.color_error.has_value());
-  EXPECT_NEAR(*r.color_error, 0.2, 1e-5);  // 51 / 255
+  ASSERT_TRUE(r.colour_error.has_value());
+  EXPECT_NEAR(*r.colour_error, 0.2, 1e-5);  // 51 / 255
 
   // Every channel off, against a cloud reference: (51 + 50 + 20) / 255.
   Cloud ref;
   ref.points = m.vertices;
-  ref.colors.assign(ref.size(), Rgb{151, 0, 180});
+  ref.colours.assign(ref.size(), Rgb{151, 0, 180});
   const EvalResult rc = evaluate(a, ref, params_with(10000));
-  ASSERT_TRUE(rc.color_error.has_value());
-  EXPECT_NEAR(*rc.color_error, 121.0 / 255, 1e-5);
+  ASSERT_TRUE(rc.colour_error.has_value());
+  EXPECT_NEAR(*rc.colour_error, 121.0 / 255, 1e-5);
 }
 
 TEST(Evaluate, ColourInterpolatedAtTheClosestPoint) {
@@ -254,17 +254,17 @@ TEST(Evaluate, ColourInterpolatedAtTheClosestPoint) {
     return Rgb{std::uint8_t(std::lround(127.5f * (x + 1))), std::uint8_t(std::lround(127.5f * (y + 1))),
                40};
   };
-  for (const Vec3f& v : a.vertices) a.colors.push_back(field(v.x(), v.y()));
+  for (const Vec3f& v : a.vertices) a.colours.push_back(field(v.x(), v.y()));
   Cloud b;
   for (int i = 0; i <= 40; ++i)
     for (int j = 0; j <= 40; ++j) {
       const float x = -1 + i * 0.05f, y = -1 + j * 0.05f;
       b.points.push_back(Vec3f(x, y, 0.01f));
-      b.colors.push_back(field(x, y));
+      b.colours.push_back(field(x, y));
     }
   const EvalResult r = evaluate(a, b, params_with(1000));
-  ASSERT_TRUE(r.color_error.has_value());
-  EXPECT_LT(*r.color_error, 1.0 / 255);  // only the 8-bit rounding of two channels
+  ASSERT_TRUE(r.colour_error.has_value());
+  EXPECT_LT(*r.colour_error, 1.0 / 255);  // only the 8-bit rounding of two channels
 }
 
 TEST(Evaluate, SurfaceColourFunctionOverridesVertexColours) {
@@ -282,29 +282,29 @@ TEST(Evaluate, SurfaceColourFunctionOverridesVertexColours) {
     for (int j = 0; j < 100; ++j) {
       const float x = -0.995f + i * 0.02f, y = -0.995f + j * 0.02f;
       a.points.push_back(Vec3f(x, y, 0));
-      a.colors.push_back(x < 0 ? Rgb{255, 0, 0} : Rgb{0, 0, 255});
+      a.colours.push_back(x < 0 ? Rgb{255, 0, 0} : Rgb{0, 0, 255});
     }
   EvalParams p = params_with(20000);
-  EXPECT_FALSE(evaluate(a, b, p).color_error.has_value());
-  p.b_surface_color = half;
+  EXPECT_FALSE(evaluate(a, b, p).colour_error.has_value());
+  p.b_surface_colour = half;
   const EvalResult r = evaluate(a, b, p);
-  ASSERT_TRUE(r.color_error.has_value());
+  ASSERT_TRUE(r.colour_error.has_value());
   // Only samples within half a grid step of the boundary can pick the other side.
-  EXPECT_LT(*r.color_error, 0.03);
+  EXPECT_LT(*r.colour_error, 0.03);
   // A result coloured all red is wrong on B's blue half: e_col = 2 * 1/2.
-  a.colors.assign(a.size(), Rgb{255, 0, 0});
-  EXPECT_NEAR(*evaluate(a, b, p).color_error, 1.0, 0.03);
+  a.colours.assign(a.size(), Rgb{255, 0, 0});
+  EXPECT_NEAR(*evaluate(a, b, p).colour_error, 1.0, 0.03);
   // The function also colours mesh A at its closest points (swapped roles).
   EvalParams q = params_with(20000);
-  q.a_surface_color = half;
-  EXPECT_NEAR(*evaluate(b, a, q).color_error, 1.0, 0.03);
+  q.a_surface_colour = half;
+  EXPECT_NEAR(*evaluate(b, a, q).colour_error, 1.0, 0.03);
 }
 
 TEST(Evaluate, ColourErrorAbsentWithoutColours) {
   const Mesh m = icosphere(2);
-  EXPECT_FALSE(evaluate(m, m, params_with(1000)).color_error.has_value());
-  EXPECT_FALSE(evaluate(colored(m, Rgb{1, 2, 3}), m, params_with(1000)).color_error.has_value());
-  EXPECT_FALSE(evaluate(m, colored(m, Rgb{1, 2, 3}), params_with(1000)).color_error.has_value());
+  EXPECT_FALSE(evaluate(m, m, params_with(1000)).colour_error.has_value());
+  EXPECT_FALSE(evaluate(coloured(m, Rgb{1, 2, 3}), m, params_with(1000)).colour_error.has_value());
+  EXPECT_FALSE(evaluate(m, coloured(m, Rgb{1, 2, 3}), params_with(1000)).colour_error.has_value());
 }
 
 TEST(Evaluate, ColourErrorIsTakenAtTheReferencePoints) {
@@ -312,12 +312,12 @@ TEST(Evaluate, ColourErrorIsTakenAtTheReferencePoints) {
   // At B's points (the paper's input points) A's colour is right: e_col = 0.
   Cloud a, b;
   a.points = {Vec3f(0, 0, 0), Vec3f(10, 0, 0)};
-  a.colors = {Rgb{255, 0, 0}, Rgb{0, 0, 255}};
+  a.colours = {Rgb{255, 0, 0}, Rgb{0, 0, 255}};
   b.points = {Vec3f(0, 0, 0)};
-  b.colors = {Rgb{255, 0, 0}};
-  EXPECT_EQ(*evaluate(a, b).color_error, 0.0);
+  b.colours = {Rgb{255, 0, 0}};
+  EXPECT_EQ(*evaluate(a, b).colour_error, 0.0);
   // Swapped, the reference's blue point finds only red: (1 + 0 + 1) / 2 points.
-  EXPECT_NEAR(*evaluate(b, a).color_error, 1.0, 1e-6);
+  EXPECT_NEAR(*evaluate(b, a).colour_error, 1.0, 1e-6);
 }
 
 // ---- determinism, scale, errors ---------------------------------------------------------
@@ -329,12 +329,12 @@ void expect_same(const EvalResult& x, const EvalResult& y) {
   EXPECT_EQ(x.a_to_b.rms, y.a_to_b.rms);
   EXPECT_EQ(x.b_to_a.rms, y.b_to_a.rms);
   EXPECT_EQ(x.normal_consistency, y.normal_consistency);
-  EXPECT_EQ(x.color_error, y.color_error);
+  EXPECT_EQ(x.colour_error, y.colour_error);
 }
 
 TEST(Evaluate, DeterministicAcrossRunsAndThreadCounts) {
-  const Mesh a = colored(icosphere(5, 1.0), Rgb{10, 20, 30});
-  Cloud b = sample_mesh(colored(icosphere(4, 1.05), Rgb{40, 20, 0}), 30000, 77);
+  const Mesh a = coloured(icosphere(5, 1.0), Rgb{10, 20, 30});
+  Cloud b = sample_mesh(coloured(icosphere(4, 1.05), Rgb{40, 20, 0}), 30000, 77);
   const EvalResult r1 = evaluate(a, b, params_with(30000, 1));
   const EvalResult r2 = evaluate(a, b, params_with(30000, 2));
   const EvalResult r3 = evaluate(a, b, params_with(30000, 2));

@@ -28,7 +28,7 @@ std::string find_camera(std::string& why) {
     }
   if (!pick)
     for (const auto& n : nodes)
-      if (n.has_color()) {
+      if (n.has_colour()) {
         pick = &n;
         break;
       }
@@ -79,9 +79,9 @@ TEST(HilCamera, GrabsFramesOfTheNegotiatedFormatAtARegularRate) {
                     f.intrinsics.height, 100.0 * valid / f.depth.size());
       }
     }
-    if (caps.color) {
-      ASSERT_EQ(f.color.size(),
-                static_cast<std::size_t>(f.color_intrinsics.width) * f.color_intrinsics.height * 3);
+    if (caps.colour) {
+      ASSERT_EQ(f.colour.size(),
+                static_cast<std::size_t>(f.colour_intrinsics.width) * f.colour_intrinsics.height * 3);
     }
   }
   cam.close();

@@ -30,7 +30,7 @@ Cloud painted_sphere(int n, unsigned seed, Paint paint) {
     const Vec3d d = Vec3d(gauss(rng), gauss(rng), gauss(rng)).normalized();
     c.points.push_back(d.cast<float>());
     c.normals.push_back(d.cast<float>());
-    c.colors.push_back(paint(d));
+    c.colours.push_back(paint(d));
   }
   return c;
 }
@@ -80,7 +80,7 @@ double signed_volume(const Mesh& m) {
 double e_col_at(const Mesh& mesh, const Cloud& input) {
   EvalParams p;
   p.mesh_samples = 1000;
-  return *evaluate(mesh, input, p).color_error;
+  return *evaluate(mesh, input, p).colour_error;
 }
 
 TEST(ColourEdges, SharpensATwoColourBoundaryAndKeepsTheSurface) {
@@ -116,7 +116,7 @@ TEST(ColourEdges, SharpensATwoColourBoundaryAndKeepsTheSurface) {
   // Old vertices keep their place and colour; new ones have unit normals.
   for (std::size_t i = 0; i < before.vertices.size(); ++i) {
     ASSERT_EQ(mesh.vertices[i], before.vertices[i]);
-    ASSERT_EQ(mesh.colors[i].r, before.colors[i].r);
+    ASSERT_EQ(mesh.colours[i].r, before.colours[i].r);
   }
   for (std::size_t i = before.vertices.size(); i < mesh.vertices.size(); ++i)
     ASSERT_NEAR(mesh.normals[i].norm(), 1.f, 1e-5f);
@@ -126,7 +126,7 @@ TEST(ColourEdges, SharpensATwoColourBoundaryAndKeepsTheSurface) {
   for (const Face& face : mesh.faces) {
     bool red = false, blue = false;
     for (int k = 0; k < 3; ++k) {
-      const Rgb& col = mesh.colors[std::size_t(face[k])];
+      const Rgb& col = mesh.colours[std::size_t(face[k])];
       red |= col.r > 150;
       blue |= col.b > 150;
     }
@@ -180,11 +180,11 @@ TEST(ColourEdges, LeavesSmoothOrUncolouredMeshesAlone) {
   Mesh plain = test::icosphere(3, 1.0);
   s = sharpen_colour_edges(plain, f);
   EXPECT_EQ(s.split_edges, 0u);
-  EXPECT_FALSE(plain.has_colors());
+  EXPECT_FALSE(plain.has_colours());
   // Ends not coloured by the function (here painted by hand) are not touched.
   Mesh painted = test::icosphere(3, 1.0);
-  painted.colors.clear();
-  for (const Vec3f& v : painted.vertices) painted.colors.push_back(v.z() > 0 ? kBlue : kRed);
+  painted.colours.clear();
+  for (const Vec3f& v : painted.vertices) painted.colours.push_back(v.z() > 0 ? kBlue : kRed);
   s = sharpen_colour_edges(painted, f);
   EXPECT_GT(s.candidate_edges, 0u);
   EXPECT_EQ(s.split_edges, 0u);

@@ -17,7 +17,7 @@
 #include "core/io.h"
 #include "core/stanford_conf.h"
 #include "core/texture.h"
-#include "reconstruct/color_transfer.h"
+#include "reconstruct/colour_transfer.h"
 #include "eval/eval.h"
 #include "reconstruct/marching_cubes.h"
 #include "reconstruct/mpu.h"
@@ -38,7 +38,7 @@ Cloud sphere_cloud(int n, const Painter& paint, double r = 1.0) {
     const Vec3d d(rr * std::cos(golden * i), rr * std::sin(golden * i), z);
     c.points.push_back((r * d).cast<float>());
     c.normals.push_back(d.cast<float>());
-    c.colors.push_back(paint(d));
+    c.colours.push_back(paint(d));
   }
   return c;
 }
@@ -98,7 +98,7 @@ Cloud sample_textured(const TexturedMesh& tm, const Texture& tex, int count, uns
     const Vec3d a = m.vertices[f[0]].cast<double>(), b = m.vertices[f[1]].cast<double>(), cc = m.vertices[f[2]].cast<double>();
     out.points.push_back(((1 - s - t) * a + s * b + t * cc).cast<float>());
     out.normals.push_back((b - a).cross(cc - a).normalized().cast<float>());
-    out.colors.push_back(surface_color(tm, tex, int(&f - m.faces.data()), s, t));
+    out.colours.push_back(surface_colour(tm, tex, int(&f - m.faces.data()), s, t));
   }
   return out;
 }
@@ -228,14 +228,14 @@ TEST(ColourFunction, TransitionOnTheExtractedMeshIsNarrowerThanOneCell) {
     double width = 0;  // max |distance to the boundary| of a vertex not of its side's colour
     for (std::size_t i = 0; i < m.vertices.size(); ++i) {
       const Vec3d p = m.vertices[i].cast<double>().normalized();
-      if (rgb_error(m.colors[i], half_red_half_blue(p)) > 0.1) width = std::max(width, std::abs(split_distance(p)));
+      if (rgb_error(m.colours[i], half_red_half_blue(p)) > 0.1) width = std::max(width, std::abs(split_distance(p)));
     }
     return 2 * width;
   };
   colour_mesh(mesh, fit_colour(c));
   const double ours = band(mesh);
   Mesh knn = mesh;
-  transfer_colors(knn, c);
+  transfer_colours(knn, c);
   std::printf("transition band: colour function %.4f, k-NN transfer %.4f, cell %.4f, spacing %.4f\n", ours, band(knn), h,
               std::sqrt(4 * M_PI / c.size()));
   EXPECT_LT(ours, h);
@@ -268,7 +268,7 @@ TEST(ColourFunction, TransitionIsNarrowerThanOneCellOnAGridFinerThanTheSampling)
     for (const Vec3d& d : random_sphere_points(40000, seed)) {
       c.points.push_back(d.cast<float>());
       c.normals.push_back(d.cast<float>());
-      c.colors.push_back(side(d));
+      c.colours.push_back(side(d));
     }
     const double spacing = std::sqrt(4 * M_PI / double(c.size()));
     MpuParams mp;
@@ -288,7 +288,7 @@ TEST(ColourFunction, TransitionIsNarrowerThanOneCellOnAGridFinerThanTheSampling)
     colour_mesh(mesh, f, 2);
     colour_mesh(mesh_paper, fit_colour(c, paper), 2);
     colour_mesh(mesh_rbf, fit_colour(c, rbf), 2);
-    transfer_colors(nearest, c, {1, 2});
+    transfer_colours(nearest, c, {1, 2});
     const Transition t = measure_transition(mesh, distance, red, blue, h);
     const Transition tp = measure_transition(mesh_paper, distance, red, blue, h);
     const Transition tr = measure_transition(mesh_rbf, distance, red, blue, h);
@@ -298,7 +298,7 @@ TEST(ColourFunction, TransitionIsNarrowerThanOneCellOnAGridFinerThanTheSampling)
     for (std::size_t i = 0; i < mesh.vertices.size(); ++i) {
       const Vec3d p = mesh.vertices[i].cast<double>();
       const Rgb truth = side(p.normalized());
-      if (std::abs(distance(p)) > h && rgb_error(mesh.colors[i], truth) > 0.5 && rgb_error(nearest.colors[i], truth) < 0.1)
+      if (std::abs(distance(p)) > h && rgb_error(mesh.colours[i], truth) > 0.5 && rgb_error(nearest.colours[i], truth) < 0.1)
         ++decided_far;
     }
     std::printf("seed %u: %zu vertices, cell %.4f (%.2f spacings), e_col %.3g, B leaves %zu\n", seed, mesh.vertices.size(), h,
@@ -419,17 +419,17 @@ TEST(ColourFunction, LargeTypeBCellsUseTheSparseSolver) {
 
 TEST(ColourFunction, BadInputGivesErrorsOrFiniteColours) {
   Cloud none = sphere_cloud(100, half_red_half_blue);
-  none.colors.clear();
+  none.colours.clear();
   EXPECT_THROW(fit_colour(none), InvalidInput);
   EXPECT_THROW(fit_colour(Cloud{}), InvalidInput);
   Cloud nan = sphere_cloud(100, half_red_half_blue);
   nan.points[3].x() = NAN;
   EXPECT_THROW(fit_colour(nan), InvalidInput);
   Cloud same;
-  for (int i = 0; i < 20; ++i) same.points.push_back(Vec3f(1, 2, 3)), same.colors.push_back(kRed);
+  for (int i = 0; i < 20; ++i) same.points.push_back(Vec3f(1, 2, 3)), same.colours.push_back(kRed);
   EXPECT_THROW(fit_colour(same), InvalidInput);
   Cloud mismatched = sphere_cloud(100, half_red_half_blue);
-  mismatched.colors.pop_back();
+  mismatched.colours.pop_back();
   EXPECT_THROW(fit_colour(mismatched), InvalidInput);
   ColourParams bad;
   bad.n_max = 5;
@@ -459,7 +459,7 @@ TEST(ColourFunction, BadInputGivesErrorsOrFiniteColours) {
   dup.normals.clear();
   for (int i = 0; i < 200; ++i) {
     dup.points.push_back(dup.points[i * 7]);
-    dup.colors.push_back(kGreen);
+    dup.colours.push_back(kGreen);
   }
   expect_finite(fit_colour(dup), nullptr);
   // Fewer points than n_min.
@@ -530,7 +530,7 @@ TEST(ColourFunction, DragonHalfRedHalfBlue) {
   for (std::size_t i = 0; i < pts.size(); ++i) {
     Cloud& c = i % 3 == 2 ? held : fit;
     c.points.push_back(pts[i]);
-    c.colors.push_back(paint(pts[i]));
+    c.colours.push_back(paint(pts[i]));
   }
   ColourParams p;
   p.threads = 2;
@@ -545,7 +545,7 @@ TEST(ColourFunction, DragonHalfRedHalfBlue) {
   for (std::size_t i = 0; i < held.size(); ++i) {
     if (std::abs((held.points[i].cast<double>() - mid).dot(split)) < 1e-3) continue;
     ++far;
-    wrong += rgb_error(f.rgb(held.points[i].cast<double>()), held.colors[i]) > 2.5 / 255;
+    wrong += rgb_error(f.rgb(held.points[i].cast<double>()), held.colours[i]) > 2.5 / 255;
   }
   std::printf("dragon %zu points: A %zu B %zu, fit %.3f s, e_col %.3g (Type A only %.3g), held-out e_col %.3g, wrong %d of %d\n",
               fit.size(), d.leaves_by_type[0], d.leaves_by_type[1], d.fit_seconds, d.e_col, fa.diagnostics().e_col,
@@ -602,7 +602,7 @@ TEST(ColourMeshTrusted, UntrustedVerticesTakeTheNearestInputColours) {
     if (v.z() <= 0.05f) continue;
     c.points.push_back(v);
     c.normals.push_back(v.normalized());
-    c.colors.push_back(Rgb{std::uint8_t(100 + 150 * v.z()), 40, std::uint8_t(200 - 150 * v.z())});
+    c.colours.push_back(Rgb{std::uint8_t(100 + 150 * v.z()), 40, std::uint8_t(200 - 150 * v.z())});
   }
   const ColourFunction f = fit_colour(c);
   Mesh m = test::icosphere(3, 1.0);
@@ -610,13 +610,13 @@ TEST(ColourMeshTrusted, UntrustedVerticesTakeTheNearestInputColours) {
   const std::size_t n = colour_mesh(m, f, UpperTrusted{}, c);
   EXPECT_EQ(n, below);
   Mesh nn = test::icosphere(3, 1.0);
-  transfer_colors(nn, c, {4, 0});
+  transfer_colours(nn, c, {4, 0});
   Mesh plain = test::icosphere(3, 1.0);
   colour_mesh(plain, f);
   for (std::size_t i = 0; i < m.vertices.size(); ++i) {
-    const Rgb expect = m.vertices[i].z() <= 0 ? nn.colors[i] : plain.colors[i];
-    EXPECT_EQ(m.colors[i].r, expect.r) << i;
-    EXPECT_EQ(m.colors[i].b, expect.b) << i;
+    const Rgb expect = m.vertices[i].z() <= 0 ? nn.colours[i] : plain.colours[i];
+    EXPECT_EQ(m.colours[i].r, expect.r) << i;
+    EXPECT_EQ(m.colours[i].b, expect.b) << i;
   }
 }
 

@@ -11,13 +11,13 @@ Mesh join(Mesh a, const Mesh& b) {
   const int off = int(a.vertices.size());
   a.vertices.insert(a.vertices.end(), b.vertices.begin(), b.vertices.end());
   a.normals.insert(a.normals.end(), b.normals.begin(), b.normals.end());
-  a.colors.insert(a.colors.end(), b.colors.begin(), b.colors.end());
+  a.colours.insert(a.colours.end(), b.colours.begin(), b.colours.end());
   for (Face f : b.faces) a.faces.push_back(f + Face::Constant(off));
   return a;
 }
 
 Mesh painted(Mesh m, Rgb c) {
-  m.colors.assign(m.vertices.size(), c);
+  m.colours.assign(m.vertices.size(), c);
   m.normals = vertex_normals(m);
   return m;
 }
@@ -37,8 +37,8 @@ TEST(RemoveSmallComponents, DropsSpecksAndKeepsTheObjectWithItsAttributes) {
   for (std::size_t i = 0; i < m.vertices.size(); ++i) {
     // No speck vertex survives; colours still belong to their vertices.
     EXPECT_LT(m.vertices[i].x(), 2.5f);
-    if (m.vertices[i].x() < -2) EXPECT_EQ(m.colors[i].g, 255);
-    else EXPECT_EQ(m.colors[i].r, 200);
+    if (m.vertices[i].x() < -2) EXPECT_EQ(m.colours[i].g, 255);
+    else EXPECT_EQ(m.colours[i].r, 200);
   }
   // A larger threshold removes the medium sphere too (area 0.25 of the big one).
   Mesh m2 = join(big, medium);

@@ -559,18 +559,18 @@ TEST(EdgeWlop, UsesInputNormalsWhenAsked) {
 TEST(WlopAttributes, ColoursAreCarried) {
   Cloud in = uneven_sphere(8000, 0.005, 33);
   for (const Vec3f& p : in.points)
-    in.colors.push_back(p.z() > 0 ? Rgb{200, 30, 10} : Rgb{10, 40, 220});
+    in.colours.push_back(p.z() > 0 ? Rgb{200, 30, 10} : Rgb{10, 40, 220});
   for (WlopMethod method : {WlopMethod::kWlop, WlopMethod::kEdgeWlop}) {
     WlopParams params = plain(1600, 0, 20);
     params.method = method;
     const WlopResult r = consolidate(in, params);
-    ASSERT_EQ(r.cloud.colors.size(), r.cloud.size());
+    ASSERT_EQ(r.cloud.colours.size(), r.cloud.size());
     int checked = 0;
     for (std::size_t i = 0; i < r.cloud.size(); ++i) {
       const float z = r.cloud.points[i].z();
       if (std::abs(z) < 1.5f * float(r.radius)) continue;  // a blend of both near z = 0
       const Rgb expected = z > 0 ? Rgb{200, 30, 10} : Rgb{10, 40, 220};
-      EXPECT_EQ(r.cloud.colors[i], expected) << i;
+      EXPECT_EQ(r.cloud.colours[i], expected) << i;
       ++checked;
     }
     EXPECT_GT(checked, 1000);
@@ -667,7 +667,7 @@ TEST(WlopInput, Rejected) {
   inf.points[3].x() = std::numeric_limits<float>::infinity();
   EXPECT_THROW(consolidate(inf, {}), InvalidInput);
   Cloud bad_colours = uneven_sphere(100, 0.01, 1);
-  bad_colours.colors.resize(7);
+  bad_colours.colours.resize(7);
   EXPECT_THROW(consolidate(bad_colours, {}), InvalidInput);
 
   const Cloud ok = uneven_sphere(100, 0.01, 1);

@@ -17,7 +17,7 @@ Cloud grid(int w, int h, float x0, float z0, Rgb rgb, float normal_z = 1.f) {
     for (int i = 0; i < w; ++i) {
       c.points.emplace_back(x0 + 0.001f * float(i), 0.001f * float(j), z0);
       c.normals.emplace_back(0.f, 0.f, normal_z);
-      c.colors.push_back(rgb);
+      c.colours.push_back(rgb);
     }
   return c;
 }
@@ -36,19 +36,19 @@ TEST(Fuse, AveragesTheOverlapPointForPoint) {
   EXPECT_EQ(st.output, 600u);
   ASSERT_EQ(f.size(), 600u);
   ASSERT_TRUE(f.has_normals());
-  ASSERT_TRUE(f.has_colors());
+  ASSERT_TRUE(f.has_colours());
   // The first 400 are a's points averaged with b's: midway, mixed colour,
   // b's normal flipped to agree before averaging.
   for (std::size_t k = 0; k < 400; ++k) {
     EXPECT_NEAR(f.points[k].x(), a.points[k].x() + 0.00015f, 1e-7f) << k;
     EXPECT_NEAR(f.points[k].z(), 0.00005f, 1e-7f) << k;
     EXPECT_NEAR(f.normals[k].z(), 1.f, 1e-6f) << k;
-    EXPECT_EQ(f.colors[k], (Rgb{100, 0, 50})) << k;
+    EXPECT_EQ(f.colours[k], (Rgb{100, 0, 50})) << k;
   }
   // The next 200 are b's own columns 20..29.
   for (std::size_t k = 400; k < 600; ++k) {
     EXPECT_NEAR(f.points[k].z(), 0.0001f, 1e-7f) << k;
-    EXPECT_EQ(f.colors[k], (Rgb{0, 0, 100})) << k;
+    EXPECT_EQ(f.colours[k], (Rgb{0, 0, 100})) << k;
   }
   // A distance below the offset fuses nothing.
   FuseStats none;
@@ -73,7 +73,7 @@ TEST(Fuse, KeepsAViewsOwnSamplingAndOnePointPerView) {
   EXPECT_NEAR(f.points[1].x(), 0.00015f, 1e-9f);
   EXPECT_EQ(f.points[2], b.points[1]);
   EXPECT_FALSE(f.has_normals());
-  EXPECT_FALSE(f.has_colors());
+  EXPECT_FALSE(f.has_colours());
 }
 
 // Distance 0 concatenates; attributes only when every cloud has them;
@@ -85,14 +85,14 @@ TEST(Fuse, ConcatenatesAtDistanceZeroAndKeepsAttributesOnlyWhenAllHaveThem) {
   Cloud f = fuse_clouds({a, Cloud{}, b}, 0.0, &st);
   EXPECT_EQ(f.size(), 32u);
   EXPECT_EQ(st.fused, 0u);
-  EXPECT_TRUE(f.has_colors());
+  EXPECT_TRUE(f.has_colours());
   EXPECT_TRUE(f.has_normals());
   EXPECT_EQ(f.points[16], b.points[0]);
-  b.colors.clear();
+  b.colours.clear();
   b.points[3] = Vec3f(std::nanf(""), 0, 0);
   for (double d : {0.0, 0.0005}) {
     f = fuse_clouds({a, b}, d);
-    EXPECT_FALSE(f.has_colors()) << d;
+    EXPECT_FALSE(f.has_colours()) << d;
     EXPECT_TRUE(f.has_normals()) << d;
     for (const Vec3f& p : f.points) EXPECT_TRUE(p.allFinite()) << d;
   }
@@ -123,7 +123,7 @@ TEST(Fuse, DeterministicAcrossThreadCounts) {
   EXPECT_LT(one.size(), 4u * 3600u);
   for (std::size_t k = 0; k < one.size(); ++k) {
     EXPECT_EQ(one.points[k], two.points[k]) << k;
-    EXPECT_EQ(one.colors[k], two.colors[k]) << k;
+    EXPECT_EQ(one.colours[k], two.colours[k]) << k;
   }
 }
 

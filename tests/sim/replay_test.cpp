@@ -63,7 +63,7 @@ TEST(SimReplay, PlaysTheViewsInOrderThenStops) {
   const ScannerCapabilities caps = s->capabilities();
   EXPECT_TRUE(caps.points);
   EXPECT_FALSE(caps.depth);
-  EXPECT_TRUE(caps.color);
+  EXPECT_TRUE(caps.colour);
   ASSERT_TRUE(caps.axis);
   EXPECT_EQ(caps.axis->point, Vec3d(0, 0.1, 0.45));
   EXPECT_EQ(caps.intrinsics.width, 4);
@@ -74,14 +74,14 @@ TEST(SimReplay, PlaysTheViewsInOrderThenStops) {
     EXPECT_LT((*f.reference_pose - pose_of(i)).norm(), 1e-12);
     EXPECT_DOUBLE_EQ(f.timestamp, 1.7e9 + i);
     if (i == 1) {
-      ASSERT_EQ(f.color.size(), 24u);
-      EXPECT_EQ(f.color[3], 30);  // RGB order survives the PNG round trip
-      EXPECT_EQ(f.color[4], 7);
-      EXPECT_EQ(f.color[5], 200);
-      EXPECT_TRUE(f.color_intrinsics.valid());
-      EXPECT_EQ(f.color_intrinsics.fx, 3);
+      ASSERT_EQ(f.colour.size(), 24u);
+      EXPECT_EQ(f.colour[3], 30);  // RGB order survives the PNG round trip
+      EXPECT_EQ(f.colour[4], 7);
+      EXPECT_EQ(f.colour[5], 200);
+      EXPECT_TRUE(f.colour_intrinsics.valid());
+      EXPECT_EQ(f.colour_intrinsics.fx, 3);
     } else {
-      EXPECT_FALSE(f.has_color());
+      EXPECT_FALSE(f.has_colour());
     }
   }
   try {

@@ -84,7 +84,7 @@ TEST_F(SyntheticSphere, NoiselessPointsLieOnTheSphereOrTheDisk) {
   Rig rig = make_rig(sphere(), "&noise=0");
   const ScannerCapabilities caps = rig.scanner->capabilities();
   EXPECT_TRUE(caps.depth);
-  EXPECT_TRUE(caps.color);
+  EXPECT_TRUE(caps.colour);
   ASSERT_TRUE(caps.axis);
   const Frame f = rig.scanner->grab();
   ASSERT_EQ(f.depth.size(), 640u * 480u);
@@ -92,8 +92,8 @@ TEST_F(SyntheticSphere, NoiselessPointsLieOnTheSphereOrTheDisk) {
   EXPECT_DOUBLE_EQ(f.intrinsics.fx, 320.0 / std::tan(25.0 * M_PI / 180.0));
   EXPECT_DOUBLE_EQ(f.intrinsics.cx, 319.5);
   EXPECT_DOUBLE_EQ(f.intrinsics.cy, 239.5);
-  EXPECT_EQ(f.color_intrinsics.fx, f.intrinsics.fx);
-  EXPECT_EQ(f.color.size(), 640u * 480u * 3);
+  EXPECT_EQ(f.colour_intrinsics.fx, f.intrinsics.fx);
+  EXPECT_EQ(f.colour.size(), 640u * 480u * 3);
   EXPECT_GT(f.timestamp, 1.6e9);
   ASSERT_TRUE(f.reference_pose);
   // Faceting of a level-5 icosphere of 5 cm: faces sag at most ~1.2e-5 m.
@@ -222,7 +222,7 @@ TEST_F(SyntheticSphere, DiskIsGreyAndDefaultMeshColourLightGrey) {
   int disk = 0, object = 0, background = 0;
   for (const auto& sample : back_project(f)) {
     const Vec3d q = apply(*f.reference_pose, sample.p);
-    const std::uint8_t* c = &f.color[std::size_t(sample.pixel) * 3];
+    const std::uint8_t* c = &f.colour[std::size_t(sample.pixel) * 3];
     if (std::abs(q.z()) < 1e-6) {
       EXPECT_EQ(c[0], 128);
       EXPECT_EQ(c[1], 128);
@@ -237,7 +237,7 @@ TEST_F(SyntheticSphere, DiskIsGreyAndDefaultMeshColourLightGrey) {
   for (std::size_t i = 0; i < f.depth.size(); ++i)
     if (f.depth[i] == 0) {
       ++background;
-      EXPECT_EQ(f.color[3 * i], 0);
+      EXPECT_EQ(f.colour[3 * i], 0);
     }
   EXPECT_GT(disk, 1000);
   EXPECT_GT(object, 1000);
@@ -262,9 +262,9 @@ TEST_F(SyntheticSphere, SameSeedSameFramesWhateverTheThreadCount) {
     c = rig.scanner->grab();
   }
   EXPECT_EQ(a.depth, b.depth);
-  EXPECT_EQ(a.color, b.color);
+  EXPECT_EQ(a.colour, b.colour);
   EXPECT_NE(a.depth, c.depth);
-  EXPECT_NE(a.color, c.color);
+  EXPECT_NE(a.colour, c.colour);
   EXPECT_NE(a.depth, a2.depth);  // the next frame has fresh noise
   // Reopening restarts the frame sequence.
   Rig rig = make_rig(sphere(), q);
@@ -306,8 +306,8 @@ TEST_F(SyntheticSphere, AResumedScanRecordsTheSameViews) {
     const ViewRecord& b = part.manifest().views[i];
     EXPECT_DOUBLE_EQ(*a.angle_deg, *b.angle_deg) << i;
     EXPECT_EQ(read_file_bytes(dir_ / "whole" / a.file), read_file_bytes(dir_ / "part" / b.file)) << i;
-    EXPECT_EQ(read_file_bytes(dir_ / "whole" / a.color_image),
-              read_file_bytes(dir_ / "part" / b.color_image))
+    EXPECT_EQ(read_file_bytes(dir_ / "whole" / a.colour_image),
+              read_file_bytes(dir_ / "part" / b.colour_image))
         << i;
   }
 }
@@ -408,14 +408,14 @@ TEST(SyntheticColour, VertexColoursAreInterpolated) {
   test::TempDir dir("sim-test");
   Mesh m = test::icosphere(4, kRadius, kCentre.cast<float>());
   for (const Vec3f& v : m.vertices)
-    m.colors.push_back(v.z() > kCentre.z() ? Rgb{255, 0, 0} : Rgb{0, 0, 255});
+    m.colours.push_back(v.z() > kCentre.z() ? Rgb{255, 0, 0} : Rgb{0, 0, 255});
   write_ply(dir / "c.ply", m);
   Rig rig = make_rig(dir / "c.ply", "&noise=0");
   const Frame f = rig.scanner->grab();
   int red = 0, blue = 0;
   for (const auto& s : back_project(f)) {
     const Vec3d q = apply(*f.reference_pose, s.p);
-    const std::uint8_t* c = &f.color[std::size_t(s.pixel) * 3];
+    const std::uint8_t* c = &f.colour[std::size_t(s.pixel) * 3];
     if (std::abs(q.z()) < 1e-6) continue;  // disk
     if (q.z() > kCentre.z() + 0.01) {
       EXPECT_EQ(Rgb({c[0], c[1], c[2]}), Rgb({255, 0, 0}));
@@ -443,7 +443,7 @@ TEST(SyntheticColour, ColourNoiseHasTheRequestedSigma) {
     const Vec3d q = apply(*f.reference_pose, s.p);
     if (std::abs(q.z()) < 1e-6) continue;
     for (int ch = 0; ch < 3; ++ch) {
-      const double r = double(f.color[std::size_t(s.pixel) * 3 + ch]) - 200.0;
+      const double r = double(f.colour[std::size_t(s.pixel) * 3 + ch]) - 200.0;
       sum += r;
       sum2 += r * r;
       ++n;
@@ -511,8 +511,8 @@ TEST(SyntheticColour, ObjTextureIsSampledThroughUvs) {
   for (const auto& s : back_project(f)) {
     const Vec3d q = apply(*f.reference_pose, s.p);
     if (std::abs(q.x()) > 1e-6) continue;  // the table
-    const Rgb c{f.color[std::size_t(s.pixel) * 3], f.color[std::size_t(s.pixel) * 3 + 1],
-                f.color[std::size_t(s.pixel) * 3 + 2]};
+    const Rgb c{f.colour[std::size_t(s.pixel) * 3], f.colour[std::size_t(s.pixel) * 3 + 1],
+                f.colour[std::size_t(s.pixel) * 3 + 2]};
     const bool left = q.y() < -0.005, right = q.y() > 0.005;
     const bool top = q.z() > 0.055, bottom = q.z() < 0.045;
     if (top && left) {
@@ -534,7 +534,7 @@ TEST(SyntheticColour, ObjTextureIsSampledThroughUvs) {
   // the image right, v (up) to the image top.
   const Intrinsics& k = f.intrinsics;
   auto colour_at = [&](int u, int v) {
-    const std::uint8_t* p = &f.color[(std::size_t(v) * k.width + u) * 3];
+    const std::uint8_t* p = &f.colour[(std::size_t(v) * k.width + u) * 3];
     return Rgb{p[0], p[1], p[2]};
   };
   int u_left = -1, v_top = -1;
@@ -570,11 +570,11 @@ TEST(SyntheticOptions, ParsesEveryKey) {
   EXPECT_EQ(p.noise, 0.002);
   EXPECT_EQ(p.noise_quadratic, 0.1);
   EXPECT_EQ(p.dropout, 0.5);
-  EXPECT_EQ(p.color_noise, 3);
+  EXPECT_EQ(p.colour_noise, 3);
   EXPECT_EQ(p.table_radius, 0.2);
   EXPECT_EQ(p.max_range, 2);
   EXPECT_EQ(p.seed, 4000000000u);
-  EXPECT_FALSE(p.color);
+  EXPECT_FALSE(p.colour);
   const SyntheticParams d = synthetic_params_from_options({}, "sim:synthetic");
   EXPECT_EQ(d.width, 640);
   EXPECT_FALSE(d.center);
@@ -646,9 +646,9 @@ TEST_F(SyntheticSphere, ConfigureWhileOpen) {
   rig.scanner->configure({{"width", "64"}, {"height", "48"}, {"color", "0"}});
   const Frame f = rig.scanner->grab();
   EXPECT_EQ(f.depth.size(), 64u * 48u);
-  EXPECT_FALSE(f.has_color());
+  EXPECT_FALSE(f.has_colour());
   EXPECT_EQ(rig.scanner->capabilities().intrinsics.width, 64);
-  EXPECT_FALSE(rig.scanner->capabilities().color);
+  EXPECT_FALSE(rig.scanner->capabilities().colour);
   // A new mesh reloads the scene at once; a missing one fails and leaves the
   // scanner as it was.
   EXPECT_THROW(rig.scanner->configure({{"mesh", "/nonexistent.ply"}}), DeviceError);
@@ -718,7 +718,7 @@ TEST(SyntheticBundled, MustardBottleTextureAndTruth) {
     if (std::abs(q.z()) < 1e-6) continue;
     ++object;
     EXPECT_LT(bvh.closest_point(q).distance, 1e-5);
-    const std::uint8_t* c = &f.color[std::size_t(s.pixel) * 3];
+    const std::uint8_t* c = &f.colour[std::size_t(s.pixel) * 3];
     yellow += c[0] > 150 && c[1] > 120 && c[2] < 100;
   }
   EXPECT_GT(object, 5000);

@@ -148,10 +148,10 @@ TEST(Cli, ScanOfTheBundledSampleMatchesTheMesh) {
   ASSERT_EQ(m.views.size(), 12u);
   ASSERT_TRUE(m.axis.has_value());
   ASSERT_TRUE(m.views[5].reference_pose.has_value());
-  EXPECT_FALSE(m.views[5].color_image.empty());
+  EXPECT_FALSE(m.views[5].colour_image.empty());
   const Cloud merged = read_cloud(out + "/merged.ply");
   EXPECT_GT(merged.size(), 50000u);
-  EXPECT_TRUE(merged.has_colors());
+  EXPECT_TRUE(merged.has_colours());
 
   const CmdResult e = run("eval " + out + "/merged.ply " + repo("data/mustard_bottle/textured.obj") +
                     " --samples 100000 --json");
@@ -174,7 +174,7 @@ TEST(Cli, ScanOfTheBundledSampleMatchesTheMesh) {
   EXPECT_GE(json_number(c.out, "smooth_cells"), 0) << c.out;
   const Mesh reconstructed = read_mesh(mesh);
   EXPECT_GT(reconstructed.faces.size(), 10000u);
-  EXPECT_TRUE(reconstructed.has_colors());
+  EXPECT_TRUE(reconstructed.has_colours());
   c = run("eval " + mesh + " " + repo("data/mustard_bottle/textured.obj") + " --samples 100000 --json");
   ASSERT_EQ(c.code, 0) << c.out;
   EXPECT_LT(json_number(c.out, "chamfer"), 0.002) << c.out;

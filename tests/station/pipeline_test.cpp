@@ -76,7 +76,7 @@ TEST_F(PipelineTest, RunsEveryStageAndWritesAColouredMeshAndAReport) {
   ASSERT_TRUE(fs::exists(r.mesh));
   const Mesh m = read_mesh(r.mesh);
   EXPECT_GT(m.faces.size(), 500u);
-  EXPECT_TRUE(m.has_colors());
+  EXPECT_TRUE(m.has_colours());
   ASSERT_TRUE(fs::exists(r.report));
   const std::string html = read_file_bytes(r.report);
   // Self-contained: pictures inline, nothing fetched.
@@ -344,7 +344,7 @@ TEST_F(PipelineTest, SdmSurfaceGivesTheTemplatesConnectivity) {
   const Mesh m = read_mesh(res.mesh);
   EXPECT_EQ(m.vertices.size(), 642u);  // the level-3 icosphere's
   EXPECT_EQ(m.faces.size(), 1280u);
-  EXPECT_TRUE(m.has_colors());
+  EXPECT_TRUE(m.has_colours());
 }
 
 TEST(Pipeline, MissingInputAndBadStateAreClearErrors) {

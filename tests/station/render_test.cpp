@@ -17,14 +17,14 @@ Mesh square(float z, Rgb c, float half = 1.f) {
   Mesh m;
   m.vertices = {{-half, -half, z}, {half, -half, z}, {half, half, z}, {-half, half, z}};
   m.faces = {{0, 1, 2}, {0, 2, 3}};
-  m.colors.assign(4, c);
+  m.colours.assign(4, c);
   return m;
 }
 
 Mesh join(Mesh a, const Mesh& b) {
   const int off = int(a.vertices.size());
   a.vertices.insert(a.vertices.end(), b.vertices.begin(), b.vertices.end());
-  a.colors.insert(a.colors.end(), b.colors.begin(), b.colors.end());
+  a.colours.insert(a.colours.end(), b.colours.begin(), b.colours.end());
   for (Face f : b.faces) a.faces.push_back(f + Face::Constant(off));
   return a;
 }
@@ -71,7 +71,7 @@ TEST(Render, OrientationRightAndUpAreTheImagesRightAndUp) {
 
 TEST(Render, HeadlightShadingDarkensObliqueFaces) {
   RenderOptions o;
-  o.use_colors = false;
+  o.use_colours = false;
   o.base = {200, 200, 200};
   o.ambient = 0.2;
   Mesh tilted = square(0, {}, 1.f);
@@ -86,7 +86,7 @@ TEST(Render, ColoursAreInterpolatedAcrossAFace) {
   RenderOptions o;
   o.shade = false;
   Mesh m = square(0, {}, 1.5f);
-  m.colors = {{0, 0, 0}, {255, 255, 255}, {255, 255, 255}, {0, 0, 0}};  // dark left, light right
+  m.colours = {{0, 0, 0}, {255, 255, 255}, {255, 255, 255}, {0, 0, 0}};  // dark left, light right
   const Image img = render_mesh(m, front_view(), o);
   EXPECT_LT(img.at(35, 50).r, 80);
   EXPECT_GT(img.at(65, 50).r, 175);
@@ -96,7 +96,7 @@ TEST(Render, ColoursAreInterpolatedAcrossAFace) {
 TEST(Render, PointsAreDrawnWithTheirColours) {
   Cloud c;
   c.points = {{0, 0, 0}, {1, 0, 0}};
-  c.colors = {{255, 0, 0}, {0, 0, 255}};
+  c.colours = {{255, 0, 0}, {0, 0, 255}};
   RenderOptions o;
   o.point_size = 3;
   const Image img = render_points(c, front_view(), o);

@@ -1,4 +1,4 @@
-#include "registration/colored_icp.h"
+#include "registration/coloured_icp.h"
 
 #include <tbb/parallel_for.h>
 
@@ -10,10 +10,10 @@
 
 namespace station {
 
-std::vector<float> intensities(const std::vector<Rgb>& colors) {
-  std::vector<float> out(colors.size());
-  for (std::size_t i = 0; i < colors.size(); ++i)
-    out[i] = (float(colors[i].r) + float(colors[i].g) + float(colors[i].b)) / (3.0f * 255.0f);
+std::vector<float> intensities(const std::vector<Rgb>& colours) {
+  std::vector<float> out(colours.size());
+  for (std::size_t i = 0; i < colours.size(); ++i)
+    out[i] = (float(colours[i].r) + float(colours[i].g) + float(colours[i].b)) / (3.0f * 255.0f);
   return out;
 }
 

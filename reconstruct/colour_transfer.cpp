@@ -1,4 +1,4 @@
-#include "reconstruct/color_transfer.h"
+#include "reconstruct/colour_transfer.h"
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
@@ -12,12 +12,12 @@
 
 namespace station {
 
-void transfer_colors(Mesh& mesh, const Cloud& coloured, const ColorTransferParams& params) {
-  if (coloured.empty() || !coloured.has_colors())
+void transfer_colours(Mesh& mesh, const Cloud& coloured, const ColourTransferParams& params) {
+  if (coloured.empty() || !coloured.has_colours())
     throw InvalidInput("colour transfer: the cloud has no colours");
   if (params.neighbours < 1) throw InvalidInput("colour transfer: neighbours must be >= 1");
   const PointIndex index(coloured.points);
-  mesh.colors.assign(mesh.vertices.size(), Rgb{});
+  mesh.colours.assign(mesh.vertices.size(), Rgb{});
   tbb::task_arena arena(params.threads > 0 ? params.threads : tbb::task_arena::automatic);
   arena.execute([&] {
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, mesh.vertices.size(), 512),
@@ -28,13 +28,13 @@ void transfer_colors(Mesh& mesh, const Cloud& coloured, const ColorTransferParam
         for (const auto& [i, d] : nn) {
           // A vertex on top of an input point takes its colour.
           const double w = 1.0 / std::max(double(d), 1e-12);
-          sum[0] += w * coloured.colors[i].r;
-          sum[1] += w * coloured.colors[i].g;
-          sum[2] += w * coloured.colors[i].b;
+          sum[0] += w * coloured.colours[i].r;
+          sum[1] += w * coloured.colours[i].g;
+          sum[2] += w * coloured.colours[i].b;
           wsum += w;
         }
         auto ch = [&](double s) { return std::uint8_t(std::clamp(std::lround(s / wsum), 0L, 255L)); };
-        mesh.colors[v] = {ch(sum[0]), ch(sum[1]), ch(sum[2])};
+        mesh.colours[v] = {ch(sum[0]), ch(sum[1]), ch(sum[2])};
       }
     });
   });

@@ -1,7 +1,7 @@
-// Coloured ICP (Park et al. 2017; capture/colored_icp.h, IcpObjective::kColored):
+// Coloured ICP (Park et al. 2017; capture/coloured_icp.h, IcpObjective::kColored):
 // a textured plane slid along itself, where geometry alone cannot see the
 // motion, and the colour gradients against an analytic ramp.
-#include "registration/colored_icp.h"
+#include "registration/coloured_icp.h"
 
 #include <gtest/gtest.h>
 
@@ -36,12 +36,12 @@ Cloud plane_view(const Eigen::Matrix4d& X, double offset) {
     for (int j = 0; j <= 100; ++j) {
       const Vec3d w(-0.1 + 0.002 * i + offset, -0.1 + 0.002 * j + offset, 0.5);
       c.points.push_back((Xi.block<3, 3>(0, 0) * w + Xi.block<3, 1>(0, 3)).cast<float>());
-      c.colors.push_back(grey(texture(w.x(), w.y())));
+      c.colours.push_back(grey(texture(w.x(), w.y())));
     }
   return c;
 }
 
-TEST(ColoredIcp, TexturedPlaneSlidAlongItselfIsRecoveredOnlyWithColour) {
+TEST(ColouredIcp, TexturedPlaneSlidAlongItselfIsRecoveredOnlyWithColour) {
   // Source frame: world <- source is a 6 mm / 4 mm slide and a 2 degree turn
   // about the plane's normal through its centre: invisible to geometry.
   Eigen::Matrix4d X = Eigen::Matrix4d::Identity();
@@ -61,7 +61,7 @@ TEST(ColoredIcp, TexturedPlaneSlidAlongItselfIsRecoveredOnlyWithColour) {
   ip.max_distance_end = 0.003;
   ip.max_iterations = 200;
   const IcpResult geo = icp_point_to_plane(s, t, Eigen::Matrix4d::Identity(), ip);
-  ip.objective = IcpObjective::kColored;
+  ip.objective = IcpObjective::kColoured;
   const IcpResult col = icp_point_to_plane(s, t, Eigen::Matrix4d::Identity(), ip);
   const Eigen::Matrix4d eg = rigid_inverse(X) * geo.transform, ec = rigid_inverse(X) * col.transform;
   std::printf("point-to-plane: %.3f deg %.3f mm; coloured: %.4f deg %.4f mm (%d iterations)\n",
@@ -77,7 +77,7 @@ TEST(ColoredIcp, TexturedPlaneSlidAlongItselfIsRecoveredOnlyWithColour) {
 
 // The same through register_views: the objective chosen in RegistrationParams
 // reaches every round, colours are kept in the merge.
-TEST(ColoredIcp, SessionOfTwoTexturedPlaneViews) {
+TEST(ColouredIcp, SessionOfTwoTexturedPlaneViews) {
   Eigen::Matrix4d X = Eigen::Matrix4d::Identity();
   const Eigen::Matrix3d Rz = Eigen::AngleAxisd(1.0 * M_PI / 180, Vec3d::UnitZ()).toRotationMatrix();
   X.block<3, 3>(0, 0) = Rz;
@@ -98,8 +98,8 @@ TEST(ColoredIcp, SessionOfTwoTexturedPlaneViews) {
   geo.icp_end_rel = 0.012;
   const RegistrationResult a = register_views(clouds, m, geo);
   RegistrationParams col = geo;
-  col.icp.objective = IcpObjective::kColored;
-  col.final_objective = IcpObjective::kColored;
+  col.icp.objective = IcpObjective::kColoured;
+  col.final_objective = IcpObjective::kColoured;
   col.icp.max_iterations = 100;
   const RegistrationResult b = register_views(clouds, m, col);
   std::printf("session: point-to-plane %.3f deg %.3f mm, coloured %.4f deg %.4f mm\n",
@@ -111,14 +111,14 @@ TEST(ColoredIcp, SessionOfTwoTexturedPlaneViews) {
   EXPECT_LT(b.max_translation_error, 5e-4);
   ASSERT_EQ(a.views_with_reference, 2);
   EXPECT_GT(a.max_translation_error, 4e-3);
-  EXPECT_TRUE(b.merged.has_colors());
+  EXPECT_TRUE(b.merged.has_colours());
 }
 
-TEST(ColoredIcp, WithoutColoursItIsPointToPlane) {
+TEST(ColouredIcp, WithoutColoursItIsPointToPlane) {
   Cloud target = plane_view(Eigen::Matrix4d::Identity(), 0.0);
   Cloud source = plane_view(Eigen::Matrix4d::Identity(), 0.001);
-  target.colors.clear();
-  source.colors.clear();
+  target.colours.clear();
+  source.colours.clear();
   PrepareParams pp;
   pp.voxel_size = 0;
   pp.intensity = true;
@@ -126,13 +126,13 @@ TEST(ColoredIcp, WithoutColoursItIsPointToPlane) {
   EXPECT_TRUE(t.intensity.empty());
   IcpParams ip;
   const IcpResult a = icp_point_to_plane(s, t, Eigen::Matrix4d::Identity(), ip);
-  ip.objective = IcpObjective::kColored;
+  ip.objective = IcpObjective::kColoured;
   const IcpResult b = icp_point_to_plane(s, t, Eigen::Matrix4d::Identity(), ip);
   EXPECT_TRUE(a.transform.isApprox(b.transform));
   EXPECT_EQ(a.converged, b.converged);
 }
 
-TEST(ColoredIcp, GradientOfALinearRampIsExactAndTangent) {
+TEST(ColouredIcp, GradientOfALinearRampIsExactAndTangent) {
   // Intensity 0.2 + 3 x + 1 y on the tilted plane z = 0.3 x: the gradient in
   // the plane is the projection of (3, 1, 0) on it.
   std::vector<Vec3f> pts, normals;

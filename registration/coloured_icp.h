@@ -17,7 +17,7 @@ namespace station {
 class PointIndex;
 
 /// Intensity in [0, 1] (mean of R, G, B) of each colour.
-std::vector<float> intensities(const std::vector<Rgb>& colors);
+std::vector<float> intensities(const std::vector<Rgb>& colours);
 
 /// Intensity of each of `points`: the mean over the points of `cloud_points`
 /// (with `cloud_intensity`) within `radius` of it, or of the nearest one when
