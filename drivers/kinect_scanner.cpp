@@ -56,33 +56,13 @@ Intrinsics default_intrinsics(double f) {
   return k;
 }
 
-void read_distortion(const DeviceOptions& o, const std::string& key, Intrinsics& k,
-                     const std::string& uri) {
-  auto it = o.find(key);
-  if (it == o.end()) return;
-  std::stringstream ss(it->second);
-  std::string item;
-  int i = 0;
-  while (std::getline(ss, item, ',')) {
-    char* end = nullptr;
-    const double v = std::strtod(item.c_str(), &end);
-    if (i >= 5 || item.empty() || *end != '\0' || !std::isfinite(v))
-      throw DeviceError(uri + ": option " + key + "=" + it->second +
-                        ": expected 5 comma-separated numbers k1,k2,p1,p2,k3");
-    k.distortion[i++] = v;
-  }
-  if (i != 5)
-    throw DeviceError(uri + ": option " + key + "=" + it->second +
-                      ": expected 5 comma-separated numbers k1,k2,p1,p2,k3");
-}
-
 void read_intrinsics(const DeviceOptions& o, const std::string& prefix, Intrinsics& k,
                      const std::string& uri) {
   k.fx = option_number(o, prefix + "fx", k.fx, 1e-6, 1e6, uri);
   k.fy = option_number(o, prefix + "fy", k.fy, 1e-6, 1e6, uri);
   k.cx = option_number(o, prefix + "cx", k.cx, -1e6, 1e6, uri);
   k.cy = option_number(o, prefix + "cy", k.cy, -1e6, 1e6, uri);
-  read_distortion(o, prefix + "distortion", k, uri);
+  option_distortion(o, prefix + "distortion", k, uri);
 }
 
 }  // namespace

@@ -36,23 +36,7 @@ Intrinsics read_k(const DeviceOptions& o, const std::string& prefix, const std::
   k.fy = option_number(o, prefix + "fy", 0, 1e-6, 1e6, who);
   k.cx = option_number(o, prefix + "cx", 0, -1e6, 1e6, who);
   k.cy = option_number(o, prefix + "cy", 0, -1e6, 1e6, who);
-  if (auto it = o.find(prefix + "distortion"); it != o.end()) {
-    std::stringstream ss(it->second);
-    std::string item;
-    int i = 0;
-    while (std::getline(ss, item, ',')) {
-      char* end = nullptr;
-      const double v = std::strtod(item.c_str(), &end);
-      if (i >= 5 || item.empty() || *end != '\0' || !std::isfinite(v)) {
-        i = -1;
-        break;
-      }
-      k.distortion[i++] = v;
-    }
-    if (i != 5)
-      throw DeviceError(who + ": option " + prefix + "distortion=" + it->second +
-                        ": expected 5 comma-separated numbers k1,k2,p1,p2,k3");
-  }
+  option_distortion(o, prefix + "distortion", k, who);
   return k;
 }
 

@@ -483,21 +483,7 @@ std::unique_ptr<V4l2Camera::Parsed> V4l2Camera::parse(const DeviceUri& uri) {
     k.fy = option_number(o, prefix + "fy", 0, 1e-6, 1e7, who);
     k.cx = option_number(o, prefix + "cx", 0, -1e7, 1e7, who);
     k.cy = option_number(o, prefix + "cy", 0, -1e7, 1e7, who);
-    if (o.count(prefix + "distortion")) {
-      // k1,k2,p1,p2,k3 (OpenCV's order), as `station calibrate camera` writes them.
-      std::stringstream ss(o.at(prefix + "distortion"));
-      std::string item;
-      int i = 0;
-      while (std::getline(ss, item, ',')) {
-        char* end = nullptr;
-        const double v = std::strtod(item.c_str(), &end);
-        if (i >= 5 || item.empty() || *end != '\0' || !std::isfinite(v))
-          throw DeviceError(who + ": option " + prefix + "distortion: expected 5 comma-separated numbers k1,k2,p1,p2,k3");
-        k.distortion[i++] = v;
-      }
-      if (i != 5)
-        throw DeviceError(who + ": option " + prefix + "distortion: expected 5 comma-separated numbers k1,k2,p1,p2,k3");
-    }
+    option_distortion(o, prefix + "distortion", k, who);
     return true;
   };
   p->has_k = intr(p->k, "");
@@ -505,22 +491,9 @@ std::unique_ptr<V4l2Camera::Parsed> V4l2Camera::parse(const DeviceUri& uri) {
   if (o.count("color")) p->colour_path = o.at("color");
   if (o.count("card")) p->card = o.at("card");
   if (o.count("extrinsics")) {
+    const std::vector<double> e = option_numbers(o, "extrinsics", 12, "3x4 [R|t]", who);
     std::array<double, 12> m{};
-    std::stringstream ss(o.at("extrinsics"));
-    std::string item;
-    int n = 0;
-    while (std::getline(ss, item, ',')) {
-      char* end = nullptr;
-      const double v = std::strtod(item.c_str(), &end);
-      if (n >= 12 || item.empty() || *end != '\0' || !std::isfinite(v))
-        throw DeviceError(who +
-                          ": option extrinsics: expected 12 comma-separated numbers (3x4 [R|t])");
-      m[n++] = v;
-    }
-    if (n != 12)
-      throw DeviceError(
-          who + ": option extrinsics: expected 12 comma-separated numbers (3x4 [R|t]), got " +
-          std::to_string(n));
+    std::copy(e.begin(), e.end(), m.begin());
     p->extrinsics = m;
   }
   return p;

@@ -7,6 +7,7 @@
 #include <limits>
 
 #include "core/error.h"
+#include "drivers/options.h"
 #include "sim/bench.h"
 
 namespace station {
@@ -14,12 +15,8 @@ namespace station {
 namespace sim {
 
 double parse_double_option(const std::string& uri, const std::string& key, const std::string& value) {
-  const char* s = value.c_str();
-  char* end = nullptr;
-  errno = 0;
-  const double x = std::strtod(s, &end);
-  require_option(!value.empty() && end == s + value.size() && errno != ERANGE && std::isfinite(x),
-                 uri, key, value, "not a finite number");
+  double x = 0;
+  require_option(parse_number(value, x), uri, key, value, "not a finite number");
   return x;
 }
 
