@@ -147,22 +147,6 @@ std::vector<Key> Dmc::seed_cells() {
   return cells;
 }
 
-const std::array<std::uint8_t, 256>& Dmc::crossed_faces() {
-  static const std::array<std::uint8_t, 256> table = [] {
-    std::array<std::uint8_t, 256> t{};
-    for (int cfg = 0; cfg < 256; ++cfg)
-      for (int a = 0; a < 3; ++a)
-        for (int side = 0; side < 2; ++side) {
-          int in = 0;
-          for (int q = 0; q < 8; ++q)
-            if ((q >> a & 1) == side && (cfg >> q & 1)) ++in;
-          if (in != 0 && in != 4) t[cfg] |= std::uint8_t(1 << (2 * a + side));
-        }
-    return t;
-  }();
-  return table;
-}
-
 void Dmc::traverse(const std::vector<std::uint64_t>& start, bool probe_first) {
   std::vector<std::uint64_t> frontier, next;
   std::vector<std::int32_t> marked;  // blocks whose mark bits (visited cells) are set
@@ -181,7 +165,7 @@ void Dmc::traverse(const std::vector<std::uint64_t>& start, bool probe_first) {
     B.mark |= std::uint64_t(1) << l;
     frontier.push_back(std::uint64_t(b) << 6 | std::uint64_t(l));
   }
-  const auto& faces_of = crossed_faces();
+  const auto& faces_of = mc::crossed_faces();
   bool first = probe_first;
   while (!frontier.empty()) {
     // Blocks holding the wave's corners (serial: blocks are created here) and room for

@@ -1,4 +1,5 @@
 #include "reconstruct/detail/dmc_internal.h"
+#include "reconstruct/mesh_clean.h"
 
 namespace station::detail::dmc {
 
@@ -74,26 +75,7 @@ void Dmc::drop_untrusted(Mesh& mesh) {
     const Vec3d centroid = (mesh.vertices[fc[0]] + mesh.vertices[fc[1]] + mesh.vertices[fc[2]]).cast<double>() / 3;
     keep[fi] = f_.trusted(centroid);
   });
-  std::vector<int> remap(mesh.vertices.size(), -1);
-  Mesh out;
-  for (std::size_t fi = 0; fi < mesh.faces.size(); ++fi) {
-    if (!keep[fi]) {
-      ++st_.dropped_faces;
-      continue;
-    }
-    Face fc = mesh.faces[fi];
-    for (int t = 0; t < 3; ++t) {
-      int& r = remap[fc[t]];
-      if (r < 0) {
-        r = int(out.vertices.size());
-        out.vertices.push_back(mesh.vertices[fc[t]]);
-        if (opt_.normals) out.normals.push_back(mesh.normals[fc[t]]);
-      }
-      fc[t] = r;
-    }
-    out.faces.push_back(fc);
-  }
-  mesh = std::move(out);
+  st_.dropped_faces += keep_faces(mesh, keep);
 }
 
 }  // namespace station::detail::dmc

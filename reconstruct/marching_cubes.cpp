@@ -20,6 +20,7 @@
 #include "core/threads.h"
 #include "reconstruct/detail/lattice_storage.h"
 #include "reconstruct/detail/mc_tables.h"
+#include "reconstruct/mesh_clean.h"
 #include "reconstruct/mpu.h"
 
 namespace station {
@@ -125,6 +126,22 @@ const std::array<std::vector<std::array<int, 3>>, 256>& triangle_table() {
   return table;
 }
 
+const std::array<std::uint8_t, 256>& crossed_faces() {
+  static const std::array<std::uint8_t, 256> table = [] {
+    std::array<std::uint8_t, 256> t{};
+    for (int cfg = 0; cfg < 256; ++cfg)
+      for (int a = 0; a < 3; ++a)
+        for (int side = 0; side < 2; ++side) {
+          int in = 0;
+          for (int q = 0; q < 8; ++q)
+            if ((q >> a & 1) == side && (cfg >> q & 1)) ++in;
+          if (in != 0 && in != 4) t[cfg] |= std::uint8_t(1 << (2 * a + side));
+        }
+    return t;
+  }();
+  return table;
+}
+
 }  // namespace mc
 
 namespace {
@@ -215,23 +232,6 @@ float to_float(double x) {
   return v;
 }
 
-// Per configuration: bit 2a + side set when the cell's face (axis a, side) has a sign
-// change (the walk crosses it).
-const std::array<std::uint8_t, 256>& crossed_faces() {
-  static const std::array<std::uint8_t, 256> table = [] {
-    std::array<std::uint8_t, 256> t{};
-    for (int cfg = 0; cfg < 256; ++cfg)
-      for (int a = 0; a < 3; ++a)
-        for (int side = 0; side < 2; ++side) {
-          int in = 0;
-          for (int q = 0; q < 8; ++q)
-            if ((q >> a & 1) == side && (cfg >> q & 1)) ++in;
-          if (in != 0 && in != 4) t[cfg] |= std::uint8_t(1 << (2 * a + side));
-        }
-    return t;
-  }();
-  return table;
-}
 
 std::uint64_t packed(std::int32_t b, int l) { return std::uint64_t(b) << 6 | std::uint64_t(l); }
 
@@ -329,7 +329,7 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
   // Continuation: a crossed cell passes the walk on across each face with a sign change.
   // A seed cell the surface misses (the point lies a little off f = 0) probes its 26
   // neighbours once instead.
-  const auto& faces_of = crossed_faces();
+  const auto& faces_of = mc::crossed_faces();
   auto config = [&](std::int32_t b, int l) {
     const int li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
     int cfg = 0;
@@ -653,26 +653,7 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
         keep[fi] = f.trusted(centroid);
       });
     });
-    std::vector<int> remap(mesh.vertices.size(), -1);
-    Mesh out;
-    for (std::size_t fi = 0; fi < mesh.faces.size(); ++fi) {
-      if (!keep[fi]) {
-        ++st.dropped_faces;
-        continue;
-      }
-      Face fc = mesh.faces[fi];
-      for (int t = 0; t < 3; ++t) {
-        int& r = remap[fc[t]];
-        if (r < 0) {
-          r = int(out.vertices.size());
-          out.vertices.push_back(mesh.vertices[fc[t]]);
-          if (opt.normals) out.normals.push_back(mesh.normals[fc[t]]);
-        }
-        fc[t] = r;
-      }
-      out.faces.push_back(fc);
-    }
-    mesh = std::move(out);
+    st.dropped_faces += keep_faces(mesh, keep);
   }
   if (stats) *stats = st;
   return mesh;

@@ -86,4 +86,32 @@ ComponentFilterStats remove_small_components(Mesh& mesh, double min_area_fractio
   return st;
 }
 
+std::size_t keep_faces(Mesh& mesh, const std::vector<char>& keep) {
+  if (keep.size() != mesh.faces.size()) throw InvalidInput("keep_faces: one flag per face expected");
+  const bool normals = mesh.has_normals(), colours = mesh.has_colours();
+  std::vector<int> remap(mesh.vertices.size(), -1);
+  Mesh out;
+  std::size_t dropped = 0;
+  for (std::size_t fi = 0; fi < mesh.faces.size(); ++fi) {
+    if (!keep[fi]) {
+      ++dropped;
+      continue;
+    }
+    Face fc = mesh.faces[fi];
+    for (int t = 0; t < 3; ++t) {
+      int& r = remap[fc[t]];
+      if (r < 0) {
+        r = int(out.vertices.size());
+        out.vertices.push_back(mesh.vertices[fc[t]]);
+        if (normals) out.normals.push_back(mesh.normals[fc[t]]);
+        if (colours) out.colours.push_back(mesh.colours[fc[t]]);
+      }
+      fc[t] = r;
+    }
+    out.faces.push_back(fc);
+  }
+  mesh = std::move(out);
+  return dropped;
+}
+
 }  // namespace station

@@ -2,6 +2,7 @@
 // Mesh clean-up after extraction: small disconnected pieces (spurious bubbles
 // of an implicit fitted to noisy data, specks from stray points) are removed.
 #include <cstddef>
+#include <vector>
 
 #include "core/geometry.h"
 
@@ -19,5 +20,10 @@ struct ComponentFilterStats {
 /// (normals and colours follow). Face order and orientation are kept.
 /// InvalidInput on an inconsistent mesh or a fraction outside [0, 1].
 ComponentFilterStats remove_small_components(Mesh& mesh, double min_area_fraction);
+
+/// Keeps the faces with keep[f] != 0, in order, and the vertices they use, numbered
+/// in the order the kept faces first use them (normals and colours follow); returns
+/// the number of faces dropped. InvalidInput when `keep` is not one flag per face.
+std::size_t keep_faces(Mesh& mesh, const std::vector<char>& keep);
 
 }  // namespace station

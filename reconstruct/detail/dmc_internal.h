@@ -425,9 +425,6 @@ class Dmc {
     return &tmp;
   }
 
-  // Per configuration: bit 2a + side set when the cell's face (axis a, side) has a sign
-  // change (the walk crosses it).
-  static const std::array<std::uint8_t, 256>& crossed_faces();
 
   // Surface tracking from the cells `start`, on the block lattice (cells as block << 6 |
   // local index, neighbours through the links); crossed cells get their surface bit,

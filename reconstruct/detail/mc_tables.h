@@ -5,6 +5,7 @@
 // configurations (bit c set: corner c inside, f < iso) the table lists triangles as
 // triples of edge indices, counter-clockwise seen from outside.
 #include <array>
+#include <cstdint>
 #include <vector>
 
 namespace station::mc {
@@ -13,5 +14,8 @@ namespace station::mc {
 const std::array<std::array<int, 2>, 12>& edge_corners();
 /// Triangles (edge-index triples) of each configuration.
 const std::array<std::vector<std::array<int, 3>>, 256>& triangle_table();
+/// Per configuration: bit 2a + side set when the cell's face (axis a, side) has a sign
+/// change (a surface walk crosses it).
+const std::array<std::uint8_t, 256>& crossed_faces();
 
 }  // namespace station::mc

@@ -59,5 +59,24 @@ TEST(RemoveSmallComponents, EmptyAndBadInput) {
   EXPECT_THROW(remove_small_components(m, 0.1), InvalidInput);
 }
 
+TEST(KeepFaces, KeepsFlaggedFacesAndRenumbersVerticesByFirstUse) {
+  Mesh m;
+  for (int v = 0; v < 5; ++v) {
+    m.vertices.push_back(Vec3f(float(v), 0, 0));
+    m.normals.push_back(Vec3f(0, 0, 1));
+    m.colours.push_back(Rgb{std::uint8_t(10 * v), 0, 0});
+  }
+  m.faces = {Face(0, 1, 2), Face(4, 3, 2), Face(0, 2, 3)};
+  EXPECT_EQ(keep_faces(m, {0, 1, 1}), 1u);
+  ASSERT_EQ(m.faces.size(), 2u);
+  ASSERT_EQ(m.vertices.size(), 4u);  // vertex 1 only in the dropped face
+  EXPECT_EQ(m.faces[0], Face(0, 1, 2));  // old 4, 3, 2 first
+  EXPECT_EQ(m.faces[1], Face(3, 2, 1));  // old 0, 2, 3
+  EXPECT_EQ(m.vertices[0].x(), 4.f);
+  EXPECT_EQ(m.colours[3].r, 0);  // old vertex 0
+  EXPECT_EQ(m.normals.size(), 4u);
+  EXPECT_THROW(keep_faces(m, {1}), InvalidInput);
+}
+
 }  // namespace
 }  // namespace station
