@@ -98,6 +98,7 @@ std::string state_yaml(const RunState& st) {
     for (const auto& [k, v] : s.figures) e << YAML::Key << k << YAML::Value << v;
     e << YAML::EndMap;
     if (!s.per_view.empty()) e << YAML::Key << "per_view" << YAML::Value << YAML::Flow << s.per_view;
+    if (s.up) e << YAML::Key << "up" << YAML::Value << YAML::Flow << std::vector<double>{s.up->x(), s.up->y(), s.up->z()};
     if (!s.poses.empty()) {
       e << YAML::Key << "poses" << YAML::Value << YAML::BeginSeq;
       for (const auto& p : s.poses) e << YAML::Flow << p;
@@ -129,6 +130,13 @@ RunState read_state(const fs::path& file) {
       if (n["per_view"]) s.per_view = n["per_view"].as<std::vector<double>>();
       if (n["poses"])
         for (const YAML::Node& p : n["poses"]) s.poses.push_back(p.as<std::vector<double>>());
+      if (n["up"]) {
+        const auto up = n["up"].as<std::vector<double>>();
+        if (up.size() != 3) throw FormatError(file.string() + ": a stage's up is not 3 numbers");
+        s.up = Vec3d(up[0], up[1], up[2]);
+      } else if (s.figures.count("up_x") && s.figures.count("up_y") && s.figures.count("up_z")) {
+        s.up = Vec3d(s.figures.at("up_x"), s.figures.at("up_y"), s.figures.at("up_z"));  // states written before `up`
+      }
       st.stages.push_back(std::move(s));
     }
   } catch (const YAML::Exception& e) {
@@ -222,8 +230,7 @@ void write_report(const fs::path& out_dir, const fs::path& input, bool session, 
   std::vector<ReportSection> sections;
   Vec3d up = Vec3d::UnitZ();
   for (const StageRecord& r : run.stages)
-    if (r.name == "register" && r.figures.count("up_x"))
-      up = Vec3d(r.figures.at("up_x"), r.figures.at("up_y"), r.figures.at("up_z"));
+    if (r.name == "register" && r.up) up = *r.up;
   {
     ReportSection s;
     s.title = "Stages";
@@ -526,6 +533,7 @@ class Runner {
       int first = 0;
       while (first + 1 < int(reg.views.size()) && !reg.views[first].registered) ++first;
       const Vec3d up = reg.poses[first].topLeftCorner<3, 3>() * reg.axis->direction;
+      r.up = up;
       r.figures["up_x"] = up.x();
       r.figures["up_y"] = up.y();
       r.figures["up_z"] = up.z();
@@ -564,8 +572,7 @@ class Runner {
     // the object rests on the table, so nothing of it lies below its lowest point.
     if (c.table_plane)
       for (const StageRecord& s : result_.stages)
-        if (s.name == "register" && s.figures.count("up_x"))
-          sp.table_up = Vec3d(s.figures.at("up_x"), s.figures.at("up_y"), s.figures.at("up_z"));
+        if (s.name == "register" && s.up) sp.table_up = *s.up;
     sp.resolution_name = "reconstruct.resolution " + std::to_string(c.resolution);
     sp.boundary_flags = true;
     sp.note = [&](const std::string& line) { say(surface_note(in, line, "  surface: ", "  note: ")); };

@@ -17,9 +17,11 @@
 #include <filesystem>
 #include <functional>
 #include <map>
+#include <optional>
 #include <string>
 #include <vector>
 
+#include "core/geometry.h"
 #include "station/config.h"
 
 namespace station {
@@ -46,6 +48,9 @@ struct StageRecord {
   std::map<std::string, double> figures;  ///< counts and quality figures
   std::vector<double> per_view;           ///< register: residual per view, mm
   std::vector<std::vector<double>> poses; ///< register: 4x4 row-major per view
+  /// register: the turntable axis (the object's up) in the object frame, when the
+  /// session has one; also shown as the figures up_x, up_y, up_z.
+  std::optional<Vec3d> up;
 };
 
 struct RunResult {

@@ -126,6 +126,10 @@ TEST_F(PipelineTest, InterruptedRunResumesToTheSameMesh) {
 
   const RunResult resumed = run_pipeline(config(), request(b.path(), true));
   EXPECT_EQ(names(resumed), (std::vector<std::string>{"register*", "consolidate", "surface"}));
+  // The reused register stage brings its typed up vector back from run.yaml (the
+  // table plane of the surface stage needs it).
+  ASSERT_TRUE(whole.stages[0].up && resumed.stages[0].up);
+  EXPECT_EQ(*whole.stages[0].up, *resumed.stages[0].up);
   EXPECT_EQ(hash_file(whole.mesh), hash_file(resumed.mesh));
   EXPECT_EQ(hash_file(a.path() / "consolidated.ply"), hash_file(b.path() / "consolidated.ply"));
 }
