@@ -17,6 +17,7 @@
 #include "core/camera.h"
 #include "core/threads.h"
 #include "registration/pose_graph.h"
+#include "registration/prior_check.h"
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "core/kdtree.h"
@@ -30,6 +31,17 @@ const char* to_string(InitialPoseSource s) {
     case InitialPoseSource::kEstimatedAxis: return "estimated_axis";
     case InitialPoseSource::kGlobal: return "global_features";
     case InitialPoseSource::kNone: return "none";
+  }
+  return "none";
+}
+
+const char* to_string(PriorUse u) {
+  switch (u) {
+    case PriorUse::kNone: return "none";
+    case PriorUse::kUsed: return "used";
+    case PriorUse::kCorrected: return "corrected";
+    case PriorUse::kRejected: return "rejected";
+    case PriorUse::kIgnored: return "ignored";
   }
   return "none";
 }
@@ -67,23 +79,6 @@ double median_of(std::vector<double> v) {
   std::sort(v.begin(), v.end());
   const std::size_t n = v.size();
   return n % 2 ? v[n / 2] : 0.5 * (v[n / 2 - 1] + v[n / 2]);
-}
-
-/// For poses without commanded angles: each pose's rotation from the first,
-/// signed about the direction most of those rotations share (degrees, the
-/// commanded-angle convention: X_0^-1 X_i turns by -angle_i about it).
-std::vector<double> angles_about_common_axis(const std::vector<Eigen::Matrix4d>& poses) {
-  std::vector<Vec3d> w;
-  Eigen::Matrix3d S = Eigen::Matrix3d::Zero();
-  for (const Eigen::Matrix4d& X : poses) {
-    const Eigen::AngleAxisd aa(Eigen::Matrix3d((rigid_inverse(poses.front()) * X).block<3, 3>(0, 0)));
-    w.push_back(aa.axis() * aa.angle());
-    S += w.back() * w.back().transpose();
-  }
-  const Vec3d d = Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>(S).eigenvectors().col(2);
-  std::vector<double> angles;
-  for (const Vec3d& v : w) angles.push_back(-v.dot(d) * 180.0 / M_PI);
-  return angles;
 }
 
 Eigen::Matrix3d skew(const Vec3d& a) {
@@ -897,6 +892,58 @@ class Registrar {
 
 }  // namespace
 
+namespace {
+
+// Registered views among those that can be the object on the table: a view
+// whose points lie further than the session size from the others' (the median
+// centroid, in the scanner frame, where a turntable keeps the object) may align
+// as a shape without angles, but is no view of this bench's object.
+int registered_count(const RegistrationResult& r, const std::vector<bool>& at_table) {
+  int n = 0;
+  for (std::size_t i = 0; i < r.views.size(); ++i) n += r.views[i].registered && at_table[i];
+  return n;
+}
+
+std::vector<bool> views_at_table(const std::vector<Cloud>& clouds, double diagonal) {
+  std::vector<Vec3d> c(clouds.size(), Vec3d::Constant(std::nan("")));
+  std::vector<double> xs[3];
+  for (std::size_t i = 0; i < clouds.size(); ++i) {
+    Vec3d sum = Vec3d::Zero();
+    std::size_t k = 0;
+    for (const Vec3f& p : clouds[i].points)
+      if (p.allFinite()) sum += p.cast<double>(), ++k;
+    if (k == 0) continue;
+    c[i] = sum / double(k);
+    for (int a = 0; a < 3; ++a) xs[a].push_back(c[i][a]);
+  }
+  std::vector<bool> out(clouds.size(), false);
+  if (xs[0].empty()) return out;
+  const Vec3d median(median_of(xs[0]), median_of(xs[1]), median_of(xs[2]));
+  for (std::size_t i = 0; i < clouds.size(); ++i) out[i] = c[i].allFinite() && (c[i] - median).norm() <= diagonal;
+  return out;
+}
+
+// Signs that the prior misled the run: the views refused one rigid turntable, a
+// view with points failed, or a commanded angle was rejected.
+bool prior_suspect(const RegistrationResult& r, const RegistrationParams& p, const std::vector<bool>& at_table) {
+  if (p.rigid_turntable == RigidTurntable::kAuto && !r.rigid_turntable && r.rigid_deviation_deg > 0) return true;
+  for (const ViewDiagnostics& v : r.views)
+    if (v.angle_rejected) return true;
+  for (std::size_t i = 0; i < r.views.size(); ++i)
+    if (!r.views[i].registered && r.views[i].registration_points >= 6 && at_table[i]) return true;
+  return false;
+}
+
+std::string run_summary(const char* name, const RegistrationResult& r, const std::vector<bool>& at_table) {
+  std::ostringstream o;
+  o.precision(3);
+  o << name << ": " << registered_count(r, at_table) << " of " << r.views.size() << " views, pair residual "
+    << 1000 * r.mean_pair_rmse << " mm";
+  return o.str();
+}
+
+}  // namespace
+
 RegistrationResult register_views(const std::vector<Cloud>& clouds, const SessionManifest& manifest,
                                   const RegistrationParams& params,
                                   const RegistrationCallback& progress) {
@@ -904,7 +951,103 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
     throw InvalidInput("registration: " + std::to_string(clouds.size()) + " clouds for " +
                        std::to_string(manifest.views.size()) + " views");
   if (manifest.views.empty()) throw InvalidInput("registration: the session has no views");
-  return Registrar(clouds, manifest, params, progress).run();
+  const std::size_t n = manifest.views.size();
+  RegistrationResult with = Registrar(clouds, manifest, params, progress).run();
+  for (std::size_t i = 0; i < n; ++i)
+    if (manifest.views[i].angle_deg && !manifest.views[i].initial_pose)
+      with.views[i].prior = with.views[i].angle_rejected ? PriorUse::kRejected : PriorUse::kUsed;
+  const int with_angles = int(std::count_if(manifest.views.begin(), manifest.views.end(),
+                                            [](const ViewRecord& v) { return v.angle_deg.has_value(); }));
+  if (!params.prior_check || with_angles < 2 || !params.global_registration) return with;
+  const std::vector<bool> at_table = views_at_table(clouds, with.diagonal);
+  if (!prior_suspect(with, params, at_table)) return with;
+
+  // The same views without any angle (or axis): what the data says alone.
+  SessionManifest bare = manifest;
+  bare.axis.reset();
+  for (ViewRecord& v : bare.views) v.angle_deg.reset();
+  RegistrationResult free = Registrar(clouds, bare, params, progress).run();
+  std::vector<bool> reg(n);
+  for (std::size_t i = 0; i < n; ++i) reg[i] = free.views[i].registered;
+  const std::optional<Vec3d> known =
+      manifest.axis ? std::optional<Vec3d>(manifest.axis->direction) : std::nullopt;
+  const AnglePriorFit fit = fit_angle_prior(free.poses, reg, manifest, params.wrong_angle_deg, known);
+
+  // The prior corrected by the fit: the session-wide convention fixed, the
+  // views whose angle disagrees registered without it.
+  std::optional<RegistrationResult> corrected;
+  // (Nothing new when the only wrong angles are those the run with the prior
+  // rejected already.)
+  const bool news = std::any_of(fit.wrong.begin(), fit.wrong.end(), [&](int i) { return !with.views[i].angle_rejected; });
+  if (fit.ok && (news || !fit.convention.empty())) {
+    SessionManifest m = manifest;
+    for (std::size_t i = 0; i < n; ++i) {
+      ViewRecord& v = m.views[i];
+      if (!v.angle_deg) continue;
+      if (std::find(fit.wrong.begin(), fit.wrong.end(), int(i)) != fit.wrong.end()) v.angle_deg.reset();
+      else v.angle_deg = fit.sign * fit.scale * *v.angle_deg;
+    }
+    corrected = Registrar(clouds, m, params, progress).run();
+    for (std::size_t i = 0; i < n; ++i) {
+      if (!manifest.views[i].angle_deg || manifest.views[i].initial_pose) continue;
+      ViewDiagnostics& d = corrected->views[i];
+      d.prior = !m.views[i].angle_deg || d.angle_rejected ? PriorUse::kRejected
+                : fit.convention.empty()                  ? PriorUse::kUsed
+                                                          : PriorUse::kCorrected;
+    }
+  }
+
+  // Never worse than no prior: more registered views first, then the pair residual.
+  const auto better = [&](const RegistrationResult& a, const RegistrationResult& b, double slack) {
+    const int ca = registered_count(a, at_table), cb = registered_count(b, at_table);
+    if (ca != cb) return ca > cb;
+    return a.mean_pair_rmse <= slack * b.mean_pair_rmse;
+  };
+  RegistrationResult* prior_best = &with;
+  // The corrected prior replaces the given one when it registers more views or
+  // fits clearly better (5 %): where both agree, the run as given is kept.
+  if (corrected && better(*corrected, with, 0.95)) prior_best = &*corrected;
+  const bool keep_free = !better(*prior_best, free, 1.05);
+  const std::string comparison = run_summary("with the angles", with, at_table) + "; " +
+                                 (corrected ? run_summary("corrected angles", *corrected, at_table) + "; " : std::string()) +
+                                 run_summary("without angles", free, at_table);
+  const bool kept_given = !keep_free && prior_best == &with;
+  std::vector<bool> rejected_before(n);
+  for (std::size_t i = 0; i < n; ++i) rejected_before[i] = with.views[i].angle_rejected;
+  RegistrationResult out = std::move(keep_free ? free : *prior_best);
+  out.prior_kept = keep_free ? "no prior" : kept_given ? "prior" : "corrected prior";
+  out.prior_comparison = comparison;
+  for (std::size_t i = 0; i < n; ++i) {
+    if (fit.residual_deg[i]) out.views[i].angle_error_deg = fit.residual_deg[i];
+    if (keep_free && manifest.views[i].angle_deg) out.views[i].prior = PriorUse::kIgnored;
+  }
+  std::vector<std::string> notes;
+  std::ostringstream w;
+  w.precision(3);
+  if (fit.ok && !fit.convention.empty()) {
+    w << "the commanded angles fit the scans with " << fit.convention << " (" << fit.agreeing << " of "
+      << fit.views << " views within " << params.wrong_angle_deg << " deg)";
+    notes.push_back(w.str());
+    w.str("");
+  }
+  for (int i : fit.wrong) {
+    if (kept_given && rejected_before[i]) continue;  // warned about already
+    w << view_name(manifest, std::size_t(i)) << ": commanded angle " << *manifest.views[i].angle_deg << " deg is "
+      << std::abs(*fit.residual_deg[i]) << " deg off what the other views and the scans say; "
+      << (out.views[i].prior == PriorUse::kUsed || out.views[i].prior == PriorUse::kCorrected
+              ? "the refinement moved the view off it"
+              : "registered without it");
+    notes.push_back(w.str());
+    if (out.views[i].message.empty() && out.views[i].registered) out.views[i].message = w.str();
+    w.str("");
+  }
+  if (out.prior_kept != "prior") {
+    w << "the turntable prior misled the registration (" << out.prior_comparison << "): "
+      << (keep_free ? "the poses registered without angles are kept" : "the poses of the corrected angles are kept");
+    notes.push_back(w.str());
+  }
+  out.warnings.insert(out.warnings.begin(), notes.begin(), notes.end());
+  return out;
 }
 
 RegistrationResult register_session(const Session& session, const RegistrationParams& params,
@@ -942,6 +1085,9 @@ std::string poses_to_yaml(const RegistrationResult& result, const SessionManifes
     out << YAML::EndMap;
   }
   out << YAML::Key << "degenerate" << YAML::Value << result.degenerate;
+  out << YAML::Key << "prior_kept" << YAML::Value << result.prior_kept;
+  if (!result.prior_comparison.empty())
+    out << YAML::Key << "prior_comparison" << YAML::Value << YAML::DoubleQuoted << result.prior_comparison;
   out << YAML::Key << "views" << YAML::Value << YAML::BeginSeq;
   for (std::size_t i = 0; i < result.poses.size(); ++i) {
     const ViewDiagnostics& v = result.views[i];
@@ -949,6 +1095,8 @@ std::string poses_to_yaml(const RegistrationResult& result, const SessionManifes
     out << YAML::Key << "file" << YAML::Value << YAML::DoubleQuoted << manifest.views[i].file;
     out << YAML::Key << "registered" << YAML::Value << v.registered;
     out << YAML::Key << "initial" << YAML::Value << to_string(v.initial);
+    if (v.prior != PriorUse::kNone) out << YAML::Key << "prior" << YAML::Value << to_string(v.prior);
+    if (v.angle_error_deg) out << YAML::Key << "angle_error_deg" << YAML::Value << *v.angle_error_deg;
     out << YAML::Key << "pose" << YAML::Value << YAML::Flow << YAML::BeginMap << YAML::Key << "matrix"
         << YAML::Value << YAML::Flow << YAML::BeginSeq;
     for (int r = 0; r < 4; ++r)

@@ -127,14 +127,26 @@ struct RegistrationParams {
   /// A global pose is kept only when its ICP refinement overlaps at least this
   /// much (0.15 = the ICP guard; 0.3 lost the dragon's views 48 degrees apart).
   double global_min_fitness = 0.15;
-  /// RANSAC hypotheses refined by ICP (the best by overlap first).
-  int global_icp_candidates = 2;
+  /// RANSAC hypotheses refined by ICP (the best by overlap first; the best ICP
+  /// fitness wins). 2 put one of three angle-less views of the simulated
+  /// fandisk session 33 degrees off (a near-symmetric fit), 4 or more found it.
+  int global_icp_candidates = 6;
   /// Wrong-angle check (views posed from angle + axis): a view whose ICP onto
   /// both angle neighbours fails, or lands more than `wrong_angle_deg` from
   /// the prior, is registered globally against the others; when that pose is
   /// more than wrong_angle_deg from the prior it replaces it, with a warning.
   bool check_angles = true;
   double wrong_angle_deg = 8.0;
+  /// The prior as a hypothesis (docs/registration.md, "A wrong prior"): when the
+  /// run with the angles shows trouble (the views do not fit one rigid turntable,
+  /// a view with points failed, an angle was rejected), the session is registered
+  /// again without any angle; the commanded angles are fitted to those poses
+  /// (registration/prior_check.h: sign, steps for degrees, offset, views off by
+  /// more than wrong_angle_deg), registered once more with the corrected prior,
+  /// and the result kept is the one with more registered views, then the lower
+  /// mean pair residual (a prior-based one only when within 5 % of the
+  /// prior-free one's).
+  bool prior_check = true;
 };
 
 struct RegistrationProgress {
@@ -163,6 +175,16 @@ struct PairDiagnostics {
   std::string message;       ///< why it failed
 };
 
+/// What became of a view's commanded angle.
+enum class PriorUse {
+  kNone,       ///< the view has no angle
+  kUsed,       ///< as commanded
+  kCorrected,  ///< with the session-wide correction (sign, steps for degrees)
+  kRejected,   ///< found wrong: the view was registered without it
+  kIgnored,    ///< the poses kept were registered without any angle
+};
+const char* to_string(PriorUse u);
+
 struct ViewDiagnostics {
   std::size_t input_points = 0;
   std::size_t points = 0;               ///< after non-finite and outlier removal
@@ -170,6 +192,10 @@ struct ViewDiagnostics {
   InitialPoseSource initial = InitialPoseSource::kNone;
   bool registered = false;
   bool angle_rejected = false;          ///< its commanded angle was found wrong (pose from global registration)
+  PriorUse prior = PriorUse::kNone;
+  /// Registered angle minus the (corrected) commanded one, when the prior was
+  /// checked against prior-free poses (degrees).
+  std::optional<double> angle_error_deg;
   std::string message;                  ///< why it failed ("views[3] (view_003.ply): ...")
   /// Against reference_pose, both relative to the first registered view with a
   /// reference (view 0 normally): angle of R_est^T R_ref, degrees, and |t_est - t_ref|, metres.
@@ -210,6 +236,11 @@ struct RegistrationResult {
   double rigid_deviation = 0;
   bool degenerate = false;              ///< some pair is degenerate about the axis
   std::string degeneracy_message;
+  /// Which poses were kept (RegistrationParams::prior_check): "prior" (the angles
+  /// as given; also when they were not checked), "corrected prior" or "no prior".
+  std::string prior_kept = "prior";
+  /// The three runs' registered views and mean pair residuals, when compared.
+  std::string prior_comparison;
   /// Things the caller should show (a wrong commanded angle, ...), each naming the view.
   std::vector<std::string> warnings;
   Cloud merged;

@@ -61,6 +61,8 @@ JsonObject registration_json(const RegistrationResult& r) {
   j.add("views", r.views.size()).add("failed_views", r.failed_views.size()).add("degenerate", r.degenerate);
   j.add("warnings", r.warnings);
   j.add("pair_rmse_m", r.mean_pair_rmse);
+  j.add("prior_kept", r.prior_kept);
+  if (!r.prior_comparison.empty()) j.add("prior_comparison", r.prior_comparison);
   j.add("rigid_turntable", JsonObject()
                                .add("used", r.rigid_turntable)
                                .add("deviation_deg", r.rigid_deviation_deg)
@@ -89,7 +91,8 @@ JsonObject registration_json(const RegistrationResult& r) {
     const ViewDiagnostics& v = r.views[i];
     JsonObject o;
     o.add("registered", v.registered).add("initial", to_string(v.initial)).add("points", v.points)
-        .add("angle_rejected", v.angle_rejected);
+        .add("angle_rejected", v.angle_rejected).add("prior", to_string(v.prior));
+    if (v.angle_error_deg) o.add("angle_error_deg", *v.angle_error_deg);
     if (v.rotation_error_deg) o.add("rotation_error_deg", *v.rotation_error_deg);
     if (v.translation_error) o.add("translation_error_m", *v.translation_error);
     if (v.object_translation_error) o.add("object_translation_error_m", *v.object_translation_error);
@@ -125,17 +128,22 @@ JsonObject registration_json(const RegistrationResult& r) {
 }
 
 void print_registration(const RegistrationResult& r) {
-  std::printf("%-5s %-10s %-16s %9s %12s %14s\n", "view", "status", "initial pose", "points",
-              "rot err deg", "trans err mm");
+  std::printf("%-5s %-10s %-16s %-10s %9s %9s %12s %14s\n", "view", "status", "initial pose", "angle",
+              "angle err", "points", "rot err deg", "trans err mm");
   for (std::size_t i = 0; i < r.views.size(); ++i) {
     const ViewDiagnostics& v = r.views[i];
-    char rot[32] = "-", tr[32] = "-";
+    char rot[32] = "-", tr[32] = "-", ae[32] = "-";
     if (v.rotation_error_deg) std::snprintf(rot, sizeof rot, "%.3f", *v.rotation_error_deg);
     if (v.translation_error) std::snprintf(tr, sizeof tr, "%.3f", *v.translation_error * 1000);
-    std::printf("%-5zu %-10s %-16s %9zu %12s %14s\n", i,
-                v.registered ? (v.angle_rejected ? "ok*" : "ok") : "FAILED",
-                to_string(v.initial), v.points, rot, tr);
+    if (v.angle_error_deg) std::snprintf(ae, sizeof ae, "%.2f", *v.angle_error_deg);
+    std::printf("%-5zu %-10s %-16s %-10s %9s %9zu %12s %14s\n", i,
+                v.registered ? (v.angle_rejected ? "ok*" : "ok") : "FAILED", to_string(v.initial),
+                v.prior == PriorUse::kNone ? "-" : to_string(v.prior), ae, v.points, rot, tr);
   }
+  if (!r.prior_comparison.empty())
+    std::printf("turntable prior checked: %s; kept: %s (angle: what became of each view's commanded angle; "
+                "angle err: registered minus commanded, degrees)\n",
+                r.prior_comparison.c_str(), r.prior_kept.c_str());
   if (r.views_with_reference > 0)
     std::printf("against reference poses (%d views, relative to view 0): rotation max %.3f deg, "
                 "median %.3f deg; translation max %.3f mm, median %.3f mm\n",

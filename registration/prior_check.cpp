@@ -1,0 +1,117 @@
+#include "registration/prior_check.h"
+
+#include <Eigen/Eigenvalues>
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <cmath>
+
+#include "core/geometry.h"
+#include "registration/icp.h"
+
+namespace station {
+
+namespace {
+
+// An angle difference in (-180, 180].
+double wrap_deg(double a) {
+  a = std::fmod(a, 360.0);
+  if (a > 180) a -= 360;
+  if (a <= -180) a += 360;
+  return a;
+}
+
+}  // namespace
+
+std::vector<double> angles_about_common_axis(const std::vector<Eigen::Matrix4d>& poses,
+                                             const std::optional<Vec3d>& direction) {
+  std::vector<Vec3d> w;
+  Eigen::Matrix3d S = Eigen::Matrix3d::Zero();
+  for (const Eigen::Matrix4d& X : poses) {
+    const Eigen::AngleAxisd aa(Eigen::Matrix3d((rigid_inverse(poses.front()) * X).block<3, 3>(0, 0)));
+    w.push_back(aa.axis() * aa.angle());
+    S += w.back() * w.back().transpose();
+  }
+  const Vec3d d = direction ? direction->normalized()
+                            : Vec3d(Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>(S).eigenvectors().col(2));
+  std::vector<double> angles;
+  for (const Vec3d& v : w) angles.push_back(-v.dot(d) * 180.0 / M_PI);
+  return angles;
+}
+
+AnglePriorFit fit_angle_prior(const std::vector<Eigen::Matrix4d>& poses, const std::vector<bool>& registered,
+                              const SessionManifest& manifest, double tolerance_deg,
+                              const std::optional<Vec3d>& known_direction) {
+  AnglePriorFit best;
+  best.residual_deg.assign(manifest.views.size(), std::nullopt);
+  std::vector<int> idx;
+  std::vector<Eigen::Matrix4d> ps;
+  std::vector<double> cmd;
+  for (std::size_t i = 0; i < manifest.views.size() && i < poses.size(); ++i)
+    if (registered[i] && manifest.views[i].angle_deg) {
+      idx.push_back(int(i));
+      ps.push_back(poses[i]);
+      cmd.push_back(*manifest.views[i].angle_deg);
+    }
+  const int n = int(idx.size());
+  best.views = n;
+  if (n < 3) return best;
+  // Measured angles about the known axis or the shared direction (both signs
+  // of the latter are tried: its sign is arbitrary).
+  std::vector<std::vector<double>> measured;
+  if (known_direction) {
+    measured.push_back(angles_about_common_axis(ps, known_direction));
+  } else {
+    measured.push_back(angles_about_common_axis(ps));
+    measured.push_back(measured.back());
+    for (double& a : measured.back()) a = -a;
+  }
+  // Scales: degrees, or step indices (all integers below 64: 360 / (largest + 1)).
+  std::vector<double> scales = {1.0};
+  const double top = *std::max_element(cmd.begin(), cmd.end());
+  if (std::all_of(cmd.begin(), cmd.end(), [](double c) { return c >= 0 && c == std::floor(c); }) && top >= 2 &&
+      top < 64)
+    scales.push_back(360.0 / (top + 1));
+  const std::vector<double> signs = known_direction ? std::vector<double>{1.0, -1.0} : std::vector<double>{1.0};
+  double best_cost = 1e300;
+  for (std::size_t mi = 0; mi < measured.size(); ++mi)
+    for (double scale : scales)
+      for (double sign : signs) {
+        const std::vector<double>& meas = measured[mi];
+        // One-point consensus: each view's offset tried; the most agreeing wins
+        // (ties: the smaller sum of residuals). The degree-exact hypotheses
+        // (sign +1, scale 1) are listed first and win ties.
+        for (int k = 0; k < n; ++k) {
+          const double b = wrap_deg(meas[k] - sign * scale * cmd[k]);
+          int agree = 0;
+          double sum = 0, mean = 0;
+          for (int j = 0; j < n; ++j) {
+            const double r = wrap_deg(meas[j] - sign * scale * cmd[j] - b);
+            if (std::abs(r) <= tolerance_deg) {
+              ++agree;
+              mean += r;
+            }
+            sum += std::min(std::abs(r), 3 * tolerance_deg);
+          }
+          const double cost = -1e6 * agree + sum;
+          if (cost < best_cost - 1e-9) {
+            best_cost = cost;
+            best.sign = sign;
+            best.scale = scale;
+            best.offset_deg = wrap_deg(b + mean / std::max(agree, 1));
+            best.agreeing = agree;
+            for (int j = 0; j < n; ++j)
+              best.residual_deg[idx[j]] = wrap_deg(meas[j] - sign * scale * cmd[j] - best.offset_deg);
+          }
+        }
+      }
+  best.ok = 2 * best.agreeing >= n && best.agreeing >= 3;
+  best.wrong.clear();
+  for (int j = 0; j < n; ++j)
+    if (std::abs(*best.residual_deg[idx[j]]) > tolerance_deg) best.wrong.push_back(idx[j]);
+  if (best.sign < 0 && best.scale != 1) best.convention = "the opposite sign, and steps of " + std::to_string(int(std::lround(best.scale))) + " degrees";
+  else if (best.sign < 0) best.convention = "the opposite sign";
+  else if (best.scale != 1) best.convention = "steps of " + std::to_string(best.scale).substr(0, 5) + " degrees, not degrees";
+  return best;
+}
+
+}  // namespace station

@@ -1,0 +1,50 @@
+#pragma once
+// The turntable prior as a hypothesis (docs/registration.md, "A wrong prior"):
+// the commanded angles of a session checked against poses registered without
+// them. The angles are fitted as measured = sign * scale * commanded + offset
+// (sign: the opposite turning sense; scale: step indices given for degrees;
+// offset: the gauge, or a table that was not at zero), by a one-point consensus
+// over the views; a view whose angle disagrees with the consensus by more than
+// the tolerance has a wrong angle.
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <Eigen/Core>
+
+#include "capture/session.h"
+
+namespace station {
+
+/// Each pose's rotation from the first, signed about `direction` (degrees, the
+/// commanded-angle convention: X_0^-1 X_i turns by -angle_i about it). Without a
+/// direction, the direction most of those rotations share (its sign arbitrary).
+std::vector<double> angles_about_common_axis(const std::vector<Eigen::Matrix4d>& poses,
+                                             const std::optional<Vec3d>& direction = {});
+
+struct AnglePriorFit {
+  bool ok = false;            ///< at least three views with an angle were fitted, half of them agree
+  double sign = 1;            ///< -1: the angles turn the other way
+  double scale = 1;           ///< degrees per commanded unit (1, or 360/N for step indices)
+  double offset_deg = 0;
+  int views = 0;              ///< views with an angle and a registered pose
+  int agreeing = 0;           ///< of them, within the tolerance
+  /// Per view of the manifest: measured minus fitted commanded angle (degrees);
+  /// none where the view has no angle or no registered pose.
+  std::vector<std::optional<double>> residual_deg;
+  std::vector<int> wrong;     ///< views whose |residual| exceeds the tolerance
+  /// "" when the angles are as given, else what was corrected ("the opposite sign",
+  /// "steps of 30 degrees, not degrees").
+  std::string convention;
+};
+
+/// Fits the manifest's commanded angles to `poses` (registered[i]: pose i is a
+/// registration result). With `known_direction` (the session's calibrated axis,
+/// in the scanner frame of the poses' first view... any frame the poses share)
+/// the turning sense can be told; without it the sign is the axis's and is
+/// fixed to +1.
+AnglePriorFit fit_angle_prior(const std::vector<Eigen::Matrix4d>& poses, const std::vector<bool>& registered,
+                              const SessionManifest& manifest, double tolerance_deg,
+                              const std::optional<Vec3d>& known_direction = {});
+
+}  // namespace station
