@@ -158,5 +158,51 @@ TEST(GlobalRegistration, WrongAngleAndViewWithoutAngle) {
   EXPECT_LT(r.max_translation_error, 0.0023);
 }
 
+// The prior as a hypothesis on real scans (issue 26): the dragon session with
+// its angles corrupted lands where the clean session does: every view within
+// 0.5 deg and 1 mm at the object (the view's centroid) of the clean poses.
+void expect_as_clean(const RegistrationResult& clean, const RegistrationResult& r,
+                     const std::vector<Cloud>& clouds, const char* what) {
+  std::printf("%s: kept %s; %s\n", what, r.prior_kept.c_str(), r.prior_comparison.c_str());
+  for (const std::string& w : r.warnings) std::printf("  warning: %s\n", w.c_str());
+  EXPECT_TRUE(r.failed_views.empty()) << what;
+  double worst_rot = 0, worst_at = 0;
+  for (std::size_t i = 0; i < r.poses.size(); ++i) {
+    Vec3d c = Vec3d::Zero();
+    for (const Vec3f& p : clouds[i].points) c += p.cast<double>();
+    c /= double(std::max<std::size_t>(clouds[i].size(), 1));
+    const Eigen::Matrix4d a = rigid_inverse(clean.poses[0]) * clean.poses[i];
+    const Eigen::Matrix4d b = rigid_inverse(r.poses[0]) * r.poses[i];
+    worst_rot = std::max(worst_rot, rotation_angle_deg(rigid_inverse(a) * b));
+    worst_at = std::max(worst_at, ((a - b) * c.homogeneous()).norm());
+  }
+  std::printf("  against the clean session: %.3f deg, %.3f mm at the object\n", worst_rot, 1000 * worst_at);
+  EXPECT_LT(worst_rot, 0.5) << what;
+  EXPECT_LT(worst_at, 0.001) << what;
+}
+
+TEST(GlobalRegistration, DragonWithWrongAnglesLandsWhereTheCleanSessionDoes) {
+  std::vector<Cloud> clouds;
+  const SessionManifest m = dragon(clouds);
+  ASSERT_EQ(m.views.size(), 15u);
+  const RegistrationResult clean = register_views(clouds, m);
+  ASSERT_TRUE(clean.failed_views.empty());
+  EXPECT_TRUE(clean.prior_comparison.empty());  // nothing suspect: registered once
+
+  SessionManifest two = m;
+  *two.views[4].angle_deg += 12;
+  *two.views[11].angle_deg -= 18;
+  const RegistrationResult r2 = register_views(clouds, two);
+  expect_as_clean(clean, r2, clouds, "two angles off by 12 and -18 deg");
+
+  // A nominal angle list: every angle rounded to the nearest 30 degrees (the
+  // true steps are 24), and three views without angle.
+  SessionManifest nominal = m;
+  for (ViewRecord& v : nominal.views) v.angle_deg = 30 * std::round(*v.angle_deg / 30);
+  for (int i : {3, 9, 13}) nominal.views[i].angle_deg.reset();
+  const RegistrationResult rn = register_views(clouds, nominal);
+  expect_as_clean(clean, rn, clouds, "nominal angles, three views without angle");
+}
+
 }  // namespace
 }  // namespace station
