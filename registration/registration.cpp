@@ -1030,7 +1030,15 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
     notes.push_back(w.str());
     w.str("");
   }
+  if (!fit.ok && fit.views >= 3) {
+    w << "the commanded angles fit the registered poses nowhere (" << fit.agreeing << " of " << fit.views
+      << " views agree within " << params.wrong_angle_deg << " deg of any one turning): did the turntable turn, "
+      << "and are the views of one object?";
+    notes.push_back(w.str());
+    w.str("");
+  }
   for (int i : fit.wrong) {
+    if (!fit.ok) break;  // no consensus to be wrong against
     if (kept_given && rejected_before[i]) continue;  // warned about already
     w << view_name(manifest, std::size_t(i)) << ": commanded angle " << *manifest.views[i].angle_deg << " deg is "
       << std::abs(*fit.residual_deg[i]) << " deg off what the other views and the scans say; "

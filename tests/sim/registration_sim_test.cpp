@@ -260,5 +260,24 @@ TEST(SimRegistration, ExtraViewsWithoutAngleJoinTheModel) {
   EXPECT_LT(r.max_object_translation_error, 0.001);
 }
 
+// Bad input for the prior check: every view the same cloud (the table never
+// turned) and one view of 10 points. A clear word on the angles, the tiny view
+// failed by name, no crash.
+TEST(SimRegistration, IdenticalViewsAndATinyViewAreToldApart) {
+  PriorCase c;
+  ASSERT_EQ(c.clouds.size(), 12u);
+  for (std::size_t i = 1; i < c.clouds.size(); ++i) c.clouds[i] = c.clouds[0];
+  c.clouds[5].points.resize(10);
+  c.clouds[5].normals.clear();
+  c.clouds[5].colours.clear();
+  const RegistrationResult r = register_views(c.clouds, c.m);
+  print_prior("identical views, one of 10 points", r);
+  ASSERT_FALSE(r.views[5].registered);
+  EXPECT_NE(r.views[5].message.find("views[5]"), std::string::npos) << r.views[5].message;
+  bool told = false;
+  for (const std::string& w : r.warnings) told = told || w.find("did the turntable turn") != std::string::npos;
+  EXPECT_TRUE(told);
+}
+
 }  // namespace
 }  // namespace station
