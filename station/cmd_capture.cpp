@@ -1,5 +1,6 @@
 #include "station/commands.h"
 
+#include <CLI/CLI.hpp>
 #include <sys/resource.h>
 #include <tbb/global_control.h>
 
@@ -335,6 +336,78 @@ int cmd_import(const Common& c, const ImportArgs& a) {
   else
     std::printf("import: %zu views, %zu points -> %s\n", a.files.size(), total, a.out.c_str());
   return 0;
+}
+
+void add_capture_commands(CLI::App& app, std::vector<Command>& out) {
+  struct State {
+    Common c_dev, c_scan, c_run, c_replay, c_import;
+    ScanArgs scan_args;
+    RunArgs run_args;
+    std::string replay_src, replay_out = "out/replay";
+    ImportArgs import_args;
+    CLI::Option* step_opt = nullptr;
+  };
+  auto s = std::make_shared<State>();
+  auto& c_dev = s->c_dev;
+  auto& c_scan = s->c_scan;
+  auto& c_run = s->c_run;
+  auto& c_replay = s->c_replay;
+  auto& c_import = s->c_import;
+  auto& scan_args = s->scan_args;
+  auto& run_args = s->run_args;
+  auto& replay_src = s->replay_src;
+  auto& replay_out = s->replay_out;
+  auto& import_args = s->import_args;
+  auto* devices = app.add_subcommand("devices", "List the devices the station can drive");
+  add_common(devices, c_dev);
+
+  auto* scan = app.add_subcommand("scan", "Scan an object on the turntable into a session folder");
+  add_common(scan, c_scan);
+  scan->add_option("-o,--out", scan_args.out, "session folder to write (or resume)")->capture_default_str();
+  scan->add_flag("--resume", scan_args.resume, "continue an interrupted scan in --out");
+  add_profile_options(scan, "scan", c_scan);
+  scan->add_option("--scanner", scan_args.scanner, "scanner URI (overrides the profile)");
+  scan->add_option("--turntable", scan_args.turntable, "turntable URI (overrides the profile)");
+  scan->add_option("--set", scan_args.set,
+                   "scanner option key=value, or profile key section.key=value (repeatable), e.g. --set noise=0.001");
+  scan->add_flag("--run", scan_args.run, "then run the whole job (station run) into <out>/run");
+
+  auto* runc = app.add_subcommand("run", "The whole job: register, consolidate, reconstruct a coloured mesh, report");
+  add_common(runc, c_run);
+  runc->add_option("input", run_args.in, "session folder (or session.yaml) or a cloud file")->required();
+  runc->add_option("-o,--out", run_args.out, "run folder: every stage's output, mesh.ply, report.html")->required();
+  runc->add_flag("--resume", run_args.resume,
+                 "continue a run in --out: finished stages whose inputs and parameters are unchanged are kept");
+  runc->add_option("--set", run_args.set, "profile override section.key=value (repeatable), e.g. --set reconstruct.resolution=192");
+  add_profile_options(runc, "run", c_run);
+  runc->add_flag("--quiet", run_args.quiet, "no progress output");
+  runc->add_flag("--no-report", run_args.no_report, "do not write report.html");
+
+  auto* replay = app.add_subcommand("replay", "Play a recorded session back through the simulated scanner");
+  add_common(replay, c_replay);
+  replay->add_option("session", replay_src, "recorded session folder")->required();
+  replay->add_option("-o,--out", replay_out, "session folder to write")->capture_default_str();
+
+
+  auto* import = app.add_subcommand("import", "Make a session from view files recorded elsewhere");
+  add_common(import, c_import);
+  import->add_option("files", import_args.files, "view files (.ply .pcd), in turntable order")->required();
+  import->add_option("-o,--out", import_args.out, "session folder to create")->required();
+  import->add_option("--stanford-conf", import_args.stanford_conf, "Stanford .conf with reference poses (bmesh lines)");
+  import->add_option("--start", import_args.start, "turntable angle of the first view, degrees");
+  s->step_opt = import->add_option("--step", import_args.step, "turntable step between views, degrees (no angles without it)");
+  import->add_option("--every", import_args.every, "keep every N-th point (downsample)")->capture_default_str();
+  import->add_option("--units", import_args.units, "units of the files (recorded, not converted)")->check(CLI::IsMember({"m", "mm"}));
+
+
+  out.push_back({devices, [s] { return cmd_devices(s->c_dev); }});
+  out.push_back({scan, [s] { return cmd_scan(s->c_scan, s->scan_args); }});
+  out.push_back({runc, [s] { return cmd_run(s->c_run, s->run_args); }});
+  out.push_back({replay, [s] { return cmd_replay(s->c_replay, s->replay_src, s->replay_out); }});
+  out.push_back({import, [s] {
+                   s->import_args.has_step = s->step_opt->count() > 0;
+                   return cmd_import(s->c_import, s->import_args);
+                 }});
 }
 
 }  // namespace station::cli

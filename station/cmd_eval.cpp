@@ -1,5 +1,6 @@
 #include "station/commands.h"
 
+#include <CLI/CLI.hpp>
 #include <sys/resource.h>
 #include <tbb/global_control.h>
 
@@ -164,6 +165,51 @@ int cmd_eval(const Common& c, const std::string& a, const std::string& b, int sa
     }
   }
   return 0;
+}
+
+void add_eval_commands(CLI::App& app, std::vector<Command>& out) {
+  struct State {
+    Common c_eval;
+    std::string eval_a, eval_b;
+    int eval_samples = 200000;
+    unsigned eval_seed = 1;
+    PointsMetricsArgs eval_pm;
+  };
+  auto s = std::make_shared<State>();
+  auto& c_eval = s->c_eval;
+  auto& eval_a = s->eval_a;
+  auto& eval_b = s->eval_b;
+  auto& eval_samples = s->eval_samples;
+  auto& eval_seed = s->eval_seed;
+  auto& eval_pm = s->eval_pm;
+  auto* eval = app.add_subcommand("eval", "Distances and colour error between two clouds or meshes");
+  add_common(eval, c_eval);
+  eval->add_option("a", eval_a, "result (cloud or mesh: .ply .pcd .obj .off)")->required();
+  eval->add_option("b", eval_b, "reference (cloud or mesh)")->required();
+  eval->add_option("--samples", eval_samples, "points sampled on each mesh")->capture_default_str()->check(CLI::Range(1, 100000000));
+  eval->add_option("--seed", eval_seed, "sampling seed")->capture_default_str();
+  eval->add_flag("--points-metrics", eval_pm.enabled,
+                 "also the consolidation metrics of A's points (a cloud's points, a mesh's vertices) "
+                 "against mesh B: accuracy (mean distance to B), uniformity (Schloemer's normalised "
+                 "mean nearest-neighbour distance, on B's surface and in 3-D) and, with --edge-radius, "
+                 "edge error");
+  eval->add_option("--edge-radius", eval_pm.edge_radius,
+                   "edge error: mean distance to B of A's points within this distance of a sharp edge "
+                   "of B (e.g. 2h of the consolidation; implies --points-metrics)")
+      ->check(CLI::PositiveNumber);
+  eval->add_option("--edge-angle", eval_pm.edge_angle,
+                   "an edge of B is sharp when its faces' normals differ by more than this (degrees)")
+      ->capture_default_str()->check(CLI::Range(0.0, 180.0));
+
+
+  out.push_back({eval, [s] {
+                   if (s->eval_pm.edge_radius > 0) s->eval_pm.enabled = true;
+                   // A's points are what the metrics measure: a complaint without a role names A.
+                   return naming_the_file(
+                       s->eval_a, s->eval_b,
+                       [&] { return cmd_eval(s->c_eval, s->eval_a, s->eval_b, s->eval_samples, s->eval_seed, s->eval_pm); },
+                       {{"A:", s->eval_a}, {"B:", s->eval_b}});
+                 }});
 }
 
 }  // namespace station::cli

@@ -1,5 +1,6 @@
 #include "station/commands.h"
 
+#include <CLI/CLI.hpp>
 #include <sys/resource.h>
 #include <tbb/global_control.h>
 
@@ -296,6 +297,55 @@ int cmd_calibrate_camera(const Common& c, const std::vector<std::string>& images
     if (!out.empty()) std::printf("written: %s\n", out.c_str());
   }
   return 0;
+}
+
+void add_register_commands(CLI::App& app, std::vector<Command>& out) {
+  struct State {
+    RegisterArgs reg_args;
+    Common c_reg, c_cal, c_cam;
+    std::string cal_session, cal_out;
+    std::vector<std::string> cam_images;
+    std::string cam_board = "9x6", cam_out;
+    double cam_square = 0.025;
+  };
+  auto s = std::make_shared<State>();
+  auto& reg_args = s->reg_args;
+  auto& c_reg = s->c_reg;
+  auto& c_cal = s->c_cal;
+  auto& c_cam = s->c_cam;
+  auto& cal_session = s->cal_session;
+  auto& cal_out = s->cal_out;
+  auto& cam_images = s->cam_images;
+  auto& cam_board = s->cam_board;
+  auto& cam_out = s->cam_out;
+  auto& cam_square = s->cam_square;
+  auto* reg = app.add_subcommand("register", "Align the views of a session and merge them into one cloud");
+  add_common(reg, c_reg);
+  reg->add_option("session", reg_args.session, "session folder")->required();
+  reg->add_option("-o,--out", reg_args.out, "merged cloud (.ply)")->required();
+  reg->add_option("--poses-out", reg_args.poses_out, "write the refined poses and diagnostics (YAML)");
+  add_profile_options(reg, "register", c_reg);
+
+
+  auto* cal = app.add_subcommand("calibrate", "Calibrate bench devices: the camera (chessboard images) or the turntable axis (a session)");
+  auto* cal_tt = cal->add_subcommand("turntable", "Fit the turntable axis to a registered session");
+  cal->require_subcommand(1);
+  add_common(cal_tt, c_cal);
+  cal_tt->add_option("session", cal_session, "session folder (views with turntable angles)")->required();
+  cal_tt->add_option("-o,--out", cal_out, "write the axis as a profile fragment (capture.axis)");
+  auto* cal_cam = cal->add_subcommand("camera", "Intrinsics and lens distortion from chessboard images");
+  add_common(cal_cam, c_cam);
+  cal_cam->add_option("images", cam_images, "PNG/JPEG images of a chessboard, 3 or more")->required();
+  cal_cam->add_option("--board", cam_board, "inner corners COLSxROWS")->capture_default_str();
+  cal_cam->add_option("--square", cam_square, "square side, metres")->capture_default_str()->check(CLI::PositiveNumber);
+  cal_cam->add_option("-o,--out", cam_out, "write the result as a profile fragment (scanner.options)");
+
+
+  out.push_back({reg, [s] { return cmd_register(s->c_reg, s->reg_args); }});
+  out.push_back({cal_tt, [s] { return cmd_calibrate_turntable(s->c_cal, s->cal_session, s->cal_out); }});
+  out.push_back({cal_cam, [s] {
+                   return cmd_calibrate_camera(s->c_cam, s->cam_images, s->cam_board, s->cam_square, s->cam_out);
+                 }});
 }
 
 }  // namespace station::cli

@@ -1,5 +1,6 @@
 #include "station/commands.h"
 
+#include <CLI/CLI.hpp>
 #include <sys/resource.h>
 #include <tbb/global_control.h>
 
@@ -292,6 +293,88 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
                 a.out.c_str());
   }
   return 0;
+}
+
+void add_surface_commands(CLI::App& app, std::vector<Command>& out) {
+  struct State {
+    ConsolidateArgs cons_args;
+    FitArgs fit_args;
+    ParameteriseArgs par_args;
+    ReconstructArgs rec_args;
+    Common c_cons, c_fit, c_par, c_rec;
+  };
+  auto s = std::make_shared<State>();
+  auto& cons_args = s->cons_args;
+  auto& fit_args = s->fit_args;
+  auto& par_args = s->par_args;
+  auto& rec_args = s->rec_args;
+  auto& c_cons = s->c_cons;
+  auto& c_fit = s->c_fit;
+  auto& c_par = s->c_par;
+  auto& c_rec = s->c_rec;
+  auto* cons = app.add_subcommand("consolidate", "Thin and even out a cloud by WLOP (or edge-preserving WLOP)");
+  add_common(cons, c_cons);
+  cons->add_option("input", cons_args.in, "input cloud (.ply .pcd .obj .off)")->required();
+  cons->add_option("-o,--out", cons_args.out, "output cloud (.ply)")->required();
+  add_profile_options(cons, "consolidate", c_cons);
+  cons->get_option("--ratio")->excludes(cons->get_option("--points"));
+
+
+  auto* fitc = app.add_subcommand("fit", "Fit a template mesh to a cloud (Self-organizing Deformable Model)");
+  add_common(fitc, c_fit);
+  fitc->add_option("input", fit_args.in, "cloud (normals estimated when missing)")->required();
+  fitc->add_option("-o,--out", fit_args.out, "fitted mesh (.ply or .obj); same vertex numbering as the template")->required();
+  fitc->add_option("--template", fit_args.templ,
+                   "icosphere:L (L = 0..7; 5 = 10,242 vertices) or a closed genus-0 mesh file")
+      ->capture_default_str();
+  fitc->add_option("--landmarks", fit_args.landmarks,
+                   "pinned pairs, one \"vertex_index x y z\" per line ('#' comments)");
+  fitc->add_flag("--no-colour", fit_args.no_colour, "do not colour the mesh from the input's colours");
+
+
+  auto* parc = app.add_subcommand("parameterise",
+                                  "Map a mesh onto a plane, sphere or cylinder (SDM) and write it with UVs");
+  add_common(parc, c_par);
+  parc->add_option("input", par_args.in, "mesh: closed genus 0 for sphere and cylinder, a disc for plane")->required();
+  parc->add_option("-o,--out", par_args.out, "the input mesh with texture coordinates (.obj)")->required();
+  parc->add_option("--onto", par_args.onto, "simple surface: sphere (longitude, colatitude), cylinder "
+                                            "(angle, profile length), plane (unit disc)")
+      ->check(CLI::IsMember({"plane", "sphere", "cylinder"}))
+      ->capture_default_str();
+  parc->add_option("--mapped", par_args.mapped, "also write the mesh as mapped onto the surface (.ply or .obj)");
+  parc->add_option("--control-points", par_args.control_points,
+                   "control points sampled on the surface (0 = 4 x the mesh's vertices)")
+      ->check(CLI::NonNegativeNumber)
+      ->capture_default_str();
+
+
+  auto* rec = app.add_subcommand("reconstruct", "Fit an MPU implicit surface with colour to a cloud and mesh it (Deformed Marching Cubes)");
+  add_common(rec, c_rec);
+  rec->add_option("input", rec_args.in, "cloud with normals (estimated when missing)")->required();
+  rec->add_option("-o,--out", rec_args.out, "mesh (.ply or .obj)")->required();
+  add_profile_options(rec, "reconstruct", c_rec);
+  rec->add_option("--up", rec_args.up,
+                  "the turntable axis in the cloud's frame, x,y,z (a run's register figures up_x, up_y, up_z): "
+                  "with --hole close the underside closes flat at the table plane (profile "
+                  "reconstruct.table_plane)");
+
+
+  out.push_back({cons, [s] {
+                   return naming_the_file(s->cons_args.in, s->cons_args.out,
+                                          [&] { return cmd_consolidate(s->c_cons, s->cons_args); });
+                 }});
+  out.push_back({fitc, [s] {
+                   return naming_the_file(s->fit_args.in, s->fit_args.out, [&] { return cmd_fit(s->c_fit, s->fit_args); },
+                                          {{"template:", s->fit_args.templ}, {"landmark ", s->fit_args.landmarks}});
+                 }});
+  out.push_back({parc, [s] {
+                   return naming_the_file(s->par_args.in, s->par_args.out,
+                                          [&] { return cmd_parameterise(s->c_par, s->par_args); });
+                 }});
+  out.push_back({rec, [s] {
+                   return naming_the_file(s->rec_args.in, s->rec_args.out,
+                                          [&] { return cmd_reconstruct(s->c_rec, s->rec_args); });
+                 }});
 }
 
 }  // namespace station::cli

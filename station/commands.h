@@ -5,6 +5,7 @@
 #include <tbb/global_control.h>
 
 #include <filesystem>
+#include <functional>
 #include <map>
 #include <memory>
 #include <string>
@@ -178,5 +179,18 @@ int naming_the_file(const std::string& in, const std::string& out, Fn&& fn,
     throw InvalidInput(file + ": " + what);
   }
 }
+
+/// A subcommand and what it runs once the command line is parsed (its arguments
+/// live in the closure).
+struct Command {
+  CLI::App* app = nullptr;
+  std::function<int()> run;
+};
+
+/// Each group's subcommands, their options and their runs (station/cmd_*.cpp).
+void add_capture_commands(CLI::App& app, std::vector<Command>& out);   ///< devices, scan, run, replay, import
+void add_eval_commands(CLI::App& app, std::vector<Command>& out);      ///< eval
+void add_register_commands(CLI::App& app, std::vector<Command>& out);  ///< register, calibrate turntable|camera
+void add_surface_commands(CLI::App& app, std::vector<Command>& out);   ///< consolidate, fit, parameterise, reconstruct
 
 }  // namespace station::cli
