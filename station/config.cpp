@@ -137,7 +137,7 @@ namespace {
 void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
   if (const YAML::Node n = root["register"]) {
     r.check_keys(n, "register",
-                 {"neighbors", "rounds", "loop_closure", "voxel_rel", "objective", "global", "check_angles",
+                 {"neighbors", "rounds", "loop_closure", "voxel_rel", "objective", "global", "check_angles", "prior_check",
                   "fuse", "fuse_distance", "rigid_turntable"});
     if (n["neighbors"]) p.reg.neighbors = r.integer(n["neighbors"], "register.neighbors");
     if (p.reg.neighbors < 1 || p.reg.neighbors > 8) r.fail("register.neighbors", "must be 1..8");
@@ -151,6 +151,7 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
       r.fail("register.objective", "must be point-to-plane, symmetric, point-to-point, colored or generalized");
     if (n["global"]) p.reg.global = r.boolean(n["global"], "register.global");
     if (n["check_angles"]) p.reg.check_angles = r.boolean(n["check_angles"], "register.check_angles");
+    if (n["prior_check"]) p.reg.prior_check = r.boolean(n["prior_check"], "register.prior_check");
     if (n["rigid_turntable"]) p.reg.rigid_turntable = r.text(n["rigid_turntable"], "register.rigid_turntable");
     if (p.reg.rigid_turntable != "auto" && p.reg.rigid_turntable != "on" && p.reg.rigid_turntable != "off")
       r.fail("register.rigid_turntable", "must be auto, on or off");

@@ -23,6 +23,9 @@ struct PipelineConfig {
     std::string objective = "point-to-plane";
     bool global = true;         ///< global registration (FPFH + RANSAC) for views without a pose
     bool check_angles = true;   ///< detect wrong commanded angles and recover them globally
+    /// When the prior misleads the run: compare with the prior-free and the corrected
+    /// prior's registrations and keep the better (docs/registration.md, "A wrong prior").
+    bool prior_check = true;
     /// Views with an angle on one rigid turntable in the pose graph: auto (kept
     /// when it fits the free solution), on, off (capture/registration.h).
     std::string rigid_turntable = "auto";

@@ -78,6 +78,8 @@ const std::vector<ProfileOption>& profile_options() {
     flag("register.global", "register", "--no-global", "false",
          "no global registration by features: views without an angle or pose fail");
     flag("register.check_angles", "register", "--no-angle-check", "false", "trust the commanded turntable angles");
+    flag("register.prior_check", "register", "--no-prior-check", "false",
+         "do not compare with a registration without angles when the angles mislead the run");
     value("register.rigid_turntable", "register", "--rigid-turntable",
           "hold the views on one rigid turntable axis: auto (when it fits the free poses), on, off",
           {"auto", "on", "off"});
@@ -156,6 +158,7 @@ RegistrationParams registration_params(const PipelineConfig& p) {
   r.voxel_rel = p.reg.voxel_rel;
   r.global_registration = p.reg.global;
   r.check_angles = p.reg.check_angles;
+  r.prior_check = p.reg.prior_check;
   r.rigid_turntable = parse_rigid_turntable(p.reg.rigid_turntable);
   r.fuse = p.reg.fuse;
   r.fuse_distance = p.reg.fuse_distance;

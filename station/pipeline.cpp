@@ -175,6 +175,7 @@ std::string register_key(const PipelineConfig& p) {
   s << "register/neighbors=" << p.reg.neighbors << ";rounds=" << p.reg.rounds
     << ";loop=" << p.reg.loop_closure << ";voxel=" << fmt("%.17g", p.reg.voxel_rel)
     << ";objective=" << p.reg.objective << ";global=" << p.reg.global << ";check_angles=" << p.reg.check_angles
+    << ";prior_check=" << p.reg.prior_check
     << ";fuse=" << p.reg.fuse << ";fuse_distance=" << fmt("%.17g", p.reg.fuse_distance)
     << ";rigid_turntable=" << p.reg.rigid_turntable;
   return s.str();
