@@ -47,7 +47,8 @@ AnglePriorFit fit_angle_prior(const std::vector<Eigen::Matrix4d>& poses, const s
   std::vector<Eigen::Matrix4d> ps;
   std::vector<double> cmd;
   for (std::size_t i = 0; i < manifest.views.size() && i < poses.size(); ++i)
-    if (registered[i] && manifest.views[i].angle_deg) {
+    if (registered[i] && manifest.views[i].angle_deg && std::isfinite(*manifest.views[i].angle_deg) &&
+        poses[i].allFinite()) {
       idx.push_back(int(i));
       ps.push_back(poses[i]);
       cmd.push_back(*manifest.views[i].angle_deg);
@@ -58,20 +59,27 @@ AnglePriorFit fit_angle_prior(const std::vector<Eigen::Matrix4d>& poses, const s
   // Measured angles about the known axis or the shared direction (both signs
   // of the latter are tried: its sign is arbitrary).
   std::vector<std::vector<double>> measured;
-  if (known_direction) {
+  const bool known = known_direction && known_direction->allFinite() && known_direction->norm() > 0;
+  if (known) {
     measured.push_back(angles_about_common_axis(ps, known_direction));
   } else {
     measured.push_back(angles_about_common_axis(ps));
     measured.push_back(measured.back());
     for (double& a : measured.back()) a = -a;
   }
-  // Scales: degrees, or step indices (all integers below 64: 360 / (largest + 1)).
+  // Scales: degrees, or step indices (all of the session's angles integers below
+  // 64: 360 / (largest + 1) for indices from 0, 360 / largest from 1).
   std::vector<double> scales = {1.0};
-  const double top = *std::max_element(cmd.begin(), cmd.end());
-  if (std::all_of(cmd.begin(), cmd.end(), [](double c) { return c >= 0 && c == std::floor(c); }) && top >= 2 &&
-      top < 64)
+  std::vector<double> all;
+  for (const ViewRecord& v : manifest.views)
+    if (v.angle_deg && std::isfinite(*v.angle_deg)) all.push_back(*v.angle_deg);
+  const double top = all.empty() ? 0 : *std::max_element(all.begin(), all.end());
+  if (std::all_of(all.begin(), all.end(), [](double c) { return c >= 0 && c == std::floor(c); }) && top >= 2 &&
+      top < 64) {
     scales.push_back(360.0 / (top + 1));
-  const std::vector<double> signs = known_direction ? std::vector<double>{1.0, -1.0} : std::vector<double>{1.0};
+    scales.push_back(360.0 / top);
+  }
+  const std::vector<double> signs = known ? std::vector<double>{1.0, -1.0} : std::vector<double>{1.0};
   double best_cost = 1e300;
   for (std::size_t mi = 0; mi < measured.size(); ++mi)
     for (double scale : scales)
@@ -104,10 +112,15 @@ AnglePriorFit fit_angle_prior(const std::vector<Eigen::Matrix4d>& poses, const s
           }
         }
       }
-  best.ok = 2 * best.agreeing >= n && best.agreeing >= 3;
+  // Agreement and wrong views from the final residuals (the offset refined above).
+  best.agreeing = 0;
   best.wrong.clear();
-  for (int j = 0; j < n; ++j)
-    if (std::abs(*best.residual_deg[idx[j]]) > tolerance_deg) best.wrong.push_back(idx[j]);
+  for (int j = 0; j < n; ++j) {
+    const std::optional<double>& r = best.residual_deg[idx[j]];
+    if (r && std::abs(*r) <= tolerance_deg) ++best.agreeing;
+    else best.wrong.push_back(idx[j]);
+  }
+  best.ok = 2 * best.agreeing >= n && best.agreeing >= 3;
   if (best.sign < 0 && best.scale != 1) best.convention = "the opposite sign, and steps of " + std::to_string(int(std::lround(best.scale))) + " degrees";
   else if (best.sign < 0) best.convention = "the opposite sign";
   else if (best.scale != 1) best.convention = "steps of " + std::to_string(best.scale).substr(0, 5) + " degrees, not degrees";

@@ -16,6 +16,7 @@
 
 #include "core/camera.h"
 #include "core/threads.h"
+#include "registration/axis_calibration.h"
 #include "registration/pose_graph.h"
 #include "registration/prior_check.h"
 #include "core/atomic_file.h"
@@ -1016,6 +1017,21 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
   for (std::size_t i = 0; i < n; ++i) rejected_before[i] = with.views[i].angle_rejected;
   RegistrationResult out = std::move(keep_free ? free : *prior_best);
   out.prior_kept = keep_free ? "no prior" : kept_given ? "prior" : "corrected prior";
+  if (keep_free) {
+    // The turntable axis for what follows (the report's up, the table plane): the
+    // prior-free poses are in the first view's scanner frame, where the session's
+    // axis holds; without one, the axis the registered poses turn about.
+    out.axis = manifest.axis;
+    if (!out.axis) {
+      std::vector<Eigen::Matrix4d> ps;
+      for (std::size_t i = 0; i < n; ++i)
+        if (out.views[i].registered) ps.push_back(out.poses[i]);
+      if (ps.size() >= 3) {
+        const AxisFitResult a = calibrate_axis(ps, angles_about_common_axis(ps));
+        if (a.ok) out.axis = a.axis;
+      }
+    }
+  }
   out.prior_comparison = comparison;
   for (std::size_t i = 0; i < n; ++i) {
     if (fit.residual_deg[i]) out.views[i].angle_error_deg = fit.residual_deg[i];
@@ -1024,6 +1040,12 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
   std::vector<std::string> notes;
   std::ostringstream w;
   w.precision(3);
+  if (out.prior_kept != "prior") {
+    w << "the turntable prior misled the registration (" << out.prior_comparison << "): "
+      << (keep_free ? "the poses registered without angles are kept" : "the poses of the corrected angles are kept");
+    notes.push_back(w.str());
+    w.str("");
+  }
   if (fit.ok && !fit.convention.empty()) {
     w << "the commanded angles fit the scans with " << fit.convention << " (" << fit.agreeing << " of "
       << fit.views << " views within " << params.wrong_angle_deg << " deg)";
@@ -1048,11 +1070,6 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
     notes.push_back(w.str());
     if (out.views[i].message.empty() && out.views[i].registered) out.views[i].message = w.str();
     w.str("");
-  }
-  if (out.prior_kept != "prior") {
-    w << "the turntable prior misled the registration (" << out.prior_comparison << "): "
-      << (keep_free ? "the poses registered without angles are kept" : "the poses of the corrected angles are kept");
-    notes.push_back(w.str());
   }
   out.warnings.insert(out.warnings.begin(), notes.begin(), notes.end());
   return out;

@@ -202,6 +202,10 @@ TEST(GlobalRegistration, DragonWithWrongAnglesLandsWhereTheCleanSessionDoes) {
   for (int i : {3, 9, 13}) nominal.views[i].angle_deg.reset();
   const RegistrationResult rn = register_views(clouds, nominal);
   expect_as_clean(clean, rn, clouds, "nominal angles, three views without angle");
+  // Whichever poses are kept, the stage after knows the turntable axis (the
+  // report's up, the table plane): the Cyberware's turns about y.
+  ASSERT_TRUE(rn.axis.has_value());
+  EXPECT_GT(std::abs(rn.axis->direction.normalized().y()), 0.99);
 }
 
 }  // namespace

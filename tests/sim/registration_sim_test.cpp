@@ -256,6 +256,7 @@ TEST(SimRegistration, ExtraViewsWithoutAngleJoinTheModel) {
   const RegistrationResult r = register_views(c.clouds, c.m);
   print_prior("three views without angle", r);
   EXPECT_TRUE(r.failed_views.empty());
+  EXPECT_TRUE(r.axis.has_value());  // the session's, also for prior-free poses
   EXPECT_LT(r.max_rotation_error_deg, 0.5);
   EXPECT_LT(r.max_object_translation_error, 0.001);
 }
