@@ -1052,7 +1052,7 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
     notes.push_back(w.str());
     w.str("");
   }
-  if (!fit.ok && fit.views >= 3) {
+  if (!fit.ok && fit.views >= 3 && 2 * fit.agreeing < fit.views) {
     w << "the commanded angles fit the registered poses nowhere (" << fit.agreeing << " of " << fit.views
       << " views agree within " << params.wrong_angle_deg << " deg of any one turning): did the turntable turn, "
       << "and are the views of one object?";

@@ -354,7 +354,7 @@ void add_surface_commands(CLI::App& app, std::vector<Command>& out) {
   rec->add_option("-o,--out", rec_args.out, "mesh (.ply or .obj)")->required();
   add_profile_options(rec, "reconstruct", c_rec);
   rec->add_option("--up", rec_args.up,
-                  "the turntable axis in the cloud's frame, x,y,z (a run's register figures up_x, up_y, up_z): "
+                  "the turntable axis in the cloud's frame, x,y,z (a run's register stage `up` in run.yaml): "
                   "with --hole close the underside closes flat at the table plane (profile "
                   "reconstruct.table_plane)");
 
