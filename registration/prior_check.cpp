@@ -4,8 +4,10 @@
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
+#include <limits>
 
 #include "core/geometry.h"
+#include "registration/axis_calibration.h"
 #include "registration/icp.h"
 
 namespace station {
@@ -124,6 +126,41 @@ AnglePriorFit fit_angle_prior(const std::vector<Eigen::Matrix4d>& poses, const s
   if (best.sign < 0 && best.scale != 1) best.convention = "the opposite sign, and steps of " + std::to_string(int(std::lround(best.scale))) + " degrees";
   else if (best.sign < 0) best.convention = "the opposite sign";
   else if (best.scale != 1) best.convention = "steps of " + std::to_string(best.scale).substr(0, 5) + " degrees, not degrees";
+  return best;
+}
+
+TurntableSplit find_turntable_split(const std::vector<Eigen::Matrix4d>& poses, const std::vector<int>& order,
+                                    const std::vector<double>& angles_deg, double min_misfit) {
+  TurntableSplit best;
+  const int n = int(order.size());
+  if (n < 6 || int(angles_deg.size()) != n) return best;
+  // Motions between consecutive views (a motion of about 180 degrees, e.g. from
+  // the first view, has an ambiguous sense and is left out of the fit).
+  const auto misfit = [&](int from, int to) {  // views order[from..to)
+    std::vector<AxisMotion> ms;
+    for (int k = from; k + 1 < to; ++k) {
+      AxisMotion m;
+      m.transform = rigid_inverse(poses[order[k]]) * poses[order[k + 1]];
+      m.angle_deg = angles_deg[k + 1] - angles_deg[k];
+      ms.push_back(m);
+    }
+    const AxisFitResult f = fit_turntable_axis(ms);
+    return f.ok ? f.rms_translation : std::numeric_limits<double>::infinity();
+  };
+  const double whole = misfit(0, n);
+  if (!std::isfinite(whole) || whole < min_misfit) return best;
+  double parts = std::numeric_limits<double>::infinity();
+  int split = -1;
+  for (int k = 3; k + 3 <= n; ++k) {
+    const double m = std::max(misfit(0, k), misfit(k, n));
+    if (m < parts) parts = m, split = k;
+  }
+  if (split < 0 || !(whole >= 3 * parts)) return best;
+  best.found = true;
+  best.last_before = order[split - 1];
+  best.first_after = order[split];
+  best.whole_misfit = whole;
+  best.parts_misfit = parts;
   return best;
 }
 

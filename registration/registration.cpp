@@ -1071,6 +1071,26 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
     if (out.views[i].message.empty() && out.views[i].registered) out.views[i].message = w.str();
     w.str("");
   }
+  // The views refused one rigid turntable: did the object move between two runs
+  // of views that each turn about one axis? (They keep their free poses.)
+  if (params.rigid_turntable == RigidTurntable::kAuto && !out.rigid_turntable && out.rigid_deviation_deg > 0) {
+    std::vector<int> order;
+    std::vector<double> angles;
+    for (std::size_t i = 0; i < n; ++i)
+      if (out.views[i].registered && manifest.views[i].angle_deg && !manifest.views[i].initial_pose) {
+        order.push_back(int(i));
+        angles.push_back(*manifest.views[i].angle_deg);
+      }
+    const TurntableSplit split = find_turntable_split(out.poses, order, angles, 1e-3 * out.diagonal);
+    if (split.found) {
+      w << "the object moved on the table between " << view_name(manifest, std::size_t(split.last_before)) << " and "
+        << view_name(manifest, std::size_t(split.first_after)) << ": the views before and after each turn about one "
+        << "axis (unexplained motion " << 1000 * split.parts_misfit << " mm RMS) but not together ("
+        << 1000 * split.whole_misfit << " mm); each view keeps its own registered pose";
+      notes.push_back(w.str());
+      w.str("");
+    }
+  }
   out.warnings.insert(out.warnings.begin(), notes.begin(), notes.end());
   return out;
 }
