@@ -967,7 +967,18 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
   SessionManifest bare = manifest;
   bare.axis.reset();
   for (ViewRecord& v : bare.views) v.angle_deg.reset();
-  RegistrationResult free = Registrar(clouds, bare, params, progress).run();
+  // The extra runs report their stages under their own names ("without angles:
+  // prepare", ...): a progress display sees each stage once.
+  const auto named = [&](const char* run) -> RegistrationCallback {
+    if (!progress) return {};
+    return [&progress, run](const RegistrationProgress& p) {
+      RegistrationProgress q = p;
+      q.stage = std::string(run) + ": " + p.stage;
+      progress(q);
+    };
+  };
+  const RegistrationCallback free_progress = named("without angles");
+  RegistrationResult free = Registrar(clouds, bare, params, free_progress).run();
   std::vector<bool> reg(n);
   for (std::size_t i = 0; i < n; ++i) reg[i] = free.views[i].registered;
   const std::optional<Vec3d> known =
@@ -988,7 +999,8 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
       if (std::find(fit.wrong.begin(), fit.wrong.end(), int(i)) != fit.wrong.end()) v.angle_deg.reset();
       else v.angle_deg = fit.sign * fit.scale * *v.angle_deg;
     }
-    corrected = Registrar(clouds, m, params, progress).run();
+    const RegistrationCallback corrected_progress = named("corrected angles");
+    corrected = Registrar(clouds, m, params, corrected_progress).run();
     for (std::size_t i = 0; i < n; ++i) {
       if (!manifest.views[i].angle_deg || manifest.views[i].initial_pose) continue;
       ViewDiagnostics& d = corrected->views[i];

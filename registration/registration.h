@@ -153,6 +153,8 @@ struct RegistrationProgress {
   /// "prepare", "axis", "global", "angles", "refine" (ICP and pose graph, a step per
   /// round), "merge". Each stage reports done = 0 before its work starts, then after
   /// each step, so the time from a stage's first report to the next stage's is its own.
+  /// The prior check's extra runs (RegistrationParams::prior_check) prefix theirs:
+  /// "without angles: prepare", "corrected angles: refine", ...
   std::string stage;
   int done = 0;
   int total = 0;

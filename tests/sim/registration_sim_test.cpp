@@ -2,7 +2,9 @@
 // truth: noisy depth, turntable angles off by up to 3 degrees.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <random>
+#include <set>
 
 #include "capture/capture.h"
 #include "registration/registration.h"
@@ -208,7 +210,13 @@ TEST(SimRegistration, ViewsWithWrongAnglesAreRegisteredWithoutThem) {
   ASSERT_EQ(c.clouds.size(), 12u);
   *c.m.views[3].angle_deg += 15;
   *c.m.views[8].angle_deg -= 20;
-  const RegistrationResult r = register_views(c.clouds, c.m);
+  std::vector<std::string> stages;
+  const RegistrationResult r = register_views(c.clouds, c.m, {}, [&](const RegistrationProgress& p) {
+    if (stages.empty() || stages.back() != p.stage) stages.push_back(p.stage);
+  });
+  // The extra runs' stages come under their own names: each stage once.
+  EXPECT_EQ(std::set<std::string>(stages.begin(), stages.end()).size(), stages.size());
+  EXPECT_NE(std::find(stages.begin(), stages.end(), "without angles: refine"), stages.end());
   print_prior("two angles off by 15 and -20 deg", r);
   EXPECT_TRUE(r.failed_views.empty());
   EXPECT_EQ(r.views_with_reference, 12);
