@@ -53,6 +53,7 @@ Eigen::Matrix4d line_rotation(const Vec3d& p, const Vec3d& d, double angle) {
 struct TurntableState {
   Vec3d p, d;
   std::vector<double> angle;
+  std::vector<Eigen::Matrix4d> base;  // per group: B_g (B_0 = the gauge's pose, held)
   std::vector<Eigen::Matrix4d> free;  // poses of the nodes off the table (others unused)
 };
 
@@ -151,9 +152,13 @@ PoseGraphResult optimize_turntable_graph(std::vector<Eigen::Matrix4d> poses,
                                          const std::vector<PoseGraphEdge>& edges,
                                          const std::vector<bool>& on_table, const Vec3d& axis_point,
                                          const Vec3d& axis_direction, const PoseGraphParams& params,
-                                         TurntableGraphModel* model) {
+                                         TurntableGraphModel* model, const std::vector<int>& group_in) {
   const int n = int(poses.size());
   check_edges(edges, n);
+  const std::vector<int> group = group_in.empty() ? std::vector<int>(std::size_t(n), 0) : group_in;
+  if (int(group.size()) != n || std::any_of(group.begin(), group.end(), [](int g) { return g < 0; }))
+    throw InvalidInput("turntable pose graph: one group (>= 0) per node expected");
+  const int groups = 1 + *std::max_element(group.begin(), group.end());
   const int f = params.fixed_node;
   if (int(on_table.size()) != n || f < 0 || f >= n || !on_table[f])
     throw InvalidInput("turntable pose graph: the gauge node " + std::to_string(f) +
@@ -166,10 +171,22 @@ PoseGraphResult optimize_turntable_graph(std::vector<Eigen::Matrix4d> poses,
 
   // Unknown layout: [0, 4) the line (two tilts of d, two shifts of p across d),
   // then one angle per table node but the gauge, then 6 per other node.
+  if (group[f] != 0) throw InvalidInput("turntable pose graph: the gauge node must be in group 0");
+  // Each further group's first table node holds its angle (its base turns instead).
+  std::vector<int> anchor(std::size_t(groups), -1);
+  anchor[0] = f;
+  for (int i = 0; i < n; ++i)
+    if (on_table[i] && anchor[group[i]] < 0) anchor[group[i]] = i;
   std::vector<int> index(n, -1);
   int dim = 4;
   for (int i = 0; i < n; ++i)
-    if (on_table[i] && i != f) index[i] = dim++;
+    if (on_table[i] && i != anchor[group[i]]) index[i] = dim++;
+  std::vector<int> base_index(std::size_t(groups), -1);
+  for (int g = 1; g < groups; ++g)
+    if (anchor[g] >= 0) {
+      base_index[g] = dim;
+      dim += 6;
+    }
   for (int i = 0; i < n; ++i)
     if (!on_table[i]) {
       index[i] = dim;
@@ -181,14 +198,18 @@ PoseGraphResult optimize_turntable_graph(std::vector<Eigen::Matrix4d> poses,
   s.p = axis_point;
   s.angle.assign(n, 0.0);
   s.free = poses;
+  s.base.assign(std::size_t(groups), Xf);
+  for (int g = 1; g < groups; ++g)
+    if (anchor[g] >= 0) s.base[g] = poses[anchor[g]];
   for (int i = 0; i < n; ++i)
-    if (on_table[i] && i != f) {
-      const Eigen::AngleAxisd aa(Eigen::Matrix3d((Xf_inv * poses[i]).block<3, 3>(0, 0)));
+    if (on_table[i] && i != anchor[group[i]]) {
+      const Eigen::Matrix4d rel = (group[i] == 0 ? Xf_inv : rigid_inverse(s.base[group[i]])) * poses[i];
+      const Eigen::AngleAxisd aa(Eigen::Matrix3d(rel.block<3, 3>(0, 0)));
       s.angle[i] = aa.angle() * (aa.axis().dot(s.d) >= 0 ? 1.0 : -1.0);
     }
   const auto pose = [&](const TurntableState& st, int i) -> Eigen::Matrix4d {
     if (!on_table[i]) return st.free[i];
-    return Xf * line_rotation(st.p, st.d, st.angle[i]);
+    return st.base[group[i]] * line_rotation(st.p, st.d, st.angle[i]);
   };
   // Applies step x (full or one unknown) to a state.
   const auto apply = [&](const TurntableState& st, const Eigen::VectorXd& x) {
@@ -203,6 +224,8 @@ PoseGraphResult optimize_turntable_graph(std::vector<Eigen::Matrix4d> poses,
       else
         out.free[i] = motion_exp(x.segment<6>(index[i])) * st.free[i];
     }
+    for (int g = 1; g < groups; ++g)
+      if (base_index[g] >= 0) out.base[g] = motion_exp(x.segment<6>(base_index[g])) * st.base[g];
     return out;
   };
   const auto total_cost = [&](const TurntableState& st) {
@@ -229,6 +252,9 @@ PoseGraphResult optimize_turntable_graph(std::vector<Eigen::Matrix4d> poses,
       bool line = false;
       for (int node : {e.from, e.to}) {
         if (on_table[node]) line = true;
+        if (on_table[node] && base_index[group[node]] >= 0 &&
+            std::find(unknowns.begin(), unknowns.end(), base_index[group[node]]) == unknowns.end())
+          for (int k = 0; k < 6; ++k) unknowns.push_back(base_index[group[node]] + k);
         if (index[node] < 0) continue;
         const int count = on_table[node] ? 1 : 6;
         for (int k = 0; k < count; ++k) unknowns.push_back(index[node] + k);

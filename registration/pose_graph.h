@@ -72,11 +72,16 @@ struct TurntableGraphModel {
 /// unknowns. `axis_point` / `axis_direction`: the starting line (scanner
 /// frame); the angles start from the poses. InvalidInput if the gauge node is
 /// not on the table, on bad edges or a zero direction.
+/// `group` (empty: all 0): per node, the run of table views it belongs to, for an
+/// object that moved on the table between runs: group g's nodes are X_i = B_g
+/// Rot(L, phi_i), one line L for all (the table did not move), B_0 = X_f and
+/// each further group's base B_g 6 unknowns (its first node's angle held).
 PoseGraphResult optimize_turntable_graph(std::vector<Eigen::Matrix4d> poses,
                                          const std::vector<PoseGraphEdge>& edges,
                                          const std::vector<bool>& on_table, const Vec3d& axis_point,
                                          const Vec3d& axis_direction, const PoseGraphParams& params = {},
-                                         TurntableGraphModel* model = nullptr);
+                                         TurntableGraphModel* model = nullptr,
+                                         const std::vector<int>& group = {});
 
 /// e = (log R, t) of X_i^-1 X_j Z^-1 (the edge error above).
 Vector6d pose_graph_error(const Eigen::Matrix4d& Xi, const Eigen::Matrix4d& Xj,

@@ -703,20 +703,50 @@ class Registrar {
         if (!start) return free_graph;
         PoseGraphResult rigid =
             optimize_turntable_graph(free_graph.poses, es, on_table, start->point, start->direction, gp);
-        double dev_deg = 0, dev = 0;
-        for (int i : r) {
-          if (!on_table[i]) continue;
-          const Eigen::Matrix4d a = rigid_inverse(free_graph.poses[gp.fixed_node]) * free_graph.poses[i];
-          const Eigen::Matrix4d b = rigid_inverse(rigid.poses[gp.fixed_node]) * rigid.poses[i];
-          dev_deg = std::max(dev_deg, rotation_angle_deg(rigid_inverse(a) * b));
-          dev = std::max(dev, ((a - b) * centroid(views_[i].points).homogeneous()).norm());
-        }
-        res_.rigid_deviation_deg = dev_deg;
-        res_.rigid_deviation = dev;
-        rigid_rejected_ = p_.rigid_turntable == RigidTurntable::kAuto &&
-                          !(dev_deg <= p_.rigid_max_deviation_deg && dev <= p_.rigid_max_deviation_rel * diag_);
+        // How far a constrained solution moves the table views from the free one.
+        const auto deviation = [&](const PoseGraphResult& c) {
+          double dev_deg = 0, dev = 0;
+          for (int i : r) {
+            if (!on_table[i]) continue;
+            const Eigen::Matrix4d a = rigid_inverse(free_graph.poses[gp.fixed_node]) * free_graph.poses[i];
+            const Eigen::Matrix4d b = rigid_inverse(c.poses[gp.fixed_node]) * c.poses[i];
+            dev_deg = std::max(dev_deg, rotation_angle_deg(rigid_inverse(a) * b));
+            dev = std::max(dev, ((a - b) * centroid(views_[i].points).homogeneous()).norm());
+          }
+          return std::make_pair(dev_deg, dev);
+        };
+        const auto fits = [&](const std::pair<double, double>& d) {
+          return d.first <= p_.rigid_max_deviation_deg && d.second <= p_.rigid_max_deviation_rel * diag_;
+        };
+        const auto dev = deviation(rigid);
+        res_.rigid_deviation_deg = dev.first;
+        res_.rigid_deviation = dev.second;
+        rigid_rejected_ = p_.rigid_turntable == RigidTurntable::kAuto && !fits(dev);
         rigid_used_ = !rigid_rejected_;
-        return rigid_rejected_ ? free_graph : rigid;
+        res_.turntable_groups = rigid_used_ ? 1 : 0;
+        res_.moved_after_view = -1;
+        if (!rigid_rejected_) return rigid;
+        // The object moved on the table between two runs of views: each run is
+        // held on the one axis with its own base pose, when that fits.
+        std::vector<int> order;
+        for (int i : r)
+          if (on_table[i]) order.push_back(i);
+        const TurntableSplit split = find_turntable_split(free_graph.poses, order, table_angles, 1e-3 * diag_);
+        if (!split.found) return free_graph;
+        std::vector<int> group(m_.views.size(), 0);
+        bool after = false;
+        for (int i : order) {
+          after = after || i == split.first_after;
+          group[i] = after ? 1 : 0;
+        }
+        PoseGraphResult two = optimize_turntable_graph(free_graph.poses, es, on_table, start->point,
+                                                       start->direction, gp, nullptr, group);
+        if (!fits(deviation(two))) return free_graph;
+        res_.turntable_groups = 2;
+        res_.moved_after_view = split.first_after;
+        split_before_ = split.last_before;
+        split_after_ = split.first_after;
+        return two;
       };
       PoseGraphResult g = solve(edges);
       // Edges the optimised graph disagrees with strongly are wrong matches
@@ -752,8 +782,13 @@ class Registrar {
       std::ostringstream w;
       w.precision(3);
       w << "the views do not fit one rigid turntable (the rigid solution moves a view " << res_.rigid_deviation_deg
-        << " deg / " << 1000 * res_.rigid_deviation
-        << " mm from the free one: did the object shift on the table?); the free poses are used";
+        << " deg / " << 1000 * res_.rigid_deviation << " mm from the free one: did the object shift on the table?); ";
+      if (res_.turntable_groups == 2)
+        w << "the object moved between " << view_name(m_, std::size_t(split_before_)) << " and "
+          << view_name(m_, std::size_t(split_after_))
+          << ": the views before and after are held on the one axis, each run with its own place on the table";
+      else
+        w << "the free poses are used";
       res_.warnings.push_back(w.str());
     }
     for (const PairDiagnostics& pd : res_.pairs)
@@ -887,6 +922,7 @@ class Registrar {
   std::vector<int> off_table_;  // posed by global registration against the model
   bool rigid_rejected_ = false;  // kAuto kept the free poses in the last solve
   bool rigid_used_ = false;      // the last solve's poses are the rigid ones
+  int split_before_ = -1, split_after_ = -1;  // two turntable runs: the views either side of the move
   std::vector<bool> usable_;
   double diag_ = 0;
 };
@@ -1074,6 +1110,9 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
   for (int i : fit.wrong) {
     if (!fit.ok) break;  // no consensus to be wrong against
     if (kept_given && rejected_before[i]) continue;  // warned about already
+    // The object turned when it moved: the second run's angles are off together,
+    // which the refinement's warning about the move explains.
+    if (out.turntable_groups == 2 && i >= out.moved_after_view) continue;
     w << view_name(manifest, std::size_t(i)) << ": commanded angle " << *manifest.views[i].angle_deg << " deg is "
       << std::abs(*fit.residual_deg[i]) << " deg off what the other views and the scans say; "
       << (out.views[i].prior == PriorUse::kUsed || out.views[i].prior == PriorUse::kCorrected
@@ -1085,7 +1124,8 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
   }
   // The views refused one rigid turntable: did the object move between two runs
   // of views that each turn about one axis? (They keep their free poses.)
-  if (params.rigid_turntable == RigidTurntable::kAuto && !out.rigid_turntable && out.rigid_deviation_deg > 0) {
+  if (params.rigid_turntable == RigidTurntable::kAuto && !out.rigid_turntable && out.rigid_deviation_deg > 0 &&
+      out.turntable_groups != 2) {  // (two runs: the refinement's warning names the move)
     std::vector<int> order;
     std::vector<double> angles;
     for (std::size_t i = 0; i < n; ++i)

@@ -231,6 +231,11 @@ struct RegistrationResult {
   /// The last round's poses of the turntable views lie on one rigid turntable
   /// (RegistrationParams::rigid_turntable).
   bool rigid_turntable = false;
+  /// Rigid turntable runs the table views were held on, last round: 1 (one
+  /// turntable, rigid_turntable), 2 (the object moved between two runs of views:
+  /// each on the one axis with its own base pose), 0 (free poses).
+  int turntable_groups = 0;
+  int moved_after_view = -1;  ///< turntable_groups 2: the first view of the second run
   /// Largest difference between the rigid and the free solution over the
   /// turntable views, last round (when both were solved): degrees, and metres
   /// at the view's centroid.

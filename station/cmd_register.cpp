@@ -66,6 +66,7 @@ JsonObject registration_json(const RegistrationResult& r) {
   if (!r.prior_comparison.empty()) j.add("prior_comparison", r.prior_comparison);
   j.add("rigid_turntable", JsonObject()
                                .add("used", r.rigid_turntable)
+                               .add("runs", r.turntable_groups)
                                .add("deviation_deg", r.rigid_deviation_deg)
                                .add("deviation_m", r.rigid_deviation));
   if (r.fuse_distance > 0)
@@ -156,6 +157,9 @@ void print_registration(const RegistrationResult& r) {
   if (r.rigid_turntable)
     std::printf("rigid turntable: the views lie on one axis (at most %.3f deg / %.3f mm from the free poses)\n",
                 r.rigid_deviation_deg, r.rigid_deviation * 1000);
+  else if (r.turntable_groups == 2)
+    std::printf("rigid turntable: two runs of views on one axis (the object moved before view %d)\n",
+                r.moved_after_view);
   if (!r.pair_residuals.empty()) {
     std::printf("pair residual (RMS point-to-plane over %zu refined pairs): %.4f mm",
                 r.pair_residuals.size(), r.mean_pair_rmse * 1000);
