@@ -7,16 +7,16 @@
 
 namespace station {
 
-namespace {
-
-constexpr double kDeg = M_PI / 180.0;
-
-double wrap_deg(double a) {
+double wrap_angle_deg(double a) {
   a = std::fmod(a, 360.0);
   if (a > 180.0) a -= 360.0;
   if (a <= -180.0) a += 360.0;
   return a;
 }
+
+namespace {
+
+constexpr double kDeg = M_PI / 180.0;
 
 Vec3d axis_angle(const Eigen::Matrix3d& R) {
   const Eigen::AngleAxisd aa(R);
@@ -33,7 +33,7 @@ AxisFitResult fit_turntable_axis(const std::vector<AxisMotion>& motions,
   Eigen::Matrix3d M = Eigen::Matrix3d::Zero();
   for (std::size_t k = 0; k < motions.size(); ++k) {
     const AxisMotion& m = motions[k];
-    const double a = wrap_deg(m.angle_deg);
+    const double a = wrap_angle_deg(m.angle_deg);
     if (!m.transform.allFinite() || m.weight <= 0) continue;
     if (std::abs(a) > 180.0 - params.ambiguous_margin_deg || std::abs(a) < 1e-6) continue;
     const Vec3d w = axis_angle(m.transform.block<3, 3>(0, 0));
@@ -41,7 +41,7 @@ AxisFitResult fit_turntable_axis(const std::vector<AxisMotion>& motions,
     used.push_back(k);
   }
   double max_angle = 0;
-  for (std::size_t k : used) max_angle = std::max(max_angle, std::abs(wrap_deg(motions[k].angle_deg)));
+  for (std::size_t k : used) max_angle = std::max(max_angle, std::abs(wrap_angle_deg(motions[k].angle_deg)));
   if (used.empty() || max_angle < 5.0) {
     res.message = "no usable motion (need one of at least 5 degrees)";
     return res;
@@ -53,7 +53,7 @@ AxisFitResult fit_turntable_axis(const std::vector<AxisMotion>& motions,
   double sense = 0;
   for (std::size_t k : used) {
     const Vec3d w = axis_angle(motions[k].transform.block<3, 3>(0, 0));
-    sense += motions[k].weight * wrap_deg(motions[k].angle_deg) * w.dot(d);
+    sense += motions[k].weight * wrap_angle_deg(motions[k].angle_deg) * w.dot(d);
   }
   if (sense > 0) d = -d;
 
@@ -83,7 +83,7 @@ AxisFitResult fit_turntable_axis(const std::vector<AxisMotion>& motions,
     const Eigen::Matrix3d R = m.transform.block<3, 3>(0, 0);
     const Vec3d w = axis_angle(R);
     const double about = -w.dot(d) / kDeg;
-    r.angle_deg = wrap_deg(about - m.angle_deg);
+    r.angle_deg = wrap_angle_deg(about - m.angle_deg);
     r.tilt_deg = (w - w.dot(d) * d).norm() / kDeg;
     r.translation = ((Eigen::Matrix3d::Identity() - R) * p - m.transform.block<3, 1>(0, 3)).norm();
     r.used = std::find(used.begin(), used.end(), k) != used.end();

@@ -22,6 +22,9 @@
 
 namespace station {
 
+/// An angle in degrees wrapped into (-180, 180].
+double wrap_angle_deg(double a);
+
 /// One measured motion between two views of a turntable session.
 struct AxisMotion {
   /// Maps view b's scanner-frame points into view a's scanner frame.

@@ -12,18 +12,6 @@
 
 namespace station {
 
-namespace {
-
-// An angle difference in (-180, 180].
-double wrap_deg(double a) {
-  a = std::fmod(a, 360.0);
-  if (a > 180) a -= 360;
-  if (a <= -180) a += 360;
-  return a;
-}
-
-}  // namespace
-
 std::vector<double> angles_about_common_axis(const std::vector<Eigen::Matrix4d>& poses,
                                              const std::optional<Vec3d>& direction) {
   std::vector<Vec3d> w;
@@ -91,11 +79,11 @@ AnglePriorFit fit_angle_prior(const std::vector<Eigen::Matrix4d>& poses, const s
         // (ties: the smaller sum of residuals). The degree-exact hypotheses
         // (sign +1, scale 1) are listed first and win ties.
         for (int k = 0; k < n; ++k) {
-          const double b = wrap_deg(meas[k] - sign * scale * cmd[k]);
+          const double b = wrap_angle_deg(meas[k] - sign * scale * cmd[k]);
           int agree = 0;
           double sum = 0, mean = 0;
           for (int j = 0; j < n; ++j) {
-            const double r = wrap_deg(meas[j] - sign * scale * cmd[j] - b);
+            const double r = wrap_angle_deg(meas[j] - sign * scale * cmd[j] - b);
             if (std::abs(r) <= tolerance_deg) {
               ++agree;
               mean += r;
@@ -107,10 +95,10 @@ AnglePriorFit fit_angle_prior(const std::vector<Eigen::Matrix4d>& poses, const s
             best_cost = cost;
             best.sign = sign;
             best.scale = scale;
-            best.offset_deg = wrap_deg(b + mean / std::max(agree, 1));
+            best.offset_deg = wrap_angle_deg(b + mean / std::max(agree, 1));
             best.agreeing = agree;
             for (int j = 0; j < n; ++j)
-              best.residual_deg[idx[j]] = wrap_deg(meas[j] - sign * scale * cmd[j] - best.offset_deg);
+              best.residual_deg[idx[j]] = wrap_angle_deg(meas[j] - sign * scale * cmd[j] - best.offset_deg);
           }
         }
       }

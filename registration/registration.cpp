@@ -687,6 +687,9 @@ class Registrar {
       const auto solve = [&](const std::vector<PoseGraphEdge>& es) {
         PoseGraphResult free_graph = optimize_pose_graph(res_.poses, es, gp);
         rigid_rejected_ = rigid_used_ = false;
+        res_.turntable_groups = 0;
+        res_.moved_after_view = -1;
+        split_ = {};
         if (table_views < 3) return free_graph;
         // The rigid solve starts from the free solution and the axis that
         // best explains it (or the session's / estimated axis).
@@ -724,28 +727,25 @@ class Registrar {
         rigid_rejected_ = p_.rigid_turntable == RigidTurntable::kAuto && !fits(dev);
         rigid_used_ = !rigid_rejected_;
         res_.turntable_groups = rigid_used_ ? 1 : 0;
-        res_.moved_after_view = -1;
         if (!rigid_rejected_) return rigid;
         // The object moved on the table between two runs of views: each run is
         // held on the one axis with its own base pose, when that fits.
         std::vector<int> order;
         for (int i : r)
           if (on_table[i]) order.push_back(i);
-        const TurntableSplit split = find_turntable_split(free_graph.poses, order, table_angles, 1e-3 * diag_);
-        if (!split.found) return free_graph;
+        split_ = find_turntable_split(free_graph.poses, order, table_angles, 1e-3 * diag_);
+        if (!split_.found) return free_graph;
         std::vector<int> group(m_.views.size(), 0);
         bool after = false;
         for (int i : order) {
-          after = after || i == split.first_after;
+          after = after || i == split_.first_after;
           group[i] = after ? 1 : 0;
         }
         PoseGraphResult two = optimize_turntable_graph(free_graph.poses, es, on_table, start->point,
                                                        start->direction, gp, nullptr, group);
         if (!fits(deviation(two))) return free_graph;
         res_.turntable_groups = 2;
-        res_.moved_after_view = split.first_after;
-        split_before_ = split.last_before;
-        split_after_ = split.first_after;
+        res_.moved_after_view = split_.first_after;
         return two;
       };
       PoseGraphResult g = solve(edges);
@@ -783,10 +783,16 @@ class Registrar {
       w.precision(3);
       w << "the views do not fit one rigid turntable (the rigid solution moves a view " << res_.rigid_deviation_deg
         << " deg / " << 1000 * res_.rigid_deviation << " mm from the free one: did the object shift on the table?); ";
+      const std::string before = split_.found ? view_name(m_, std::size_t(split_.last_before)) : "";
+      const std::string after = split_.found ? view_name(m_, std::size_t(split_.first_after)) : "";
       if (res_.turntable_groups == 2)
-        w << "the object moved between " << view_name(m_, std::size_t(split_before_)) << " and "
-          << view_name(m_, std::size_t(split_after_))
+        w << "the object moved between " << before << " and " << after
           << ": the views before and after are held on the one axis, each run with its own place on the table";
+      else if (split_.found)
+        w << "the object moved on the table between " << before << " and " << after
+          << ": the views before and after each turn about one axis (unexplained motion "
+          << 1000 * split_.parts_misfit << " mm RMS) but not together (" << 1000 * split_.whole_misfit
+          << " mm), and not as two runs on one axis either; the free poses are used";
       else
         w << "the free poses are used";
       res_.warnings.push_back(w.str());
@@ -922,7 +928,7 @@ class Registrar {
   std::vector<int> off_table_;  // posed by global registration against the model
   bool rigid_rejected_ = false;  // kAuto kept the free poses in the last solve
   bool rigid_used_ = false;      // the last solve's poses are the rigid ones
-  int split_before_ = -1, split_after_ = -1;  // two turntable runs: the views either side of the move
+  TurntableSplit split_;  // the last solve's split of the table views into two runs (found: a move)
   std::vector<bool> usable_;
   double diag_ = 0;
 };
@@ -1121,27 +1127,6 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
     notes.push_back(w.str());
     if (out.views[i].message.empty() && out.views[i].registered) out.views[i].message = w.str();
     w.str("");
-  }
-  // The views refused one rigid turntable: did the object move between two runs
-  // of views that each turn about one axis? (They keep their free poses.)
-  if (params.rigid_turntable == RigidTurntable::kAuto && !out.rigid_turntable && out.rigid_deviation_deg > 0 &&
-      out.turntable_groups != 2) {  // (two runs: the refinement's warning names the move)
-    std::vector<int> order;
-    std::vector<double> angles;
-    for (std::size_t i = 0; i < n; ++i)
-      if (out.views[i].registered && manifest.views[i].angle_deg && !manifest.views[i].initial_pose) {
-        order.push_back(int(i));
-        angles.push_back(*manifest.views[i].angle_deg);
-      }
-    const TurntableSplit split = find_turntable_split(out.poses, order, angles, 1e-3 * out.diagonal);
-    if (split.found) {
-      w << "the object moved on the table between " << view_name(manifest, std::size_t(split.last_before)) << " and "
-        << view_name(manifest, std::size_t(split.first_after)) << ": the views before and after each turn about one "
-        << "axis (unexplained motion " << 1000 * split.parts_misfit << " mm RMS) but not together ("
-        << 1000 * split.whole_misfit << " mm); each view keeps its own registered pose";
-      notes.push_back(w.str());
-      w.str("");
-    }
   }
   out.warnings.insert(out.warnings.begin(), notes.begin(), notes.end());
   return out;

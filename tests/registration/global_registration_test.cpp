@@ -16,25 +16,13 @@
 #include "core/io.h"
 #include "core/stanford_conf.h"
 #include "core/kdtree.h"
+#include "dragon_session.h"
 #include "test_util.h"
 
 namespace station {
 namespace {
 
-SessionManifest dragon(std::vector<Cloud>& clouds) {
-  const auto dir = test::source_dir() / "data/dragon_stand";
-  SessionManifest m;
-  m.scanner = "import";
-  for (const StanfordScan& scan : read_stanford_conf(dir / "dragonStandRight.conf")) {
-    ViewRecord v;
-    v.file = scan.file;
-    v.angle_deg = std::stoi(scan.file.substr(scan.file.rfind('_') + 1));
-    v.reference_pose = scan.pose;
-    m.views.push_back(v);
-    clouds.push_back(read_cloud(dir / scan.file));
-  }
-  return m;
-}
+SessionManifest dragon(std::vector<Cloud>& clouds) { return test::dragon_session(clouds); }
 
 void print(const RegistrationResult& r, double secs) {
   for (std::size_t i = 0; i < r.views.size(); ++i)

@@ -14,27 +14,13 @@
 #include "core/error.h"
 #include "core/io.h"
 #include "core/stanford_conf.h"
+#include "dragon_session.h"
 #include "test_util.h"
 
 namespace station {
 namespace {
 
-// The dragon as `station import --stanford-conf` makes it: angles 0, 24, ...
-// and reference poses [R^T | t] (docs/session-format.md), no axis.
-SessionManifest dragon_manifest(std::vector<Cloud>& clouds) {
-  const auto dir = test::source_dir() / "data/dragon_stand";
-  SessionManifest m;
-  m.scanner = "import";
-  for (const StanfordScan& scan : read_stanford_conf(dir / "dragonStandRight.conf")) {
-    ViewRecord v;
-    v.file = scan.file;
-    v.angle_deg = std::stoi(scan.file.substr(scan.file.rfind('_') + 1));
-    v.reference_pose = scan.pose;
-    m.views.push_back(v);
-    clouds.push_back(read_cloud(dir / scan.file));
-  }
-  return m;
-}
+SessionManifest dragon_manifest(std::vector<Cloud>& clouds) { return test::dragon_session(clouds); }
 
 TEST(Registration, DragonWithAnglesButNoAxisMatchesStanford) {
   std::vector<Cloud> clouds;
