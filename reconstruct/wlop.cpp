@@ -13,6 +13,8 @@
 #include <tbb/parallel_for.h>
 #include <tbb/task_arena.h>
 
+#include <Eigen/Eigenvalues>
+
 #include "core/error.h"
 #include "core/kdtree.h"
 #include "core/normals.h"
@@ -39,6 +41,34 @@ constexpr double kMinNormalAgreement = 0.2;
 // within h, evenly strided: a plane fit needs far fewer than a dense cloud holds.
 constexpr int kSimpleNormalPoints = 32;
 constexpr int kGrain = 64;
+// kProjection's default fit radius r_f = max(kFitRadii h, kFitSigmas sigma): the fit's
+// weights must spread along the surface well beyond the noise's spread across it, or
+// its normal tilts with the noise (at r_f = 3 sigma the two are equal and a noisy plane
+// was not flattened at all; 4.5 sigma gives twice the spread).
+constexpr double kFitSigmas = 4.5;
+constexpr double kFitRadii = 1.5;
+// The edge variant's faces: neighbours whose simple normals lie within this angle of a
+// face's (unsigned) count as its points; a face needs this share of the fit's weight;
+// below kFaceAgreement of the weight agreeing with the plain plane, faces are sought;
+// candidate normals from at most kFaceCandidates neighbours.
+constexpr double kFaceAngle = 35.0;
+constexpr double kFaceSupport = 0.15;
+constexpr double kFaceAgreement = 0.9;
+constexpr std::size_t kFaceCandidates = 12;
+// Points of a face normal's plane fit (evenly strided over the neighbours within r_f).
+constexpr int kSeedPoints = 48;
+// kProjection: the fits' input is thinned to about this many points within r_f.
+constexpr double kFitPoints = 192;
+// kProjection's repulsion radius in output spacings (sqrt(2 A / (sqrt 3 |I|)), the
+// nearest-neighbour distance of |I| points hexagonally packed on the estimated area).
+constexpr double kRepulsionSpacings = 2.6;
+// The centroid's pull along the plane acts beyond this many standard deviations of the
+// fit's weights (iterate, below).
+constexpr double kPullDeadZone = 0.3;
+// Noise estimate: at most this many input points sampled, at neighbourhood sizes
+// k = 16, 64, 256 (the smallest whose median residual is below a quarter of its
+// median radius).
+constexpr int kNoiseSamples = 2048;
 
 // theta of eq. 8 as a function of the squared distance, with the cut-off at h.
 struct Kernel {
@@ -139,6 +169,9 @@ std::vector<int> first_occurrences(const std::vector<Vec3d>& p) {
 
 struct Scratch {
   Neighbours input;
+  Neighbours fit;              // kProjection: the input within r_f
+  std::vector<double> fw, rw;  // its weights, and those of one face (edge variant)
+  std::vector<Vec3d> nrm;      // edge variant: its simple normals
   std::vector<Vec3d> points;  // simple normals' neighbourhood; kTangential's PCA neighbourhood
   // Edge variant: per neighbour, its signed simple normal, v_j and the weight 1/v';
   // the upsampled, inverted neighbourhood U (eq. 14) as offsets from x'_i, one block
@@ -161,6 +194,30 @@ class Consolidator {
   void colours();
   void normals();
 
+  // kProjection's fit at q: the weighted centroid of the input within r_f as an offset
+  // m from q, and the plane (a point on it as an offset from q, and its unit normal n;
+  // n = 0 where fewer than 3 points or no plane). The edge variant's plane is the
+  // robust one. False when no input point is within r_f.
+  // `lateral` is the normal of the plain fit at this point in the iteration before (zero
+  // when none), which sets the weights; it is updated.
+  // `side` (oriented input normals only, else null): the point's side, updated.
+  bool fit_plane(const Vec3d& q, Scratch& s, Vec3d& m, Vec3d& on_plane, Vec3d& n, Vec3d& lateral,
+                 Vec3d* side) const;
+  void estimate_noise();
+  // The fits' weight of a squared distance: (1 - r^2 / r_f^2)^2 within r_f (the
+  // biweight: smooth, no exponential, and as wide as exp(-r^2 / (r_f / 2)^2), standard
+  // deviation r_f / sqrt 8 along each axis).
+  double fit_weight(double r2) const {
+    const double u = 1 - r2 * fit_inv_s2_;
+    return u > 0 ? u * u : 0.0;
+  }
+  // kProjection, once the initial points are projected: the area they cover and E2's
+  // radius from it.
+  void repulsion_radius();
+  // kProjection, after the last iteration: every point onto its fitted plane (the
+  // last E2 step left it up to a step's sag off a curved surface).
+  void project();
+
   // E1 of eq. 2 at q from its input neighbours; false when no weight.
   bool plain_e1(const Vec3d& q, Vec3d& e1) const;
   // E1 of eq. 19 (edge variant); false when it falls back or has no weight.
@@ -175,6 +232,7 @@ class Consolidator {
   double dbb_ = 0;
   std::size_t nj_ = 0;
   Kernel kernel_{1.0};
+  Kernel repulsion_{1.0};  // E2's and w_i's theta: kernel_ but with kProjection
   std::vector<Vec3d> p_;            // input, double
   RadiusGrid input_grid_, x_grid_;  // input: built once; projected: every iteration
   std::vector<double> inv_v_;       // 1 / v_j by input-grid sorted position
@@ -183,7 +241,19 @@ class Consolidator {
   // serves to orient it, and v_j (detail::EdgeRecord).
   std::vector<float> records_;
   bool oriented_ = false;  // n are the input's (oriented) normals
+  // kProjection: the input's grid for radius r_f (input_grid_ itself when r_f = h), the
+  // fit weights' 1 / v_j and (edge variant) the simple normals by its sorted position.
+  bool projection_ = false;
+  const RadiusGrid* fit_ = nullptr;
+  RadiusGrid fit_grid_;
+  double rf2_ = 0, fit_inv_s2_ = 0, fit_sigma_ = 0, face_cos_ = 1;
+  std::vector<double> fit_inv_v_;
+  std::vector<Vec3f> fit_seed_;
+  std::vector<int> fit_id_;  // input index of each fit-grid sorted position
+  std::vector<Vec3f> fit_side_;   // their normals, by fit-grid sorted position
+  std::vector<Vec3d> side_;       // each projected point's side: its normal, oriented
   std::vector<Vec3d> x_, x_next_;   // projected set
+  std::vector<Vec3d> xn_;           // kProjection: each point's plain fit normal (by index)
   std::vector<double> w_;           // w_i by projected-grid sorted position
   std::vector<int> copies_;         // edge variant: K per point (-1: plain E1)
   std::vector<char> isolated_;
@@ -200,10 +270,15 @@ void Consolidator::run() {
     setup();
     result_.seconds_setup = seconds_since(t);
     t = Clock::now();
+    if (projection_ && params_.iterations > 0) {
+      project();
+      repulsion_radius();
+    }
     for (int k = 0; k < params_.iterations; ++k) {
       iterate(k + 1 == params_.iterations);
       if (params_.progress) params_.progress(k + 1, params_.iterations);
     }
+    if (projection_ && params_.iterations > 0) project();
     result_.iterations = params_.iterations;
     result_.seconds_iterations = seconds_since(t);
     t = Clock::now();
@@ -227,6 +302,7 @@ void Consolidator::setup() {
 
   input_grid_.build(p_.data(), nj_, h);
   const bool edge = params_.method == WlopMethod::kEdgeWlop;
+  projection_ = params_.attraction == WlopAttraction::kProjection;
   const bool input_normals = edge && params_.edge_normals == EdgeNormals::kInput && input_.has_normals();
   oriented_ = input_normals;
   inv_v_.assign(nj_ + RadiusGrid::kPad, 1.0);
@@ -254,7 +330,7 @@ void Consolidator::setup() {
       // The sum includes p_j itself (theta(0) = 1), which is eq. 6's "1 +".
       const double v = uniform ? 1.0 : detail::density_sum(input_grid_, q, shape).w;
       inv_v_[sp] = 1.0 / v;
-      if (!edge) continue;
+      if (!edge || projection_) continue;
       records_[std::size_t(sp) * detail::kRecordFloats + detail::kV] = float(v);
       if (input_normals) {
         const Vec3f n = input_.normals[ids[sp]].normalized();  // zero stays zero
@@ -291,12 +367,327 @@ void Consolidator::setup() {
     subset = initial_subset(distinct.size(), ni_, params_.seed);
     for (int& j : subset) j = distinct[std::size_t(j)];
   }
+  if (projection_) {
+    estimate_noise();
+    const double rf = params_.fit_radius > 0 ? params_.fit_radius
+                                             : std::max(kFitRadii * h, kFitSigmas * result_.noise);
+    result_.fit_radius = rf;
+    rf2_ = rf * rf;
+    fit_inv_s2_ = 1.0 / rf2_;  // weights (1 - r^2 / r_f^2)^2
+    fit_sigma_ = rf / (2 * std::sqrt(2.0));  // their standard deviation along each axis
+    face_cos_ = std::cos(kFaceAngle * M_PI / 180.0);
+    // The fits need tens of points, not the thousands a dense input puts within r_f:
+    // where the input holds more than kFitPoints within r_f on average (counted around
+    // a strided sample), the fits use a seeded random subset of it that holds about
+    // that many.
+    if (rf == h) {
+      fit_ = &input_grid_;
+    } else {
+      fit_grid_.build(p_.data(), nj_, rf);
+      fit_ = &fit_grid_;
+    }
+    {
+      Scratch& s = scratch_.local();
+      const std::size_t stride = std::max<std::size_t>(1, nj_ / kNoiseSamples);
+      double sum = 0, samples = 0;
+      for (std::size_t j = 0; j < nj_; j += stride, ++samples) {
+        gather(*fit_, p_[j], rf2_, s.fit);
+        sum += s.fit.n;
+      }
+      const double mean = sum / std::max(1.0, samples);
+      std::vector<int> kept;
+      if (mean > 2 * kFitPoints) {
+        kept = initial_subset(nj_, std::size_t(std::llround(double(nj_) * kFitPoints / mean)),
+                              params_.seed + 1);
+        std::vector<Vec3d> pts(kept.size());
+        for (std::size_t k = 0; k < kept.size(); ++k) pts[k] = p_[std::size_t(kept[k])];
+        fit_grid_.build(pts.data(), pts.size(), rf);
+        fit_ = &fit_grid_;
+      }
+      result_.fit_points = kept.empty() ? nj_ : kept.size();
+      const std::vector<int>& ids = fit_->ids();
+      fit_id_.resize(ids.size());
+      for (std::size_t sp = 0; sp < ids.size(); ++sp)
+        fit_id_[sp] = kept.empty() ? ids[sp] : kept[std::size_t(ids[sp])];
+    }
+    const std::size_t nf = fit_id_.size();
+    const std::vector<int>& input_pos = input_grid_.positions();
+    fit_inv_v_.assign(nf + RadiusGrid::kPad, 1.0);
+    for (std::size_t sp = 0; sp < nf; ++sp)
+      fit_inv_v_[sp] = inv_v_[std::size_t(input_pos[std::size_t(fit_id_[sp])])];
+    // With oriented input normals, each fit keeps to the points of its own side: the
+    // two faces of a part thinner than the noise is wide are told apart by them alone.
+    // (Without them, a part thinner than r_f is fitted as one sheet: docs/consolidation.md.)
+    if (input_.has_normals()) {
+      fit_side_.resize(nf);
+      for (std::size_t sp = 0; sp < nf; ++sp) fit_side_[sp] = input_.normals[std::size_t(fit_id_[sp])];
+    }
+    if (edge) {
+      // The faces' normals: the input's own (EdgeNormals::kInput), else the simple
+      // normals (eqs. 11-12) over each fit point's neighbours within r_f, the scale
+      // the noise allows (within h they would be as noisy as the noise is wide).
+      fit_seed_.assign(nf, Vec3f::Zero());
+      tbb::parallel_for(tbb::blocked_range<int>(0, int(nf), kGrain), [&](const tbb::blocked_range<int>& r) {
+        Scratch& s = scratch_.local();
+        for (int sp = r.begin(); sp < r.end(); ++sp) {
+          const int id = fit_id_[std::size_t(sp)];
+          if (input_normals) {
+            fit_seed_[std::size_t(sp)] = input_.normals[std::size_t(id)].normalized();
+            continue;
+          }
+          gather(*fit_, p_[std::size_t(id)], rf2_, s.fit);
+          const Neighbours& nb = s.fit;
+          const int stride = std::max(1, (nb.n + kSeedPoints - 1) / kSeedPoints);
+          s.points.clear();
+          for (int k = 0; k < nb.n; k += stride)
+            s.points.emplace_back(double(nb.dx[k]), double(nb.dy[k]), double(nb.dz[k]));
+          fit_seed_[std::size_t(sp)] = simple_normal(s.points.data(), int(s.points.size()), 4).cast<float>();
+        }
+      });
+    }
+  }
+  repulsion_ = kernel_;
+  result_.repulsion_radius = repulsion_.h;
   x_.resize(ni_);
   for (std::size_t i = 0; i < ni_; ++i) x_[i] = p_[subset[i]];
   x_next_.resize(ni_);
+  xn_.assign(ni_, Vec3d::Zero());
+  if (projection_ && input_.has_normals()) {
+    side_.resize(ni_);
+    for (std::size_t i = 0; i < ni_; ++i) side_[i] = input_.normals[std::size_t(subset[i])].cast<double>();
+  }
   w_.assign(ni_ + RadiusGrid::kPad, 1.0);
   isolated_.assign(ni_, 0);
   copies_.assign(ni_, 0);
+}
+
+// The least-spread direction (unit) of a weighted set of offsets around their weighted
+// mean; zero when the weights vanish or fewer than 3 points.
+bool weighted_plane(const Neighbours& nb, const double* w, Vec3d& mean, Vec3d& normal) {
+  // One pass: the weights' sums of 1, d and d d^T (offsets d of order r_f from x_i, so
+  // the covariance E[d d^T] - m m^T loses nothing that matters in double).
+  double sw = 0, sx = 0, sy = 0, sz = 0, sxx = 0, sxy = 0, sxz = 0, syy = 0, syz = 0, szz = 0;
+  for (int k = 0; k < nb.n; ++k) {
+    const double wk = w[k], x = nb.dx[k], y = nb.dy[k], z = nb.dz[k];
+    sw += wk;
+    sx += wk * x;
+    sy += wk * y;
+    sz += wk * z;
+    sxx += wk * x * x;
+    sxy += wk * x * y;
+    sxz += wk * x * z;
+    syy += wk * y * y;
+    syz += wk * y * z;
+    szz += wk * z * z;
+  }
+  if (!(sw > 0)) return false;
+  const Vec3d m(sx / sw, sy / sw, sz / sw);
+  mean = m;
+  normal = Vec3d::Zero();
+  if (nb.n < 3) return true;
+  Eigen::Matrix3d c;
+  c << sxx / sw - m.x() * m.x(), sxy / sw - m.x() * m.y(), sxz / sw - m.x() * m.z(),
+       0, syy / sw - m.y() * m.y(), syz / sw - m.y() * m.z(),
+       0, 0, szz / sw - m.z() * m.z();
+  c(1, 0) = c(0, 1);
+  c(2, 0) = c(0, 2);
+  c(2, 1) = c(1, 2);
+  Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
+  es.computeDirect(c);
+  if (es.info() != Eigen::Success) return true;
+  const Vec3d n = es.eigenvectors().col(0);
+  if (n.allFinite() && n.norm() > 0.5) normal = n.normalized();
+  return true;
+}
+
+void Consolidator::project() {
+  tbb::parallel_for(tbb::blocked_range<int>(0, int(ni_), kGrain), [&](const tbb::blocked_range<int>& r) {
+    Scratch& s = scratch_.local();
+    for (int i = r.begin(); i < r.end(); ++i) {
+      Vec3d m, on_plane, n;
+      if (fit_plane(x_[i], s, m, on_plane, n, xn_[i], side_.empty() ? nullptr : &side_[i]))
+        x_[i] += on_plane.dot(n) * n;
+    }
+  });
+}
+
+void Consolidator::repulsion_radius() {
+  // Each projected point stands for pi rho^2 / (k - 1) of the surface, rho the distance
+  // to its k-th nearest (itself counted): for a random sample of an area, the expected
+  // share. Measured on the projected points, not the input, whose noise widens rho
+  // (fandisk at 1 % noise: the input's estimate was 2.65 x the area).
+  const int k = int(std::min<std::size_t>(16, ni_));
+  if (k < 4) return;
+  std::vector<Vec3f> pts(ni_);
+  for (std::size_t i = 0; i < ni_; ++i) pts[i] = x_[i].cast<float>();
+  const PointIndex index(pts);
+  std::vector<double> share(ni_);
+  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, ni_, kGrain), [&](const tbb::blocked_range<std::size_t>& r) {
+    for (std::size_t i = r.begin(); i < r.end(); ++i) {
+      const auto nn = index.knn(pts[i], k);
+      const double rho = nn.empty() ? 0.0 : double(nn.back().second);
+      share[i] = M_PI * rho * rho / double(k - 1);
+    }
+  });
+  double area = 0;
+  for (double a : share) area += a;  // in index order: the same sum for any thread count
+  result_.area = area;
+  // The output's spacing in a hexagonal packing of that area.
+  const double spacing = std::sqrt(2.0 * area / (std::sqrt(3.0) * double(ni_)));
+  const double hr = kRepulsionSpacings * spacing;
+  if (hr > 0 && std::isfinite(hr)) repulsion_ = Kernel(hr);
+  result_.repulsion_radius = repulsion_.h;
+}
+
+void Consolidator::estimate_noise() {
+  // The median RMS residual of plane fits (PCA) over the k nearest input points of a
+  // strided sample of the input, at the smallest k whose median residual is below a
+  // quarter of its median neighbourhood radius: a ball not much wider than the noise's
+  // spread holds a blob rather than a sheet and understates it. Curvature adds to it
+  // (an upper bound on the noise). Deterministic: fixed sample, medians.
+  std::vector<Vec3f> pts(input_.points);
+  const PointIndex index(std::move(pts));
+  const std::size_t stride = std::max<std::size_t>(1, nj_ / kNoiseSamples);
+  std::vector<std::size_t> sample;
+  for (std::size_t j = 0; j < nj_; j += stride) sample.push_back(j);
+  double sigma = 0;
+  for (int k : {16, 64, 256}) {
+    const int kk = int(std::min<std::size_t>(std::size_t(k), nj_));
+    if (kk < 4) break;
+    std::vector<double> residual(sample.size()), radius(sample.size());
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, sample.size(), 16),
+                      [&](const tbb::blocked_range<std::size_t>& r) {
+      for (std::size_t i = r.begin(); i < r.end(); ++i) {
+        const Vec3f& q = input_.points[sample[i]];
+        const auto nn = index.knn(q, kk);
+        Vec3d m = Vec3d::Zero();
+        for (const auto& [id, d] : nn) m += (input_.points[std::size_t(id)] - q).cast<double>();
+        m /= double(nn.size());
+        Eigen::Matrix3d c = Eigen::Matrix3d::Zero();
+        for (const auto& [id, d] : nn) {
+          const Vec3d e = (input_.points[std::size_t(id)] - q).cast<double>() - m;
+          c.noalias() += e * e.transpose();
+        }
+        Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
+        es.computeDirect(c / double(nn.size()), Eigen::EigenvaluesOnly);
+        residual[i] = std::sqrt(std::max(0.0, es.eigenvalues()(0)));
+        radius[i] = nn.empty() ? 0.0 : double(nn.back().second);
+      }
+    });
+    auto median = [](std::vector<double> v) {
+      std::nth_element(v.begin(), v.begin() + std::ptrdiff_t(v.size() / 2), v.end());
+      return v[v.size() / 2];
+    };
+    sigma = median(residual);
+    if (sigma < 0.25 * median(radius) || kk < k) break;
+  }
+  result_.noise = sigma;
+}
+
+bool Consolidator::fit_plane(const Vec3d& q, Scratch& s, Vec3d& m, Vec3d& on_plane, Vec3d& n,
+                             Vec3d& lateral, Vec3d* side) const {
+  gather(*fit_, q, rf2_, s.fit);
+  Neighbours& nb = s.fit;
+  if (side != nullptr && side->squaredNorm() > 0) {
+    // Only the neighbours whose normal faces the same way.
+    int kept = 0;
+    for (int k = 0; k < nb.n; ++k) {
+      if (!(fit_side_[std::size_t(nb.pos[k])].cast<double>().dot(*side) > 0)) continue;
+      nb.pos[kept] = nb.pos[k];
+      nb.dx[kept] = nb.dx[k];
+      nb.dy[kept] = nb.dy[k];
+      nb.dz[kept] = nb.dz[k];
+      nb.r2[kept] = nb.r2[k];
+      ++kept;
+    }
+    nb.n = kept;
+  }
+  if (nb.n == 0) return false;
+  s.fw.resize(std::size_t(nb.n));
+  // The weights are those of the distance along the plane: weights of the 3-D distance
+  // favour the points at x_i's own height and hold the fit towards it (measured: one
+  // projection of a noisy plane kept a third of the offset). The plane is the one of
+  // the iteration before; the first time, a fit with 3-D weights gives it.
+  const auto lateral_weights = [&](const Vec3d& along_normal) {
+    for (int k = 0; k < nb.n; ++k) {
+      const double along = along_normal.dot(Vec3d(nb.dx[k], nb.dy[k], nb.dz[k]));
+      const double r2 = std::max(0.0, double(nb.r2[k]) - along * along);
+      s.fw[std::size_t(k)] = fit_weight(r2) * fit_inv_v_[std::size_t(nb.pos[k])];
+    }
+  };
+  if (lateral.isZero()) {
+    for (int k = 0; k < nb.n; ++k)
+      s.fw[std::size_t(k)] = fit_weight(double(nb.r2[k])) * fit_inv_v_[std::size_t(nb.pos[k])];
+    if (!weighted_plane(nb, s.fw.data(), m, n)) return false;
+    if (n.isZero()) return true;
+    lateral = n;
+  }
+  lateral_weights(lateral);
+  if (!weighted_plane(nb, s.fw.data(), m, n)) return false;
+  if (!n.isZero()) lateral = n;
+
+  if (side != nullptr && !n.isZero()) *side = n.dot(*side) < 0 ? Vec3d(-n) : n;
+  on_plane = m;
+  if (params_.method != WlopMethod::kEdgeWlop || n.isZero()) return true;
+  // Faces: where the neighbours' simple normals (eqs. 11-12, which stay with their face
+  // up to a crease, unlike PCA's) do not all agree with the plane, up to three planes
+  // are fitted, each to the neighbours whose normal lies within kFaceAngle of a
+  // candidate normal (the candidates: the normals of evenly strided neighbours, the
+  // best supported first), and x_i goes onto the nearest of them.
+  const std::size_t count = std::size_t(nb.n);
+  s.rw.resize(count);
+  s.nrm.resize(count);
+  double total = 0, agree = 0;
+  for (std::size_t k = 0; k < count; ++k) {
+    s.nrm[k] = fit_seed_[std::size_t(nb.pos[k])].cast<double>();
+    total += s.fw[k];
+    if (std::abs(s.nrm[k].dot(n)) > face_cos_) agree += s.fw[k];
+  }
+  if (agree >= kFaceAgreement * total) return true;
+  // Candidate normals and their support (weight of the neighbours within kFaceAngle).
+  const std::size_t stride = std::max<std::size_t>(1, count / kFaceCandidates);
+  Vec3d cand[kFaceCandidates + 1];
+  double support[kFaceCandidates + 1];
+  int candidates = 0;
+  for (std::size_t c = 0; c < count && candidates <= int(kFaceCandidates); c += stride) {
+    if (!(s.nrm[c].squaredNorm() > 0.25)) continue;
+    cand[candidates] = s.nrm[c];
+    support[candidates++] = 0;
+  }
+  // (Counted over at most kSeedPoints evenly strided neighbours: a share needs no more.)
+  const std::size_t step = std::max<std::size_t>(1, (count + kSeedPoints - 1) / kSeedPoints);
+  for (std::size_t k = 0; k < count; k += step)
+    for (int c = 0; c < candidates; ++c)
+      if (std::abs(s.nrm[k].dot(cand[c])) > face_cos_) support[c] += s.fw[k];
+  // Faces, the best supported first, each at least kFaceAngle from the ones before.
+  Vec3d faces[3];
+  int found = 0;
+  double best_distance = std::numeric_limits<double>::infinity();
+  Vec3d best_point = on_plane, best_normal = n;
+  while (found < 3) {
+    int pick = -1;
+    for (int c = 0; c < candidates; ++c) {
+      bool taken = false;
+      for (int g = 0; g < found; ++g) taken = taken || std::abs(cand[c].dot(faces[g])) > face_cos_;
+      if (!taken && (pick < 0 || support[c] > support[pick])) pick = c;
+    }
+    if (pick < 0 || !(support[pick] * double(step) >= kFaceSupport * total)) break;
+    const Vec3d best = cand[pick];
+    faces[found++] = best;
+    for (std::size_t k = 0; k < count; ++k)
+      s.rw[k] = std::abs(s.nrm[k].dot(best)) > face_cos_ ? s.fw[k] : 0.0;
+    Vec3d point, normal;
+    if (!weighted_plane(nb, s.rw.data(), point, normal) || normal.isZero()) continue;
+    const double distance = std::abs(point.dot(normal));
+    if (distance < best_distance) {
+      best_distance = distance;
+      best_point = point;
+      best_normal = normal;
+    }
+  }
+  on_plane = best_point;
+  n = best_normal;
+  return true;
 }
 
 bool Consolidator::plain_e1(const Vec3d& q, Vec3d& e1) const {
@@ -403,9 +794,9 @@ bool Consolidator::edge_e1(const Vec3d& q, const Neighbours& nb, Scratch& s, Vec
 }
 
 void Consolidator::iterate(bool last) {
-  x_grid_.build(x_.data(), ni_, kernel_.h);
+  x_grid_.build(x_.data(), ni_, repulsion_.h);
   const int* xids = x_grid_.ids().data();
-  const KernelShape shape = kernel_.shape();
+  const KernelShape shape = repulsion_.shape();
   // w_i of eq. 7 from the current iterate, stored by sorted position (the sum
   // includes x_i itself, which is the "1 +").
   tbb::parallel_for(tbb::blocked_range<int>(0, int(ni_), kGrain), [&](const tbb::blocked_range<int>& r) {
@@ -420,6 +811,35 @@ void Consolidator::iterate(bool last) {
     for (int sp = r.begin(); sp < r.end(); ++sp) {
       const int i = xids[sp];
       const Vec3d& q = x_[i];
+      if (projection_) {
+        Vec3d m, on_plane, n;
+        copies_[i] = -1;
+        if (!fit_plane(q, s, m, on_plane, n, xn_[i], side_.empty() ? nullptr : &side_[i])) {
+          x_next_[i] = q;
+          isolated_[i] = 1;
+          continue;
+        }
+        isolated_[i] = 0;
+        // Onto the plane; along it, the centroid's pull beyond a dead zone of
+        // kPullDeadZone standard deviations of the fit's weights. Inside the data the
+        // centroid is within that of x_i (it wanders with the input's random density,
+        // which would gather the points into clumps); at an open border it lies inwards
+        // by most of one and holds the points on the data against E2.
+        const Vec3d lateral = m - m.dot(n) * n;
+        const double len = lateral.norm(), dead = kPullDeadZone * fit_sigma_;
+        Vec3d next = q + on_plane.dot(n) * n;
+        if (len > dead) next += (1 - dead / len) * lateral;
+        const KernelSums e2 = params_.repulsion_weight == RepulsionWeight::kOriginal
+                                  ? detail::attraction_sum(x_grid_, w_.data(), q, shape)
+                                  : detail::repulsion_sum(x_grid_, w_.data(), q, shape, sp);
+        if (e2.w > 0) {
+          Vec3d step = -params_.mu * e2.d / e2.w;
+          step -= step.dot(n) * n;
+          next += step;
+        }
+        x_next_[i] = next;
+        continue;
+      }
       Vec3d e1, axis = Vec3d::Zero();
       int copies = -1;
       bool ok = false;
@@ -460,7 +880,7 @@ void Consolidator::iterate(bool last) {
   x_.swap(x_next_);
   if (last) {
     result_.isolated_points = std::size_t(std::count(isolated_.begin(), isolated_.end(), 1));
-    if (edge) {
+    if (edge && !projection_) {
       std::size_t fallbacks = 0, total = 0, counted = 0;
       for (std::size_t i = 0; i < ni_; ++i) {
         if (isolated_[i]) continue;
@@ -538,6 +958,7 @@ void validate(const Cloud& input, const WlopParams& p) {
   if (p.target_points == 0 && !(p.ratio > 0 && p.ratio <= 1)) fail("ratio must be in (0, 1]");
   if (p.iterations < 0) fail("iterations must be >= 0");
   if (!(p.radius >= 0) || !std::isfinite(p.radius)) fail("radius must be >= 0 and finite");
+  if (!(p.fit_radius >= 0) || !std::isfinite(p.fit_radius)) fail("fit_radius must be >= 0 and finite");
   if (!(p.mu >= 0 && p.mu < 0.5)) fail("mu must be in [0, 0.5)");
   if (p.threads < 0) fail("threads must be >= 0");
   if (!(p.inversion_radius > 0.25) || !std::isfinite(p.inversion_radius))

@@ -134,6 +134,28 @@ enum class WlopRepulsion {
   kTangential,
 };
 
+/// The attraction of the update (both methods).
+enum class WlopAttraction {
+  /// Each iteration x_i is moved onto a local plane fit of the input around it and by
+  /// the fit's tangential pull, then repelled along the plane only (issue 30; not in
+  /// the paper, docs/consolidation.md "Projection" says why):
+  ///   c_i, n_i = weighted centroid and least-spread direction of the input points
+  ///              within r_f of x_i (weights exp(-r^2 / (r_f/2)^2) / v_j);
+  ///   x_i <- c_i + mu E2_t,   E2_t = E2 (eq. 3) without its part along n_i
+  /// (c_i is on the plane: the step is the projection plus the fit's tangential pull,
+  /// which is nil inside evenly weighted data and holds points in at its borders).
+  /// The edge variant fits robustly instead: the plane is seeded by the simple normal
+  /// (eqs. 11-12) of the input point nearest x_i and reweighted by the residuals
+  /// (exp(-(r / s)^2), s = 2 x the noise estimate), so that a point near a crease fits
+  /// the face it lies on, not both. r_f is WlopParams::fit_radius, by default from the
+  /// input's noise (max(h, 3 sigma)). The default: it denoises (the fit averages
+  /// tens of points where eq. 2's singular alpha keeps x_i on the input point it
+  /// started from) and evens (the tangential motion is E2's alone).
+  kProjection,
+  /// Eq. 2 (plain WLOP) or eq. 19 (the edge variant) as printed: x_i <- E1 + mu E2.
+  kL1,
+};
+
 /// Density weights v'_s of the inverted, upsampled neighbourhood (eq. 18).
 enum class InvertedDensity {
   /// v'_s = 1 + (v_j - 1) sum_t 1/sigma_t(j): the input density of the point p_j that
@@ -164,8 +186,14 @@ struct WlopParams {
   /// mu, weight of the repulsion E2 (eq. 1); in [0, 0.5) per Huang et al.
   double mu = 0.45;
   InputDensity input_density = InputDensity::kComputed;
-  /// Plain WLOP's E2 (method == kWlop; the edge variant has edge_repulsion).
-  WlopRepulsion repulsion = WlopRepulsion::kFull;
+  /// The attraction (both methods).
+  WlopAttraction attraction = WlopAttraction::kProjection;
+  /// r_f, the radius of kProjection's plane fits (absolute). 0: max(h, 3 sigma) with
+  /// sigma the input's noise estimate (WlopResult::noise).
+  double fit_radius = 0;
+  /// Plain WLOP's E2 with attraction kL1 (the edge variant has edge_repulsion;
+  /// kProjection's E2 is always tangential to its fit).
+  WlopRepulsion repulsion = WlopRepulsion::kTangential;
   /// beta_ir of E2 (both methods).
   RepulsionWeight repulsion_weight = RepulsionWeight::kOriginal;
   /// Seed of the random initial subset (see initial_subset).
@@ -222,6 +250,19 @@ struct WlopResult {
   std::size_t output_points = 0;     ///< |I|
   int iterations = 0;                ///< iterations run
   double radius = 0;                 ///< h used (absolute)
+  /// kProjection: the input's noise estimate sigma (median RMS residual of local plane
+  /// fits, at the smallest radius at least 4 times it) and the fit radius r_f used.
+  double noise = 0;
+  double fit_radius = 0;
+  /// kProjection: the input points the fits use (all of them, or a seeded random subset
+  /// holding about 96 within r_f where the input is denser).
+  std::size_t fit_points = 0;
+  /// kProjection: the surface area estimated from the input (each point standing for
+  /// pi rho^2 / 15, rho the distance to its 16th nearest neighbour, itself counted) and
+  /// the radius of E2 and w_i: 2.6 x the output's spacing on that area,
+  /// sqrt(2 A / (sqrt 3 |I|)). kL1: h.
+  double area = 0;
+  double repulsion_radius = 0;
   double bbox_diagonal = 0;          ///< d_bb of the input
   /// Points left where they were in the last iteration for want of input points
   /// within h.
