@@ -41,7 +41,10 @@ constexpr double kMinNormalAgreement = 0.2;
 // within h, evenly strided: a plane fit needs far fewer than a dense cloud holds.
 constexpr int kSimpleNormalPoints = 32;
 constexpr int kGrain = 64;
-// kProjection's default fit radius r_f = max(kFitRadii h, kFitSigmas sigma): the fit's
+// kProjection's default fit radius r_f = max(kFitRadii h_0, kFitSigmas sigma), h_0 the
+// default h (4 d_bb / sqrt |J|) whatever h is set to: about 130 input points within r_f
+// on an object of area d_bb^2 where the noise allows. (The input's own spacing, its
+// 16-NN distance, grows with the noise: 1.6 times on the cube at 0.3 %.) The fit's
 // weights must spread along the surface well beyond the noise's spread across it, or
 // its normal tilts with the noise (at r_f = 3 sigma the two are equal and a noisy plane
 // was not flattened at all; 4.5 sigma gives twice the spread).
@@ -370,7 +373,8 @@ void Consolidator::setup() {
   if (projection_) {
     estimate_noise();
     const double rf = params_.fit_radius > 0 ? params_.fit_radius
-                                             : std::max(kFitRadii * h, kFitSigmas * result_.noise);
+                                             : std::max(kFitRadii * 4.0 * dbb_ / std::sqrt(double(nj_)),
+                                                        kFitSigmas * result_.noise);
     result_.fit_radius = rf;
     rf2_ = rf * rf;
     fit_inv_s2_ = 1.0 / rf2_;  // weights (1 - r^2 / r_f^2)^2

@@ -122,7 +122,7 @@ enum class RepulsionWeight {
 
 /// The repulsion E2 of plain WLOP's update x_i <- E1 + mu E2 (eq. 1).
 enum class WlopRepulsion {
-  kFull,  ///< E2 whole, as in eq. 1 (the default)
+  kFull,  ///< E2 whole, as in eq. 1
   /// E2 without its component along the local normal at x_i (the direction of least
   /// spread of the projected points within h, unweighted PCA; left whole where fewer
   /// than 3 are within h). Not in the paper: wherever the neighbours are not coplanar
@@ -130,27 +130,38 @@ enum class WlopRepulsion {
   /// drift off the surface that CGAL's users report (docs/consolidation.md,
   /// "Behaviour worth knowing"); the edge variant's kTangential removes it the same
   /// way along its inversion axis. Costs one more pass over the projected neighbours
-  /// and a 3x3 eigen-solve per point and iteration.
+  /// and a 3x3 eigen-solve per point and iteration. The default (issue 30: it beat CGAL
+  /// on accuracy and speed).
   kTangential,
 };
 
 /// The attraction of the update (both methods).
 enum class WlopAttraction {
-  /// Each iteration x_i is moved onto a local plane fit of the input around it and by
-  /// the fit's tangential pull, then repelled along the plane only (issue 30; not in
-  /// the paper, docs/consolidation.md "Projection" says why):
-  ///   c_i, n_i = weighted centroid and least-spread direction of the input points
-  ///              within r_f of x_i (weights exp(-r^2 / (r_f/2)^2) / v_j);
-  ///   x_i <- c_i + mu E2_t,   E2_t = E2 (eq. 3) without its part along n_i
-  /// (c_i is on the plane: the step is the projection plus the fit's tangential pull,
-  /// which is nil inside evenly weighted data and holds points in at its borders).
-  /// The edge variant fits robustly instead: the plane is seeded by the simple normal
-  /// (eqs. 11-12) of the input point nearest x_i and reweighted by the residuals
-  /// (exp(-(r / s)^2), s = 2 x the noise estimate), so that a point near a crease fits
-  /// the face it lies on, not both. r_f is WlopParams::fit_radius, by default from the
-  /// input's noise (max(h, 3 sigma)). The default: it denoises (the fit averages
-  /// tens of points where eq. 2's singular alpha keeps x_i on the input point it
-  /// started from) and evens (the tangential motion is E2's alone).
+  /// Not in the paper (issue 30; docs/consolidation.md "Projection" has the measurements
+  /// and says why). Each iteration, for every x_i:
+  ///   fit: the input points within r_f of x_i, weighted by the biweight
+  ///        (1 - r^2 / r_f^2)^2 of their distance along the plane of the iteration
+  ///        before (of the 3-D distance the first time) and by 1 / v_j (eq. 6): their
+  ///        weighted centroid c_i and least-spread direction n_i (PCA);
+  ///   x_i <- x_i + ((c_i - x_i) . n_i) n_i      onto the plane,
+  ///          + pull                             the centroid's offset along the plane,
+  ///                                             beyond a dead zone of 0.3 standard
+  ///                                             deviations of the weights,
+  ///          + mu E2_t                          E2 (eq. 3) without its part along n_i,
+  /// E2 and w_i (eq. 7) with theta over a radius of 2.6 output spacings (from the area
+  /// the projected points cover, WlopResult::repulsion_radius) instead of h. After the
+  /// last iteration every point goes onto its plane once more. Inputs with normals
+  /// (taken as oriented, as scans' are) fit each point to the neighbours facing its way,
+  /// which keeps the two faces of a part thinner than r_f apart.
+  /// The edge variant: where fewer than 90 % of the weight has a simple normal (eqs.
+  /// 11-12, over r_f) within 35 degrees of n_i, up to three faces are fitted, each to the
+  /// neighbours whose simple normal lies within 35 degrees of a face normal (the
+  /// candidates: strided neighbours' normals, the best supported first), and x_i goes
+  /// onto the nearest face plane: a crease stays a crease.
+  /// r_f is WlopParams::fit_radius; by default sized to the input's spacing and noise.
+  /// It denoises (a fit averages tens of points, where eq. 2's singular alpha keeps x_i
+  /// on the input point it started from) and evens (the motion along the surface is
+  /// E2's, no longer held by eq. 2 to input points).
   kProjection,
   /// Eq. 2 (plain WLOP) or eq. 19 (the edge variant) as printed: x_i <- E1 + mu E2.
   kL1,
@@ -188,8 +199,9 @@ struct WlopParams {
   InputDensity input_density = InputDensity::kComputed;
   /// The attraction (both methods).
   WlopAttraction attraction = WlopAttraction::kProjection;
-  /// r_f, the radius of kProjection's plane fits (absolute). 0: max(h, 3 sigma) with
-  /// sigma the input's noise estimate (WlopResult::noise).
+  /// r_f, the radius of kProjection's plane fits (absolute). 0: max(1.5 h_0, 4.5 sigma)
+  /// with h_0 = 4 d_bb / sqrt(|J|) (the default h, whatever `radius` is) and sigma the
+  /// input's noise estimate (WlopResult::noise).
   double fit_radius = 0;
   /// Plain WLOP's E2 with attraction kL1 (the edge variant has edge_repulsion;
   /// kProjection's E2 is always tangential to its fit).
@@ -250,16 +262,17 @@ struct WlopResult {
   std::size_t output_points = 0;     ///< |I|
   int iterations = 0;                ///< iterations run
   double radius = 0;                 ///< h used (absolute)
-  /// kProjection: the input's noise estimate sigma (median RMS residual of local plane
-  /// fits, at the smallest radius at least 4 times it) and the fit radius r_f used.
+  /// kProjection: the input's noise estimate sigma (median RMS residual of plane fits
+  /// over the k nearest points, k = 16, 64 or 256, the smallest whose neighbourhood is 4
+  /// times as wide as its residual; curvature adds to it) and the fit radius r_f used.
   double noise = 0;
   double fit_radius = 0;
   /// kProjection: the input points the fits use (all of them, or a seeded random subset
   /// holding about 96 within r_f where the input is denser).
   std::size_t fit_points = 0;
-  /// kProjection: the surface area estimated from the input (each point standing for
-  /// pi rho^2 / 15, rho the distance to its 16th nearest neighbour, itself counted) and
-  /// the radius of E2 and w_i: 2.6 x the output's spacing on that area,
+  /// kProjection: the surface area estimated from the projected points (each standing
+  /// for pi rho^2 / 15, rho the distance to its 16th nearest, itself counted) and the
+  /// radius of E2 and w_i: 2.6 x the output's spacing on that area,
   /// sqrt(2 A / (sqrt 3 |I|)). kL1: h.
   double area = 0;
   double repulsion_radius = 0;
