@@ -67,6 +67,15 @@ WlopParams plain(std::size_t target, double radius, int iterations) {
   return p;
 }
 
+// The paper's update, eq. 1 as printed (attraction eq. 2 / eq. 19, plain WLOP's E2
+// whole): what the tests of the equations check. The default attraction is the
+// projection (WlopAttraction::kProjection; consolidation_quality_test.cpp).
+WlopParams printed(WlopParams p) {
+  p.attraction = WlopAttraction::kL1;
+  p.repulsion = WlopRepulsion::kFull;
+  return p;
+}
+
 // Straightforward WLOP (methods.md section 1, eqs. 1-9): every sum over all pairs,
 // in index order, with the header's conventions (strictly within h; E1 leaves out
 // pairs closer than 1e-9 h, and so does E2 with beta = theta |eta'| / r; a point with
@@ -136,7 +145,7 @@ std::vector<Vec3d> reference_wlop(const std::vector<Vec3d>& p, std::vector<Vec3d
 TEST(Wlop, MatchesAllPairsReference) {
   const Cloud in = uneven_sphere(2000, 0.01, 3);
   const double h = 0.3;
-  const WlopParams params = plain(500, h, 10);
+  const WlopParams params = printed(plain(500, h, 10));
   const WlopResult r = consolidate(in, params);
   ASSERT_EQ(r.positions.size(), 500u);
   ASSERT_EQ(r.iterations, 10);
@@ -173,7 +182,7 @@ TEST(Wlop, MatchesAllPairsReference) {
 
 TEST(Wlop, UniformInputDensityMatchesReference) {
   const Cloud in = uneven_sphere(1500, 0.01, 4);
-  WlopParams params = plain(400, 0.3, 10);
+  WlopParams params = printed(plain(400, 0.3, 10));
   params.input_density = InputDensity::kUniform;
   const WlopResult r = consolidate(in, params);
   std::vector<Vec3d> p, x0;
@@ -241,7 +250,7 @@ TEST(Wlop, TangentialRepulsionDriftsLessOffTheSurface) {
   // 0.0067 -> 0.0025 at h = 0.22 (uniformity 0.52 -> 0.50; input 0.0079, 0.46).
   const Cloud in = uneven_sphere(20000, 0.01, 7);
   for (double h : {0.0, 0.22}) {
-    WlopParams params = plain(4000, h, 35);
+    WlopParams params = printed(plain(4000, h, 35));
     const WlopResult full = consolidate(in, params);
     params.repulsion = WlopRepulsion::kTangential;
     const WlopResult tangential = consolidate(in, params);
@@ -274,7 +283,7 @@ TEST(Wlop, OriginalRepulsionWeightSeparatesClosePairs) {
   // shrinks with its distance. WLOP's own beta = theta / r keeps pushing as a pair
   // closes (reconstruct/wlop.h RepulsionWeight).
   const Cloud in = uneven_sphere(20000, 0.01, 7);
-  WlopParams params = plain(4000, 0.22, 35);
+  WlopParams params = printed(plain(4000, 0.22, 35));
   const WlopResult original = consolidate(in, params);
   params.repulsion_weight = RepulsionWeight::kPrinted;
   const WlopResult printed = consolidate(in, params);
@@ -329,8 +338,8 @@ WlopParams edge(std::size_t target, double radius, int iterations) {
 TEST(EdgeWlop, SharperThanWlopOnANoisyCube) {
   const Mesh cube = test::box(Vec3f(-1, -1, -1), Vec3f(1, 1, 1));
   const Cloud in = noisy_uneven_sample(cube, 25000, 0.005, 21);
-  const WlopResult w = consolidate(in, plain(4000, 0, 35));
-  const WlopResult e = consolidate(in, edge(4000, 0, 35));
+  const WlopResult w = consolidate(in, printed(plain(4000, 0, 35)));
+  const WlopResult e = consolidate(in, printed(edge(4000, 0, 35)));
   ASSERT_EQ(e.cloud.size(), 4000u);
   EXPECT_GT(e.mean_copies, 1.0);
   EXPECT_EQ(e.plain_fallbacks, 0u);
@@ -343,7 +352,7 @@ TEST(EdgeWlop, SharperThanWlopOnANoisyCube) {
   for (const Vec3d& p : e.positions) ASSERT_TRUE(p.allFinite());
 }
 
-// Plain WLOP and edge-WLOP of `in` at radius h (0: the default) on a reference mesh:
+// Plain WLOP and edge-WLOP as printed (the paper's eq. 1) of `in` at radius h (0: the default) on a reference mesh:
 // edge errors within 2h of its sharp edges, accuracies and surface uniformities, of
 // the input too; printed under `label`.
 struct WlopAndEdge {
@@ -353,8 +362,8 @@ struct WlopAndEdge {
 };
 WlopAndEdge run_both(const Cloud& in, const Mesh& reference, std::size_t target, double h, const char* label) {
   WlopAndEdge r;
-  r.w = consolidate(in, plain(target, h, 35));
-  r.e = consolidate(in, edge(target, h, 35));
+  r.w = consolidate(in, printed(plain(target, h, 35)));
+  r.e = consolidate(in, printed(edge(target, h, 35)));
   const double used = r.e.radius;
   r.ew = edge_error(r.w.cloud.points, reference, 2 * used);
   r.ee = edge_error(r.e.cloud.points, reference, 2 * used);
@@ -488,8 +497,8 @@ struct Crease {
 TEST(EdgeWlop, TangentialRepulsionKeepsACreaseSharp) {
   const Crease crease(90, 16000, 25);
   const double h = 0.08;
-  const WlopResult w = consolidate(crease.cloud, plain(3200, h, 35));
-  WlopParams params = edge(3200, h, 35);
+  const WlopResult w = consolidate(crease.cloud, printed(plain(3200, h, 35)));
+  WlopParams params = printed(edge(3200, h, 35));
   const WlopResult tangential = consolidate(crease.cloud, params);
   params.edge_repulsion = EdgeRepulsion::kFull;
   const WlopResult full = consolidate(crease.cloud, params);
@@ -517,7 +526,7 @@ TEST(EdgeWlop, JacobianDensityAgreesWithExactEq18) {
   const Cloud in = noisy_uneven_sample(cube, 5000, 0.002, 29);
   // One step from the same start: the same copies, and E1 moved by the weights
   // alone, which differ only where the density model is off.
-  WlopParams params = edge(1000, 0, 1);
+  WlopParams params = printed(edge(1000, 0, 1));
   params.mu = 0;
   const WlopResult jacobian = consolidate(in, params);
   params.inverted_density = InvertedDensity::kExact;
@@ -531,7 +540,7 @@ TEST(EdgeWlop, JacobianDensityAgreesWithExactEq18) {
   }
   EXPECT_LT(diff, 0.15 * moved) << diff / 1000 << " vs moves of " << moved / 1000;
   // And over a full run both keep the cube's edges about as well.
-  params = edge(1000, 0, 20);
+  params = printed(edge(1000, 0, 20));
   const WlopResult j20 = consolidate(in, params);
   params.inverted_density = InvertedDensity::kExact;
   const WlopResult e20 = consolidate(in, params);
