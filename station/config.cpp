@@ -162,11 +162,17 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
   }
   if (const YAML::Node n = root["consolidate"]) {
     r.check_keys(n, "consolidate", {"enabled", "method", "points", "ratio", "iterations", "radius", "seed",
-                                     "repulsion", "repulsion_weight"});
+                                     "attraction", "fit_radius", "repulsion", "repulsion_weight"});
     auto& c = p.consolidate;
     if (n["enabled"]) c.enabled = r.boolean(n["enabled"], "consolidate.enabled");
     if (n["method"]) c.method = r.text(n["method"], "consolidate.method");
     if (c.method != "wlop" && c.method != "edge-wlop") r.fail("consolidate.method", "must be wlop or edge-wlop");
+    if (n["attraction"]) c.attraction = r.text(n["attraction"], "consolidate.attraction");
+    if (c.attraction != "projection" && c.attraction != "l1")
+      r.fail("consolidate.attraction", "must be projection or l1");
+    if (n["fit_radius"]) c.fit_radius = r.number(n["fit_radius"], "consolidate.fit_radius");
+    if (!(c.fit_radius >= 0) || !std::isfinite(c.fit_radius))
+      r.fail("consolidate.fit_radius", "must be >= 0 (input units; 0: from the spacing and noise)");
     if (n["repulsion"]) c.repulsion = r.text(n["repulsion"], "consolidate.repulsion");
     if (c.repulsion != "full" && c.repulsion != "tangential")
       r.fail("consolidate.repulsion", "must be full or tangential");

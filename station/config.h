@@ -40,9 +40,13 @@ struct PipelineConfig {
     int iterations = 35;
     double radius = 0;            ///< support radius h, input units; 0 = 4 d_bb / sqrt(|J|)
     unsigned seed = 1;
-    /// wlop's repulsion: full (eq. 1 as printed) | tangential (no part along the local
-    /// normal: less drift off the surface; reconstruct/wlop.h WlopRepulsion)
-    std::string repulsion = "full";
+    /// projection (onto local plane fits: denoises and evens; reconstruct/wlop.h
+    /// WlopAttraction) | l1 (eq. 2 / eq. 19 as printed)
+    std::string attraction = "projection";
+    double fit_radius = 0;        ///< projection's fit radius r_f, input units; 0 = from spacing and noise
+    /// wlop's repulsion with attraction l1: full (eq. 1 as printed) | tangential (no part
+    /// along the local normal: less drift off the surface; reconstruct/wlop.h WlopRepulsion)
+    std::string repulsion = "tangential";
     /// E2's beta: original (theta / r, WLOP's own) | printed (-theta, eq. 5 as printed;
     /// reconstruct/wlop.h RepulsionWeight)
     std::string repulsion_weight = "original";

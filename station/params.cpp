@@ -63,9 +63,15 @@ const std::vector<ProfileOption>& profile_options() {
           {"wlop", "edge-wlop"});
     value("consolidate.iterations", "consolidate", "--iterations", "iterations k (1..1000)");
     value("consolidate.radius", "consolidate", "--radius", "support radius h in input units (0 = 4 d_bb / sqrt(|J|))");
+    value("consolidate.attraction", "consolidate", "--attraction",
+          "projection: onto plane fits of the input (denoises and evens; docs/consolidation.md) or l1: "
+          "eq. 2 / eq. 19 as the paper prints them",
+          {"projection", "l1"});
+    value("consolidate.fit_radius", "consolidate", "--fit-radius",
+          "projection's fit radius in input units (0 = max(1.5 x the default h, 4.5 x the noise estimate))");
     value("consolidate.repulsion", "consolidate", "--repulsion",
-          "wlop's repulsion: full (as printed) or tangential (no part along the local normal: less drift off "
-          "the surface)",
+          "with --attraction l1, wlop's repulsion: tangential (no part along the local normal: less drift off "
+          "the surface) or full (as printed)",
           {"full", "tangential"});
     value("consolidate.repulsion_weight", "consolidate", "--repulsion-weight",
           "the repulsion's beta: original (theta / r, WLOP's own: close pairs separate) or printed (-theta, "
@@ -126,6 +132,8 @@ WlopParams wlop_params(const PipelineConfig& pipeline, int threads) {
   p.iterations = c.iterations;
   p.radius = c.radius;
   p.seed = c.seed;
+  p.attraction = c.attraction == "l1" ? WlopAttraction::kL1 : WlopAttraction::kProjection;
+  p.fit_radius = c.fit_radius;
   p.repulsion = c.repulsion == "tangential" ? WlopRepulsion::kTangential : WlopRepulsion::kFull;
   p.repulsion_weight = c.repulsion_weight == "printed" ? RepulsionWeight::kPrinted : RepulsionWeight::kOriginal;
   p.threads = threads;
