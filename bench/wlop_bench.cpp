@@ -121,6 +121,10 @@ void run_wlop_cases(const Options& options, Report& report) {
   like_cgal.estimate_normals = false;  // CGAL returns positions only
   like_cgal.threads = options.threads;
   like_cgal.seed = 1;
+  // The paper's update as printed with E2 whole, the form these rows were first measured
+  // in (the default attraction is the projection since issue 30: its rows below).
+  like_cgal.attraction = WlopAttraction::kL1;
+  like_cgal.repulsion = WlopRepulsion::kFull;
 
   // The 1M rows (and the slow edge row) take seconds a run: at most 3 timed runs.
   Options few = options;
@@ -203,10 +207,12 @@ void run_wlop_cases(const Options& options, Report& report) {
 
   // Edge-WLOP against our plain WLOP, both with the default input densities; at the
   // default h (4 d_bb / sqrt|J|) and at the radius above. Target: ratio >= 0.5.
-  auto edge_case = [&](const std::string& label, double h, const Options& opts) {
+  auto edge_case = [&](const std::string& label, double h, const Options& opts,
+                       WlopAttraction attraction = WlopAttraction::kL1) {
     WlopParams plain = like_cgal;
     plain.input_density = InputDensity::kComputed;
     plain.radius = h;
+    plain.attraction = attraction;
     WlopParams edge = plain;
     edge.method = WlopMethod::kEdgeWlop;
     WlopResult re, rp;
@@ -224,6 +230,23 @@ void run_wlop_cases(const Options& options, Report& report) {
   };
   edge_case("edge-WLOP 100k -> 20k, default h", 0.0, options);
   edge_case("edge-WLOP 100k -> 20k, h = R above", radius, few);
+
+  // The defaults (issue 30): the projection, at the default h, against the same CGAL call
+  // at its radius; and edge-WLOP against our plain WLOP, both projecting.
+  {
+    WlopParams d;
+    d.target_points = kOutputPoints;
+    d.iterations = kIterations;
+    d.estimate_normals = false;
+    d.threads = options.threads;
+    cgal_case("WLOP default (projection) 100k -> 20k", in100k, few, d);
+    cgal_case("WLOP default (projection) 1M -> 20k", in1m, few, d);
+    WlopParams e = d;
+    e.method = WlopMethod::kEdgeWlop;
+    cgal_case("edge-WLOP default (projection) 100k -> 20k", in100k, few, e);
+    cgal_case("edge-WLOP default (projection) 1M -> 20k", in1m, few, e);
+    edge_case("edge-WLOP projection 100k -> 20k, default h", 0.0, few, WlopAttraction::kProjection);
+  }
   report.note("wlop: both sides compute positions only (our normals off). Same R but not the same "
               "kernel: CGAL 5.5 weighs E1 by exp(-4 d^2/R^2) (no 1/d) and E2 by "
               "exp(-4 d^2/R^2)/d^2 times 1/(1 + density), ours by theta(d) = exp(-16 d^2/h^2) with "
