@@ -690,6 +690,8 @@ TEST(WlopInput, Rejected) {
   EXPECT_THROW(consolidate(ok, with([](WlopParams& p) { p.iterations = -1; })), InvalidInput);
   EXPECT_THROW(consolidate(ok, with([](WlopParams& p) { p.radius = -1; })), InvalidInput);
   EXPECT_THROW(consolidate(ok, with([](WlopParams& p) { p.radius = NAN; })), InvalidInput);
+  EXPECT_THROW(consolidate(ok, with([](WlopParams& p) { p.fit_radius = -1; })), InvalidInput);
+  EXPECT_THROW(consolidate(ok, with([](WlopParams& p) { p.fit_radius = INFINITY; })), InvalidInput);
   EXPECT_THROW(consolidate(ok, with([](WlopParams& p) { p.mu = 0.5; })), InvalidInput);
   EXPECT_THROW(consolidate(ok, with([](WlopParams& p) { p.threads = -1; })), InvalidInput);
   EXPECT_THROW(consolidate(ok, with([](WlopParams& p) { p.inversion_radius = 0.2; })),
@@ -750,6 +752,25 @@ TEST(WlopInput, EdgeVariantBadInput) {
     for (const Vec3d& q : d.positions) ASSERT_TRUE(q.allFinite());
     for (const Vec3f& n : d.cloud.normals) ASSERT_TRUE(n.allFinite());
   }
+}
+
+TEST(WlopInput, ProjectionOnDegenerateNeighbourhoodsGivesFinitePoints) {
+  // No plane to fit: points on a line, five points, two clusters far apart; both methods
+  // project by default and must return finite points where they cannot fit.
+  Cloud line, five, far;
+  for (int i = 0; i < 400; ++i) line.points.push_back(Vec3f(0.01f * float(i), 0, 0));
+  for (int i = 0; i < 5; ++i) five.points.push_back(Vec3f(float(i % 2), float(i / 2), 0.1f * float(i)));
+  far = uneven_sphere(300, 0.01, 3);
+  for (int i = 0; i < 300; ++i) far.points.push_back(far.points[std::size_t(i)] + Vec3f(100, 0, 0));
+  for (const Cloud* c : {&line, &five, &far})
+    for (const WlopMethod m : {WlopMethod::kWlop, WlopMethod::kEdgeWlop}) {
+      WlopParams p = plain(std::max<std::size_t>(2, c->size() / 4), 0, 10);
+      p.method = m;
+      const WlopResult r = consolidate(*c, p);
+      ASSERT_EQ(r.positions.size(), p.target_points);
+      for (const Vec3d& x : r.positions) ASSERT_TRUE(x.allFinite());
+      EXPECT_GT(r.fit_radius, 0);
+    }
 }
 
 TEST(WlopInput, IsolatedPointsStayAndNothingIsNaN) {
