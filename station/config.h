@@ -40,9 +40,10 @@ struct PipelineConfig {
     int iterations = 35;
     double radius = 0;            ///< support radius h, input units; 0 = 4 d_bb / sqrt(|J|)
     unsigned seed = 1;
-    /// projection (onto local plane fits: denoises and evens; reconstruct/wlop.h
-    /// WlopAttraction) | l1 (eq. 2 / eq. 19 as printed)
-    std::string attraction = "projection";
+    /// l1 (eq. 2 / eq. 19 as printed; the run's default: its meshes are closer to the
+    /// scans, docs/consolidation.md) | projection (onto local plane fits: denoises and
+    /// evens the points; reconstruct/wlop.h WlopAttraction, the library's default)
+    std::string attraction = "l1";
     double fit_radius = 0;        ///< projection's fit radius r_f, input units; 0 = from spacing and noise
     /// wlop's repulsion with attraction l1: full (eq. 1 as printed) | tangential (no part
     /// along the local normal: less drift off the surface; reconstruct/wlop.h WlopRepulsion)

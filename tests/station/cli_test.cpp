@@ -322,7 +322,7 @@ TEST(Cli, EvalPointsMetrics) {
   for (int m = 0; m < 3; ++m) {
     const std::string out = (dir / ("out" + std::to_string(m) + ".ply")).string();
     r = run("consolidate " + in_ply + " -o " + out + " --points 4000 --radius 0.04 --method " +
-            (m == 1 ? "edge-wlop" : "wlop --attraction l1") +
+            (m == 1 ? "edge-wlop --attraction projection" : "wlop --attraction l1") +
             (m == 2 ? " --repulsion tangential" : m == 0 ? " --repulsion full" : ""));
     ASSERT_EQ(r.code, 0) << r.out;
     // Progress on stderr (a 3 M-point cloud took 38 s without a line).
@@ -337,7 +337,7 @@ TEST(Cli, EvalPointsMetrics) {
     EXPECT_GT(json_number(r.out, "edge_points"), 500) << r.out;
   }
   // wlop --repulsion tangential drifts less off the surface than E2 as printed, and the
-  // default projection (edge-wlop here) lands closer still.
+  // projection (edge-wlop here) lands closer still.
   EXPECT_LT(accuracy[2], accuracy[0]) << "full " << accuracy[0] << ", tangential " << accuracy[2];
   EXPECT_LT(accuracy[1], accuracy[2]) << "tangential " << accuracy[2] << ", projection " << accuracy[1];
   r = run("consolidate " + in_ply + " -o " + (dir / "x.ply").string() + " --repulsion sideways");

@@ -441,7 +441,7 @@ TEST(Profile, OverridesAreValidatedLikeTheFileAndNameTheKey) {
   const StationConfig d = load_config(profile);
   EXPECT_EQ(d.pipeline.reconstruct.resolution, 128);
   EXPECT_EQ(d.pipeline.consolidate.points, 20000u);
-  EXPECT_EQ(d.pipeline.consolidate.attraction, "projection");
+  EXPECT_EQ(d.pipeline.consolidate.attraction, "l1");
   EXPECT_EQ(d.pipeline.consolidate.repulsion, "tangential");
   EXPECT_TRUE(d.pipeline.reconstruct.colour_edges);
 }
