@@ -202,7 +202,7 @@ class Consolidator {
   // kProjection's fit at q: the weighted centroid of the input within r_f as an offset
   // m from q, and the plane (a point on it as an offset from q, and its unit normal n;
   // n = 0 where fewer than 3 points or no plane). The edge variant's plane is the
-  // robust one. False when no input point is within r_f.
+  // nearest face's where the faces disagree. False when no input point is within r_f.
   // `lateral` is the normal of the plain fit at this point in the iteration before (zero
   // when none), which sets the weights; it is updated.
   // `side` (oriented input normals only, else null): the point's side, updated.
@@ -653,6 +653,7 @@ bool Consolidator::fit_plane(const Vec3d& q, Scratch& s, Vec3d& m, Vec3d& on_pla
   // favour the points at x_i's own height and hold the fit towards it (measured: one
   // projection of a noisy plane kept a third of the offset). The plane is the one of
   // the iteration before; the first time, a fit with 3-D weights gives it.
+  // (A zero normal gives the weights of the 3-D distance.)
   const auto lateral_weights = [&](const Vec3d& along_normal) {
     for (int k = 0; k < nb.n; ++k) {
       const double along = along_normal.dot(Vec3d(nb.dx[k], nb.dy[k], nb.dz[k]));
@@ -661,8 +662,7 @@ bool Consolidator::fit_plane(const Vec3d& q, Scratch& s, Vec3d& m, Vec3d& on_pla
     }
   };
   if (lateral.isZero()) {
-    for (int k = 0; k < nb.n; ++k)
-      s.fw[std::size_t(k)] = fit_weight(double(nb.r2[k])) * fit_inv_v_[std::size_t(nb.pos[k])];
+    lateral_weights(lateral);
     if (!weighted_plane(nb, s.fw.data(), m, n)) return false;
     if (n.isZero()) return true;
     lateral = n;
@@ -850,6 +850,14 @@ void Consolidator::iterate(bool last) {
       w_[sp] = detail::density_sum(x_grid_, x_[xids[sp]], shape).w;
   });
   const bool edge = params_.method == WlopMethod::kEdgeWlop;
+  // E2 of eq. 3 at x_i (sorted position sp); the sums are over x_r - x_i, so
+  // E2 = -d / w. beta = theta / r has E1's form (a pair closer than 1e-9 h left out,
+  // x_i itself with it); beta = -theta (eq. 5 as printed): the signs cancel.
+  const auto repulsion = [&](const Vec3d& q, int sp) {
+    return params_.repulsion_weight == RepulsionWeight::kOriginal
+               ? detail::attraction_sum(x_grid_, w_.data(), q, shape)
+               : detail::repulsion_sum(x_grid_, w_.data(), q, shape, sp);
+  };
   // Eq. 1 for every point from the previous iterate (Jacobi), in the projected
   // grid's order so that neighbouring points run one after another.
   tbb::parallel_for(tbb::blocked_range<int>(0, int(ni_), kGrain), [&](const tbb::blocked_range<int>& r) {
@@ -875,9 +883,7 @@ void Consolidator::iterate(bool last) {
         const double len = lateral.norm(), dead = kPullDeadZone * fit_sigma_;
         Vec3d next = q + on_plane.dot(n) * n;
         if (len > dead) next += (1 - dead / len) * lateral;
-        const KernelSums e2 = params_.repulsion_weight == RepulsionWeight::kOriginal
-                                  ? detail::attraction_sum(x_grid_, w_.data(), q, shape)
-                                  : detail::repulsion_sum(x_grid_, w_.data(), q, shape, sp);
+        const KernelSums e2 = repulsion(q, sp);
         if (e2.w > 0) {
           Vec3d step = -params_.mu * e2.d / e2.w;
           step -= step.dot(n) * n;
@@ -901,12 +907,7 @@ void Consolidator::iterate(bool last) {
         continue;
       }
       isolated_[i] = 0;
-      // E2 of eq. 3; the sums are over x_r - x_i, so E2 = -d / w. beta = theta / r
-      // has E1's form (a pair closer than 1e-9 h left out, x_i itself with it);
-      // beta = -theta (eq. 5 as printed): the signs cancel.
-      const KernelSums e2 = params_.repulsion_weight == RepulsionWeight::kOriginal
-                                ? detail::attraction_sum(x_grid_, w_.data(), q, shape)
-                                : detail::repulsion_sum(x_grid_, w_.data(), q, shape, sp);
+      const KernelSums e2 = repulsion(q, sp);
       Vec3d next = e1;
       if (e2.w > 0) {
         Vec3d step = -params_.mu * e2.d / e2.w;
