@@ -13,6 +13,7 @@
 #include <unordered_map>
 
 #include "registration/coloured_icp.h"
+#include "registration/viewpoint.h"
 #include "core/kdtree.h"
 #include "core/normals.h"
 #include "core/sampling.h"
@@ -65,15 +66,25 @@ double rotation_angle_deg(const Eigen::Matrix4d& T) {
   return std::atan2(s, c) / kDeg;
 }
 
-std::vector<Vec3f> pca_normals(const PointIndex& index, int k, const Vec3f& viewpoint) {
-  const std::vector<Vec3f>& pts = index.points();
-  std::vector<Vec3f> normals =
-      k >= 3 ? estimate_normals(index, k) : std::vector<Vec3f>(pts.size(), Vec3f::Zero());
+namespace {
+
+void face_viewpoint(const std::vector<Vec3f>& pts, std::vector<Vec3f>& normals, const Vec3f& viewpoint) {
   for (std::size_t i = 0; i < pts.size(); ++i) {
     Vec3f& n = normals[i];
     if (n.squaredNorm() == 0) n = (viewpoint - pts[i]).normalized();  // fallback: face the sensor
     if (n.dot(viewpoint - pts[i]) < 0) n = -n;
   }
+}
+
+std::vector<Vec3f> unoriented_normals(const PointIndex& index, int k) {
+  return k >= 3 ? estimate_normals(index, k) : std::vector<Vec3f>(index.points().size(), Vec3f::Zero());
+}
+
+}  // namespace
+
+std::vector<Vec3f> pca_normals(const PointIndex& index, int k, const Vec3f& viewpoint) {
+  std::vector<Vec3f> normals = unoriented_normals(index, k);
+  face_viewpoint(index.points(), normals, viewpoint);
   return normals;
 }
 
@@ -103,7 +114,12 @@ PreparedView prepare_view(const Cloud& cloud, const PrepareParams& params) {
   }
   v.points = voxel_downsample(v.full.points, params.voxel_size);
   v.index = std::make_shared<PointIndex>(v.points);
-  v.normals = pca_normals(*v.index, params.normal_neighbors, Vec3f::Zero());
+  v.normals = unoriented_normals(*v.index, params.normal_neighbors);
+  const ViewpointEstimate sensor = estimate_viewpoint(v.points, v.normals);
+  v.viewpoint = sensor.viewpoint;
+  v.viewpoint_at_origin = sensor.at_origin;
+  v.grazing_origin = sensor.grazing_origin;
+  face_viewpoint(v.points, v.normals, v.viewpoint);
   if (params.intensity && v.full.has_colours() && !v.points.empty()) {
     const PointIndex full_index(v.full.points);
     v.intensity = sample_intensity(v.points, full_index, intensities(v.full.colours), 0.5 * params.voxel_size);

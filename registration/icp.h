@@ -5,7 +5,7 @@
 // removal (Rusu et al. 2008, "Towards 3D point cloud based object maps for
 // household environments", sec. 4), a voxel-grid downsampled copy for
 // registration only (voxel centroids), and PCA normals oriented towards the
-// sensor at the scanner-frame origin.
+// sensor: the scanner-frame origin, checked (registration/viewpoint.h).
 //
 // ICP (`icp_point_to_plane`): Chen & Medioni 1992 point-to-plane error, each
 // step the linearised 6x6 normal equations (Low 2004, "Linear least-squares
@@ -54,7 +54,12 @@ struct PrepareParams {
 struct PreparedView {
   Cloud full;                        ///< outliers and non-finite points removed (attributes kept)
   std::vector<Vec3f> points;         ///< downsampled registration points, N
-  std::vector<Vec3f> normals;        ///< N unit normals facing the sensor (origin)
+  std::vector<Vec3f> normals;        ///< N unit normals facing the sensor (`viewpoint`)
+  /// The sensor: the scanner-frame origin, or where the view's normals say it is
+  /// when the origin fails registration/viewpoint.h's check (imported views).
+  Vec3f viewpoint = Vec3f::Zero();
+  bool viewpoint_at_origin = true;
+  double grazing_origin = 0;  ///< share of points seen beyond 80 degrees from the origin
   std::shared_ptr<PointIndex> index; ///< over `points`
   /// Only with PrepareParams::intensity and a cloud with colours (else empty): intensity in [0, 1] of each
   /// registration point (mean over its voxel's neighbourhood) and its

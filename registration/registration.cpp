@@ -10,6 +10,7 @@
 #include <memory>
 #include <cmath>
 #include <set>
+#include <iomanip>
 #include <sstream>
 #include <tuple>
 #include <utility>
@@ -218,6 +219,8 @@ class Registrar {
       d.input_points = clouds_[i].size();
       d.points = views_[i].full.size();
       d.registration_points = views_[i].points.size();
+      d.viewpoint_estimated = !views_[i].viewpoint_at_origin;
+      d.grazing_origin = views_[i].grazing_origin;
       if (clouds_[i].empty()) fail(i, "empty view");
       else if (views_[i].full.empty()) fail(i, "no finite points");
       else if (views_[i].points.size() < std::size_t(std::max(p_.icp.min_correspondences, 6)))
@@ -226,6 +229,26 @@ class Registrar {
     }
     if (std::none_of(usable_.begin(), usable_.end(), [](bool b) { return b; }))
       throw InvalidInput("registration: no usable view (all empty or non-finite)");
+    warn_estimated_viewpoints();
+  }
+
+  // One note for the views whose normals cannot face the scanner-frame origin.
+  void warn_estimated_viewpoints() {
+    std::vector<std::size_t> moved;
+    double lo = 1, hi = 0;
+    for (std::size_t i = 0; i < res_.views.size(); ++i)
+      if (res_.views[i].viewpoint_estimated) {
+        moved.push_back(i);
+        lo = std::min(lo, res_.views[i].grazing_origin);
+        hi = std::max(hi, res_.views[i].grazing_origin);
+      }
+    if (moved.empty()) return;
+    std::ostringstream w;
+    w << std::fixed << std::setprecision(0);
+    w << moved.size() << " of " << res_.views.size()
+      << " views are not stored in their scanner frame (from the origin " << 100 * lo << "-" << 100 * hi
+      << " % of their points would be seen edge-on): their normals face a viewpoint estimated from the view";
+    res_.notes.push_back(w.str());
   }
 
   // Runs ICP on each pair (view `to` onto view `from`) from the current poses
@@ -361,7 +384,7 @@ class Registrar {
 
   const FeatureView& features_of(int i) {
     if (!feats_[i]) feats_[i] = std::make_unique<FeatureView>(
-                        make_feature_view(views_[i].full.points, Vec3f::Zero(), global_params()));
+                        make_feature_view(views_[i].full.points, views_[i].viewpoint, global_params()));
     return *feats_[i];
   }
 
@@ -902,11 +925,12 @@ class Registrar {
       if (!colours) c.colours.clear();
       if (!c.has_normals() && p_.merge_normals) {
         const PointIndex index(c.points);
-        c.normals = pca_normals(index, p_.normal_neighbors, Vec3f::Zero());
+        c.normals = pca_normals(index, p_.normal_neighbors, views_[i].viewpoint);
       } else if (c.has_normals()) {
         // The view's own normals, turned to face the sensor (outwards for a single view).
+        const Vec3f& eye = views_[i].viewpoint;
         for (std::size_t k = 0; k < c.size(); ++k)
-          if (c.normals[k].dot(-c.points[k]) < 0) c.normals[k] = -c.normals[k];
+          if (c.normals[k].dot(eye - c.points[k]) < 0) c.normals[k] = -c.normals[k];
       }
       transform_cloud(c, res_.poses[i]);
       moved.push_back(std::move(c));

@@ -191,6 +191,10 @@ struct ViewDiagnostics {
   std::size_t input_points = 0;
   std::size_t points = 0;               ///< after non-finite and outlier removal
   std::size_t registration_points = 0;  ///< downsampled copy
+  /// The scanner-frame origin failed the sensor check (registration/viewpoint.h:
+  /// an imported view stored in another frame); its normals face an estimated viewpoint.
+  bool viewpoint_estimated = false;
+  double grazing_origin = 0;  ///< share of its points the origin would see beyond 80 degrees
   InitialPoseSource initial = InitialPoseSource::kNone;
   bool registered = false;
   bool angle_rejected = false;          ///< its commanded angle was found wrong (pose from global registration)
@@ -250,6 +254,9 @@ struct RegistrationResult {
   std::string prior_comparison;
   /// Things the caller should show (a wrong commanded angle, ...), each naming the view.
   std::vector<std::string> warnings;
+  /// What was done that the caller may want to know, not a problem (views stored
+  /// outside their scanner frame, their sensor estimated).
+  std::vector<std::string> notes;
   Cloud merged;
   FuseStats fuse;              ///< when RegistrationParams::fuse (else zeros)
   double fuse_distance = 0;    ///< metres, the distance used (0: not fused)

@@ -53,6 +53,8 @@ RegistrationResult register_with_progress(const Session& session, const Registra
     if (!quiet) std::fprintf(stderr, "warning: %s\n", r.views[v].message.c_str());
   for (const std::string& w : r.warnings)
     if (!quiet) std::fprintf(stderr, "warning: %s\n", w.c_str());
+  for (const std::string& w : r.notes)
+    if (!quiet) std::fprintf(stderr, "note: %s\n", w.c_str());
   if (r.degenerate && !quiet) std::fprintf(stderr, "note: %s\n", r.degeneracy_message.c_str());
   return r;
 }
@@ -61,6 +63,7 @@ JsonObject registration_json(const RegistrationResult& r) {
   JsonObject j;
   j.add("views", r.views.size()).add("failed_views", r.failed_views.size()).add("degenerate", r.degenerate);
   j.add("warnings", r.warnings);
+  j.add("notes", r.notes);
   j.add("pair_rmse_m", r.mean_pair_rmse);
   j.add("prior_kept", r.prior_kept);
   if (!r.prior_comparison.empty()) j.add("prior_comparison", r.prior_comparison);

@@ -495,6 +495,7 @@ class Runner {
     if (bar) bar->finish();
     for (int v : reg.failed_views) say("warning: " + reg.views[v].message);
     for (const std::string& w : reg.warnings) say("warning: " + w);
+    for (const std::string& w : reg.notes) say("note: " + w);
     if (reg.degenerate) say("note: " + reg.degeneracy_message);
     if (reg.merged.empty()) throw InvalidInput(dir.string() + ": no view could be registered");
     write_ply(req_.out_dir / "merged.ply", reg.merged);
