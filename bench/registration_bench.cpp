@@ -31,6 +31,7 @@
 #include "capture/session.h"
 #include "core/io.h"
 #include "core/stanford_conf.h"
+#include "dragon_session.h"
 #include "harness.h"
 #include "eval/eval.h"
 
@@ -259,34 +260,6 @@ void run_pair_cases(const Options& options, Report& report) {
 }
 
 // ---- (b) the dragon session ------------------------------------------------------
-
-struct DragonSession {
-  std::vector<Cloud> clouds;
-  SessionManifest manifest;
-  std::string where;
-};
-
-/// The dragon as `station import --stanford-conf` makes it: angles 0, 24, ... and
-/// reference poses [R^T | t] (docs/session-format.md), no axis.
-DragonSession load_dragon(const Options& options) {
-  DragonSession s;
-  fs::path dir = options.shared_dir / "stanford_dragon_stand";
-  s.where = "../shared/data/stanford_dragon_stand (full scans)";
-  if (!options.use_shared || !fs::exists(dir / "dragonStandRight.conf")) {
-    dir = options.source_dir / "data" / "dragon_stand";
-    s.where = "data/dragon_stand (bundled: every 5th point; ../shared missing)";
-  }
-  s.manifest.scanner = "import";
-  for (const StanfordScan& scan : read_stanford_conf(dir / "dragonStandRight.conf")) {
-    ViewRecord v;
-    v.file = scan.file;
-    v.angle_deg = std::stoi(scan.file.substr(scan.file.rfind('_') + 1));
-    v.reference_pose = scan.pose;
-    s.manifest.views.push_back(v);
-    s.clouds.push_back(read_cloud(dir / scan.file));
-  }
-  return s;
-}
 
 /// Open3D's multiway registration (its tutorial's recipe) on views downsampled as
 /// ours are: pairwise point-to-plane ICP (coarse 15 voxels, fine 1.5 voxels) for

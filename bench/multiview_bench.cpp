@@ -1,0 +1,150 @@
+// Real multi-view scans (issue 32): the Stanford dragon session registered by
+// register_views with the profile's parameters (config/default.yaml), then the
+// station's own surface stage (the profile's consolidation and reconstruct_surface,
+// closed and with holes kept) against Open3D 0.16's Poisson on the same merged
+// cloud with its normals, closed and density-trimmed (the 5 % of vertices of
+// lowest density removed), at the depth whose vertex count is nearest ours and
+// at depth 9. Distances against the merged scans, as `station eval MESH merged.ply`.
+#include <omp.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <open3d/geometry/PointCloud.h>
+#include <open3d/geometry/TriangleMesh.h>
+
+#include "dragon_session.h"
+#include "eval/eval.h"
+#include "harness.h"
+#include "reconstruct/surface.h"
+#include "reconstruct/wlop.h"
+#include "registration/registration.h"
+#include "station/config.h"
+#include "station/params.h"
+
+namespace station::bench {
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+std::string mm(double metres) { return format_fixed(metres * 1000.0, 2); }
+
+std::shared_ptr<open3d::geometry::PointCloud> to_open3d(const Cloud& c) {
+  auto p = std::make_shared<open3d::geometry::PointCloud>();
+  for (std::size_t i = 0; i < c.size(); ++i) {
+    p->points_.push_back(c.points[i].cast<double>());
+    p->normals_.push_back(c.normals[i].cast<double>());
+  }
+  return p;
+}
+
+Mesh from_open3d(const open3d::geometry::TriangleMesh& m) {
+  Mesh out;
+  for (const auto& v : m.vertices_) out.vertices.push_back(v.cast<float>());
+  for (const auto& t : m.triangles_) out.faces.push_back({std::uint32_t(t(0)), std::uint32_t(t(1)), std::uint32_t(t(2))});
+  return out;
+}
+
+struct PoissonRun {
+  int depth = 9;
+  int threads = 0;
+  bool trim = false;  // remove the 5 % of vertices of lowest density
+  Mesh mesh;
+  void run(const open3d::geometry::PointCloud& pcd) {
+    auto [m, density] =
+        open3d::geometry::TriangleMesh::CreateFromPointCloudPoisson(pcd, std::size_t(depth), 0.0f, 1.1f, false, threads);
+    if (trim && !density.empty()) {
+      std::vector<double> sorted = density;
+      const std::size_t k = sorted.size() / 20;
+      std::nth_element(sorted.begin(), sorted.begin() + long(k), sorted.end());
+      const double cut = sorted[k];
+      std::vector<bool> drop(density.size());
+      for (std::size_t i = 0; i < density.size(); ++i) drop[i] = density[i] < cut;
+      m->RemoveVerticesByMask(drop);
+    }
+    mesh = from_open3d(*m);
+  }
+};
+
+std::string quality(const Mesh& mesh, const Cloud& scans, int threads) {
+  EvalParams ep;
+  ep.threads = threads;
+  const EvalResult r = evaluate(mesh, scans, ep);
+  return std::to_string(mesh.vertices.size()) + " vertices; mesh -> scans mean / p95 / max " + mm(r.a_to_b.mean) +
+         " / " + mm(r.a_to_b.p95) + " / " + mm(r.a_to_b.max) + " mm, scans -> mesh mean " + mm(r.b_to_a.mean) + " mm";
+}
+
+void run_multiview_cases(const Options& options, Report& report) {
+  const int threads = options.threads;
+  const DragonSession s = load_dragon(options);
+  const StationConfig cfg = load_config(options.source_dir / "config" / "default.yaml");
+  const RegistrationResult reg = register_views(s.clouds, s.manifest, registration_params(cfg.pipeline));
+  const Cloud& merged = reg.merged;
+  if (merged.empty() || !merged.has_normals()) throw std::runtime_error("multiview: the dragon did not register");
+  std::optional<Vec3d> up;
+  if (reg.axis && !reg.poses.empty()) up = reg.poses[0].topLeftCorner<3, 3>() * reg.axis->direction;
+  report.note("multiview: " + s.where + ", " + std::to_string(s.clouds.size()) + " views registered by the profile (" +
+              std::to_string(reg.failed_views.size()) + " failed), merged " + std::to_string(merged.size()) +
+              " points with normals; distances in mm against the merged scans");
+
+  // Ours: the profile's consolidation, then the surface stage (closed, kept).
+  WlopParams wp = wlop_params(cfg.pipeline, threads);
+  auto t0 = Clock::now();
+  const WlopResult consolidated = consolidate(merged, wp);
+  const double consolidate_s = std::chrono::duration<double>(Clock::now() - t0).count();
+  Options opt = options;
+  opt.repetitions = std::min(options.repetitions, 3);
+  for (const bool closed : {true, false}) {
+    SurfaceParams sp = surface_params(cfg.pipeline, threads);
+    sp.hole = closed ? HoleMode::kClose : HoleMode::kKeep;
+    if (closed && cfg.pipeline.reconstruct.table_plane) sp.table_up = up;
+    SurfaceResult ours;
+    auto run_ours = [&] { ours = reconstruct_surface(consolidated.cloud, sp); };
+    run_ours();
+    // Poisson at the depth whose vertex count is nearest ours, and at depth 9.
+    const auto pcd = to_open3d(merged);
+    int matched = 6;
+    std::size_t best = std::size_t(-1);
+    for (int depth = 6; depth <= 9; ++depth) {
+      PoissonRun probe;
+      probe.depth = depth;
+      probe.threads = threads;
+      probe.trim = !closed;
+      probe.run(*pcd);
+      const std::size_t gap = std::size_t(std::llabs(static_cast<long long>(probe.mesh.vertices.size()) -
+                                                     static_cast<long long>(ours.mesh.vertices.size())));
+      if (gap < best) best = gap, matched = depth;
+    }
+    const std::string mode = closed ? "closed" : "holes kept / trimmed 5 %";
+    for (const int depth : {matched, 9}) {
+      if (depth == 9 && matched == 9) break;
+      PoissonRun poisson;
+      poisson.depth = depth;
+      poisson.threads = threads;
+      poisson.trim = !closed;
+      Row row{"dragon session, " + mode + ": surface stage (res " + std::to_string(sp.resolution) + ")",
+              "CreateFromPointCloudPoisson depth " + std::to_string(depth) + (closed ? "" : " + density trim")};
+      std::tie(row.ours, row.theirs) = measure_pair(opt, run_ours, [&] { poisson.run(*pcd); });
+      report.rows.push_back(row);
+      report.note("dragon " + mode + ": ours (consolidation " + format_fixed(consolidate_s, 2) + " s to " +
+                  std::to_string(consolidated.cloud.size()) + " points, not in the row; cell " +
+                  mm(ours.extraction.cell_size) + " mm) " + quality(ours.mesh, merged, threads));
+      report.note("dragon " + mode + ": Poisson depth " + std::to_string(depth) + " on the merged cloud " +
+                  quality(poisson.mesh, merged, threads));
+    }
+  }
+}
+
+[[maybe_unused]] const bool registered = register_group(
+    "multiview", "real multi-view session: surface stage vs Open3D Poisson on the same merged cloud (issue 32)",
+    &run_multiview_cases);
+
+}  // namespace
+
+}  // namespace station::bench
