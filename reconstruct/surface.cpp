@@ -106,20 +106,29 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
   const Aabb box = extraction_box(surface);
   mo.seeds = surface.points();
   mo.close_at_box = true;
-  note("extracting at resolution " + std::to_string(p.resolution) + " (" + extractor_label(p.extractor) + ")");
+  const double longest = double((box.max - box.min).maxCoeff());
+  out.resolution_auto = p.resolution <= 0;
+  out.resolution = out.resolution_auto ? auto_resolution(longest, out.mpu.mean_spacing) : p.resolution;
+  const int resolution = out.resolution;
+  if (out.resolution_auto)
+    note("extracting at resolution " + std::to_string(resolution) + " (" + extractor_label(p.extractor) +
+         "; auto: cell " + fmt("%.3g", longest / resolution) + ", the points' mean spacing " +
+         fmt("%.3g", out.mpu.mean_spacing) + ")");
+  else
+    note("extracting at resolution " + std::to_string(resolution) + " (" + extractor_label(p.extractor) + ")");
   const auto t3 = Clock::now();
   out.expected_faces = check_extraction_fits(
-      f, box, p.resolution, mo,
-      p.resolution_name.empty() ? "resolution " + std::to_string(p.resolution) : p.resolution_name);
+      f, box, resolution, mo,
+      p.resolution_name.empty() ? "resolution " + std::to_string(resolution) : p.resolution_name);
   if (out.expected_faces > 0) note("about " + fmt("%.1f", out.expected_faces / 1e6) + " M faces expected");
   Mesh mesh;
   if (p.extractor == Extractor::kDmc) {
     DmcOptions dopt;
     static_cast<MarchingCubesOptions&>(dopt) = mo;
-    mesh = extract_dmc(f, box, p.resolution, dopt, &out.dmc);
+    mesh = extract_dmc(f, box, resolution, dopt, &out.dmc);
     out.extraction = out.dmc;
   } else {
-    mesh = extract_marching_cubes(f, box, p.resolution, mo, &out.extraction);
+    mesh = extract_marching_cubes(f, box, resolution, mo, &out.extraction);
   }
   out.seconds.extract = seconds_since(t3);
   if (mesh.faces.empty()) throw InvalidInput("the reconstructed surface is empty");
@@ -159,6 +168,13 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
   out.mesh = std::move(mesh);
   out.seconds.total = seconds_since(t0);
   return out;
+}
+
+int auto_resolution(double longest_side, double mean_spacing) {
+  if (!(longest_side > 0) || !(mean_spacing > 0) || !std::isfinite(longest_side / mean_spacing))
+    return kAutoResolutionMin;
+  const double cells = std::ceil(longest_side / mean_spacing);
+  return int(std::clamp(cells, double(kAutoResolutionMin), double(kAutoResolutionMax)));
 }
 
 double check_extraction_fits(const ImplicitFunction& f, const Aabb& box, int resolution,

@@ -28,7 +28,9 @@ struct SurfaceParams {
   /// MPU tolerance epsilon_0; 0: from the cloud's noise level (suggest_epsilon0),
   /// at least MpuParams' default (the paper's 1e-4).
   double epsilon0 = 0;
-  int resolution = 128;  ///< cells along the longest side of the extraction box
+  /// Cells along the longest side of the extraction box; 0 = auto: the cell follows
+  /// the cloud's mean nearest-neighbour spacing (auto_resolution).
+  int resolution = 0;
   Extractor extractor = Extractor::kDmc;
   /// The unseen parts: closed smoothly (watertight), or left open where there is no data.
   HoleMode hole = HoleMode::kClose;
@@ -71,6 +73,8 @@ struct SurfaceResult {
   double winding_trust = 0;        ///< its trust distance
   std::optional<double> table_height;  ///< the table plane's height along up, when clipped
   double expected_faces = 0;       ///< the memory check's estimate (0: not checked)
+  int resolution = 0;              ///< the resolution used (params' or the automatic one)
+  bool resolution_auto = false;    ///< chosen by auto_resolution
   MarchingCubesStats extraction;   ///< cell size and counts (either extractor)
   DmcStats dmc;                    ///< DMC's own counts (zero with marching cubes)
   ComponentFilterStats pieces;
@@ -81,6 +85,15 @@ struct SurfaceResult {
   std::vector<std::uint8_t> colour_boundary;  ///< with boundary_flags: 1 per Type B vertex
   SurfaceTimings seconds;
 };
+
+/// The automatic resolution: the extraction box's longest side over the cloud's
+/// mean nearest-neighbour spacing (one cell per spacing: finer cells only
+/// interpolate between the points, coarser ones drop detail the points hold),
+/// clamped to kAutoResolutionMin..kAutoResolutionMax (beyond 512 the memory check
+/// runs: ask for it explicitly).
+int auto_resolution(double longest_side, double mean_spacing);
+inline constexpr int kAutoResolutionMin = 64;
+inline constexpr int kAutoResolutionMax = 512;
 
 /// The colour function's parameters of the surface stage (also the SDM surface's).
 ColourParams colour_params(const SurfaceParams& params);

@@ -230,7 +230,7 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
   const auto& rc = cfg.pipeline.reconstruct;
   SurfaceParams sp = surface_params(cfg.pipeline, cfg.threads);
   if (rc.table_plane) sp.table_up = parse_up(a.up);
-  sp.resolution_name = "--resolution " + std::to_string(rc.resolution);
+  sp.resolution_name = "--resolution " + (rc.resolution > 0 ? std::to_string(rc.resolution) : std::string("auto"));
   sp.note = [&](const std::string& line) {
     if (!c.json) std::fprintf(stderr, "%s\n", surface_note(a.in, line, "reconstruct: ", "note: ").c_str());
   };

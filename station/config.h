@@ -54,7 +54,7 @@ struct PipelineConfig {
   } consolidate;
   struct Reconstruct {
     std::string surface = "mpu";    ///< mpu | sdm
-    int resolution = 128;           ///< cells along the longest side
+    int resolution = 0;             ///< cells along the longest side; 0 = auto (from the points' spacing)
     double epsilon0 = 0;            ///< MPU tolerance; 0 = from the cloud's noise
     std::string extractor = "dmc";  ///< dmc | mc
     std::string hole = "close";     ///< close | keep (the unseen underside)

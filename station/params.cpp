@@ -21,7 +21,7 @@ const std::vector<ProfileOption>& profile_options() {
       o.push_back({key, cmd, opt, to, help, {}, {}});
     };
     // station reconstruct: the surface stage on a cloud.
-    value("reconstruct.resolution", "reconstruct", "--resolution", "grid cells along the longest side (8..4096)");
+    value("reconstruct.resolution", "reconstruct", "--resolution", "grid cells along the longest side: auto (from the points' spacing) or 8..4096");
     value("reconstruct.extractor", "reconstruct", "--extractor",
           "dmc: Deformed Marching Cubes (thin parts, sharp edges; docs/dmc.md) or mc: plain marching cubes",
           {"dmc", "mc"});
@@ -54,7 +54,7 @@ const std::vector<ProfileOption>& profile_options() {
           "unseen underside: close (smooth, watertight) or keep (left open where there is no data)",
           {"close", "keep"});
     value("reconstruct.extractor", "run", "--extractor", "mesh extraction", {"dmc", "mc"});
-    value("reconstruct.resolution", "run", "--resolution", "grid cells along the longest side (8..4096)");
+    value("reconstruct.resolution", "run", "--resolution", "grid cells along the longest side: auto (from the points' spacing) or 8..4096");
     // station consolidate.
     value("consolidate.points", "consolidate", "--points", "output point count |I|");
     value("consolidate.ratio", "consolidate", "--ratio",

@@ -575,7 +575,8 @@ class Runner {
     if (c.table_plane)
       for (const StageRecord& s : result_.stages)
         if (s.name == "register" && s.up) sp.table_up = *s.up;
-    sp.resolution_name = "reconstruct.resolution " + std::to_string(c.resolution);
+    sp.resolution_name =
+        "reconstruct.resolution " + (c.resolution > 0 ? std::to_string(c.resolution) : std::string("auto"));
     sp.boundary_flags = true;
     sp.note = [&](const std::string& line) { say(surface_note(in, line, "  surface: ", "  note: ")); };
     const SurfaceResult sr = reconstruct_surface(std::move(input), sp);
@@ -596,6 +597,7 @@ class Runner {
     r.figures["leaves"] = double(sr.mpu.leaves);
     r.figures["epsilon0"] = sr.epsilon0;
     r.figures["cell_size"] = sr.extraction.cell_size;
+    r.figures["resolution"] = double(sr.resolution);
     r.figures["vertices"] = double(sr.mesh.vertices.size());
     r.figures["faces"] = double(sr.mesh.faces.size());
     r.figures["coloured"] = sr.coloured ? 1 : 0;

@@ -397,7 +397,7 @@ TEST(Profile, OverridesAreValidatedLikeTheFileAndNameTheKey) {
     return std::string("no error");
   };
   EXPECT_NE(message("reconstruct.resolutoin=5").find("--set reconstruct.resolutoin=5: unknown key"), std::string::npos);
-  EXPECT_NE(message("reconstruct.resolution=2").find("--set reconstruct.resolution=2: must be 8..4096"), std::string::npos);
+  EXPECT_NE(message("reconstruct.resolution=2").find("--set reconstruct.resolution=2: must be auto or 8..4096"), std::string::npos);
   EXPECT_NE(message("reconstruct.hole=maybe").find("reconstruct.hole"), std::string::npos);
   EXPECT_NE(message("consolidate.ratio=abc").find("--set consolidate.ratio=abc: not a number"), std::string::npos);
   EXPECT_NE(message("nosuch.key=1").find("--set nosuch.key=1: nosuch: unknown key"), std::string::npos);
@@ -439,7 +439,7 @@ TEST(Profile, OverridesAreValidatedLikeTheFileAndNameTheKey) {
 
   // The default profile documents every key it accepts, and loads as is.
   const StationConfig d = load_config(profile);
-  EXPECT_EQ(d.pipeline.reconstruct.resolution, 128);
+  EXPECT_EQ(d.pipeline.reconstruct.resolution, 0);  // auto
   EXPECT_EQ(d.pipeline.consolidate.points, 20000u);
   EXPECT_EQ(d.pipeline.consolidate.attraction, "l1");
   EXPECT_EQ(d.pipeline.consolidate.repulsion, "tangential");
