@@ -69,6 +69,8 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
   // The paper's 1e-4 suits clean data only; noisy scans get a tolerance from their noise.
   mp.epsilon0 = p.epsilon0 > 0 ? p.epsilon0 : std::max(mp.epsilon0, suggest_epsilon0(input));
   mp.threads = p.threads;
+  // Holes kept: the mesh stops within kKeepTrustFactor spacings of the points.
+  if (p.hole == HoleMode::kKeep) mp.trust_factor = kKeepTrustFactor;
   out.epsilon0 = mp.epsilon0;
   note("MPU on " + std::to_string(input.size()) + " points (epsilon0 " + fmt("%.3g", mp.epsilon0) + ")");
   const auto t1 = Clock::now();

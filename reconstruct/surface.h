@@ -95,6 +95,13 @@ int auto_resolution(double longest_side, double mean_spacing);
 inline constexpr int kAutoResolutionMin = 64;
 inline constexpr int kAutoResolutionMax = 512;
 
+/// With HoleMode::kKeep, MPU trusts its surface within this many mean spacings of
+/// the points (MpuParams::trust_factor; 4 otherwise): beyond it the mesh is left
+/// open. Measured on the real dragon session (docs/run.md, issue 32): mesh ->
+/// scans mean / p95 0.54 / 2.62 mm at 4, 0.33 / 1.17 at 2, 0.29 / 0.81 at 1.5,
+/// scans -> mesh 0.126, 0.130 and 0.135 mm (the holes grow with a smaller factor).
+inline constexpr double kKeepTrustFactor = 2.0;
+
 /// The colour function's parameters of the surface stage (also the SDM surface's).
 ColourParams colour_params(const SurfaceParams& params);
 

@@ -1045,6 +1045,10 @@ WlopResult consolidate(const Cloud& input, const WlopParams& params) {
       params.target_points > 0
           ? params.target_points
           : std::max<std::size_t>(1, std::size_t(std::llround(params.ratio * double(input.size()))));
+  if (params.target_points == 0) {
+    if (params.max_points > 0) result.requested_points = std::min(result.requested_points, params.max_points);
+    result.requested_points = std::max(result.requested_points, std::min(params.min_points, input.size()));
+  }
   result.clamped = result.requested_points > input.size();
   result.output_points = std::min(result.requested_points, input.size());
 

@@ -186,6 +186,9 @@ struct WlopParams {
   std::size_t target_points = 0;
   /// |I| / |J| when target_points is 0; in (0, 1].
   double ratio = 0.2;
+  /// With target_points 0: |I| is kept within [min(min_points, |J|), max_points]
+  /// (0: no bound on that side), e.g. the profile's `points: auto`.
+  std::size_t min_points = 0, max_points = 0;
   /// k, iterations of eq. 1 (>= 0). 35 is CGAL's default for
   /// wlop_simplify_and_regularize_point_set and what the benchmark compares at;
   /// the paper runs 100 "to be sure of convergence".

@@ -180,9 +180,15 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
     if (c.repulsion_weight != "original" && c.repulsion_weight != "printed")
       r.fail("consolidate.repulsion_weight", "must be original or printed");
     if (n["points"]) {
-      const int v = r.integer(n["points"], "consolidate.points");
-      if (v < 0) r.fail("consolidate.points", "must not be negative");
-      c.points = std::size_t(v);
+      if (n["points"].IsScalar() && n["points"].Scalar() == "auto") {
+        c.points_auto = true;
+        c.points = 0;
+      } else {
+        const int v = r.integer(n["points"], "consolidate.points");
+        if (v < 0) r.fail("consolidate.points", "must be auto or not negative");
+        c.points_auto = false;
+        c.points = std::size_t(v);
+      }
     }
     if (n["ratio"]) c.ratio = r.number(n["ratio"], "consolidate.ratio");
     if (!(c.ratio > 0 && c.ratio <= 1)) r.fail("consolidate.ratio", "must be in (0, 1]");

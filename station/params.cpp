@@ -56,7 +56,8 @@ const std::vector<ProfileOption>& profile_options() {
     value("reconstruct.extractor", "run", "--extractor", "mesh extraction", {"dmc", "mc"});
     value("reconstruct.resolution", "run", "--resolution", "grid cells along the longest side: auto (from the points' spacing) or 8..4096");
     // station consolidate.
-    value("consolidate.points", "consolidate", "--points", "output point count |I|");
+    value("consolidate.points", "consolidate", "--points",
+          "output point count |I|: auto (ratio x input, 20000..100000) or a count (0: ratio x input)");
     value("consolidate.ratio", "consolidate", "--ratio",
           "output points as a fraction of the input, (0, 1] (instead of --points)", {}, {"consolidate.points=0"});
     value("consolidate.method", "consolidate", "--method", "wlop or edge-wlop (keeps sharp edges)",
@@ -127,8 +128,12 @@ WlopParams wlop_params(const PipelineConfig& pipeline, int threads) {
   const auto& c = pipeline.consolidate;
   WlopParams p;
   p.method = c.method == "edge-wlop" ? WlopMethod::kEdgeWlop : WlopMethod::kWlop;
-  p.target_points = c.points;
+  p.target_points = c.points_auto ? 0 : c.points;
   p.ratio = c.ratio;
+  if (c.points_auto) {
+    p.min_points = kAutoPointsMin;
+    p.max_points = kAutoPointsMax;
+  }
   p.iterations = c.iterations;
   p.radius = c.radius;
   p.seed = c.seed;

@@ -183,7 +183,7 @@ std::string register_key(const PipelineConfig& p) {
 std::string consolidate_key(const PipelineConfig& p) {
   const auto& c = p.consolidate;
   std::ostringstream s;
-  s << "consolidate/method=" << c.method << ";points=" << c.points << ";ratio=" << fmt("%.17g", c.ratio)
+  s << "consolidate/method=" << c.method << ";points=" << (c.points_auto ? std::string("auto") : std::to_string(c.points)) << ";ratio=" << fmt("%.17g", c.ratio)
     << ";iterations=" << c.iterations << ";seed=" << c.seed << ";attraction=" << c.attraction << ";fit_radius=" << c.fit_radius << ";repulsion=" << c.repulsion
     << ";repulsion_weight=" << c.repulsion_weight;
   if (c.radius > 0) s << ";radius=" << fmt("%.17g", c.radius);  // (absent from keys of earlier runs)

@@ -627,6 +627,26 @@ TEST(WlopInput, FewerPointsThanRequestedProjectsThemAll) {
   for (const Vec3f& p : r.cloud.points) ASSERT_TRUE(p.allFinite());
 }
 
+// The profile's `points: auto`: ratio x |J| kept within [min(min_points, |J|), max_points].
+TEST(WlopInput, RatioWithinBoundsOfPoints) {
+  const Cloud in = uneven_sphere(3000, 0.01, 13);
+  auto requested = [&](double ratio, std::size_t lo, std::size_t hi) {
+    WlopParams p = plain(0, 0, 1);
+    p.ratio = ratio;
+    p.min_points = lo;
+    p.max_points = hi;
+    return consolidate(in, p).requested_points;
+  };
+  EXPECT_EQ(requested(0.2, 0, 0), 600u);
+  EXPECT_EQ(requested(0.2, 1000, 0), 1000u);   // raised to the floor
+  EXPECT_EQ(requested(0.2, 5000, 0), 3000u);   // the floor is at most the input
+  EXPECT_EQ(requested(0.5, 0, 1200), 1200u);   // capped
+  EXPECT_EQ(requested(0.2, 100, 1200), 600u);  // within both
+  WlopParams fixed = plain(700, 0, 1);
+  fixed.min_points = 1000;  // bounds only apply to the ratio
+  EXPECT_EQ(consolidate(in, fixed).requested_points, 700u);
+}
+
 // An input point given twice, picked twice for the initial subset, would move as one
 // point counted twice (the same E1 and E2 in every iteration).
 TEST(WlopInput, DuplicatedPointsGiveDistinctOutputPoints) {

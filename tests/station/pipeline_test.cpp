@@ -19,6 +19,7 @@
 #include "station/config.h"
 #include "reconstruct/detail/wlop_kernels.h"
 #include "reconstruct/surface.h"
+#include "reconstruct/wlop.h"
 #include "station/params.h"
 #include "station/pipeline.h"
 #include "test_util.h"
@@ -433,14 +434,26 @@ TEST(Profile, OverridesAreValidatedLikeTheFileAndNameTheKey) {
       load_config(bad, {"reconstruct.resolution=64"});
       ADD_FAILURE() << "expected an error";
     } catch (const Error& e) {
-      EXPECT_EQ(std::string(e.what()), bad.string() + ": consolidate.points: must not be negative");
+      EXPECT_EQ(std::string(e.what()), bad.string() + ": consolidate.points: must be auto or not negative");
     }
   }
 
   // The default profile documents every key it accepts, and loads as is.
   const StationConfig d = load_config(profile);
   EXPECT_EQ(d.pipeline.reconstruct.resolution, 0);  // auto
-  EXPECT_EQ(d.pipeline.consolidate.points, 20000u);
+  EXPECT_TRUE(d.pipeline.consolidate.points_auto);
+  EXPECT_EQ(d.pipeline.consolidate.points, 0u);
+  {
+    const WlopParams w = wlop_params(d.pipeline, 1);
+    EXPECT_EQ(w.target_points, 0u);
+    EXPECT_EQ(w.min_points, kAutoPointsMin);
+    EXPECT_EQ(w.max_points, kAutoPointsMax);
+    const StationConfig fixed = load_config(profile, {"consolidate.points=5000"});
+    EXPECT_FALSE(fixed.pipeline.consolidate.points_auto);
+    EXPECT_EQ(wlop_params(fixed.pipeline, 1).target_points, 5000u);
+    EXPECT_EQ(wlop_params(fixed.pipeline, 1).max_points, 0u);
+    EXPECT_TRUE(load_config(profile, {"consolidate.points=auto"}).pipeline.consolidate.points_auto);
+  }
   EXPECT_EQ(d.pipeline.consolidate.attraction, "l1");
   EXPECT_EQ(d.pipeline.consolidate.repulsion, "tangential");
   EXPECT_TRUE(d.pipeline.reconstruct.colour_edges);
