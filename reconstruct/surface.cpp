@@ -65,12 +65,22 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
   }
   out.seconds.normals = seconds_since(t0);
 
+  out.hole = p.hole;
+  if (p.hole == HoleMode::kAuto) {
+    out.enclosure = cloud_enclosure(input);
+    out.hole = *out.enclosure >= kEnclosedAbove ? HoleMode::kClose : HoleMode::kKeep;
+    note(std::string(out.hole == HoleMode::kClose ? "closing the unseen parts" : "leaving the unseen parts open") +
+         " (hole auto: the cloud encloses " + fmt("%.2f", *out.enclosure) + ", " +
+         (out.hole == HoleMode::kClose ? "at least " : "below ") + fmt("%.2g", kEnclosedAbove) +
+         (out.hole == HoleMode::kClose ? ")" : ": a one-sided patch)"));
+  }
+
   MpuParams mp;
   // The paper's 1e-4 suits clean data only; noisy scans get a tolerance from their noise.
   mp.epsilon0 = p.epsilon0 > 0 ? p.epsilon0 : std::max(mp.epsilon0, suggest_epsilon0(input));
   mp.threads = p.threads;
   // Holes kept: the mesh stops within kKeepTrustFactor spacings of the points.
-  if (p.hole == HoleMode::kKeep) mp.trust_factor = kKeepTrustFactor;
+  if (out.hole == HoleMode::kKeep) mp.trust_factor = kKeepTrustFactor;
   out.epsilon0 = mp.epsilon0;
   note("MPU on " + std::to_string(input.size()) + " points (epsilon0 " + fmt("%.3g", mp.epsilon0) + ")");
   const auto t1 = Clock::now();
@@ -79,7 +89,7 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
   out.seconds.fit = seconds_since(t1);
 
   const auto t2 = Clock::now();
-  const bool close = p.hole == HoleMode::kClose;
+  const bool close = out.hole == HoleMode::kClose;
   std::unique_ptr<WindingClose> winding;
   if (close && p.winding_close) {
     winding = std::make_unique<WindingClose>(surface, input);

@@ -21,7 +21,11 @@
 namespace station {
 
 enum class Extractor { kDmc, kMarchingCubes };
-enum class HoleMode { kClose, kKeep };
+/// Where there is no data: closed (watertight), kept open, or decided by the data:
+/// kAuto closes a cloud that encloses a volume (cloud_enclosure at least
+/// kEnclosedAbove, reconstruct/winding_close.h) and keeps a one-sided patch open
+/// (a single view, a wall fragment) instead of inflating it into a slab.
+enum class HoleMode { kClose, kKeep, kAuto };
 enum class ColourMethod { kMpu, kNearest };
 
 struct SurfaceParams {
@@ -33,7 +37,7 @@ struct SurfaceParams {
   int resolution = 0;
   Extractor extractor = Extractor::kDmc;
   /// The unseen parts: closed smoothly (watertight), or left open where there is no data.
-  HoleMode hole = HoleMode::kClose;
+  HoleMode hole = HoleMode::kAuto;
   /// With kClose: far from the data, inside and outside by the winding number of the
   /// oriented cloud, not MPU's extrapolation (reconstruct/winding_close.h).
   bool winding_close = true;
@@ -68,6 +72,8 @@ struct SurfaceResult {
   Mesh mesh;
   bool normals_estimated = false;  ///< the cloud had none: PCA + MST orientation
   double epsilon0 = 0;             ///< the tolerance used
+  HoleMode hole = HoleMode::kClose;  ///< the mode used (kAuto resolved to one of the others)
+  std::optional<double> enclosure;   ///< with kAuto: cloud_enclosure of the input
   MpuDiagnostics mpu;
   std::size_t winding_points = 0;  ///< clusters of the winding closing (0: not used)
   double winding_trust = 0;        ///< its trust distance

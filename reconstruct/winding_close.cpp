@@ -239,6 +239,44 @@ void WindingNumber::evaluate_near(const Vec3d* xs, int n, double* w, Vec3d* grad
   }
 }
 
+namespace {
+
+// Mean nearest-neighbour spacing over an even subset of at most 4,000 points.
+double subset_spacing(const PointIndex& index, const std::vector<Vec3f>& points) {
+  const std::size_t n = points.size(), m = std::min<std::size_t>(n, 4000);
+  double sum = 0;
+  int counted = 0;
+  for (std::size_t s = 0; s < m; ++s) {
+    const auto nn = index.knn(points[s * n / m], 2);
+    if (nn.size() == 2) sum += nn[1].second, ++counted;
+  }
+  return counted ? sum / counted : 0;
+}
+
+}  // namespace
+
+double cloud_enclosure(const Cloud& cloud) {
+  if (cloud.points.empty() || !cloud.has_normals()) return 0;
+  const PointIndex index(cloud.points);
+  const double diag = bounding_box(cloud.points).diagonal();
+  const double t1 = 4 * subset_spacing(index, cloud.points);
+  const double voxel = std::max(0.5 * t1, std::max(diag, 1e-9) / 200);
+  const WindingNumber w(cloud.points, cloud.normals, voxel);
+  const std::size_t n = cloud.points.size(), m = std::min<std::size_t>(n, 2000);
+  std::vector<double> sums;
+  sums.reserve(m);
+  for (std::size_t s = 0; s < m; ++s) {
+    const std::size_t i = s * n / m;
+    const Vec3d nrm = cloud.normals[i].cast<double>();
+    if (!(nrm.squaredNorm() > 0)) continue;
+    const Vec3d p = cloud.points[i].cast<double>(), d = voxel * nrm.normalized();
+    sums.push_back(w(p - d) + w(p + d));
+  }
+  if (sums.empty()) return 0;
+  std::nth_element(sums.begin(), sums.begin() + long(sums.size() / 2), sums.end());
+  return sums[sums.size() / 2];
+}
+
 // ---- WindingClose -------------------------------------------------------------------
 
 struct WindingClose::Index {
@@ -253,17 +291,7 @@ WindingClose::WindingClose(const ImplicitFunction& f, const Cloud& cloud, const 
     throw InvalidInput("winding close: need ramp > 1, trust_distance >= 0, voxel >= 0");
   index_ = std::make_unique<Index>(Index{PointIndex(cloud.points)});
   t1_ = params.trust_distance;
-  if (t1_ <= 0) {
-    // Mean nearest-neighbour spacing over an even subset of at most 4,000 points.
-    const std::size_t n = cloud.points.size(), m = std::min<std::size_t>(n, 4000);
-    double sum = 0;
-    int counted = 0;
-    for (std::size_t s = 0; s < m; ++s) {
-      const auto nn = index_->points.knn(cloud.points[s * n / m], 2);
-      if (nn.size() == 2) sum += nn[1].second, ++counted;
-    }
-    t1_ = 4 * (counted ? sum / counted : 0);
-  }
+  if (t1_ <= 0) t1_ = 4 * subset_spacing(index_->points, cloud.points);
   const Aabb box = bounding_box(cloud.points);
   const double diag = box.diagonal();
   if (!(t1_ > 0)) t1_ = 1e-3 * std::max(diag, 1e-9);

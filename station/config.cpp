@@ -217,7 +217,8 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
     if (n["extractor"]) c.extractor = r.text(n["extractor"], "reconstruct.extractor");
     if (c.extractor != "mc" && c.extractor != "dmc") r.fail("reconstruct.extractor", "must be mc or dmc");
     if (n["hole"]) c.hole = r.text(n["hole"], "reconstruct.hole");
-    if (c.hole != "close" && c.hole != "keep") r.fail("reconstruct.hole", "must be close or keep");
+    if (c.hole != "auto" && c.hole != "close" && c.hole != "keep")
+      r.fail("reconstruct.hole", "must be auto, close or keep");
     if (n["colour"]) c.colour = r.boolean(n["colour"], "reconstruct.colour");
     if (n["colour_method"]) c.colour_method = r.text(n["colour_method"], "reconstruct.colour_method");
     if (c.colour_method != "mpu" && c.colour_method != "nearest")

@@ -69,7 +69,7 @@ struct PipelineConfig {
     int resolution = 0;             ///< cells along the longest side; 0 = auto (from the points' spacing)
     double epsilon0 = 0;            ///< MPU tolerance; 0 = from the cloud's noise
     std::string extractor = "dmc";  ///< dmc | mc
-    std::string hole = "close";     ///< close | keep (the unseen underside)
+    std::string hole = "auto";      ///< auto | close | keep (the unseen underside)
     /// With hole close on a session (turntable axis known): no surface below the
     /// lowest point along the axis, so the underside closes flat on the table.
     bool table_plane = true;

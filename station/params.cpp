@@ -26,7 +26,9 @@ const std::vector<ProfileOption>& profile_options() {
           "dmc: Deformed Marching Cubes (thin parts, sharp edges; docs/dmc.md) or mc: plain marching cubes",
           {"dmc", "mc"});
     value("reconstruct.hole", "reconstruct", "--hole",
-          "where there is no data: close (smooth, watertight) or keep (left open)", {"close", "keep"});
+          "where there is no data: auto (close a cloud that encloses a volume, keep a one-sided patch open), "
+          "close (smooth, watertight) or keep (left open)",
+          {"auto", "close", "keep"});
     value("reconstruct.epsilon0", "reconstruct", "--epsilon",
           "MPU fit tolerance epsilon_0, relative to the unit-diagonal box (0: from the cloud's noise level, at "
           "least the paper's 1e-4)");
@@ -51,8 +53,9 @@ const std::vector<ProfileOption>& profile_options() {
     // station run: the whole job (any key with --set; these have a shorthand).
     value("reconstruct.surface", "run", "--surface", "surface method", {"mpu", "sdm"});
     value("reconstruct.hole", "run", "--hole",
-          "unseen underside: close (smooth, watertight) or keep (left open where there is no data)",
-          {"close", "keep"});
+          "unseen underside: auto (close an object, keep a one-sided patch open), close (smooth, watertight) or "
+          "keep (left open where there is no data)",
+          {"auto", "close", "keep"});
     value("reconstruct.extractor", "run", "--extractor", "mesh extraction", {"dmc", "mc"});
     value("reconstruct.resolution", "run", "--resolution", "grid cells along the longest side: auto (from the points' spacing) or 8..4096");
     // station consolidate.
@@ -151,7 +154,7 @@ SurfaceParams surface_params(const PipelineConfig& pipeline, int threads) {
   p.epsilon0 = c.epsilon0;
   p.resolution = c.resolution;
   p.extractor = c.extractor == "dmc" ? Extractor::kDmc : Extractor::kMarchingCubes;
-  p.hole = c.hole == "keep" ? HoleMode::kKeep : HoleMode::kClose;
+  p.hole = c.hole == "keep" ? HoleMode::kKeep : c.hole == "close" ? HoleMode::kClose : HoleMode::kAuto;
   p.winding_close = c.winding_close;
   p.colour = c.colour;
   p.colour_method = c.colour_method == "nearest" ? ColourMethod::kNearest : ColourMethod::kMpu;

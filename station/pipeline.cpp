@@ -598,6 +598,8 @@ class Runner {
     r.figures["epsilon0"] = sr.epsilon0;
     r.figures["cell_size"] = sr.extraction.cell_size;
     r.figures["resolution"] = double(sr.resolution);
+    r.figures["closed"] = sr.hole == HoleMode::kClose ? 1.0 : 0.0;
+    if (sr.enclosure) r.figures["enclosure"] = *sr.enclosure;
     r.figures["vertices"] = double(sr.mesh.vertices.size());
     r.figures["faces"] = double(sr.mesh.faces.size());
     r.figures["coloured"] = sr.coloured ? 1 : 0;

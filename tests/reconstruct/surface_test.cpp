@@ -5,6 +5,9 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <map>
+
+#include "reconstruct/winding_close.h"
 
 namespace station {
 namespace {
@@ -56,6 +59,77 @@ TEST(SurfaceResolution, AutoFollowsTheCloudsSpacing) {
   const SurfaceResult fixed = reconstruct_surface(fibonacci_sphere(8000, 0.1), p);
   EXPECT_FALSE(fixed.resolution_auto);
   EXPECT_EQ(fixed.resolution, 48);
+}
+
+}  // namespace
+}  // namespace station
+
+namespace station {
+namespace {
+
+Cloud cap(int n, double r, double min_z) {  // the part of a sphere above z = min_z * r
+  Cloud all = fibonacci_sphere(n, r), out;
+  for (std::size_t i = 0; i < all.size(); ++i)
+    if (all.normals[i].z() >= min_z) {
+      out.points.push_back(all.points[i]);
+      out.normals.push_back(all.normals[i]);
+    }
+  return out;
+}
+
+TEST(SurfaceHole, EnclosureOfClosedAndOneSidedClouds) {
+  const double sphere = cloud_enclosure(fibonacci_sphere(20000, 0.1));
+  const double hemisphere = cloud_enclosure(cap(20000, 0.1, 0.0));
+  Cloud plane;
+  for (int i = 0; i < 100; ++i)
+    for (int j = 0; j < 100; ++j) {
+      plane.points.emplace_back(0.002f * i, 0.002f * j, 0.f);
+      plane.normals.emplace_back(0.f, 0.f, 1.f);
+    }
+  const double flat = cloud_enclosure(plane);
+  Cloud inwards = fibonacci_sphere(20000, 0.1);
+  for (Vec3f& nrm : inwards.normals) nrm = -nrm;
+  const double flipped = cloud_enclosure(inwards);
+  std::printf("enclosure: sphere %.3f, hemisphere %.3f, plane %.3f, inward sphere %.3f\n", sphere, hemisphere, flat,
+              flipped);
+  EXPECT_GT(sphere, 0.9);
+  EXPECT_GT(hemisphere, 0.5);  // its rim sees most of it
+  EXPECT_LT(hemisphere, kEnclosedAbove);
+  EXPECT_NEAR(flat, 0.0, 0.1);
+  EXPECT_LT(flipped, -0.9);
+  EXPECT_EQ(cloud_enclosure(Cloud{}), 0.0);
+}
+
+// hole auto: a sphere closes (no boundary edges); one view's worth of it, a cap of a
+// third of the sphere, stays open instead of becoming a slab.
+TEST(SurfaceHole, AutoClosesAnObjectAndKeepsAPatchOpen) {
+  SurfaceParams p;
+  p.threads = 2;
+  p.resolution = 64;
+  ASSERT_EQ(p.hole, HoleMode::kAuto);  // the default
+  auto boundary_edges = [](const Mesh& m) {
+    std::map<std::pair<int, int>, int> count;
+    for (const Face& f : m.faces)
+      for (int k = 0; k < 3; ++k) {
+        const int a = f[k], b = f[(k + 1) % 3];
+        ++count[{std::min(a, b), std::max(a, b)}];
+      }
+    std::size_t open = 0;
+    for (const auto& [e, c] : count) open += c == 1;
+    return open;
+  };
+  const SurfaceResult sphere = reconstruct_surface(fibonacci_sphere(8000, 0.1), p);
+  ASSERT_TRUE(sphere.enclosure.has_value());
+  EXPECT_EQ(sphere.hole, HoleMode::kClose);
+  EXPECT_EQ(boundary_edges(sphere.mesh), 0u);
+  const SurfaceResult patch = reconstruct_surface(cap(24000, 0.1, 0.33), p);
+  ASSERT_TRUE(patch.enclosure.has_value());
+  EXPECT_LT(*patch.enclosure, kEnclosedAbove);
+  EXPECT_EQ(patch.hole, HoleMode::kKeep);
+  EXPECT_GT(boundary_edges(patch.mesh), 0u);
+  // Closed by force, the same patch becomes a solid: no boundary edges.
+  p.hole = HoleMode::kClose;
+  EXPECT_EQ(boundary_edges(reconstruct_surface(cap(24000, 0.1, 0.33), p).mesh), 0u);
 }
 
 }  // namespace
