@@ -66,9 +66,12 @@ int run_job(const StationConfig& cfg, const Common& c, const RunArgs& a) {
     r = run_pipeline(cfg, req);
   } catch (const IoError& e) {
     std::signal(SIGINT, SIG_DFL);
-    // A failed write (full disk...) leaves every finished stage's output in place.
+    // A failed write (full disk...) leaves every finished stage's output in place;
+    // say so only where some stage did finish (not for a missing input).
+    std::error_code ec;
+    if (!fs::exists(fs::path(a.out) / "run.yaml", ec)) throw;
     throw IoError(std::string(e.what()) + "; finished stages in " + a.out +
-                  " are intact: free space and rerun with --resume");
+                  " are intact: fix the cause (a full disk: free space) and rerun with --resume");
   }
   std::signal(SIGINT, SIG_DFL);
   if (r.interrupted) {
