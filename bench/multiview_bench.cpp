@@ -122,13 +122,13 @@ void run_multiview_cases(const Options& options, Report& report) {
       if (gap < best) best = gap, matched = depth;
     }
     const std::string mode = closed ? "closed" : "holes kept / trimmed 5 %";
-    for (const int depth : {matched, 9}) {
-      if (depth == 9 && matched == 9) break;
+    const std::vector<int> depths = matched == 9 ? std::vector<int>{9} : std::vector<int>{matched, 9};
+    for (const int depth : depths) {
       PoissonRun poisson;
       poisson.depth = depth;
       poisson.threads = threads;
       poisson.trim = !closed;
-      Row row{"dragon session, " + mode + ": surface stage (res " + std::to_string(sp.resolution) + ")",
+      Row row{"dragon session, " + mode + ": surface stage (" + std::to_string(ours.resolution) + " cells)",
               "CreateFromPointCloudPoisson depth " + std::to_string(depth) + (closed ? "" : " + density trim")};
       std::tie(row.ours, row.theirs) = measure_pair(opt, run_ours, [&] { poisson.run(*pcd); });
       report.rows.push_back(row);
