@@ -6,6 +6,8 @@
 // lowest density removed), at the depth whose vertex count is nearest ours and
 // at depth 9. Distances against the merged scans, as `station eval MESH merged.ply`.
 #include <omp.h>
+#include <open3d/geometry/PointCloud.h>
+#include <open3d/geometry/TriangleMesh.h>
 
 #include <algorithm>
 #include <chrono>
@@ -14,9 +16,6 @@
 #include <optional>
 #include <string>
 #include <vector>
-
-#include <open3d/geometry/PointCloud.h>
-#include <open3d/geometry/TriangleMesh.h>
 
 #include "dragon_session.h"
 #include "eval/eval.h"
@@ -47,7 +46,8 @@ std::shared_ptr<open3d::geometry::PointCloud> to_open3d(const Cloud& c) {
 Mesh from_open3d(const open3d::geometry::TriangleMesh& m) {
   Mesh out;
   for (const auto& v : m.vertices_) out.vertices.push_back(v.cast<float>());
-  for (const auto& t : m.triangles_) out.faces.push_back({std::uint32_t(t(0)), std::uint32_t(t(1)), std::uint32_t(t(2))});
+  for (const auto& t : m.triangles_)
+    out.faces.push_back({std::uint32_t(t(0)), std::uint32_t(t(1)), std::uint32_t(t(2))});
   return out;
 }
 
@@ -57,8 +57,8 @@ struct PoissonRun {
   bool trim = false;  // remove the 5 % of vertices of lowest density
   Mesh mesh;
   void run(const open3d::geometry::PointCloud& pcd) {
-    auto [m, density] =
-        open3d::geometry::TriangleMesh::CreateFromPointCloudPoisson(pcd, std::size_t(depth), 0.0f, 1.1f, false, threads);
+    auto [m, density] = open3d::geometry::TriangleMesh::CreateFromPointCloudPoisson(
+        pcd, std::size_t(depth), 0.0f, 1.1f, false, threads);
     if (trim && !density.empty()) {
       std::vector<double> sorted = density;
       const std::size_t k = sorted.size() / 20;
@@ -76,21 +76,25 @@ std::string quality(const Mesh& mesh, const Cloud& scans, int threads) {
   EvalParams ep;
   ep.threads = threads;
   const EvalResult r = evaluate(mesh, scans, ep);
-  return std::to_string(mesh.vertices.size()) + " vertices; mesh -> scans mean / p95 / max " + mm(r.a_to_b.mean) +
-         " / " + mm(r.a_to_b.p95) + " / " + mm(r.a_to_b.max) + " mm, scans -> mesh mean " + mm(r.b_to_a.mean) + " mm";
+  return std::to_string(mesh.vertices.size()) + " vertices; mesh -> scans mean / p95 / max " +
+         mm(r.a_to_b.mean) + " / " + mm(r.a_to_b.p95) + " / " + mm(r.a_to_b.max) +
+         " mm, scans -> mesh mean " + mm(r.b_to_a.mean) + " mm";
 }
 
 void run_multiview_cases(const Options& options, Report& report) {
   const int threads = options.threads;
   const DragonSession s = load_dragon(options);
   const StationConfig cfg = load_config(options.source_dir / "config" / "default.yaml");
-  const RegistrationResult reg = register_views(s.clouds, s.manifest, registration_params(cfg.pipeline));
+  const RegistrationResult reg =
+      register_views(s.clouds, s.manifest, registration_params(cfg.pipeline));
   const Cloud& merged = reg.merged;
-  if (merged.empty() || !merged.has_normals()) throw std::runtime_error("multiview: the dragon did not register");
+  if (merged.empty() || !merged.has_normals())
+    throw std::runtime_error("multiview: the dragon did not register");
   std::optional<Vec3d> up;
   if (reg.axis && !reg.poses.empty()) up = reg.poses[0].topLeftCorner<3, 3>() * reg.axis->direction;
-  report.note("multiview: " + s.where + ", " + std::to_string(s.clouds.size()) + " views registered by the profile (" +
-              std::to_string(reg.failed_views.size()) + " failed), merged " + std::to_string(merged.size()) +
+  report.note("multiview: " + s.where + ", " + std::to_string(s.clouds.size()) +
+              " views registered by the profile (" + std::to_string(reg.failed_views.size()) +
+              " failed), merged " + std::to_string(merged.size()) +
               " points with normals; distances in mm against the merged scans");
 
   // Ours: the profile's consolidation, then the surface stage (closed, kept).
@@ -117,32 +121,38 @@ void run_multiview_cases(const Options& options, Report& report) {
       probe.threads = threads;
       probe.trim = !closed;
       probe.run(*pcd);
-      const std::size_t gap = std::size_t(std::llabs(static_cast<long long>(probe.mesh.vertices.size()) -
-                                                     static_cast<long long>(ours.mesh.vertices.size())));
+      const std::size_t gap =
+          std::size_t(std::llabs(static_cast<long long>(probe.mesh.vertices.size()) -
+                                 static_cast<long long>(ours.mesh.vertices.size())));
       if (gap < best) best = gap, matched = depth;
     }
     const std::string mode = closed ? "closed" : "holes kept / trimmed 5 %";
-    const std::vector<int> depths = matched == 9 ? std::vector<int>{9} : std::vector<int>{matched, 9};
+    const std::vector<int> depths =
+        matched == 9 ? std::vector<int>{9} : std::vector<int>{matched, 9};
     for (const int depth : depths) {
       PoissonRun poisson;
       poisson.depth = depth;
       poisson.threads = threads;
       poisson.trim = !closed;
-      Row row{"dragon session, " + mode + ": surface stage (" + std::to_string(ours.resolution) + " cells)",
-              "CreateFromPointCloudPoisson depth " + std::to_string(depth) + (closed ? "" : " + density trim")};
+      Row row{"dragon session, " + mode + ": surface stage (" + std::to_string(ours.resolution) +
+                  " cells)",
+              "CreateFromPointCloudPoisson depth " + std::to_string(depth) +
+                  (closed ? "" : " + density trim")};
       std::tie(row.ours, row.theirs) = measure_pair(opt, run_ours, [&] { poisson.run(*pcd); });
       report.rows.push_back(row);
-      report.note("dragon " + mode + ": ours (consolidation " + format_fixed(consolidate_s, 2) + " s to " +
-                  std::to_string(consolidated.cloud.size()) + " points, not in the row; cell " +
-                  mm(ours.extraction.cell_size) + " mm) " + quality(ours.mesh, merged, threads));
-      report.note("dragon " + mode + ": Poisson depth " + std::to_string(depth) + " on the merged cloud " +
-                  quality(poisson.mesh, merged, threads));
+      report.note("dragon " + mode + ": ours (consolidation " + format_fixed(consolidate_s, 2) +
+                  " s to " + std::to_string(consolidated.cloud.size()) +
+                  " points, not in the row; cell " + mm(ours.extraction.cell_size) + " mm) " +
+                  quality(ours.mesh, merged, threads));
+      report.note("dragon " + mode + ": Poisson depth " + std::to_string(depth) +
+                  " on the merged cloud " + quality(poisson.mesh, merged, threads));
     }
   }
 }
 
 [[maybe_unused]] const bool registered = register_group(
-    "multiview", "real multi-view session: surface stage vs Open3D Poisson on the same merged cloud (issue 32)",
+    "multiview",
+    "real multi-view session: surface stage vs Open3D Poisson on the same merged cloud (issue 32)",
     &run_multiview_cases);
 
 }  // namespace

@@ -15,8 +15,8 @@ constexpr double kFarExtents = 100;  // the estimated viewpoint's distance, in v
 
 // Share of the points with a normal whose line of sight from `eye` is more than 80
 // degrees from it; `far` = `eye` is a direction (the sensor at infinity along it).
-double grazing_share(const std::vector<Vec3f>& points, const std::vector<Vec3f>& normals, const Vec3d& eye,
-                     bool far) {
+double grazing_share(const std::vector<Vec3f>& points, const std::vector<Vec3f>& normals,
+                     const Vec3d& eye, bool far) {
   std::size_t counted = 0, grazing = 0;
   for (std::size_t i = 0; i < points.size(); ++i) {
     const Vec3d n = normals[i].cast<double>();
@@ -32,8 +32,10 @@ double grazing_share(const std::vector<Vec3f>& points, const std::vector<Vec3f>&
 
 }  // namespace
 
-ViewpointEstimate estimate_viewpoint(const std::vector<Vec3f>& points, const std::vector<Vec3f>& normals) {
-  if (normals.size() != points.size()) throw InvalidInput("viewpoint: normals and points differ in count");
+ViewpointEstimate estimate_viewpoint(const std::vector<Vec3f>& points,
+                                     const std::vector<Vec3f>& normals) {
+  if (normals.size() != points.size())
+    throw InvalidInput("viewpoint: normals and points differ in count");
   ViewpointEstimate e;
   std::size_t with_normal = 0;
   for (const Vec3f& n : normals) with_normal += n.squaredNorm() > 0;
@@ -67,7 +69,8 @@ ViewpointEstimate estimate_viewpoint(const std::vector<Vec3f>& points, const std
   // A sampling that is even over the surface (voxel grids, synthetic views) sees
   // its silhouette band from any viewpoint: the origin stays unless the estimate
   // passes the test the origin fails, and clearly.
-  if (e.grazing_estimate > kMaxGrazingShare || e.grazing_estimate > kGrazingRatio * e.grazing_origin) {
+  if (e.grazing_estimate > kMaxGrazingShare ||
+      e.grazing_estimate > kGrazingRatio * e.grazing_origin) {
     e.grazing_estimate = e.grazing_origin;
     return e;
   }

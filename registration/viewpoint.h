@@ -49,15 +49,17 @@ struct ViewpointEstimate {
   /// The sensor (the origin), or a point far away along the view's dominant
   /// normal direction (100 extents from its centroid): orient normals towards it.
   Vec3f viewpoint = Vec3f::Zero();
-  bool at_origin = true;        ///< false: the origin failed the check
-  double grazing_origin = 0;    ///< share of points beyond 80 degrees from the origin
-  double grazing_estimate = 0;  ///< the same from the estimated viewpoint (= grazing_origin at the origin)
+  bool at_origin = true;      ///< false: the origin failed the check
+  double grazing_origin = 0;  ///< share of points beyond 80 degrees from the origin
+  double grazing_estimate =
+      0;  ///< the same from the estimated viewpoint (= grazing_origin at the origin)
 };
 
 /// Checks the origin as the sensor of the view `points`, whose unoriented unit
 /// normals (any signs; zero where unknown, and then not counted) are `normals`, and
 /// estimates a viewpoint when it fails (above). Views of fewer than 16 points with
 /// normals keep the origin.
-ViewpointEstimate estimate_viewpoint(const std::vector<Vec3f>& points, const std::vector<Vec3f>& normals);
+ViewpointEstimate estimate_viewpoint(const std::vector<Vec3f>& points,
+                                     const std::vector<Vec3f>& normals);
 
 }  // namespace station

@@ -90,8 +90,8 @@ TEST(SurfaceHole, EnclosureOfClosedAndOneSidedClouds) {
   Cloud inwards = fibonacci_sphere(20000, 0.1);
   for (Vec3f& nrm : inwards.normals) nrm = -nrm;
   const double flipped = cloud_enclosure(inwards);
-  std::printf("enclosure: sphere %.3f, hemisphere %.3f, plane %.3f, inward sphere %.3f\n", sphere, hemisphere, flat,
-              flipped);
+  std::printf("enclosure: sphere %.3f, hemisphere %.3f, plane %.3f, inward sphere %.3f\n", sphere,
+              hemisphere, flat, flipped);
   EXPECT_GT(sphere, 0.9);
   EXPECT_GT(hemisphere, 0.5);  // its rim sees most of it
   EXPECT_LT(hemisphere, kEnclosedAbove);
@@ -130,6 +130,63 @@ TEST(SurfaceHole, AutoClosesAnObjectAndKeepsAPatchOpen) {
   // Closed by force, the same patch becomes a solid: no boundary edges.
   p.hole = HoleMode::kClose;
   EXPECT_EQ(boundary_edges(reconstruct_surface(cap(24000, 0.1, 0.33), p).mesh), 0u);
+}
+
+}  // namespace
+}  // namespace station
+
+namespace station {
+namespace {
+
+// Crossings of the line {(x, y, z): z real} with the mesh's faces.
+int crossings(const Mesh& m, double x, double y) {
+  int count = 0;
+  for (const Face& f : m.faces) {
+    const Vec3d a = m.vertices[f[0]].cast<double>(), b = m.vertices[f[1]].cast<double>(),
+                c = m.vertices[f[2]].cast<double>();
+    // Barycentric test in the xy projection.
+    const double d = (b.y() - c.y()) * (a.x() - c.x()) + (c.x() - b.x()) * (a.y() - c.y());
+    if (std::abs(d) < 1e-18) continue;
+    const double l1 = ((b.y() - c.y()) * (x - c.x()) + (c.x() - b.x()) * (y - c.y())) / d;
+    const double l2 = ((c.y() - a.y()) * (x - c.x()) + (a.x() - c.x()) * (y - c.y())) / d;
+    const double l3 = 1 - l1 - l2;
+    if (l1 >= 0 && l2 >= 0 && l3 >= 0 && (l1 > 0 || l2 > 0) && l3 < 1) ++count;
+  }
+  return count;
+}
+
+// A thin plate (40 x 40 x 1.5 mm) seen from both sides, the back view registered
+// 0.3 mm off sideways (issue 32's example): one closed thin shape, two sheets
+// along every line through it, not four.
+TEST(SurfaceThinParts, ATwoSidedPlateWithAMisregisteredBackIsOneShape) {
+  const float half = 0.02f, thick = 0.0015f, step = 0.0004f, offset = 0.0003f;
+  Cloud c;
+  for (float x = -half; x <= half; x += step)
+    for (float y = -half; y <= half; y += step) {
+      c.points.emplace_back(x, y, 0.5f * thick);
+      c.normals.emplace_back(0.f, 0.f, 1.f);
+      c.points.emplace_back(x + offset, y, -0.5f * thick);
+      c.normals.emplace_back(0.f, 0.f, -1.f);
+    }
+  for (const HoleMode hole : {HoleMode::kAuto, HoleMode::kClose}) {
+    SurfaceParams p;
+    p.threads = 2;
+    p.colour = false;
+    p.hole = hole;
+    const SurfaceResult r = reconstruct_surface(c, p);
+    std::printf("plate: %zu points, %d cells (cell %.5f), %zu vertices, hole %s (enclosure %.3f)\n",
+                c.size(), r.resolution, r.extraction.cell_size, r.mesh.vertices.size(),
+                r.hole == HoleMode::kClose ? "closed" : "kept", r.enclosure.value_or(-9));
+    int two = 0, lines = 0;
+    for (double x = -0.015; x <= 0.0151; x += 0.005)
+      for (double y = -0.015; y <= 0.0151; y += 0.005) {
+        const int n = crossings(r.mesh, x + 1e-5, y + 2e-5);
+        ++lines;
+        two += n == 2;
+        EXPECT_EQ(n, 2) << "at " << x << ", " << y;
+      }
+    EXPECT_EQ(two, lines);
+  }
 }
 
 }  // namespace

@@ -13,8 +13,8 @@
 #include "core/kdtree.h"
 #include "core/normals.h"
 #include "core/sampling.h"
-#include "registration/registration.h"
 #include "dragon_session.h"
+#include "registration/registration.h"
 #include "test_util.h"
 
 namespace station {
@@ -60,7 +60,8 @@ TEST(Viewpoint, ARangeViewInItsScannerFrameKeepsTheOrigin) {
   const std::vector<Vec3f> pts = ellipsoid_range_view();
   ASSERT_GT(pts.size(), 10000u);
   const ViewpointEstimate e = estimate(pts);
-  std::printf("scanner frame: %zu points, grazing from the origin %.3f\n", pts.size(), e.grazing_origin);
+  std::printf("scanner frame: %zu points, grazing from the origin %.3f\n", pts.size(),
+              e.grazing_origin);
   EXPECT_TRUE(e.at_origin);
   EXPECT_LT(e.grazing_origin, kMaxGrazingShare);
   EXPECT_EQ(e.viewpoint, Vec3f::Zero());
@@ -71,11 +72,12 @@ TEST(Viewpoint, TheSameViewInTheObjectsFrameGetsAViewpointInFrontOfIt) {
   // Stanford scans have theirs inside the dragon).
   const Vec3d origin = kCentre + Vec3d(0, 0.1, 0.0);
   std::vector<Vec3f> pts;
-  for (const Vec3f& p : ellipsoid_range_view()) pts.push_back((p.cast<double>() - origin).cast<float>());
+  for (const Vec3f& p : ellipsoid_range_view())
+    pts.push_back((p.cast<double>() - origin).cast<float>());
   std::vector<Vec3f> normals;
   const ViewpointEstimate e = estimate(pts, &normals);
-  std::printf("object frame: grazing from the origin %.3f, from the estimate %.3f\n", e.grazing_origin,
-              e.grazing_estimate);
+  std::printf("object frame: grazing from the origin %.3f, from the estimate %.3f\n",
+              e.grazing_origin, e.grazing_estimate);
   EXPECT_FALSE(e.at_origin);
   EXPECT_GT(e.grazing_origin, kMaxGrazingShare);
   EXPECT_LE(e.grazing_estimate, kGrazingRatio * e.grazing_origin);
@@ -84,15 +86,18 @@ TEST(Viewpoint, TheSameViewInTheObjectsFrameGetsAViewpointInFrontOfIt) {
   for (const Vec3f& p : pts) centroid += p.cast<double>();
   centroid /= double(pts.size());
   const Vec3d to_sensor = (-origin - centroid).normalized();
-  EXPECT_GT((e.viewpoint.cast<double>() - centroid).normalized().dot(to_sensor), std::cos(20 * M_PI / 180));
+  EXPECT_GT((e.viewpoint.cast<double>() - centroid).normalized().dot(to_sensor),
+            std::cos(20 * M_PI / 180));
   std::size_t out = 0;
   for (std::size_t i = 0; i < pts.size(); ++i)
-    out += normals[i].cast<double>().dot(outward((pts[i].cast<double>() + origin).cast<float>())) > 0;
+    out +=
+        normals[i].cast<double>().dot(outward((pts[i].cast<double>() + origin).cast<float>())) > 0;
   EXPECT_GT(double(out) / double(pts.size()), 0.99);
   // Towards the origin, as before: a large part would face inwards.
   std::size_t origin_in = 0;
   for (std::size_t i = 0; i < pts.size(); ++i)
-    origin_in += (-pts[i].cast<double>()).dot(outward((pts[i].cast<double>() + origin).cast<float>())) < 0;
+    origin_in +=
+        (-pts[i].cast<double>()).dot(outward((pts[i].cast<double>() + origin).cast<float>())) < 0;
   EXPECT_GT(double(origin_in) / double(pts.size()), 0.1);
 }
 
@@ -115,7 +120,8 @@ TEST(Viewpoint, TheDragonScansAreNotInTheirScannerFrameAndMergeFacingOutwards) {
     EXPECT_GT(v.grazing_origin, kMaxGrazingShare);
   }
   bool warned = false;
-  for (const std::string& w : r.notes) warned |= w.find("not stored in their scanner frame") != std::string::npos;
+  for (const std::string& w : r.notes)
+    warned |= w.find("not stored in their scanner frame") != std::string::npos;
   EXPECT_TRUE(warned);
   ASSERT_TRUE(r.merged.has_normals());
   Vec3d c = Vec3d::Zero();
