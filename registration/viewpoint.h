@@ -51,8 +51,8 @@ struct ViewpointEstimate {
   Vec3f viewpoint = Vec3f::Zero();
   bool at_origin = true;      ///< false: the origin failed the check
   double grazing_origin = 0;  ///< share of points beyond 80 degrees from the origin
-  double grazing_estimate =
-      0;  ///< the same from the estimated viewpoint (= grazing_origin at the origin)
+  /// The same from the estimated viewpoint (= grazing_origin at the origin).
+  double grazing_estimate = 0;
 };
 
 /// Checks the origin as the sensor of the view `points`, whose unoriented unit
