@@ -1,5 +1,7 @@
 #include "test_util.h"
 
+#include <cmath>
+
 #include <algorithm>
 #include <atomic>
 #include <map>
@@ -78,6 +80,18 @@ TempDir::~TempDir() {
 }
 
 std::filesystem::path source_dir() { return STATION_SOURCE_DIR; }
+
+Cloud fibonacci_sphere(int n, double r) {
+  Cloud c;
+  const double golden = M_PI * (3 - std::sqrt(5.0));
+  for (int i = 0; i < n; ++i) {
+    const double z = 1 - 2 * (i + 0.5) / n, rr = std::sqrt(1 - z * z);
+    const Vec3d d(rr * std::cos(golden * i), rr * std::sin(golden * i), z);
+    c.points.push_back((r * d).cast<float>());
+    c.normals.push_back(d.cast<float>());
+  }
+  return c;
+}
 
 int open_edges(const Mesh& m) {
   std::map<std::pair<int, int>, int> uses;

@@ -12,6 +12,9 @@ namespace station::test {
 Mesh icosphere(int level, double radius = 1.0, const Vec3f& center = Vec3f::Zero());
 /// Axis-aligned box [min, max] as 12 triangles, outward-facing.
 Mesh box(const Vec3f& min, const Vec3f& max);
+/// n points on the sphere of radius r about the origin (Fibonacci spiral), with
+/// outward unit normals.
+Cloud fibonacci_sphere(int n, double r = 1.0);
 
 /// A fresh empty folder under the system temp dir, removed with the object.
 class TempDir {

@@ -31,15 +31,8 @@ using Painter = std::function<Rgb(const Vec3d&)>;
 
 // Points on the unit sphere (Fibonacci spiral) with outward normals, painted.
 Cloud sphere_cloud(int n, const Painter& paint, double r = 1.0) {
-  Cloud c;
-  const double golden = M_PI * (3 - std::sqrt(5.0));
-  for (int i = 0; i < n; ++i) {
-    const double z = 1 - 2 * (i + 0.5) / n, rr = std::sqrt(1 - z * z);
-    const Vec3d d(rr * std::cos(golden * i), rr * std::sin(golden * i), z);
-    c.points.push_back((r * d).cast<float>());
-    c.normals.push_back(d.cast<float>());
-    c.colours.push_back(paint(d));
-  }
+  Cloud c = test::fibonacci_sphere(n, r);
+  for (const Vec3f& d : c.normals) c.colours.push_back(paint(d.cast<double>()));
   return c;
 }
 

@@ -18,18 +18,7 @@
 namespace station {
 namespace {
 
-// Points on a sphere (Fibonacci spiral) with outward normals.
-Cloud sphere_cloud(int n, double r) {
-  Cloud c;
-  const double golden = M_PI * (3 - std::sqrt(5.0));
-  for (int i = 0; i < n; ++i) {
-    const double z = 1 - 2 * (i + 0.5) / n, rr = std::sqrt(1 - z * z);
-    const Vec3d d(rr * std::cos(golden * i), rr * std::sin(golden * i), z);
-    c.points.push_back((r * d).cast<float>());
-    c.normals.push_back(d.cast<float>());
-  }
-  return c;
-}
+Cloud sphere_cloud(int n, double r) { return test::fibonacci_sphere(n, r); }
 
 // Torus around z (major R, minor r), seeded uniform angles.
 Cloud torus_cloud(int n, double R, double r, unsigned seed) {

@@ -5,24 +5,14 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
-#include <map>
 
 #include "reconstruct/winding_close.h"
+#include "test_util.h"
 
 namespace station {
 namespace {
 
-Cloud fibonacci_sphere(int n, double r) {
-  Cloud c;
-  const double golden = M_PI * (3 - std::sqrt(5.0));
-  for (int i = 0; i < n; ++i) {
-    const double z = 1 - 2 * (i + 0.5) / n, rr = std::sqrt(1 - z * z);
-    const Vec3d d(rr * std::cos(golden * i), rr * std::sin(golden * i), z);
-    c.points.push_back((r * d).cast<float>());
-    c.normals.push_back(d.cast<float>());
-  }
-  return c;
-}
+using test::fibonacci_sphere;
 
 TEST(SurfaceResolution, AutoClampsTheLongestSideOverTheSpacing) {
   EXPECT_EQ(auto_resolution(0.2, 0.001), 200);
@@ -107,29 +97,19 @@ TEST(SurfaceHole, AutoClosesAnObjectAndKeepsAPatchOpen) {
   p.threads = 2;
   p.resolution = 64;
   ASSERT_EQ(p.hole, HoleMode::kAuto);  // the default
-  auto boundary_edges = [](const Mesh& m) {
-    std::map<std::pair<int, int>, int> count;
-    for (const Face& f : m.faces)
-      for (int k = 0; k < 3; ++k) {
-        const int a = f[k], b = f[(k + 1) % 3];
-        ++count[{std::min(a, b), std::max(a, b)}];
-      }
-    std::size_t open = 0;
-    for (const auto& [e, c] : count) open += c == 1;
-    return open;
-  };
+  auto boundary_edges = [](const Mesh& m) { return test::open_edges(m); };
   const SurfaceResult sphere = reconstruct_surface(fibonacci_sphere(8000, 0.1), p);
   ASSERT_TRUE(sphere.enclosure.has_value());
   EXPECT_EQ(sphere.hole, HoleMode::kClose);
-  EXPECT_EQ(boundary_edges(sphere.mesh), 0u);
+  EXPECT_EQ(boundary_edges(sphere.mesh), 0);
   const SurfaceResult patch = reconstruct_surface(cap(24000, 0.1, 0.33), p);
   ASSERT_TRUE(patch.enclosure.has_value());
   EXPECT_LT(*patch.enclosure, kEnclosedAbove);
   EXPECT_EQ(patch.hole, HoleMode::kKeep);
-  EXPECT_GT(boundary_edges(patch.mesh), 0u);
+  EXPECT_GT(boundary_edges(patch.mesh), 0);
   // Closed by force, the same patch becomes a solid: no boundary edges.
   p.hole = HoleMode::kClose;
-  EXPECT_EQ(boundary_edges(reconstruct_surface(cap(24000, 0.1, 0.33), p).mesh), 0u);
+  EXPECT_EQ(boundary_edges(reconstruct_surface(cap(24000, 0.1, 0.33), p).mesh), 0);
 }
 
 }  // namespace
