@@ -2,11 +2,15 @@
 
 #include <Eigen/Geometry>
 
+#include <cstdint>
 #include <numeric>
+#include <unordered_map>
+#include <utility>
 #include <string>
 #include <vector>
 
 #include "core/error.h"
+#include "core/kdtree.h"
 
 namespace station {
 
@@ -84,6 +88,40 @@ ComponentFilterStats remove_small_components(Mesh& mesh, double min_area_fractio
   out.faces = std::move(faces);
   mesh = std::move(out);
   return st;
+}
+
+std::size_t trim_open_rims(Mesh& mesh, const PointIndex& index, double max_distance, int max_passes) {
+  if (mesh.faces.empty()) return 0;
+  std::vector<char> far(mesh.vertices.size(), 0);
+  for (std::size_t v = 0; v < mesh.vertices.size(); ++v)
+    far[v] = index.nearest_within(mesh.vertices[v], float(max_distance)).first < 0;
+  std::vector<char> alive(mesh.faces.size(), 1);
+  std::size_t dropped = 0;
+  for (int pass = 0; pass < max_passes; ++pass) {
+    // Edge uses among the faces still alive.
+    std::unordered_map<std::uint64_t, int> uses;
+    uses.reserve(mesh.faces.size() * 2);
+    auto key = [](int a, int b) {
+      if (a > b) std::swap(a, b);
+      return (std::uint64_t(std::uint32_t(a)) << 32) | std::uint32_t(b);
+    };
+    for (std::size_t f = 0; f < mesh.faces.size(); ++f)
+      if (alive[f])
+        for (int k = 0; k < 3; ++k) ++uses[key(mesh.faces[f][k], mesh.faces[f][(k + 1) % 3])];
+    std::size_t now = 0;
+    for (std::size_t f = 0; f < mesh.faces.size(); ++f) {
+      if (!alive[f]) continue;
+      const Face& t = mesh.faces[f];
+      if (!far[t[0]] && !far[t[1]] && !far[t[2]]) continue;
+      bool rim = false;
+      for (int k = 0; k < 3 && !rim; ++k) rim = uses[key(t[k], t[(k + 1) % 3])] == 1;
+      if (rim) alive[f] = 0, ++now;
+    }
+    dropped += now;
+    if (now == 0) break;
+  }
+  if (dropped > 0) keep_faces(mesh, alive);
+  return dropped;
 }
 
 std::size_t keep_faces(Mesh& mesh, const std::vector<char>& keep) {

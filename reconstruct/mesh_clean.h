@@ -8,6 +8,8 @@
 
 namespace station {
 
+class PointIndex;
+
 struct ComponentFilterStats {
   std::size_t components = 0;          ///< connected pieces before (faces sharing vertices)
   std::size_t removed_components = 0;
@@ -20,6 +22,13 @@ struct ComponentFilterStats {
 /// (normals and colours follow). Face order and orientation are kept.
 /// InvalidInput on an inconsistent mesh or a fraction outside [0, 1].
 ComponentFilterStats remove_small_components(Mesh& mesh, double min_area_fraction);
+
+/// Erodes the mesh's open rims back to the data: faces on an open boundary (with an
+/// edge used by that face alone) having a vertex further than `max_distance` from
+/// every point of `index` are dropped, and again on the new boundary, until no such
+/// face remains or `max_passes` passes ran. Closed meshes are left as they are.
+/// Returns the faces dropped.
+std::size_t trim_open_rims(Mesh& mesh, const PointIndex& index, double max_distance, int max_passes = 16);
 
 /// Keeps the faces with keep[f] != 0, in order, and the vertices they use, numbered
 /// in the order the kept faces first use them (normals and colours follow); returns

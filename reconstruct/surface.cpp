@@ -9,6 +9,7 @@
 #include <memory>
 
 #include "core/error.h"
+#include "core/kdtree.h"
 #include "core/normals.h"
 #include "core/threads.h"
 #include "reconstruct/colour_transfer.h"
@@ -144,6 +145,14 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
   }
   out.seconds.extract = seconds_since(t3);
   if (mesh.faces.empty()) throw InvalidInput("the reconstructed surface is empty");
+  if (!close && out.mpu.mean_spacing > 0) {
+    // Holes kept: the rims come back to the data (no flaps beyond the points).
+    const PointIndex points(input.points);
+    out.rim_faces = trim_open_rims(mesh, points, kRimTrimFactor * out.mpu.mean_spacing);
+    if (out.rim_faces > 0)
+      note("open rims brought back to the data (" + std::to_string(out.rim_faces) + " faces further than " +
+           fmt("%.3g", kRimTrimFactor * out.mpu.mean_spacing) + " from the points)");
+  }
   out.pieces = remove_small_components(mesh, p.min_component);
   if (out.pieces.removed_components > 0)
     note("removed " + std::to_string(out.pieces.removed_components) + " small pieces (" +

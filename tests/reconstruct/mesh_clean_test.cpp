@@ -1,6 +1,10 @@
 #include <gtest/gtest.h>
 
+#include <algorithm>
+#include <cmath>
+
 #include "core/error.h"
+#include "core/kdtree.h"
 #include "reconstruct/mesh_clean.h"
 #include "test_util.h"
 
@@ -20,6 +24,45 @@ Mesh painted(Mesh m, Rgb c) {
   m.colours.assign(m.vertices.size(), c);
   m.normals = vertex_normals(m);
   return m;
+}
+
+// A 20 x 20 grid of unit squares (two triangles each) in the z = 0 plane.
+Mesh grid(int n) {
+  Mesh m;
+  for (int y = 0; y <= n; ++y)
+    for (int x = 0; x <= n; ++x) m.vertices.emplace_back(float(x), float(y), 0.f);
+  auto id = [n](int x, int y) { return y * (n + 1) + x; };
+  for (int y = 0; y < n; ++y)
+    for (int x = 0; x < n; ++x) {
+      m.faces.emplace_back(id(x, y), id(x + 1, y), id(x + 1, y + 1));
+      m.faces.emplace_back(id(x, y), id(x + 1, y + 1), id(x, y + 1));
+    }
+  return m;
+}
+
+TEST(TrimOpenRims, ErodesFromTheRimToTheDataOnly) {
+  // Data over x <= 12 everywhere, and nowhere in the disc of radius 2.5 about (6, 10).
+  std::vector<Vec3f> data;
+  for (float y = 0; y <= 20; y += 0.5f)
+    for (float x = 0; x <= 12; x += 0.5f)
+      if (std::hypot(x - 6.f, y - 10.f) > 2.5f) data.emplace_back(x, y, 0.f);
+  const PointIndex index(data);
+  Mesh m = grid(20);
+  const std::size_t dropped = trim_open_rims(m, index, 1.0, 100);
+  EXPECT_GT(dropped, 0u);
+  float max_x = 0;
+  for (const Vec3f& v : m.vertices) max_x = std::max(max_x, v.x());
+  EXPECT_LE(max_x, 13.f);  // the part beyond the data is gone, a vertex at most 1 past it
+  EXPECT_GE(max_x, 12.f);
+  // The data's gap inside is not on a rim: its faces stay.
+  bool centre = false;
+  for (const Vec3f& v : m.vertices) centre |= v.x() == 6.f && v.y() == 10.f;
+  EXPECT_TRUE(centre);
+  // A closed mesh has no rim: nothing goes, however far the data.
+  Mesh sphere = test::icosphere(2, 1.0, Vec3f(100, 0, 0));
+  const std::size_t faces = sphere.faces.size();
+  EXPECT_EQ(trim_open_rims(sphere, index, 1.0), 0u);
+  EXPECT_EQ(sphere.faces.size(), faces);
 }
 
 TEST(RemoveSmallComponents, DropsSpecksAndKeepsTheObjectWithItsAttributes) {
