@@ -2,9 +2,9 @@
 
 #include <Eigen/Geometry>
 
+#include <algorithm>
 #include <cstdint>
 #include <numeric>
-#include <unordered_map>
 #include <utility>
 #include <string>
 #include <vector>
@@ -91,34 +91,69 @@ ComponentFilterStats remove_small_components(Mesh& mesh, double min_area_fractio
 }
 
 std::size_t trim_open_rims(Mesh& mesh, const PointIndex& index, double max_distance, int max_passes) {
-  if (mesh.faces.empty()) return 0;
+  const std::size_t nf = mesh.faces.size();
+  if (nf == 0) return 0;
   std::vector<char> far(mesh.vertices.size(), 0);
   for (std::size_t v = 0; v < mesh.vertices.size(); ++v)
     far[v] = index.nearest_within(mesh.vertices[v], float(max_distance)).first < 0;
-  std::vector<char> alive(mesh.faces.size(), 1);
-  std::size_t dropped = 0;
-  for (int pass = 0; pass < max_passes; ++pass) {
-    // Edge uses among the faces still alive.
-    std::unordered_map<std::uint64_t, int> uses;
-    uses.reserve(mesh.faces.size() * 2);
-    auto key = [](int a, int b) {
+  auto far_face = [&](std::size_t f) {
+    const Face& t = mesh.faces[f];
+    return far[t[0]] || far[t[1]] || far[t[2]];
+  };
+  // Edges once: (key, face) sorted by key; each face's three edge groups; the
+  // faces still alive on each edge.
+  std::vector<std::pair<std::uint64_t, std::uint32_t>> ef;
+  ef.reserve(3 * nf);
+  for (std::size_t f = 0; f < nf; ++f)
+    for (int k = 0; k < 3; ++k) {
+      std::uint32_t a = std::uint32_t(mesh.faces[f][k]), b = std::uint32_t(mesh.faces[f][(k + 1) % 3]);
       if (a > b) std::swap(a, b);
-      return (std::uint64_t(std::uint32_t(a)) << 32) | std::uint32_t(b);
-    };
-    for (std::size_t f = 0; f < mesh.faces.size(); ++f)
-      if (alive[f])
-        for (int k = 0; k < 3; ++k) ++uses[key(mesh.faces[f][k], mesh.faces[f][(k + 1) % 3])];
-    std::size_t now = 0;
-    for (std::size_t f = 0; f < mesh.faces.size(); ++f) {
-      if (!alive[f]) continue;
-      const Face& t = mesh.faces[f];
-      if (!far[t[0]] && !far[t[1]] && !far[t[2]]) continue;
-      bool rim = false;
-      for (int k = 0; k < 3 && !rim; ++k) rim = uses[key(t[k], t[(k + 1) % 3])] == 1;
-      if (rim) alive[f] = 0, ++now;
+      ef.emplace_back((std::uint64_t(a) << 32) | b, std::uint32_t(f));
     }
-    dropped += now;
-    if (now == 0) break;
+  std::sort(ef.begin(), ef.end());
+  std::vector<std::uint32_t> group_start, face_edge(3 * nf);
+  std::vector<int> alive_on;
+  std::vector<int> next_slot(nf, 0);
+  for (std::size_t i = 0; i < ef.size(); ++i) {
+    if (i == 0 || ef[i].first != ef[i - 1].first) {
+      group_start.push_back(std::uint32_t(i));
+      alive_on.push_back(0);
+    }
+    const std::uint32_t g = std::uint32_t(group_start.size() - 1), f = ef[i].second;
+    face_edge[3 * f + std::size_t(next_slot[f]++)] = g;
+    ++alive_on[g];
+  }
+  group_start.push_back(std::uint32_t(ef.size()));
+  std::vector<char> alive(nf, 1);
+  auto on_rim = [&](std::size_t f) {
+    for (int k = 0; k < 3; ++k)
+      if (alive_on[face_edge[3 * f + std::size_t(k)]] == 1) return true;
+    return false;
+  };
+  std::vector<std::uint32_t> layer;
+  for (std::size_t f = 0; f < nf; ++f)
+    if (far_face(f) && on_rim(f)) layer.push_back(std::uint32_t(f));
+  std::size_t dropped = 0;
+  for (int pass = 0; pass < max_passes && !layer.empty(); ++pass) {
+    // Drop the whole layer first (a ring), then find the faces it exposed.
+    for (const std::uint32_t f : layer) {
+      alive[f] = 0;
+      ++dropped;
+      for (int k = 0; k < 3; ++k) --alive_on[face_edge[3 * std::size_t(f) + std::size_t(k)]];
+    }
+    std::vector<std::uint32_t> next;
+    for (const std::uint32_t f : layer)
+      for (int k = 0; k < 3; ++k) {
+        const std::uint32_t g = face_edge[3 * std::size_t(f) + std::size_t(k)];
+        if (alive_on[g] != 1) continue;
+        for (std::uint32_t i = group_start[g]; i < group_start[g + 1]; ++i) {
+          const std::uint32_t h = ef[i].second;
+          if (alive[h] && far_face(h)) next.push_back(h);
+        }
+      }
+    std::sort(next.begin(), next.end());
+    next.erase(std::unique(next.begin(), next.end()), next.end());
+    layer.swap(next);
   }
   if (dropped > 0) keep_faces(mesh, alive);
   return dropped;
