@@ -91,7 +91,11 @@ void run_multiview_cases(const Options& options, Report& report) {
   if (merged.empty() || !merged.has_normals())
     throw std::runtime_error("multiview: the dragon did not register");
   std::optional<Vec3d> up;
-  if (reg.axis && !reg.poses.empty()) up = reg.poses[0].topLeftCorner<3, 3>() * reg.axis->direction;
+  if (reg.axis && !reg.poses.empty()) {
+    std::size_t first = 0;  // the first registered view, as the run takes it
+    while (first + 1 < reg.views.size() && !reg.views[first].registered) ++first;
+    up = reg.poses[first].topLeftCorner<3, 3>() * reg.axis->direction;
+  }
   report.note("multiview: " + s.where + ", " + std::to_string(s.clouds.size()) +
               " views registered by the profile (" + std::to_string(reg.failed_views.size()) +
               " failed), merged " + std::to_string(merged.size()) +
@@ -140,10 +144,10 @@ void run_multiview_cases(const Options& options, Report& report) {
                   (closed ? "" : " + density trim")};
       std::tie(row.ours, row.theirs) = measure_pair(opt, run_ours, [&] { poisson.run(*pcd); });
       report.rows.push_back(row);
-      report.note("dragon " + mode + ": ours (consolidation " + format_fixed(consolidate_s, 2) +
-                  " s to " + std::to_string(consolidated.cloud.size()) +
-                  " points, not in the row; cell " + mm(ours.extraction.cell_size) + " mm) " +
-                  quality(ours.mesh, merged, threads));
+      if (depth == depths.front())
+        report.note("dragon " + mode + ": ours (consolidation " + format_fixed(consolidate_s, 2) + " s to " +
+                    std::to_string(consolidated.cloud.size()) + " points, not in the rows; cell " +
+                    mm(ours.extraction.cell_size) + " mm) " + quality(ours.mesh, merged, threads));
       report.note("dragon " + mode + ": Poisson depth " + std::to_string(depth) +
                   " on the merged cloud " + quality(poisson.mesh, merged, threads));
     }

@@ -69,6 +69,14 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
   out.hole = p.hole;
   if (p.hole == HoleMode::kAuto) {
     out.enclosure = cloud_enclosure(input);
+    if (*out.enclosure <= -kEnclosedAbove) {
+      // A closed cloud whose normals all face inwards: turned, then closed.
+      for (Vec3f& n : input.normals) n = -n;
+      note("the cloud's normals face inwards (it encloses " + fmt("%.2f", *out.enclosure) +
+           "): turned outwards");
+      out.normals_flipped = true;
+      out.enclosure = -*out.enclosure;
+    }
     out.hole = *out.enclosure >= kEnclosedAbove ? HoleMode::kClose : HoleMode::kKeep;
     note(std::string(out.hole == HoleMode::kClose ? "closing the unseen parts" : "leaving the unseen parts open") +
          " (hole auto: the cloud encloses " + fmt("%.2f", *out.enclosure) + ", " +
@@ -126,7 +134,10 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
   if (out.resolution_auto)
     note("extracting at resolution " + std::to_string(resolution) + " (" + extractor_label(p.extractor) +
          "; auto: cell " + fmt("%.3g", longest / resolution) + ", the points' mean spacing " +
-         fmt("%.3g", out.mpu.mean_spacing) + ")");
+         fmt("%.3g", out.mpu.mean_spacing) +
+         (resolution == kAutoResolutionMin || resolution == kAutoResolutionMax
+              ? ", clamped to " + std::to_string(kAutoResolutionMin) + ".." + std::to_string(kAutoResolutionMax) + ")"
+              : std::string(")")));
   else
     note("extracting at resolution " + std::to_string(resolution) + " (" + extractor_label(p.extractor) + ")");
   const auto t3 = Clock::now();

@@ -73,7 +73,10 @@ struct SurfaceResult {
   bool normals_estimated = false;  ///< the cloud had none: PCA + MST orientation
   double epsilon0 = 0;             ///< the tolerance used
   HoleMode hole = HoleMode::kClose;  ///< the mode used (kAuto resolved to one of the others)
-  std::optional<double> enclosure;   ///< with kAuto: cloud_enclosure of the input
+  std::optional<double> enclosure;   ///< with kAuto: cloud_enclosure of the input (after any turn)
+  /// With kAuto: the cloud enclosed at most -kEnclosedAbove (all normals inwards) and
+  /// its normals were turned before the fit.
+  bool normals_flipped = false;
   MpuDiagnostics mpu;
   std::size_t winding_points = 0;  ///< clusters of the winding closing (0: not used)
   double winding_trust = 0;        ///< its trust distance

@@ -1041,6 +1041,9 @@ WlopResult consolidate(const Cloud& input, const WlopParams& params) {
   result.bbox_diagonal = (box.max.cast<double>() - box.min.cast<double>()).norm();
   if (!(result.bbox_diagonal > 0))
     throw InvalidInput("consolidate: all input points coincide (zero bounding box)");
+  if (params.max_points > 0 && params.min_points > params.max_points)
+    throw InvalidInput("consolidate: min_points (" + std::to_string(params.min_points) + ") above max_points (" +
+                       std::to_string(params.max_points) + ")");
   result.requested_points =
       params.target_points > 0
           ? params.target_points

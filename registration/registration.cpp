@@ -245,8 +245,8 @@ class Registrar {
     if (moved.empty()) return;
     std::ostringstream w;
     w << std::fixed << std::setprecision(0);
-    w << moved.size() << " of " << res_.views.size()
-      << " views are not stored in their scanner frame (from the origin " << 100 * lo << "-" << 100 * hi
+    w << moved.size() << " of " << res_.views.size() << (moved.size() == 1 ? " view is" : " views are")
+      << " not stored in their scanner frame (from the origin " << 100 * lo << "-" << 100 * hi
       << " % of their points would be seen edge-on): their normals face a viewpoint estimated from the view";
     res_.notes.push_back(w.str());
   }

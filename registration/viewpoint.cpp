@@ -12,6 +12,9 @@ namespace {
 constexpr double kCos80 = 0.17364817766693041;  // cos(80 degrees)
 constexpr std::size_t kMinPoints = 16;
 constexpr double kFarExtents = 100;  // the estimated viewpoint's distance, in view extents
+// Below this mean bulge (sum n . (p - centroid) over the points, per point and view
+// extent) a view is taken as flat; the dragon's scans bulge 0.01-0.09.
+constexpr double kMinBulge = 1e-3;
 
 // Share of the points with a normal whose line of sight from `eye` is more than 80
 // degrees from it; `far` = `eye` is a direction (the sensor at infinity along it).
@@ -64,6 +67,9 @@ ViewpointEstimate estimate_viewpoint(const std::vector<Vec3f>& points,
     if (n.dot(d) < 0) n = -n;
     bulge += n.normalized().dot(points[i].cast<double>() - centroid);
   }
+  // A flat view does not say which side it was seen from: the origin stays.
+  const double extent = std::max(double(box.diagonal()), 1e-6);
+  if (std::abs(bulge) < kMinBulge * double(points.size()) * extent) return e;
   if (bulge < 0) d = -d;
   e.grazing_estimate = grazing_share(points, normals, d, true);
   // A sampling that is even over the surface (voxel grids, synthetic views) sees
@@ -74,7 +80,6 @@ ViewpointEstimate estimate_viewpoint(const std::vector<Vec3f>& points,
     e.grazing_estimate = e.grazing_origin;
     return e;
   }
-  const double extent = std::max(double(box.diagonal()), 1e-6);
   e.at_origin = false;
   e.viewpoint = (centroid + kFarExtents * extent * d).cast<float>();
   return e;

@@ -260,6 +260,11 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
                       .add("removed_pieces", r.pieces.removed_components)
                       .add("epsilon0", r.epsilon0)
                       .add("cell_size", r.extraction.cell_size)
+                      .add("resolution", r.resolution)
+                      .add("resolution_auto", r.resolution_auto)
+                      .add("hole", std::string(r.hole == HoleMode::kClose ? "close" : "keep"))
+                      .add("enclosure", r.enclosure ? *r.enclosure : std::nan(""))
+                      .add("rim_faces", r.rim_faces)
                       .add("colours", r.coloured)
                       .add("extractor", rc.extractor)
                       .add("winding_close", r.winding_points > 0)
@@ -355,7 +360,7 @@ void add_surface_commands(CLI::App& app, std::vector<Command>& out) {
   add_profile_options(rec, "reconstruct", c_rec);
   rec->add_option("--up", rec_args.up,
                   "the turntable axis in the cloud's frame, x,y,z (a run's register stage `up` in run.yaml): "
-                  "with --hole close the underside closes flat at the table plane (profile "
+                  "when the surface is closed (--hole close, or auto closing) the underside closes flat at the table plane (profile "
                   "reconstruct.table_plane)");
 
 

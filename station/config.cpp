@@ -207,11 +207,13 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
     if (n["winding_close"]) c.winding_close = r.boolean(n["winding_close"], "reconstruct.winding_close");
     if (c.surface != "mpu" && c.surface != "sdm") r.fail("reconstruct.surface", "must be mpu or sdm");
     if (n["resolution"]) {
-      if (n["resolution"].IsScalar() && n["resolution"].Scalar() == "auto") c.resolution = 0;
-      else c.resolution = r.integer(n["resolution"], "reconstruct.resolution");
+      if (n["resolution"].IsScalar() && n["resolution"].Scalar() == "auto") {
+        c.resolution = 0;
+      } else {
+        c.resolution = r.integer(n["resolution"], "reconstruct.resolution");
+        if (c.resolution < 8 || c.resolution > 4096) r.fail("reconstruct.resolution", "must be auto or 8..4096");
+      }
     }
-    if (c.resolution != 0 && (c.resolution < 8 || c.resolution > 4096))
-      r.fail("reconstruct.resolution", "must be auto or 8..4096");
     if (n["epsilon0"]) c.epsilon0 = r.number(n["epsilon0"], "reconstruct.epsilon0");
     if (c.epsilon0 < 0 || c.epsilon0 > 0.1) r.fail("reconstruct.epsilon0", "must be 0 (automatic) .. 0.1");
     if (n["extractor"]) c.extractor = r.text(n["extractor"], "reconstruct.extractor");

@@ -21,6 +21,7 @@
 #include "reconstruct/colour_function.h"
 #include "reconstruct/sdm.h"
 #include "reconstruct/surface.h"
+#include "reconstruct/winding_close.h"
 #include "reconstruct/wlop.h"
 #include "station/params.h"
 #include "station/progress.h"
@@ -177,13 +178,14 @@ std::string register_key(const PipelineConfig& p) {
     << ";objective=" << p.reg.objective << ";global=" << p.reg.global << ";check_angles=" << p.reg.check_angles
     << ";prior_check=" << p.reg.prior_check
     << ";fuse=" << p.reg.fuse << ";fuse_distance=" << fmt("%.17g", p.reg.fuse_distance)
-    << ";rigid_turntable=" << p.reg.rigid_turntable;
+    << ";rigid_turntable=" << p.reg.rigid_turntable
+    << ";viewpoint=checked";  // since issue 32: imported views' normals face their estimated sensor
   return s.str();
 }
 std::string consolidate_key(const PipelineConfig& p) {
   const auto& c = p.consolidate;
   std::ostringstream s;
-  s << "consolidate/method=" << c.method << ";points=" << (c.points_auto ? std::string("auto") : std::to_string(c.points)) << ";ratio=" << fmt("%.17g", c.ratio)
+  s << "consolidate/method=" << c.method << ";points=" << (c.points_auto ? "auto:" + std::to_string(kAutoPointsMin) + "-" + std::to_string(kAutoPointsMax) : std::to_string(c.points)) << ";ratio=" << fmt("%.17g", c.ratio)
     << ";iterations=" << c.iterations << ";seed=" << c.seed << ";attraction=" << c.attraction << ";fit_radius=" << c.fit_radius << ";repulsion=" << c.repulsion
     << ";repulsion_weight=" << c.repulsion_weight;
   if (c.radius > 0) s << ";radius=" << fmt("%.17g", c.radius);  // (absent from keys of earlier runs)
@@ -198,6 +200,10 @@ std::string surface_key(const PipelineConfig& p) {
     << ";colour_edges=" << c.colour_edges
     << ";min_component=" << fmt("%.17g", c.min_component) << ";table_plane=" << c.table_plane
     << ";winding_close=" << c.winding_close;
+  // Since issue 32: what decides the unseen parts and the kept rims.
+  if (c.hole != "close")
+    s << ";enclosed_above=" << kEnclosedAbove << ";keep_trust=" << kKeepTrustFactor << ";rim_trim=" << kRimTrimFactor;
+  if (c.resolution == 0) s << ";auto_cells=" << kAutoResolutionMin << "-" << kAutoResolutionMax;
   if (c.surface == "sdm") s << ";level=" << p.sdm.level;
   return s.str();
 }
@@ -599,6 +605,7 @@ class Runner {
     r.figures["cell_size"] = sr.extraction.cell_size;
     r.figures["resolution"] = double(sr.resolution);
     r.figures["closed"] = sr.hole == HoleMode::kClose ? 1.0 : 0.0;
+    r.figures["rim_faces"] = double(sr.rim_faces);
     if (sr.enclosure) r.figures["enclosure"] = *sr.enclosure;
     r.figures["vertices"] = double(sr.mesh.vertices.size());
     r.figures["faces"] = double(sr.mesh.faces.size());

@@ -107,6 +107,14 @@ TEST(SurfaceHole, AutoClosesAnObjectAndKeepsAPatchOpen) {
   EXPECT_LT(*patch.enclosure, kEnclosedAbove);
   EXPECT_EQ(patch.hole, HoleMode::kKeep);
   EXPECT_GT(boundary_edges(patch.mesh), 0);
+  // A closed cloud with every normal inwards is turned, then closed.
+  Cloud inwards = fibonacci_sphere(8000, 0.1);
+  for (Vec3f& n : inwards.normals) n = -n;
+  const SurfaceResult turned = reconstruct_surface(inwards, p);
+  EXPECT_TRUE(turned.normals_flipped);
+  EXPECT_EQ(turned.hole, HoleMode::kClose);
+  EXPECT_EQ(boundary_edges(turned.mesh), 0);
+  EXPECT_FALSE(sphere.normals_flipped);
   // Closed by force, the same patch becomes a solid: no boundary edges.
   p.hole = HoleMode::kClose;
   EXPECT_EQ(boundary_edges(reconstruct_surface(cap(24000, 0.1, 0.33), p).mesh), 0);

@@ -642,6 +642,10 @@ TEST(WlopInput, RatioWithinBoundsOfPoints) {
   EXPECT_EQ(requested(0.2, 5000, 0), 3000u);   // the floor is at most the input
   EXPECT_EQ(requested(0.5, 0, 1200), 1200u);   // capped
   EXPECT_EQ(requested(0.2, 100, 1200), 600u);  // within both
+  WlopParams crossed = plain(0, 0, 1);
+  crossed.min_points = 2000;
+  crossed.max_points = 1000;
+  EXPECT_THROW(consolidate(in, crossed), InvalidInput);
   WlopParams fixed = plain(700, 0, 1);
   fixed.min_points = 1000;  // bounds only apply to the ratio
   EXPECT_EQ(consolidate(in, fixed).requested_points, 700u);

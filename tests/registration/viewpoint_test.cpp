@@ -101,6 +101,18 @@ TEST(Viewpoint, TheSameViewInTheObjectsFrameGetsAViewpointInFrontOfIt) {
   EXPECT_GT(double(origin_in) / double(pts.size()), 0.1);
 }
 
+// A flat view does not tell its side: seen edge-on from the origin (in its plane),
+// it keeps the origin rather than guess.
+TEST(Viewpoint, AFlatViewKeepsTheOrigin) {
+  std::vector<Vec3f> pts;
+  for (int i = 0; i < 60; ++i)
+    for (int j = 0; j < 60; ++j) pts.emplace_back(0.1f + 0.002f * i, 0.002f * j - 0.06f, 0.f);
+  const std::vector<Vec3f> normals(pts.size(), Vec3f::UnitZ());
+  const ViewpointEstimate e = estimate_viewpoint(pts, normals);
+  EXPECT_GT(e.grazing_origin, kMaxGrazingShare);
+  EXPECT_TRUE(e.at_origin);
+}
+
 TEST(Viewpoint, TooFewNormalsKeepTheOrigin) {
   const std::vector<Vec3f> pts = {Vec3f(0.1f, 0, 0.5f), Vec3f(0, 0.1f, 0.5f), Vec3f(0, 0, 0.6f)};
   const std::vector<Vec3f> normals(3, Vec3f::UnitX());

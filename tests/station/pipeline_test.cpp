@@ -399,6 +399,7 @@ TEST(Profile, OverridesAreValidatedLikeTheFileAndNameTheKey) {
   };
   EXPECT_NE(message("reconstruct.resolutoin=5").find("--set reconstruct.resolutoin=5: unknown key"), std::string::npos);
   EXPECT_NE(message("reconstruct.resolution=2").find("--set reconstruct.resolution=2: must be auto or 8..4096"), std::string::npos);
+  EXPECT_NE(message("reconstruct.resolution=0").find("--set reconstruct.resolution=0: must be auto or 8..4096"), std::string::npos);
   EXPECT_NE(message("reconstruct.hole=maybe").find("reconstruct.hole"), std::string::npos);
   EXPECT_NE(message("consolidate.ratio=abc").find("--set consolidate.ratio=abc: not a number"), std::string::npos);
   EXPECT_NE(message("nosuch.key=1").find("--set nosuch.key=1: nosuch: unknown key"), std::string::npos);
