@@ -20,6 +20,7 @@
 #include "dragon_session.h"
 #include "eval/eval.h"
 #include "harness.h"
+#include "open3d_convert.h"
 #include "reconstruct/surface.h"
 #include "reconstruct/wlop.h"
 #include "registration/registration.h"
@@ -33,23 +34,6 @@ namespace {
 using Clock = std::chrono::steady_clock;
 
 std::string mm(double metres) { return format_fixed(metres * 1000.0, 2); }
-
-std::shared_ptr<open3d::geometry::PointCloud> to_open3d(const Cloud& c) {
-  auto p = std::make_shared<open3d::geometry::PointCloud>();
-  for (std::size_t i = 0; i < c.size(); ++i) {
-    p->points_.push_back(c.points[i].cast<double>());
-    p->normals_.push_back(c.normals[i].cast<double>());
-  }
-  return p;
-}
-
-Mesh from_open3d(const open3d::geometry::TriangleMesh& m) {
-  Mesh out;
-  for (const auto& v : m.vertices_) out.vertices.push_back(v.cast<float>());
-  for (const auto& t : m.triangles_)
-    out.faces.push_back({std::uint32_t(t(0)), std::uint32_t(t(1)), std::uint32_t(t(2))});
-  return out;
-}
 
 struct PoissonRun {
   int depth = 9;
@@ -106,6 +90,7 @@ void run_multiview_cases(const Options& options, Report& report) {
   auto t0 = Clock::now();
   const WlopResult consolidated = consolidate(merged, wp);
   const double consolidate_s = std::chrono::duration<double>(Clock::now() - t0).count();
+  const open3d::geometry::PointCloud pcd = to_open3d(merged);
   Options opt = options;
   opt.repetitions = std::min(options.repetitions, 3);
   for (const bool closed : {true, false}) {
@@ -116,7 +101,6 @@ void run_multiview_cases(const Options& options, Report& report) {
     auto run_ours = [&] { ours = reconstruct_surface(consolidated.cloud, sp); };
     run_ours();
     // Poisson at the depth whose vertex count is nearest ours, and at depth 9.
-    const auto pcd = to_open3d(merged);
     int matched = 6;
     std::size_t best = std::size_t(-1);
     for (int depth = 6; depth <= 9; ++depth) {
@@ -124,7 +108,7 @@ void run_multiview_cases(const Options& options, Report& report) {
       probe.depth = depth;
       probe.threads = threads;
       probe.trim = !closed;
-      probe.run(*pcd);
+      probe.run(pcd);
       const std::size_t gap =
           std::size_t(std::llabs(static_cast<long long>(probe.mesh.vertices.size()) -
                                  static_cast<long long>(ours.mesh.vertices.size())));
@@ -142,7 +126,7 @@ void run_multiview_cases(const Options& options, Report& report) {
                   " cells)",
               "CreateFromPointCloudPoisson depth " + std::to_string(depth) +
                   (closed ? "" : " + density trim")};
-      std::tie(row.ours, row.theirs) = measure_pair(opt, run_ours, [&] { poisson.run(*pcd); });
+      std::tie(row.ours, row.theirs) = measure_pair(opt, run_ours, [&] { poisson.run(pcd); });
       report.rows.push_back(row);
       if (depth == depths.front())
         report.note("dragon " + mode + ": ours (consolidation " + format_fixed(consolidate_s, 2) + " s to " +

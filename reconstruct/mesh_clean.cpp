@@ -10,7 +10,6 @@
 #include <vector>
 
 #include "core/error.h"
-#include "core/kdtree.h"
 
 namespace station {
 
@@ -90,12 +89,13 @@ ComponentFilterStats remove_small_components(Mesh& mesh, double min_area_fractio
   return st;
 }
 
-std::size_t trim_open_rims(Mesh& mesh, const PointIndex& index, double max_distance, int max_passes) {
+std::size_t trim_open_rims(Mesh& mesh, const std::function<double(const Vec3d&)>& distance, double max_distance,
+                           int max_passes) {
   const std::size_t nf = mesh.faces.size();
   if (nf == 0) return 0;
   std::vector<char> far(mesh.vertices.size(), 0);
   for (std::size_t v = 0; v < mesh.vertices.size(); ++v)
-    far[v] = index.nearest_within(mesh.vertices[v], float(max_distance)).first < 0;
+    far[v] = !(distance(mesh.vertices[v].cast<double>()) <= max_distance);
   auto far_face = [&](std::size_t f) {
     const Face& t = mesh.faces[f];
     return far[t[0]] || far[t[1]] || far[t[2]];

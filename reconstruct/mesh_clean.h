@@ -4,11 +4,11 @@
 #include <cstddef>
 #include <vector>
 
+#include <functional>
+
 #include "core/geometry.h"
 
 namespace station {
-
-class PointIndex;
 
 struct ComponentFilterStats {
   std::size_t components = 0;          ///< connected pieces before (faces sharing vertices)
@@ -25,10 +25,12 @@ ComponentFilterStats remove_small_components(Mesh& mesh, double min_area_fractio
 
 /// Erodes the mesh's open rims back to the data: faces on an open boundary (with an
 /// edge used by that face alone) having a vertex further than `max_distance` from
-/// every point of `index` are dropped, and again on the new boundary, until no such
-/// face remains or `max_passes` passes ran. Closed meshes are left as they are.
-/// Returns the faces dropped.
-std::size_t trim_open_rims(Mesh& mesh, const PointIndex& index, double max_distance, int max_passes = 16);
+/// the data (`distance`: a point's distance to the nearest data point, e.g.
+/// MpuSurface::nearest_point_distance) are dropped, and again on the new boundary,
+/// until no such face remains or `max_passes` passes ran. Closed meshes are left as
+/// they are. Returns the faces dropped.
+std::size_t trim_open_rims(Mesh& mesh, const std::function<double(const Vec3d&)>& distance, double max_distance,
+                           int max_passes = 16);
 
 /// Keeps the faces with keep[f] != 0, in order, and the vertices they use, numbered
 /// in the order the kept faces first use them (normals and colours follow); returns

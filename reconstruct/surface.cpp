@@ -9,7 +9,6 @@
 #include <memory>
 
 #include "core/error.h"
-#include "core/kdtree.h"
 #include "core/normals.h"
 #include "core/threads.h"
 #include "reconstruct/colour_transfer.h"
@@ -77,11 +76,15 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
       out.normals_flipped = true;
       out.enclosure = -*out.enclosure;
     }
-    out.hole = *out.enclosure >= kEnclosedAbove ? HoleMode::kClose : HoleMode::kKeep;
-    note(std::string(out.hole == HoleMode::kClose ? "closing the unseen parts" : "leaving the unseen parts open") +
-         " (hole auto: the cloud encloses " + fmt("%.2f", *out.enclosure) + ", " +
-         (out.hole == HoleMode::kClose ? "at least " : "below ") + fmt("%.2g", kEnclosedAbove) +
-         (out.hole == HoleMode::kClose ? ")" : ": a one-sided patch)"));
+    const std::string encloses = "(hole auto: the cloud encloses " + fmt("%.2f", *out.enclosure);
+    const std::string bound = fmt("%.2g", kEnclosedAbove);
+    if (*out.enclosure >= kEnclosedAbove) {
+      out.hole = HoleMode::kClose;
+      note("closing the unseen parts " + encloses + ", at least " + bound + ")");
+    } else {
+      out.hole = HoleMode::kKeep;
+      note("leaving the unseen parts open " + encloses + ", below " + bound + ": a one-sided patch)");
+    }
   }
 
   MpuParams mp;
@@ -158,8 +161,8 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
   if (mesh.faces.empty()) throw InvalidInput("the reconstructed surface is empty");
   if (!close && out.mpu.mean_spacing > 0) {
     // Holes kept: the rims come back to the data (no flaps beyond the points).
-    const PointIndex points(input.points);
-    out.rim_faces = trim_open_rims(mesh, points, kRimTrimFactor * out.mpu.mean_spacing);
+    out.rim_faces = trim_open_rims(
+        mesh, [&](const Vec3d& x) { return surface.nearest_point_distance(x); }, kRimTrimFactor * out.mpu.mean_spacing);
     if (out.rim_faces > 0)
       note("open rims brought back to the data (" + std::to_string(out.rim_faces) + " faces further than " +
            fmt("%.3g", kRimTrimFactor * out.mpu.mean_spacing) + " from the points)");

@@ -47,8 +47,9 @@ TEST(TrimOpenRims, ErodesFromTheRimToTheDataOnly) {
     for (float x = 0; x <= 12; x += 0.5f)
       if (std::hypot(x - 6.f, y - 10.f) > 2.5f) data.emplace_back(x, y, 0.f);
   const PointIndex index(data);
+  const auto distance = [&](const Vec3d& x) { return double(index.nearest(x.cast<float>()).second); };
   Mesh m = grid(20);
-  const std::size_t dropped = trim_open_rims(m, index, 1.0, 100);
+  const std::size_t dropped = trim_open_rims(m, distance, 1.0, 100);
   EXPECT_GT(dropped, 0u);
   float max_x = 0;
   for (const Vec3f& v : m.vertices) max_x = std::max(max_x, v.x());
@@ -61,7 +62,7 @@ TEST(TrimOpenRims, ErodesFromTheRimToTheDataOnly) {
   // A closed mesh has no rim: nothing goes, however far the data.
   Mesh sphere = test::icosphere(2, 1.0, Vec3f(100, 0, 0));
   const std::size_t faces = sphere.faces.size();
-  EXPECT_EQ(trim_open_rims(sphere, index, 1.0), 0u);
+  EXPECT_EQ(trim_open_rims(sphere, distance, 1.0), 0u);
   EXPECT_EQ(sphere.faces.size(), faces);
 }
 
