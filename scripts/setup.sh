@@ -10,7 +10,8 @@ pkgs=(cmake g++ make pkg-config ccache
       libyaml-cpp-dev libcli11-dev libtbb-dev libgtest-dev
       umockdev   # umockdev: V4L2 driver tests through the real system calls (umockdev-wrapper)
       libfreenect-dev   # Kinect v1 driver; its libfreenect0.5 ships fakenect (replay tests)
-      libopenni2-dev)   # OpenNI2 depth cameras (Xtion, Carmine, Orbbec) driver
+      libopenni2-dev   # OpenNI2 depth cameras (Xtion, Carmine, Orbbec) driver
+      libcpp-httplib-dev nlohmann-json3-dev libjs-three)   # station serve: HTTP server, JSON API, three.js for its page
 if [[ "${1:-}" == "--bench" ]]; then
   # Anchors of bench/: Open3D 0.16 (C++: ICP, Poisson), Embree 3 (Open3D's ray
   # caster, driven directly), CGAL 5.5 (WLOP), VTK 9 (flying edges); PCL

@@ -25,6 +25,7 @@ int run_cli(int argc, char** argv) {
   add_eval_commands(app, commands);
   add_register_commands(app, commands);
   add_surface_commands(app, commands);
+  add_serve_commands(app, commands);
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {

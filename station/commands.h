@@ -192,5 +192,6 @@ void add_capture_commands(CLI::App& app, std::vector<Command>& out);   ///< devi
 void add_eval_commands(CLI::App& app, std::vector<Command>& out);      ///< eval
 void add_register_commands(CLI::App& app, std::vector<Command>& out);  ///< register, calibrate turntable|camera
 void add_surface_commands(CLI::App& app, std::vector<Command>& out);   ///< consolidate, fit, parameterise, reconstruct
+void add_serve_commands(CLI::App& app, std::vector<Command>& out);     ///< serve
 
 }  // namespace station::cli

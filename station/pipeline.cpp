@@ -99,6 +99,7 @@ std::string state_yaml(const RunState& st) {
     for (const auto& [k, v] : s.figures) e << YAML::Key << k << YAML::Value << v;
     e << YAML::EndMap;
     if (!s.per_view.empty()) e << YAML::Key << "per_view" << YAML::Value << YAML::Flow << s.per_view;
+    if (!s.view_prior.empty()) e << YAML::Key << "view_prior" << YAML::Value << YAML::Flow << s.view_prior;
     if (s.up) e << YAML::Key << "up" << YAML::Value << YAML::Flow << std::vector<double>{s.up->x(), s.up->y(), s.up->z()};
     if (!s.poses.empty()) {
       e << YAML::Key << "poses" << YAML::Value << YAML::BeginSeq;
@@ -129,6 +130,7 @@ RunState read_state(const fs::path& file) {
       if (n["figures"])
         for (const auto& kv : n["figures"]) s.figures[kv.first.as<std::string>()] = kv.second.as<double>();
       if (n["per_view"]) s.per_view = n["per_view"].as<std::vector<double>>();
+      if (n["view_prior"]) s.view_prior = n["view_prior"].as<std::vector<std::string>>();
       if (n["poses"])
         for (const YAML::Node& p : n["poses"]) s.poses.push_back(p.as<std::vector<double>>());
       if (n["up"]) {
@@ -433,6 +435,7 @@ class Runner {
     return result_;
   }
   void say(const std::string& line) const {
+    if (req_.events) req_.events({ProgressEvent::Kind::kLine, {}, line, 0, 0, 0});
     if (!req_.quiet) std::fprintf(stderr, "%s\n", line.c_str());
   }
 
@@ -448,12 +451,14 @@ class Runner {
         say("[" + std::to_string(index) + "/" + std::to_string(total) + "] " + name + ": unchanged, kept " +
             out.string());
         record(r);
+        stage_event(name, "kept", index, total, r.seconds);
         return;
       }
       say("[" + std::to_string(index) + "/" + std::to_string(total) + "] " + name + ": " + out.string() +
           " was altered since the last run; redoing it");
     }
     say("[" + std::to_string(index) + "/" + std::to_string(total) + "] " + name + "...");
+    stage_event(name, "start", index, total, 0);
     StageRecord r;
     r.name = name;
     r.key = key;
@@ -475,6 +480,10 @@ class Runner {
     record(r);
     say("[" + std::to_string(index) + "/" + std::to_string(total) + "] " + name + ": done in " +
         seconds_text(r.seconds) + " s -> " + out.string());
+    stage_event(name, "done", index, total, r.seconds);
+  }
+  void stage_event(const std::string& name, const char* what, int index, int total, double seconds) const {
+    if (req_.events) req_.events({ProgressEvent::Kind::kStage, name, what, index, total, seconds});
   }
 
   /// Adds the stage to the result and rewrites run.yaml (the commit point of the stage).
@@ -494,7 +503,7 @@ class Runner {
       if (pr.stage != sub) {
         if (bar) bar->finish();
         sub = pr.stage;
-        bar = std::make_unique<Progress>("  register: " + sub, pr.total, req_.quiet);
+        bar = std::make_unique<Progress>("  register: " + sub, pr.total, req_.quiet, req_.events);
       }
       bar->update(pr.done);
     });
@@ -546,6 +555,7 @@ class Runner {
       r.figures["up_y"] = up.y();
       r.figures["up_z"] = up.z();
     }
+    for (const ViewDiagnostics& v : reg.views) r.view_prior.push_back(v.registered ? to_string(v.prior) : "failed");
     for (const Eigen::Matrix4d& T : reg.poses) {
       std::vector<double> row(16);
       for (int k = 0; k < 16; ++k) row[k] = T(k / 4, k % 4);
@@ -558,7 +568,7 @@ class Runner {
     if (input.empty()) throw InvalidInput(in.string() + ": empty cloud");
     const auto& c = cfg_.pipeline.consolidate;
     WlopParams p = wlop_params(cfg_.pipeline, cfg_.threads);
-    Progress bar(std::string("  consolidate: ") + wlop_label(c.method) + " iterations", c.iterations, req_.quiet);
+    Progress bar(std::string("  consolidate: ") + wlop_label(c.method) + " iterations", c.iterations, req_.quiet, req_.events);
     p.progress = [&](int done, int) { bar.update(done); };
     const WlopResult w = consolidate(input, p);
     bar.finish();
@@ -621,7 +631,7 @@ class Runner {
     const int level = cfg_.pipeline.sdm.level;
     say("  surface: SDM, level-" + std::to_string(level) + " icosphere onto " + std::to_string(input.size()) +
         " points");
-    Progress bar("  surface: SDM", 100, req_.quiet);
+    Progress bar("  surface: SDM", 100, req_.quiet, req_.events);
     const SdmResult fit = fit_sdm_icosphere(level, input, sp, {}, [&](const std::string& phase, double f) {
       bar.update(int(std::lround(100 * f)), phase);
     });
@@ -655,5 +665,7 @@ class Runner {
 RunResult run_pipeline(const StationConfig& config, const RunRequest& request) {
   return Runner(config, request).run();
 }
+
+std::vector<StageRecord> read_run_stages(const fs::path& run_yaml) { return read_state(run_yaml).stages; }
 
 }  // namespace station

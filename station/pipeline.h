@@ -23,6 +23,7 @@
 
 #include "core/geometry.h"
 #include "station/config.h"
+#include "station/progress.h"
 
 namespace station {
 
@@ -34,6 +35,8 @@ struct RunRequest {
   bool report = true;   ///< write report.html
   /// Set (e.g. by a SIGINT handler) to stop after the stage in progress.
   const std::atomic<bool>* stop = nullptr;
+  /// Gets every line and progress step the run prints (also when quiet).
+  ProgressSink events;
 };
 
 /// What one stage did (also what run.yaml keeps of it).
@@ -48,6 +51,10 @@ struct StageRecord {
   std::map<std::string, double> figures;  ///< counts and quality figures
   std::vector<double> per_view;           ///< register: residual per view, mm
   std::vector<std::vector<double>> poses; ///< register: 4x4 row-major per view
+  /// register: per view, how its turntable angle served: "none" (no angle),
+  /// "used", "corrected", "rejected", "ignored" (registration/registration.h
+  /// PriorUse), or "failed" (the view did not register).
+  std::vector<std::string> view_prior;
   /// register: the turntable axis (the object's up) in the object frame, when the
   /// session has one; also shown as the figures up_x, up_y, up_z.
   std::optional<Vec3d> up;
@@ -64,6 +71,9 @@ struct RunResult {
 /// Runs (or resumes) the job. InvalidInput/IoError/FormatError name the file or
 /// folder at fault; on a failed write the outputs of earlier stages stay intact.
 RunResult run_pipeline(const StationConfig& config, const RunRequest& request);
+
+/// The stages of a run folder's run.yaml (FormatError naming it when it is not one).
+std::vector<StageRecord> read_run_stages(const std::filesystem::path& run_yaml);
 
 /// 64-bit FNV-1a over bytes, as 16 hex digits (stage keys; not cryptographic).
 std::string hash_hex(const std::string& bytes);

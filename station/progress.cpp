@@ -6,17 +6,21 @@
 
 namespace station {
 
-Progress::Progress(std::string label, int total, bool quiet)
+Progress::Progress(std::string label, int total, bool quiet, ProgressSink sink)
     : label_(std::move(label)), total_(total), quiet_(quiet), tty_(::isatty(2) != 0),
-      start_(std::chrono::steady_clock::now()) {}
+      start_(std::chrono::steady_clock::now()), sink_(std::move(sink)) {}
 
 Progress::~Progress() {
   if (tty_ && !quiet_ && !finished_) std::fputc('\n', stderr);
 }
 
 void Progress::update(int done, const std::string& note) {
-  if (quiet_) return;
   const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
+  if (sink_ && (done >= total_ || s - last_event_s_ >= 0.1)) {
+    last_event_s_ = s;
+    sink_({ProgressEvent::Kind::kStep, label_, note, done, total_, s});
+  }
+  if (quiet_) return;
   if (tty_) {
     const int width = 24;
     const int filled = total_ > 0 ? done * width / total_ : 0;
@@ -36,9 +40,11 @@ void Progress::update(int done, const std::string& note) {
 }
 
 void Progress::finish(const std::string& note) {
-  if (quiet_ || finished_) return;
+  if (finished_) return;
   finished_ = true;
   const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
+  if (sink_) sink_({ProgressEvent::Kind::kFinish, label_, note, total_, total_, s});
+  if (quiet_) return;
   if (tty_) std::fputc('\n', stderr);
   std::fprintf(stderr, "%s done in %.1fs %s\n", label_.c_str(), s, note.c_str());
 }
