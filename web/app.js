@@ -152,6 +152,8 @@ function renderDetail(d) {
   const strip = $('views-strip');
   strip.replaceChildren(...(d.view_list || []).map((v) => viewFigure(d.name, v)));
   $('stages').tBodies[0].replaceChildren();
+  if (d.views) setStage('scan', d.planned_views ? d.views / d.planned_views : 1,
+                        `${d.views}${d.planned_views ? ' of ' + d.planned_views : ''} views`);
   for (const s of d.stages || []) setStage(s.name, 1, s.reused ? 'kept from an earlier run' : '', s.seconds);
   // Registration per view: the prior used, corrected or rejected, and the residual.
   const reg = (d.stages || []).find((s) => s.name === 'register');

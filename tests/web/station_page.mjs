@@ -185,7 +185,8 @@ try {
   await page.waitForFunction(() => document.getElementById('viewer').dataset.shown === 'mesh-colour', null, { timeout: 30000 });
   await page.waitForTimeout(300);
   if (process.env.STATION_WEB_SCREENSHOT) {
-    await page.screenshot({ path: process.env.STATION_WEB_SCREENSHOT, fullPage: false });
+    await page.evaluate(() => window.scrollTo(0, 0));
+    await page.screenshot({ path: process.env.STATION_WEB_SCREENSHOT, fullPage: true });
     console.log(`screenshot: ${process.env.STATION_WEB_SCREENSHOT}`);
   }
   await page.screenshot({ path: path.join(outDir, 'page.png') });
