@@ -7,7 +7,9 @@
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <chrono>
+#include <limits>
 #include <memory>
+#include <optional>
 #include <cmath>
 #include <set>
 #include <iomanip>
@@ -427,11 +429,69 @@ class Registrar {
     std::string message;
   };
 
+  // The coloured points of the posed views, thinned, for telling apart poses that
+  // fit the shape equally well (a near-symmetric object turned half way: the
+  // mustard bottle's front and back) by the colours they bring together.
+  struct ColourModel {
+    std::vector<Rgb> colours;
+    std::unique_ptr<PointIndex> index;
+  };
+  std::unique_ptr<ColourModel> colour_model_of(const std::vector<int>& members) const {
+    std::size_t total = 0;
+    for (int j : members) {
+      if (!views_[j].full.has_colours()) return nullptr;
+      total += views_[j].full.size();
+    }
+    const std::size_t stride = std::max<std::size_t>(1, total / 300000);
+    auto cm = std::make_unique<ColourModel>();
+    std::vector<Vec3f> pts;
+    for (int j : members) {
+      const Eigen::Matrix4f X = res_.poses[j].cast<float>();
+      const Cloud& c = views_[j].full;
+      for (std::size_t k = 0; k < c.size(); k += stride) {
+        pts.push_back(X.block<3, 3>(0, 0) * c.points[k] + X.block<3, 1>(0, 3));
+        cm->colours.push_back(c.colours[k]);
+      }
+    }
+    if (pts.empty()) return nullptr;
+    cm->index = std::make_unique<PointIndex>(std::move(pts));
+    return cm;
+  }
+  // Mean colour difference (0-255, per channel) between view `src`'s points moved
+  // by X and the model's nearest within `dist`; infinity when none is that near.
+  double colour_error(int src, const ColourModel& cm, const Eigen::Matrix4d& X, double dist) const {
+    const Cloud& c = views_[src].full;
+    if (!c.has_colours() || c.empty()) return std::numeric_limits<double>::infinity();
+    const std::size_t stride = std::max<std::size_t>(1, c.size() / 3000);
+    const Eigen::Matrix4f Xf = X.cast<float>();
+    double sum = 0;
+    std::size_t n = 0;
+    for (std::size_t k = 0; k < c.size(); k += stride) {
+      const auto [j, d] = cm.index->nearest(Xf.block<3, 3>(0, 0) * c.points[k] + Xf.block<3, 1>(0, 3));
+      if (j < 0 || d > float(dist)) continue;
+      const Rgb& a = c.colours[k];
+      const Rgb& b = cm.colours[std::size_t(j)];
+      sum += (std::abs(int(a.r) - int(b.r)) + std::abs(int(a.g) - int(b.g)) + std::abs(int(a.b) - int(b.b))) / 3.0;
+      ++n;
+    }
+    return n ? sum / double(n) : std::numeric_limits<double>::infinity();
+  }
+
   // Feature registration of view `src` onto a target, each hypothesis refined
   // by ICP; the converged one with the best overlap wins.
-  GlobalAlign global_align(int src, const PreparedView& target, const FeatureView& target_feat) {
+  //
+  // Against the model of the posed views (`colour` and `axis` given: off-table
+  // views, suspect angles) it starts from more places: more RANSAC hypotheses,
+  // and the best pose turned about the turntable axis in steps (an object that
+  // looks alike from several sides); among the poses whose overlap is within
+  // kTie of the best, the one whose colours agree with the model's wins.
+  GlobalAlign global_align(int src, const PreparedView& target, const FeatureView& target_feat,
+                           const ColourModel* colour = nullptr,
+                           const std::optional<std::pair<Vec3d, Vec3d>>& axis = std::nullopt) {
     GlobalAlign out;
-    const GlobalRegistrationParams gp = global_params();
+    GlobalRegistrationParams gp = global_params();
+    const bool multi = colour || axis;
+    if (multi) gp.hypotheses = std::max(gp.hypotheses, 2 * p_.global_icp_candidates);
     const GlobalRegistrationResult g = register_global(features_of(src), target_feat, gp);
     if (!g.success) {
       out.message = "global registration failed: " + g.message;
@@ -449,20 +509,77 @@ class Registrar {
       rank[k] = {-overlap(views_[src], target, g.hypotheses[k].transform, ip.max_distance_start), k};
     });
     std::sort(rank.begin(), rank.end());
-    rank.resize(std::min<std::size_t>(nh, std::size_t(std::max(1, p_.global_icp_candidates))));
+    const int candidates = std::max(1, p_.global_icp_candidates) * (multi ? 2 : 1);
+    rank.resize(std::min<std::size_t>(nh, std::size_t(candidates)));
     std::vector<IcpResult> r(rank.size());
     tbb::parallel_for(std::size_t(0), rank.size(), [&](std::size_t k) {
       r[k] = icp_point_to_plane(views_[src], target, g.hypotheses[rank[k].second].transform, ip);
     });
     std::string why;
+    int best = -1;
     for (std::size_t k = 0; k < r.size(); ++k) {
       if (!r[k].converged) {
         if (why.empty()) why = r[k].message;
         continue;
       }
-      if (r[k].fitness > out.fitness) {
-        out.fitness = r[k].fitness;
-        out.transform = r[k].transform;
+      if (best < 0 || r[k].fitness > r[best].fitness) best = int(k);
+    }
+    if (best >= 0 && multi) {
+      // More starts from the best pose: turned about the turntable axis in eighths,
+      // and about the model's principal axes through the view's centre in quarters
+      // (a view upside down, or from the far side, of a shape that looks alike).
+      const Eigen::Matrix4d T = r[best].transform;
+      std::vector<std::pair<Vec3d, Eigen::Matrix3d>> turns;  // about a point
+      Vec3d model_mean = Vec3d::Zero();
+      Eigen::Matrix3d cov = Eigen::Matrix3d::Zero();
+      for (const Vec3f& q : target.points) model_mean += q.cast<double>();
+      model_mean /= double(std::max<std::size_t>(1, target.points.size()));
+      for (const Vec3f& q : target.points) cov += (q.cast<double>() - model_mean) * (q.cast<double>() - model_mean).transpose();
+      const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> pca(cov);
+      // About lines through the model's centre (the object need not stand on the axis).
+      if (axis)
+        for (int k = 1; k < 8; ++k)
+          turns.push_back({model_mean, Eigen::AngleAxisd(M_PI * k / 4, axis->second).toRotationMatrix()});
+      for (int a = 0; a < 3; ++a)
+        for (int k = 1; k < 4; ++k)
+          turns.push_back({model_mean, Eigen::AngleAxisd(M_PI * k / 2, pca.eigenvectors().col(a)).toRotationMatrix()});
+      // Only the starts with the best overlap are refined (ICP is the cost).
+      constexpr std::size_t kSpunRefined = 4;
+      std::vector<std::pair<double, Eigen::Matrix4d>> starts(turns.size());
+      tbb::parallel_for(std::size_t(0), turns.size(), [&](std::size_t k) {
+        Eigen::Matrix4d S = Eigen::Matrix4d::Identity();
+        S.block<3, 3>(0, 0) = turns[k].second;
+        S.block<3, 1>(0, 3) = turns[k].first - turns[k].second * turns[k].first;
+        starts[k] = {-overlap(views_[src], target, S * T, ip.max_distance_start), S * T};
+      });
+      std::stable_sort(starts.begin(), starts.end(),
+                       [](const auto& a, const auto& b) { return a.first < b.first; });
+      starts.resize(std::min(starts.size(), kSpunRefined));
+      std::vector<IcpResult> spun(starts.size());
+      tbb::parallel_for(std::size_t(0), starts.size(), [&](std::size_t k) {
+        spun[k] = icp_point_to_plane(views_[src], target, starts[k].second, ip);
+      });
+      for (IcpResult& x : spun)
+        if (x.converged) r.push_back(std::move(x));
+    }
+    // The choice: the best overlap; among near ties, the best colour agreement.
+    constexpr double kTie = 0.03;
+    double best_fit = 0;
+    for (const IcpResult& x : r)
+      if (x.converged) best_fit = std::max(best_fit, x.fitness);
+    double best_colour = std::numeric_limits<double>::infinity();
+    for (const IcpResult& x : r) {
+      if (!x.converged) continue;
+      if (colour && x.fitness >= best_fit - kTie) {
+        const double e = colour_error(src, *colour, x.transform, ip.max_distance_end);
+        if (e < best_colour || (e == best_colour && x.fitness > out.fitness)) {
+          best_colour = e;
+          out.fitness = x.fitness;
+          out.transform = x.transform;
+        }
+      } else if (!colour && x.fitness > out.fitness) {
+        out.fitness = x.fitness;
+        out.transform = x.transform;
       }
     }
     if (out.fitness >= p_.global_min_fitness) {
@@ -472,6 +589,19 @@ class Registrar {
                     std::to_string(out.fitness) + (why.empty() ? "" : ", " + why) + ")";
     }
     return out;
+  }
+
+  // The turntable axis in the object frame (a point on it, its unit direction),
+  // from the first of `members` posed by an angle; none without.
+  std::optional<std::pair<Vec3d, Vec3d>> object_axis(const std::vector<int>& members) const {
+    if (!res_.axis) return std::nullopt;
+    for (int j : members) {
+      if (!has_angle(j) || res_.views[j].angle_rejected) continue;
+      const Eigen::Matrix4d& X = res_.poses[j];
+      return std::make_pair(Vec3d((X * res_.axis->point.homogeneous()).head<3>()),
+                            Vec3d((X.block<3, 3>(0, 0) * res_.axis->direction).normalized()));
+    }
+    return std::nullopt;
   }
 
   // Views without a pose: chained in capture order when nothing is posed,
@@ -523,9 +653,11 @@ class Registrar {
     const PreparedView model = model_of(have);
     report("global", 0, int(todo.size()));
     const FeatureView model_feat = make_feature_view(model.points, model.normals, global_params());
+    const std::unique_ptr<ColourModel> colours = colour_model_of(have);
+    const auto axis = object_axis(have);
     for (std::size_t k = 0; k < todo.size(); ++k) {
       const int i = todo[k];
-      const GlobalAlign a = global_align(i, model, model_feat);
+      const GlobalAlign a = global_align(i, model, model_feat, colours.get(), axis);
       report("global", int(k + 1), int(todo.size()));
       if (!a.ok) {
         fail(i, "no initial pose or angle, and " + a.message + " against the merged model");
@@ -571,8 +703,10 @@ class Registrar {
       if (std::find(suspects.begin(), suspects.end(), i) == suspects.end()) others.push_back(i);
     const PreparedView model = model_of(others);
     const FeatureView model_feat = make_feature_view(model.points, model.normals, global_params());
+    const std::unique_ptr<ColourModel> colours = colour_model_of(others);
+    const auto axis = object_axis(others);
     for (int i : suspects) {
-      const GlobalAlign g = global_align(i, model, model_feat);
+      const GlobalAlign g = global_align(i, model, model_feat, colours.get(), axis);
       if (!g.ok) continue;  // the refinement decides (and fails it if nothing overlaps)
       const double off = rotation_angle_deg(rigid_inverse(res_.poses[i]) * g.transform);
       if (off < p_.wrong_angle_deg) continue;

@@ -130,6 +130,11 @@ struct RegistrationParams {
   /// RANSAC hypotheses refined by ICP (the best by overlap first; the best ICP
   /// fitness wins). 2 put one of three angle-less views of the simulated
   /// fandisk session 33 degrees off (a near-symmetric fit), 4 or more found it.
+  /// Against the model of the posed views (off-table views, suspect angles)
+  /// twice as many, plus the best pose turned about the turntable axis in
+  /// eighths and about the model's principal axes in quarters (through the
+  /// model's centre; the 4 of those with the best overlap); among poses within 0.03 of the best overlap the one whose
+  /// colours agree best with the model's wins (docs/registration.md).
   int global_icp_candidates = 6;
   /// Wrong-angle check (views posed from angle + axis): a view whose ICP onto
   /// both angle neighbours fails, or lands more than `wrong_angle_deg` from

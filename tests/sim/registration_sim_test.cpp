@@ -343,3 +343,59 @@ TEST(SimRegistration, AKnockedObjectIsRegisteredAsTwoTurntableRuns) {
 
 }  // namespace
 }  // namespace station
+
+namespace station {
+namespace {
+
+// Issue 26, item 3: views taken off the table (two from above, two from low
+// down; no angle) of the bundled mustard bottle, a coloured shape that looks
+// alike from its front and its back. With one RANSAC run's six hypotheses
+// refined, the low view at 135 degrees came out turned half way about the
+// bottle's own vertical axis (179.8 deg, 45 mm at the object; on the same case
+// at full resolution the wrong pose fits 0.968 against the right one's 0.974,
+// and its colours are 33 against 9 apart); the more starts and the colour
+// check register every one.
+TEST(SimRegistration, OffTableViewsOfANearSymmetricObjectRegister) {
+  test::TempDir dir("station-offtable");
+  const std::string mesh = (test::source_dir() / "data" / "mustard_bottle" / "textured.obj").string();
+  std::vector<Cloud> clouds;
+  SessionManifest m;
+  const auto scan = [&](const std::string& name, double elevation, int views, double start, bool angles) {
+    DeviceRegistry reg = test::sim_registry();
+    // The off-table views at full resolution: from above the bottle is its cap.
+    const std::string size = angles ? "&width=320&height=240" : "&width=640&height=480";
+    auto scanner = reg.make_scanner("sim:synthetic?mesh=" + mesh + "&noise=0.0005&seed=5" + size +
+                                    "&elevation_deg=" + std::to_string(elevation));
+    auto table = reg.make_turntable("sim:turntable");
+    scanner->open();
+    table->open();
+    Session s = Session::create(dir / name, SessionManifest{});
+    CaptureParams cp;
+    cp.views = views;
+    cp.start_deg = start;
+    run_capture(*scanner, *table, s, cp);
+    if (!angles) {
+      for (std::size_t i = 0; i < s.manifest().views.size(); ++i) {
+        ViewRecord v = s.manifest().views[i];
+        v.angle_deg.reset();
+        m.views.push_back(v);
+        clouds.push_back(s.load_view(i));
+      }
+      return;
+    }
+    m = s.manifest();
+    for (std::size_t i = 0; i < m.views.size(); ++i) clouds.push_back(s.load_view(i));
+  };
+  scan("table", 20, 8, 0, true);
+  scan("top", 70, 2, 0, false);
+  scan("low", -10, 2, 135, false);
+  ASSERT_EQ(clouds.size(), 12u);
+  const RegistrationResult r = register_views(clouds, m);
+  print_prior("four views off the table", r);
+  EXPECT_TRUE(r.failed_views.empty());
+  EXPECT_LT(r.max_rotation_error_deg, 0.5);
+  EXPECT_LT(r.max_object_translation_error, 0.001);
+}
+
+}  // namespace
+}  // namespace station
