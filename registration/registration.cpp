@@ -173,7 +173,22 @@ class Registrar {
     initial_poses();
     res_.seconds_initial = seconds_since(t0);
     t0 = Clock::now();
+    const std::size_t warned = res_.warnings.size();
     refine();
+    // Two runs on the table (the object moved, or was turned over for a second
+    // pass): the refinement placed the second run from the angles, which the
+    // move made wrong; register it to the first as a whole, then refine again
+    // (its word on the rigid turntable replaces the first one's).
+    if (split_.found) {
+      const std::vector<std::string> first_words(res_.warnings.begin() + std::ptrdiff_t(warned), res_.warnings.end());
+      res_.warnings.resize(warned);
+      if (regroup()) {
+        res_.pairs.clear();
+        refine();
+      } else {
+        res_.warnings.insert(res_.warnings.end(), first_words.begin(), first_words.end());
+      }
+    }
     res_.seconds_refine = seconds_since(t0);
     t0 = Clock::now();
     finish();
@@ -457,10 +472,9 @@ class Registrar {
     cm->index = std::make_unique<PointIndex>(std::move(pts));
     return cm;
   }
-  // Mean colour difference (0-255, per channel) between view `src`'s points moved
+  // Mean colour difference (0-255, per channel) between the points of `c` moved
   // by X and the model's nearest within `dist`; infinity when none is that near.
-  double colour_error(int src, const ColourModel& cm, const Eigen::Matrix4d& X, double dist) const {
-    const Cloud& c = views_[src].full;
+  static double colour_error(const Cloud& c, const ColourModel& cm, const Eigen::Matrix4d& X, double dist) {
     if (!c.has_colours() || c.empty()) return std::numeric_limits<double>::infinity();
     const std::size_t stride = std::max<std::size_t>(1, c.size() / 3000);
     const Eigen::Matrix4f Xf = X.cast<float>();
@@ -488,11 +502,18 @@ class Registrar {
   GlobalAlign global_align(int src, const PreparedView& target, const FeatureView& target_feat,
                            const ColourModel* colour = nullptr,
                            const std::optional<std::pair<Vec3d, Vec3d>>& axis = std::nullopt) {
+    return global_align(views_[src], features_of(src), views_[src].full, target, target_feat, colour, axis);
+  }
+  // The same for any source: a view, or a run of views merged (`coloured`: its
+  // points with colours, for the colour check).
+  GlobalAlign global_align(const PreparedView& source, const FeatureView& source_feat, const Cloud& coloured,
+                           const PreparedView& target, const FeatureView& target_feat, const ColourModel* colour,
+                           const std::optional<std::pair<Vec3d, Vec3d>>& axis) {
     GlobalAlign out;
     GlobalRegistrationParams gp = global_params();
     const bool multi = colour || axis;
     if (multi) gp.hypotheses = std::max(gp.hypotheses, 2 * p_.global_icp_candidates);
-    const GlobalRegistrationResult g = register_global(features_of(src), target_feat, gp);
+    const GlobalRegistrationResult g = register_global(source_feat, target_feat, gp);
     if (!g.success) {
       out.message = "global registration failed: " + g.message;
       return out;
@@ -506,14 +527,14 @@ class Registrar {
     const std::size_t nh = g.hypotheses.size();
     std::vector<std::pair<double, std::size_t>> rank(nh);
     tbb::parallel_for(std::size_t(0), nh, [&](std::size_t k) {
-      rank[k] = {-overlap(views_[src], target, g.hypotheses[k].transform, ip.max_distance_start), k};
+      rank[k] = {-overlap(source, target, g.hypotheses[k].transform, ip.max_distance_start), k};
     });
     std::sort(rank.begin(), rank.end());
     const int candidates = std::max(1, p_.global_icp_candidates) * (multi ? 2 : 1);
     rank.resize(std::min<std::size_t>(nh, std::size_t(candidates)));
     std::vector<IcpResult> r(rank.size());
     tbb::parallel_for(std::size_t(0), rank.size(), [&](std::size_t k) {
-      r[k] = icp_point_to_plane(views_[src], target, g.hypotheses[rank[k].second].transform, ip);
+      r[k] = icp_point_to_plane(source, target, g.hypotheses[rank[k].second].transform, ip);
     });
     std::string why;
     int best = -1;
@@ -550,14 +571,14 @@ class Registrar {
         Eigen::Matrix4d S = Eigen::Matrix4d::Identity();
         S.block<3, 3>(0, 0) = turns[k].second;
         S.block<3, 1>(0, 3) = turns[k].first - turns[k].second * turns[k].first;
-        starts[k] = {-overlap(views_[src], target, S * T, ip.max_distance_start), S * T};
+        starts[k] = {-overlap(source, target, S * T, ip.max_distance_start), S * T};
       });
       std::stable_sort(starts.begin(), starts.end(),
                        [](const auto& a, const auto& b) { return a.first < b.first; });
       starts.resize(std::min(starts.size(), kSpunRefined));
       std::vector<IcpResult> spun(starts.size());
       tbb::parallel_for(std::size_t(0), starts.size(), [&](std::size_t k) {
-        spun[k] = icp_point_to_plane(views_[src], target, starts[k].second, ip);
+        spun[k] = icp_point_to_plane(source, target, starts[k].second, ip);
       });
       for (IcpResult& x : spun)
         if (x.converged) r.push_back(std::move(x));
@@ -571,7 +592,7 @@ class Registrar {
     for (const IcpResult& x : r) {
       if (!x.converged) continue;
       if (colour && x.fitness >= best_fit - kTie) {
-        const double e = colour_error(src, *colour, x.transform, ip.max_distance_end);
+        const double e = colour_error(coloured, *colour, x.transform, ip.max_distance_end);
         if (e < best_colour || (e == best_colour && x.fitness > out.fitness)) {
           best_colour = e;
           out.fitness = x.fitness;
@@ -589,6 +610,52 @@ class Registrar {
                     std::to_string(out.fitness) + (why.empty() ? "" : ", " + why) + ")";
     }
     return out;
+  }
+
+  // The run of table views after the move, merged, registered globally onto the
+  // run before it (issue 26, item 2); its poses moved when that overlaps the
+  // first run clearly better than where they are. True when they moved.
+  bool regroup() {
+    std::vector<int> before, after;
+    bool moved = false;
+    for (int i : ring()) {
+      if (!usable_[i] || !has_angle(i) || res_.views[i].angle_rejected ||
+          std::find(off_table_.begin(), off_table_.end(), i) != off_table_.end())
+        continue;
+      moved = moved || i == split_.first_after;
+      (moved ? after : before).push_back(i);
+    }
+    if (before.size() < 2 || after.size() < 2) return false;
+    const PreparedView first = model_of(before), second = model_of(after);
+    const FeatureView first_feat = make_feature_view(first.points, first.normals, global_params());
+    const FeatureView second_feat = make_feature_view(second.points, second.normals, global_params());
+    const std::unique_ptr<ColourModel> colours = colour_model_of(before);
+    Cloud coloured;
+    if (colours)
+      for (int j : after) {
+        const Eigen::Matrix4f X = res_.poses[j].cast<float>();
+        const Cloud& c = views_[j].full;
+        const std::size_t stride = std::max<std::size_t>(1, c.size() / 1000);
+        for (std::size_t k = 0; k < c.size(); k += stride) {
+          coloured.points.push_back(X.block<3, 3>(0, 0) * c.points[k] + X.block<3, 1>(0, 3));
+          coloured.colours.push_back(c.colours[k]);
+        }
+      }
+    const GlobalAlign g =
+        global_align(second, second_feat, coloured, first, first_feat, colours.get(), object_axis(before));
+    if (!g.ok) return false;
+    const double d = 2 * p_.icp_end_rel * diag_;
+    const double now = overlap(second, first, Eigen::Matrix4d::Identity(), d);
+    const double then = overlap(second, first, g.transform, d);
+    if (then < now + 0.05) return false;
+    for (int j : after) res_.poses[j] = g.transform * res_.poses[j];
+    std::ostringstream w;
+    w.precision(3);
+    w << "the views from " << view_name(m_, std::size_t(split_.first_after))
+      << " on were registered to the ones before as a whole (the object moved " << rotation_angle_deg(g.transform)
+      << " deg on the table; overlap " << now << " -> " << then << ")";
+    res_.warnings.push_back(w.str());
+    return true;
   }
 
   // The turntable axis in the object frame (a point on it, its unit direction),
