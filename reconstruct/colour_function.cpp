@@ -3,12 +3,14 @@
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
+#include <tbb/parallel_sort.h>
 #include <tbb/task_arena.h>
 
 #include <Eigen/Dense>
 #include <Eigen/Sparse>
 #include <algorithm>
 #include <chrono>
+#include <functional>
 #include <cmath>
 #include <limits>
 #include <optional>
@@ -299,10 +301,95 @@ struct ColourFunction::Impl {
     return true;
   }
 
+  // The leaf nodes whose ball reaches into the ball (c, rad), in gather's traversal
+  // order: for any y in that ball, gather(y) visits exactly those of them whose ball
+  // holds y, in the same order, so hits_from gives gather's hits bit for bit.
+  void gather_ball(const Vec3d& c, double rad, std::vector<int>& cand) const {
+    cand.clear();
+    int stack[64 * 8];
+    int top = 0;
+    stack[top++] = 0;
+    while (top > 0) {
+      const int id = stack[--top];
+      const Node& nd = nodes[id];
+      const double r = (c - nd.center).norm();
+      if (nd.first_child < 0) {
+        if (nd.leaf >= 0 && r < nd.radius + rad) cand.push_back(id);
+      } else {
+        if (r >= nd.reach + rad) continue;
+        for (int ch = 7; ch >= 0; --ch) stack[top++] = nd.first_child + ch;
+      }
+    }
+  }
+  void hits_from(const Vec3d& y, const std::vector<int>& cand, std::vector<Hit>& hits) const {
+    hits.clear();
+    for (int id : cand) {
+      const Node& nd = nodes[id];
+      const double r = (y - nd.center).norm();
+      if (r >= nd.radius) continue;
+      const double w = bspline2(1.5 * r / nd.radius);
+      if (w > 0) hits.push_back({nd.leaf, w});
+    }
+  }
+
+  // eval at many points (world units, all finite) at once: the points are grouped by
+  // cells of side batch_cell, each group's leaves gathered once (gather_ball), then each
+  // point's hits taken from them. The same values as eval, bit for bit.
+  void eval_many(std::size_t n, const std::function<Vec3d(std::size_t)>& x_of,
+                 const std::function<void(std::size_t, const Lab&)>& put) const {
+    std::vector<std::pair<std::uint64_t, std::uint32_t>> order(n);
+    const double inv = 1.0 / batch_cell;
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 4096), [&](const auto& r) {
+      for (std::size_t i = r.begin(); i != r.end(); ++i) {
+        const Vec3d y = (x_of(i) - center) * scale;
+        std::uint64_t k = 0;
+        for (int a = 0; a < 3; ++a) {
+          const double q = std::clamp(std::floor(y[a] * inv) + 1048576.0, 0.0, 2097151.0);
+          k |= std::uint64_t(q) << (21 * a);
+        }
+        order[i] = {k, std::uint32_t(i)};
+      }
+    });
+    tbb::parallel_sort(order.begin(), order.end());
+    std::vector<std::size_t> groups;
+    for (std::size_t i = 0; i < n; ++i)
+      if (i == 0 || order[i].first != order[i - 1].first || i - groups.back() >= 128) groups.push_back(i);
+    groups.push_back(n);
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, groups.size() - 1, 4), [&](const auto& r) {
+      std::vector<int> cand;
+      std::vector<Hit> hits;
+      std::vector<Vec3d> ys;
+      for (std::size_t g = r.begin(); g != r.end(); ++g) {
+        ys.clear();
+        Vec3d lo = Vec3d::Constant(std::numeric_limits<double>::infinity()), hi = -lo;
+        for (std::size_t i = groups[g]; i < groups[g + 1]; ++i) {
+          ys.push_back((x_of(order[i].second) - center) * scale);
+          lo = lo.cwiseMin(ys.back());
+          hi = hi.cwiseMax(ys.back());
+        }
+        const Vec3d c = 0.5 * (lo + hi);
+        double rad = 0;
+        for (const Vec3d& y : ys) rad = std::max(rad, (y - c).norm());
+        gather_ball(c, rad, cand);
+        for (std::size_t i = groups[g]; i < groups[g + 1]; ++i) {
+          const Vec3d& y = ys[i - groups[g]];
+          hits_from(y, cand, hits);
+          put(order[i].second, blend(y, hits));
+        }
+      }
+    });
+  }
+
   Lab eval(const Vec3d& x) const {
     const Vec3d y = (x - center) * scale;
     thread_local std::vector<Hit> hits;
     gather(y, hits);
+    return blend(y, hits);
+  }
+
+  double batch_cell = 0.05;  // eval_many's grouping cell, normalised units (fit_colour)
+
+  Lab blend(const Vec3d& y, const std::vector<Hit>& hits) const {
     Lab out{};
     const bool ok = params.side_consensus ? blend_consensus(y, hits, out) : blend_paper(y, hits, out);
     if (!ok || !std::isfinite(out[0]) || !std::isfinite(out[1]) || !std::isfinite(out[2]))
@@ -858,6 +945,17 @@ ColourFunction fit_colour(const Cloud& cloud, const ColourParams& params) {
       }
     }
   }
+  {
+    // eval_many's grouping cell: the median leaf radius (a group then gathers about the
+    // leaves one point would, a few more at its rim).
+    std::vector<double> radii;
+    for (const Node& nd : s.nodes)
+      if (nd.leaf >= 0 && nd.radius > 0) radii.push_back(nd.radius);
+    if (!radii.empty()) {
+      std::nth_element(radii.begin(), radii.begin() + radii.size() / 2, radii.end());
+      s.batch_cell = std::max(1e-6, radii[radii.size() / 2]);
+    }
+  }
   s.diag.cells = s.nodes.size();
   s.diag.fit_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   ColourFunction out;
@@ -895,14 +993,32 @@ Lab ColourFunction::lab(const Vec3d& x_in) const {
 std::array<double, 3> ColourFunction::srgb(const Vec3d& x) const { return lab_to_srgb(lab(x)); }
 Rgb ColourFunction::rgb(const Vec3d& x) const { return lab_to_rgb(lab(x)); }
 
-std::vector<Rgb> ColourFunction::rgbs(const std::vector<Vec3f>& xs) const {
-  std::vector<Rgb> out(xs.size());
-  tbb::task_arena arena(worker_threads(impl_ ? impl_->params.threads : 0));
+std::vector<Lab> ColourFunction::labs(const std::vector<Vec3f>& xs, int threads) const {
+  if (!impl_) throw InvalidInput("colour_function: not fitted");
+  std::vector<Lab> out(xs.size(), Lab{0, 0, 0});
+  tbb::task_arena arena(worker_threads(threads));
   arena.execute([&] {
-    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, xs.size(), 256), [&](const auto& r) {
-      for (std::size_t i = r.begin(); i != r.end(); ++i) out[i] = rgb(xs[i].cast<double>());
-    });
+    if (surface_) {  // projected first: one point at a time
+      tbb::parallel_for(tbb::blocked_range<std::size_t>(0, xs.size(), 256), [&](const auto& r) {
+        for (std::size_t i = r.begin(); i != r.end(); ++i) out[i] = lab(xs[i].cast<double>());
+      });
+      return;
+    }
+    std::vector<std::uint32_t> finite;  // non-finite points keep lab's {0, 0, 0}
+    finite.reserve(xs.size());
+    for (std::size_t i = 0; i < xs.size(); ++i)
+      if (xs[i].allFinite()) finite.push_back(std::uint32_t(i));
+    impl_->eval_many(
+        finite.size(), [&](std::size_t i) { return Vec3d(xs[finite[i]].cast<double>()); },
+        [&](std::size_t i, const Lab& l) { out[finite[i]] = l; });
   });
+  return out;
+}
+
+std::vector<Rgb> ColourFunction::rgbs(const std::vector<Vec3f>& xs) const {
+  const std::vector<Lab> l = labs(xs, impl_ ? impl_->params.threads : 0);
+  std::vector<Rgb> out(xs.size());
+  for (std::size_t i = 0; i < xs.size(); ++i) out[i] = lab_to_rgb(l[i]);
   return out;
 }
 
@@ -926,11 +1042,12 @@ double ColourFunction::e_col(const Cloud& coloured, int threads) const {
   coloured.check_consistent("e_col cloud");
   if (!coloured.has_colours() || coloured.empty()) throw InvalidInput("e_col: the cloud has no colours");
   std::vector<double> err(coloured.size());
+  const std::vector<Lab> l = labs(coloured.points, threads);
   tbb::task_arena arena(worker_threads(threads));
   arena.execute([&] {
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, coloured.size(), 256), [&](const auto& r) {
       for (std::size_t i = r.begin(); i != r.end(); ++i) {
-        const auto f = srgb(coloured.points[i].cast<double>());
+        const auto f = lab_to_srgb(l[i]);
         // The paper converts the point's L*a*b* back to RGB: the identity to rounding.
         const auto c = lab_to_srgb(rgb_to_lab(coloured.colours[i]));
         err[i] = std::abs(f[0] - c[0]) + std::abs(f[1] - c[1]) + std::abs(f[2] - c[2]);
@@ -955,28 +1072,30 @@ std::size_t colour_mesh(Mesh& mesh, const ColourFunction& f, const ImplicitFunct
                         const Cloud& coloured_points, int threads) {
   colour_mesh(mesh, f, threads);
   std::vector<char> untrusted(mesh.vertices.size(), 0);
-  std::size_t n = 0;
+  tbb::task_arena arena(worker_threads(threads));
+  arena.execute([&] {
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, mesh.vertices.size(), 1024), [&](const auto& r) {
+      for (std::size_t i = r.begin(); i != r.end(); ++i)
+        untrusted[i] = !surface.trusted(mesh.vertices[i].cast<double>());
+    });
+  });
+  Mesh nn;  // the untrusted vertices only (transfer_colours colours each on its own)
+  std::vector<std::size_t> at;
   for (std::size_t i = 0; i < mesh.vertices.size(); ++i)
-    if (!surface.trusted(mesh.vertices[i].cast<double>())) {
-      untrusted[i] = 1;
-      ++n;
+    if (untrusted[i]) {
+      nn.vertices.push_back(mesh.vertices[i]);
+      at.push_back(i);
     }
-  if (n == 0) return 0;
-  Mesh nn = mesh;
+  if (at.empty()) return 0;
   transfer_colours(nn, coloured_points, {4, threads});
-  for (std::size_t i = 0; i < mesh.vertices.size(); ++i)
-    if (untrusted[i]) mesh.colours[i] = nn.colours[i];
-  return n;
+  for (std::size_t j = 0; j < at.size(); ++j) mesh.colours[at[j]] = nn.colours[j];
+  return at.size();
 }
 
 void colour_mesh(Mesh& mesh, const ColourFunction& f, int threads) {
-  mesh.colours.assign(mesh.vertices.size(), Rgb{});
-  tbb::task_arena arena(worker_threads(threads));
-  arena.execute([&] {
-    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, mesh.vertices.size(), 256), [&](const auto& r) {
-      for (std::size_t i = r.begin(); i != r.end(); ++i) mesh.colours[i] = f.rgb(mesh.vertices[i].cast<double>());
-    });
-  });
+  const std::vector<Lab> l = f.labs(mesh.vertices, threads);
+  mesh.colours.resize(mesh.vertices.size());
+  for (std::size_t i = 0; i < l.size(); ++i) mesh.colours[i] = lab_to_rgb(l[i]);
 }
 
 }  // namespace station

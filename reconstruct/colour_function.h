@@ -151,6 +151,9 @@ class ColourFunction {
   Rgb rgb(const Vec3d& x) const;
   /// Batched rgb (parallel, same results).
   std::vector<Rgb> rgbs(const std::vector<Vec3f>& xs) const;
+  /// Batched lab (parallel on `threads`, 0 = all cores; the same values as lab, bit for
+  /// bit): nearby points share one walk of the octree.
+  std::vector<Lab> labs(const std::vector<Vec3f>& xs, int threads = 0) const;
 
   /// (c) Colour off the surface: when set, queries are evaluated at the projection of x
   /// onto f = 0 (Newton steps x <- x - f grad f / |grad f|^2, at most `steps`, stopping

@@ -6,6 +6,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <cstdio>
 #include <filesystem>
 #include <functional>
@@ -477,6 +478,32 @@ TEST(ColourFunction, WithoutNormalsAndDeterministicAcrossThreads) {
   for (const Vec3d& q : random_sphere_points(100, 31)) xs.push_back(q.cast<float>());
   const std::vector<Rgb> batch = a.rgbs(xs);
   for (std::size_t i = 0; i < xs.size(); ++i) EXPECT_TRUE(batch[i] == a.rgb(xs[i].cast<double>()));
+}
+
+// labs() groups nearby points and walks the octree once per group: the values must be
+// lab()'s bit for bit, wherever the points are (on, off and far from the surface, in
+// any order, non-finite ones {0, 0, 0}).
+TEST(ColourFunction, BatchedLabsAreLabBitForBit) {
+  const Cloud c = sphere_cloud(8000, three_sectors);
+  ColourParams p;
+  p.multi_colour = true;
+  const ColourFunction f = fit_colour(c, p);
+  std::vector<Vec3f> xs;
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<float> offset(-0.2f, 0.2f);
+  for (const Vec3d& q : random_sphere_points(3000, 37)) xs.push_back(q.cast<float>() * (1.0f + offset(rng)));
+  xs.push_back(Vec3f(5, 5, 5));
+  xs.push_back(Vec3f(std::nanf(""), 0, 0));
+  xs.push_back(Vec3f(0, std::numeric_limits<float>::infinity(), 0));
+  std::shuffle(xs.begin(), xs.end(), rng);
+  for (int threads : {1, 2}) {
+    const std::vector<Lab> batch = f.labs(xs, threads);
+    ASSERT_EQ(batch.size(), xs.size());
+    for (std::size_t i = 0; i < xs.size(); ++i) {
+      const Lab one = f.lab(xs[i].cast<double>());
+      for (int k = 0; k < 3; ++k) ASSERT_EQ(batch[i][k], one[k]) << "point " << i << " channel " << k;
+    }
+  }
 }
 
 // Real colour: points sampled on the bundled YCB mustard bottle with its texture's
