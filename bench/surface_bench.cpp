@@ -31,6 +31,7 @@
 #include "reconstruct/marching_cubes.h"
 #include "reconstruct/mesh_clean.h"
 #include "reconstruct/mpu.h"
+#include "reconstruct/surface.h"
 
 namespace station::bench {
 
@@ -297,6 +298,30 @@ void run_surface_cases(const Options& options, Report& report) {
                   format_fixed(g.seconds_fit, 2) + " s + MC " + format_fixed(g.seconds_extract, 2) + " s, " +
                   std::to_string(g.mesh.vertices.size()) + " vertices; Poisson " +
                   std::to_string(pg.mesh.vertices.size()) + " vertices");
+    }
+
+    {
+      // Issue 27: the station's default surface stage as `station reconstruct` and
+      // `station run` compose it (reconstruct_surface with SurfaceParams' defaults: MPU,
+      // hole auto with the winding-number closing, DMC at the automatic resolution,
+      // small pieces dropped, the colour function, colour-edge splits), against the
+      // coloured Poisson runs of the first row (the same runs).
+      SurfaceParams sp;
+      sp.threads = threads;
+      SurfaceResult def;
+      Row drow{label + ": default surface stage (MPU + closing + DMC auto + colour)",
+               row.anchor + " (same runs as the first row)"};
+      drow.ours = measure(opt, [&] { def = reconstruct_surface(cloud, sp); });
+      drow.theirs = row.theirs;
+      report.rows.push_back(drow);
+      const SurfaceTimings& t = def.seconds;
+      report.note(label + ", default surface stage: resolution " + std::to_string(def.resolution) + " (cell " +
+                  mm(def.extraction.cell_size) + ", " + (def.resolution_auto ? "auto" : "given") + "), hole " +
+                  (def.hole == HoleMode::kClose ? "closed" : "kept") + "; fit " + format_fixed(t.fit, 2) +
+                  " s + closing " + format_fixed(t.closing, 2) + " s + DMC " + format_fixed(t.extract, 2) +
+                  " s + colour " + format_fixed(t.colour, 2) + " s (of which e_col " +
+                  format_fixed(def.colour ? def.colour->e_col_seconds : 0.0, 2) + " s), " +
+                  std::to_string(def.mesh.vertices.size()) + " vertices; " + quality(def.mesh, cloud));
     }
 
     if (!c.reduced) {

@@ -710,17 +710,24 @@ MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
 
   tbb::task_arena arena(worker_threads(params.threads));
   arena.execute([&] {
-    // Mean spacing from every point's nearest neighbour (trust measure).
-    std::vector<double> nnd(s.points.size());
+    // Mean spacing from every point's nearest neighbour (trust measure), and the
+    // sample spacing from the 8th neighbour (MpuDiagnostics::sample_spacing).
+    constexpr int kDensityNeighbours = 8;
+    std::vector<double> nnd(s.points.size()), density(s.points.size());
     tbb::parallel_for(std::size_t(0), s.points.size(), [&](std::size_t i) {
-      const auto k = s.index->knn(s.points[i], 2);
+      const auto k = s.index->knn(s.points[i], kDensityNeighbours + 1);
       nnd[i] = k.size() > 1 ? k[1].second : 0;
+      density[i] = k.size() > std::size_t(kDensityNeighbours)
+                       ? k[kDensityNeighbours].second * std::sqrt(M_PI / kDensityNeighbours)
+                       : 0;
     });
     double sum = 0;
     for (double d : nnd) sum += d;
     const double spacing = sum / nnd.size();
     s.trust_radius = params.trust_factor * std::max(spacing, 1e-9);
     s.diag.mean_spacing = spacing / s.scale;
+    std::nth_element(density.begin(), density.begin() + density.size() / 2, density.end());
+    s.diag.sample_spacing = density[density.size() / 2] / s.scale;
 
     // Breadth-first build: each level's cells are fitted in parallel into their own
     // slots, then children are appended in cell order: deterministic for any thread count.

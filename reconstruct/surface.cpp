@@ -132,12 +132,15 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
   mo.close_at_box = true;
   const double longest = double((box.max - box.min).maxCoeff());
   out.resolution_auto = p.resolution <= 0;
-  out.resolution = out.resolution_auto ? auto_resolution(longest, out.mpu.mean_spacing) : p.resolution;
+  // The cell follows the sample spacing (1 / sqrt(density)), not the nearest
+  // neighbour's distance, which is half of it on random samples (MpuDiagnostics).
+  const double spacing = out.mpu.sample_spacing > 0 ? out.mpu.sample_spacing : out.mpu.mean_spacing;
+  out.resolution = out.resolution_auto ? auto_resolution(longest, spacing) : p.resolution;
   const int resolution = out.resolution;
   if (out.resolution_auto)
     note("extracting at resolution " + std::to_string(resolution) + " (" + extractor_label(p.extractor) +
-         "; auto: cell " + fmt("%.3g", longest / resolution) + ", the points' mean spacing " +
-         fmt("%.3g", out.mpu.mean_spacing) +
+         "; auto: cell " + fmt("%.3g", longest / resolution) + ", the points' sample spacing " +
+         fmt("%.3g", spacing) +
          (resolution == kAutoResolutionMin || resolution == kAutoResolutionMax
               ? ", clamped to " + std::to_string(kAutoResolutionMin) + ".." + std::to_string(kAutoResolutionMax) + ")"
               : std::string(")")));

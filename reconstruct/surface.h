@@ -33,7 +33,7 @@ struct SurfaceParams {
   /// at least MpuParams' default (the paper's 1e-4).
   double epsilon0 = 0;
   /// Cells along the longest side of the extraction box; 0 = auto: the cell follows
-  /// the cloud's mean nearest-neighbour spacing (auto_resolution).
+  /// the cloud's sample spacing, 1 / sqrt(density) (auto_resolution).
   int resolution = 0;
   Extractor extractor = Extractor::kDmc;
   /// The unseen parts: closed smoothly (watertight), or left open where there is no data.
@@ -97,11 +97,13 @@ struct SurfaceResult {
 };
 
 /// The automatic resolution: the extraction box's longest side over the cloud's
-/// mean nearest-neighbour spacing (one cell per spacing: finer cells only
-/// interpolate between the points, coarser ones drop detail the points hold),
+/// sample spacing (MpuDiagnostics::sample_spacing, 1 / sqrt(density); one cell per
+/// spacing: finer cells only interpolate between the points, coarser ones drop detail
+/// the points hold; the nearest neighbour's distance is half the spacing on random
+/// samples and made 4x the vertices there, issue 27),
 /// clamped to kAutoResolutionMin..kAutoResolutionMax (beyond 512 the memory check
 /// runs: ask for it explicitly).
-int auto_resolution(double longest_side, double mean_spacing);
+int auto_resolution(double longest_side, double spacing);
 inline constexpr int kAutoResolutionMin = 64;
 inline constexpr int kAutoResolutionMax = 512;
 
