@@ -93,7 +93,7 @@ void Dmc::evaluate(std::vector<std::uint32_t> fresh) {
       xs[n++] = nd.pos;
     }
     f_.values_near(xs, n, vs);
-    for (int i = 0; i < n; ++i) at[i]->val = lattice_value_from(vs[i], at[i]->flags);
+    for (int i = 0; i < n; ++i) at[i]->val = lattice_value_from(vs[i], at[i]->flags, at[i]->pos);
     count.local() += std::size_t(n);
   });
   for (std::size_t n : count) st_.evaluations += n;
@@ -225,7 +225,7 @@ void Dmc::traverse(const std::vector<std::uint64_t>& start, bool probe_first) {
       f_.values_near(xs, count, vs);
       for (int t = 0; t < count; ++t) {
         Node& nd = *pending[first + std::size_t(t)].second;
-        nd.val = lattice_value_from(vs[t], nd.flags);
+        nd.val = lattice_value_from(vs[t], nd.flags, nd.pos);
       }
       evaluated_local.local() += std::size_t(count);
     });
@@ -326,10 +326,14 @@ using detail::dmc::Dmc;
 
 Mesh extract_dmc(const ImplicitFunction& f, const Aabb& box, int resolution, const DmcOptions& opt,
                  DmcStats* stats) {
-  if (!box.valid() || !all_finite({box.min, box.max})) throw InvalidInput("extract_dmc: invalid bounding box");
-  if (resolution < 1 || resolution > (1 << 20))
-    throw InvalidInput("extract_dmc: resolution must be in [1, 2^20]");
-  if (!((box.max - box.min).maxCoeff() > 0)) throw InvalidInput("extract_dmc: degenerate bounding box");
+  if (opt.window) {
+    check_window(*opt.window, "extract_dmc");
+  } else {
+    if (!box.valid() || !all_finite({box.min, box.max})) throw InvalidInput("extract_dmc: invalid bounding box");
+    if (resolution < 1 || resolution > (1 << 20))
+      throw InvalidInput("extract_dmc: resolution must be in [1, 2^20]");
+    if (!((box.max - box.min).maxCoeff() > 0)) throw InvalidInput("extract_dmc: degenerate bounding box");
+  }
   if (opt.threads < 0) throw InvalidInput("extract_dmc: threads must be >= 0");
   if (!(opt.search_step >= 0) || !std::isfinite(opt.search_step))
     throw InvalidInput("extract_dmc: search_step must be >= 0 (0 = h / 5)");

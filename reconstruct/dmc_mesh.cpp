@@ -24,6 +24,8 @@ Mesh Dmc::build_mesh() {
   // Faces hold crossing indices until the vertex ids replace them.
   Mesh mesh;
   mesh.faces.resize(first.back());
+  // With vertex_edges: each face corner's lattice edge (global), kept for its vertex.
+  std::vector<std::uint64_t> corner_edges(opt_.vertex_edges ? 3 * first.back() : 0);
   parallel(surface.size(), [&](std::size_t i) {
     const std::int32_t b = std::int32_t(handle[i] >> 6);
     const int l = int(handle[i] & 63), li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
@@ -35,20 +37,29 @@ Mesh Dmc::build_mesh() {
         const std::uint32_t x = nodes_.crossing_index(xb, xl, tri[t] / 4);
         if (x == Lattice::kNoCrossing) throw std::out_of_range("extract_dmc: internal error: crossing not computed");
         mesh.faces[f][t] = int(x);
+        if (opt_.vertex_edges) {
+          const Key p = nodes_.point(xb, xl);
+          corner_edges[3 * f + std::size_t(t)] =
+              lattice_edge_key(off_[0] + ki(p), off_[1] + kj(p), off_[2] + kk(p), tri[t] / 4);
+        }
       }
       ++f;
     }
   });
   std::vector<const Crossing*> edges;
-  for (Face& fc : mesh.faces)
+  std::vector<std::uint64_t> edge_keys;
+  for (std::size_t f = 0; f < mesh.faces.size(); ++f)
     for (int t = 0; t < 3; ++t) {
+      Face& fc = mesh.faces[f];
       Crossing& x = nodes_.crossing_at(std::uint32_t(fc[t]));
       if (x.vid < 0) {
         x.vid = int(edges.size());
         edges.push_back(&x);
+        if (opt_.vertex_edges) edge_keys.push_back(corner_edges[3 * f + std::size_t(t)]);
       }
       fc[t] = x.vid;
     }
+  std::vector<std::uint64_t>().swap(corner_edges);
   mesh.vertices.resize(edges.size());
   if (opt_.normals) mesh.normals.resize(edges.size());
   parallel(edges.size(), [&](std::size_t v) {
@@ -64,18 +75,20 @@ Mesh Dmc::build_mesh() {
     if (!(e1.cross(e2).norm() > 0)) ++degenerate.local();
   });
   for (std::size_t n : degenerate) st_.degenerate_faces += n;
-  if (opt_.untrusted == UntrustedRegions::kLeaveOpen && !mesh.faces.empty()) drop_untrusted(mesh);
+  if (opt_.untrusted == UntrustedRegions::kLeaveOpen && !mesh.faces.empty())
+    drop_untrusted(mesh, opt_.vertex_edges ? &edge_keys : nullptr);
+  if (opt_.vertex_edges) opt_.vertex_edges->swap(edge_keys);
   return mesh;
 }
 
-void Dmc::drop_untrusted(Mesh& mesh) {
+void Dmc::drop_untrusted(Mesh& mesh, std::vector<std::uint64_t>* keys) {
   std::vector<char> keep(mesh.faces.size());
   parallel(mesh.faces.size(), [&](std::size_t fi) {
     const Face& fc = mesh.faces[fi];
     const Vec3d centroid = (mesh.vertices[fc[0]] + mesh.vertices[fc[1]] + mesh.vertices[fc[2]]).cast<double>() / 3;
     keep[fi] = f_.trusted(centroid);
   });
-  st_.dropped_faces += keep_faces(mesh, keep);
+  st_.dropped_faces += keep_faces(mesh, keep, keys);
 }
 
 }  // namespace station::detail::dmc

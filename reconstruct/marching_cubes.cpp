@@ -14,6 +14,7 @@
 #include <cstdint>
 #include <limits>
 #include <memory>
+#include <string>
 #include <tuple>
 
 #include "core/error.h"
@@ -239,17 +240,32 @@ std::uint64_t packed(std::int32_t b, int l) { return std::uint64_t(b) << 6 | std
 
 Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int resolution,
                             const MarchingCubesOptions& opt, MarchingCubesStats* stats) {
-  if (!box.valid() || !all_finite({box.min, box.max}))
-    throw InvalidInput("extract_marching_cubes: invalid bounding box");
-  if (resolution < 1 || resolution > (1 << 20))
-    throw InvalidInput("extract_marching_cubes: resolution must be in [1, 2^20]");
-  const Vec3d lo = box.min.cast<double>();
-  const Vec3d ext = (box.max - box.min).cast<double>();
-  if (!(ext.maxCoeff() > 0)) throw InvalidInput("extract_marching_cubes: degenerate bounding box");
-  const double h = ext.maxCoeff() / resolution;
+  Vec3d lo;
+  double h = 0;
   int n[3];
-  for (int a = 0; a < 3; ++a) n[a] = std::max(1, int(std::ceil(ext[a] / h - 1e-9)));
-  auto vpos = [&](int i, int j, int k) { return Vec3d(lo + h * Vec3d(i, j, k)); };
+  int off[3] = {0, 0, 0}, global_n[3];
+  if (opt.window) {
+    check_window(*opt.window, "extract_marching_cubes");
+    lo = opt.window->origin;
+    h = opt.window->h;
+    for (int a = 0; a < 3; ++a) {
+      n[a] = opt.window->cells[std::size_t(a)];
+      off[a] = opt.window->offset[std::size_t(a)];
+      global_n[a] = opt.window->global_cells[std::size_t(a)];
+    }
+  } else {
+    if (!box.valid() || !all_finite({box.min, box.max}))
+      throw InvalidInput("extract_marching_cubes: invalid bounding box");
+    if (resolution < 1 || resolution > (1 << 20))
+      throw InvalidInput("extract_marching_cubes: resolution must be in [1, 2^20]");
+    lo = box.min.cast<double>();
+    const Vec3d ext = (box.max - box.min).cast<double>();
+    if (!(ext.maxCoeff() > 0)) throw InvalidInput("extract_marching_cubes: degenerate bounding box");
+    h = ext.maxCoeff() / resolution;
+    for (int a = 0; a < 3; ++a) global_n[a] = n[a] = std::max(1, int(std::ceil(ext[a] / h - 1e-9)));
+  }
+  // Window point (i, j, k) is global point off + (i, j, k): the same double in every window.
+  auto vpos = [&](int i, int j, int k) { return Vec3d(lo + h * Vec3d(off[0] + i, off[1] + j, off[2] + k)); };
 
   MarchingCubesStats st;
   st.cell_size = h;
@@ -265,7 +281,8 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
   auto finish = [&](double value, int a, int b, int c) {
     double x = value - opt.iso;
     if (!std::isfinite(x)) x = h;
-    if (opt.close_at_box && (a == 0 || b == 0 || c == 0 || a == n[0] || b == n[1] || c == n[2]))
+    if (opt.close_at_box && (a + off[0] == 0 || b + off[1] == 0 || c + off[2] == 0 || a + off[0] == global_n[0] ||
+                             b + off[1] == global_n[1] || c + off[2] == global_n[2]))
       x = std::max(x, 0.5 * h);
     return x;
   };
@@ -284,7 +301,7 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
   };
   if (!opt.seeds.empty()) {
     for (const Vec3f& p : opt.seeds) {
-      const Vec3d g = (p.cast<double>() - lo) / h;
+      const Vec3d g = (p.cast<double>() - lo) / h - Vec3d(off[0], off[1], off[2]);
       if (!g.allFinite() || (g.array() < 0).any() || g.x() >= n[0] || g.y() >= n[1] || g.z() >= n[2]) continue;
       push(int(std::floor(g.x())), int(std::floor(g.y())), int(std::floor(g.z())), frontier);
     }
@@ -292,7 +309,8 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
     // Scan lines along x every `step` cells in y and z; a sign change between two
     // neighbouring vertices seeds the four cells around that edge. Only the values at
     // the sign changes are kept (in the blocks).
-    const int step = opt.coarse_step > 0 ? opt.coarse_step : std::max(1, resolution / 32);
+    const int longest = opt.window ? std::max({n[0], n[1], n[2]}) : resolution;
+    const int step = opt.coarse_step > 0 ? opt.coarse_step : std::max(1, longest / 32);
     std::vector<std::pair<int, int>> lines;  // (j, k)
     for (int k = 0; k <= n[2]; k += step)
       for (int j = 0; j <= n[1]; j += step) lines.emplace_back(j, k);
@@ -577,6 +595,8 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
   Mesh mesh;
   mesh.vertices.resize(nverts);
   if (opt.normals) mesh.normals.resize(nverts);
+  std::vector<std::uint64_t> edge_keys;
+  if (opt.vertex_edges) edge_keys.resize(nverts);
   const auto& ec = mc::edge_corners();
   tbb::enumerable_thread_specific<std::vector<Vec3d>> at_local, grad_local;
   parallel(lat.blocks.size(), [&](std::size_t bs) {
@@ -600,6 +620,7 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
         Vec3d p = vpos(i, j, k);
         p[a] += t * h;
         mesh.vertices[v] = p.cast<float>();
+        if (opt.vertex_edges) edge_keys[v] = lattice_edge_key(off[0] + i, off[1] + j, off[2] + k, a);
         if (opt.normals) at.push_back(p);
       }
     if (!opt.normals || at.empty()) return;
@@ -653,10 +674,23 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
         keep[fi] = f.trusted(centroid);
       });
     });
-    st.dropped_faces += keep_faces(mesh, keep);
+    st.dropped_faces += keep_faces(mesh, keep, opt.vertex_edges ? &edge_keys : nullptr);
   }
+  if (opt.vertex_edges) opt.vertex_edges->swap(edge_keys);
   if (stats) *stats = st;
   return mesh;
+}
+
+void check_window(const LatticeWindow& w, const char* who) {
+  const std::string name(who);
+  if (!w.origin.allFinite() || !(w.h > 0) || !std::isfinite(w.h))
+    throw InvalidInput(name + ": the lattice window needs a finite origin and a cell h > 0");
+  for (std::size_t a = 0; a < 3; ++a) {
+    if (w.global_cells[a] < 1 || w.global_cells[a] >= (1 << 20))
+      throw InvalidInput(name + ": the global lattice must have 1 to 2^20 - 1 cells per axis");
+    if (w.offset[a] < 0 || w.cells[a] < 1 || w.offset[a] + w.cells[a] > w.global_cells[a])
+      throw InvalidInput(name + ": the lattice window must lie inside the global lattice");
+  }
 }
 
 Aabb extraction_box(const MpuSurface& surface) {

@@ -10,6 +10,9 @@
 // on an ambiguous face the inside (f < iso) corners are kept apart. The rule depends
 // only on the face's four corners, so the two cells sharing a face agree and the mesh
 // is watertight on closed surfaces.
+#include <array>
+#include <cstdint>
+#include <optional>
 #include <vector>
 
 #include "core/geometry.h"
@@ -18,6 +21,31 @@
 namespace station {
 
 class MpuSurface;
+
+/// A window onto a larger lattice (block-wise extraction, reconstruct/blocks.h):
+/// lattice point (i, j, k) of the window is point offset + (i, j, k) of the global
+/// lattice, at origin + h * (offset + (i, j, k)) exactly (the same double in every
+/// window), and the window's cells are offset + [0, cells) per axis. close_at_box
+/// then caps at the global lattice's outermost layer (0 and global_cells), not at
+/// the window's, so two windows that share a face see the same lattice there.
+struct LatticeWindow {
+  Vec3d origin = Vec3d::Zero();
+  double h = 0;
+  std::array<int, 3> offset{0, 0, 0};
+  std::array<int, 3> cells{1, 1, 1};
+  std::array<int, 3> global_cells{1, 1, 1};
+};
+
+/// InvalidInput (naming `who`) unless the window lies inside its global lattice, with
+/// a finite origin and h > 0.
+void check_window(const LatticeWindow& window, const char* who);
+
+/// A global lattice edge as one 64-bit key: its lower end (i, j, k), 20 bits each,
+/// and its axis (0, 1, 2) in the top bits. Vertices of windows that share a face
+/// are the same vertex exactly when their keys are equal.
+inline std::uint64_t lattice_edge_key(int i, int j, int k, int axis) {
+  return std::uint64_t(i) | std::uint64_t(j) << 20 | std::uint64_t(k) << 40 | std::uint64_t(axis) << 60;
+}
 
 /// What to do where ImplicitFunction::trusted() is false (no data near; e.g. the
 /// underside a turntable never sees).
@@ -43,6 +71,13 @@ struct MarchingCubesOptions {
   bool close_at_box = false;
   /// Threads for the function evaluations (0 = all cores). The mesh does not depend on it.
   int threads = 0;
+  /// Set: extract on this window of a larger lattice; the box and resolution
+  /// arguments are then ignored (the window's own checks apply).
+  std::optional<LatticeWindow> window;
+  /// Non-null: filled with each output vertex's lattice_edge_key in the global
+  /// lattice (the window's, or the box's lattice), in vertex order, after any
+  /// untrusted faces were dropped.
+  std::vector<std::uint64_t>* vertex_edges = nullptr;
 };
 
 struct MarchingCubesStats {

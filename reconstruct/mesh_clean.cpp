@@ -91,11 +91,17 @@ ComponentFilterStats remove_small_components(Mesh& mesh, double min_area_fractio
 
 std::size_t trim_open_rims(Mesh& mesh, const std::function<double(const Vec3d&)>& distance, double max_distance,
                            int max_passes) {
-  const std::size_t nf = mesh.faces.size();
-  if (nf == 0) return 0;
+  if (mesh.faces.empty()) return 0;
   std::vector<char> far(mesh.vertices.size(), 0);
   for (std::size_t v = 0; v < mesh.vertices.size(); ++v)
     far[v] = !(distance(mesh.vertices[v].cast<double>()) <= max_distance);
+  return trim_open_rims(mesh, far, max_passes);
+}
+
+std::size_t trim_open_rims(Mesh& mesh, const std::vector<char>& far, int max_passes) {
+  if (far.size() != mesh.vertices.size()) throw InvalidInput("trim_open_rims: one flag per vertex expected");
+  const std::size_t nf = mesh.faces.size();
+  if (nf == 0) return 0;
   auto far_face = [&](std::size_t f) {
     const Face& t = mesh.faces[f];
     return far[t[0]] || far[t[1]] || far[t[2]];
@@ -159,8 +165,11 @@ std::size_t trim_open_rims(Mesh& mesh, const std::function<double(const Vec3d&)>
   return dropped;
 }
 
-std::size_t keep_faces(Mesh& mesh, const std::vector<char>& keep) {
+std::size_t keep_faces(Mesh& mesh, const std::vector<char>& keep, std::vector<std::uint64_t>* vertex_keys) {
   if (keep.size() != mesh.faces.size()) throw InvalidInput("keep_faces: one flag per face expected");
+  if (vertex_keys && vertex_keys->size() != mesh.vertices.size())
+    throw InvalidInput("keep_faces: one key per vertex expected");
+  std::vector<std::uint64_t> keys;
   const bool normals = mesh.has_normals(), colours = mesh.has_colours();
   std::vector<int> remap(mesh.vertices.size(), -1);
   Mesh out;
@@ -178,12 +187,14 @@ std::size_t keep_faces(Mesh& mesh, const std::vector<char>& keep) {
         out.vertices.push_back(mesh.vertices[fc[t]]);
         if (normals) out.normals.push_back(mesh.normals[fc[t]]);
         if (colours) out.colours.push_back(mesh.colours[fc[t]]);
+        if (vertex_keys) keys.push_back((*vertex_keys)[fc[t]]);
       }
       fc[t] = r;
     }
     out.faces.push_back(fc);
   }
   mesh = std::move(out);
+  if (vertex_keys) vertex_keys->swap(keys);
   return dropped;
 }
 

@@ -4,6 +4,7 @@
 #include <cstddef>
 #include <vector>
 
+#include <cstdint>
 #include <functional>
 
 #include "core/geometry.h"
@@ -31,10 +32,15 @@ ComponentFilterStats remove_small_components(Mesh& mesh, double min_area_fractio
 /// they are. Returns the faces dropped.
 std::size_t trim_open_rims(Mesh& mesh, const std::function<double(const Vec3d&)>& distance, double max_distance,
                            int max_passes = 16);
+/// The same with the far vertices given (far[v] != 0: further than the bound from the
+/// data), e.g. judged block by block before the blocks' meshes were stitched.
+/// InvalidInput when `far` is not one flag per vertex.
+std::size_t trim_open_rims(Mesh& mesh, const std::vector<char>& far, int max_passes = 16);
 
 /// Keeps the faces with keep[f] != 0, in order, and the vertices they use, numbered
 /// in the order the kept faces first use them (normals and colours follow); returns
-/// the number of faces dropped. InvalidInput when `keep` is not one flag per face.
-std::size_t keep_faces(Mesh& mesh, const std::vector<char>& keep);
+/// the number of faces dropped; `vertex_keys` (one per vertex) follow the vertices.
+/// InvalidInput when `keep` is not one flag per face or the keys not one per vertex.
+std::size_t keep_faces(Mesh& mesh, const std::vector<char>& keep, std::vector<std::uint64_t>* vertex_keys = nullptr);
 
 }  // namespace station

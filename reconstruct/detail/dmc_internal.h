@@ -328,10 +328,21 @@ class Dmc {
  public:
   Dmc(const ImplicitFunction& f, const Aabb& box, int resolution, const DmcOptions& opt)
       : f_(f), opt_(opt), arena_(worker_threads(opt.threads)) {
-    lo_ = box.min.cast<double>();
-    const Vec3d ext = (box.max - box.min).cast<double>();
-    h_ = ext.maxCoeff() / resolution;
-    for (int a = 0; a < 3; ++a) n_[a] = std::max(1, int(std::ceil(ext[a] / h_ - 1e-9)));
+    if (opt.window) {
+      // A window of a larger lattice: its points are the global ones shifted by the
+      // offset (every face of the window is fixed: the lattice there is shared).
+      h_ = opt.window->h;
+      lo_ = opt.window->origin + h_ * Vec3d(opt.window->offset[0], opt.window->offset[1], opt.window->offset[2]);
+      for (int a = 0; a < 3; ++a) {
+        n_[a] = opt.window->cells[std::size_t(a)];
+        off_[a] = opt.window->offset[std::size_t(a)];
+      }
+    } else {
+      lo_ = box.min.cast<double>();
+      const Vec3d ext = (box.max - box.min).cast<double>();
+      h_ = ext.maxCoeff() / resolution;
+      for (int a = 0; a < 3; ++a) n_[a] = std::max(1, int(std::ceil(ext[a] / h_ - 1e-9)));
+    }
     const double s = opt.search_step > 0 ? opt.search_step : h_ / 5;
     m_ = std::clamp(int(std::lround(h_ / s)), 1, 16);
     st_.cell_size = h_;
@@ -388,13 +399,25 @@ class Dmc {
   // Lattice values of the entered points `fresh` (block << 6 | local index), in
   // parallel, a block's points taken together (values_near; the same values).
   void evaluate(std::vector<std::uint32_t> fresh);
-  double lattice_value(const Vec3d& pos, std::uint8_t flags) const { return lattice_value_from(f_.value(pos), flags); }
-  // The lattice value from f at the point.
-  double lattice_value_from(double f, std::uint8_t flags) const {
+  double lattice_value(const Vec3d& pos, std::uint8_t flags) const {
+    return lattice_value_from(f_.value(pos), flags, pos);
+  }
+  // The lattice value from f at the point `pos` (a fixed point sits on its lattice point).
+  double lattice_value_from(double f, std::uint8_t flags, const Vec3d& pos) const {
     double x = f - opt_.iso;
     if (!std::isfinite(x)) x = h_;  // NaN counts as outside
-    if (opt_.close_at_box && (flags & kFixed)) x = std::max(x, 0.5 * h_);
+    if (opt_.close_at_box && (flags & kFixed) && on_outer_layer(pos)) x = std::max(x, 0.5 * h_);
     return x;
+  }
+  // Whether the fixed lattice point at `pos` is on the outermost layer of the whole
+  // lattice (the box's, or with a window the global lattice's, not the window's faces).
+  bool on_outer_layer(const Vec3d& pos) const {
+    if (!opt_.window) return true;  // every fixed point is on the box's faces
+    for (int a = 0; a < 3; ++a) {
+      const long g = std::lround((pos[a] - lo_[a]) / h_) + off_[a];
+      if (g == 0 || g == opt_.window->global_cells[std::size_t(a)]) return true;
+    }
+    return false;
   }
   // Configuration of cell l of block b (corner q inside: bit q), through the links.
   int config(std::int32_t b, int l) const;
@@ -636,7 +659,7 @@ class Dmc {
   // ---------------------------------------------------------------- step 3
   Mesh build_mesh();
 
-  void drop_untrusted(Mesh& mesh);
+  void drop_untrusted(Mesh& mesh, std::vector<std::uint64_t>* keys);
 
   const ImplicitFunction& f_;
   const DmcOptions& opt_;
@@ -645,6 +668,7 @@ class Dmc {
   Vec3d lo_;
   double h_ = 0;
   int n_[3] = {1, 1, 1};
+  int off_[3] = {0, 0, 0};  // the window's offset in the global lattice (vertex_edges)
   int m_ = 5;
   DmcStats st_;
   Lattice nodes_;

@@ -1,0 +1,613 @@
+#include "reconstruct/blocks.h"
+
+#include <tbb/parallel_for.h>
+#include <tbb/task_arena.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <limits>
+#include <map>
+#include <memory>
+
+#include "core/error.h"
+#include "core/kdtree.h"
+#include "core/threads.h"
+#include "reconstruct/colour_function.h"
+#include "reconstruct/colour_transfer.h"
+#include "reconstruct/half_space_clip.h"
+#include "reconstruct/mesh_clean.h"
+#include "reconstruct/mpu.h"
+#include "reconstruct/winding_close.h"
+
+namespace station {
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+std::string fmt(const char* f, double v) {
+  char buf[64];
+  std::snprintf(buf, sizeof buf, f, v);
+  return buf;
+}
+
+bool inside(const Aabb& box, const Vec3f& p) {
+  return (p.array() >= box.min.array()).all() && (p.array() <= box.max.array()).all();
+}
+
+void append(Cloud& to, const Cloud& from, std::size_t i) {
+  to.points.push_back(from.points[i]);
+  if (from.has_normals()) to.normals.push_back(from.normals[i]);
+  if (from.has_colours()) to.colours.push_back(from.colours[i]);
+}
+
+// f = v everywhere (a block without enough points to fit: outside).
+struct Constant : ImplicitFunction {
+  double v = 0;
+  double value(const Vec3d&) const override { return v; }
+  Vec3d gradient(const Vec3d&) const override { return Vec3d::Zero(); }
+};
+
+// Mean nearest-neighbour distance and median of r_8 sqrt(pi / 8) (MpuDiagnostics),
+// over the points `of` (indices into the indexed points).
+std::pair<double, double> spacings(const PointIndex& index, const std::vector<Vec3f>& points,
+                                   const std::vector<std::size_t>& of) {
+  constexpr int kNeighbours = 8;
+  std::vector<double> nnd(of.size()), density(of.size());
+  tbb::parallel_for(std::size_t(0), of.size(), [&](std::size_t t) {
+    const auto k = index.knn(points[of[t]], kNeighbours + 1);
+    nnd[t] = k.size() > 1 ? k[1].second : 0;
+    density[t] = k.size() > std::size_t(kNeighbours) ? k[kNeighbours].second * std::sqrt(M_PI / kNeighbours) : 0;
+  });
+  if (of.empty()) return {0, 0};
+  double sum = 0;
+  for (double d : nnd) sum += d;
+  std::nth_element(density.begin(), density.begin() + long(density.size() / 2), density.end());
+  return {sum / double(nnd.size()), density[density.size() / 2]};
+}
+
+}  // namespace
+
+// ------------------------------------------------------------------ the grid
+
+std::array<int, 3> BlockGrid::coords(int id) const {
+  return {id % counts[0], id / counts[0] % counts[1], id / (counts[0] * counts[1])};
+}
+
+LatticeWindow BlockGrid::window(int id) const {
+  const auto c = coords(id);
+  LatticeWindow w = lattice;
+  for (std::size_t a = 0; a < 3; ++a) {
+    w.offset[a] = splits[a][std::size_t(c[a])];
+    w.cells[a] = splits[a][std::size_t(c[a]) + 1] - w.offset[a];
+  }
+  return w;
+}
+
+Aabb BlockGrid::region(int id) const {
+  const LatticeWindow w = window(id);
+  Aabb box;
+  for (int a = 0; a < 3; ++a) {
+    const double lo = lattice.origin[a] + lattice.h * w.offset[std::size_t(a)] - margin;
+    const double hi = lattice.origin[a] + lattice.h * (w.offset[std::size_t(a)] + w.cells[std::size_t(a)]) + margin;
+    box.min[a] = float(lo);
+    box.max[a] = float(hi);
+  }
+  return box;
+}
+
+bool BlockGrid::seam_plane(int a, int index) const {
+  const auto& s = splits[std::size_t(a)];
+  if (index <= 0 || index >= s.back()) return false;
+  return std::binary_search(s.begin(), s.end(), index);
+}
+
+bool BlockGrid::on_seam(std::uint64_t edge) const {
+  const int ijk[3] = {int(edge & 0xFFFFF), int(edge >> 20 & 0xFFFFF), int(edge >> 40 & 0xFFFFF)};
+  const int axis = int(edge >> 60);
+  for (int a = 0; a < 3; ++a)
+    if (a != axis && seam_plane(a, ijk[a])) return true;
+  return false;
+}
+
+int BlockGrid::owner(int i, int j, int k) const {
+  const int ijk[3] = {i, j, k};
+  int c[3];
+  for (int a = 0; a < 3; ++a) {
+    const auto& s = splits[std::size_t(a)];
+    // The last split at or below the index (the global end plane: the last block).
+    const auto it = std::upper_bound(s.begin(), s.end(), ijk[a]);
+    c[a] = std::clamp(int(it - s.begin()) - 1, 0, counts[std::size_t(a)] - 1);
+  }
+  return id(c[0], c[1], c[2]);
+}
+
+BlockGrid plan_blocks(const Aabb& box, int resolution, int blocks, double margin) {
+  if (!box.valid() || !all_finite({box.min, box.max})) throw InvalidInput("plan_blocks: invalid bounding box");
+  if (resolution < 1 || resolution >= (1 << 20)) throw InvalidInput("plan_blocks: resolution must be in [1, 2^20)");
+  if (blocks < 1) throw InvalidInput("plan_blocks: at least one block");
+  if (!(margin >= 0) || !std::isfinite(margin)) throw InvalidInput("plan_blocks: the margin must be >= 0");
+  const Vec3d ext = (box.max - box.min).cast<double>();
+  if (!(ext.maxCoeff() > 0)) throw InvalidInput("plan_blocks: degenerate bounding box");
+  BlockGrid g;
+  g.lattice.origin = box.min.cast<double>();
+  g.lattice.h = ext.maxCoeff() / resolution;
+  for (std::size_t a = 0; a < 3; ++a) {
+    g.lattice.global_cells[a] = std::max(1, int(std::ceil(ext[int(a)] / g.lattice.h - 1e-9)));
+    g.lattice.cells[a] = g.lattice.global_cells[a];
+  }
+  // Grow the count along the axis whose blocks are longest while the total stays
+  // within `blocks` (and a block keeps at least 4 cells).
+  for (;;) {
+    int best = -1;
+    double longest = 0;
+    for (int a = 0; a < 3; ++a) {
+      const int c = g.counts[std::size_t(a)];
+      const double side = double(g.lattice.global_cells[std::size_t(a)]) / c;
+      const int total = g.size() / c * (c + 1);
+      if (total > blocks || g.lattice.global_cells[std::size_t(a)] / (c + 1) < 4) continue;
+      if (side > longest) longest = side, best = a;
+    }
+    if (best < 0) break;
+    ++g.counts[std::size_t(best)];
+  }
+  for (std::size_t a = 0; a < 3; ++a) {
+    const int n = g.lattice.global_cells[a], c = g.counts[a];
+    g.splits[a].resize(std::size_t(c) + 1);
+    for (int t = 0; t <= c; ++t) g.splits[a][std::size_t(t)] = int(std::lround(double(n) * t / c));
+  }
+  g.margin = margin;
+  return g;
+}
+
+std::vector<int> block_order(const BlockGrid& grid) {
+  std::vector<int> order;
+  for (int bk = grid.counts[2] - 1; bk >= 0; --bk)
+    for (int bj = grid.counts[1] - 1; bj >= 0; --bj)
+      for (int bi = grid.counts[0] - 1; bi >= 0; --bi) order.push_back(grid.id(bi, bj, bk));
+  return order;
+}
+
+int block_wave(const BlockGrid& grid, int id) {
+  const auto c = grid.coords(id);
+  return (grid.counts[0] - 1 - c[0]) + (grid.counts[1] - 1 - c[1]) + (grid.counts[2] - 1 - c[2]);
+}
+
+// ------------------------------------------------------------------ seam values
+
+const double* SeamValues::lookup(const Vec3d& x) const {
+  if (table_.empty()) return nullptr;
+  const Vec3d g = (x - origin_) / h_;
+  int ijk[3];
+  for (int a = 0; a < 3; ++a) {
+    const double r = std::round(g[a]);
+    if (!(std::abs(g[a] - r) <= 1e-6) || r < 0 || r >= double(1 << 20)) return nullptr;
+    ijk[a] = int(r);
+  }
+  const auto it = table_.find(lattice_point_key(ijk[0], ijk[1], ijk[2]));
+  return it == table_.end() ? nullptr : &it->second;
+}
+
+double SeamValues::value(const Vec3d& x) const {
+  const double* v = lookup(x);
+  return v ? *v : f_.value(x);
+}
+
+void SeamValues::values_near(const Vec3d* xs, int n, double* out) const {
+  f_.values_near(xs, n, out);
+  for (int i = 0; i < n; ++i)
+    if (const double* v = lookup(xs[i])) out[i] = *v;
+}
+
+void SeamValues::values_gradients_near(const Vec3d* xs, int n, double* values, Vec3d* grads) const {
+  f_.values_gradients_near(xs, n, values, grads);
+  for (int i = 0; i < n; ++i)
+    if (const double* v = lookup(xs[i])) values[i] = *v;
+}
+
+SeamTable lower_face_values(const ImplicitFunction& f, const BlockGrid& grid, int id, int threads) {
+  const LatticeWindow w = grid.window(id);
+  const auto& o = w.offset;
+  const auto& c = w.cells;
+  // The owned points (half-open window) with an index on a lower face shared with a
+  // block below (not the global 0 planes).
+  std::vector<std::array<int, 3>> pts;
+  const int end[3] = {o[0] + c[0] + (o[0] + c[0] == w.global_cells[0]), o[1] + c[1] + (o[1] + c[1] == w.global_cells[1]),
+                      o[2] + c[2] + (o[2] + c[2] == w.global_cells[2])};
+  const bool lower[3] = {o[0] > 0, o[1] > 0, o[2] > 0};
+  for (int k = o[2]; k < end[2]; ++k)
+    for (int j = o[1]; j < end[1]; ++j) {
+      if ((lower[1] && j == o[1]) || (lower[2] && k == o[2])) {
+        for (int i = o[0]; i < end[0]; ++i) pts.push_back({i, j, k});
+      } else if (lower[0]) {
+        pts.push_back({o[0], j, k});
+      }
+    }
+  // Rows of 8 points along x (close together: values_near shares the walk).
+  std::vector<double> vals(pts.size());
+  tbb::task_arena arena(worker_threads(threads));
+  const std::size_t runs = (pts.size() + 7) / 8;
+  arena.execute([&] {
+    tbb::parallel_for(std::size_t(0), runs, [&](std::size_t r) {
+      Vec3d xs[8];
+      const std::size_t first = 8 * r, count = std::min<std::size_t>(8, pts.size() - first);
+      for (std::size_t t = 0; t < count; ++t) {
+        const auto& p = pts[first + t];
+        xs[t] = w.origin + w.h * Vec3d(p[0], p[1], p[2]);
+      }
+      f.values_near(xs, int(count), vals.data() + first);
+    });
+  });
+  SeamTable table;
+  table.reserve(pts.size());
+  for (std::size_t t = 0; t < pts.size(); ++t) table.emplace(lattice_point_key(pts[t][0], pts[t][1], pts[t][2]), vals[t]);
+  return table;
+}
+
+// ------------------------------------------------------------------ the summary
+
+CloudSource memory_source(const Cloud& cloud) {
+  return [&cloud](const std::function<void(const Cloud&)>& chunk) { chunk(cloud); };
+}
+
+BlockSummary summarise_cloud(const CloudSource& source, const SurfaceParams& p) {
+  BlockSummary s;
+  bool normals = true, colours = true, finite = true;
+  source([&](const Cloud& c) {
+    s.points += c.size();
+    if (!c.empty()) {
+      normals = normals && c.has_normals();
+      colours = colours && c.has_colours();
+    }
+    for (const Vec3f& q : c.points) {
+      finite = finite && q.allFinite();
+      s.bounds.extend(q);
+    }
+  });
+  if (s.points == 0) throw InvalidInput("blocks: the cloud is empty");
+  if (!finite) throw InvalidInput("blocks: the cloud has non-finite coordinates");
+  if (!normals)
+    throw InvalidInput("blocks need oriented normals (each block alone cannot orient them consistently): "
+                       "estimate them first (station consolidate) or run without --blocks");
+  s.colours = colours;
+  s.every = std::max<std::size_t>(1, s.points / kSummaryPoints);
+  std::size_t index = 0;
+  source([&](const Cloud& c) {
+    for (std::size_t i = 0; i < c.size(); ++i, ++index)
+      if (index % s.every == 0) append(s.far_field, c, i);
+  });
+  s.far_field.colours.clear();
+
+  // Spacings at full density: exact on the summary when it is the cloud, else on
+  // full-density patches around evenly spread summary points.
+  const PointIndex sindex(s.far_field.points);
+  std::vector<std::size_t> all(s.far_field.size());
+  for (std::size_t i = 0; i < all.size(); ++i) all[i] = i;
+  tbb::task_arena arena(worker_threads(p.threads));
+  arena.execute([&] {
+    auto [mean, sample] = spacings(sindex, s.far_field.points, all);
+    if (s.every > 1) {
+      constexpr int kPatches = 32;
+      constexpr double kPatchPoints = 3000;
+      const double thin = std::sqrt(double(s.every));
+      const double radius = std::sqrt(kPatchPoints / M_PI) * sample / thin;
+      std::vector<Vec3f> centres;
+      for (int t = 0; t < kPatches; ++t) centres.push_back(s.far_field.points[s.far_field.size() * std::size_t(t) / kPatches]);
+      const PointIndex cindex(centres);
+      std::vector<Vec3f> patch;
+      std::vector<int> patch_of;
+      source([&](const Cloud& c) {
+        for (const Vec3f& q : c.points) {
+          const auto [ci, d] = cindex.nearest(q);
+          if (ci >= 0 && d <= radius) patch.push_back(q), patch_of.push_back(ci);
+        }
+      });
+      // Statistics over the patches' inner halves (their neighbours all collected).
+      const PointIndex pindex(patch);
+      std::vector<std::size_t> inner;
+      for (std::size_t i = 0; i < patch.size(); ++i)
+        if ((patch[i] - centres[std::size_t(patch_of[i])]).norm() <= 0.5 * radius) inner.push_back(i);
+      if (inner.size() >= 100) std::tie(mean, sample) = spacings(pindex, patch, inner);
+      else mean /= thin, sample /= thin;
+    }
+    s.mean_spacing = mean;
+    s.sample_spacing = sample;
+  });
+
+  s.hole = p.hole;
+  if (p.hole == HoleMode::kAuto) {
+    s.enclosure = cloud_enclosure(s.far_field);
+    if (*s.enclosure <= -kEnclosedAbove) {
+      s.flip_normals = true;
+      for (Vec3f& n : s.far_field.normals) n = -n;
+      s.enclosure = -*s.enclosure;
+    }
+    s.hole = *s.enclosure >= kEnclosedAbove ? HoleMode::kClose : HoleMode::kKeep;
+  }
+  s.epsilon0 = p.epsilon0 > 0 ? p.epsilon0 : std::max(MpuParams().epsilon0, suggest_epsilon0(s.far_field));
+  s.box = s.bounds;
+  const float pad = 0.05f * (s.box.max - s.box.min).maxCoeff();
+  s.box.min.array() -= pad;
+  s.box.max.array() += pad;
+  const double longest = double((s.box.max - s.box.min).maxCoeff());
+  s.resolution_auto = p.resolution <= 0;
+  s.resolution = s.resolution_auto ? auto_resolution(longest, s.sample_spacing > 0 ? s.sample_spacing : s.mean_spacing)
+                                   : p.resolution;
+  if (s.hole == HoleMode::kClose && p.table_up && p.table_up->norm() > 0) {
+    const Vec3d u = p.table_up->normalized();
+    double lowest = std::numeric_limits<double>::infinity();
+    source([&](const Cloud& c) {
+      for (const Vec3f& q : c.points) lowest = std::min(lowest, u.dot(q.cast<double>()));
+    });
+    s.table_height = lowest;
+  }
+  return s;
+}
+
+double block_margin(const BlockSummary& s, double cell) { return std::max(kMarginCells * cell, 8 * s.mean_spacing); }
+
+Cloud block_points(const CloudSource& source, const BlockGrid& grid, int id) {
+  const Aabb region = grid.region(id);
+  Cloud out;
+  source([&](const Cloud& c) {
+    for (std::size_t i = 0; i < c.size(); ++i)
+      if (inside(region, c.points[i])) append(out, c, i);
+  });
+  return out;
+}
+
+// ------------------------------------------------------------------ one block
+
+BlockMesh reconstruct_block(const Cloud& pts_in, const BlockGrid& grid, int id, const BlockSummary& s,
+                            const SurfaceParams& p, const SeamTable& upper, SeamTable& lower) {
+  const auto t0 = Clock::now();
+  BlockMesh out;
+  out.points = pts_in.size();
+  const LatticeWindow window = grid.window(id);
+  const double h = window.h;
+  Cloud pts = pts_in;
+  if (s.flip_normals)
+    for (Vec3f& n : pts.normals) n = -n;
+  const MpuParams defaults;
+  if (pts.size() < std::size_t(defaults.n_min)) {
+    // Too few points for a fit: nothing of the surface here; its lower faces read outside.
+    Constant outside;
+    outside.v = h;
+    lower = lower_face_values(outside, grid, id, p.threads);
+    out.seconds = seconds_since(t0);
+    return out;
+  }
+  MpuParams mp;
+  mp.epsilon0 = s.epsilon0;
+  mp.threads = p.threads;
+  if (s.hole == HoleMode::kKeep) mp.trust_factor = kKeepTrustFactor;
+  const MpuSurface surface = fit_mpu(pts, mp);
+  out.mpu = surface.diagnostics();
+  const bool close = s.hole == HoleMode::kClose;
+  std::unique_ptr<WindingClose> winding;
+  Cloud winding_cloud;
+  if (close && p.winding_close) {
+    // Near field: the block's points; far field: the summary's points elsewhere.
+    const Aabb region = grid.region(id);
+    winding_cloud.points = pts.points;
+    winding_cloud.normals = pts.normals;
+    for (std::size_t i = 0; i < s.far_field.size(); ++i)
+      if (!inside(region, s.far_field.points[i])) {
+        winding_cloud.points.push_back(s.far_field.points[i]);
+        winding_cloud.normals.push_back(s.far_field.normals[i]);
+      }
+    WindingCloseParams wp;
+    wp.trust_distance = MpuParams().trust_factor * s.mean_spacing;
+    wp.voxel = std::max(wp.trust_distance / 2, double(s.bounds.diagonal()) / 200);
+    winding = std::make_unique<WindingClose>(surface, winding_cloud, wp);
+  }
+  const ImplicitFunction& closed = winding ? static_cast<const ImplicitFunction&>(*winding) : surface;
+  std::unique_ptr<HalfSpaceClip> clip;
+  if (close && p.table_up && p.table_up->norm() > 0 && s.table_height)
+    clip = std::make_unique<HalfSpaceClip>(closed, p.table_up->normalized(), *s.table_height);
+  const ImplicitFunction& f = clip ? static_cast<const ImplicitFunction&>(*clip) : closed;
+
+  // The lattice values of the window's faces: its own lower faces (which the blocks
+  // below take) and the upper faces from the blocks above.
+  lower = lower_face_values(f, grid, id, p.threads);
+  SeamTable faces = upper;
+  faces.insert(lower.begin(), lower.end());
+  const SeamValues field(f, grid.lattice, faces);
+
+  MarchingCubesOptions mo;
+  mo.untrusted = close ? UntrustedRegions::kClose : UntrustedRegions::kLeaveOpen;
+  mo.threads = p.threads;
+  mo.close_at_box = true;
+  mo.window = window;
+  mo.vertex_edges = &out.edges;
+  for (const Vec3f& q : pts.points) mo.seeds.push_back(q);
+  // The walk also starts next to every crossing on the window's faces, so a piece of
+  // surface that enters the window without points of its own there is not missed.
+  for (const auto& [key, v] : faces) {
+    const int ijk[3] = {int(key & 0xFFFFF), int(key >> 20 & 0xFFFFF), int(key >> 40 & 0xFFFFF)};
+    for (int a = 0; a < 3; ++a) {
+      int nb[3] = {ijk[0], ijk[1], ijk[2]};
+      ++nb[a];
+      const auto it = faces.find(lattice_point_key(nb[0], nb[1], nb[2]));
+      if (it == faces.end() || ((v < 0) == (it->second < 0))) continue;
+      const int b1 = (a + 1) % 3, b2 = (a + 2) % 3;
+      for (int q = 0; q < 4; ++q) {
+        int c[3] = {ijk[0], ijk[1], ijk[2]};
+        c[b1] -= q & 1;
+        c[b2] -= q >> 1;
+        Vec3d centre;
+        bool in = true;
+        for (int t = 0; t < 3; ++t) {
+          const int rel = c[t] - window.offset[std::size_t(t)];
+          in = in && rel >= 0 && rel < window.cells[std::size_t(t)];
+          centre[t] = window.origin[t] + h * (c[t] + 0.5);
+        }
+        if (in) mo.seeds.push_back(centre.cast<float>());
+      }
+    }
+  }
+  Mesh mesh;
+  if (p.extractor == Extractor::kDmc) {
+    DmcOptions dopt;
+    static_cast<MarchingCubesOptions&>(dopt) = mo;
+    mesh = extract_dmc(field, Aabb{}, 1, dopt, &out.dmc);
+  } else {
+    MarchingCubesStats ms;
+    mesh = extract_marching_cubes(field, Aabb{}, 1, mo, &ms);
+    static_cast<MarchingCubesStats&>(out.dmc) = ms;
+  }
+  if (!close && s.mean_spacing > 0) {
+    out.far.resize(mesh.vertices.size());
+    const double bound = kRimTrimFactor * s.mean_spacing;
+    for (std::size_t v = 0; v < mesh.vertices.size(); ++v)
+      out.far[v] = !(surface.nearest_point_distance(mesh.vertices[v].cast<double>()) <= bound);
+  }
+  if (p.colour && s.colours && pts.has_colours() && !mesh.vertices.empty()) {
+    if (p.colour_method == ColourMethod::kNearest) {
+      transfer_colours(mesh, pts, {4, p.threads});
+    } else {
+      const ColourFunction cf = fit_colour(pts, colour_params(p));
+      out.colour_nearest_vertices = colour_mesh(mesh, cf, surface, pts, p.threads);
+    }
+  }
+  out.mesh = std::move(mesh);
+  out.seconds = seconds_since(t0);
+  return out;
+}
+
+// ------------------------------------------------------------------ stitching
+
+Mesh stitch_blocks(std::vector<BlockMesh>& pieces, const BlockGrid& grid, std::vector<char>* far) {
+  Mesh out;
+  bool normals = true, colours = true, any = false;
+  std::size_t nv = 0, nf = 0;
+  for (const BlockMesh& b : pieces) {
+    if (b.mesh.vertices.empty()) continue;
+    if (b.edges.size() != b.mesh.vertices.size()) throw InvalidInput("stitch_blocks: a block's vertices have no lattice edges");
+    any = true;
+    normals = normals && b.mesh.has_normals();
+    colours = colours && b.mesh.has_colours();
+    nv += b.mesh.vertices.size();
+    nf += b.mesh.faces.size();
+  }
+  if (!any) return out;
+  out.vertices.reserve(nv);
+  out.faces.reserve(nf);
+  if (normals) out.normals.reserve(nv);
+  if (colours) out.colours.reserve(nv);
+  if (far) far->clear();
+  std::unordered_map<std::uint64_t, int> seam;
+  for (BlockMesh& b : pieces) {
+    if (b.mesh.vertices.empty()) continue;
+    std::vector<int> id(b.mesh.vertices.size());
+    for (std::size_t v = 0; v < id.size(); ++v) {
+      if (grid.on_seam(b.edges[v])) {
+        const auto [it, fresh] = seam.emplace(b.edges[v], int(out.vertices.size()));
+        if (!fresh) {
+          id[v] = it->second;
+          continue;
+        }
+      }
+      id[v] = int(out.vertices.size());
+      out.vertices.push_back(b.mesh.vertices[v]);
+      if (normals) out.normals.push_back(b.mesh.normals[v]);
+      if (colours) out.colours.push_back(b.mesh.colours[v]);
+      if (far) far->push_back(b.far.empty() ? 0 : b.far[v]);
+    }
+    for (const Face& fc : b.mesh.faces) out.faces.push_back({id[std::size_t(fc[0])], id[std::size_t(fc[1])], id[std::size_t(fc[2])]});
+    b.mesh = Mesh{};
+    b.edges.clear();
+    b.far.clear();
+  }
+  return out;
+}
+
+void finish_block_mesh(Mesh mesh, const std::vector<char>& far, const BlockSummary& s, const SurfaceParams& p,
+                       SurfaceResult& out) {
+  if (mesh.faces.empty()) throw InvalidInput("the reconstructed surface is empty");
+  if (s.hole == HoleMode::kKeep && far.size() == mesh.vertices.size()) out.rim_faces = trim_open_rims(mesh, far);
+  out.pieces = remove_small_components(mesh, p.min_component);
+  out.mesh = std::move(mesh);
+}
+
+// ------------------------------------------------------------------ in sequence
+
+SurfaceResult reconstruct_surface_blocks(const CloudSource& source, const SurfaceParams& p, int blocks,
+                                         BlockRunStats* stats) {
+  const auto t0 = Clock::now();
+  const auto note = [&](const std::string& line) {
+    if (p.note) p.note(line);
+  };
+  if (blocks < 1) throw InvalidInput("blocks: at least one block");
+  const BlockSummary s = summarise_cloud(source, p);
+  SurfaceResult out;
+  out.hole = s.hole;
+  out.enclosure = s.enclosure;
+  out.normals_flipped = s.flip_normals;
+  out.epsilon0 = s.epsilon0;
+  out.resolution = s.resolution;
+  out.resolution_auto = s.resolution_auto;
+  out.table_height = s.table_height;
+  const double cell = double((s.box.max - s.box.min).maxCoeff()) / s.resolution;
+  const BlockGrid grid = plan_blocks(s.box, s.resolution, blocks, block_margin(s, cell));
+  note(std::to_string(s.points) + " points in " + std::to_string(grid.size()) + " blocks (" +
+       std::to_string(grid.counts[0]) + " x " + std::to_string(grid.counts[1]) + " x " + std::to_string(grid.counts[2]) +
+       ") of one lattice of " + std::to_string(s.resolution) + " cells (cell " + fmt("%.3g", cell) + ", margin " +
+       fmt("%.3g", grid.margin) + "); " + (s.hole == HoleMode::kClose ? "closing" : "keeping") + " the unseen parts");
+  std::map<int, SeamTable> published;
+  std::vector<BlockMesh> pieces(std::size_t(grid.size()));
+  BlockRunStats st;
+  st.blocks = grid.size();
+  st.counts = grid.counts;
+  int done = 0;
+  for (const int id : block_order(grid)) {
+    const auto c = grid.coords(id);
+    SeamTable upper;
+    for (int q = 1; q < 8; ++q) {
+      const int ni = c[0] + (q & 1), nj = c[1] + (q >> 1 & 1), nk = c[2] + (q >> 2 & 1);
+      if (ni >= grid.counts[0] || nj >= grid.counts[1] || nk >= grid.counts[2]) continue;
+      const auto it = published.find(grid.id(ni, nj, nk));
+      if (it != published.end()) upper.insert(it->second.begin(), it->second.end());
+    }
+    const Cloud pts = block_points(source, grid, id);
+    st.max_block_points = std::max(st.max_block_points, pts.size());
+    SeamTable lower;
+    pieces[std::size_t(id)] = reconstruct_block(pts, grid, id, s, p, upper, lower);
+    published[id] = std::move(lower);
+    ++done;
+    note("block " + std::to_string(done) + "/" + std::to_string(grid.size()) + " (" + std::to_string(c[0]) + ", " +
+         std::to_string(c[1]) + ", " + std::to_string(c[2]) + "): " + std::to_string(pts.size()) + " points, " +
+         std::to_string(pieces[std::size_t(id)].mesh.faces.size()) + " faces, " +
+         fmt("%.2f s", pieces[std::size_t(id)].seconds));
+  }
+  std::vector<char> far;
+  std::size_t before = 0;
+  for (const BlockMesh& b : pieces) {
+    before += b.mesh.vertices.size();
+    out.colour_nearest_vertices += b.colour_nearest_vertices;
+    out.extraction.cells_visited += b.dmc.cells_visited;
+    out.extraction.surface_cells += b.dmc.surface_cells;
+    out.extraction.evaluations += b.dmc.evaluations;
+    out.extraction.dropped_faces += b.dmc.dropped_faces;
+    out.mpu.leaves += b.mpu.leaves;
+  }
+  out.extraction.cell_size = cell;
+  out.mpu.mean_spacing = s.mean_spacing;
+  out.mpu.sample_spacing = s.sample_spacing;
+  out.mpu.input_points = s.points;
+  Mesh mesh = stitch_blocks(pieces, grid, &far);
+  st.seam_vertices_joined = before - mesh.vertices.size();
+  out.coloured = p.colour && s.colours && mesh.has_colours();
+  finish_block_mesh(std::move(mesh), far, s, p, out);
+  if (out.rim_faces > 0) note("open rims brought back to the data (" + std::to_string(out.rim_faces) + " faces)");
+  if (out.pieces.removed_components > 0)
+    note("removed " + std::to_string(out.pieces.removed_components) + " small pieces (" +
+         std::to_string(out.pieces.removed_faces) + " faces)");
+  out.seconds.total = seconds_since(t0);
+  if (stats) *stats = st;
+  return out;
+}
+
+}  // namespace station

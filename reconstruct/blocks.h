@@ -1,0 +1,186 @@
+#pragma once
+// Block-wise surface stage (issue 29, docs/blocks.md): a cloud too large for one
+// machine is cut into blocks of one global extraction lattice; each block fits MPU
+// (and the colour function) on its own points plus a margin, and extracts the cells
+// of its window of the lattice. The blocks' meshes are stitched into one, vertex for
+// vertex, because the lattice values on a face two blocks share are the same
+// numbers in both: a lattice point belongs to the block whose half-open window
+// holds it, that block evaluates its lower faces first and the blocks below it take
+// those values (SeamValues), so both sides see the same crossings there. The blocks
+// run in an order where every block's upper neighbours are done first
+// (block_order), in sequence on one machine or spread over MPI ranks
+// (station/blocks_run.cpp).
+//
+// What the blocks share is decided once from a summary of the whole cloud (every
+// k-th point, BlockSummary): the tolerance, the hole mode, the resolution, the
+// trust distance, the table height, and the far field of the winding closing.
+#include <array>
+#include <cstdint>
+#include <functional>
+#include <optional>
+#include <string>
+#include <unordered_map>
+#include <vector>
+
+#include "core/geometry.h"
+#include "reconstruct/implicit.h"
+#include "reconstruct/marching_cubes.h"
+#include "reconstruct/surface.h"
+
+namespace station {
+
+/// The global lattice cut into blocks.
+struct BlockGrid {
+  LatticeWindow lattice;           ///< offset 0, cells = global_cells: the whole lattice
+  std::array<int, 3> counts{1, 1, 1};  ///< blocks per axis
+  /// Block boundaries per axis: splits[a][0] = 0 < ... < splits[a][counts[a]] = cells.
+  std::array<std::vector<int>, 3> splits;
+  double margin = 0;  ///< points within this distance of a block's window are its points too
+
+  int size() const { return counts[0] * counts[1] * counts[2]; }
+  /// Block id of (bi, bj, bk): bi + counts[0] * (bj + counts[1] * bk).
+  int id(int bi, int bj, int bk) const { return bi + counts[0] * (bj + counts[1] * bk); }
+  std::array<int, 3> coords(int id) const;
+  /// The window of the lattice block `id` extracts.
+  LatticeWindow window(int id) const;
+  /// The window's box grown by the margin (the points the block loads).
+  Aabb region(int id) const;
+  /// Whether the global lattice plane `index` across axis a is a boundary between blocks.
+  bool seam_plane(int a, int index) const;
+  /// Whether a vertex on lattice edge `edge_key` lies on a face two blocks share.
+  bool on_seam(std::uint64_t edge_key) const;
+  /// The block whose window holds lattice point (i, j, k) (half-open, the last plane
+  /// with the last block).
+  int owner(int i, int j, int k) const;
+};
+
+/// A lattice point as a key (lattice_edge_key with axis 3).
+inline std::uint64_t lattice_point_key(int i, int j, int k) { return lattice_edge_key(i, j, k, 3); }
+
+/// Values of lattice points, by lattice_point_key.
+using SeamTable = std::unordered_map<std::uint64_t, double>;
+
+/// Cuts the lattice of `box` at `resolution` (the same cell as extract_marching_cubes)
+/// into about `blocks` blocks (at most that many: the longest block side is halved
+/// first), each loading its points within `margin` of its window. InvalidInput for an
+/// invalid box, a resolution outside [1, 2^20) or blocks < 1.
+BlockGrid plan_blocks(const Aabb& box, int resolution, int blocks, double margin);
+
+/// An order of the blocks in which each block comes after every block holding a
+/// lattice point of its window's upper faces (its +x, +y, +z neighbours and those
+/// across their edges and corner): decreasing (bk, bj, bi). wave(id) numbers the
+/// anti-diagonal (bi + bj + bk, largest first = wave 0): blocks of one wave depend
+/// only on earlier waves, so they can run at once.
+std::vector<int> block_order(const BlockGrid& grid);
+int block_wave(const BlockGrid& grid, int id);
+
+/// f with the lattice values of a table: at a position on a lattice point the table
+/// holds, value() returns the table's value; everything else (other points, the
+/// gradients, trust, sharpness) is f's.
+class SeamValues : public ImplicitFunction {
+ public:
+  SeamValues(const ImplicitFunction& f, const LatticeWindow& lattice, const SeamTable& table)
+      : f_(f), origin_(lattice.origin), h_(lattice.h), table_(table) {}
+  double value(const Vec3d& x) const override;
+  Vec3d gradient(const Vec3d& x) const override { return f_.gradient(x); }
+  bool trusted(const Vec3d& x) const override { return f_.trusted(x); }
+  bool may_be_sharp(const Vec3d& x, double radius) const override { return f_.may_be_sharp(x, radius); }
+  void values_near(const Vec3d* xs, int n, double* out) const override;
+  void gradients_near(const Vec3d* xs, int n, Vec3d* out) const override { f_.gradients_near(xs, n, out); }
+  void values_gradients_near(const Vec3d* xs, int n, double* values, Vec3d* grads) const override;
+
+ private:
+  const double* lookup(const Vec3d& x) const;
+  const ImplicitFunction& f_;
+  Vec3d origin_;
+  double h_;
+  const SeamTable& table_;
+};
+
+/// What every block shares, decided from a summary of the whole cloud.
+struct BlockSummary {
+  Cloud far_field;           ///< every k-th point (with normals): the winding closing's far field
+  std::size_t every = 1;     ///< k
+  std::size_t points = 0;    ///< the whole cloud's points
+  Aabb bounds;               ///< the whole cloud's bounds
+  bool colours = false;      ///< the cloud has colours
+  double epsilon0 = 0;
+  HoleMode hole = HoleMode::kClose;  ///< resolved (never kAuto)
+  std::optional<double> enclosure;   ///< with kAuto: cloud_enclosure of the summary
+  bool flip_normals = false;         ///< kAuto found the normals facing inwards: each block turns them
+  double mean_spacing = 0;    ///< the whole cloud's, estimated from the summary
+  double sample_spacing = 0;  ///< likewise
+  int resolution = 0;
+  bool resolution_auto = false;
+  std::optional<double> table_height;  ///< with a table plane: the lowest point along up
+  Aabb box;                  ///< the extraction box (bounds grown by 5 % of the longest side)
+};
+
+/// Summary points: every k-th point, k = max(1, points / kSummaryPoints).
+inline constexpr std::size_t kSummaryPoints = 200000;
+
+/// Streams a cloud in chunks: calls `chunk` with consecutive pieces (normals and
+/// colours as the source has them), in file order. Throws what the reader throws.
+using CloudSource = std::function<void(const std::function<void(const Cloud& chunk)>& chunk)>;
+
+/// A CloudSource over a cloud in memory (one chunk).
+CloudSource memory_source(const Cloud& cloud);
+
+/// The summary and the shared decisions. InvalidInput when the cloud is empty, has no
+/// normals ("blocks need oriented normals: ..."), or non-finite coordinates.
+BlockSummary summarise_cloud(const CloudSource& source, const SurfaceParams& params);
+
+/// The margin of the blocks: far enough for MPU's support near the window's faces and
+/// for the closing's trust ramp: max(kMarginCells cells, 8 mean spacings).
+double block_margin(const BlockSummary& summary, double cell);
+inline constexpr double kMarginCells = 8;
+
+/// One block's piece of the mesh and what the stitching needs.
+struct BlockMesh {
+  Mesh mesh;
+  std::vector<std::uint64_t> edges;  ///< per vertex: its lattice edge (lattice_edge_key)
+  std::vector<char> far;             ///< per vertex, with holes kept: beyond the rim-trim bound
+  std::size_t points = 0;            ///< the block's points (window and margin)
+  std::size_t colour_nearest_vertices = 0;
+  MpuDiagnostics mpu;
+  DmcStats dmc;
+  double seconds = 0;
+};
+
+/// The lattice values block `id` owns on its lower faces (the faces shared with the
+/// blocks below it), from f at the lattice points exactly (origin + h * index).
+SeamTable lower_face_values(const ImplicitFunction& f, const BlockGrid& grid, int id, int threads);
+
+/// The surface stage on one block: `points` are the block's (its region's), `upper`
+/// holds the lattice values of its upper faces (from the blocks above, lower_face_values);
+/// its own lower-face values go to `lower`. Extracts the block's window only; no small
+/// pieces dropped, no rim trim (the stitched mesh's), no colour-edge splits.
+BlockMesh reconstruct_block(const Cloud& points, const BlockGrid& grid, int id, const BlockSummary& summary,
+                            const SurfaceParams& params, const SeamTable& upper, SeamTable& lower);
+
+/// The blocks' meshes as one: vertices on shared faces are joined by their lattice edge
+/// (the first block's position, normal and colour kept). `far` gets the joined
+/// vertices' far flags when given.
+Mesh stitch_blocks(std::vector<BlockMesh>& pieces, const BlockGrid& grid, std::vector<char>* far = nullptr);
+
+/// The points of `source` inside block `id`'s region.
+Cloud block_points(const CloudSource& source, const BlockGrid& grid, int id);
+
+struct BlockRunStats {
+  int blocks = 0;
+  std::array<int, 3> counts{1, 1, 1};
+  std::size_t max_block_points = 0;
+  std::size_t seam_vertices_joined = 0;
+};
+
+/// The whole block-wise surface stage in this process, block after block (memory:
+/// one block's points and fits at a time, plus the meshes). `blocks` >= 1.
+SurfaceResult reconstruct_surface_blocks(const CloudSource& source, const SurfaceParams& params, int blocks,
+                                         BlockRunStats* stats = nullptr);
+
+/// The stitched mesh finished as the single run finishes it: rims trimmed (holes kept),
+/// small pieces dropped. Fills out.mesh, out.rim_faces, out.pieces.
+void finish_block_mesh(Mesh mesh, const std::vector<char>& far, const BlockSummary& summary,
+                       const SurfaceParams& params, SurfaceResult& out);
+
+}  // namespace station

@@ -1,0 +1,265 @@
+// Block-wise surface stage (issue 29): the blocks of one lattice stitch into one
+// mesh without cracks or doubled faces, and the blocked mesh is the single run's
+// within half a cell.
+#include "reconstruct/blocks.h"
+
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <set>
+#include <tuple>
+
+#include "core/error.h"
+#include "core/io.h"
+#include "core/mesh_topology.h"
+#include "eval/eval.h"
+#include "reconstruct/dmc.h"
+#include "test_util.h"
+
+namespace station {
+namespace {
+
+struct Sphere : ImplicitFunction {
+  Vec3d c{0.013, -0.021, 0.007};
+  double r = 0.61;
+  double value(const Vec3d& x) const override { return (x - c).norm() - r; }
+  Vec3d gradient(const Vec3d& x) const override { return (x - c).normalized(); }
+};
+
+// Two spheres joined by a thin neck along x, crossing the block faces at odd angles.
+struct Dumbbell : ImplicitFunction {
+  double value(const Vec3d& x) const override {
+    const double a = (x - Vec3d(-0.45, 0.03, 0.02)).norm() - 0.35;
+    const double b = (x - Vec3d(0.47, -0.02, 0.05)).norm() - 0.3;
+    const double neck = std::hypot(x.y() - 0.01, x.z() - 0.03) - 0.06;
+    return std::min({a, b, std::max(neck, std::abs(x.x()) - 0.6)});
+  }
+  Vec3d gradient(const Vec3d& x) const override {
+    const double e = 1e-6;
+    Vec3d g;
+    for (int a = 0; a < 3; ++a) {
+      Vec3d p = x, m = x;
+      p[a] += e, m[a] -= e;
+      g[a] = (value(p) - value(m)) / (2 * e);
+    }
+    return g;
+  }
+};
+
+Aabb cube(double s) {
+  Aabb b;
+  b.min = Vec3f::Constant(float(-s));
+  b.max = Vec3f::Constant(float(s));
+  b.max.y() = float(0.8 * s);  // not a cube: the axes get different cell counts
+  return b;
+}
+
+// f moved by d: each block's own fit of the same surface differs a little.
+struct Shifted : ImplicitFunction {
+  const ImplicitFunction& f;
+  double d;
+  Shifted(const ImplicitFunction& f, double d) : f(f), d(d) {}
+  double value(const Vec3d& x) const override { return f.value(x) + d; }
+  Vec3d gradient(const Vec3d& x) const override { return f.gradient(x); }
+};
+
+// Extracts every block's window of `grid` on f (the face values from the blocks
+// above, as the block-wise stage does) and stitches them. With `shift`, block id's
+// field is f + shift * (id % 3 - 1): the blocks disagree near the faces they share.
+Mesh blocked(const ImplicitFunction& f0, const BlockGrid& grid, bool dmc, std::size_t* joined = nullptr,
+             double shift = 0) {
+  std::vector<BlockMesh> pieces(std::size_t(grid.size()));
+  std::vector<SeamTable> lower(std::size_t(grid.size()));
+  for (const int id : block_order(grid)) {
+    const auto c = grid.coords(id);
+    const Shifted f(f0, shift * (id % 3 - 1));
+    SeamTable faces;
+    for (int q = 1; q < 8; ++q) {
+      const int i = c[0] + (q & 1), j = c[1] + (q >> 1 & 1), k = c[2] + (q >> 2 & 1);
+      if (i < grid.counts[0] && j < grid.counts[1] && k < grid.counts[2])
+        faces.insert(lower[std::size_t(grid.id(i, j, k))].begin(), lower[std::size_t(grid.id(i, j, k))].end());
+    }
+    lower[std::size_t(id)] = lower_face_values(f, grid, id, 2);
+    faces.insert(lower[std::size_t(id)].begin(), lower[std::size_t(id)].end());
+    const SeamValues field(f, grid.lattice, faces);
+    DmcOptions o;
+    o.threads = 2;
+    o.coarse_step = 2;
+    o.close_at_box = true;
+    o.window = grid.window(id);
+    o.vertex_edges = &pieces[std::size_t(id)].edges;
+    pieces[std::size_t(id)].mesh = dmc ? extract_dmc(field, Aabb{}, 1, o) : extract_marching_cubes(field, Aabb{}, 1, o);
+  }
+  std::size_t before = 0;
+  for (const BlockMesh& b : pieces) before += b.mesh.vertices.size();
+  Mesh m = stitch_blocks(pieces, grid);
+  if (joined) *joined = before - m.vertices.size();
+  return m;
+}
+
+std::multiset<std::tuple<float, float, float>> vertex_set(const Mesh& m) {
+  std::multiset<std::tuple<float, float, float>> s;
+  for (const Vec3f& v : m.vertices) s.emplace(v.x(), v.y(), v.z());
+  return s;
+}
+
+TEST(BlockGrid, CutsTheLongestSidesAndOrdersUpperNeighboursFirst) {
+  const BlockGrid g = plan_blocks(cube(1.0), 40, 8, 0.1);
+  EXPECT_EQ(g.size(), 8);
+  EXPECT_EQ(g.counts[0], 2);
+  EXPECT_EQ(g.counts[1], 2);
+  EXPECT_EQ(g.counts[2], 2);
+  EXPECT_EQ(g.lattice.global_cells[0], 40);
+  EXPECT_EQ(g.lattice.global_cells[1], 36);
+  EXPECT_EQ(plan_blocks(cube(1.0), 40, 2, 0.1).counts, (std::array<int, 3>{2, 1, 1}));
+  EXPECT_EQ(plan_blocks(cube(1.0), 40, 3, 0.1).size(), 3);
+  EXPECT_THROW(plan_blocks(cube(1.0), 40, 0, 0.1), InvalidInput);
+  // Every lattice point has one owner whose window holds it; the seam planes are the splits.
+  for (int i = 0; i <= 40; i += 5)
+    for (int j = 0; j <= 36; j += 6)
+      for (int k = 0; k <= 40; k += 4) {
+        const LatticeWindow w = g.window(g.owner(i, j, k));
+        const int ijk[3] = {i, j, k};
+        for (int a = 0; a < 3; ++a) {
+          EXPECT_GE(ijk[a], w.offset[std::size_t(a)]);
+          EXPECT_LE(ijk[a], w.offset[std::size_t(a)] + w.cells[std::size_t(a)]);
+        }
+      }
+  EXPECT_TRUE(g.seam_plane(0, 20));
+  EXPECT_FALSE(g.seam_plane(0, 0));
+  EXPECT_FALSE(g.seam_plane(0, 40));
+  EXPECT_TRUE(g.on_seam(lattice_edge_key(20, 3, 5, 1)));   // in the plane x = 20
+  EXPECT_FALSE(g.on_seam(lattice_edge_key(20, 3, 5, 0)));  // across it
+  // Each block comes after the blocks above it (+x, +y, +z and diagonals).
+  const std::vector<int> order = block_order(g);
+  std::vector<int> pos(order.size());
+  for (std::size_t t = 0; t < order.size(); ++t) pos[std::size_t(order[t])] = int(t);
+  for (int id = 0; id < g.size(); ++id) {
+    const auto c = g.coords(id);
+    for (int q = 1; q < 8; ++q) {
+      const int i = c[0] + (q & 1), j = c[1] + (q >> 1 & 1), k = c[2] + (q >> 2 & 1);
+      if (i < 2 && j < 2 && k < 2) {
+        EXPECT_LT(pos[std::size_t(g.id(i, j, k))], pos[std::size_t(id)]);
+        EXPECT_LT(block_wave(g, g.id(i, j, k)), block_wave(g, id));
+      }
+    }
+  }
+}
+
+TEST(BlockSeams, MarchingCubesInBlocksIsTheSingleMeshVertexForVertex) {
+  const Sphere f;
+  const Aabb box = cube(0.8);
+  MarchingCubesOptions o;
+  o.threads = 2;
+  o.coarse_step = 2;
+  o.close_at_box = true;
+  const Mesh single = extract_marching_cubes(f, box, 37, o);
+  std::size_t joined = 0;
+  const Mesh blocks = blocked(f, plan_blocks(box, 37, 8, 0), false, &joined);
+  EXPECT_GT(joined, 100u);  // the seams were joined
+  EXPECT_EQ(blocks.vertices.size(), single.vertices.size());
+  EXPECT_EQ(blocks.faces.size(), single.faces.size());
+  EXPECT_TRUE(vertex_set(blocks) == vertex_set(single));
+  const MeshTopology t = mesh_topology(blocks);
+  EXPECT_TRUE(t.closed_manifold());
+  EXPECT_EQ(t.misoriented_edges, 0);
+  EXPECT_EQ(t.components, 1);
+}
+
+TEST(BlockSeams, BlocksWhoseFieldsDisagreeStillMeetVertexForVertex) {
+  // Each block's field is the sphere moved by up to 0.3 cells: the shared faces'
+  // values come from their owner, so the crossings there are the same in both blocks.
+  const Sphere f;
+  const Aabb box = cube(0.8);
+  const BlockGrid g = plan_blocks(box, 37, 8, 0);
+  for (const bool dmc : {false, true}) {
+    const MeshTopology t = mesh_topology(blocked(f, g, dmc, nullptr, 0.3 * g.lattice.h));
+    EXPECT_TRUE(t.closed_manifold()) << (dmc ? "DMC: " : "MC: ") << t.boundary_edges << " boundary, "
+                                     << t.nonmanifold_edges << " non-manifold edges";
+    EXPECT_EQ(t.misoriented_edges, 0);
+    EXPECT_EQ(t.components, 1);
+  }
+}
+
+TEST(BlockSeams, DeformedMarchingCubesInBlocksIsClosedAndNearTheSingleMesh) {
+  const Dumbbell f;
+  const Aabb box = cube(1.0);
+  for (const int blocks : {2, 8, 27}) {
+    const BlockGrid g = plan_blocks(box, 48, blocks, 0);
+    const Mesh m = blocked(f, g, true);
+    const MeshTopology t = mesh_topology(m);
+    EXPECT_TRUE(t.closed_manifold()) << blocks << " blocks: " << t.boundary_edges << " boundary, "
+                                     << t.nonmanifold_edges << " non-manifold edges";
+    EXPECT_EQ(t.misoriented_edges, 0);
+    EXPECT_EQ(t.components, 1);
+    DmcOptions o;
+    o.threads = 2;
+    o.coarse_step = 2;
+    o.close_at_box = true;
+    const Mesh single = extract_dmc(f, box, 48, o);
+    EvalParams ep;
+    ep.mesh_samples = 20000;
+    ep.threads = 2;
+    const EvalResult e = evaluate(m, single, ep);
+    EXPECT_LT(e.hausdorff, 0.5 * g.lattice.h) << blocks << " blocks";
+  }
+}
+
+// The bundled bottle, sampled: the whole stage in blocks against the single run.
+Cloud bottle(int n) {
+  const Mesh m = read_mesh(test::source_dir() / "data/mustard_bottle/textured.obj");
+  return sample_mesh(m, n, 7);
+}
+
+TEST(BlockSurface, BottleInBlocksIsTheSingleRunWithinHalfACell) {
+  const Cloud cloud = bottle(60000);
+  for (const Extractor x : {Extractor::kMarchingCubes, Extractor::kDmc}) {
+    SurfaceParams p;
+    p.threads = 2;
+    p.resolution = 96;
+    p.extractor = x;
+    p.colour = false;
+    const SurfaceResult single = reconstruct_surface(cloud, p);
+    BlockRunStats st;
+    const SurfaceResult b = reconstruct_surface_blocks(memory_source(cloud), p, 8, &st);
+    EXPECT_EQ(st.blocks, 8);
+    EXPECT_GT(st.seam_vertices_joined, 50u);
+    EXPECT_LT(st.max_block_points, cloud.size());
+    EXPECT_EQ(b.hole, single.hole);
+    EXPECT_EQ(b.resolution, 96);
+    const MeshTopology ts = mesh_topology(single.mesh), tb = mesh_topology(b.mesh);
+    EXPECT_EQ(tb.boundary_edges, ts.boundary_edges) << extractor_label(x);
+    EXPECT_EQ(tb.nonmanifold_edges, 0) << extractor_label(x);
+    EXPECT_EQ(tb.misoriented_edges, 0) << extractor_label(x);
+    EXPECT_EQ(tb.components, ts.components) << extractor_label(x);
+    EvalParams ep;
+    ep.mesh_samples = 50000;
+    ep.threads = 2;
+    const EvalResult e = evaluate(b.mesh, single.mesh, ep);
+    const double cell = b.extraction.cell_size;
+    std::printf("%s: single %zu faces, blocks %zu faces; Hausdorff %.3g cells, mean %.3g cells\n",
+                extractor_label(x), single.mesh.faces.size(), b.mesh.faces.size(), e.hausdorff / cell,
+                e.chamfer / cell);
+    EXPECT_LT(e.hausdorff, 0.5 * cell) << extractor_label(x);
+  }
+}
+
+TEST(BlockSurface, NeedsNormalsAndPoints) {
+  Cloud none;
+  EXPECT_THROW(reconstruct_surface_blocks(memory_source(none), SurfaceParams{}, 8), InvalidInput);
+  Cloud bare = bottle(2000);
+  bare.normals.clear();
+  try {
+    reconstruct_surface_blocks(memory_source(bare), SurfaceParams{}, 8);
+    FAIL() << "no error without normals";
+  } catch (const InvalidInput& e) {
+    EXPECT_NE(std::string(e.what()).find("normals"), std::string::npos);
+  }
+  Cloud bad = bottle(2000);
+  bad.points[5].x() = std::nanf("");
+  EXPECT_THROW(reconstruct_surface_blocks(memory_source(bad), SurfaceParams{}, 8), InvalidInput);
+}
+
+}  // namespace
+}  // namespace station
