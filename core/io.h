@@ -12,6 +12,7 @@
 // FormatError("NAME: problem"), never crashes (each has a libFuzzer target in
 // fuzz/). Non-finite coordinates are rejected with FormatError.
 #include <filesystem>
+#include <functional>
 #include <string>
 #include <string_view>
 
@@ -54,6 +55,11 @@ std::string read_file_bytes(const fs::path& path);
 
 /// Reads a point cloud (.ply, .pcd, .obj, .off: mesh vertices are taken as points).
 Cloud read_cloud(const fs::path& path);
+/// Streams a PLY file's vertices as points (with normals and colours when it has
+/// them), `chunk` at a time, in file order: `fn` gets each chunk; the file is mapped,
+/// not loaded, so memory stays at one chunk whatever the file's size. The same
+/// errors as read_cloud (FormatError naming the file and the vertex; IoError).
+void stream_ply_points(const fs::path& path, std::size_t chunk, const std::function<void(const Cloud&)>& fn);
 /// Reads a mesh (.ply, .obj, .off). A file without faces gives a mesh with no faces.
 Mesh read_mesh(const fs::path& path);
 /// Reads OBJ with its texture reference; other formats give no UVs.

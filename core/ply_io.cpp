@@ -1,6 +1,14 @@
 // PLY reader (ascii, binary little/big endian).
+#include <fcntl.h>
+#include <sys/mman.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <cerrno>
 #include <cstdint>
 #include <cstring>
+#include <functional>
 #include <limits>
 #include <string>
 #include <vector>
@@ -324,14 +332,24 @@ struct VertexLayout {
   bool unit_colour = false;  // floating-point colours in [0, 1]
 };
 
+// The vertices into `mesh`; with `chunk` > 0 and `emit`, `emit` is called after every
+// `chunk` vertices (and after the last) and the vertices are cleared in between.
 template <class Source>
-void read_vertices(Source& src, const Element& e, const VertexLayout& L, Mesh& mesh) {
+void read_vertices(Source& src, const Element& e, const VertexLayout& L, Mesh& mesh, std::size_t chunk = 0,
+                   const std::function<void(Mesh&)>& emit = {}) {
   const bool normals = L.nx >= 0, colours = L.r >= 0;
-  mesh.vertices.reserve(e.count);
-  if (normals) mesh.normals.reserve(e.count);
-  if (colours) mesh.colours.reserve(e.count);
+  const std::size_t reserve = chunk > 0 ? std::min<std::uint64_t>(chunk, e.count) : e.count;
+  mesh.vertices.reserve(reserve);
+  if (normals) mesh.normals.reserve(reserve);
+  if (colours) mesh.colours.reserve(reserve);
   std::vector<double> v(e.props.size(), 0.0);
   for (std::uint64_t i = 0; i < e.count; ++i) {
+    if (chunk > 0 && mesh.vertices.size() == chunk) {
+      emit(mesh);
+      mesh.vertices.clear();
+      mesh.normals.clear();
+      mesh.colours.clear();
+    }
     src.begin("vertex", i);
     for (std::size_t k = 0; k < e.props.size(); ++k) {
       const Property& p = e.props[k];
@@ -350,6 +368,7 @@ void read_vertices(Source& src, const Element& e, const VertexLayout& L, Mesh& m
                                 io_detail::to_channel(v[L.g], L.unit_colour),
                                 io_detail::to_channel(v[L.b], L.unit_colour)});
   }
+  if (chunk > 0 && !mesh.vertices.empty()) emit(mesh);
 }
 
 template <class Source>
@@ -382,7 +401,7 @@ void read_faces(Source& src, const Element& e, int list_prop, std::uint64_t vert
 
 template <class Source>
 Mesh read_body(Source& src, const Header& h, const std::string& name, std::uint64_t budget,
-               bool binary) {
+               bool binary, std::size_t chunk = 0, const std::function<void(Mesh&)>& emit = {}) {
   // Every declared count must fit in the data that follows before anything is
   // allocated: a hostile header can claim billions of vertices.
   const Element* vertex = nullptr;
@@ -420,7 +439,8 @@ Mesh read_body(Source& src, const Header& h, const std::string& name, std::uint6
   for (const Element& e : h.elements) {
     if (e.props.empty() || e.count == 0) continue;
     if (&e == vertex) {
-      read_vertices(src, e, L, mesh);
+      read_vertices(src, e, L, mesh, chunk, emit);
+      if (chunk > 0) return mesh;  // streamed: the points only
       continue;
     }
     int list_prop = -1;
@@ -456,6 +476,54 @@ Mesh parse_ply(std::string_view bytes, const std::string& name) {
   }
   BinarySource src(data, h.encoding == Encoding::kBinaryBe, name);
   return read_body(src, h, name, data.size(), true);
+}
+
+}  // namespace station
+
+namespace station {
+
+void stream_ply_points(const fs::path& path, std::size_t chunk, const std::function<void(const Cloud&)>& fn) {
+  if (chunk == 0) chunk = 1;
+  const std::string name = path.string();
+  const int fd = ::open(name.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd < 0) throw IoError(name + ": cannot open: " + std::strerror(errno));
+  struct stat st {};
+  if (::fstat(fd, &st) != 0 || st.st_size <= 0) {
+    ::close(fd);
+    throw IoError(name + ": cannot read (empty or unreadable)");
+  }
+  const std::size_t size = std::size_t(st.st_size);
+  // Mapped, not read: the pages come and go with the walk, so a cloud larger than
+  // memory streams through (only `chunk` points are held at a time).
+  void* map = ::mmap(nullptr, size, PROT_READ, MAP_PRIVATE, fd, 0);
+  ::close(fd);
+  if (map == MAP_FAILED) throw IoError(name + ": cannot map: " + std::strerror(errno));
+  ::madvise(map, size, MADV_SEQUENTIAL);
+  struct Unmap {
+    void* p;
+    std::size_t n;
+    ~Unmap() { ::munmap(p, n); }
+  } unmap{map, size};
+  const std::string_view bytes(static_cast<const char*>(map), size);
+  const Header h = parse_header(bytes, name);
+  const std::string_view data = bytes.substr(h.data_offset);
+  Cloud c;
+  const std::function<void(Mesh&)> emit = [&](Mesh& m) {
+    c.points.swap(m.vertices);
+    c.normals.swap(m.normals);
+    c.colours.swap(m.colours);
+    fn(c);
+    c.points.swap(m.vertices);
+    c.normals.swap(m.normals);
+    c.colours.swap(m.colours);
+  };
+  if (h.encoding == Encoding::kAscii) {
+    AsciiSource src(data, h.data_line, name);
+    read_body(src, h, name, (data.size() + 1) / 2, false, chunk, emit);
+  } else {
+    BinarySource src(data, h.encoding == Encoding::kBinaryBe, name);
+    read_body(src, h, name, data.size(), true, chunk, emit);
+  }
 }
 
 }  // namespace station

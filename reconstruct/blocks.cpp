@@ -6,12 +6,16 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <cctype>
 #include <cstdio>
+#include <cstring>
+#include <filesystem>
 #include <limits>
 #include <map>
 #include <memory>
 
 #include "core/error.h"
+#include "core/io.h"
 #include "core/kdtree.h"
 #include "core/threads.h"
 #include "reconstruct/colour_function.h"
@@ -530,6 +534,196 @@ void finish_block_mesh(Mesh mesh, const std::vector<char>& far, const BlockSumma
   if (s.hole == HoleMode::kKeep && far.size() == mesh.vertices.size()) out.rim_faces = trim_open_rims(mesh, far);
   out.pieces = remove_small_components(mesh, p.min_component);
   out.mesh = std::move(mesh);
+}
+
+// ------------------------------------------------------------------ files
+
+CloudSource file_source(const std::string& path) {
+  std::string ext = std::filesystem::path(path).extension().string();
+  std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char c) { return char(std::tolower(c)); });
+  if (ext == ".ply")
+    return [path](const std::function<void(const Cloud&)>& chunk) { stream_ply_points(path, 65536, chunk); };
+  auto cloud = std::make_shared<Cloud>(read_cloud(path));
+  return [cloud](const std::function<void(const Cloud&)>& chunk) { chunk(*cloud); };
+}
+
+namespace {
+
+constexpr std::uint32_t kMagic = 0x4B4C4253;  // "SBLK"
+
+class Writer {
+ public:
+  template <class T>
+  void put(const T& v) {
+    out.append(reinterpret_cast<const char*>(&v), sizeof(T));
+  }
+  template <class T>
+  void put_vector(const std::vector<T>& v) {
+    put(std::uint64_t(v.size()));
+    out.append(reinterpret_cast<const char*>(v.data()), v.size() * sizeof(T));
+  }
+  std::string out;
+};
+
+class Reader {
+ public:
+  Reader(const std::string& bytes, const std::string& what) : b_(bytes), what_(what) {}
+  template <class T>
+  T get() {
+    need(sizeof(T));
+    T v;
+    std::memcpy(&v, b_.data() + at_, sizeof(T));
+    at_ += sizeof(T);
+    return v;
+  }
+  template <class T>
+  std::vector<T> get_vector() {
+    const std::uint64_t n = get<std::uint64_t>();
+    if (n > (b_.size() - at_) / sizeof(T)) fail();
+    std::vector<T> v(n);
+    std::memcpy(v.data(), b_.data() + at_, n * sizeof(T));
+    at_ += n * sizeof(T);
+    return v;
+  }
+  void header(std::uint32_t kind) {
+    if (get<std::uint32_t>() != kMagic || get<std::uint32_t>() != kind) fail();
+  }
+  void end() const {
+    if (at_ != b_.size()) fail();
+  }
+  [[noreturn]] void fail() const { throw FormatError(what_ + ": not a block file of this station (or truncated)"); }
+
+ private:
+  void need(std::size_t n) const {
+    if (b_.size() - at_ < n) fail();
+  }
+  const std::string& b_;
+  std::string what_;
+  std::size_t at_ = 0;
+};
+
+}  // namespace
+
+std::string to_bytes(const BlockSummary& s) {
+  Writer w;
+  w.put(kMagic);
+  w.put(std::uint32_t(1));
+  w.put_vector(s.far_field.points);
+  w.put_vector(s.far_field.normals);
+  w.put(std::uint64_t(s.every));
+  w.put(std::uint64_t(s.points));
+  w.put(s.bounds);
+  w.put(std::uint8_t(s.colours));
+  w.put(s.epsilon0);
+  w.put(int(s.hole));
+  w.put(std::uint8_t(bool(s.enclosure)));
+  w.put(s.enclosure.value_or(0.0));
+  w.put(std::uint8_t(s.flip_normals));
+  w.put(s.mean_spacing);
+  w.put(s.sample_spacing);
+  w.put(s.resolution);
+  w.put(std::uint8_t(s.resolution_auto));
+  w.put(std::uint8_t(bool(s.table_height)));
+  w.put(s.table_height.value_or(0.0));
+  w.put(s.box);
+  return w.out;
+}
+
+BlockSummary summary_from_bytes(const std::string& bytes, const std::string& what) {
+  Reader r(bytes, what);
+  r.header(1);
+  BlockSummary s;
+  s.far_field.points = r.get_vector<Vec3f>();
+  s.far_field.normals = r.get_vector<Vec3f>();
+  s.every = std::size_t(r.get<std::uint64_t>());
+  s.points = std::size_t(r.get<std::uint64_t>());
+  s.bounds = r.get<Aabb>();
+  s.colours = r.get<std::uint8_t>();
+  s.epsilon0 = r.get<double>();
+  s.hole = HoleMode(r.get<int>());
+  const bool enclosure = r.get<std::uint8_t>();
+  const double e = r.get<double>();
+  if (enclosure) s.enclosure = e;
+  s.flip_normals = r.get<std::uint8_t>();
+  s.mean_spacing = r.get<double>();
+  s.sample_spacing = r.get<double>();
+  s.resolution = r.get<int>();
+  s.resolution_auto = r.get<std::uint8_t>();
+  const bool table = r.get<std::uint8_t>();
+  const double t = r.get<double>();
+  if (table) s.table_height = t;
+  s.box = r.get<Aabb>();
+  r.end();
+  if (s.far_field.normals.size() != s.far_field.points.size()) r.fail();
+  return s;
+}
+
+std::string to_bytes(const BlockMesh& b) {
+  Writer w;
+  w.put(kMagic);
+  w.put(std::uint32_t(2));
+  w.put_vector(b.mesh.vertices);
+  w.put_vector(b.mesh.normals);
+  w.put_vector(b.mesh.colours);
+  w.put_vector(b.mesh.faces);
+  w.put_vector(b.edges);
+  w.put_vector(b.far);
+  w.put(std::uint64_t(b.points));
+  w.put(std::uint64_t(b.colour_nearest_vertices));
+  w.put(std::uint64_t(b.mpu.leaves));
+  w.put(std::uint64_t(b.dmc.cells_visited));
+  w.put(std::uint64_t(b.dmc.surface_cells));
+  w.put(std::uint64_t(b.dmc.evaluations));
+  w.put(std::uint64_t(b.dmc.dropped_faces));
+  w.put(b.seconds);
+  return w.out;
+}
+
+BlockMesh piece_from_bytes(const std::string& bytes, const std::string& what) {
+  Reader r(bytes, what);
+  r.header(2);
+  BlockMesh b;
+  b.mesh.vertices = r.get_vector<Vec3f>();
+  b.mesh.normals = r.get_vector<Vec3f>();
+  b.mesh.colours = r.get_vector<Rgb>();
+  b.mesh.faces = r.get_vector<Face>();
+  b.edges = r.get_vector<std::uint64_t>();
+  b.far = r.get_vector<char>();
+  b.points = std::size_t(r.get<std::uint64_t>());
+  b.colour_nearest_vertices = std::size_t(r.get<std::uint64_t>());
+  b.mpu.leaves = std::size_t(r.get<std::uint64_t>());
+  b.dmc.cells_visited = std::size_t(r.get<std::uint64_t>());
+  b.dmc.surface_cells = std::size_t(r.get<std::uint64_t>());
+  b.dmc.evaluations = std::size_t(r.get<std::uint64_t>());
+  b.dmc.dropped_faces = std::size_t(r.get<std::uint64_t>());
+  b.seconds = r.get<double>();
+  r.end();
+  const std::size_t nv = b.mesh.vertices.size();
+  if ((!b.mesh.normals.empty() && b.mesh.normals.size() != nv) || (!b.mesh.colours.empty() && b.mesh.colours.size() != nv) ||
+      b.edges.size() != nv || (!b.far.empty() && b.far.size() != nv))
+    r.fail();
+  for (const Face& f : b.mesh.faces)
+    for (int t = 0; t < 3; ++t)
+      if (f[t] < 0 || std::size_t(f[t]) >= nv) r.fail();
+  return b;
+}
+
+std::string to_bytes(const SeamTable& table) {
+  std::vector<std::pair<std::uint64_t, double>> entries(table.begin(), table.end());
+  std::sort(entries.begin(), entries.end());
+  Writer w;
+  w.put(kMagic);
+  w.put(std::uint32_t(3));
+  w.put_vector(entries);
+  return w.out;
+}
+
+SeamTable table_from_bytes(const std::string& bytes, const std::string& what) {
+  Reader r(bytes, what);
+  r.header(3);
+  const auto entries = r.get_vector<std::pair<std::uint64_t, double>>();
+  r.end();
+  return SeamTable(entries.begin(), entries.end());
 }
 
 // ------------------------------------------------------------------ in sequence

@@ -173,6 +173,20 @@ struct BlockRunStats {
   std::size_t seam_vertices_joined = 0;
 };
 
+/// A CloudSource streaming a PLY file (stream_ply_points, 65,536 points at a time);
+/// other formats are read whole.
+CloudSource file_source(const std::string& path);
+
+/// Bytes of a summary, a block's mesh and a seam table, and back (for ranks that
+/// exchange them through a shared folder, and --resume). The readers throw
+/// FormatError naming `what` on bytes that are not what they should be.
+std::string to_bytes(const BlockSummary& summary);
+BlockSummary summary_from_bytes(const std::string& bytes, const std::string& what);
+std::string to_bytes(const BlockMesh& piece);
+BlockMesh piece_from_bytes(const std::string& bytes, const std::string& what);
+std::string to_bytes(const SeamTable& table);
+SeamTable table_from_bytes(const std::string& bytes, const std::string& what);
+
 /// The whole block-wise surface stage in this process, block after block (memory:
 /// one block's points and fits at a time, plus the meshes). `blocks` >= 1.
 SurfaceResult reconstruct_surface_blocks(const CloudSource& source, const SurfaceParams& params, int blocks,

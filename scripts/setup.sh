@@ -11,7 +11,8 @@ pkgs=(cmake g++ make pkg-config ccache
       umockdev   # umockdev: V4L2 driver tests through the real system calls (umockdev-wrapper)
       libfreenect-dev   # Kinect v1 driver; its libfreenect0.5 ships fakenect (replay tests)
       libopenni2-dev   # OpenNI2 depth cameras (Xtion, Carmine, Orbbec) driver
-      libcpp-httplib-dev nlohmann-json3-dev libjs-three)   # station serve: HTTP server, JSON API, three.js for its page
+      libcpp-httplib-dev nlohmann-json3-dev libjs-three   # station serve: HTTP server, JSON API, three.js for its page
+      libopenmpi-dev openmpi-bin)   # blocks over MPI ranks (station run --blocks under mpirun)
 if [[ "${1:-}" == "--bench" ]]; then
   # Anchors of bench/: Open3D 0.16 (C++: ICP, Poisson), Embree 3 (Open3D's ray
   # caster, driven directly), CGAL 5.5 (WLOP), VTK 9 (flying edges); PCL

@@ -12,6 +12,7 @@
 #include <csignal>
 #include <unistd.h>
 #include <cstdio>
+#include <filesystem>
 #include <fstream>
 #include <iostream>
 #include <map>
@@ -20,6 +21,7 @@
 #include <sstream>
 
 #include "core/error.h"
+#include "station/blocks_run.h"
 #include "core/io.h"
 #include "core/threads.h"
 #include "reconstruct/colour_function.h"
@@ -234,6 +236,46 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
   sp.note = [&](const std::string& line) {
     if (!c.json) std::fprintf(stderr, "%s\n", surface_note(a.in, line, "reconstruct: ", "note: ").c_str());
   };
+  if (rc.blocks != 1 || a.resume) {
+    // Blocks of one lattice: streamed, never the whole cloud in memory; over the MPI
+    // ranks under mpirun (station/blocks_run.h).
+    if (rc.blocks == 1) throw InvalidInput("--resume goes with --blocks (auto or a count)");
+    const std::string work = a.out + ".blocks";
+    const BlockRun run = run_blocks(a.in, sp, rc.blocks, work, a.resume);
+    if (!run.root) return 0;
+    write_mesh(a.out, run.result.mesh);
+    std::error_code ec;
+    std::filesystem::remove_all(work, ec);  // the output is written: the blocks' files go
+    const SurfaceResult& r = run.result;
+    if (c.json) {
+      print_summary(JsonObject()
+                        .add("command", "reconstruct")
+                        .add("input", a.in)
+                        .add("output", a.out)
+                        .add("points", r.mpu.input_points)
+                        .add("vertices", r.mesh.vertices.size())
+                        .add("faces", r.mesh.faces.size())
+                        .add("blocks", run.stats.blocks)
+                        .add("ranks", run.ranks)
+                        .add("resumed_blocks", run.resumed)
+                        .add("seam_vertices_joined", run.stats.seam_vertices_joined)
+                        .add("removed_pieces", r.pieces.removed_components)
+                        .add("epsilon0", r.epsilon0)
+                        .add("cell_size", r.extraction.cell_size)
+                        .add("resolution", r.resolution)
+                        .add("resolution_auto", r.resolution_auto)
+                        .add("hole", std::string(r.hole == HoleMode::kClose ? "close" : "keep"))
+                        .add("rim_faces", r.rim_faces)
+                        .add("colours", r.coloured)
+                        .add("extractor", rc.extractor)
+                        .add("timings_s", JsonObject().add("total", seconds_since(t0))));
+    } else {
+      std::printf("reconstruct: %zu vertices, %zu faces in %d blocks on %d rank%s (cell %.4g) in %.2fs -> %s\n",
+                  r.mesh.vertices.size(), r.mesh.faces.size(), run.stats.blocks, run.ranks, run.ranks > 1 ? "s" : "",
+                  r.extraction.cell_size, seconds_since(t0), a.out.c_str());
+    }
+    return 0;
+  }
   Cloud input = read_cloud(a.in);
   const std::size_t points = input.size();
   const double t_read = seconds_since(t0);
@@ -358,6 +400,8 @@ void add_surface_commands(CLI::App& app, std::vector<Command>& out) {
   rec->add_option("input", rec_args.in, "cloud with normals (estimated when missing)")->required();
   rec->add_option("-o,--out", rec_args.out, "mesh (.ply or .obj)")->required();
   add_profile_options(rec, "reconstruct", c_rec);
+  rec->add_flag("--resume", rec_args.resume,
+                "with --blocks: blocks finished by an interrupted run (in OUT.blocks/) are not run again");
   rec->add_option("--up", rec_args.up,
                   "the turntable axis in the cloud's frame, x,y,z (a run's register stage `up` in run.yaml): "
                   "when the surface is closed (--hole close, or auto closing) the underside closes flat at the table plane (profile "

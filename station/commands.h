@@ -99,6 +99,8 @@ struct ReconstructArgs {
   /// The turntable axis in the cloud's frame, "x,y,z" (run.yaml's register figures
   /// up_x, up_y, up_z): enables the table plane. Empty: none.
   std::string up;
+  /// With --blocks: blocks already done in OUT.blocks/ are not run again.
+  bool resume = false;
 };
 
 void add_common(CLI::App* cmd, Common& c);

@@ -200,7 +200,8 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
   }
   if (const YAML::Node n = root["reconstruct"]) {
     r.check_keys(n, "reconstruct", {"surface", "resolution", "epsilon0", "extractor", "hole", "colour", "colour_method", "colour_multi",
-                                     "colour_noise_robust", "colour_edges", "min_component", "table_plane", "winding_close"});
+                                     "colour_noise_robust", "colour_edges", "min_component", "table_plane", "winding_close",
+                                     "blocks"});
     auto& c = p.reconstruct;
     if (n["surface"]) c.surface = r.text(n["surface"], "reconstruct.surface");
     if (n["table_plane"]) c.table_plane = r.boolean(n["table_plane"], "reconstruct.table_plane");
@@ -212,6 +213,14 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
       } else {
         c.resolution = r.integer(n["resolution"], "reconstruct.resolution");
         if (c.resolution < 8 || c.resolution > 4096) r.fail("reconstruct.resolution", "must be auto or 8..4096");
+      }
+    }
+    if (n["blocks"]) {
+      if (n["blocks"].IsScalar() && n["blocks"].Scalar() == "auto") {
+        c.blocks = 0;
+      } else {
+        c.blocks = r.integer(n["blocks"], "reconstruct.blocks");
+        if (c.blocks < 1 || c.blocks > 4096) r.fail("reconstruct.blocks", "must be auto or 1..4096");
       }
     }
     if (n["epsilon0"]) c.epsilon0 = r.number(n["epsilon0"], "reconstruct.epsilon0");

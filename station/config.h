@@ -85,6 +85,9 @@ struct PipelineConfig {
     /// (reconstruct/colour_edges.h; colour_method mpu only).
     bool colour_edges = true;
     double min_component = 0.01;    ///< drop pieces below this fraction of the largest's area
+    /// The surface stage in blocks of one lattice (reconstruct/blocks.h, docs/blocks.md):
+    /// 1 = one piece (no blocks), 0 = auto (a block per 2 M points), else about that many.
+    int blocks = 1;
   } reconstruct;
   struct Sdm {
     int level = 5;  ///< icosphere template subdivision level

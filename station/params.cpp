@@ -51,7 +51,13 @@ const std::vector<ProfileOption>& profile_options() {
     flag("reconstruct.table_plane", "reconstruct", "--no-table-plane", "false",
          "with --up: do not close the underside flat at the table plane");
     // station run: the whole job (any key with --set; these have a shorthand).
+    value("reconstruct.blocks", "reconstruct", "--blocks",
+          "the surface stage in blocks of one lattice, stitched vertex for vertex: 1 (one piece), auto (a block "
+          "per 2 M points) or a count; spread over the ranks under mpirun (docs/blocks.md)");
     value("reconstruct.surface", "run", "--surface", "surface method", {"mpu", "sdm"});
+    value("reconstruct.blocks", "run", "--blocks",
+          "the surface stage in blocks of one lattice: 1 (one piece), auto (a block per 2 M points) or a count "
+          "(docs/blocks.md)");
     value("reconstruct.hole", "run", "--hole",
           "unseen underside: auto (close an object, keep a one-sided patch open), close (smooth, watertight) or "
           "keep (left open where there is no data)",

@@ -1,5 +1,8 @@
 #include "station/pipeline.h"
 
+#include "reconstruct/blocks.h"
+#include "station/blocks_run.h"
+
 #include <tbb/global_control.h>
 #include <yaml-cpp/yaml.h>
 
@@ -595,7 +598,14 @@ class Runner {
         "reconstruct.resolution " + (c.resolution > 0 ? std::to_string(c.resolution) : std::string("auto"));
     sp.boundary_flags = true;
     sp.note = [&](const std::string& line) { say(surface_note(in, line, "  surface: ", "  note: ")); };
-    const SurfaceResult sr = reconstruct_surface(std::move(input), sp);
+    SurfaceResult sr;
+    if (c.blocks != 1) {
+      // Blocks of one lattice, in sequence here (docs/blocks.md).
+      sr = reconstruct_surface_blocks(memory_source(input), sp, c.blocks > 0 ? c.blocks : int(std::max<std::size_t>(
+                                                                                      1, (input.size() + kAutoBlockPoints - 1) / kAutoBlockPoints)));
+    } else {
+      sr = reconstruct_surface(std::move(input), sp);
+    }
     if (sr.winding_points > 0) r.figures["winding_points"] = double(sr.winding_points);
     if (sr.table_height) r.figures["table_height"] = *sr.table_height;
     r.figures["removed_pieces"] = double(sr.pieces.removed_components);

@@ -1,0 +1,264 @@
+#include "station/blocks_run.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <filesystem>
+#include <map>
+
+#include "core/atomic_file.h"
+#include "core/error.h"
+#include "core/io.h"
+#include "core/threads.h"
+
+#ifdef STATION_HAVE_MPI
+#include <mpi.h>
+#endif
+
+namespace station {
+
+namespace fs = std::filesystem;
+
+namespace {
+
+std::string fmt(const char* f, double v) {
+  char buf[64];
+  std::snprintf(buf, sizeof buf, f, v);
+  return buf;
+}
+
+// The ranks: MPI's when launched by mpirun, else one.
+class Ranks {
+ public:
+  Ranks() {
+#ifdef STATION_HAVE_MPI
+    if (launched_by_mpi()) {
+      int init = 0;
+      MPI_Initialized(&init);
+      if (!init) {
+        MPI_Init(nullptr, nullptr);
+        owns_ = true;
+      }
+      MPI_Comm_rank(MPI_COMM_WORLD, &rank_);
+      MPI_Comm_size(MPI_COMM_WORLD, &size_);
+      mpi_ = true;
+    }
+#endif
+  }
+  ~Ranks() {
+#ifdef STATION_HAVE_MPI
+    if (owns_) MPI_Finalize();
+#endif
+  }
+  int rank() const { return rank_; }
+  int size() const { return size_; }
+  void barrier() const {
+#ifdef STATION_HAVE_MPI
+    if (mpi_) MPI_Barrier(MPI_COMM_WORLD);
+#endif
+  }
+  /// Whether any rank failed (each passes its own flag); the first failing rank's
+  /// message reaches every rank in `message`.
+  bool any_failed(bool failed, std::string& message) const {
+#ifdef STATION_HAVE_MPI
+    if (mpi_) {
+      const int mine = failed ? rank_ : size_;
+      int first = size_;
+      MPI_Allreduce(&mine, &first, 1, MPI_INT, MPI_MIN, MPI_COMM_WORLD);
+      if (first == size_) return false;
+      broadcast(message, first);
+      if (first != rank_) message = "rank " + std::to_string(first) + ": " + message;
+      return true;
+    }
+#endif
+    return failed;
+  }
+  /// `bytes` from rank `from` to every rank.
+  void broadcast(std::string& bytes, int from) const {
+#ifdef STATION_HAVE_MPI
+    if (mpi_) {
+      unsigned long long n = bytes.size();
+      MPI_Bcast(&n, 1, MPI_UNSIGNED_LONG_LONG, from, MPI_COMM_WORLD);
+      bytes.resize(std::size_t(n));
+      // In pieces below 2^31 bytes (MPI counts are int).
+      for (std::size_t at = 0; at < bytes.size(); at += std::size_t(1) << 30) {
+        const int len = int(std::min<std::size_t>(std::size_t(1) << 30, bytes.size() - at));
+        MPI_Bcast(bytes.data() + at, len, MPI_CHAR, from, MPI_COMM_WORLD);
+      }
+    }
+#endif
+    (void)from;
+  }
+
+ private:
+  int rank_ = 0, size_ = 1;
+  bool mpi_ = false, owns_ = false;
+};
+
+// Runs fn; its error (any std::exception) as a message, empty when none.
+template <class Fn>
+std::string attempt(Fn&& fn) {
+  try {
+    fn();
+  } catch (const std::exception& e) {
+    return e.what()[0] ? e.what() : "unknown error";
+  }
+  return {};
+}
+
+// Rethrows a message as the error kind its text says it was (the kinds keep their
+// exit codes); InvalidInput otherwise.
+[[noreturn]] void fail_with(const std::string& message) { throw InvalidInput(message); }
+
+}  // namespace
+
+bool launched_by_mpi() {
+#ifdef STATION_HAVE_MPI
+  for (const char* v : {"OMPI_COMM_WORLD_SIZE", "PMIX_RANK", "PMI_RANK", "PMI_SIZE"})
+    if (std::getenv(v)) return true;
+#endif
+  return false;
+}
+
+BlockRun run_blocks(const std::string& input, const SurfaceParams& p, int blocks, const std::string& work_dir,
+                    bool resume) {
+  const auto t0 = std::chrono::steady_clock::now();
+  Ranks ranks;
+  BlockRun run;
+  run.root = ranks.rank() == 0;
+  run.ranks = ranks.size();
+  const auto note = [&](const std::string& line) {
+    if (p.note) p.note(ranks.size() > 1 ? "rank " + std::to_string(ranks.rank()) + ": " + line : line);
+  };
+  const auto root_note = [&](const std::string& line) {
+    if (run.root) note(line);
+  };
+  const CloudSource source = file_source(input);
+  const fs::path work(work_dir);
+
+  // The shared decisions, once (rank 0), then to every rank.
+  std::string bytes, error;
+  if (run.root) {
+    error = attempt([&] {
+      const fs::path saved = work / "summary.bin";
+      if (resume && fs::exists(saved)) {
+        bytes = read_file_bytes(saved);
+        (void)summary_from_bytes(bytes, saved.string());
+        root_note("resuming the blocks in " + work.string());
+      } else {
+        root_note("summarising " + input + " (a streamed pass for its bounds, spacing and closing)");
+        bytes = to_bytes(summarise_cloud(source, p));
+        fs::create_directories(work);
+        write_file_atomic(saved, bytes);
+      }
+    });
+  }
+  if (ranks.any_failed(!error.empty(), error)) fail_with(error);
+  ranks.broadcast(bytes, 0);
+  const BlockSummary s = summary_from_bytes(bytes, (work / "summary.bin").string());
+  bytes.clear();
+  const double cell = double((s.box.max - s.box.min).maxCoeff()) / s.resolution;
+  if (blocks <= 0) blocks = int(std::max<std::size_t>(1, (s.points + kAutoBlockPoints - 1) / kAutoBlockPoints));
+  const BlockGrid grid = plan_blocks(s.box, s.resolution, blocks, block_margin(s, cell));
+  root_note(std::to_string(s.points) + " points in " + std::to_string(grid.size()) + " blocks (" +
+            std::to_string(grid.counts[0]) + " x " + std::to_string(grid.counts[1]) + " x " +
+            std::to_string(grid.counts[2]) + ") on " + std::to_string(ranks.size()) + " rank" +
+            (ranks.size() > 1 ? "s" : "") + ", one lattice of " + std::to_string(s.resolution) + " cells (cell " +
+            fmt("%.3g", cell) + (s.resolution_auto ? ", auto: the points' sample spacing " + fmt("%.3g", s.sample_spacing) : "") +
+            "; margin " + fmt("%.3g", grid.margin) + "); " +
+            (s.hole == HoleMode::kClose ? "closing" : "keeping") + " the unseen parts");
+  const auto faces_file = [&](int id) { return work / ("faces_" + std::to_string(id) + ".bin"); };
+  const auto piece_file = [&](int id) { return work / ("piece_" + std::to_string(id) + ".bin"); };
+
+  // Waves: a wave's blocks take lattice values only from earlier waves.
+  std::map<int, std::vector<int>> waves;
+  for (int id : block_order(grid)) waves[block_wave(grid, id)].push_back(id);
+  int done = 0, resumed = 0;
+  std::size_t max_points = 0;
+  for (const auto& [wave, ids] : waves) {
+    error = attempt([&] {
+      for (std::size_t t = 0; t < ids.size(); ++t) {
+        if (int(t % std::size_t(ranks.size())) != ranks.rank()) continue;
+        const int id = ids[t];
+        const auto c = grid.coords(id);
+        const std::string where = "block " + std::to_string(id + 1) + "/" + std::to_string(grid.size()) + " (" +
+                                  std::to_string(c[0]) + ", " + std::to_string(c[1]) + ", " + std::to_string(c[2]) + ")";
+        if (resume && fs::exists(faces_file(id)) && fs::exists(piece_file(id))) {
+          ++resumed;
+          note(where + ": done before, skipped (--resume)");
+          continue;
+        }
+        SeamTable upper;
+        for (int q = 1; q < 8; ++q) {
+          const int ni = c[0] + (q & 1), nj = c[1] + (q >> 1 & 1), nk = c[2] + (q >> 2 & 1);
+          if (ni >= grid.counts[0] || nj >= grid.counts[1] || nk >= grid.counts[2]) continue;
+          const fs::path f = faces_file(grid.id(ni, nj, nk));
+          const SeamTable t = table_from_bytes(read_file_bytes(f), f.string());
+          upper.insert(t.begin(), t.end());
+        }
+        const Cloud pts = block_points(source, grid, id);
+        max_points = std::max(max_points, pts.size());
+        SeamTable lower;
+        const BlockMesh piece = reconstruct_block(pts, grid, id, s, p, upper, lower);
+        write_file_atomic(piece_file(id), to_bytes(piece));
+        write_file_atomic(faces_file(id), to_bytes(lower));  // last: the block counts as done
+        ++done;
+        note(where + ": " + std::to_string(pts.size()) + " points, " + std::to_string(piece.mesh.faces.size()) +
+             " faces, " + fmt("%.2f s", piece.seconds));
+      }
+    });
+    if (ranks.any_failed(!error.empty(), error)) fail_with(error);
+    ranks.barrier();
+  }
+  run.resumed = resumed;
+  run.stats.blocks = grid.size();
+  run.stats.counts = grid.counts;
+  run.stats.max_block_points = max_points;
+  if (!run.root) return run;
+
+  // Rank 0: the pieces stitched into one mesh, finished as the single run's.
+  SurfaceResult& out = run.result;
+  out.hole = s.hole;
+  out.enclosure = s.enclosure;
+  out.normals_flipped = s.flip_normals;
+  out.epsilon0 = s.epsilon0;
+  out.resolution = s.resolution;
+  out.resolution_auto = s.resolution_auto;
+  out.table_height = s.table_height;
+  out.extraction.cell_size = cell;
+  out.mpu.mean_spacing = s.mean_spacing;
+  out.mpu.sample_spacing = s.sample_spacing;
+  out.mpu.input_points = s.points;
+  std::vector<BlockMesh> pieces(std::size_t(grid.size()));
+  std::size_t before = 0;
+  for (int id = 0; id < grid.size(); ++id) {
+    const fs::path f = piece_file(id);
+    pieces[std::size_t(id)] = piece_from_bytes(read_file_bytes(f), f.string());
+    const BlockMesh& b = pieces[std::size_t(id)];
+    before += b.mesh.vertices.size();
+    out.colour_nearest_vertices += b.colour_nearest_vertices;
+    out.extraction.cells_visited += b.dmc.cells_visited;
+    out.extraction.surface_cells += b.dmc.surface_cells;
+    out.extraction.evaluations += b.dmc.evaluations;
+    out.extraction.dropped_faces += b.dmc.dropped_faces;
+    out.mpu.leaves += b.mpu.leaves;
+  }
+  std::vector<char> far;
+  Mesh mesh = stitch_blocks(pieces, grid, &far);
+  run.stats.seam_vertices_joined = before - mesh.vertices.size();
+  out.coloured = p.colour && s.colours && mesh.has_colours();
+  finish_block_mesh(std::move(mesh), far, s, p, out);
+  note("stitched " + std::to_string(grid.size()) + " blocks: " + std::to_string(out.mesh.vertices.size()) +
+       " vertices, " + std::to_string(out.mesh.faces.size()) + " faces (" +
+       std::to_string(run.stats.seam_vertices_joined) + " seam vertices joined)");
+  if (out.rim_faces > 0) note("open rims brought back to the data (" + std::to_string(out.rim_faces) + " faces)");
+  if (out.pieces.removed_components > 0)
+    note("removed " + std::to_string(out.pieces.removed_components) + " small pieces (" +
+         std::to_string(out.pieces.removed_faces) + " faces)");
+  out.seconds.total = seconds_since(t0);
+  return run;
+}
+
+}  // namespace station

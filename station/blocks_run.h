@@ -1,0 +1,37 @@
+#pragma once
+// The block-wise surface stage of `station reconstruct --blocks` and `station run
+// --blocks` (reconstruct/blocks.h, docs/blocks.md): the blocks run wave after wave
+// (a wave's blocks depend only on earlier waves), spread over the MPI ranks when the
+// process was started by mpirun (built with MPI), else in sequence. The ranks share a
+// work folder (the blocks' lower-face values and meshes, one file each): rank 0 stitches
+// the mesh. With `resume`, blocks whose files are there are not run again.
+#include <string>
+
+#include "reconstruct/blocks.h"
+#include "reconstruct/surface.h"
+
+namespace station {
+
+struct BlockRun {
+  SurfaceResult result;  ///< the stitched mesh (rank 0 only; empty on the other ranks)
+  bool root = true;      ///< this process is rank 0 (or there is no MPI)
+  int ranks = 1;
+  int resumed = 0;       ///< blocks found done in the work folder
+  BlockRunStats stats;
+};
+
+/// Whether this process was started by an MPI launcher (mpirun's environment) and the
+/// station was built with MPI.
+bool launched_by_mpi();
+
+/// `blocks` 0: auto (one block per kAutoBlockPoints points, at least 1). The work
+/// folder is made when missing and removed after a run that finished. InvalidInput /
+/// IoError / FormatError as the stage's (on every rank, the failing rank's message on
+/// rank 0).
+BlockRun run_blocks(const std::string& input, const SurfaceParams& params, int blocks, const std::string& work_dir,
+                    bool resume);
+
+/// --blocks auto: a block per this many points.
+inline constexpr std::size_t kAutoBlockPoints = 2000000;
+
+}  // namespace station
