@@ -1,0 +1,147 @@
+// `station reconstruct --blocks` (issue 29): in sequence and over two MPI ranks
+// (mpirun --oversubscribe -n 2, loopback), the blocked mesh is the single run's
+// within half a cell, with no cracks or doubled faces at the seams; --resume takes
+// up the blocks an interrupted run left.
+#include <gtest/gtest.h>
+
+#include <cstdlib>
+#include <filesystem>
+#include <regex>
+#include <string>
+
+#include "core/io.h"
+#include "core/mesh_topology.h"
+#include "eval/eval.h"
+#include "test_util.h"
+
+namespace station {
+namespace {
+
+namespace fs = std::filesystem;
+
+std::string station_cmd() { return std::string(STATION_BINARY); }
+
+double json_number(const std::string& json, const std::string& key) {
+  std::smatch m;
+  const std::regex re("\"" + key + "\":([-0-9.eE+]+)");
+  if (!std::regex_search(json, m, re)) return -1;
+  return std::stod(m[1]);
+}
+
+double hausdorff(const Mesh& a, const Mesh& b) {
+  EvalParams ep;
+  ep.mesh_samples = 60000;
+  ep.threads = 2;
+  return evaluate(a, b, ep).hausdorff;
+}
+
+class BlocksCli : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    dir_ = new test::TempDir("station-blocks");
+    const Mesh bottle = read_mesh(test::source_dir() / "data/mustard_bottle/textured.obj");
+    write_ply(*dir_ / "bottle.ply", sample_mesh(bottle, 200000, 11));
+  }
+  static void TearDownTestSuite() {
+    delete dir_;
+    dir_ = nullptr;
+  }
+  static std::string path(const std::string& name) { return (*dir_ / name).string(); }
+  static std::string reconstruct(const std::string& out, const std::string& extra) {
+    return "reconstruct " + path("bottle.ply") + " -o " + out + " --resolution 160 --no-colour --json " + extra;
+  }
+  static test::TempDir* dir_;
+};
+test::TempDir* BlocksCli::dir_ = nullptr;
+
+TEST_F(BlocksCli, BlocksInSequenceAndOverTwoRanksAreTheSingleMesh) {
+  const auto single = test::run_command(station_cmd() + " " + reconstruct(path("single.ply"), "--threads 2"));
+  ASSERT_EQ(single.code, 0) << single.out;
+  const auto seq = test::run_command(station_cmd() + " " + reconstruct(path("seq.ply"), "--threads 2 --blocks 8"));
+  ASSERT_EQ(seq.code, 0) << seq.out;
+  EXPECT_EQ(json_number(seq.out, "blocks"), 8);
+  EXPECT_GT(json_number(seq.out, "seam_vertices_joined"), 100);
+  EXPECT_FALSE(fs::exists(path("seq.ply.blocks")));  // the work folder goes once the mesh is written
+  // Two ranks on this machine (root allowed: CI runs as root).
+  setenv("OMPI_ALLOW_RUN_AS_ROOT", "1", 1);
+  setenv("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1", 1);
+  const auto mpi = test::run_command("mpirun --oversubscribe -n 2 " + station_cmd() + " " +
+                                     reconstruct(path("mpi.ply"), "--threads 1 --blocks 8"));
+  ASSERT_EQ(mpi.code, 0) << mpi.out;
+  EXPECT_EQ(json_number(mpi.out, "ranks"), 2) << mpi.out;
+
+  const Mesh s = read_mesh(path("single.ply")), b = read_mesh(path("seq.ply")), m = read_mesh(path("mpi.ply"));
+  const double cell = json_number(seq.out, "cell_size");
+  ASSERT_GT(cell, 0);
+  const MeshTopology ts = mesh_topology(s), tb = mesh_topology(b);
+  EXPECT_TRUE(ts.closed_manifold());
+  // Watertight where the single one is: no crack (boundary edge) or doubled face
+  // (non-manifold edge) along the block faces.
+  EXPECT_EQ(tb.boundary_edges, ts.boundary_edges);
+  EXPECT_EQ(tb.nonmanifold_edges, 0);
+  EXPECT_EQ(tb.nonmanifold_vertices, 0);
+  EXPECT_EQ(tb.misoriented_edges, 0);
+  EXPECT_EQ(tb.components, ts.components);
+  const double d = hausdorff(b, s);
+  std::printf("blocks vs single: Hausdorff %.3f cells; %zu / %zu faces\n", d / cell, b.faces.size(), s.faces.size());
+  EXPECT_LT(d, 0.5 * cell);
+  // The ranks change nothing: the same blocks, the same numbers.
+  EXPECT_EQ(m.vertices.size(), b.vertices.size());
+  EXPECT_EQ(m.faces.size(), b.faces.size());
+  EXPECT_LT(hausdorff(m, b), 1e-3 * cell);
+}
+
+TEST_F(BlocksCli, ResumeTakesUpTheBlocksAnInterruptedRunLeft) {
+  // The output cannot be written (a folder of that name): the run fails after the
+  // blocks, and their files stay.
+  const std::string out = path("held.ply");
+  fs::create_directories(out);
+  const auto first = test::run_command(station_cmd() + " " + reconstruct(out, "--threads 2 --blocks 4"));
+  EXPECT_NE(first.code, 0) << first.out;
+  ASSERT_TRUE(fs::exists(out + ".blocks/summary.bin")) << first.out;
+  fs::remove_all(out);
+  const auto again = test::run_command(station_cmd() + " " + reconstruct(out, "--threads 2 --blocks 4 --resume"));
+  ASSERT_EQ(again.code, 0) << again.out;
+  EXPECT_EQ(json_number(again.out, "resumed_blocks"), 4) << again.out;
+  EXPECT_TRUE(mesh_topology(read_mesh(out)).closed_manifold());
+  EXPECT_FALSE(fs::exists(out + ".blocks"));
+}
+
+TEST_F(BlocksCli, ADamagedBlockFileIsNamedNotTaken) {
+  const std::string out = path("damaged.ply");
+  fs::create_directories(out);
+  const auto first = test::run_command(station_cmd() + " " + reconstruct(out, "--threads 2 --blocks 4"));
+  EXPECT_NE(first.code, 0) << first.out;
+  fs::remove_all(out);
+  const fs::path piece = out + ".blocks/piece_0.bin";
+  ASSERT_TRUE(fs::exists(piece)) << first.out;
+  fs::resize_file(piece, fs::file_size(piece) / 2);
+  const auto bad = test::run_command(station_cmd() + " " + reconstruct(out, "--threads 2 --blocks 4 --resume"));
+  EXPECT_NE(bad.code, 0);
+  EXPECT_NE(bad.out.find("piece_0.bin"), std::string::npos) << bad.out;
+  EXPECT_FALSE(fs::exists(out));
+  // Without the damaged piece that block runs again.
+  fs::remove(piece);
+  const auto again = test::run_command(station_cmd() + " " + reconstruct(out, "--threads 2 --blocks 4 --resume"));
+  ASSERT_EQ(again.code, 0) << again.out;
+  EXPECT_EQ(json_number(again.out, "resumed_blocks"), 3) << again.out;
+  EXPECT_TRUE(mesh_topology(read_mesh(out)).closed_manifold());
+}
+
+TEST_F(BlocksCli, ResumeWithoutBlocksAndBlocksWithoutNormalsAreClearErrors) {
+  const auto r = test::run_command(station_cmd() + " " + reconstruct(path("x.ply"), "--resume"));
+  EXPECT_NE(r.code, 0);
+  EXPECT_NE(r.out.find("--resume goes with --blocks"), std::string::npos) << r.out;
+  Cloud bare = read_cloud(path("bottle.ply"));
+  bare.normals.clear();
+  bare.points.resize(5000);
+  write_ply(path("bare.ply"), bare);
+  const auto n = test::run_command(station_cmd() + " reconstruct " + path("bare.ply") + " -o " + path("y.ply") +
+                                   " --blocks 4");
+  EXPECT_NE(n.code, 0);
+  EXPECT_NE(n.out.find("normals"), std::string::npos) << n.out;
+  EXPECT_FALSE(fs::exists(path("y.ply")));
+}
+
+}  // namespace
+}  // namespace station
