@@ -528,12 +528,49 @@ Mesh stitch_blocks(std::vector<BlockMesh>& pieces, const BlockGrid& grid, std::v
   return out;
 }
 
-void finish_block_mesh(Mesh mesh, const std::vector<char>& far, const BlockSummary& s, const SurfaceParams& p,
-                       SurfaceResult& out) {
+SurfaceResult assemble_blocks(std::vector<BlockMesh>& pieces, const BlockGrid& grid, const BlockSummary& s,
+                              const SurfaceParams& p, BlockRunStats* stats) {
+  const auto note = [&](const std::string& line) {
+    if (p.note) p.note(line);
+  };
+  SurfaceResult out;
+  out.hole = s.hole;
+  out.enclosure = s.enclosure;
+  out.normals_flipped = s.flip_normals;
+  out.epsilon0 = s.epsilon0;
+  out.resolution = s.resolution;
+  out.resolution_auto = s.resolution_auto;
+  out.table_height = s.table_height;
+  out.extraction.cell_size = grid.lattice.h;
+  out.mpu.mean_spacing = s.mean_spacing;
+  out.mpu.sample_spacing = s.sample_spacing;
+  out.mpu.input_points = s.points;
+  std::size_t before = 0;
+  for (const BlockMesh& b : pieces) {
+    before += b.mesh.vertices.size();
+    out.colour_nearest_vertices += b.colour_nearest_vertices;
+    out.extraction.cells_visited += b.dmc.cells_visited;
+    out.extraction.surface_cells += b.dmc.surface_cells;
+    out.extraction.evaluations += b.dmc.evaluations;
+    out.extraction.dropped_faces += b.dmc.dropped_faces;
+    out.mpu.leaves += b.mpu.leaves;
+  }
+  std::vector<char> far;
+  Mesh mesh = stitch_blocks(pieces, grid, &far);
+  const std::size_t joined = before - mesh.vertices.size();
+  if (stats) stats->seam_vertices_joined = joined;
   if (mesh.faces.empty()) throw InvalidInput("the reconstructed surface is empty");
+  out.coloured = p.colour && s.colours && mesh.has_colours();
+  note("stitched " + std::to_string(grid.size()) + " blocks: " + std::to_string(mesh.vertices.size()) + " vertices, " +
+       std::to_string(mesh.faces.size()) + " faces (" + std::to_string(joined) + " seam vertices joined)");
   if (s.hole == HoleMode::kKeep && far.size() == mesh.vertices.size()) out.rim_faces = trim_open_rims(mesh, far);
+  if (out.rim_faces > 0) note("open rims brought back to the data (" + std::to_string(out.rim_faces) + " faces)");
   out.pieces = remove_small_components(mesh, p.min_component);
+  if (out.pieces.removed_components > 0)
+    note("removed " + std::to_string(out.pieces.removed_components) + " small pieces (" +
+         std::to_string(out.pieces.removed_faces) + " faces)");
   out.mesh = std::move(mesh);
+  return out;
 }
 
 // ------------------------------------------------------------------ files
@@ -572,7 +609,7 @@ class Reader {
   T get() {
     need(sizeof(T));
     T v;
-    std::memcpy(&v, b_.data() + at_, sizeof(T));
+    std::memcpy(static_cast<void*>(&v), b_.data() + at_, sizeof(T));
     at_ += sizeof(T);
     return v;
   }
@@ -581,7 +618,7 @@ class Reader {
     const std::uint64_t n = get<std::uint64_t>();
     if (n > (b_.size() - at_) / sizeof(T)) fail();
     std::vector<T> v(n);
-    std::memcpy(v.data(), b_.data() + at_, n * sizeof(T));
+    std::memcpy(static_cast<void*>(v.data()), b_.data() + at_, n * sizeof(T));
     at_ += n * sizeof(T);
     return v;
   }
@@ -736,14 +773,6 @@ SurfaceResult reconstruct_surface_blocks(const CloudSource& source, const Surfac
   };
   if (blocks < 1) throw InvalidInput("blocks: at least one block");
   const BlockSummary s = summarise_cloud(source, p);
-  SurfaceResult out;
-  out.hole = s.hole;
-  out.enclosure = s.enclosure;
-  out.normals_flipped = s.flip_normals;
-  out.epsilon0 = s.epsilon0;
-  out.resolution = s.resolution;
-  out.resolution_auto = s.resolution_auto;
-  out.table_height = s.table_height;
   const double cell = double((s.box.max - s.box.min).maxCoeff()) / s.resolution;
   const BlockGrid grid = plan_blocks(s.box, s.resolution, blocks, block_margin(s, cell));
   note(std::to_string(s.points) + " points in " + std::to_string(grid.size()) + " blocks (" +
@@ -776,29 +805,7 @@ SurfaceResult reconstruct_surface_blocks(const CloudSource& source, const Surfac
          std::to_string(pieces[std::size_t(id)].mesh.faces.size()) + " faces, " +
          fmt("%.2f s", pieces[std::size_t(id)].seconds));
   }
-  std::vector<char> far;
-  std::size_t before = 0;
-  for (const BlockMesh& b : pieces) {
-    before += b.mesh.vertices.size();
-    out.colour_nearest_vertices += b.colour_nearest_vertices;
-    out.extraction.cells_visited += b.dmc.cells_visited;
-    out.extraction.surface_cells += b.dmc.surface_cells;
-    out.extraction.evaluations += b.dmc.evaluations;
-    out.extraction.dropped_faces += b.dmc.dropped_faces;
-    out.mpu.leaves += b.mpu.leaves;
-  }
-  out.extraction.cell_size = cell;
-  out.mpu.mean_spacing = s.mean_spacing;
-  out.mpu.sample_spacing = s.sample_spacing;
-  out.mpu.input_points = s.points;
-  Mesh mesh = stitch_blocks(pieces, grid, &far);
-  st.seam_vertices_joined = before - mesh.vertices.size();
-  out.coloured = p.colour && s.colours && mesh.has_colours();
-  finish_block_mesh(std::move(mesh), far, s, p, out);
-  if (out.rim_faces > 0) note("open rims brought back to the data (" + std::to_string(out.rim_faces) + " faces)");
-  if (out.pieces.removed_components > 0)
-    note("removed " + std::to_string(out.pieces.removed_components) + " small pieces (" +
-         std::to_string(out.pieces.removed_faces) + " faces)");
+  SurfaceResult out = assemble_blocks(pieces, grid, s, p, &st);
   out.seconds.total = seconds_since(t0);
   if (stats) *stats = st;
   return out;

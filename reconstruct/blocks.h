@@ -192,9 +192,10 @@ SeamTable table_from_bytes(const std::string& bytes, const std::string& what);
 SurfaceResult reconstruct_surface_blocks(const CloudSource& source, const SurfaceParams& params, int blocks,
                                          BlockRunStats* stats = nullptr);
 
-/// The stitched mesh finished as the single run finishes it: rims trimmed (holes kept),
-/// small pieces dropped. Fills out.mesh, out.rim_faces, out.pieces.
-void finish_block_mesh(Mesh mesh, const std::vector<char>& far, const BlockSummary& summary,
-                       const SurfaceParams& params, SurfaceResult& out);
+/// The blocks' pieces (in block id order) stitched and finished as the single run
+/// finishes its mesh (rims trimmed with holes kept, small pieces dropped), with the
+/// summary's decisions in the result. InvalidInput when the surface is empty.
+SurfaceResult assemble_blocks(std::vector<BlockMesh>& pieces, const BlockGrid& grid, const BlockSummary& summary,
+                              const SurfaceParams& params, BlockRunStats* stats = nullptr);
 
 }  // namespace station

@@ -219,44 +219,13 @@ BlockRun run_blocks(const std::string& input, const SurfaceParams& p, int blocks
   if (!run.root) return run;
 
   // Rank 0: the pieces stitched into one mesh, finished as the single run's.
-  SurfaceResult& out = run.result;
-  out.hole = s.hole;
-  out.enclosure = s.enclosure;
-  out.normals_flipped = s.flip_normals;
-  out.epsilon0 = s.epsilon0;
-  out.resolution = s.resolution;
-  out.resolution_auto = s.resolution_auto;
-  out.table_height = s.table_height;
-  out.extraction.cell_size = cell;
-  out.mpu.mean_spacing = s.mean_spacing;
-  out.mpu.sample_spacing = s.sample_spacing;
-  out.mpu.input_points = s.points;
   std::vector<BlockMesh> pieces(std::size_t(grid.size()));
-  std::size_t before = 0;
   for (int id = 0; id < grid.size(); ++id) {
     const fs::path f = piece_file(id);
     pieces[std::size_t(id)] = piece_from_bytes(read_file_bytes(f), f.string());
-    const BlockMesh& b = pieces[std::size_t(id)];
-    before += b.mesh.vertices.size();
-    out.colour_nearest_vertices += b.colour_nearest_vertices;
-    out.extraction.cells_visited += b.dmc.cells_visited;
-    out.extraction.surface_cells += b.dmc.surface_cells;
-    out.extraction.evaluations += b.dmc.evaluations;
-    out.extraction.dropped_faces += b.dmc.dropped_faces;
-    out.mpu.leaves += b.mpu.leaves;
   }
-  std::vector<char> far;
-  Mesh mesh = stitch_blocks(pieces, grid, &far);
-  run.stats.seam_vertices_joined = before - mesh.vertices.size();
-  out.coloured = p.colour && s.colours && mesh.has_colours();
-  finish_block_mesh(std::move(mesh), far, s, p, out);
-  note("stitched " + std::to_string(grid.size()) + " blocks: " + std::to_string(out.mesh.vertices.size()) +
-       " vertices, " + std::to_string(out.mesh.faces.size()) + " faces (" +
-       std::to_string(run.stats.seam_vertices_joined) + " seam vertices joined)");
-  if (out.rim_faces > 0) note("open rims brought back to the data (" + std::to_string(out.rim_faces) + " faces)");
-  if (out.pieces.removed_components > 0)
-    note("removed " + std::to_string(out.pieces.removed_components) + " small pieces (" +
-         std::to_string(out.pieces.removed_faces) + " faces)");
+  run.result = assemble_blocks(pieces, grid, s, p, &run.stats);
+  SurfaceResult& out = run.result;
   out.seconds.total = seconds_since(t0);
   return run;
 }
