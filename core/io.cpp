@@ -97,28 +97,14 @@ std::string ply_bytes(const std::vector<Vec3f>& pts, const std::vector<Vec3f>& n
                       const std::vector<Rgb>& colours, const std::vector<Face>* faces,
                       PlyFormat format) {
   const bool binary = format == PlyFormat::kBinaryLittleEndian;
-  std::string out;
-  out += "ply\nformat ";
-  out += binary ? "binary_little_endian" : "ascii";
-  out += " 1.0\ncomment turntable station\nelement vertex " + std::to_string(pts.size()) +
-         "\nproperty float x\nproperty float y\nproperty float z\n";
-  if (!normals.empty()) out += "property float nx\nproperty float ny\nproperty float nz\n";
-  if (!colours.empty()) out += "property uchar red\nproperty uchar green\nproperty uchar blue\n";
-  if (faces)
-    out += "element face " + std::to_string(faces->size()) + "\nproperty list uchar int vertex_indices\n";
-  out += "end_header\n";
-
+  std::string out = ply_header(pts.size(), !normals.empty(), !colours.empty(), faces ? faces->size() : 0,
+                               faces != nullptr, format);
   const std::size_t per_vertex = 12 + (normals.empty() ? 0 : 12) + (colours.empty() ? 0 : 3);
   out.reserve(out.size() + pts.size() * (binary ? per_vertex : 3 * per_vertex) +
               (faces ? faces->size() * (binary ? 13 : 30) : 0));
   for (std::size_t i = 0; i < pts.size(); ++i) {
     if (binary) {
-      put_le(out, pts[i].data(), 12);
-      if (!normals.empty()) put_le(out, normals[i].data(), 12);
-      if (!colours.empty()) {
-        const unsigned char c[3] = {colours[i].r, colours[i].g, colours[i].b};
-        put_le(out, c, 3);
-      }
+      put_ply_vertex(out, pts[i], normals.empty() ? nullptr : &normals[i], colours.empty() ? nullptr : &colours[i]);
     } else {
       for (int k = 0; k < 3; ++k) {
         if (k) out += ' ';
@@ -141,9 +127,7 @@ std::string ply_bytes(const std::vector<Vec3f>& pts, const std::vector<Vec3f>& n
   if (faces) {
     for (const Face& f : *faces) {
       if (binary) {
-        out += static_cast<char>(3);
-        const std::int32_t idx[3] = {f[0], f[1], f[2]};
-        put_le(out, idx, 12);
+        put_ply_face(out, f);
       } else {
         out += '3';
         for (int k = 0; k < 3; ++k) {
@@ -158,6 +142,34 @@ std::string ply_bytes(const std::vector<Vec3f>& pts, const std::vector<Vec3f>& n
 }
 
 }  // namespace
+
+std::string ply_header(std::size_t vertices, bool normals, bool colours, std::size_t faces, bool with_faces,
+                       PlyFormat format) {
+  std::string out = "ply\nformat ";
+  out += format == PlyFormat::kBinaryLittleEndian ? "binary_little_endian" : "ascii";
+  out += " 1.0\ncomment turntable station\nelement vertex " + std::to_string(vertices) +
+         "\nproperty float x\nproperty float y\nproperty float z\n";
+  if (normals) out += "property float nx\nproperty float ny\nproperty float nz\n";
+  if (colours) out += "property uchar red\nproperty uchar green\nproperty uchar blue\n";
+  if (with_faces) out += "element face " + std::to_string(faces) + "\nproperty list uchar int vertex_indices\n";
+  out += "end_header\n";
+  return out;
+}
+
+void put_ply_vertex(std::string& out, const Vec3f& p, const Vec3f* normal, const Rgb* colour) {
+  put_le(out, p.data(), 12);
+  if (normal) put_le(out, normal->data(), 12);
+  if (colour) {
+    const unsigned char c[3] = {colour->r, colour->g, colour->b};
+    put_le(out, c, 3);
+  }
+}
+
+void put_ply_face(std::string& out, const Face& f) {
+  out += static_cast<char>(3);
+  const std::int32_t idx[3] = {f[0], f[1], f[2]};
+  put_le(out, idx, 12);
+}
 
 std::string read_file_bytes(const fs::path& path) {
   const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);

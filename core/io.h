@@ -67,6 +67,14 @@ TexturedMesh read_textured_mesh(const fs::path& path);
 
 enum class PlyFormat { kBinaryLittleEndian, kAscii };
 
+/// The pieces of write_ply's format, for a mesh written in one streamed pass (the
+/// counts known first): the header (`with_faces`: a face element of `faces`), then
+/// each vertex, then each face, binary little-endian.
+std::string ply_header(std::size_t vertices, bool normals, bool colours, std::size_t faces, bool with_faces,
+                       PlyFormat format = PlyFormat::kBinaryLittleEndian);
+void put_ply_vertex(std::string& out, const Vec3f& p, const Vec3f* normal, const Rgb* colour);
+void put_ply_face(std::string& out, const Face& f);
+
 /// Writes vertices (+normals, +colours as uchar) and faces. Atomic.
 void write_ply(const fs::path& path, const Mesh& mesh,
                PlyFormat format = PlyFormat::kBinaryLittleEndian);

@@ -1,5 +1,6 @@
 #include "reconstruct/blocks.h"
 
+#include <Eigen/Geometry>
 #include <tbb/parallel_for.h>
 #include <tbb/task_arena.h>
 
@@ -10,14 +11,17 @@
 #include <cstdio>
 #include <cstring>
 #include <filesystem>
+#include <fstream>
 #include <limits>
 #include <map>
 #include <memory>
 
+#include "core/atomic_file.h"
 #include "core/error.h"
 #include "core/io.h"
 #include "core/kdtree.h"
 #include "core/threads.h"
+#include "core/union_find.h"
 #include "reconstruct/colour_function.h"
 #include "reconstruct/colour_transfer.h"
 #include "reconstruct/half_space_clip.h"
@@ -528,11 +532,10 @@ Mesh stitch_blocks(std::vector<BlockMesh>& pieces, const BlockGrid& grid, std::v
   return out;
 }
 
-SurfaceResult assemble_blocks(std::vector<BlockMesh>& pieces, const BlockGrid& grid, const BlockSummary& s,
-                              const SurfaceParams& p, BlockRunStats* stats) {
-  const auto note = [&](const std::string& line) {
-    if (p.note) p.note(line);
-  };
+namespace {
+
+// The summary's decisions in a result, before the pieces' figures.
+SurfaceResult block_result(const BlockGrid& grid, const BlockSummary& s) {
   SurfaceResult out;
   out.hole = s.hole;
   out.enclosure = s.enclosure;
@@ -545,15 +548,30 @@ SurfaceResult assemble_blocks(std::vector<BlockMesh>& pieces, const BlockGrid& g
   out.mpu.mean_spacing = s.mean_spacing;
   out.mpu.sample_spacing = s.sample_spacing;
   out.mpu.input_points = s.points;
+  return out;
+}
+
+void add_piece_figures(SurfaceResult& out, const BlockMesh& b) {
+  out.colour_nearest_vertices += b.colour_nearest_vertices;
+  out.extraction.cells_visited += b.dmc.cells_visited;
+  out.extraction.surface_cells += b.dmc.surface_cells;
+  out.extraction.evaluations += b.dmc.evaluations;
+  out.extraction.dropped_faces += b.dmc.dropped_faces;
+  out.mpu.leaves += b.mpu.leaves;
+}
+
+}  // namespace
+
+SurfaceResult assemble_blocks(std::vector<BlockMesh>& pieces, const BlockGrid& grid, const BlockSummary& s,
+                              const SurfaceParams& p, BlockRunStats* stats) {
+  const auto note = [&](const std::string& line) {
+    if (p.note) p.note(line);
+  };
+  SurfaceResult out = block_result(grid, s);
   std::size_t before = 0;
   for (const BlockMesh& b : pieces) {
     before += b.mesh.vertices.size();
-    out.colour_nearest_vertices += b.colour_nearest_vertices;
-    out.extraction.cells_visited += b.dmc.cells_visited;
-    out.extraction.surface_cells += b.dmc.surface_cells;
-    out.extraction.evaluations += b.dmc.evaluations;
-    out.extraction.dropped_faces += b.dmc.dropped_faces;
-    out.mpu.leaves += b.mpu.leaves;
+    add_piece_figures(out, b);
   }
   std::vector<char> far;
   Mesh mesh = stitch_blocks(pieces, grid, &far);
@@ -569,7 +587,229 @@ SurfaceResult assemble_blocks(std::vector<BlockMesh>& pieces, const BlockGrid& g
   if (out.pieces.removed_components > 0)
     note("removed " + std::to_string(out.pieces.removed_components) + " small pieces (" +
          std::to_string(out.pieces.removed_faces) + " faces)");
+  if (stats) {
+    stats->vertices = mesh.vertices.size();
+    stats->faces = mesh.faces.size();
+  }
   out.mesh = std::move(mesh);
+  return out;
+}
+
+namespace {
+
+// A piece as the streamed writer takes it: rims trimmed block by block with holes kept
+// (the edges on shared faces pinned), its vertices' pieces of surface (connected
+// through its own faces) numbered in the order of their first vertex, with each
+// piece's area and faces.
+struct PreparedPiece {
+  BlockMesh b;
+  std::vector<int> part;  ///< per vertex: its piece of surface (0..parts-1)
+  std::vector<double> area;
+  std::vector<std::size_t> faces;
+  std::size_t rim_faces = 0;
+};
+
+PreparedPiece prepare_piece(BlockMesh b, const BlockGrid& grid, bool keep) {
+  PreparedPiece pp;
+  const std::size_t nv = b.mesh.vertices.size();
+  if (b.edges.size() != nv) throw InvalidInput("write_blocks_ply: a block's vertices have no lattice edges");
+  if (keep && b.far.size() == nv && !b.mesh.faces.empty()) {
+    std::vector<char> pinned(nv);
+    for (std::size_t v = 0; v < nv; ++v) pinned[v] = grid.on_seam(b.edges[v]) ? 1 : 0;
+    pp.rim_faces = trim_open_rims(b.mesh, b.far, 16, &pinned, &b.edges);
+  }
+  b.far.clear();
+  UnionFind uf(b.mesh.vertices.size());
+  for (const Face& f : b.mesh.faces) {
+    uf.unite(f[0], f[1]);
+    uf.unite(f[0], f[2]);
+  }
+  pp.part.assign(b.mesh.vertices.size(), -1);
+  std::vector<int> of_root(b.mesh.vertices.size(), -1);
+  for (std::size_t v = 0; v < pp.part.size(); ++v) {
+    int& r = of_root[std::size_t(uf.find(int(v)))];
+    if (r < 0) {
+      r = int(pp.area.size());
+      pp.area.push_back(0);
+      pp.faces.push_back(0);
+    }
+    pp.part[v] = r;
+  }
+  for (const Face& f : b.mesh.faces) {
+    const Vec3d a = b.mesh.vertices[std::size_t(f[0])].cast<double>();
+    const double A = 0.5 * (b.mesh.vertices[std::size_t(f[1])].cast<double>() - a)
+                               .cross(b.mesh.vertices[std::size_t(f[2])].cast<double>() - a)
+                               .norm();
+    const int q = pp.part[std::size_t(f[0])];
+    pp.area[std::size_t(q)] += std::isfinite(A) ? A : 0.0;
+    ++pp.faces[std::size_t(q)];
+  }
+  pp.b = std::move(b);
+  return pp;
+}
+
+// Appends `bytes` to `out` and clears them, or throws IoError naming `what`.
+void flush_to(std::ostream& out, std::string& bytes, const std::string& what) {
+  out.write(bytes.data(), std::streamsize(bytes.size()));
+  if (!out) throw IoError(what + ": write failed (disk full?)");
+  bytes.clear();
+}
+
+}  // namespace
+
+SurfaceResult write_blocks_ply(const std::function<BlockMesh(int)>& load, const BlockGrid& grid,
+                               const BlockSummary& s, const SurfaceParams& p, const std::string& path,
+                               const std::string& scratch, BlockRunStats* stats) {
+  const auto note = [&](const std::string& line) {
+    if (p.note) p.note(line);
+  };
+  const bool keep = s.hole == HoleMode::kKeep;
+  SurfaceResult out = block_result(grid, s);
+
+  // Pass 1: the pieces of surface, joined across the seams; their areas decide which
+  // are small (as remove_small_components on the stitched mesh).
+  struct SeamVertex {
+    int slot;
+    std::int64_t index = -1;  ///< its vertex in the written mesh (pass 2)
+  };
+  std::unordered_map<std::uint64_t, SeamVertex> seam;
+  UnionFind slots;
+  std::vector<double> area;
+  std::vector<std::size_t> faces_of, fresh_of;  // per slot: faces, vertices not joined to an earlier block's
+  std::vector<int> first_slot(std::size_t(grid.size()) + 1, 0);
+  bool normals = true, colours = true, any = false;
+  std::size_t joined = 0;
+  for (int id = 0; id < grid.size(); ++id) {
+    PreparedPiece pp = prepare_piece(load(id), grid, keep);
+    add_piece_figures(out, pp.b);
+    out.rim_faces += pp.rim_faces;
+    first_slot[std::size_t(id)] = int(area.size());
+    for (std::size_t q = 0; q < pp.area.size(); ++q) {
+      slots.add();
+      area.push_back(pp.area[q]);
+      faces_of.push_back(pp.faces[q]);
+      fresh_of.push_back(0);
+    }
+    const Mesh& m = pp.b.mesh;
+    if (!m.vertices.empty()) {
+      any = true;
+      normals = normals && m.has_normals();
+      colours = colours && m.has_colours();
+    }
+    for (std::size_t v = 0; v < m.vertices.size(); ++v) {
+      const int slot = first_slot[std::size_t(id)] + pp.part[v];
+      if (grid.on_seam(pp.b.edges[v])) {
+        const auto [it, fresh] = seam.emplace(pp.b.edges[v], SeamVertex{slot});
+        if (!fresh) {
+          slots.unite(slot, it->second.slot);
+          ++joined;
+          continue;
+        }
+      }
+      ++fresh_of[std::size_t(slot)];
+    }
+  }
+  first_slot[std::size_t(grid.size())] = int(area.size());
+  if (!any) throw InvalidInput("the reconstructed surface is empty");
+  if (stats) stats->seam_vertices_joined = joined;
+  // Per joined piece of surface (root slot): area, whether it has faces, kept.
+  const std::size_t ns = area.size();
+  std::vector<double> root_area(ns, 0);
+  std::vector<std::size_t> root_faces(ns, 0);
+  for (std::size_t q = 0; q < ns; ++q) {
+    const std::size_t r = std::size_t(slots.find(int(q)));
+    root_area[r] += area[q];
+    root_faces[r] += faces_of[q];
+  }
+  ComponentFilterStats& cs = out.pieces;
+  for (std::size_t r = 0; r < ns; ++r)
+    if (slots.find(int(r)) == int(r) && root_faces[r] > 0) {
+      ++cs.components;
+      cs.largest_area = std::max(cs.largest_area, root_area[r]);
+    }
+  const double min_area = p.min_component * cs.largest_area;
+  std::vector<char> keep_root(ns, 1);
+  for (std::size_t r = 0; r < ns; ++r)
+    if (slots.find(int(r)) == int(r) && root_faces[r] > 0 && root_area[r] < min_area) {
+      keep_root[r] = 0;
+      ++cs.removed_components;
+      cs.removed_faces += root_faces[r];
+    }
+  // A vertex of no face stays only when nothing was removed (remove_small_components
+  // drops unused vertices when it drops anything).
+  if (cs.removed_components > 0)
+    for (std::size_t r = 0; r < ns; ++r)
+      if (slots.find(int(r)) == int(r) && root_faces[r] == 0) keep_root[r] = 0;
+  const auto kept = [&](int slot) { return keep_root[std::size_t(slots.find(slot))] != 0; };
+  std::size_t nv = 0, nf = 0;
+  for (std::size_t q = 0; q < ns; ++q)
+    if (kept(int(q))) {
+      nv += fresh_of[q];
+      nf += faces_of[q];
+    }
+  if (nf == 0) throw InvalidInput("the reconstructed surface is empty");
+  if (nv > std::size_t(std::numeric_limits<std::int32_t>::max()))
+    throw InvalidInput("the mesh has " + std::to_string(nv) + " vertices, more than a PLY's int indices hold");
+  out.coloured = p.colour && s.colours && colours;
+  note("stitching " + std::to_string(grid.size()) + " blocks into " + path + ": " + std::to_string(nv) +
+       " vertices, " + std::to_string(nf) + " faces (" + std::to_string(joined) + " seam vertices joined)");
+  if (out.rim_faces > 0) note("open rims brought back to the data (" + std::to_string(out.rim_faces) + " faces)");
+  if (cs.removed_components > 0)
+    note("removed " + std::to_string(cs.removed_components) + " small pieces (" + std::to_string(cs.removed_faces) +
+         " faces)");
+
+  // Pass 2: the vertices straight into the file, the faces into the scratch file, which
+  // is appended after the last vertex.
+  write_file_atomic(path, [&](std::ostream& os) {
+    std::string buf = ply_header(nv, normals, colours, nf, true);
+    std::ofstream fs(scratch, std::ios::binary | std::ios::trunc);
+    if (!fs) throw IoError(scratch + ": cannot write");
+    std::string fbuf;
+    std::int64_t next = 0;
+    std::vector<std::int32_t> index;
+    for (int id = 0; id < grid.size(); ++id) {
+      PreparedPiece pp = prepare_piece(load(id), grid, keep);
+      const Mesh& m = pp.b.mesh;
+      index.assign(m.vertices.size(), -1);
+      for (std::size_t v = 0; v < m.vertices.size(); ++v) {
+        const int slot = first_slot[std::size_t(id)] + pp.part[v];
+        if (!kept(slot)) continue;
+        std::int64_t* at = nullptr;
+        if (grid.on_seam(pp.b.edges[v])) {
+          at = &seam.at(pp.b.edges[v]).index;
+          if (*at >= 0) {
+            index[v] = std::int32_t(*at);
+            continue;
+          }
+        }
+        if (at) *at = next;
+        index[v] = std::int32_t(next++);
+        put_ply_vertex(buf, m.vertices[v], normals ? &m.normals[v] : nullptr, colours ? &m.colours[v] : nullptr);
+      }
+      for (const Face& f : m.faces) {
+        if (!kept(first_slot[std::size_t(id)] + pp.part[std::size_t(f[0])])) continue;
+        put_ply_face(fbuf, Face(index[std::size_t(f[0])], index[std::size_t(f[1])], index[std::size_t(f[2])]));
+      }
+      flush_to(os, buf, path);
+      flush_to(fs, fbuf, scratch);
+    }
+    if (std::size_t(next) != nv) throw InvalidInput("write_blocks_ply: the blocks changed between the passes");
+    fs.close();
+    if (!fs) throw IoError(scratch + ": write failed (disk full?)");
+    std::ifstream in(scratch, std::ios::binary);
+    std::vector<char> chunk(std::size_t(1) << 22);
+    while (in) {
+      in.read(chunk.data(), std::streamsize(chunk.size()));
+      os.write(chunk.data(), in.gcount());
+      if (!os) throw IoError(path + ": write failed (disk full?)");
+    }
+  });
+  std::error_code ec;
+  std::filesystem::remove(scratch, ec);
+  if (stats) {
+    stats->vertices = nv;
+    stats->faces = nf;
+  }
   return out;
 }
 
@@ -765,22 +1005,25 @@ SeamTable table_from_bytes(const std::string& bytes, const std::string& what) {
 
 // ------------------------------------------------------------------ in sequence
 
-SurfaceResult reconstruct_surface_blocks(const CloudSource& source, const SurfaceParams& p, int blocks,
-                                         BlockRunStats* stats) {
-  const auto t0 = Clock::now();
+BlockPieces reconstruct_block_pieces(const CloudSource& source, const SurfaceParams& p, int blocks,
+                                     BlockRunStats* stats) {
   const auto note = [&](const std::string& line) {
     if (p.note) p.note(line);
   };
   if (blocks < 1) throw InvalidInput("blocks: at least one block");
-  const BlockSummary s = summarise_cloud(source, p);
+  BlockPieces out;
+  out.summary = summarise_cloud(source, p);
+  const BlockSummary& s = out.summary;
   const double cell = double((s.box.max - s.box.min).maxCoeff()) / s.resolution;
-  const BlockGrid grid = plan_blocks(s.box, s.resolution, blocks, block_margin(s, cell));
+  out.grid = plan_blocks(s.box, s.resolution, blocks, block_margin(s, cell));
+  const BlockGrid& grid = out.grid;
   note(std::to_string(s.points) + " points in " + std::to_string(grid.size()) + " blocks (" +
        std::to_string(grid.counts[0]) + " x " + std::to_string(grid.counts[1]) + " x " + std::to_string(grid.counts[2]) +
        ") of one lattice of " + std::to_string(s.resolution) + " cells (cell " + fmt("%.3g", cell) + ", margin " +
        fmt("%.3g", grid.margin) + "); " + (s.hole == HoleMode::kClose ? "closing" : "keeping") + " the unseen parts");
   std::map<int, SeamTable> published;
-  std::vector<BlockMesh> pieces(std::size_t(grid.size()));
+  std::vector<BlockMesh>& pieces = out.pieces;
+  pieces.resize(std::size_t(grid.size()));
   BlockRunStats st;
   st.blocks = grid.size();
   st.counts = grid.counts;
@@ -805,7 +1048,16 @@ SurfaceResult reconstruct_surface_blocks(const CloudSource& source, const Surfac
          std::to_string(pieces[std::size_t(id)].mesh.faces.size()) + " faces, " +
          fmt("%.2f s", pieces[std::size_t(id)].seconds));
   }
-  SurfaceResult out = assemble_blocks(pieces, grid, s, p, &st);
+  if (stats) *stats = st;
+  return out;
+}
+
+SurfaceResult reconstruct_surface_blocks(const CloudSource& source, const SurfaceParams& p, int blocks,
+                                         BlockRunStats* stats) {
+  const auto t0 = Clock::now();
+  BlockRunStats st;
+  BlockPieces b = reconstruct_block_pieces(source, p, blocks, &st);
+  SurfaceResult out = assemble_blocks(b.pieces, b.grid, b.summary, p, &st);
   out.seconds.total = seconds_since(t0);
   if (stats) *stats = st;
   return out;

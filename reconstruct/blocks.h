@@ -171,6 +171,7 @@ struct BlockRunStats {
   std::array<int, 3> counts{1, 1, 1};
   std::size_t max_block_points = 0;
   std::size_t seam_vertices_joined = 0;
+  std::size_t vertices = 0, faces = 0;  ///< the stitched mesh's
 };
 
 /// A CloudSource streaming a PLY file (stream_ply_points, 65,536 points at a time);
@@ -187,6 +188,15 @@ BlockMesh piece_from_bytes(const std::string& bytes, const std::string& what);
 std::string to_bytes(const SeamTable& table);
 SeamTable table_from_bytes(const std::string& bytes, const std::string& what);
 
+/// The blocks' pieces, in this process, block after block, before they are stitched.
+struct BlockPieces {
+  BlockSummary summary;
+  BlockGrid grid;
+  std::vector<BlockMesh> pieces;  ///< by block id
+};
+BlockPieces reconstruct_block_pieces(const CloudSource& source, const SurfaceParams& params, int blocks,
+                                     BlockRunStats* stats = nullptr);
+
 /// The whole block-wise surface stage in this process, block after block (memory:
 /// one block's points and fits at a time, plus the meshes). `blocks` >= 1.
 SurfaceResult reconstruct_surface_blocks(const CloudSource& source, const SurfaceParams& params, int blocks,
@@ -197,5 +207,17 @@ SurfaceResult reconstruct_surface_blocks(const CloudSource& source, const Surfac
 /// summary's decisions in the result. InvalidInput when the surface is empty.
 SurfaceResult assemble_blocks(std::vector<BlockMesh>& pieces, const BlockGrid& grid, const BlockSummary& summary,
                               const SurfaceParams& params, BlockRunStats* stats = nullptr);
+
+/// assemble_blocks without the mesh in memory: the pieces are loaded one at a time
+/// (`load(id)`, twice each, in id order) and the stitched mesh goes straight into a
+/// binary PLY at `path` (atomic), its faces through the file `scratch` (removed after).
+/// Memory: one piece, plus the shared faces' vertices. With holes closed it writes
+/// assemble_blocks's mesh byte for byte; with holes kept the rims are trimmed block
+/// by block, with the edges on shared faces never counted as open, so a rim that
+/// meets a seam may keep a few faces the stitched mesh's trim drops. The result holds
+/// no mesh: stats->vertices and faces say what was written.
+SurfaceResult write_blocks_ply(const std::function<BlockMesh(int)>& load, const BlockGrid& grid,
+                               const BlockSummary& summary, const SurfaceParams& params, const std::string& path,
+                               const std::string& scratch, BlockRunStats* stats = nullptr);
 
 }  // namespace station

@@ -10,24 +10,10 @@
 #include <vector>
 
 #include "core/error.h"
+#include "core/union_find.h"
 
 namespace station {
 
-namespace {
-struct UnionFind {
-  std::vector<int> parent;
-  explicit UnionFind(std::size_t n) : parent(n) { std::iota(parent.begin(), parent.end(), 0); }
-  int find(int x) {
-    while (parent[x] != x) x = parent[x] = parent[parent[x]];
-    return x;
-  }
-  void unite(int a, int b) {
-    a = find(a);
-    b = find(b);
-    if (a != b) parent[std::max(a, b)] = std::min(a, b);
-  }
-};
-}  // namespace
 
 ComponentFilterStats remove_small_components(Mesh& mesh, double min_area_fraction) {
   mesh.check_consistent();
@@ -98,8 +84,11 @@ std::size_t trim_open_rims(Mesh& mesh, const std::function<double(const Vec3d&)>
   return trim_open_rims(mesh, far, max_passes);
 }
 
-std::size_t trim_open_rims(Mesh& mesh, const std::vector<char>& far, int max_passes) {
+std::size_t trim_open_rims(Mesh& mesh, const std::vector<char>& far, int max_passes,
+                           const std::vector<char>* pinned, std::vector<std::uint64_t>* vertex_keys) {
   if (far.size() != mesh.vertices.size()) throw InvalidInput("trim_open_rims: one flag per vertex expected");
+  if (pinned && pinned->size() != mesh.vertices.size())
+    throw InvalidInput("trim_open_rims: one pinned flag per vertex expected");
   const std::size_t nf = mesh.faces.size();
   if (nf == 0) return 0;
   auto far_face = [&](std::size_t f) {
@@ -123,7 +112,9 @@ std::size_t trim_open_rims(Mesh& mesh, const std::vector<char>& far, int max_pas
   for (std::size_t i = 0; i < ef.size(); ++i) {
     if (i == 0 || ef[i].first != ef[i - 1].first) {
       group_start.push_back(std::uint32_t(i));
-      alive_on.push_back(0);
+      // A pinned edge has faces beyond this mesh: never down to one.
+      const std::uint32_t a = std::uint32_t(ef[i].first >> 32), b = std::uint32_t(ef[i].first & 0xffffffffu);
+      alive_on.push_back(pinned && (*pinned)[a] && (*pinned)[b] ? 2 : 0);
     }
     const std::uint32_t g = std::uint32_t(group_start.size() - 1), f = ef[i].second;
     face_edge[3 * f + std::size_t(next_slot[f]++)] = g;
@@ -161,7 +152,7 @@ std::size_t trim_open_rims(Mesh& mesh, const std::vector<char>& far, int max_pas
     next.erase(std::unique(next.begin(), next.end()), next.end());
     layer.swap(next);
   }
-  if (dropped > 0) keep_faces(mesh, alive);
+  if (dropped > 0) keep_faces(mesh, alive, vertex_keys);
   return dropped;
 }
 

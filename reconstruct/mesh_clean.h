@@ -34,8 +34,13 @@ std::size_t trim_open_rims(Mesh& mesh, const std::function<double(const Vec3d&)>
                            int max_passes = 16);
 /// The same with the far vertices given (far[v] != 0: further than the bound from the
 /// data), e.g. judged block by block before the blocks' meshes were stitched.
-/// InvalidInput when `far` is not one flag per vertex.
-std::size_t trim_open_rims(Mesh& mesh, const std::vector<char>& far, int max_passes = 16);
+/// InvalidInput when `far` is not one flag per vertex. With `pinned` (one flag per
+/// vertex), an edge between two pinned vertices never counts as open: a block's edges
+/// on a face it shares with another block, whose faces are on the other side.
+/// `vertex_keys` (one per vertex) follow the vertices kept, as keep_faces's.
+std::size_t trim_open_rims(Mesh& mesh, const std::vector<char>& far, int max_passes = 16,
+                           const std::vector<char>* pinned = nullptr,
+                           std::vector<std::uint64_t>* vertex_keys = nullptr);
 
 /// Keeps the faces with keep[f] != 0, in order, and the vertices they use, numbered
 /// in the order the kept faces first use them (normals and colours follow); returns

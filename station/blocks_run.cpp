@@ -123,7 +123,7 @@ bool launched_by_mpi() {
 }
 
 BlockRun run_blocks(const std::string& input, const SurfaceParams& p, int blocks, const std::string& work_dir,
-                    bool resume) {
+                    bool resume, const std::string& output) {
   const auto t0 = std::chrono::steady_clock::now();
   Ranks ranks;
   BlockRun run;
@@ -218,13 +218,20 @@ BlockRun run_blocks(const std::string& input, const SurfaceParams& p, int blocks
   run.stats.max_block_points = max_points;
   if (!run.root) return run;
 
-  // Rank 0: the pieces stitched into one mesh, finished as the single run's.
-  std::vector<BlockMesh> pieces(std::size_t(grid.size()));
-  for (int id = 0; id < grid.size(); ++id) {
+  // Rank 0: the pieces stitched into one mesh, finished as the single run's; into a
+  // PLY straight from the pieces' files (one in memory at a time).
+  const auto load = [&](int id) {
     const fs::path f = piece_file(id);
-    pieces[std::size_t(id)] = piece_from_bytes(read_file_bytes(f), f.string());
+    return piece_from_bytes(read_file_bytes(f), f.string());
+  };
+  if (!output.empty()) {
+    run.result = write_blocks_ply(load, grid, s, p, output, (work / "faces.tmp").string(), &run.stats);
+    run.written = true;
+  } else {
+    std::vector<BlockMesh> pieces(std::size_t(grid.size()));
+    for (int id = 0; id < grid.size(); ++id) pieces[std::size_t(id)] = load(id);
+    run.result = assemble_blocks(pieces, grid, s, p, &run.stats);
   }
-  run.result = assemble_blocks(pieces, grid, s, p, &run.stats);
   SurfaceResult& out = run.result;
   out.seconds.total = seconds_since(t0);
   return run;

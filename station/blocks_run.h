@@ -13,7 +13,8 @@
 namespace station {
 
 struct BlockRun {
-  SurfaceResult result;  ///< the stitched mesh (rank 0 only; empty on the other ranks)
+  SurfaceResult result;  ///< the stitched mesh (rank 0 only; empty on the other ranks, and when written)
+  bool written = false;  ///< the mesh went straight to `output` (its counts in stats)
   bool root = true;      ///< this process is rank 0 (or there is no MPI)
   int ranks = 1;
   int resumed = 0;       ///< blocks found done in the work folder
@@ -27,9 +28,10 @@ bool launched_by_mpi();
 /// `blocks` 0: auto (one block per kAutoBlockPoints points, at least 1). The work
 /// folder is made when missing and removed after a run that finished. InvalidInput /
 /// IoError / FormatError as the stage's (on every rank, the failing rank's message on
-/// rank 0).
+/// rank 0). With `output` (a .ply path), rank 0 writes the mesh there streamed
+/// (write_blocks_ply: no whole mesh in memory) instead of returning it.
 BlockRun run_blocks(const std::string& input, const SurfaceParams& params, int blocks, const std::string& work_dir,
-                    bool resume);
+                    bool resume, const std::string& output = {});
 
 /// --blocks auto: a block per this many points.
 inline constexpr std::size_t kAutoBlockPoints = 2000000;

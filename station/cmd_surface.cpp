@@ -241,9 +241,13 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
     // ranks under mpirun (station/blocks_run.h).
     if (rc.blocks == 1) throw InvalidInput("--resume goes with --blocks (auto or a count)");
     const std::string work = a.out + ".blocks";
-    const BlockRun run = run_blocks(a.in, sp, rc.blocks, work, a.resume);
+    // A PLY is written streamed from the blocks' files (never the whole mesh in memory).
+    std::string ext = std::filesystem::path(a.out).extension().string();
+    std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char ch) { return char(std::tolower(ch)); });
+    const bool ply = ext == ".ply";
+    const BlockRun run = run_blocks(a.in, sp, rc.blocks, work, a.resume, ply ? a.out : std::string());
     if (!run.root) return 0;
-    write_mesh(a.out, run.result.mesh);
+    if (!run.written) write_mesh(a.out, run.result.mesh);
     std::error_code ec;
     std::filesystem::remove_all(work, ec);  // the output is written: the blocks' files go
     const SurfaceResult& r = run.result;
@@ -253,8 +257,8 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
                         .add("input", a.in)
                         .add("output", a.out)
                         .add("points", r.mpu.input_points)
-                        .add("vertices", r.mesh.vertices.size())
-                        .add("faces", r.mesh.faces.size())
+                        .add("vertices", run.stats.vertices)
+                        .add("faces", run.stats.faces)
                         .add("blocks", run.stats.blocks)
                         .add("ranks", run.ranks)
                         .add("resumed_blocks", run.resumed)
@@ -271,7 +275,7 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
                         .add("timings_s", JsonObject().add("total", seconds_since(t0))));
     } else {
       std::printf("reconstruct: %zu vertices, %zu faces in %d blocks on %d rank%s (cell %.4g) in %.2fs -> %s\n",
-                  r.mesh.vertices.size(), r.mesh.faces.size(), run.stats.blocks, run.ranks, run.ranks > 1 ? "s" : "",
+                  run.stats.vertices, run.stats.faces, run.stats.blocks, run.ranks, run.ranks > 1 ? "s" : "",
                   r.extraction.cell_size, seconds_since(t0), a.out.c_str());
     }
     return 0;
