@@ -193,6 +193,8 @@ class BinarySource {
   [[noreturn]] void fail(const std::string& what) const {
     format_error(name_, std::string(element_) + " " + std::to_string(index_) + ": " + what);
   }
+  /// The next byte to read.
+  const unsigned char* position() const { return p_; }
 
   double scalar(Scalar t) {
     const unsigned char* p = take(scalar_size(t));
@@ -508,6 +510,20 @@ void stream_ply_points(const fs::path& path, std::size_t chunk, const std::funct
   const Header h = parse_header(bytes, name);
   const std::string_view data = bytes.substr(h.data_offset);
   Cloud c;
+  // The pages read are handed back after each chunk (a mapped file's pages count as
+  // the process's memory while they stay mapped).
+  const long page = ::sysconf(_SC_PAGESIZE);
+  const char* released = static_cast<const char*>(map);
+  const auto release_to = [&](const char* upto) {
+    const char* end = static_cast<const char*>(map) + (std::size_t(upto - static_cast<const char*>(map)) /
+                                                       std::size_t(page > 0 ? page : 4096)) *
+                                                          std::size_t(page > 0 ? page : 4096);
+    if (end > released) {
+      ::madvise(const_cast<char*>(released), std::size_t(end - released), MADV_DONTNEED);
+      released = end;
+    }
+  };
+  std::function<const char*()> at;
   const std::function<void(Mesh&)> emit = [&](Mesh& m) {
     c.points.swap(m.vertices);
     c.normals.swap(m.normals);
@@ -516,12 +532,14 @@ void stream_ply_points(const fs::path& path, std::size_t chunk, const std::funct
     c.points.swap(m.vertices);
     c.normals.swap(m.normals);
     c.colours.swap(m.colours);
+    if (at) release_to(at());
   };
   if (h.encoding == Encoding::kAscii) {
     AsciiSource src(data, h.data_line, name);
     read_body(src, h, name, (data.size() + 1) / 2, false, chunk, emit);
   } else {
     BinarySource src(data, h.encoding == Encoding::kBinaryBe, name);
+    at = [&src] { return reinterpret_cast<const char*>(src.position()); };
     read_body(src, h, name, data.size(), true, chunk, emit);
   }
 }

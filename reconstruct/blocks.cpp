@@ -366,6 +366,77 @@ Cloud block_points(const CloudSource& source, const BlockGrid& grid, int id) {
   return out;
 }
 
+// ------------------------------------------------------------------ memory
+
+std::vector<std::size_t> estimate_block_points(const BlockSummary& s, const BlockGrid& g) {
+  // Per axis, the blocks' intervals with the margin (as region()).
+  std::array<std::vector<std::pair<double, double>>, 3> iv;
+  for (std::size_t a = 0; a < 3; ++a)
+    for (int b = 0; b < g.counts[a]; ++b)
+      iv[a].emplace_back(float(g.lattice.origin[int(a)] + g.lattice.h * g.splits[a][std::size_t(b)] - g.margin),
+                         float(g.lattice.origin[int(a)] + g.lattice.h * g.splits[a][std::size_t(b) + 1] + g.margin));
+  std::vector<std::size_t> n(std::size_t(g.size()), 0);
+  for (const Vec3f& p : s.far_field.points) {
+    std::array<std::array<int, 2>, 3> r{};
+    for (std::size_t a = 0; a < 3; ++a) {
+      // The blocks whose interval holds the coordinate: a run of consecutive ones.
+      int lo = 0;
+      while (lo < g.counts[a] && iv[a][std::size_t(lo)].second < p[int(a)]) ++lo;
+      int hi = lo;
+      while (hi < g.counts[a] && iv[a][std::size_t(hi)].first <= p[int(a)]) ++hi;
+      r[a] = {lo, hi};
+    }
+    for (int k = r[2][0]; k < r[2][1]; ++k)
+      for (int j = r[1][0]; j < r[1][1]; ++j)
+        for (int i = r[0][0]; i < r[0][1]; ++i) n[std::size_t(g.id(i, j, k))] += s.every;
+  }
+  return n;
+}
+
+double estimate_block_bytes(const BlockSummary& s, const BlockGrid& g) {
+  const std::vector<std::size_t> n = estimate_block_points(s, g);
+  const std::size_t most = n.empty() ? 0 : *std::max_element(n.begin(), n.end());
+  return kBlockBaseBytes + kBlockBytesPerPoint * double(std::min(most, s.points));
+}
+
+int resolve_block_count(const BlockSummary& s, int blocks, double max_bytes) {
+  if (blocks < 0) throw InvalidInput("blocks: auto (0) or a count");
+  if (!(max_bytes > 0)) {
+    if (blocks == 0) return int(std::max<std::size_t>(1, (s.points + kAutoBlockPoints - 1) / kAutoBlockPoints));
+    return blocks;
+  }
+  const double cell = double((s.box.max - s.box.min).maxCoeff()) / s.resolution;
+  const double margin = block_margin(s, cell);
+  const auto need = [&](int n) { return estimate_block_bytes(s, plan_blocks(s.box, s.resolution, n, margin)); };
+  const auto gb = [](double b) { return fmt("%.2f GB", b / 1e9); };
+  if (kBlockBaseBytes > max_bytes)
+    throw InvalidInput("--max-memory " + gb(max_bytes) + " is below what any block run needs (about " +
+                       gb(kBlockBaseBytes) + " for the process and the cloud's summary)");
+  // The fewest blocks that fit: counts grown by about a quarter at a time.
+  int fits = 0;
+  double at_most = 0;
+  for (int n = 1; n <= 4096; n = std::max(n + 1, n * 5 / 4)) {
+    const double b = need(n);
+    if (b <= max_bytes) {
+      fits = n;
+      at_most = b;
+      break;
+    }
+    at_most = b;
+  }
+  if (fits == 0)
+    throw InvalidInput("the cloud does not fit --max-memory " + gb(max_bytes) + " per rank: even 4096 blocks need about " +
+                       gb(at_most) + " (fewer points or a coarser --resolution would)");
+  if (blocks > 1) {
+    const double b = need(blocks);
+    if (b > max_bytes)
+      throw InvalidInput("--blocks " + std::to_string(blocks) + " needs about " + gb(b) + " per rank, over --max-memory " +
+                         gb(max_bytes) + "; --blocks " + std::to_string(fits) + " or more fits");
+    return blocks;
+  }
+  return fits;
+}
+
 // ------------------------------------------------------------------ one block
 
 BlockMesh reconstruct_block(const Cloud& pts_in, const BlockGrid& grid, int id, const BlockSummary& s,
@@ -1006,14 +1077,15 @@ SeamTable table_from_bytes(const std::string& bytes, const std::string& what) {
 // ------------------------------------------------------------------ in sequence
 
 BlockPieces reconstruct_block_pieces(const CloudSource& source, const SurfaceParams& p, int blocks,
-                                     BlockRunStats* stats) {
+                                     BlockRunStats* stats, double max_bytes) {
   const auto note = [&](const std::string& line) {
     if (p.note) p.note(line);
   };
-  if (blocks < 1) throw InvalidInput("blocks: at least one block");
+  if (blocks < 0) throw InvalidInput("blocks: auto (0) or a count");
   BlockPieces out;
   out.summary = summarise_cloud(source, p);
   const BlockSummary& s = out.summary;
+  blocks = resolve_block_count(s, blocks, max_bytes);
   const double cell = double((s.box.max - s.box.min).maxCoeff()) / s.resolution;
   out.grid = plan_blocks(s.box, s.resolution, blocks, block_margin(s, cell));
   const BlockGrid& grid = out.grid;
@@ -1053,10 +1125,10 @@ BlockPieces reconstruct_block_pieces(const CloudSource& source, const SurfacePar
 }
 
 SurfaceResult reconstruct_surface_blocks(const CloudSource& source, const SurfaceParams& p, int blocks,
-                                         BlockRunStats* stats) {
+                                         BlockRunStats* stats, double max_bytes) {
   const auto t0 = Clock::now();
   BlockRunStats st;
-  BlockPieces b = reconstruct_block_pieces(source, p, blocks, &st);
+  BlockPieces b = reconstruct_block_pieces(source, p, blocks, &st, max_bytes);
   SurfaceResult out = assemble_blocks(b.pieces, b.grid, b.summary, p, &st);
   out.seconds.total = seconds_since(t0);
   if (stats) *stats = st;

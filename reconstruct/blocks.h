@@ -135,6 +135,26 @@ BlockSummary summarise_cloud(const CloudSource& source, const SurfaceParams& par
 double block_margin(const BlockSummary& summary, double cell);
 inline constexpr double kMarginCells = 8;
 
+/// Memory of a block run per rank, as measured (docs/blocks.md: the bottle at 1 M
+/// points, 4 to 64 blocks, colour on): a base (the process, the summary and its
+/// closing) plus so many bytes per point of the largest block (its fit, its colour
+/// function, its window's extraction).
+inline constexpr double kBlockBaseBytes = 256.0 * 1024 * 1024;
+inline constexpr double kBlockBytesPerPoint = 1536;
+
+/// Each block's points (its region's, margin included), estimated from the summary
+/// (its points, each standing for `every`).
+std::vector<std::size_t> estimate_block_points(const BlockSummary& summary, const BlockGrid& grid);
+/// A rank's peak memory for a run on `grid`: base + per point x the largest block's.
+double estimate_block_bytes(const BlockSummary& summary, const BlockGrid& grid);
+
+/// The block count of a run: `blocks` 0 is auto (a block per kAutoBlockPoints); with
+/// `max_bytes` > 0 the fewest blocks whose estimate fits (when `blocks` is 0 or 1), or
+/// `blocks` checked against it. InvalidInput, before any block runs, when no count up
+/// to 4096 fits or the asked count does not (the message says what would).
+int resolve_block_count(const BlockSummary& summary, int blocks, double max_bytes);
+inline constexpr std::size_t kAutoBlockPoints = 2000000;
+
 /// One block's piece of the mesh and what the stitching needs.
 struct BlockMesh {
   Mesh mesh;
@@ -195,12 +215,13 @@ struct BlockPieces {
   std::vector<BlockMesh> pieces;  ///< by block id
 };
 BlockPieces reconstruct_block_pieces(const CloudSource& source, const SurfaceParams& params, int blocks,
-                                     BlockRunStats* stats = nullptr);
+                                     BlockRunStats* stats = nullptr, double max_bytes = 0);
 
 /// The whole block-wise surface stage in this process, block after block (memory:
-/// one block's points and fits at a time, plus the meshes). `blocks` >= 1.
+/// one block's points and fits at a time, plus the meshes). `blocks` and `max_bytes`
+/// as resolve_block_count's.
 SurfaceResult reconstruct_surface_blocks(const CloudSource& source, const SurfaceParams& params, int blocks,
-                                         BlockRunStats* stats = nullptr);
+                                         BlockRunStats* stats = nullptr, double max_bytes = 0);
 
 /// The blocks' pieces (in block id order) stitched and finished as the single run
 /// finishes its mesh (rims trimmed with holes kept, small pieces dropped), with the

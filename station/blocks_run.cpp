@@ -123,7 +123,7 @@ bool launched_by_mpi() {
 }
 
 BlockRun run_blocks(const std::string& input, const SurfaceParams& p, int blocks, const std::string& work_dir,
-                    bool resume, const std::string& output) {
+                    bool resume, const std::string& output, double max_bytes) {
   const auto t0 = std::chrono::steady_clock::now();
   Ranks ranks;
   BlockRun run;
@@ -149,7 +149,9 @@ BlockRun run_blocks(const std::string& input, const SurfaceParams& p, int blocks
         root_note("resuming the blocks in " + work.string());
       } else {
         root_note("summarising " + input + " (a streamed pass for its bounds, spacing and closing)");
-        bytes = to_bytes(summarise_cloud(source, p));
+        const BlockSummary summary = summarise_cloud(source, p);
+        (void)resolve_block_count(summary, blocks, max_bytes);  // one that cannot fit leaves nothing behind
+        bytes = to_bytes(summary);
         fs::create_directories(work);
         write_file_atomic(saved, bytes);
       }
@@ -160,7 +162,7 @@ BlockRun run_blocks(const std::string& input, const SurfaceParams& p, int blocks
   const BlockSummary s = summary_from_bytes(bytes, (work / "summary.bin").string());
   bytes.clear();
   const double cell = double((s.box.max - s.box.min).maxCoeff()) / s.resolution;
-  if (blocks <= 0) blocks = int(std::max<std::size_t>(1, (s.points + kAutoBlockPoints - 1) / kAutoBlockPoints));
+  blocks = resolve_block_count(s, blocks, max_bytes);  // the same on every rank
   const BlockGrid grid = plan_blocks(s.box, s.resolution, blocks, block_margin(s, cell));
   root_note(std::to_string(s.points) + " points in " + std::to_string(grid.size()) + " blocks (" +
             std::to_string(grid.counts[0]) + " x " + std::to_string(grid.counts[1]) + " x " +
@@ -169,6 +171,10 @@ BlockRun run_blocks(const std::string& input, const SurfaceParams& p, int blocks
             fmt("%.3g", cell) + (s.resolution_auto ? ", auto: the points' sample spacing " + fmt("%.3g", s.sample_spacing) : "") +
             "; margin " + fmt("%.3g", grid.margin) + "); " +
             (s.hole == HoleMode::kClose ? "closing" : "keeping") + " the unseen parts");
+  if (max_bytes > 0) run.memory_estimate = estimate_block_bytes(s, grid);
+  if (max_bytes > 0)
+    root_note("memory: about " + fmt("%.2f GB", run.memory_estimate / 1e9) + " per rank (--max-memory " +
+              fmt("%.2f GB", max_bytes / 1e9) + ")");
   const auto faces_file = [&](int id) { return work / ("faces_" + std::to_string(id) + ".bin"); };
   const auto piece_file = [&](int id) { return work / ("piece_" + std::to_string(id) + ".bin"); };
 

@@ -18,6 +18,7 @@ struct BlockRun {
   bool root = true;      ///< this process is rank 0 (or there is no MPI)
   int ranks = 1;
   int resumed = 0;       ///< blocks found done in the work folder
+  double memory_estimate = 0;  ///< with max_bytes: the estimated peak per rank (bytes)
   BlockRunStats stats;
 };
 
@@ -25,15 +26,13 @@ struct BlockRun {
 /// station was built with MPI.
 bool launched_by_mpi();
 
-/// `blocks` 0: auto (one block per kAutoBlockPoints points, at least 1). The work
+/// `blocks` and `max_bytes` as resolve_block_count's (0: auto, a block per
+/// kAutoBlockPoints points; with max_bytes, the count that fits). The work
 /// folder is made when missing and removed after a run that finished. InvalidInput /
 /// IoError / FormatError as the stage's (on every rank, the failing rank's message on
 /// rank 0). With `output` (a .ply path), rank 0 writes the mesh there streamed
 /// (write_blocks_ply: no whole mesh in memory) instead of returning it.
 BlockRun run_blocks(const std::string& input, const SurfaceParams& params, int blocks, const std::string& work_dir,
-                    bool resume, const std::string& output = {});
-
-/// --blocks auto: a block per this many points.
-inline constexpr std::size_t kAutoBlockPoints = 2000000;
+                    bool resume, const std::string& output = {}, double max_bytes = 0);
 
 }  // namespace station

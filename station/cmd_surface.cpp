@@ -236,16 +236,18 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
   sp.note = [&](const std::string& line) {
     if (!c.json) std::fprintf(stderr, "%s\n", surface_note(a.in, line, "reconstruct: ", "note: ").c_str());
   };
-  if (rc.blocks != 1 || a.resume) {
+  if (rc.blocks != 1 || a.resume || rc.max_memory_gb > 0) {
     // Blocks of one lattice: streamed, never the whole cloud in memory; over the MPI
     // ranks under mpirun (station/blocks_run.h).
-    if (rc.blocks == 1) throw InvalidInput("--resume goes with --blocks (auto or a count)");
+    if (rc.blocks == 1 && rc.max_memory_gb == 0)
+      throw InvalidInput("--resume goes with --blocks (auto or a count) or --max-memory");
     const std::string work = a.out + ".blocks";
     // A PLY is written streamed from the blocks' files (never the whole mesh in memory).
     std::string ext = std::filesystem::path(a.out).extension().string();
     std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char ch) { return char(std::tolower(ch)); });
     const bool ply = ext == ".ply";
-    const BlockRun run = run_blocks(a.in, sp, rc.blocks, work, a.resume, ply ? a.out : std::string());
+    const BlockRun run =
+        run_blocks(a.in, sp, rc.blocks, work, a.resume, ply ? a.out : std::string(), rc.max_memory_gb * 1e9);
     if (!run.root) return 0;
     if (!run.written) write_mesh(a.out, run.result.mesh);
     std::error_code ec;
@@ -262,6 +264,7 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
                         .add("blocks", run.stats.blocks)
                         .add("ranks", run.ranks)
                         .add("resumed_blocks", run.resumed)
+                        .add("memory_estimate_gb", run.memory_estimate / 1e9)
                         .add("seam_vertices_joined", run.stats.seam_vertices_joined)
                         .add("removed_pieces", r.pieces.removed_components)
                         .add("epsilon0", r.epsilon0)

@@ -201,7 +201,7 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
   if (const YAML::Node n = root["reconstruct"]) {
     r.check_keys(n, "reconstruct", {"surface", "resolution", "epsilon0", "extractor", "hole", "colour", "colour_method", "colour_multi",
                                      "colour_noise_robust", "colour_edges", "min_component", "table_plane", "winding_close",
-                                     "blocks"});
+                                     "blocks", "max_memory_gb"});
     auto& c = p.reconstruct;
     if (n["surface"]) c.surface = r.text(n["surface"], "reconstruct.surface");
     if (n["table_plane"]) c.table_plane = r.boolean(n["table_plane"], "reconstruct.table_plane");
@@ -223,6 +223,9 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
         if (c.blocks < 1 || c.blocks > 4096) r.fail("reconstruct.blocks", "must be auto or 1..4096");
       }
     }
+    if (n["max_memory_gb"]) c.max_memory_gb = r.number(n["max_memory_gb"], "reconstruct.max_memory_gb");
+    if (!(c.max_memory_gb == 0 || (c.max_memory_gb >= 0.25 && c.max_memory_gb <= 1e6)))
+      r.fail("reconstruct.max_memory_gb", "must be 0 (no bound) or at least 0.25 (GB per rank)");
     if (n["epsilon0"]) c.epsilon0 = r.number(n["epsilon0"], "reconstruct.epsilon0");
     if (c.epsilon0 < 0 || c.epsilon0 > 0.1) r.fail("reconstruct.epsilon0", "must be 0 (automatic) .. 0.1");
     if (n["extractor"]) c.extractor = r.text(n["extractor"], "reconstruct.extractor");

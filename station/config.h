@@ -88,6 +88,9 @@ struct PipelineConfig {
     /// The surface stage in blocks of one lattice (reconstruct/blocks.h, docs/blocks.md):
     /// 1 = one piece (no blocks), 0 = auto (a block per 2 M points), else about that many.
     int blocks = 1;
+    /// Memory per rank for the blocks (GB): the block count that fits it is picked
+    /// (or --blocks checked against it); 0 = no bound.
+    double max_memory_gb = 0;
   } reconstruct;
   struct Sdm {
     int level = 5;  ///< icosphere template subdivision level

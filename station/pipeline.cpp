@@ -599,10 +599,9 @@ class Runner {
     sp.boundary_flags = true;
     sp.note = [&](const std::string& line) { say(surface_note(in, line, "  surface: ", "  note: ")); };
     SurfaceResult sr;
-    if (c.blocks != 1) {
+    if (c.blocks != 1 || c.max_memory_gb > 0) {
       // Blocks of one lattice, in sequence here (docs/blocks.md).
-      sr = reconstruct_surface_blocks(memory_source(input), sp, c.blocks > 0 ? c.blocks : int(std::max<std::size_t>(
-                                                                                      1, (input.size() + kAutoBlockPoints - 1) / kAutoBlockPoints)));
+      sr = reconstruct_surface_blocks(memory_source(input), sp, c.blocks, nullptr, c.max_memory_gb * 1e9);
     } else {
       sr = reconstruct_surface(std::move(input), sp);
     }

@@ -316,6 +316,42 @@ TEST(BlockSurface, StreamedPlyIsTheStitchedMesh) {
               kmem.mesh.faces.size(), kmem.rim_faces, kept.faces.size(), kst.rim_faces);
 }
 
+// --max-memory: the blocks' points estimated from the summary, and the fewest blocks
+// whose estimate fits.
+TEST(BlockMemory, EstimatesTheBlocksPointsAndPicksTheFewestThatFit) {
+  const Cloud cloud = bottle(60000);
+  SurfaceParams p;
+  p.resolution = 96;
+  const BlockSummary s = summarise_cloud(memory_source(cloud), p);
+  const double cell = double((s.box.max - s.box.min).maxCoeff()) / s.resolution;
+  const BlockGrid g = plan_blocks(s.box, s.resolution, 8, block_margin(s, cell));
+  const std::vector<std::size_t> est = estimate_block_points(s, g);
+  ASSERT_EQ(est.size(), 8u);
+  for (int id = 0; id < g.size(); ++id) {
+    const std::size_t real = block_points(memory_source(cloud), g, id).size();
+    // The summary here is the whole cloud (60,000 < kSummaryPoints): exact.
+    EXPECT_EQ(est[std::size_t(id)], real) << "block " << id;
+  }
+  // A budget for about a third of the cloud per block: more than one block, the
+  // estimate within it, one block fewer over it.
+  const double budget = kBlockBaseBytes + kBlockBytesPerPoint * 0.35 * double(cloud.size());
+  const int n = resolve_block_count(s, 1, budget);
+  EXPECT_GT(n, 1);
+  EXPECT_LE(n, 8);
+  EXPECT_LE(estimate_block_bytes(s, plan_blocks(s.box, s.resolution, n, g.margin)), budget);
+  EXPECT_GT(estimate_block_bytes(s, plan_blocks(s.box, s.resolution, n - 1, g.margin)), budget);
+  EXPECT_EQ(resolve_block_count(s, 8, budget), 8);
+  EXPECT_EQ(resolve_block_count(s, 0, 0), 1);  // auto: a block per 2 M points
+  try {
+    resolve_block_count(s, 1 + (n > 2 ? 1 : 0), budget);
+    if (n > 2) FAIL() << "too few blocks accepted";
+  } catch (const InvalidInput& e) {
+    EXPECT_NE(std::string(e.what()).find("or more fits"), std::string::npos) << e.what();
+  }
+  EXPECT_THROW(resolve_block_count(s, 1, 0.5 * kBlockBaseBytes), InvalidInput);
+  EXPECT_THROW(resolve_block_count(s, 1, kBlockBaseBytes + 10.0), InvalidInput);  // not even 4096 blocks
+}
+
 TEST(BlockSurface, NeedsNormalsAndPoints) {
   Cloud none;
   EXPECT_THROW(reconstruct_surface_blocks(memory_source(none), SurfaceParams{}, 8), InvalidInput);

@@ -143,5 +143,30 @@ TEST_F(BlocksCli, ResumeWithoutBlocksAndBlocksWithoutNormalsAreClearErrors) {
   EXPECT_FALSE(fs::exists(path("y.ply")));
 }
 
+// --max-memory picks the block count (and says what it expects); a bound no run can
+// keep, or a --blocks count over it, is refused before any block runs.
+TEST_F(BlocksCli, MaxMemoryPicksTheBlocksOrRefusesBeforeStarting) {
+  const std::string out = path("bounded.ply");
+  const auto ok = test::run_command(station_cmd() + " " + reconstruct(out, "--threads 2 --max-memory 0.35"));
+  ASSERT_EQ(ok.code, 0) << ok.out;
+  EXPECT_GT(json_number(ok.out, "blocks"), 1) << ok.out;
+  const double estimate = json_number(ok.out, "memory_estimate_gb");
+  EXPECT_GT(estimate, 0.26) << ok.out;
+  EXPECT_LE(estimate, 0.35) << ok.out;
+  EXPECT_TRUE(mesh_topology(read_mesh(out)).closed_manifold());
+  const std::string none = path("unbounded.ply");
+  const auto low = test::run_command(station_cmd() + " " + reconstruct(none, "--max-memory 0.26"));
+  EXPECT_NE(low.code, 0);
+  EXPECT_NE(low.out.find("--max-memory 0.26 GB is below"), std::string::npos) << low.out;
+  const auto few = test::run_command(station_cmd() + " " + reconstruct(none, "--max-memory 0.35 --blocks 2"));
+  EXPECT_NE(few.code, 0);
+  EXPECT_NE(few.out.find("or more fits"), std::string::npos) << few.out;
+  const auto bad = test::run_command(station_cmd() + " " + reconstruct(none, "--max-memory 0.1"));
+  EXPECT_NE(bad.code, 0);
+  EXPECT_NE(bad.out.find("--max-memory 0.1: must be"), std::string::npos) << bad.out;
+  EXPECT_FALSE(fs::exists(none));
+  EXPECT_FALSE(fs::exists(none + ".blocks"));
+}
+
 }  // namespace
 }  // namespace station
