@@ -15,6 +15,7 @@
 #include <limits>
 #include <map>
 #include <memory>
+#include <numeric>
 
 #include "core/atomic_file.h"
 #include "core/error.h"
@@ -399,10 +400,12 @@ double estimate_block_bytes(const BlockSummary& s, const BlockGrid& g) {
   return kBlockBaseBytes + kBlockBytesPerPoint * double(std::min(most, s.points));
 }
 
-int resolve_block_count(const BlockSummary& s, int blocks, double max_bytes) {
+int resolve_block_count(const BlockSummary& s, int blocks, double max_bytes, int ranks) {
   if (blocks < 0) throw InvalidInput("blocks: auto (0) or a count");
+  const int least = ranks > 1 ? std::min(4096, kAutoBlocksPerRank * ranks) : 1;
   if (!(max_bytes > 0)) {
-    if (blocks == 0) return int(std::max<std::size_t>(1, (s.points + kAutoBlockPoints - 1) / kAutoBlockPoints));
+    if (blocks == 0)
+      return std::min<int>(4096, int(std::max<std::size_t>(std::size_t(least), (s.points + kAutoBlockPoints - 1) / kAutoBlockPoints)));
     return blocks;
   }
   const double cell = double((s.box.max - s.box.min).maxCoeff()) / s.resolution;
@@ -434,7 +437,26 @@ int resolve_block_count(const BlockSummary& s, int blocks, double max_bytes) {
                          gb(max_bytes) + "; --blocks " + std::to_string(fits) + " or more fits");
     return blocks;
   }
-  return fits;
+  return std::max(fits, least);
+}
+
+std::vector<int> assign_blocks(const std::vector<int>& ids, const std::vector<std::size_t>& points, int ranks) {
+  if (ranks < 1) throw InvalidInput("assign_blocks: at least one rank");
+  std::vector<std::size_t> order(ids.size());
+  std::iota(order.begin(), order.end(), std::size_t(0));
+  const auto weight = [&](std::size_t t) {
+    const int id = ids[t];
+    return id >= 0 && std::size_t(id) < points.size() ? points[std::size_t(id)] : 0;
+  };
+  std::stable_sort(order.begin(), order.end(), [&](std::size_t a, std::size_t b) { return weight(a) > weight(b); });
+  std::vector<int> rank(ids.size(), 0);
+  std::vector<std::size_t> load(std::size_t(ranks), 0);
+  for (const std::size_t t : order) {
+    const int r = int(std::min_element(load.begin(), load.end()) - load.begin());
+    rank[t] = r;
+    load[std::size_t(r)] += weight(t) + 1;  // + 1: empty blocks spread too
+  }
+  return rank;
 }
 
 // ------------------------------------------------------------------ one block

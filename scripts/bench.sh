@@ -8,7 +8,7 @@ cd "$(dirname "$0")/.."
 scripts/setup.sh --bench
 cmake -S . -B build-bench -DCMAKE_BUILD_TYPE=Release \
   -DSTATION_BUILD_BENCH=ON -DSTATION_BUILD_TESTS=OFF >/dev/null
-cmake --build build-bench -j"$(nproc)" --target station_bench >/dev/null
+cmake --build build-bench -j"$(nproc)" --target station_bench station >/dev/null  # station: the blocks group runs it
 # Open3D's OpenMP threads busy-wait by default and then fight ours for the
 # cores (Poisson 10x slower under load: docs/benchmarks.md); libgomp reads this
 # at load time, so it is set here rather than in main().

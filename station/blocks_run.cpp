@@ -8,6 +8,8 @@
 #include <filesystem>
 #include <map>
 
+#include <sys/resource.h>
+
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "core/io.h"
@@ -74,6 +76,14 @@ class Ranks {
     }
 #endif
     return failed;
+  }
+  /// Each rank's `value` at rank 0 (in rank order; {value} without MPI).
+  std::vector<double> gather(double value) const {
+    std::vector<double> all(std::size_t(size_), value);
+#ifdef STATION_HAVE_MPI
+    if (mpi_) MPI_Gather(&value, 1, MPI_DOUBLE, all.data(), 1, MPI_DOUBLE, 0, MPI_COMM_WORLD);
+#endif
+    return all;
   }
   /// `bytes` from rank `from` to every rank.
   void broadcast(std::string& bytes, int from) const {
@@ -150,7 +160,7 @@ BlockRun run_blocks(const std::string& input, const SurfaceParams& p, int blocks
       } else {
         root_note("summarising " + input + " (a streamed pass for its bounds, spacing and closing)");
         const BlockSummary summary = summarise_cloud(source, p);
-        (void)resolve_block_count(summary, blocks, max_bytes);  // one that cannot fit leaves nothing behind
+        (void)resolve_block_count(summary, blocks, max_bytes, ranks.size());  // one that cannot fit leaves nothing behind
         bytes = to_bytes(summary);
         fs::create_directories(work);
         write_file_atomic(saved, bytes);
@@ -162,7 +172,7 @@ BlockRun run_blocks(const std::string& input, const SurfaceParams& p, int blocks
   const BlockSummary s = summary_from_bytes(bytes, (work / "summary.bin").string());
   bytes.clear();
   const double cell = double((s.box.max - s.box.min).maxCoeff()) / s.resolution;
-  blocks = resolve_block_count(s, blocks, max_bytes);  // the same on every rank
+  blocks = resolve_block_count(s, blocks, max_bytes, ranks.size());  // the same on every rank
   const BlockGrid grid = plan_blocks(s.box, s.resolution, blocks, block_margin(s, cell));
   root_note(std::to_string(s.points) + " points in " + std::to_string(grid.size()) + " blocks (" +
             std::to_string(grid.counts[0]) + " x " + std::to_string(grid.counts[1]) + " x " +
@@ -183,10 +193,13 @@ BlockRun run_blocks(const std::string& input, const SurfaceParams& p, int blocks
   for (int id : block_order(grid)) waves[block_wave(grid, id)].push_back(id);
   int done = 0, resumed = 0;
   std::size_t max_points = 0;
+  // Within a wave, the largest blocks first, each to the least loaded rank.
+  const std::vector<std::size_t> estimate = estimate_block_points(s, grid);
   for (const auto& [wave, ids] : waves) {
+    const std::vector<int> owner = assign_blocks(ids, estimate, ranks.size());
     error = attempt([&] {
       for (std::size_t t = 0; t < ids.size(); ++t) {
-        if (int(t % std::size_t(ranks.size())) != ranks.rank()) continue;
+        if (owner[t] != ranks.rank()) continue;
         const int id = ids[t];
         const auto c = grid.coords(id);
         const std::string where = "block " + std::to_string(id + 1) + "/" + std::to_string(grid.size()) + " (" +
@@ -218,6 +231,10 @@ BlockRun run_blocks(const std::string& input, const SurfaceParams& p, int blocks
     if (ranks.any_failed(!error.empty(), error)) fail_with(error);
     ranks.barrier();
   }
+  // Each rank's peak memory so far (its blocks), for the run's summary.
+  rusage ru{};
+  getrusage(RUSAGE_SELF, &ru);
+  run.rank_peak_mb = ranks.gather(double(ru.ru_maxrss) / 1024.0);
   run.resumed = resumed;
   run.stats.blocks = grid.size();
   run.stats.counts = grid.counts;

@@ -6,6 +6,7 @@
 // work folder (the blocks' lower-face values and meshes, one file each): rank 0 stitches
 // the mesh. With `resume`, blocks whose files are there are not run again.
 #include <string>
+#include <vector>
 
 #include "reconstruct/blocks.h"
 #include "reconstruct/surface.h"
@@ -18,6 +19,7 @@ struct BlockRun {
   bool root = true;      ///< this process is rank 0 (or there is no MPI)
   int ranks = 1;
   int resumed = 0;       ///< blocks found done in the work folder
+  std::vector<double> rank_peak_mb;  ///< rank 0: each rank's peak resident memory over its blocks (MiB)
   double memory_estimate = 0;  ///< with max_bytes: the estimated peak per rank (bytes)
   BlockRunStats stats;
 };

@@ -265,6 +265,7 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
                         .add("ranks", run.ranks)
                         .add("resumed_blocks", run.resumed)
                         .add("memory_estimate_gb", run.memory_estimate / 1e9)
+                        .add("rank_peak_rss_mb", run.rank_peak_mb)
                         .add("seam_vertices_joined", run.stats.seam_vertices_joined)
                         .add("removed_pieces", r.pieces.removed_components)
                         .add("epsilon0", r.epsilon0)

@@ -86,7 +86,7 @@ struct PipelineConfig {
     bool colour_edges = true;
     double min_component = 0.01;    ///< drop pieces below this fraction of the largest's area
     /// The surface stage in blocks of one lattice (reconstruct/blocks.h, docs/blocks.md):
-    /// 1 = one piece (no blocks), 0 = auto (a block per 2 M points), else about that many.
+    /// 1 = one piece (no blocks), 0 = auto (a block per 500k points, at least 4 a rank), else about that many.
     int blocks = 1;
     /// Memory per rank for the blocks (GB): the block count that fits it is picked
     /// (or --blocks checked against it); 0 = no bound.

@@ -53,7 +53,7 @@ const std::vector<ProfileOption>& profile_options() {
     // station run: the whole job (any key with --set; these have a shorthand).
     value("reconstruct.blocks", "reconstruct", "--blocks",
           "the surface stage in blocks of one lattice, stitched vertex for vertex: 1 (one piece), auto (a block "
-          "per 2 M points) or a count; spread over the ranks under mpirun (docs/blocks.md)");
+          "per 500k points, at least 4 a rank) or a count; spread over the ranks under mpirun (docs/blocks.md)");
     value("reconstruct.max_memory_gb", "reconstruct", "--max-memory",
           "memory per rank in GB for the blocks: the fewest blocks that fit it (or --blocks checked against "
           "it); a run that cannot fit says so before it starts; 0: no bound");
@@ -61,7 +61,7 @@ const std::vector<ProfileOption>& profile_options() {
     value("reconstruct.max_memory_gb", "run", "--max-memory",
           "memory per rank in GB for the surface stage's blocks (0: no bound; docs/blocks.md)");
     value("reconstruct.blocks", "run", "--blocks",
-          "the surface stage in blocks of one lattice: 1 (one piece), auto (a block per 2 M points) or a count "
+          "the surface stage in blocks of one lattice: 1 (one piece), auto (a block per 500k points, at least 4 a rank) or a count "
           "(docs/blocks.md)");
     value("reconstruct.hole", "run", "--hole",
           "unseen underside: auto (close an object, keep a one-sided patch open), close (smooth, watertight) or "

@@ -341,7 +341,7 @@ TEST(BlockMemory, EstimatesTheBlocksPointsAndPicksTheFewestThatFit) {
   EXPECT_LE(estimate_block_bytes(s, plan_blocks(s.box, s.resolution, n, g.margin)), budget);
   EXPECT_GT(estimate_block_bytes(s, plan_blocks(s.box, s.resolution, n - 1, g.margin)), budget);
   EXPECT_EQ(resolve_block_count(s, 8, budget), 8);
-  EXPECT_EQ(resolve_block_count(s, 0, 0), 1);  // auto: a block per 2 M points
+  EXPECT_EQ(resolve_block_count(s, 0, 0), 1);  // auto: a block per 500k points, at least 4 a rank
   try {
     resolve_block_count(s, 1 + (n > 2 ? 1 : 0), budget);
     if (n > 2) FAIL() << "too few blocks accepted";
@@ -350,6 +350,20 @@ TEST(BlockMemory, EstimatesTheBlocksPointsAndPicksTheFewestThatFit) {
   }
   EXPECT_THROW(resolve_block_count(s, 1, 0.5 * kBlockBaseBytes), InvalidInput);
   EXPECT_THROW(resolve_block_count(s, 1, kBlockBaseBytes + 10.0), InvalidInput);  // not even 4096 blocks
+}
+
+TEST(BlockMemory, WavesGoToTheRanksLargestFirst) {
+  // Blocks 3, 5, 8, 9 weigh 10, 7, 6, 5 points: 10 -> rank 0, 7 -> rank 1, 6 -> rank 1
+  // (7 below 10), 5 -> rank 0 (10 below 13).
+  std::vector<std::size_t> points(10, 0);
+  points[3] = 10, points[5] = 7, points[8] = 6, points[9] = 5;
+  const std::vector<int> r = assign_blocks({9, 3, 8, 5}, points, 2);
+  EXPECT_EQ(r, (std::vector<int>{0, 0, 1, 1}));
+  EXPECT_EQ(assign_blocks({1, 2, 3}, points, 1), (std::vector<int>{0, 0, 0}));
+  // Empty blocks spread over the ranks too.
+  const std::vector<int> e = assign_blocks({0, 1, 2, 4}, points, 2);
+  EXPECT_EQ(std::count(e.begin(), e.end(), 0), 2);
+  EXPECT_THROW(assign_blocks({1}, points, 0), InvalidInput);
 }
 
 TEST(BlockSurface, NeedsNormalsAndPoints) {
