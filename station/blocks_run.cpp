@@ -31,9 +31,18 @@ std::string fmt(const char* f, double v) {
   return buf;
 }
 
-// The ranks: MPI's when launched by mpirun, else one.
+// The ranks: MPI's when launched by mpirun, else one. One for the process (MPI is
+// started once, at the first use, and finished at exit).
 class Ranks {
  public:
+  static Ranks& get() {
+    static Ranks r;
+    return r;
+  }
+  Ranks(const Ranks&) = delete;
+  Ranks& operator=(const Ranks&) = delete;
+
+ private:
   Ranks() {
 #ifdef STATION_HAVE_MPI
     if (launched_by_mpi()) {
@@ -49,6 +58,8 @@ class Ranks {
     }
 #endif
   }
+
+ public:
   ~Ranks() {
 #ifdef STATION_HAVE_MPI
     if (owns_) MPI_Finalize();
@@ -132,10 +143,51 @@ bool launched_by_mpi() {
   return false;
 }
 
+int mpi_rank() { return Ranks::get().rank(); }
+int mpi_ranks() { return Ranks::get().size(); }
+void mpi_barrier() { Ranks::get().barrier(); }
+
+void send_block_job(const BlockJob* job) {
+  const Ranks& r = Ranks::get();
+  if (r.size() < 2 || r.rank() != 0) return;
+  std::string m;
+  if (job) {
+    char up[128] = "none";
+    if (job->up) std::snprintf(up, sizeof up, "%.17g %.17g %.17g", job->up->x(), job->up->y(), job->up->z());
+    m = "job\n" + job->input + "\n" + job->work + "\n" + up + "\n";
+  } else {
+    m = "stop\n";
+  }
+  r.broadcast(m, 0);
+}
+
+std::optional<BlockJob> receive_block_job() {
+  const Ranks& r = Ranks::get();
+  if (r.size() < 2 || r.rank() == 0) return std::nullopt;
+  std::string m;
+  r.broadcast(m, 0);
+  std::vector<std::string> lines;
+  for (std::size_t at = 0; at < m.size();) {
+    const std::size_t end = m.find('\n', at);
+    lines.push_back(m.substr(at, end == std::string::npos ? std::string::npos : end - at));
+    if (end == std::string::npos) break;
+    at = end + 1;
+  }
+  if (lines.size() < 4 || lines[0] != "job") return std::nullopt;
+  BlockJob job;
+  job.input = lines[1];
+  job.work = lines[2];
+  if (lines[3] != "none") {
+    Vec3d up;
+    if (std::sscanf(lines[3].c_str(), "%lf %lf %lf", &up.x(), &up.y(), &up.z()) == 3) job.up = up;
+  }
+  return job;
+}
+
 BlockRun run_blocks(const std::string& input, const SurfaceParams& p, int blocks, const std::string& work_dir,
                     bool resume, const std::string& output, double max_bytes) {
   const auto t0 = std::chrono::steady_clock::now();
-  Ranks ranks;
+  const Ranks& ranks = Ranks::get();
   BlockRun run;
   run.root = ranks.rank() == 0;
   run.ranks = ranks.size();

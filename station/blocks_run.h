@@ -5,6 +5,7 @@
 // process was started by mpirun (built with MPI), else in sequence. The ranks share a
 // work folder (the blocks' lower-face values and meshes, one file each): rank 0 stitches
 // the mesh. With `resume`, blocks whose files are there are not run again.
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -27,6 +28,25 @@ struct BlockRun {
 /// Whether this process was started by an MPI launcher (mpirun's environment) and the
 /// station was built with MPI.
 bool launched_by_mpi();
+
+/// This process's MPI rank and the ranks (0 and 1 when not launched by mpirun);
+/// a barrier over them (nothing without MPI).
+int mpi_rank();
+int mpi_ranks();
+void mpi_barrier();
+
+/// `station run` under mpirun: rank 0 runs the job; the other ranks wait in
+/// receive_block_job for the surface stage, run its blocks with rank 0 (run_blocks on
+/// the same input), and wait again until rank 0 sends the stop (nullptr). The
+/// profile is each rank's own (the same command line); the job carries what only rank
+/// 0 knows.
+struct BlockJob {
+  std::string input;        ///< the cloud the surface stage reads
+  std::string work;         ///< the blocks' shared work folder
+  std::optional<Vec3d> up;  ///< the table plane's up, from the register stage
+};
+void send_block_job(const BlockJob* job);  ///< rank 0; nothing with one rank
+std::optional<BlockJob> receive_block_job();  ///< ranks > 0; nullopt at the stop
 
 /// `blocks` and `max_bytes` as resolve_block_count's (0: auto, a block per
 /// kAutoBlockPoints points; with max_bytes, the count that fits). The work

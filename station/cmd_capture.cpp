@@ -21,6 +21,7 @@
 
 #include "capture/capture.h"
 #include "capture/session.h"
+#include "core/atomic_file.h"
 #include "core/error.h"
 #include "core/io.h"
 #include "core/stanford_conf.h"
@@ -30,6 +31,8 @@
 #include "registration/registration.h"
 #include "station/config.h"
 #include "station/json.h"
+#include "station/blocks_run.h"
+#include "station/params.h"
 #include "station/pipeline.h"
 #include "station/progress.h"
 
@@ -51,8 +54,9 @@ extern "C" void on_sigint(int) {
   [[maybe_unused]] auto n = ::write(2, msg, sizeof msg - 1);
 }
 
-int run_job(const StationConfig& cfg, const Common& c, const RunArgs& a) {
+int run_job(const StationConfig& cfg, const Common& c, const RunArgs& a, bool blocks_over_ranks = false) {
   RunRequest req;
+  req.blocks_over_ranks = blocks_over_ranks;
   req.input = a.in;
   req.out_dir = a.out;
   req.resume = a.resume;
@@ -199,10 +203,166 @@ int cmd_devices(const Common& c) {
   return 0;
 }
 
+namespace {
+
+// Ranks > 0 of `mpirun station run`: the surface stage's blocks with rank 0, until
+// rank 0 says stop (station/blocks_run.h).
+int block_worker(const StationConfig& cfg, const Common& c) {
+  auto threads = limit_threads(cfg.threads);
+  const auto& rc = cfg.pipeline.reconstruct;
+  while (const std::optional<BlockJob> job = receive_block_job()) {
+    SurfaceParams sp = surface_params(cfg.pipeline, cfg.threads);
+    sp.table_up = job->up;
+    sp.boundary_flags = true;
+    sp.note = [&](const std::string& line) {
+      if (!c.json) std::fprintf(stderr, "  surface: %s\n", line.c_str());
+    };
+    try {
+      (void)run_blocks(job->input, sp, rc.blocks, job->work, false, {}, rc.max_memory_gb * 1e9);
+    } catch (const std::exception&) {
+      // Every rank fails alike; rank 0 reports it and sends the stop.
+    }
+  }
+  return 0;
+}
+
+// A session's name in a batch: its folder's (a cloud file's stem), made unique.
+std::string batch_name(const std::string& in, std::map<std::string, int>& seen) {
+  fs::path p = fs::path(in).lexically_normal();
+  if (p.filename().empty()) p = p.parent_path();
+  if (p.filename() == "session.yaml") p = p.parent_path();
+  std::string name = fs::is_directory(p) ? p.filename().string() : p.stem().string();
+  if (name.empty() || name == "." || name == "..") name = "session";
+  const int n = ++seen[name];
+  return n == 1 ? name : name + "_" + std::to_string(n);
+}
+
+// `station run --batch LIST`: every session of the list (a path a line, relative to
+// the list's folder; blank lines and # comments skipped) into OUT/<name>, spread one
+// session at a time over the MPI ranks under mpirun (in sequence without), then a
+// summary table (OUT/batch.tsv, printed by rank 0). Exit 3 when any session failed.
+int run_batch(const StationConfig& cfg, const Common& c, const RunArgs& a) {
+  const auto t0 = std::chrono::steady_clock::now();
+  std::ifstream list(a.batch);
+  if (!list) throw IoError(a.batch + ": cannot read the batch list");
+  std::vector<std::string> sessions, names;
+  std::map<std::string, int> seen;
+  for (std::string line; std::getline(list, line);) {
+    const auto b = line.find_first_not_of(" \t\r"), e = line.find_last_not_of(" \t\r");
+    if (b == std::string::npos || line[b] == '#') continue;
+    fs::path path = line.substr(b, e - b + 1);
+    if (path.is_relative()) path = fs::path(a.batch).parent_path() / path;
+    sessions.push_back(path.string());
+    names.push_back(batch_name(path.string(), seen));
+  }
+  if (sessions.empty()) throw InvalidInput(a.batch + ": no sessions in the batch list");
+  const int rank = mpi_rank(), ranks = mpi_ranks();
+  const fs::path out = a.out, lines = out / ".batch";
+  fs::create_directories(lines);
+  auto threads = limit_threads(cfg.threads);
+  const bool quiet = a.quiet || c.json;
+  for (std::size_t i = 0; i < sessions.size(); ++i) {
+    if (int(i % std::size_t(ranks)) != rank) continue;
+    const std::string who = ranks > 1 ? "batch (rank " + std::to_string(rank) + "): " : "batch: ";
+    if (!quiet)
+      std::fprintf(stderr, "%s%zu/%zu %s -> %s\n", who.c_str(), i + 1, sessions.size(), sessions[i].c_str(),
+                   (out / names[i]).c_str());
+    const auto ts = std::chrono::steady_clock::now();
+    std::string status = "ok", message, mesh;
+    double vertices = 0;
+    try {
+      RunRequest req;
+      req.input = sessions[i];
+      req.out_dir = out / names[i];
+      req.resume = a.resume;
+      req.quiet = quiet || ranks > 1;
+      req.report = !a.no_report;
+      const RunResult r = run_pipeline(cfg, req);
+      mesh = r.mesh.string();
+      for (const StageRecord& st : r.stages) {
+        if (st.name == "surface" && st.figures.count("vertices")) vertices = st.figures.at("vertices");
+        if (st.name == "register" && st.figures.count("failed_views") && st.figures.at("failed_views") > 0) {
+          status = "partial";
+          message = std::to_string(int(st.figures.at("failed_views"))) + " views failed registration";
+        }
+      }
+    } catch (const std::exception& e) {
+      status = "failed";
+      message = e.what();
+    }
+    for (char& ch : message)
+      if (ch == '\t' || ch == '\n') ch = ' ';
+    const double secs = seconds_since(ts);
+    char row[64];
+    std::snprintf(row, sizeof row, "%.2f\t%.0f", secs, vertices);
+    write_file_atomic(lines / (std::to_string(i) + ".tsv"),
+                      sessions[i] + "\t" + status + "\t" + row + "\t" + mesh + "\t" + message + "\n");
+    if (!quiet)
+      std::fprintf(stderr, "%s%s: %s in %.1f s%s%s\n", who.c_str(), names[i].c_str(), status.c_str(), secs,
+                   message.empty() ? "" : ": ", message.c_str());
+  }
+  mpi_barrier();
+  if (rank != 0) return 0;
+  std::string table = "session\tstatus\tseconds\tvertices\tmesh\tmessage\n";
+  int failed = 0, partial = 0;
+  std::vector<std::vector<std::string>> rows;
+  for (std::size_t i = 0; i < sessions.size(); ++i) {
+    const fs::path f = lines / (std::to_string(i) + ".tsv");
+    std::string line = fs::exists(f) ? read_file_bytes(f) : sessions[i] + "\tfailed\t0\t0\t\tno result (its rank stopped)\n";
+    table += line;
+    std::vector<std::string> cols;
+    std::stringstream ss(line.substr(0, line.find('\n')));
+    for (std::string col; std::getline(ss, col, '\t');) cols.push_back(col);
+    cols.resize(6);
+    failed += cols[1] == "failed";
+    partial += cols[1] == "partial";
+    rows.push_back(cols);
+  }
+  write_file_atomic(out / "batch.tsv", table);
+  std::error_code ec;
+  fs::remove_all(lines, ec);
+  if (c.json) {
+    print_summary(JsonObject()
+                      .add("command", "run")
+                      .add("batch", a.batch)
+                      .add("out", a.out)
+                      .add("sessions", int(sessions.size()))
+                      .add("failed", failed)
+                      .add("partial", partial)
+                      .add("ranks", ranks)
+                      .add("table", (out / "batch.tsv").string())
+                      .add("timings_s", JsonObject().add("total", seconds_since(t0))));
+  } else {
+    std::printf("%-24s %-8s %9s %10s  %s\n", "session", "status", "time s", "vertices", "mesh or message");
+    for (std::size_t i = 0; i < rows.size(); ++i)
+      std::printf("%-24s %-8s %9s %10s  %s\n", names[i].c_str(), rows[i][1].c_str(), rows[i][2].c_str(),
+                  rows[i][3].c_str(), rows[i][1] == "failed" ? rows[i][5].c_str() : rows[i][4].c_str());
+    std::printf("batch: %zu sessions on %d rank%s, %d failed, %d partial, %.1f s -> %s\n", sessions.size(), ranks,
+                ranks > 1 ? "s" : "", failed, partial, seconds_since(t0), (out / "batch.tsv").c_str());
+  }
+  return failed + partial > 0 ? 3 : 0;
+}
+
+}  // namespace
+
 int cmd_run(const Common& c, const RunArgs& a) {
   StationConfig cfg = load_common(c, a.set);
+  if (!a.batch.empty()) {
+    if (!a.in.empty()) throw InvalidInput("station run: give a session or --batch LIST, not both");
+    return run_batch(cfg, c, a);
+  }
+  if (a.in.empty()) throw InvalidInput("station run: give a session (or a cloud file) or --batch LIST");
+  if (mpi_ranks() > 1) {
+    // Under mpirun: rank 0 runs the job, the others its surface stage's blocks.
+    if (mpi_rank() > 0) return block_worker(cfg, c);
+    struct Stop {
+      ~Stop() { send_block_job(nullptr); }
+    } stop;
+    return run_job(cfg, c, a, true);
+  }
   return run_job(cfg, c, a);
 }
+
 
 int cmd_scan(const Common& c, const ScanArgs& a) {
   const auto t0 = std::chrono::steady_clock::now();
@@ -377,7 +537,10 @@ void add_capture_commands(CLI::App& app, std::vector<Command>& out) {
 
   auto* runc = app.add_subcommand("run", "The whole job: register, consolidate, reconstruct a coloured mesh, report");
   add_common(runc, c_run);
-  runc->add_option("input", run_args.in, "session folder (or session.yaml) or a cloud file")->required();
+  runc->add_option("input", run_args.in, "session folder (or session.yaml) or a cloud file");
+  runc->add_option("--batch", run_args.batch,
+                   "a list of sessions (a path a line) instead of one: each into OUT/<name>, one session a rank "
+                   "under mpirun, then a summary table OUT/batch.tsv (exit 3 when any failed)");
   runc->add_option("-o,--out", run_args.out, "run folder: every stage's output, mesh.ply, report.html")->required();
   runc->add_flag("--resume", run_args.resume,
                  "continue a run in --out: finished stages whose inputs and parameters are unchanged are kept");

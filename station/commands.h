@@ -53,6 +53,7 @@ struct ScanArgs {
 
 struct RunArgs {
   std::string in, out;
+  std::string batch;  ///< --batch LIST: the sessions of a list instead of `in`
   bool resume = false, quiet = false, no_report = false;
   std::vector<std::string> set;
 };

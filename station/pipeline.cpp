@@ -599,9 +599,26 @@ class Runner {
     sp.boundary_flags = true;
     sp.note = [&](const std::string& line) { say(surface_note(in, line, "  surface: ", "  note: ")); };
     SurfaceResult sr;
-    if (c.blocks != 1 || c.max_memory_gb > 0) {
+    if ((c.blocks != 1 || c.max_memory_gb > 0) && req_.blocks_over_ranks) {
+      // Blocks of one lattice over the MPI ranks: the others run them with this one
+      // from the same file (docs/blocks.md).
+      input = Cloud{};
+      const fs::path work = req_.out_dir / "surface.blocks";
+      std::error_code ec;
+      fs::remove_all(work, ec);  // an earlier run's blocks: this stage runs again
+      BlockJob job{in.string(), work.string(), sp.table_up};
+      send_block_job(&job);
+      BlockRun run = run_blocks(in.string(), sp, c.blocks, work.string(), false, {}, c.max_memory_gb * 1e9);
+      fs::remove_all(work, ec);
+      r.figures["blocks"] = double(run.stats.blocks);
+      r.figures["ranks"] = double(run.ranks);
+      sr = std::move(run.result);
+    } else if (c.blocks != 1 || c.max_memory_gb > 0) {
       // Blocks of one lattice, in sequence here (docs/blocks.md).
-      sr = reconstruct_surface_blocks(memory_source(input), sp, c.blocks, nullptr, c.max_memory_gb * 1e9);
+      BlockRunStats st;
+      sr = reconstruct_surface_blocks(memory_source(input), sp, c.blocks, &st, c.max_memory_gb * 1e9);
+      r.figures["blocks"] = double(st.blocks);
+      r.figures["ranks"] = 1;
     } else {
       sr = reconstruct_surface(std::move(input), sp);
     }

@@ -37,6 +37,9 @@ struct RunRequest {
   const std::atomic<bool>* stop = nullptr;
   /// Gets every line and progress step the run prints (also when quiet).
   ProgressSink events;
+  /// Under mpirun (rank 0): the surface stage's blocks go over the MPI ranks, which
+  /// wait for it in receive_block_job (station/blocks_run.h); else in sequence here.
+  bool blocks_over_ranks = false;
 };
 
 /// What one stage did (also what run.yaml keeps of it).

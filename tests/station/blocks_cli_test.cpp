@@ -5,7 +5,9 @@
 #include <gtest/gtest.h>
 
 #include <cstdlib>
+#include <algorithm>
 #include <filesystem>
+#include <fstream>
 #include <regex>
 #include <string>
 
@@ -166,6 +168,61 @@ TEST_F(BlocksCli, MaxMemoryPicksTheBlocksOrRefusesBeforeStarting) {
   EXPECT_NE(bad.out.find("--max-memory 0.1: must be"), std::string::npos) << bad.out;
   EXPECT_FALSE(fs::exists(none));
   EXPECT_FALSE(fs::exists(none + ".blocks"));
+}
+
+// `mpirun -n 2 station run --blocks 4`: rank 0 runs the job, rank 1 joins its surface
+// stage's blocks; the mesh is the one-process blocked run's.
+TEST_F(BlocksCli, RunOverTwoRanksIsTheRunInOneProcess) {
+  setenv("OMPI_ALLOW_RUN_AS_ROOT", "1", 1);
+  setenv("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1", 1);
+  const std::string args = " run " + path("bottle.ply") +
+                           " --blocks 4 --resolution 96 --no-report --json --set consolidate.points=20000 -o ";
+  const auto seq = test::run_command(station_cmd() + args + path("run_seq") + " --threads 1");
+  ASSERT_EQ(seq.code, 0) << seq.out;
+  const auto mpi = test::run_command("mpirun --oversubscribe -n 2 " + station_cmd() + args + path("run_mpi") +
+                                     " --threads 1");
+  ASSERT_EQ(mpi.code, 0) << mpi.out;
+  EXPECT_EQ(json_number(mpi.out, "ranks"), 2) << mpi.out;
+  EXPECT_EQ(json_number(seq.out, "ranks"), 1) << seq.out;
+  EXPECT_EQ(json_number(mpi.out, "blocks"), 4) << mpi.out;
+  EXPECT_FALSE(fs::exists(path("run_mpi") + "/surface.blocks"));
+  const Mesh a = read_mesh(path("run_seq") + "/mesh.ply"), b = read_mesh(path("run_mpi") + "/mesh.ply");
+  EXPECT_TRUE(mesh_topology(b).closed_manifold());
+  EXPECT_EQ(a.faces.size(), b.faces.size());
+  const double cell = json_number(mpi.out, "cell_size");
+  ASSERT_GT(cell, 0) << mpi.out;
+  EXPECT_LT(hausdorff(a, b), 1e-3 * cell);
+}
+
+// `station run --batch`: the sessions of a list over two ranks, a failing one named
+// in the table without stopping the others, exit 3.
+TEST_F(BlocksCli, BatchRunsEverySessionOfTheListAndTabulatesThem) {
+  setenv("OMPI_ALLOW_RUN_AS_ROOT", "1", 1);
+  setenv("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1", 1);
+  Cloud small = read_cloud(path("bottle.ply"));
+  small.points.resize(30000);
+  small.normals.resize(30000);
+  if (!small.colours.empty()) small.colours.resize(30000);
+  write_ply(path("small.ply"), small);
+  {
+    std::ofstream list(path("batch.txt"));
+    list << "# three sessions\nsmall.ply\n\n" << path("small.ply") << "\nmissing_session\n";
+  }
+  const auto r = test::run_command("mpirun --oversubscribe -n 2 " + station_cmd() + " run --batch " +
+                                   path("batch.txt") + " -o " + path("batch_out") +
+                                   " --resolution 64 --no-report --threads 1 --set consolidate.points=5000");
+  EXPECT_EQ(r.code, 3) << r.out;
+  const std::string table = read_file_bytes(path("batch_out") + "/batch.tsv");
+  EXPECT_EQ(std::count(table.begin(), table.end(), '\n'), 4) << table;  // a header and three sessions
+  EXPECT_NE(table.find("\tok\t"), std::string::npos) << table;
+  EXPECT_NE(table.find("missing_session\tfailed\t"), std::string::npos) << table;
+  EXPECT_TRUE(fs::exists(path("batch_out") + "/small/mesh.ply"));
+  EXPECT_TRUE(fs::exists(path("batch_out") + "/small_2/mesh.ply"));
+  EXPECT_FALSE(fs::exists(path("batch_out") + "/.batch"));
+  EXPECT_NE(r.out.find("2 ranks, 1 failed"), std::string::npos) << r.out;
+  const auto none = test::run_command(station_cmd() + " run -o " + path("x"));
+  EXPECT_NE(none.code, 0);
+  EXPECT_NE(none.out.find("--batch LIST"), std::string::npos) << none.out;
 }
 
 }  // namespace
