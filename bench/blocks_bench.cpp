@@ -82,9 +82,8 @@ void write_samples(const TexturedMesh& tm, const Texture& texture, std::size_t c
 }
 
 void run_blocks_cases(const Options& options, Report& report) {
-  fs::path obj = options.shared_dir / "textured_objects" / "006_mustard_bottle" / "textured.obj";
-  const bool shared = options.use_shared && fs::exists(obj);
-  if (!shared) obj = options.source_dir / "data" / "mustard_bottle" / "textured.obj";
+  bool shared = false;
+  const fs::path obj = mustard_obj(options, &shared);
   const TexturedMesh tm = read_textured_mesh(obj);
   const Texture texture = load_texture(tm.texture);
   const std::string station = station_binary().string();

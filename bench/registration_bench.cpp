@@ -33,6 +33,7 @@
 #include "core/stanford_conf.h"
 #include "dragon_session.h"
 #include "harness.h"
+#include "sampling.h"
 #include "eval/eval.h"
 
 namespace station::bench {
@@ -112,9 +113,8 @@ double median_of(std::vector<double> v) {
 // ---- (a) one pair -------------------------------------------------------------
 
 void run_pair_cases(const Options& options, Report& report) {
-  fs::path obj = options.shared_dir / "textured_objects" / "006_mustard_bottle" / "textured.obj";
-  const bool shared = options.use_shared && fs::exists(obj);
-  if (!shared) obj = options.source_dir / "data" / "mustard_bottle" / "textured.obj";
+  bool shared = false;
+  const fs::path obj = mustard_obj(options, &shared);
   const Mesh mesh = read_mesh(obj);
   const Aabb box = bounding_box(mesh.vertices);
   const double diagonal = box.diagonal();

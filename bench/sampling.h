@@ -9,8 +9,17 @@
 
 #include "core/geometry.h"
 #include "core/texture.h"
+#include "harness.h"
 
 namespace station::bench {
+
+/// The textured YCB mustard bottle: ../shared/data's when there (and not
+/// --generate), else the bundled copy of the same model; `shared` says which.
+inline fs::path mustard_obj(const Options& options, bool* shared) {
+  const fs::path obj = options.shared_dir / "textured_objects" / "006_mustard_bottle" / "textured.obj";
+  *shared = options.use_shared && fs::exists(obj);
+  return *shared ? obj : options.source_dir / "data" / "mustard_bottle" / "textured.obj";
+}
 
 /// Area-uniform samples on a textured mesh: positions, normals interpolated from
 /// the area-weighted vertex normals, colours from the texture (surface_color).

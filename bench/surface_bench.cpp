@@ -158,9 +158,8 @@ std::string describe(const Transition& t, double h, double diagonal) {
 void run_surface_cases(const Options& options, Report& report) {
   const int threads = options.threads;
   // ---- reference: the textured YCB mustard bottle ------------------------------
-  fs::path obj = options.shared_dir / "textured_objects" / "006_mustard_bottle" / "textured.obj";
-  bool shared = options.use_shared && fs::exists(obj);
-  if (!shared) obj = options.source_dir / "data" / "mustard_bottle" / "textured.obj";
+  bool shared = false;
+  const fs::path obj = mustard_obj(options, &shared);
   const TexturedMesh reference = read_textured_mesh(obj);
   const Texture texture = load_texture(reference.texture);
   const double diagonal = bounding_box(reference.mesh.vertices).diagonal();
