@@ -512,14 +512,14 @@ void stream_ply_points(const fs::path& path, std::size_t chunk, const std::funct
   Cloud c;
   // The pages read are handed back after each chunk (a mapped file's pages count as
   // the process's memory while they stay mapped).
-  const long page = ::sysconf(_SC_PAGESIZE);
-  const char* released = static_cast<const char*>(map);
+  const long sys_page = ::sysconf(_SC_PAGESIZE);
+  const std::size_t page = sys_page > 0 ? std::size_t(sys_page) : 4096;
+  const char* const base = static_cast<const char*>(map);
+  std::size_t released = 0;  // bytes from the start already handed back
   const auto release_to = [&](const char* upto) {
-    const char* end = static_cast<const char*>(map) + (std::size_t(upto - static_cast<const char*>(map)) /
-                                                       std::size_t(page > 0 ? page : 4096)) *
-                                                          std::size_t(page > 0 ? page : 4096);
+    const std::size_t end = std::size_t(upto - base) / page * page;
     if (end > released) {
-      ::madvise(const_cast<char*>(released), std::size_t(end - released), MADV_DONTNEED);
+      ::madvise(const_cast<char*>(base) + released, end - released, MADV_DONTNEED);
       released = end;
     }
   };

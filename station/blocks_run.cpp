@@ -202,6 +202,7 @@ BlockRun run_blocks(const std::string& input, const SurfaceParams& p, int blocks
 
   // The shared decisions, once (rank 0), then to every rank.
   std::string bytes, error;
+  bool fresh = false;  // a new summary, saved once every rank has its block count
   if (run.root) {
     error = attempt([&] {
       const fs::path saved = work / "summary.bin";
@@ -211,20 +212,25 @@ BlockRun run_blocks(const std::string& input, const SurfaceParams& p, int blocks
         root_note("resuming the blocks in " + work.string());
       } else {
         root_note("summarising " + input + " (a streamed pass for its bounds, spacing and closing)");
-        const BlockSummary summary = summarise_cloud(source, p);
-        (void)resolve_block_count(summary, blocks, max_bytes, ranks.size());  // one that cannot fit leaves nothing behind
-        bytes = to_bytes(summary);
-        fs::create_directories(work);
-        write_file_atomic(saved, bytes);
+        bytes = to_bytes(summarise_cloud(source, p));
+        fresh = true;
       }
     });
   }
   if (ranks.any_failed(!error.empty(), error)) fail_with(error);
   ranks.broadcast(bytes, 0);
   const BlockSummary s = summary_from_bytes(bytes, (work / "summary.bin").string());
-  bytes.clear();
   const double cell = double((s.box.max - s.box.min).maxCoeff()) / s.resolution;
-  blocks = resolve_block_count(s, blocks, max_bytes, ranks.size());  // the same on every rank
+  // The same on every rank; one that cannot fit throws here, before anything is written.
+  blocks = resolve_block_count(s, blocks, max_bytes, ranks.size());
+  if (run.root && fresh) {
+    error = attempt([&] {
+      fs::create_directories(work);
+      write_file_atomic(work / "summary.bin", bytes);
+    });
+  }
+  if (ranks.any_failed(!error.empty(), error)) fail_with(error);
+  bytes.clear();
   const BlockGrid grid = plan_blocks(s.box, s.resolution, blocks, block_margin(s, cell));
   root_note(std::to_string(s.points) + " points in " + std::to_string(grid.size()) + " blocks (" +
             std::to_string(grid.counts[0]) + " x " + std::to_string(grid.counts[1]) + " x " +
@@ -233,10 +239,11 @@ BlockRun run_blocks(const std::string& input, const SurfaceParams& p, int blocks
             fmt("%.3g", cell) + (s.resolution_auto ? ", auto: the points' sample spacing " + fmt("%.3g", s.sample_spacing) : "") +
             "; margin " + fmt("%.3g", grid.margin) + "); " +
             (s.hole == HoleMode::kClose ? "closing" : "keeping") + " the unseen parts");
-  if (max_bytes > 0) run.memory_estimate = estimate_block_bytes(s, grid);
-  if (max_bytes > 0)
+  if (max_bytes > 0) {
+    run.memory_estimate = estimate_block_bytes(s, grid);
     root_note("memory: about " + fmt("%.2f GB", run.memory_estimate / 1e9) + " per rank (--max-memory " +
               fmt("%.2f GB", max_bytes / 1e9) + ")");
+  }
   const auto faces_file = [&](int id) { return work / ("faces_" + std::to_string(id) + ".bin"); };
   const auto piece_file = [&](int id) { return work / ("piece_" + std::to_string(id) + ".bin"); };
 
