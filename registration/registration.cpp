@@ -393,16 +393,38 @@ class Registrar {
     return usable_[i] && res_.views[i].initial != InitialPoseSource::kNone;
   }
 
-  GlobalRegistrationParams global_params() const {
+  // Scale 0: the FPFH radius of p_.global; 1, 2, ...: p_.global_extra_radii.
+  GlobalRegistrationParams global_params(std::size_t scale = 0) const {
     GlobalRegistrationParams gp = p_.global;
     gp.voxel_size = p_.global_voxel_rel * diag_;
+    if (scale > 0) gp.feature_radius_voxels = p_.global_extra_radii.at(scale - 1);
     return gp;
   }
+  std::size_t feature_scales() const { return 1 + p_.global_extra_radii.size(); }
 
-  const FeatureView& features_of(int i) {
-    if (!feats_[i]) feats_[i] = std::make_unique<FeatureView>(
-                        make_feature_view(views_[i].full.points, views_[i].viewpoint, global_params()));
-    return *feats_[i];
+  const FeatureView& features_of(int i, std::size_t scale = 0) {
+    std::vector<std::unique_ptr<FeatureView>>& f = feats_[i];
+    if (f.size() < feature_scales()) f.resize(feature_scales());
+    if (!f[scale]) f[scale] = std::make_unique<FeatureView>(
+                        make_feature_view(views_[i].full.points, views_[i].viewpoint, global_params(scale)));
+    return *f[scale];
+  }
+  // A view's features at every scale (the multi-start path).
+  std::vector<const FeatureView*> all_features_of(int i) {
+    std::vector<const FeatureView*> out;
+    for (std::size_t s = 0; s < feature_scales(); ++s) out.push_back(&features_of(i, s));
+    return out;
+  }
+  // A merged model's features (points with oriented normals) at every scale.
+  std::vector<FeatureView> model_features(const PreparedView& model) const {
+    std::vector<FeatureView> out(feature_scales());
+    for (std::size_t s = 0; s < out.size(); ++s) out[s] = make_feature_view(model.points, model.normals, global_params(s));
+    return out;
+  }
+  static std::vector<const FeatureView*> pointers(const std::vector<FeatureView>& f) {
+    std::vector<const FeatureView*> out;
+    for (const FeatureView& x : f) out.push_back(&x);
+    return out;
   }
 
   // The registration copies of `members` moved by their current poses, as one
@@ -499,23 +521,58 @@ class Registrar {
   // and the best pose turned about the turntable axis in steps (an object that
   // looks alike from several sides); among the poses whose overlap is within
   // kTie of the best, the one whose colours agree with the model's wins.
-  GlobalAlign global_align(int src, const PreparedView& target, const FeatureView& target_feat,
-                           const ColourModel* colour = nullptr,
-                           const std::optional<std::pair<Vec3d, Vec3d>>& axis = std::nullopt) {
-    return global_align(views_[src], features_of(src), views_[src].full, target, target_feat, colour, axis);
+  GlobalAlign global_align(int src, const PreparedView& target, const FeatureView& target_feat) {
+    return global_align(views_[src], {&features_of(src)}, views_[src].full, target, {&target_feat}, nullptr,
+                        std::nullopt);
+  }
+  // Against a model (every feature scale; see below).
+  GlobalAlign global_align(int src, const PreparedView& target, const std::vector<FeatureView>& target_feats,
+                           const ColourModel* colour, const std::optional<std::pair<Vec3d, Vec3d>>& axis) {
+    return global_align(views_[src], all_features_of(src), views_[src].full, target, pointers(target_feats),
+                        colour, axis, true);
   }
   // The same for any source: a view, or a run of views merged (`coloured`: its
-  // points with colours, for the colour check).
-  GlobalAlign global_align(const PreparedView& source, const FeatureView& source_feat, const Cloud& coloured,
-                           const PreparedView& target, const FeatureView& target_feat, const ColourModel* colour,
-                           const std::optional<std::pair<Vec3d, Vec3d>>& axis) {
+  // points with colours, for the colour check). `source_feats` and
+  // `target_feats` hold the same scales (the first: p_.global's radius).
+  //
+  // `multi` (against a model: off-table views, suspect angles, a second run)
+  // starts from more places (issue 26, item 3): RANSAC with
+  // 1 + global_extra_seeds seeds on the first scale's features and once on
+  // each further scale's (global_extra_radii), every run's hypotheses pooled
+  // and ranked by the overlap they give; twice the ICP candidates; the best
+  // pose turned (below); near ties by colour, else by residual.
+  GlobalAlign global_align(const PreparedView& source, const std::vector<const FeatureView*>& source_feats,
+                           const Cloud& coloured, const PreparedView& target,
+                           const std::vector<const FeatureView*>& target_feats, const ColourModel* colour,
+                           const std::optional<std::pair<Vec3d, Vec3d>>& axis, bool multi = false) {
     GlobalAlign out;
     GlobalRegistrationParams gp = global_params();
-    const bool multi = colour || axis;
     if (multi) gp.hypotheses = std::max(gp.hypotheses, 2 * p_.global_icp_candidates);
-    const GlobalRegistrationResult g = register_global(source_feat, target_feat, gp);
+    // The runs: (scale, seed).
+    std::vector<std::pair<std::size_t, std::uint64_t>> runs = {{0, gp.seed}};
+    if (multi) {
+      // Extra seeds only with the extra scales (a merged run against a model
+      // gets neither: regroup()).
+      const std::size_t scales = std::min(source_feats.size(), target_feats.size());
+      if (scales > 1)
+        for (int k = 1; k <= p_.global_extra_seeds; ++k) runs.push_back({0, gp.seed + std::uint64_t(k)});
+      for (std::size_t s = 1; s < scales; ++s) runs.push_back({s, gp.seed});
+    }
+    std::vector<GlobalRegistrationResult> found(runs.size());
+    tbb::parallel_for(std::size_t(0), runs.size(), [&](std::size_t k) {
+      GlobalRegistrationParams q = global_params(runs[k].first);
+      q.hypotheses = gp.hypotheses;
+      q.seed = runs[k].second;
+      found[k] = register_global(*source_feats[runs[k].first], *target_feats[runs[k].first], q);
+    });
+    GlobalRegistrationResult g;
+    for (const GlobalRegistrationResult& f : found) {
+      if (!f.success) continue;
+      g.success = true;
+      g.hypotheses.insert(g.hypotheses.end(), f.hypotheses.begin(), f.hypotheses.end());
+    }
     if (!g.success) {
-      out.message = "global registration failed: " + g.message;
+      out.message = "global registration failed: " + found.front().message;
       return out;
     }
     IcpParams ip = p_.icp;
@@ -588,13 +645,13 @@ class Registrar {
     double best_fit = 0;
     for (const IcpResult& x : r)
       if (x.converged) best_fit = std::max(best_fit, x.fitness);
-    double best_colour = std::numeric_limits<double>::infinity();
+    double best_score = std::numeric_limits<double>::infinity();
     for (const IcpResult& x : r) {
       if (!x.converged) continue;
       if (colour && x.fitness >= best_fit - kTie) {
         const double e = colour_error(coloured, *colour, x.transform, ip.max_distance_end);
-        if (e < best_colour || (e == best_colour && x.fitness > out.fitness)) {
-          best_colour = e;
+        if (e < best_score || (e == best_score && x.fitness > out.fitness)) {
+          best_score = e;
           out.fitness = x.fitness;
           out.transform = x.transform;
         }
@@ -627,8 +684,12 @@ class Registrar {
     }
     if (before.size() < 2 || after.size() < 2) return false;
     const PreparedView first = model_of(before), second = model_of(after);
-    const FeatureView first_feat = make_feature_view(first.points, first.normals, global_params());
-    const FeatureView second_feat = make_feature_view(second.points, second.normals, global_params());
+    // One feature scale and seed here (a merged run has features enough): with
+    // the extra ones, the turned-over blocks' second run (the test
+    // ASecondPassTurnedOverIsRegisteredAsTwoTurntableRuns) was placed where
+    // the refinement then took five of its views 93.6 deg off.
+    const std::vector<FeatureView> first_feat = {make_feature_view(first.points, first.normals, global_params())};
+    const std::vector<FeatureView> second_feat = {make_feature_view(second.points, second.normals, global_params())};
     const std::unique_ptr<ColourModel> colours = colour_model_of(before);
     Cloud coloured;
     if (colours)
@@ -642,7 +703,8 @@ class Registrar {
         }
       }
     const GlobalAlign g =
-        global_align(second, second_feat, coloured, first, first_feat, colours.get(), object_axis(before));
+        global_align(second, pointers(second_feat), coloured, first, pointers(first_feat), colours.get(),
+                     object_axis(before), true);
     if (!g.ok) return false;
     const double d = 2 * p_.icp_end_rel * diag_;
     const double now = overlap(second, first, Eigen::Matrix4d::Identity(), d);
@@ -689,6 +751,7 @@ class Registrar {
       res_.poses[anchor] = Eigen::Matrix4d::Identity();
       res_.views[anchor].initial = InitialPoseSource::kGlobal;
       std::vector<int> chain = {anchor};
+      std::vector<std::pair<int, std::string>> missed;  // views the chain could not place
       if (todo.size() > 1) report("global", 0, int(todo.size() - 1));
       for (std::size_t k = 1; k < todo.size(); ++k) {
         const int i = todo[k];
@@ -707,19 +770,40 @@ class Registrar {
         }
         report("global", int(k), int(todo.size() - 1));
         if (best_to < 0) {
-          fail(i, "global registration against the previous views failed (" + why + ")");
+          missed.push_back({i, "global registration against the previous views failed (" + why + ")"});
           continue;
         }
         res_.poses[i] = res_.poses[best_to] * best.transform;
         res_.views[i].initial = InitialPoseSource::kGlobal;
         chain.push_back(i);
       }
+      // A view that fits neither of the two before it (a view from above or
+      // below among table views, a view after a gap in the ring) gets the
+      // multi-start against the model of every chained view, as an off-table
+      // view does (issue 26, item 3).
+      if (!missed.empty() && chain.size() >= 2) {
+        const PreparedView model = model_of(chain);
+        const std::vector<FeatureView> model_feat = model_features(model);
+        const std::unique_ptr<ColourModel> colours = colour_model_of(chain);
+        for (const auto& [i, why] : missed) {
+          const GlobalAlign a = global_align(i, model, model_feat, colours.get(), std::nullopt);
+          if (!a.ok) {
+            fail(i, why + "; " + a.message + " against the model of the others");
+            continue;
+          }
+          res_.poses[i] = a.transform;
+          res_.views[i].initial = InitialPoseSource::kGlobal;
+          off_table_.push_back(i);
+        }
+      } else {
+        for (const auto& [i, why] : missed) fail(i, why);
+      }
       return;
     }
     // Off-turntable views: against the model of the posed ones.
     const PreparedView model = model_of(have);
     report("global", 0, int(todo.size()));
-    const FeatureView model_feat = make_feature_view(model.points, model.normals, global_params());
+    const std::vector<FeatureView> model_feat = model_features(model);
     const std::unique_ptr<ColourModel> colours = colour_model_of(have);
     const auto axis = object_axis(have);
     for (std::size_t k = 0; k < todo.size(); ++k) {
@@ -769,7 +853,7 @@ class Registrar {
     for (int i : a)
       if (std::find(suspects.begin(), suspects.end(), i) == suspects.end()) others.push_back(i);
     const PreparedView model = model_of(others);
-    const FeatureView model_feat = make_feature_view(model.points, model.normals, global_params());
+    const std::vector<FeatureView> model_feat = model_features(model);
     const std::unique_ptr<ColourModel> colours = colour_model_of(others);
     const auto axis = object_axis(others);
     for (int i : suspects) {
@@ -1149,7 +1233,7 @@ class Registrar {
   const RegistrationCallback& cb_;
   RegistrationResult res_;
   std::vector<PreparedView> views_;
-  std::vector<std::unique_ptr<FeatureView>> feats_;
+  std::vector<std::vector<std::unique_ptr<FeatureView>>> feats_;  // per view, per feature scale
   std::vector<int> off_table_;  // posed by global registration against the model
   bool rigid_rejected_ = false;  // kAuto kept the free poses in the last solve
   bool rigid_used_ = false;      // the last solve's poses are the rigid ones
@@ -1219,6 +1303,10 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
     throw InvalidInput("registration: " + std::to_string(clouds.size()) + " clouds for " +
                        std::to_string(manifest.views.size()) + " views");
   if (manifest.views.empty()) throw InvalidInput("registration: the session has no views");
+  if (params.global_extra_seeds < 0) throw InvalidInput("registration: global_extra_seeds must be >= 0");
+  for (double r : params.global_extra_radii)
+    if (!(r > 0) || !std::isfinite(r))
+      throw InvalidInput("registration: global_extra_radii must be positive and finite");
   const std::size_t n = manifest.views.size();
   RegistrationResult with = Registrar(clouds, manifest, params, progress).run();
   for (std::size_t i = 0; i < n; ++i)

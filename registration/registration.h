@@ -136,6 +136,14 @@ struct RegistrationParams {
   /// model's centre; the 4 of those with the best overlap); among poses within 0.03 of the best overlap the one whose
   /// colours agree best with the model's wins (docs/registration.md).
   int global_icp_candidates = 6;
+  /// Against a model (the multi-start path above; issue 26, item 3): RANSAC
+  /// runs with this many more seeds on the same features, and once at each of
+  /// these further FPFH radii (voxels, besides global.feature_radius_voxels);
+  /// all their hypotheses are pooled and ranked by overlap. Among the converged
+  /// poses within 0.03 of the best overlap, without colours, the lowest
+  /// point-to-plane residual wins.
+  int global_extra_seeds = 1;
+  std::vector<double> global_extra_radii = {8.0};
   /// Wrong-angle check (views posed from angle + axis): a view whose ICP onto
   /// both angle neighbours fails, or lands more than `wrong_angle_deg` from
   /// the prior, is registered globally against the others; when that pose is

@@ -149,8 +149,12 @@ TEST(GlobalRegistration, WrongAngleAndViewWithoutAngle) {
 // The prior as a hypothesis on real scans (issue 26): the dragon session with
 // its angles corrupted lands where the clean session does: every view within
 // 0.5 deg and 1 mm at the object (the view's centroid) of the clean poses.
+// `moves` (when given): view i's cloud was moved by moves[i] in its scanner
+// frame (the object moved on the table), so its true pose is the clean one
+// times moves[i]^-1; `clouds` are the moved ones.
 void expect_as_clean(const RegistrationResult& clean, const RegistrationResult& r,
-                     const std::vector<Cloud>& clouds, const char* what) {
+                     const std::vector<Cloud>& clouds, const char* what,
+                     const std::vector<Eigen::Matrix4d>* moves = nullptr) {
   std::printf("%s: kept %s; %s\n", what, r.prior_kept.c_str(), r.prior_comparison.c_str());
   for (const std::string& w : r.warnings) std::printf("  warning: %s\n", w.c_str());
   EXPECT_TRUE(r.failed_views.empty()) << what;
@@ -159,7 +163,8 @@ void expect_as_clean(const RegistrationResult& clean, const RegistrationResult& 
     Vec3d c = Vec3d::Zero();
     for (const Vec3f& p : clouds[i].points) c += p.cast<double>();
     c /= double(std::max<std::size_t>(clouds[i].size(), 1));
-    const Eigen::Matrix4d a = rigid_inverse(clean.poses[0]) * clean.poses[i];
+    Eigen::Matrix4d a = rigid_inverse(clean.poses[0]) * clean.poses[i];
+    if (moves) a = a * rigid_inverse((*moves)[i]);
     const Eigen::Matrix4d b = rigid_inverse(r.poses[0]) * r.poses[i];
     worst_rot = std::max(worst_rot, rotation_angle_deg(rigid_inverse(a) * b));
     worst_at = std::max(worst_at, ((a - b) * c.homogeneous()).norm());
@@ -194,6 +199,46 @@ TEST(GlobalRegistration, DragonWithWrongAnglesLandsWhereTheCleanSessionDoes) {
   // report's up, the table plane): the Cyberware's turns about y.
   ASSERT_TRUE(rn.axis.has_value());
   EXPECT_GT(std::abs(rn.axis->direction.normalized().y()), 0.99);
+}
+
+
+// The object moved on the table, in the dragon's frame (y up): `D` applied to
+// the object for views `from`..`to` (scanner-frame clouds moved by
+// X^-1 D X with X the view's reference pose). Returns each view's move.
+std::vector<Eigen::Matrix4d> move_object(std::vector<Cloud>& clouds, const SessionManifest& m,
+                                         const Eigen::Matrix4d& D, std::size_t from, std::size_t to) {
+  std::vector<Eigen::Matrix4d> moves(clouds.size(), Eigen::Matrix4d::Identity());
+  for (std::size_t i = from; i <= to; ++i) {
+    const Eigen::Matrix4d& X = *m.views[i].reference_pose;
+    moves[i] = rigid_inverse(X) * D * X;
+    const Eigen::Matrix4f M = moves[i].cast<float>();
+    for (Vec3f& p : clouds[i].points) p = M.block<3, 3>(0, 0) * p + M.block<3, 1>(0, 3);
+    for (Vec3f& q : clouds[i].normals) q = M.block<3, 3>(0, 0) * q;
+  }
+  return moves;
+}
+
+// More of issue 26's corrupted dragon sessions: the angles of the opposite sign,
+// and one view with the object shifted 3 cm. Each lands within 0.5 deg / 1 mm
+// at the object of the clean session (the moved view: of the clean pose moved
+// with it). Not here, because it fails (docs/registration.md): the object
+// turned 90 degrees about its up and moved 3 cm after view 7.
+TEST(GlobalRegistration, DragonWithTheSignFlippedOrOneViewShiftedLandsWhereTheCleanSessionDoes) {
+  std::vector<Cloud> clouds;
+  const SessionManifest m = dragon(clouds);
+  ASSERT_EQ(m.views.size(), 15u);
+  const RegistrationResult clean = register_views(clouds, m);
+  ASSERT_TRUE(clean.failed_views.empty());
+
+  SessionManifest flipped = m;
+  for (ViewRecord& v : flipped.views) v.angle_deg = -*v.angle_deg;
+  expect_as_clean(clean, register_views(clouds, flipped), clouds, "the angles of the opposite sign");
+
+  Eigen::Matrix4d shift = Eigen::Matrix4d::Identity();
+  shift.block<3, 1>(0, 3) = Vec3d(0.025, 0, -0.015);
+  std::vector<Cloud> shifted = clouds;
+  const auto shift_moves = move_object(shifted, m, shift, 6, 6);
+  expect_as_clean(clean, register_views(shifted, m), shifted, "view 6's object shifted 3 cm", &shift_moves);
 }
 
 }  // namespace

@@ -9,6 +9,7 @@
 #include "capture/capture.h"
 #include "registration/registration.h"
 #include "core/io.h"
+#include "core/kdtree.h"
 #include "sim/sim.h"
 #include "sim_test_util.h"
 #include "test_util.h"
@@ -372,6 +373,67 @@ TEST(SimRegistration, ASecondPassTurnedOverIsRegisteredAsTwoTurntableRuns) {
   EXPECT_TRUE(named);
 }
 
+
+// One view's object shifted 3 cm on the table (bumped for that view, put back
+// after it): its prior pose is wrong by the shift, not by its angle. Found by
+// the data, registered without its prior, every view within 0.5 deg / 1 mm.
+TEST(SimRegistration, OneViewWithTheObjectShiftedIsRegisteredWithoutItsPrior) {
+  PriorCase c;
+  ASSERT_EQ(c.clouds.size(), 12u);
+  Eigen::Matrix4d D = Eigen::Matrix4d::Identity();
+  D.block<3, 1>(0, 3) = Vec3d(0.025, -0.015, 0);  // object frame: z up; 2.9 cm across the table
+  const std::size_t i = 4;
+  Eigen::Matrix4d& X = *c.m.views[i].reference_pose;
+  const Eigen::Matrix4f M = (rigid_inverse(X) * D * X).cast<float>();
+  for (Vec3f& p : c.clouds[i].points) p = M.block<3, 3>(0, 0) * p + M.block<3, 1>(0, 3);
+  for (Vec3f& q : c.clouds[i].normals) q = M.block<3, 3>(0, 0) * q;
+  X = rigid_inverse(D) * X;
+  const RegistrationResult r = register_views(c.clouds, c.m);
+  print_prior("view 4's object shifted 3 cm", r);
+  EXPECT_TRUE(r.failed_views.empty());
+  EXPECT_LT(r.max_rotation_error_deg, 0.5);
+  EXPECT_LT(r.max_object_translation_error, 0.001);
+  EXPECT_NE(r.views[i].prior, PriorUse::kUsed);
+}
+
+// The issue's own session, simulated with known truth: six table views with
+// nominal angles (0, 60, 90, 180, 270, 300; one of them really 11 degrees
+// off), the object moved 5 cm and turned between two of them, and four views
+// with no angle (two before the move, two after). Every view registered within
+// 0.5 deg / 1 mm at the object of the truth (object frame: before the move).
+TEST(SimRegistration, TheIssuesSessionNominalAnglesAMoveAndViewsWithoutAngle) {
+  PriorCase c;
+  ASSERT_EQ(c.clouds.size(), 12u);
+  Eigen::Matrix4d D = Eigen::Matrix4d::Identity();
+  D.block<3, 3>(0, 0) = Eigen::AngleAxisd(10 * M_PI / 180, Vec3d::UnitZ()).toRotationMatrix();
+  D.block<3, 1>(0, 3) = Vec3d(0.04, 0.03, 0);
+  for (std::size_t i = 5; i < c.clouds.size(); ++i) {  // moved after view 4
+    Eigen::Matrix4d& X = *c.m.views[i].reference_pose;
+    const Eigen::Matrix4f M = (rigid_inverse(X) * D * X).cast<float>();
+    for (Vec3f& p : c.clouds[i].points) p = M.block<3, 3>(0, 0) * p + M.block<3, 1>(0, 3);
+    for (Vec3f& q : c.clouds[i].normals) q = M.block<3, 3>(0, 0) * q;
+    X = rigid_inverse(D) * X;
+  }
+  std::vector<Cloud> clouds;
+  SessionManifest m = c.m;
+  m.views.clear();
+  const std::vector<std::pair<int, double>> keep = {
+      {0, 0}, {1, -1}, {2, 60}, {3, 90}, {4, -1}, {6, 191}, {7, -1}, {9, 270}, {10, 300}, {11, -1}};
+  for (const auto& [i, nominal] : keep) {
+    ViewRecord v = c.m.views[std::size_t(i)];
+    if (nominal < 0) v.angle_deg.reset();
+    else v.angle_deg = nominal;  // the truth is i * 30 (view 6: 180, recorded 191)
+    m.views.push_back(v);
+    clouds.push_back(c.clouds[std::size_t(i)]);
+  }
+  const RegistrationResult r = register_views(clouds, m);
+  print_prior("the issue's session", r);
+  EXPECT_TRUE(r.failed_views.empty());
+  EXPECT_EQ(r.views_with_reference, 10);
+  EXPECT_LT(r.max_rotation_error_deg, 0.5);
+  EXPECT_LT(r.max_object_translation_error, 0.001);
+}
+
 }  // namespace
 }  // namespace station
 
@@ -426,6 +488,104 @@ TEST(SimRegistration, OffTableViewsOfANearSymmetricObjectRegister) {
   EXPECT_TRUE(r.failed_views.empty());
   EXPECT_LT(r.max_rotation_error_deg, 0.5);
   EXPECT_LT(r.max_object_translation_error, 0.001);
+}
+
+
+// Issue 26, item 3, as the issue states it: hand-held views (no angle) from
+// above and below, nearer than the table's scanner, so that some see only a
+// part of the bottle, and held turned in the hand (rolled about the optical
+// axis: any rotation about the camera centre keeps the sensor at the origin).
+// Each view's overlap with the table views is measured from the truth; every
+// view with 30 % or more must register within 0.5 deg / 1 mm at the object.
+// With one RANSAC run at one FPFH radius (global_extra_seeds 0, no
+// global_extra_radii) the two views from below (overlap 0.59 and 0.68) came
+// out half-turned (179.5 and 177.7 deg, 61 and 55 mm at the object); the second
+// radius and seed find them.
+TEST(SimRegistration, HandHeldViewsWithAThirdOverlapRegister) {
+  test::TempDir dir("station-handheld");
+  const std::string mesh = (test::source_dir() / "data" / "mustard_bottle" / "textured.obj").string();
+  std::vector<Cloud> clouds;
+  SessionManifest m;
+  struct Shot {
+    double elevation, angle, distance, target_height, roll_deg;
+  };
+  const auto scan = [&](const std::string& name, const Shot& s, int views, bool table) {
+    DeviceRegistry reg = test::sim_registry();
+    std::string uri = "sim:synthetic?mesh=" + mesh + "&noise=0.0005&seed=7" +
+                      (table ? "&width=320&height=240" : "&width=640&height=480&table_radius=0") +
+                      "&elevation_deg=" + std::to_string(s.elevation) + "&distance=" + std::to_string(s.distance);
+    if (s.target_height >= 0) uri += "&target_height=" + std::to_string(s.target_height);
+    auto scanner = reg.make_scanner(uri);
+    auto turntable = reg.make_turntable("sim:turntable");
+    scanner->open();
+    turntable->open();
+    Session session = Session::create(dir / name, SessionManifest{});
+    CaptureParams cp;
+    cp.views = views;
+    cp.start_deg = s.angle;
+    cp.crop = table;  // held in the hand: no working volume, the bottom too
+    run_capture(*scanner, *turntable, session, cp);
+    if (table) {
+      m = session.manifest();
+      for (std::size_t i = 0; i < m.views.size(); ++i) clouds.push_back(session.load_view(i));
+      return;
+    }
+    ViewRecord v = session.manifest().views.at(0);
+    v.angle_deg.reset();
+    Cloud c = session.load_view(0);
+    const Eigen::Matrix3f R = Eigen::AngleAxisf(float(s.roll_deg * M_PI / 180), Vec3f::UnitZ()).toRotationMatrix();
+    for (Vec3f& p : c.points) p = R * p;
+    for (Vec3f& q : c.normals) q = R * q;
+    Eigen::Matrix4d Rinv = Eigen::Matrix4d::Identity();
+    Rinv.block<3, 3>(0, 0) = R.transpose().cast<double>();
+    *v.reference_pose = *v.reference_pose * Rinv;
+    m.views.push_back(v);
+    clouds.push_back(std::move(c));
+  };
+  scan("table", {20, 0, 0.45, -1, 0}, 8, true);
+  const std::vector<Shot> hand = {
+      {70, 30, 0.45, -1, 70},       // from above: the cap and shoulders
+      {-60, 100, 0.45, -1, 160},    // from below: the bottom and a band of the side
+      {-50, 320, 0.30, 0.05, 45},   // nearer, below the label
+      {-40, 200, 0.30, 0.05, -120}, // nearer, low down
+      {-20, 250, 0.30, -1, 90},     // a little below
+  };
+  for (std::size_t k = 0; k < hand.size(); ++k) scan("hand" + std::to_string(k), hand[k], 1, false);
+  ASSERT_EQ(clouds.size(), 8u + hand.size());
+  for (std::size_t i = 0; i < 8; ++i) std::printf("  table view %zu: %zu points\n", i, clouds[i].size());
+  // Overlap from the truth: the share of a hand-held view's points within
+  // 2 mm of a table view's point.
+  std::vector<Vec3f> table_points;
+  for (std::size_t i = 0; i < 8; ++i) {
+    const Eigen::Matrix4f X = m.views[i].reference_pose->cast<float>();
+    for (const Vec3f& p : clouds[i].points) table_points.push_back(X.block<3, 3>(0, 0) * p + X.block<3, 1>(0, 3));
+  }
+  const PointIndex table_index(std::move(table_points));
+  const auto overlap_at = [&](std::size_t i, const Eigen::Matrix4f& X) {
+    std::size_t n = 0, near = 0;
+    for (std::size_t k = 0; k < clouds[i].size(); k += 7, ++n)
+      near += table_index.nearest_within(X.block<3, 3>(0, 0) * clouds[i].points[k] + X.block<3, 1>(0, 3), 0.002f).first >= 0;
+    return double(near) / double(std::max<std::size_t>(1, n));
+  };
+  std::vector<double> overlap(clouds.size(), 1.0);
+  for (std::size_t i = 8; i < clouds.size(); ++i) overlap[i] = overlap_at(i, m.views[i].reference_pose->cast<float>());
+  const RegistrationResult r = register_views(clouds, m);
+  print_prior("hand-held views", r);
+  int partial = 0;
+  for (std::size_t i = 8; i < clouds.size(); ++i) {
+    // At the registered pose (in the truth's frame: view 0 as reference).
+    const Eigen::Matrix4d G = *m.views[0].reference_pose * rigid_inverse(r.poses[0]) * r.poses[i];
+    std::printf("  hand-held view %zu: %zu points, overlap %.2f (%.2f where registered)\n", i, clouds[i].size(),
+                overlap[i], overlap_at(i, G.cast<float>()));
+    if (overlap[i] < 0.3) continue;
+    partial += overlap[i] < 0.7;
+    ASSERT_TRUE(r.views[i].registered) << i << ": " << r.views[i].message;
+    ASSERT_TRUE(r.views[i].rotation_error_deg.has_value()) << i;
+    EXPECT_LT(*r.views[i].rotation_error_deg, 0.5) << i;
+    EXPECT_LT(*r.views[i].object_translation_error, 0.001) << i;
+  }
+  EXPECT_GE(partial, 2);  // the case holds views that see only a part of what the table saw
+  for (std::size_t i = 0; i < 8; ++i) EXPECT_TRUE(r.views[i].registered) << i;
 }
 
 }  // namespace
