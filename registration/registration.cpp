@@ -157,9 +157,11 @@ std::pair<double, std::size_t> pair_plane_rmse(const PreparedView& a, const Prep
 
 class Registrar {
  public:
+  // `moved_from`: the first view of a second run the prior check found (the
+  // object turned on the table before it; its angles are corrected already), or -1.
   Registrar(const std::vector<Cloud>& clouds, const SessionManifest& m, const RegistrationParams& p,
-            const RegistrationCallback& cb)
-      : clouds_(clouds), m_(m), p_(p), cb_(cb) {}
+            const RegistrationCallback& cb, int moved_from = -1)
+      : clouds_(clouds), m_(m), p_(p), cb_(cb), moved_from_(moved_from) {}
 
   RegistrationResult run() {
     const auto t_total = Clock::now();
@@ -178,7 +180,19 @@ class Registrar {
     // Two runs on the table (the object moved, or was turned over for a second
     // pass): the refinement placed the second run from the angles, which the
     // move made wrong; register it to the first as a whole, then refine again
-    // (its word on the rigid turntable replaces the first one's).
+    // (its word on the rigid turntable replaces the first one's). A run the
+    // prior check found by its shared angle error counts too: its corrected
+    // angles turn it right, but the move across the table is left, and the pairs
+    // across it fail, so the refinement alone does not see it.
+    if (!split_.found && moved_from_ > 0 && std::size_t(moved_from_) < n && usable_[std::size_t(moved_from_)]) {
+      for (int j = moved_from_ - 1; j >= 0; --j)
+        if (usable_[std::size_t(j)] && has_angle(j)) {
+          split_.found = true;
+          split_.last_before = j;
+          split_.first_after = moved_from_;
+          break;
+        }
+    }
     if (split_.found) {
       const std::vector<std::string> first_words(res_.warnings.begin() + std::ptrdiff_t(warned), res_.warnings.end());
       res_.warnings.resize(warned);
@@ -1235,6 +1249,7 @@ class Registrar {
   std::vector<PreparedView> views_;
   std::vector<std::vector<std::unique_ptr<FeatureView>>> feats_;  // per view, per feature scale
   std::vector<int> off_table_;  // posed by global registration against the model
+  int moved_from_ = -1;
   bool rigid_rejected_ = false;  // kAuto kept the free poses in the last solve
   bool rigid_used_ = false;      // the last solve's poses are the rigid ones
   TurntableSplit split_;  // the last solve's split of the table views into two runs (found: a move)
@@ -1296,6 +1311,48 @@ std::string run_summary(const char* name, const RegistrationResult& r, const std
 
 }  // namespace
 
+namespace {
+
+// The views with a wrong angle that follow one another among the views with an
+// angle (capture order, at least three, up to the last such view or a view that
+// agrees) and share one error within `tolerance_deg`: the object turned on the
+// table before them (a second pass), not that many wrong angles. The longest
+// such run; its error is the mean of theirs.
+struct MovedRun {
+  std::vector<int> views;
+  double error_deg = 0;
+};
+MovedRun moved_run(const AnglePriorFit& fit, const SessionManifest& manifest, double tolerance_deg) {
+  const auto wrap = [](double a) { return a - 360.0 * std::round(a / 360.0); };
+  MovedRun best;
+  std::vector<int> run;
+  const auto close_run = [&] {
+    if (run.size() >= 3 && run.size() > best.views.size()) {
+      const double ref = *fit.residual_deg[std::size_t(run.front())];
+      double sum = 0, spread = 0;
+      for (int i : run) {
+        const double d = wrap(*fit.residual_deg[std::size_t(i)] - ref);
+        sum += d;
+        spread = std::max(spread, std::abs(d));
+      }
+      if (spread <= tolerance_deg) best = {run, wrap(ref + sum / double(run.size()))};
+    }
+    run.clear();
+  };
+  for (std::size_t i = 0; i < manifest.views.size(); ++i) {
+    if (!manifest.views[i].angle_deg || !fit.residual_deg[i]) continue;
+    const bool wrong = std::find(fit.wrong.begin(), fit.wrong.end(), int(i)) != fit.wrong.end();
+    if (wrong && !run.empty() && std::abs(wrap(*fit.residual_deg[i] - *fit.residual_deg[std::size_t(run.back())])) > tolerance_deg)
+      close_run();
+    if (wrong) run.push_back(int(i));
+    else close_run();
+  }
+  close_run();
+  return best;
+}
+
+}  // namespace
+
 RegistrationResult register_views(const std::vector<Cloud>& clouds, const SessionManifest& manifest,
                                   const RegistrationParams& params,
                                   const RegistrationCallback& progress) {
@@ -1347,21 +1404,33 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
   // rejected already.)
   const bool news = std::any_of(fit.wrong.begin(), fit.wrong.end(), [&](int i) { return !with.views[i].angle_rejected; });
   if (fit.ok && (news || !fit.convention.empty())) {
+    const MovedRun moved = moved_run(fit, manifest, params.wrong_angle_deg);
     SessionManifest m = manifest;
     for (std::size_t i = 0; i < n; ++i) {
       ViewRecord& v = m.views[i];
       if (!v.angle_deg) continue;
-      if (std::find(fit.wrong.begin(), fit.wrong.end(), int(i)) != fit.wrong.end()) v.angle_deg.reset();
+      const bool in_run = std::find(moved.views.begin(), moved.views.end(), int(i)) != moved.views.end();
+      if (in_run) v.angle_deg = fit.sign * fit.scale * *v.angle_deg + moved.error_deg;
+      else if (std::find(fit.wrong.begin(), fit.wrong.end(), int(i)) != fit.wrong.end()) v.angle_deg.reset();
       else v.angle_deg = fit.sign * fit.scale * *v.angle_deg;
     }
     const RegistrationCallback corrected_progress = named("corrected angles");
-    corrected = Registrar(clouds, m, params, corrected_progress).run();
+    corrected = Registrar(clouds, m, params, corrected_progress, moved.views.empty() ? -1 : moved.views.front()).run();
+    if (!moved.views.empty()) {
+      std::ostringstream w;
+      w.precision(3);
+      w << "the angles of " << view_name(manifest, std::size_t(moved.views.front())) << " to "
+        << view_name(manifest, std::size_t(moved.views.back())) << " share one error of " << moved.error_deg
+        << " deg: the object turned on the table before them; their angles were corrected by it";
+      corrected->warnings.push_back(w.str());
+    }
     for (std::size_t i = 0; i < n; ++i) {
       if (!manifest.views[i].angle_deg || manifest.views[i].initial_pose) continue;
       ViewDiagnostics& d = corrected->views[i];
+      const bool in_run = std::find(moved.views.begin(), moved.views.end(), int(i)) != moved.views.end();
       d.prior = !m.views[i].angle_deg || d.angle_rejected ? PriorUse::kRejected
-                : fit.convention.empty()                  ? PriorUse::kUsed
-                                                          : PriorUse::kCorrected;
+                : fit.convention.empty() && !in_run        ? PriorUse::kUsed
+                                                           : PriorUse::kCorrected;
     }
   }
 

@@ -152,9 +152,11 @@ TEST(GlobalRegistration, WrongAngleAndViewWithoutAngle) {
 // `moves` (when given): view i's cloud was moved by moves[i] in its scanner
 // frame (the object moved on the table), so its true pose is the clean one
 // times moves[i]^-1; `clouds` are the moved ones.
+// `max_at`: the bound at the object, metres (the issue's 1 mm unless a case
+// says why not).
 void expect_as_clean(const RegistrationResult& clean, const RegistrationResult& r,
                      const std::vector<Cloud>& clouds, const char* what,
-                     const std::vector<Eigen::Matrix4d>* moves = nullptr) {
+                     const std::vector<Eigen::Matrix4d>* moves = nullptr, double max_at = 0.001) {
   std::printf("%s: kept %s; %s\n", what, r.prior_kept.c_str(), r.prior_comparison.c_str());
   for (const std::string& w : r.warnings) std::printf("  warning: %s\n", w.c_str());
   EXPECT_TRUE(r.failed_views.empty()) << what;
@@ -171,7 +173,7 @@ void expect_as_clean(const RegistrationResult& clean, const RegistrationResult& 
   }
   std::printf("  against the clean session: %.3f deg, %.3f mm at the object\n", worst_rot, 1000 * worst_at);
   EXPECT_LT(worst_rot, 0.5) << what;
-  EXPECT_LT(worst_at, 0.001) << what;
+  EXPECT_LT(worst_at, max_at) << what;
 }
 
 TEST(GlobalRegistration, DragonWithWrongAnglesLandsWhereTheCleanSessionDoes) {
@@ -221,8 +223,8 @@ std::vector<Eigen::Matrix4d> move_object(std::vector<Cloud>& clouds, const Sessi
 // More of issue 26's corrupted dragon sessions: the angles of the opposite sign,
 // and one view with the object shifted 3 cm. Each lands within 0.5 deg / 1 mm
 // at the object of the clean session (the moved view: of the clean pose moved
-// with it). Not here, because it fails (docs/registration.md): the object
-// turned 90 degrees about its up and moved 3 cm after view 7.
+// with it). And the object turned 90 degrees about its up and moved 3 cm after
+// view 7 (a second pass), which misses the 1 mm (below).
 TEST(GlobalRegistration, DragonWithTheSignFlippedOrOneViewShiftedLandsWhereTheCleanSessionDoes) {
   std::vector<Cloud> clouds;
   const SessionManifest m = dragon(clouds);
@@ -239,6 +241,23 @@ TEST(GlobalRegistration, DragonWithTheSignFlippedOrOneViewShiftedLandsWhereTheCl
   std::vector<Cloud> shifted = clouds;
   const auto shift_moves = move_object(shifted, m, shift, 6, 6);
   expect_as_clean(clean, register_views(shifted, m), shifted, "view 6's object shifted 3 cm", &shift_moves);
+
+  Eigen::Matrix4d turn = Eigen::Matrix4d::Identity();
+  turn.block<3, 3>(0, 0) = Eigen::AngleAxisd(M_PI / 2, Vec3d::UnitY()).toRotationMatrix();
+  turn.block<3, 1>(0, 3) = Vec3d(0.03, 0, 0.01);
+  std::vector<Cloud> turned = clouds;
+  const auto turn_moves = move_object(turned, m, turn, 8, 14);
+  // The issue's 1 mm is NOT met here: 0.46 deg / 1.13 mm at the object
+  // (docs/registration.md; before 2026-12-05: a view 132 deg / 107 mm off).
+  // Bounded by the clean session's own worst error against Stanford's poses
+  // (2.1 mm), so that a regression to a wrong pose still fails.
+  const RegistrationResult rt = register_views(turned, m);
+  expect_as_clean(clean, rt, turned, "turned 90 deg and moved 3 cm after view 7", &turn_moves, 0.0021);
+  bool regrouped = false;
+  for (const std::string& w : rt.warnings)
+    regrouped = regrouped || w.find("the views from views[8] (dragonStandRight_192.ply) on were registered to the "
+                                    "ones before as a whole") != std::string::npos;
+  EXPECT_TRUE(regrouped);
 }
 
 }  // namespace
