@@ -549,12 +549,13 @@ class Registrar {
   // points with colours, for the colour check). `source_feats` and
   // `target_feats` hold the same scales (the first: p_.global's radius).
   //
-  // `multi` (against a model: off-table views, suspect angles, a second run)
-  // starts from more places (issue 26, item 3): RANSAC with
-  // 1 + global_extra_seeds seeds on the first scale's features and once on
-  // each further scale's (global_extra_radii), every run's hypotheses pooled
-  // and ranked by the overlap they give; twice the ICP candidates; the best
-  // pose turned (below); near ties by colour, else by residual.
+  // `multi` (against a model: off-table views, suspect angles, a chain's
+  // unplaced views, a second run) starts from more places (issue 26, item 3):
+  // given more than one scale, RANSAC with 1 + global_extra_seeds seeds on the
+  // first scale's features and once on each further scale's
+  // (global_extra_radii), every run's hypotheses pooled and ranked by the
+  // overlap they give; twice the ICP candidates; the best pose turned (below);
+  // near ties decided by colour.
   GlobalAlign global_align(const PreparedView& source, const std::vector<const FeatureView*>& source_feats,
                            const Cloud& coloured, const PreparedView& target,
                            const std::vector<const FeatureView*>& target_feats, const ColourModel* colour,

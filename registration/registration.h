@@ -139,9 +139,8 @@ struct RegistrationParams {
   /// Against a model (the multi-start path above; issue 26, item 3): RANSAC
   /// runs with this many more seeds on the same features, and once at each of
   /// these further FPFH radii (voxels, besides global.feature_radius_voxels);
-  /// all their hypotheses are pooled and ranked by overlap. Among the converged
-  /// poses within 0.03 of the best overlap, without colours, the lowest
-  /// point-to-plane residual wins.
+  /// all their hypotheses are pooled and ranked by overlap. A merged run
+  /// registered onto another (a second pass) uses neither.
   int global_extra_seeds = 1;
   std::vector<double> global_extra_radii = {8.0};
   /// Wrong-angle check (views posed from angle + axis): a view whose ICP onto
