@@ -8,6 +8,7 @@
 #include <cmath>
 #include <cstdio>
 #include <fstream>
+#include <functional>
 #include <random>
 #include <regex>
 #include <string>
@@ -456,6 +457,52 @@ TEST(Cli, BadInputGivesOneLineErrorsNamingTheCulprit) {
     EXPECT_NE(r.out.find(out + ": a "), std::string::npos) << cmd << ": " << r.out;
     EXPECT_FALSE(std::filesystem::exists(out)) << cmd;
   }
+}
+
+// Issue 26's bad sessions through `station register`: every view the same
+// cloud with one of 10 points (exit 3, the tiny view named, the angles said to
+// fit nothing, the partial result written), and views that overlap nowhere
+// (each moved 1 m further along x: every view named, exit 1, nothing written).
+TEST(Cli, RegisterOfIdenticalViewsOrViewsThatOverlapNowhereSaysSo) {
+  test::TempDir dir;
+  const std::string sess = (dir / "s").string();
+  ASSERT_EQ(run("scan -o " + sess + " --views 8 --set width=320 --set height=240").code, 0);
+  const SessionManifest m = read_manifest(sess);
+  ASSERT_EQ(m.views.size(), 8u);
+  const auto copy_session = [&](const std::string& name, const std::function<Cloud(std::size_t)>& make) {
+    const fs::path to = dir / name;
+    fs::create_directories(to);
+    fs::copy_file(fs::path(sess) / "session.yaml", to / "session.yaml");
+    for (std::size_t i = 0; i < m.views.size(); ++i) write_ply(to / m.views[i].file, make(i));
+    return to.string();
+  };
+  const Cloud first = read_cloud(fs::path(sess) / m.views[0].file);
+  const std::string same = copy_session("same", [&](std::size_t i) {
+    Cloud c = first;
+    if (i == 5) {
+      c.points.resize(10);
+      c.normals.resize(10);
+      c.colours.resize(10);
+    }
+    return c;
+  });
+  CmdResult r = run("register " + same + " -o " + (dir / "same.ply").string());
+  EXPECT_EQ(r.code, 3) << r.out;
+  EXPECT_NE(r.out.find("view_005.ply"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("did the turntable turn"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("7 of 8 views"), std::string::npos) << r.out;
+  EXPECT_TRUE(fs::exists(dir / "same.ply"));
+
+  const std::string apart = copy_session("apart", [&](std::size_t i) {
+    Cloud c = read_cloud(fs::path(sess) / m.views[i].file);
+    for (Vec3f& p : c.points) p.x() += float(i);
+    return c;
+  });
+  r = run("register " + apart + " -o " + (dir / "apart.ply").string());
+  EXPECT_EQ(r.code, 1) << r.out;
+  for (const ViewRecord& v : m.views) EXPECT_NE(r.out.find(v.file + "): no overlap"), std::string::npos) << v.file;
+  EXPECT_NE(r.out.find("no view could be registered"), std::string::npos) << r.out;
+  EXPECT_FALSE(fs::exists(dir / "apart.ply"));
 }
 
 // A view that cannot be read fails alone: `run` makes the mesh from the others and
