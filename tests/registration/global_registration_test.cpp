@@ -161,6 +161,7 @@ void expect_as_clean(const RegistrationResult& clean, const RegistrationResult& 
   for (const std::string& w : r.warnings) std::printf("  warning: %s\n", w.c_str());
   EXPECT_TRUE(r.failed_views.empty()) << what;
   double worst_rot = 0, worst_at = 0;
+  std::size_t worst_view = 0;
   for (std::size_t i = 0; i < r.poses.size(); ++i) {
     Vec3d c = Vec3d::Zero();
     for (const Vec3f& p : clouds[i].points) c += p.cast<double>();
@@ -169,9 +170,12 @@ void expect_as_clean(const RegistrationResult& clean, const RegistrationResult& 
     if (moves) a = a * rigid_inverse((*moves)[i]);
     const Eigen::Matrix4d b = rigid_inverse(r.poses[0]) * r.poses[i];
     worst_rot = std::max(worst_rot, rotation_angle_deg(rigid_inverse(a) * b));
-    worst_at = std::max(worst_at, ((a - b) * c.homogeneous()).norm());
+    const double at = ((a - b) * c.homogeneous()).norm();
+    if (at > worst_at) worst_view = i;
+    worst_at = std::max(worst_at, at);
   }
-  std::printf("  against the clean session: %.3f deg, %.3f mm at the object\n", worst_rot, 1000 * worst_at);
+  std::printf("  against the clean session: %.3f deg, %.3f mm at the object (view %zu)\n", worst_rot, 1000 * worst_at,
+              worst_view);
   EXPECT_LT(worst_rot, 0.5) << what;
   EXPECT_LT(worst_at, max_at) << what;
 }
