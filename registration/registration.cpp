@@ -184,12 +184,19 @@ class Registrar {
     // prior check found by its shared angle error counts too: its corrected
     // angles turn it right, but the move across the table is left, and the pairs
     // across it fail, so the refinement alone does not see it.
-    if (!split_.found && moved_from_ > 0 && std::size_t(moved_from_) < n && usable_[std::size_t(moved_from_)]) {
-      for (int j = moved_from_ - 1; j >= 0; --j)
-        if (usable_[std::size_t(j)] && has_angle(j)) {
+    if (!split_.found && moved_from_ > 0) {
+      // The first view of the run that regroup() takes (usable, its angle kept).
+      const auto takes = [&](int j) {
+        return usable_[std::size_t(j)] && has_angle(j) && !res_.views[std::size_t(j)].angle_rejected &&
+               std::find(off_table_.begin(), off_table_.end(), j) == off_table_.end();
+      };
+      int first = moved_from_;
+      while (first < int(n) && !takes(first)) ++first;
+      for (int j = std::min(first, int(n)) - 1; first < int(n) && j >= 0; --j)
+        if (takes(j)) {
           split_.found = true;
           split_.last_before = j;
-          split_.first_after = moved_from_;
+          split_.first_after = first;
           break;
         }
     }
@@ -530,11 +537,9 @@ class Registrar {
   // Feature registration of view `src` onto a target, each hypothesis refined
   // by ICP; the converged one with the best overlap wins.
   //
-  // Against the model of the posed views (`colour` and `axis` given: off-table
-  // views, suspect angles) it starts from more places: more RANSAC hypotheses,
-  // and the best pose turned about the turntable axis in steps (an object that
-  // looks alike from several sides); among the poses whose overlap is within
-  // kTie of the best, the one whose colours agree with the model's wins.
+  // Against a model (the overload taking every feature scale, and regroup():
+  // `multi`) it starts from more places, below. This one: a view onto one
+  // other view (the prior-free chain), one scale, one seed.
   GlobalAlign global_align(int src, const PreparedView& target, const FeatureView& target_feat) {
     return global_align(views_[src], {&features_of(src)}, views_[src].full, target, {&target_feat}, nullptr,
                         std::nullopt);
@@ -587,7 +592,10 @@ class Registrar {
       g.hypotheses.insert(g.hypotheses.end(), f.hypotheses.begin(), f.hypotheses.end());
     }
     if (!g.success) {
-      out.message = "global registration failed: " + found.front().message;
+      std::string why = found.front().message;
+      for (const GlobalRegistrationResult& f : found)
+        if (why.empty()) why = f.message;
+      out.message = "global registration failed: " + why;
       return out;
     }
     IcpParams ip = p_.icp;
@@ -1314,42 +1322,36 @@ std::string run_summary(const char* name, const RegistrationResult& r, const std
 
 namespace {
 
-// The views with a wrong angle that follow one another among the views with an
-// angle (capture order, at least three, up to the last such view or a view that
-// agrees) and share one error within `tolerance_deg`: the object turned on the
-// table before them (a second pass), not that many wrong angles. The longest
-// such run; its error is the mean of theirs.
+// The views with a wrong angle at the end of the session (capture order, among
+// the views with an angle and a prior-free pose: at least three, up to the last
+// one) that share one error within `tolerance_deg` of the last one's: the object
+// turned on the table before them (a second pass), not that many wrong angles.
+// Only a run to the end: a move leaves every later view moved, so a run that an
+// agreeing view follows is wrong angles (regroup() would move the views after
+// it too). Its error is the mean of theirs.
 struct MovedRun {
-  std::vector<int> views;
+  std::vector<int> views;  // ascending
   double error_deg = 0;
 };
 MovedRun moved_run(const AnglePriorFit& fit, const SessionManifest& manifest, double tolerance_deg) {
   const auto wrap = [](double a) { return a - 360.0 * std::round(a / 360.0); };
-  MovedRun best;
+  MovedRun out;
   std::vector<int> run;
-  const auto close_run = [&] {
-    if (run.size() >= 3 && run.size() > best.views.size()) {
-      const double ref = *fit.residual_deg[std::size_t(run.front())];
-      double sum = 0, spread = 0;
-      for (int i : run) {
-        const double d = wrap(*fit.residual_deg[std::size_t(i)] - ref);
-        sum += d;
-        spread = std::max(spread, std::abs(d));
-      }
-      if (spread <= tolerance_deg) best = {run, wrap(ref + sum / double(run.size()))};
-    }
-    run.clear();
-  };
-  for (std::size_t i = 0; i < manifest.views.size(); ++i) {
-    if (!manifest.views[i].angle_deg || !fit.residual_deg[i]) continue;
-    const bool wrong = std::find(fit.wrong.begin(), fit.wrong.end(), int(i)) != fit.wrong.end();
-    if (wrong && !run.empty() && std::abs(wrap(*fit.residual_deg[i] - *fit.residual_deg[std::size_t(run.back())])) > tolerance_deg)
-      close_run();
-    if (wrong) run.push_back(int(i));
-    else close_run();
+  double last = 0;
+  for (std::size_t k = manifest.views.size(); k-- > 0;) {
+    if (!manifest.views[k].angle_deg || !fit.residual_deg[k]) continue;
+    const bool wrong = std::find(fit.wrong.begin(), fit.wrong.end(), int(k)) != fit.wrong.end();
+    if (!wrong) break;
+    if (run.empty()) last = *fit.residual_deg[k];
+    else if (std::abs(wrap(*fit.residual_deg[k] - last)) > tolerance_deg) break;
+    run.push_back(int(k));
   }
-  close_run();
-  return best;
+  if (run.size() < 3) return out;
+  double sum = 0;
+  for (int i : run) sum += wrap(*fit.residual_deg[std::size_t(i)] - last);
+  out.views.assign(run.rbegin(), run.rend());
+  out.error_deg = wrap(last + sum / double(run.size()));
+  return out;
 }
 
 }  // namespace
@@ -1410,7 +1412,9 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
     for (std::size_t i = 0; i < n; ++i) {
       ViewRecord& v = m.views[i];
       if (!v.angle_deg) continue;
-      const bool in_run = std::find(moved.views.begin(), moved.views.end(), int(i)) != moved.views.end();
+      // Every angled view from the run's first on (those between without a
+      // prior-free pose included: the object had moved for them too).
+      const bool in_run = !moved.views.empty() && int(i) >= moved.views.front();
       if (in_run) v.angle_deg = fit.sign * fit.scale * *v.angle_deg + moved.error_deg;
       else if (std::find(fit.wrong.begin(), fit.wrong.end(), int(i)) != fit.wrong.end()) v.angle_deg.reset();
       else v.angle_deg = fit.sign * fit.scale * *v.angle_deg;
@@ -1428,7 +1432,7 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
     for (std::size_t i = 0; i < n; ++i) {
       if (!manifest.views[i].angle_deg || manifest.views[i].initial_pose) continue;
       ViewDiagnostics& d = corrected->views[i];
-      const bool in_run = std::find(moved.views.begin(), moved.views.end(), int(i)) != moved.views.end();
+      const bool in_run = !moved.views.empty() && int(i) >= moved.views.front();
       d.prior = !m.views[i].angle_deg || d.angle_rejected ? PriorUse::kRejected
                 : fit.convention.empty() && !in_run        ? PriorUse::kUsed
                                                            : PriorUse::kCorrected;

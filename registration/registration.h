@@ -139,8 +139,10 @@ struct RegistrationParams {
   /// Against a model (the multi-start path above; issue 26, item 3): RANSAC
   /// runs with this many more seeds on the same features, and once at each of
   /// these further FPFH radii (voxels, besides global.feature_radius_voxels);
-  /// all their hypotheses are pooled and ranked by overlap. A merged run
-  /// registered onto another (a second pass) uses neither.
+  /// all their hypotheses are pooled and ranked by overlap. The extra seeds run
+  /// only with extra radii (empty global_extra_radii: one run). A merged run
+  /// registered onto another (a second pass) uses neither, but gets the other
+  /// more starts (12 hypotheses, the turned starts, colour for near ties).
   int global_extra_seeds = 1;
   std::vector<double> global_extra_radii = {8.0};
   /// Wrong-angle check (views posed from angle + axis): a view whose ICP onto

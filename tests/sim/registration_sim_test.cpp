@@ -334,6 +334,10 @@ TEST(SimRegistration, AKnockedObjectIsRegisteredAsTwoTurntableRuns) {
   print_prior("object knocked after view 5", r);
   EXPECT_TRUE(r.failed_views.empty());
   EXPECT_EQ(r.turntable_groups, 2);
+  // The prior check's corrected run turns views 6-11 together by their shared
+  // 20-degree error (a move, not six wrong angles) and registers every view;
+  // dropping their angles instead registered 7 of 12.
+  EXPECT_NE(r.prior_comparison.find("corrected angles: 12 of 12 views"), std::string::npos) << r.prior_comparison;
   EXPECT_LT(r.max_rotation_error_deg, 0.5);
   EXPECT_LT(r.max_object_translation_error, 0.001);
   bool named = false;
