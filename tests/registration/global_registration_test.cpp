@@ -6,6 +6,7 @@
 #include <gtest/gtest.h>
 
 #include <Eigen/Geometry>
+#include <algorithm>
 #include <chrono>
 #include <fstream>
 #include <sstream>
@@ -262,6 +263,49 @@ TEST(GlobalRegistration, DragonWithTheSignFlippedOrOneViewShiftedLandsWhereTheCl
     regrouped = regrouped || w.find("the views from views[8] (dragonStandRight_192.ply) on were registered to the "
                                     "ones before as a whole") != std::string::npos;
   EXPECT_TRUE(regrouped);
+}
+
+
+// The dragon's files in a shell glob's order (dragonStandRight_0, _120, _144,
+// ..., _24, _240, ...: lexical, not the turntable's) and without angles, as
+// `station import dragonStandRight_*.ply` makes it without --step. With the
+// chain's unplaced views retried against the chained model alone, 9 of 15
+// registered (the refinement paired views by their neighbours in the list,
+// which do not overlap); without angles every view is now paired by overlap:
+// 11 of 15, the four from 144 to 216 degrees failed by name. No
+// view may come out wrong (a second pass against the widened model placed
+// three of the back views 168 deg off; it is not done).
+TEST(GlobalRegistration, DragonInAShellGlobsOrderWithoutAngles) {
+  std::vector<Cloud> clouds;
+  const SessionManifest m = dragon(clouds);
+  ASSERT_EQ(m.views.size(), 15u);
+  std::vector<std::size_t> order(m.views.size());
+  for (std::size_t k = 0; k < order.size(); ++k) order[k] = k;
+  std::sort(order.begin(), order.end(), [&](std::size_t a, std::size_t b) { return m.views[a].file < m.views[b].file; });
+  ASSERT_EQ(m.views[order[1]].file, "dragonStandRight_120.ply");
+  SessionManifest g = m;
+  g.views.clear();
+  std::vector<Cloud> gc;
+  for (std::size_t k : order) {
+    ViewRecord v = m.views[k];
+    v.angle_deg.reset();
+    g.views.push_back(v);
+    gc.push_back(clouds[k]);
+  }
+  const RegistrationResult r = register_views(gc, g);
+  int registered = 0;
+  for (std::size_t i = 0; i < r.views.size(); ++i) {
+    std::printf("%s: %s, %.3f deg, %.3f mm at the object\n", g.views[i].file.c_str(),
+                r.views[i].registered ? "registered" : "failed", r.views[i].rotation_error_deg.value_or(-1),
+                1000 * r.views[i].object_translation_error.value_or(-1));
+    if (!r.views[i].registered) continue;
+    ++registered;
+    ASSERT_TRUE(r.views[i].rotation_error_deg.has_value()) << i;
+    // Against Stanford's poses: within the clean session's own worst (0.33 deg, 2.1 mm).
+    EXPECT_LT(*r.views[i].rotation_error_deg, 0.5) << g.views[i].file;
+    EXPECT_LT(*r.views[i].object_translation_error, 0.0021) << g.views[i].file;
+  }
+  EXPECT_GE(registered, 11);
 }
 
 }  // namespace
