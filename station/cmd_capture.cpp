@@ -448,6 +448,24 @@ int cmd_replay(const Common& c, const std::string& source, const std::string& ou
   return capture_into(dst, *scanner, *turntable, params, c, "replay", t0);
 }
 
+// Files whose names end in a number (scan_0.ply, scan_24.ply, ...) given in
+// text order, not in the order of those numbers, as a shell glob gives them:
+// the first pair out of numeric order, or none.
+static std::optional<std::pair<std::string, std::string>> text_ordered_numbers(const std::vector<std::string>& files) {
+  std::vector<long long> numbers;
+  for (const std::string& f : files) {
+    const std::string stem = fs::path(f).stem().string();
+    std::size_t k = stem.size();
+    while (k > 0 && std::isdigit(static_cast<unsigned char>(stem[k - 1]))) --k;
+    if (k == stem.size() || stem.size() - k > 15) return std::nullopt;
+    numbers.push_back(std::stoll(stem.substr(k)));
+  }
+  for (std::size_t i = 1; i < numbers.size(); ++i)
+    if (numbers[i] < numbers[i - 1])
+      return std::make_pair(fs::path(files[i - 1]).filename().string(), fs::path(files[i]).filename().string());
+  return std::nullopt;
+}
+
 int cmd_import(const Common& c, const ImportArgs& a) {
   const auto t0 = std::chrono::steady_clock::now();
   load_common(c);
@@ -470,6 +488,12 @@ int cmd_import(const Common& c, const ImportArgs& a) {
     }
     clouds.push_back(std::move(cl));
   }
+  if (const auto pair = text_ordered_numbers(a.files))
+    std::fprintf(stderr,
+                 "warning: the files are not in the order of the numbers in their names (%s before %s), as a "
+                 "shell glob sorts them; the views are taken in the order given%s. Give them in turntable order "
+                 "(e.g. ls -v) unless that is it\n",
+                 pair->first.c_str(), pair->second.c_str(), a.has_step ? ", and --step gives their angles in it" : "");
   SessionManifest m;
   m.scanner = "import";
   m.units = a.units;

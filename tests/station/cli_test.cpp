@@ -222,6 +222,26 @@ TEST(Cli, DragonRunIsOneSheetNearTheScans) {
   EXPECT_LT(std::stod(m[2]), 0.0021) << r.out;
 }
 
+// The dragon's files as a shell glob gives them (text order: _0, _120, _144,
+// ..., _24, ...): imported in that order, with a warning naming the first pair
+// out of the numbers' order and what --step then does.
+TEST(Cli, ImportWarnsOfFilesInAShellGlobsOrder) {
+  test::TempDir dir;
+  std::vector<std::string> names;
+  for (int a = 0; a < 360; a += 24) names.push_back("dragonStandRight_" + std::to_string(a) + ".ply");
+  std::sort(names.begin(), names.end());
+  std::string files;
+  for (const std::string& n : names) files += " " + repo("data/dragon_stand/" + n);
+  CmdResult r = run("import" + files + " --step 24 -o " + (dir / "glob").string());
+  ASSERT_EQ(r.code, 0) << r.out;
+  EXPECT_NE(r.out.find("warning: the files are not in the order of the numbers in their names "
+                       "(dragonStandRight_216.ply before dragonStandRight_24.ply)"),
+            std::string::npos)
+      << r.out;
+  EXPECT_NE(r.out.find("--step gives their angles in it"), std::string::npos) << r.out;
+  EXPECT_DOUBLE_EQ(*read_manifest(dir / "glob").views.at(1).angle_deg, 24.0);  // the order given
+}
+
 TEST(Cli, DragonImportsAndReplaysLikeALiveScanner) {
   test::TempDir dir;
   std::string files;
@@ -230,6 +250,7 @@ TEST(Cli, DragonImportsAndReplaysLikeALiveScanner) {
   CmdResult r = run("import" + files + " --step 24 --stanford-conf " +
               repo("data/dragon_stand/dragonStandRight.conf") + " -o " + session + " --json");
   ASSERT_EQ(r.code, 0) << r.out;
+  EXPECT_EQ(r.out.find("warning: the files are not in the order"), std::string::npos) << r.out;
   const SessionManifest m = read_manifest(session);
   ASSERT_EQ(m.views.size(), 15u);
   EXPECT_DOUBLE_EQ(*m.views[14].angle_deg, 336.0);
