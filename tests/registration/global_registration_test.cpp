@@ -230,7 +230,7 @@ std::vector<Eigen::Matrix4d> move_object(std::vector<Cloud>& clouds, const Sessi
 // at the object of the clean session (the moved view: of the clean pose moved
 // with it). And the object turned 90 degrees about its up and moved 3 cm after
 // view 7 (a second pass), which misses the 1 mm (below).
-TEST(GlobalRegistration, DragonWithTheSignFlippedOrOneViewShiftedLandsWhereTheCleanSessionDoes) {
+TEST(GlobalRegistration, DragonWithTheSignFlippedOrTheObjectMovedLandsWhereTheCleanSessionDoes) {
   std::vector<Cloud> clouds;
   const SessionManifest m = dragon(clouds);
   ASSERT_EQ(m.views.size(), 15u);
@@ -252,12 +252,28 @@ TEST(GlobalRegistration, DragonWithTheSignFlippedOrOneViewShiftedLandsWhereTheCl
   turn.block<3, 1>(0, 3) = Vec3d(0.03, 0, 0.01);
   std::vector<Cloud> turned = clouds;
   const auto turn_moves = move_object(turned, m, turn, 8, 14);
-  // The 1 mm is NOT met here: 0.46 deg / 1.13 mm at the object
-  // (docs/registration.md; before 2026-12-05: a view 132 deg / 107 mm off).
-  // Bounded by the clean session's own worst error against Stanford's poses
-  // (2.1 mm), so that a regression to a wrong pose still fails.
-  const RegistrationResult rt = register_views(turned, m);
+  // Against the clean session 0.46 deg / 1.13 mm at the object (view 7), over
+  // the 1 mm: but the clean session's view 7 is itself 1.44 mm from
+  // Stanford's pose there, and this one 0.32 mm. So the turned session is
+  // asserted against Stanford's poses (the truth for the moved views: D^-1 X),
+  // within the 0.5 deg / 1 mm at the object (0.37 deg / 0.58 mm
+  // measured; the clean session's own worst is 0.32 deg / 1.44 mm), and
+  // against the clean session within the clean session's own worst error
+  // against Stanford's (2.1 mm in the scanner frame). Before 2026-12-05: a view
+  // 132 deg / 107 mm off.
+  // The truth of the moved views for the errors against Stanford's poses
+  // (reference poses only measure): X' = D^-1 X.
+  SessionManifest tm = m;
+  for (std::size_t i = 8; i < 15; ++i) *tm.views[i].reference_pose = rigid_inverse(turn) * *m.views[i].reference_pose;
+  const RegistrationResult rt = register_views(turned, tm);
   expect_as_clean(clean, rt, turned, "turned 90 deg and moved 3 cm after view 7", &turn_moves, 0.0021);
+  for (std::size_t i = 0; i < 15; ++i)
+    std::printf("  view %zu against Stanford's pose: clean %.3f deg %.3f mm, turned %.3f deg %.3f mm at the object\n", i,
+                clean.views[i].rotation_error_deg.value_or(-1), 1000 * clean.views[i].object_translation_error.value_or(-1),
+                rt.views[i].rotation_error_deg.value_or(-1), 1000 * rt.views[i].object_translation_error.value_or(-1));
+  EXPECT_EQ(rt.views_with_reference, 15);
+  EXPECT_LT(rt.max_rotation_error_deg, 0.5);
+  EXPECT_LT(rt.max_object_translation_error, 0.001);
   bool regrouped = false;
   for (const std::string& w : rt.warnings)
     regrouped = regrouped || w.find("the views from views[8] (dragonStandRight_192.ply) on were registered to the "
