@@ -26,6 +26,7 @@
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "core/kdtree.h"
+#include "core/union_find.h"
 
 namespace station {
 
@@ -1163,6 +1164,41 @@ class Registrar {
       if (!has_edge[i]) fail(i, "no overlap with its neighbouring views (every ICP pair failed)");
   }
 
+  // Registered views that no converged pair of the last round joins to the
+  // largest group: their place relative to it rests on the turntable angles
+  // alone (or, without angles, on nothing measured between them). Said, per
+  // group, so that a coverage gap is not mistaken for a measured fit.
+  void warn_unlinked() {
+    if (res_.pairs.empty()) return;
+    const int last = res_.pairs.back().round;
+    UnionFind uf(m_.views.size());
+    for (const PairDiagnostics& pd : res_.pairs)
+      if (pd.round == last && pd.converged && usable_[std::size_t(pd.from)] && usable_[std::size_t(pd.to)])
+        uf.unite(pd.from, pd.to);
+    std::map<int, std::vector<int>> groups;
+    for (std::size_t i = 0; i < m_.views.size(); ++i)
+      if (usable_[i]) groups[uf.find(int(i))].push_back(int(i));
+    if (groups.size() < 2) return;
+    const auto largest = std::max_element(groups.begin(), groups.end(), [](const auto& a, const auto& b) {
+      return a.second.size() < b.second.size();  // ties: the first (lowest view) stays
+    });
+    for (const auto& [root, g] : groups) {
+      if (root == largest->first) continue;
+      const bool angles = std::all_of(g.begin(), g.end(), [&](int i) {
+        return has_angle(i) && !res_.views[std::size_t(i)].angle_rejected;
+      });
+      std::ostringstream w;
+      w << (g.size() == 1 ? view_name(m_, std::size_t(g.front()))
+                          : view_name(m_, std::size_t(g.front())) + " to " + view_name(m_, std::size_t(g.back())) +
+                                " (" + std::to_string(g.size()) + " views)")
+        << " overlap none of the other views: "
+        << (angles ? "held to them by the turntable angles alone (a gap in the coverage?)"
+                   : "their place relative to them is not measured");
+      res_.warnings.push_back(w.str());
+      res_.unlinked_views += int(g.size());
+    }
+  }
+
   /// PairResidual for the last round's converged pairs, under the refined
   /// poses and, where both views have one, under the reference poses.
   void pair_residuals() {
@@ -1206,6 +1242,7 @@ class Registrar {
       if (usable_[i]) res_.views[i].registered = true;
       else res_.failed_views.push_back(int(i));
     }
+    warn_unlinked();
     // Errors against the reference poses, relative to the first registered view with one.
     int anchor = -1;
     for (std::size_t i = 0; i < n && anchor < 0; ++i)

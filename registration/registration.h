@@ -276,6 +276,9 @@ struct RegistrationResult {
   double fuse_distance = 0;    ///< metres, the distance used (0: not fused)
   /// Over views with errors (see ViewDiagnostics); 0 when no reference.
   int views_with_reference = 0;
+  /// Registered views outside the largest group that the last round's
+  /// converged pairs join (each such group named in `warnings`).
+  int unlinked_views = 0;
   double max_rotation_error_deg = 0, median_rotation_error_deg = 0;
   double max_translation_error = 0, median_translation_error = 0;
   double max_object_translation_error = 0, median_object_translation_error = 0;

@@ -438,6 +438,35 @@ TEST(SimRegistration, TheIssuesSessionNominalAnglesAMoveAndViewsWithoutAngle) {
   EXPECT_LT(r.max_object_translation_error, 0.001);
 }
 
+
+// Two runs of views with a gap of 120 degrees between them on both sides
+// (views 0-2 and 6-8 of the fandisk session): no pair joins the runs, so their
+// place relative to each other rests on the angles alone. Registered, and said
+// so, naming the group.
+TEST(SimRegistration, ViewsThatNoPairJoinsAreNamed) {
+  PriorCase c;
+  ASSERT_EQ(c.clouds.size(), 12u);
+  SessionManifest m = c.m;
+  m.views.clear();
+  std::vector<Cloud> clouds;
+  for (int i : {0, 1, 2, 6, 7, 8}) {
+    m.views.push_back(c.m.views[std::size_t(i)]);
+    clouds.push_back(c.clouds[std::size_t(i)]);
+  }
+  const RegistrationResult r = register_views(clouds, m);
+  print_prior("two runs 120 degrees apart", r);
+  EXPECT_TRUE(r.failed_views.empty());
+  EXPECT_EQ(r.unlinked_views, 3);
+  bool named = false;
+  for (const std::string& w : r.warnings)
+    named = named || w.find("views[3] (view_006.ply) to views[5] (view_008.ply) (3 views) overlap none of the other "
+                            "views: held to them by the turntable angles alone") != std::string::npos;
+  EXPECT_TRUE(named);
+  // The clean session: every view joined.
+  const RegistrationResult all = register_views(c.clouds, c.m);
+  EXPECT_EQ(all.unlinked_views, 0);
+}
+
 }  // namespace
 }  // namespace station
 
