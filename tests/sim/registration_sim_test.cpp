@@ -204,6 +204,17 @@ struct PriorCase {
     const Mesh part = fandisk_part(diag);
     clouds = scan_with_prior_off(dir, part, 5, 13, diag, m);
   }
+  // The object moved on the table by D (object frame: z up) for views
+  // from..to: their clouds moved by X^-1 D X, their truth by D^-1 X.
+  void move_object(const Eigen::Matrix4d& D, std::size_t from, std::size_t to) {
+    for (std::size_t i = from; i <= to; ++i) {
+      Eigen::Matrix4d& X = *m.views[i].reference_pose;
+      const Eigen::Matrix4f M = (rigid_inverse(X) * D * X).cast<float>();
+      for (Vec3f& p : clouds[i].points) p = M.block<3, 3>(0, 0) * p + M.block<3, 1>(0, 3);
+      for (Vec3f& q : clouds[i].normals) q = M.block<3, 3>(0, 0) * q;
+      X = rigid_inverse(D) * X;
+    }
+  }
 };
 
 TEST(SimRegistration, ViewsWithWrongAnglesAreRegisteredWithoutThem) {
@@ -323,13 +334,7 @@ TEST(SimRegistration, AKnockedObjectIsRegisteredAsTwoTurntableRuns) {
   Eigen::Matrix4d D = Eigen::Matrix4d::Identity();
   D.block<3, 3>(0, 0) = Eigen::AngleAxisd(20 * M_PI / 180, Vec3d::UnitZ()).toRotationMatrix();  // object frame: z up
   D.block<3, 1>(0, 3) = Vec3d(0.02, 0.01, 0);
-  for (std::size_t i = 6; i < c.clouds.size(); ++i) {
-    Eigen::Matrix4d& X = *c.m.views[i].reference_pose;
-    const Eigen::Matrix4f M = (rigid_inverse(X) * D * X).cast<float>();
-    for (Vec3f& p : c.clouds[i].points) p = M.block<3, 3>(0, 0) * p + M.block<3, 1>(0, 3);
-    for (Vec3f& q : c.clouds[i].normals) q = M.block<3, 3>(0, 0) * q;
-    X = rigid_inverse(D) * X;
-  }
+  c.move_object(D, 6, 11);
   const RegistrationResult r = register_views(c.clouds, c.m);
   print_prior("object knocked after view 5", r);
   EXPECT_TRUE(r.failed_views.empty());
@@ -359,13 +364,7 @@ TEST(SimRegistration, ASecondPassTurnedOverIsRegisteredAsTwoTurntableRuns) {
   Eigen::Matrix4d D = Eigen::Matrix4d::Identity();
   D.block<3, 3>(0, 0) = Eigen::AngleAxisd(M_PI, Vec3d::UnitX()).toRotationMatrix();  // object frame: z up
   D.block<3, 1>(0, 3) = Vec3d(0.01, 0, 0.14);  // the blocks are 0.14 high
-  for (std::size_t i = 6; i < c.clouds.size(); ++i) {
-    Eigen::Matrix4d& X = *c.m.views[i].reference_pose;
-    const Eigen::Matrix4f M = (rigid_inverse(X) * D * X).cast<float>();
-    for (Vec3f& p : c.clouds[i].points) p = M.block<3, 3>(0, 0) * p + M.block<3, 1>(0, 3);
-    for (Vec3f& q : c.clouds[i].normals) q = M.block<3, 3>(0, 0) * q;
-    X = rigid_inverse(D) * X;
-  }
+  c.move_object(D, 6, 11);
   const RegistrationResult r = register_views(c.clouds, c.m);
   print_prior("object turned over after view 5", r);
   EXPECT_TRUE(r.failed_views.empty());
@@ -387,11 +386,7 @@ TEST(SimRegistration, OneViewWithTheObjectShiftedIsRegisteredWithoutItsPrior) {
   Eigen::Matrix4d D = Eigen::Matrix4d::Identity();
   D.block<3, 1>(0, 3) = Vec3d(0.025, -0.015, 0);  // object frame: z up; 2.9 cm across the table
   const std::size_t i = 4;
-  Eigen::Matrix4d& X = *c.m.views[i].reference_pose;
-  const Eigen::Matrix4f M = (rigid_inverse(X) * D * X).cast<float>();
-  for (Vec3f& p : c.clouds[i].points) p = M.block<3, 3>(0, 0) * p + M.block<3, 1>(0, 3);
-  for (Vec3f& q : c.clouds[i].normals) q = M.block<3, 3>(0, 0) * q;
-  X = rigid_inverse(D) * X;
+  c.move_object(D, i, i);
   const RegistrationResult r = register_views(c.clouds, c.m);
   print_prior("view 4's object shifted 3 cm", r);
   EXPECT_TRUE(r.failed_views.empty());
@@ -411,13 +406,7 @@ TEST(SimRegistration, TheIssuesSessionNominalAnglesAMoveAndViewsWithoutAngle) {
   Eigen::Matrix4d D = Eigen::Matrix4d::Identity();
   D.block<3, 3>(0, 0) = Eigen::AngleAxisd(10 * M_PI / 180, Vec3d::UnitZ()).toRotationMatrix();
   D.block<3, 1>(0, 3) = Vec3d(0.04, 0.03, 0);
-  for (std::size_t i = 5; i < c.clouds.size(); ++i) {  // moved after view 4
-    Eigen::Matrix4d& X = *c.m.views[i].reference_pose;
-    const Eigen::Matrix4f M = (rigid_inverse(X) * D * X).cast<float>();
-    for (Vec3f& p : c.clouds[i].points) p = M.block<3, 3>(0, 0) * p + M.block<3, 1>(0, 3);
-    for (Vec3f& q : c.clouds[i].normals) q = M.block<3, 3>(0, 0) * q;
-    X = rigid_inverse(D) * X;
-  }
+  c.move_object(D, 5, 11);  // moved after view 4
   std::vector<Cloud> clouds;
   SessionManifest m = c.m;
   m.views.clear();
