@@ -62,6 +62,11 @@ constexpr std::size_t kFaceCandidates = 12;
 constexpr int kSeedPoints = 48;
 // kProjection: the fits' input is thinned to about this many points within r_f.
 constexpr double kFitPoints = 192;
+// kProjection's initial set (spread_subset): dart-throwing passes at most, and the
+// cells of the grid that holds the kept points at most.
+constexpr int kSpreadPasses = 8;
+constexpr std::size_t kSpreadCandidates = 4;
+constexpr double kSpreadCells = 16e6;
 // kProjection's repulsion radius in output spacings (sqrt(2 A / (sqrt 3 |I|)), the
 // nearest-neighbour distance of |I| points hexagonally packed on the estimated area).
 constexpr double kRepulsionSpacings = 2.6;
@@ -170,6 +175,92 @@ std::vector<int> first_occurrences(const std::vector<Vec3d>& p) {
     if (i == 0 || p[std::size_t(order[i])] != p[std::size_t(order[i - 1])]) first.push_back(order[i]);
   std::sort(first.begin(), first.end());
   return first;
+}
+
+// One pass of dart throwing: the candidates in the given order, each kept unless a kept
+// one lies within r of it (a grid of cells no smaller than r holds the kept ones).
+std::vector<int> dart_throw(const std::vector<Vec3d>& p, const std::vector<int>& order, double r) {
+  Vec3d lo = p[std::size_t(order[0])], hi = lo;
+  for (int j : order) {
+    lo = lo.cwiseMin(p[std::size_t(j)]);
+    hi = hi.cwiseMax(p[std::size_t(j)]);
+  }
+  double cell = r;
+  Eigen::Vector3i dim;
+  for (;;) {  // at most kSpreadCells cells: coarser cells just hold more points each
+    for (int a = 0; a < 3; ++a) dim[a] = std::max(1, int(std::ceil((hi[a] - lo[a]) / cell)) + 1);
+    if (double(dim[0]) * dim[1] * dim[2] <= kSpreadCells) break;
+    cell *= 1.25;
+  }
+  std::vector<int> head(std::size_t(dim[0]) * std::size_t(dim[1]) * std::size_t(dim[2]), -1), next, kept;
+  const auto index = [&](const Vec3d& q, int a) {
+    return std::clamp(int((q[a] - lo[a]) / cell), 0, dim[a] - 1);
+  };
+  const double r2 = r * r;
+  for (int j : order) {
+    const Vec3d& q = p[std::size_t(j)];
+    const int cx = index(q, 0), cy = index(q, 1), cz = index(q, 2);
+    bool free = true;
+    for (int z = std::max(0, cz - 1); free && z <= std::min(dim[2] - 1, cz + 1); ++z)
+      for (int y = std::max(0, cy - 1); free && y <= std::min(dim[1] - 1, cy + 1); ++y)
+        for (int x = std::max(0, cx - 1); free && x <= std::min(dim[0] - 1, cx + 1); ++x)
+          for (int k = head[(std::size_t(z) * std::size_t(dim[1]) + std::size_t(y)) * std::size_t(dim[0]) + std::size_t(x)];
+               k >= 0 && free; k = next[std::size_t(k)])
+            free = (p[std::size_t(kept[std::size_t(k)])] - q).squaredNorm() >= r2;
+    if (!free) continue;
+    const std::size_t c = (std::size_t(cz) * std::size_t(dim[1]) + std::size_t(cy)) * std::size_t(dim[0]) + std::size_t(cx);
+    next.push_back(head[c]);
+    head[c] = int(kept.size());
+    kept.push_back(j);
+  }
+  return kept;
+}
+
+// kProjection's initial set: `count` of the candidates spread out by dart throwing (a
+// maximal Poisson-disk sample) in a seeded random order, the disk radius found by the
+// power law count ~ r^-2 over a few passes; then the first `count` kept, in that order
+// (or, where no radius keeps enough, the last pass's kept ones and the others in order).
+// Returned sorted. A random subset carries the input's density and its random clumps,
+// which E2 only evens out locally: measured at 35 iterations, uniformity 0.840 -> 0.854
+// on the Rubik's cube at 1 % noise, 0.884 -> 0.900 at 0.3 %, 0.854 -> 0.862 on the
+// mustard bottle at 1 %.
+std::vector<int> spread_subset(const std::vector<Vec3d>& p, std::vector<int> order, std::size_t count,
+                               unsigned seed, double dbb) {
+  std::mt19937_64 rng(seed);
+  for (std::size_t i = 0; i + 1 < order.size(); ++i) {  // Fisher-Yates as initial_subset's
+    const std::size_t j = i + std::size_t(rng() % std::uint64_t(order.size() - i));
+    std::swap(order[i], order[j]);
+  }
+  if (count >= order.size() || count == 0) {
+    order.resize(std::min(count, order.size()));
+    std::sort(order.begin(), order.end());
+    return order;
+  }
+  // The darts: the first kSpreadCandidates x count of the random order (a dense input
+  // need not be thrown whole: 1M -> 20k took 2.2 s so).
+  const std::vector<int> darts(order.begin(),
+                               order.begin() + std::ptrdiff_t(std::min(order.size(), kSpreadCandidates * count)));
+  double r = dbb / std::sqrt(double(count));
+  std::vector<int> best, last;
+  for (int pass = 0; pass < kSpreadPasses; ++pass) {
+    last = dart_throw(p, darts, r);
+    const std::size_t n = last.size();
+    if (n >= count && (best.empty() || n < best.size())) best = last;
+    if (n >= count && n <= count + count / 50) break;
+    // count ~ r^-2; aim a little high so that the next pass keeps enough.
+    r *= std::sqrt(double(n) / double(count)) * (n >= count ? 1.0 : 0.99);
+    if (!(r > 0) || !std::isfinite(r)) break;
+  }
+  if (best.empty()) {
+    best = last;
+    std::vector<char> taken(p.size(), 0);
+    for (int j : best) taken[std::size_t(j)] = 1;
+    for (int j : order)
+      if (best.size() < count && !taken[std::size_t(j)]) best.push_back(j);
+  }
+  best.resize(count);
+  std::sort(best.begin(), best.end());
+  return best;
 }
 
 struct Scratch {
@@ -361,7 +452,12 @@ void Consolidator::setup() {
   // offset), and stay one point counted twice. Then the subset is drawn from the first
   // occurrence of each position instead (the same draw where the input has no
   // duplicates); with fewer positions than requested, all of them are taken.
-  std::vector<int> subset = initial_subset(nj_, ni_, params_.seed);
+  // kProjection starts from a spread-out subset instead (spread_subset), of distinct
+  // positions too.
+  std::vector<int> all(nj_);
+  for (std::size_t j = 0; j < nj_; ++j) all[j] = int(j);
+  std::vector<int> subset = projection_ ? spread_subset(p_, all, ni_, params_.seed, dbb_)
+                                        : initial_subset(nj_, ni_, params_.seed);
   if (has_coincident(p_, subset)) {
     const std::vector<int> distinct = first_occurrences(p_);
     if (distinct.size() < ni_) {
@@ -369,8 +465,12 @@ void Consolidator::setup() {
       result_.output_points = ni_;
       result_.clamped = true;
     }
-    subset = initial_subset(distinct.size(), ni_, params_.seed);
-    for (int& j : subset) j = distinct[std::size_t(j)];
+    if (projection_) {
+      subset = spread_subset(p_, distinct, ni_, params_.seed, dbb_);
+    } else {
+      subset = initial_subset(distinct.size(), ni_, params_.seed);
+      for (int& j : subset) j = distinct[std::size_t(j)];
+    }
   }
   if (projection_) {
     estimate_noise();
@@ -427,6 +527,28 @@ void Consolidator::setup() {
     if (input_.has_normals()) {
       fit_side_.resize(nf);
       for (std::size_t sp = 0; sp < nf; ++sp) fit_side_[sp] = input_.normals[std::size_t(fit_id_[sp])];
+      // And the fits' density weights 1 / v_j count the points of the same side only.
+      // Eq. 6 over both sides weighs a point by how far it lies from the other face:
+      // where the faces are closer than the noise is wide, a face's points that strayed
+      // towards the other have more neighbours than those that strayed away, so the
+      // weighted centroid lay outside the face (the blade at 0.3 % noise: both faces'
+      // points 0.18 of the thickness outwards; accuracy 1.20 -> 0.69 per mille of d_bb).
+      if (!uniform) {
+        const int* ids = input_grid_.ids().data();
+        tbb::parallel_for(tbb::blocked_range<int>(0, int(nf), kGrain), [&](const tbb::blocked_range<int>& r) {
+          Scratch& s = scratch_.local();
+          for (int sp = r.begin(); sp < r.end(); ++sp) {
+            const std::size_t id = std::size_t(fit_id_[std::size_t(sp)]);
+            const Vec3f& side = input_.normals[id];
+            gather(input_grid_, p_[id], kernel_.h2, s.input);
+            double v = 0;  // p_j itself included (theta(0) = 1), eq. 6's "1 +"
+            for (int k = 0; k < s.input.n; ++k)
+              if (input_.normals[std::size_t(ids[s.input.pos[k]])].dot(side) > 0 || ids[s.input.pos[k]] == int(id))
+                v += kernel_.theta(double(s.input.r2[k]));
+            fit_inv_v_[std::size_t(sp)] = 1.0 / std::max(1.0, v);
+          }
+        });
+      }
     }
     if (edge) {
       // The faces' normals: the input's own (EdgeNormals::kInput), else the simple

@@ -152,7 +152,11 @@ enum class WlopAttraction {
   /// the projected points cover, WlopResult::repulsion_radius) instead of h. After the
   /// last iteration every point goes onto its plane once more. Inputs with normals
   /// (taken as oriented, as scans' are) fit each point to the neighbours facing its way,
-  /// which keeps the two faces of a part thinner than r_f apart.
+  /// which keeps the two faces of a part thinner than r_f apart, and the fits' 1 / v_j
+  /// then count the neighbours facing the same way only.
+  /// The iterations start from a spread-out subset of the input (dart throwing in a
+  /// seeded random order, a maximal Poisson-disk sample sized to |I|) instead of
+  /// initial_subset's random one, whose clumps E2 evens out only slowly.
   /// The edge variant: where fewer than 90 % of the weight has a simple normal (eqs.
   /// 11-12, over r_f) within 35 degrees of n_i, up to three faces are fitted, each to the
   /// neighbours whose simple normal lies within 35 degrees of a face normal (the
@@ -248,7 +252,8 @@ struct WlopParams {
 };
 
 struct WlopResult {
-  /// |I| points (float), in the order of initial_subset. Colours when the input has
+  /// |I| points (float), in the order of their initial input points (initial_subset,
+  /// or kProjection's spread-out subset, both in input order). Colours when the input has
   /// them: each the mean of the input colours within h of the final point weighted
   /// like plain E1 (alpha_ij / v_j, for both methods), in 8-bit sRGB, rounded (the
   /// nearest input point's colour when none is within h). Normals when

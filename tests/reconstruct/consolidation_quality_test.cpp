@@ -99,8 +99,8 @@ void expect_issue_targets(const Both& b, double plain_uniformity = 0.85) {
 }
 
 TEST(ConsolidationQuality, MustardBottle) {
-  // Measured: 0.3 %: accuracy 2.40 -> 0.51 / 0.50, uniformity 0.895 / 0.896;
-  // 1 %: 7.95 -> 1.87 / 1.72, uniformity 0.854 / 0.852.
+  // Measured: 0.3 %: accuracy 2.40 -> 0.51 / 0.50, uniformity 0.908 / 0.908;
+  // 1 %: 7.95 -> 1.86 / 1.71, uniformity 0.862 / 0.857.
   const Both a = run(noisy_sample("data/mustard_bottle/textured.obj", 100000, 0.003, false, 3),
                      "mustard bottle, 0.3 %");
   expect_issue_targets(a);
@@ -112,22 +112,22 @@ TEST(ConsolidationQuality, MustardBottle) {
 TEST(ConsolidationQuality, RubiksCube) {
   // Measured: 0.3 %: accuracy 2.39 -> 0.62 / 0.60, near edges 0.95 / 0.88 (the scanned
   // cube's edges are rounded: its "sharp edges" are the grooves between the cubelets,
-  // where edge-WLOP gains 7 %, not the issue's 20 %); 1 %: 7.87 -> 1.91 / 1.44, near
-  // edges 3.18 / 2.44 (23 % lower), uniformity 0.840 / 0.844: plain WLOP misses the
-  // issue's 0.85 at 1 % here.
+  // where edge-WLOP gains 7 %, not the issue's 20 %), uniformity 0.899 / 0.902; 1 %:
+  // 7.87 -> 1.91 / 1.43, near edges 3.21 / 2.43 (24 % lower), uniformity 0.852 / 0.849
+  // (0.840 / 0.844 from a random initial subset).
   const Both a = run(noisy_sample("data/rubiks_cube/textured.obj", 100000, 0.003, false, 5),
                      "Rubik's cube, 0.3 %");
   expect_issue_targets(a);
   EXPECT_LT(a.edge.edge, a.wlop.edge);
   const Both b = run(noisy_sample("data/rubiks_cube/textured.obj", 100000, 0.01, false, 5),
                      "Rubik's cube, 1 %");
-  expect_issue_targets(b, 0.83);
+  expect_issue_targets(b);
   EXPECT_LT(b.edge.edge, 0.8 * b.wlop.edge);
 }
 
 TEST(ConsolidationQuality, FandiskEdgesSharper) {
-  // Measured: accuracy 2.37 -> 0.64 / 0.51, near edges 1.00 / 0.67 (33 % lower),
-  // uniformity 0.862 / 0.879.
+  // Measured: accuracy 2.37 -> 0.64 / 0.51, near edges 1.00 / 0.68 (32 % lower),
+  // uniformity 0.875 / 0.890.
   const Both b = run(noisy_sample("tests/data/consolidation/fandisk.off", 100000, 0.003, false, 9),
                      "fandisk, 0.3 %");
   expect_issue_targets(b);
@@ -135,16 +135,21 @@ TEST(ConsolidationQuality, FandiskEdgesSharper) {
 }
 
 TEST(ConsolidationQuality, BladeWithScannerNormals) {
-  // 0.65 thick and sigma = 0.39: the faces overlap in the input and only the oriented
-  // normals (which a scan carries) tell them apart. Measured: accuracy 1.82 -> 1.20 /
-  // 1.20 (0.66 x the input's: the issue's 0.5 x is not met on the blade), uniformity
-  // 0.845 / 0.845 (the issue's 0.85 missed by plain WLOP); near-edge errors equal (its
-  // sharp edges are the rims of a sheet as thin as the noise).
+  // A flat strip 10 x 129 x 0.65 (thinning to its rims) and sigma = 0.39: the faces
+  // overlap in the input and only the oriented normals (which a scan carries) tell them
+  // apart. Measured: accuracy 1.82 -> 0.69 / 0.69 (0.38 x the input's; 1.20 while the
+  // fits' density weights counted both faces, which put each face 0.18 of the
+  // thickness outwards); uniformity 0.820 / 0.820, short of the issue's 0.85: with the
+  // faces where they belong (0.52-0.65 apart on 80 % of the strip, closing to 0 at the
+  // rims) against the output's spacing of 0.39, the nearest neighbour of a point in the
+  // thinner parts is across the strip (0.845 with the faces pushed apart); near-edge
+  // errors equal to the whole's (its sharp
+  // edges are the rims, where the error is no larger than elsewhere).
   const Both b = run(noisy_sample("tests/data/consolidation/blade.off", 100000, 0.003, true, 11),
                      "blade, 0.3 %, with normals");
-  EXPECT_LT(b.wlop.accuracy, 0.7 * b.input.accuracy);
-  EXPECT_LT(b.edge.accuracy, 0.7 * b.input.accuracy);
-  EXPECT_GT(b.wlop.uniformity, 0.83);
+  EXPECT_LT(b.wlop.accuracy, 0.5 * b.input.accuracy);
+  EXPECT_LT(b.edge.accuracy, 0.5 * b.input.accuracy);
+  EXPECT_GT(b.wlop.uniformity, 0.81);
   EXPECT_GT(b.edge.uniformity, 0.80);
   EXPECT_GT(b.wlop.surface_uniformity, b.input.surface_uniformity + 0.25);
 }

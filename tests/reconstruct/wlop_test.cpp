@@ -814,12 +814,31 @@ TEST(WlopInput, IsolatedPointsStayAndNothingIsNaN) {
   EXPECT_GE(r.isolated_points, 1u);
 }
 
+// The smallest distance between two of the points.
+double closest_pair(const std::vector<Vec3f>& p) {
+  double best = std::numeric_limits<double>::infinity();
+  for (std::size_t i = 0; i < p.size(); ++i)
+    for (std::size_t j = i + 1; j < p.size(); ++j) best = std::min(best, double((p[i] - p[j]).norm()));
+  return best;
+}
+
 TEST(WlopInput, ZeroIterationsReturnsTheInitialSubset) {
   const Cloud in = uneven_sphere(400, 0.01, 15);
-  const WlopResult r = consolidate(in, plain(50, 0, 0));
+  // The paper's update starts from the random subset (initial_subset).
+  const WlopResult r = consolidate(in, printed(plain(50, 0, 0)));
   const std::vector<int> subset = initial_subset(400, 50, 1);
   ASSERT_EQ(r.cloud.size(), 50u);
   for (std::size_t i = 0; i < subset.size(); ++i) EXPECT_EQ(r.cloud.points[i], in.points[subset[i]]);
+  // The projection from a spread-out one: input points, in input order, none as close
+  // together as the random subset's closest pair (the uneven sphere's dense cap).
+  const WlopResult spread = consolidate(in, plain(50, 0, 0));
+  ASSERT_EQ(spread.cloud.size(), 50u);
+  std::size_t next = 0;
+  for (const Vec3f& q : spread.cloud.points) {
+    while (next < in.size() && in.points[next] != q) ++next;
+    EXPECT_LT(next, in.size()) << "not an input point, or out of input order";
+  }
+  EXPECT_GT(closest_pair(spread.cloud.points), 2 * closest_pair(r.cloud.points));
 }
 
 }  // namespace
