@@ -264,6 +264,7 @@ std::vector<int> spread_subset(const std::vector<Vec3d>& p, std::vector<int> ord
 }
 
 struct Scratch {
+  int faces = 0;  // kProjection's edge variant: the faces the last fit found (0: one plane)
   Neighbours input;
   Neighbours fit;              // kProjection: the input within r_f
   std::vector<double> fw, rw;  // its weights, and those of one face (edge variant)
@@ -314,6 +315,14 @@ class Consolidator {
   // last E2 step left it up to a step's sag off a curved surface).
   void project();
 
+  // The edge variant's E2 sums at a crease (the fit found two or more faces; n the
+  // normal of the face q went onto): each neighbour's offset d from q is split into its
+  // parts along the face's plane (t) and across it (a), and counted as lying at
+  // |t| + |a| along t: the distance over the surface to a point across a right-angled
+  // crease, where the straight distance is shorter (sqrt(t^2 + a^2)) and so weighed
+  // more in E2 and pushed the points off the crease from both sides (beta = theta / r,
+  // whatever repulsion_weight says).
+  KernelSums unfolded_repulsion(const Vec3d& q, const Vec3d& n) const;
   // E1 of eq. 2 at q from its input neighbours; false when no weight.
   bool plain_e1(const Vec3d& q, Vec3d& e1) const;
   // E1 of eq. 19 (edge variant); false when it falls back or has no weight.
@@ -753,6 +762,7 @@ void Consolidator::estimate_noise() {
 
 bool Consolidator::fit_plane(const Vec3d& q, Scratch& s, Vec3d& m, Vec3d& on_plane, Vec3d& n,
                              Vec3d& lateral, Vec3d* side) const {
+  s.faces = 0;
   gather(*fit_, q, rf2_, s.fit);
   Neighbours& nb = s.fit;
   if (side != nullptr && side->squaredNorm() > 0) {
@@ -855,6 +865,7 @@ bool Consolidator::fit_plane(const Vec3d& q, Scratch& s, Vec3d& m, Vec3d& on_pla
   }
   on_plane = best_point;
   n = best_normal;
+  s.faces = found;
   return true;
 }
 
@@ -1005,7 +1016,8 @@ void Consolidator::iterate(bool last) {
         const double len = lateral.norm(), dead = kPullDeadZone * fit_sigma_;
         Vec3d next = q + on_plane.dot(n) * n;
         if (len > dead) next += (1 - dead / len) * lateral;
-        const KernelSums e2 = repulsion(q, sp);
+        // At a crease, E2 over distances along the surface (unfolded_repulsion).
+        const KernelSums e2 = s.faces >= 2 ? unfolded_repulsion(q, n) : repulsion(q, sp);
         if (e2.w > 0) {
           Vec3d step = -params_.mu * e2.d / e2.w;
           step -= step.dot(n) * n;
@@ -1064,6 +1076,25 @@ void Consolidator::iterate(bool last) {
       result_.mean_copies = counted ? double(total) / double(counted) : 0.0;
     }
   }
+}
+
+KernelSums Consolidator::unfolded_repulsion(const Vec3d& q, const Vec3d& n) const {
+  const double *xs = x_grid_.xs(), *ys = x_grid_.ys(), *zs = x_grid_.zs();
+  KernelSums out;
+  x_grid_.for_each_run(q, [&](int b, int e) {
+    for (int p = b; p < e; ++p) {
+      const Vec3d d(xs[p] - q.x(), ys[p] - q.y(), zs[p] - q.z());
+      if (!(d.squaredNorm() < repulsion_.h2)) continue;
+      const double across = d.dot(n);
+      const Vec3d t = d - across * n;
+      const double tl = t.norm(), l = tl + std::abs(across);
+      if (!(l < repulsion_.h) || l * l <= repulsion_.eps2 || !(tl > 0)) continue;
+      const double a = repulsion_.theta(l * l) / l * w_[std::size_t(p)];
+      out.w += a;
+      out.d += (a * l / tl) * t;
+    }
+  });
+  return out;
 }
 
 void Consolidator::colours() {
