@@ -367,6 +367,128 @@ Cloud block_points(const CloudSource& source, const BlockGrid& grid, int id) {
   return out;
 }
 
+// A bucket file: chunks of [u32 count][u8 flags: 1 normals, 2 colours][count points as
+// 3 floats][normals, 3 floats each][colours, 3 bytes each], native byte order (the file
+// lives in a run's work folder, read back on the same machines).
+namespace {
+
+constexpr char kBucketMagic[8] = {'S', 'T', 'B', 'U', 'C', 'K', '1', '\n'};
+
+static_assert(sizeof(Vec3f) == 12 && sizeof(Rgb) == 3, "bucket records are packed");
+
+// Appends a chunk (`first`: a new file, with the header).
+void write_chunk(const Cloud& c, const std::string& path, bool first) {
+  std::ofstream out(path, std::ios::binary | (first ? std::ios::trunc : std::ios::app));
+  if (first) out.write(kBucketMagic, sizeof kBucketMagic);
+  const std::uint32_t n = std::uint32_t(c.size());
+  const std::uint8_t flags = std::uint8_t((c.has_normals() ? 1 : 0) | (c.has_colours() ? 2 : 0));
+  out.write(reinterpret_cast<const char*>(&n), sizeof n);
+  out.write(reinterpret_cast<const char*>(&flags), 1);
+  for (const Vec3f& p : c.points) out.write(reinterpret_cast<const char*>(p.data()), 12);
+  for (const Vec3f& p : c.normals) out.write(reinterpret_cast<const char*>(p.data()), 12);
+  for (const Rgb& k : c.colours) out.write(reinterpret_cast<const char*>(&k), 3);
+  out.flush();
+  if (!out) throw IoError("writing " + path + " failed (disk full?)");
+}
+
+}  // namespace
+
+void bucket_points(const CloudSource& source, const BlockGrid& grid, const std::vector<int>& ids,
+                   const std::function<std::string(int)>& path) {
+  // Per axis, each block index's span of its region (the same floats as region()).
+  std::array<std::vector<std::pair<float, float>>, 3> span;
+  for (int a = 0; a < 3; ++a)
+    for (int b = 0; b < grid.counts[std::size_t(a)]; ++b) {
+      std::array<int, 3> c{0, 0, 0};
+      c[std::size_t(a)] = b;
+      const Aabb r = grid.region(grid.id(c[0], c[1], c[2]));
+      span[std::size_t(a)].emplace_back(r.min[a], r.max[a]);
+    }
+  std::vector<int> slot(std::size_t(grid.size()), -1);
+  for (std::size_t k = 0; k < ids.size(); ++k) slot[std::size_t(ids[k])] = int(k);
+  std::vector<Cloud> buffer(ids.size());
+  std::vector<std::string> part(ids.size());
+  std::vector<char> started(ids.size(), 0);
+  for (std::size_t k = 0; k < ids.size(); ++k) part[k] = path(ids[k]) + ".part";
+  const auto flush = [&](std::size_t k) {
+    write_chunk(buffer[k], part[k], !started[k]);
+    started[k] = 1;
+    buffer[k] = Cloud{};
+  };
+  try {
+    source([&](const Cloud& c) {
+      for (std::size_t i = 0; i < c.size(); ++i) {
+        const Vec3f& p = c.points[i];
+        std::array<std::pair<int, int>, 3> range;  // block indices per axis whose span holds p
+        bool any = true;
+        for (int a = 0; a < 3 && any; ++a) {
+          const auto& sp = span[std::size_t(a)];
+          int lo = 0;
+          while (lo < int(sp.size()) && !(p[a] <= sp[std::size_t(lo)].second)) ++lo;
+          int hi = lo;
+          while (hi < int(sp.size()) && p[a] >= sp[std::size_t(hi)].first) ++hi;
+          range[std::size_t(a)] = {lo, hi};
+          any = hi > lo;
+        }
+        if (!any) continue;
+        for (int bk = range[2].first; bk < range[2].second; ++bk)
+          for (int bj = range[1].first; bj < range[1].second; ++bj)
+            for (int bi = range[0].first; bi < range[0].second; ++bi) {
+              const int k = slot[std::size_t(grid.id(bi, bj, bk))];
+              if (k < 0) continue;
+              append(buffer[std::size_t(k)], c, i);
+              if (buffer[std::size_t(k)].size() >= kBucketFlushPoints) flush(std::size_t(k));
+            }
+      }
+    });
+    for (std::size_t k = 0; k < ids.size(); ++k) flush(k);  // every file exists, if empty
+    for (std::size_t k = 0; k < ids.size(); ++k) std::filesystem::rename(part[k], path(ids[k]));
+  } catch (...) {
+    for (const std::string& f : part) {
+      std::error_code ec;
+      std::filesystem::remove(f, ec);
+    }
+    throw;
+  }
+}
+
+Cloud read_bucket(const std::string& path) {
+  const std::string bytes = read_file_bytes(path);
+  const auto bad = [&](const std::string& why) { return FormatError(path + ": not a block's points (" + why + ")"); };
+  if (bytes.size() < sizeof kBucketMagic || bytes.compare(0, sizeof kBucketMagic, kBucketMagic, sizeof kBucketMagic) != 0)
+    throw bad("no header");
+  Cloud out;
+  std::size_t at = sizeof kBucketMagic;
+  int kinds = -1;
+  while (at < bytes.size()) {
+    std::uint32_t n = 0;
+    if (bytes.size() - at < 5) throw bad("cut short");
+    std::memcpy(&n, bytes.data() + at, 4);
+    const int flags = std::uint8_t(bytes[at + 4]);
+    at += 5;
+    if (flags > 3 || (kinds >= 0 && n > 0 && flags != kinds)) throw bad("mixed attributes");
+    if (n > 0) kinds = flags;
+    const std::size_t need = std::size_t(n) * (12 + ((flags & 1) ? 12 : 0) + ((flags & 2) ? 3 : 0));
+    if (bytes.size() - at < need) throw bad("cut short");
+    const std::size_t base = out.size();
+    out.points.resize(base + n);
+    std::memcpy(out.points[base].data(), bytes.data() + at, std::size_t(n) * 12);
+    at += std::size_t(n) * 12;
+    if (flags & 1) {
+      out.normals.resize(base + n);
+      std::memcpy(out.normals[base].data(), bytes.data() + at, std::size_t(n) * 12);
+      at += std::size_t(n) * 12;
+    }
+    if (flags & 2) {
+      out.colours.resize(base + n);
+      std::memcpy(&out.colours[base], bytes.data() + at, std::size_t(n) * 3);
+      at += std::size_t(n) * 3;
+    }
+  }
+  if (!all_finite(out.points)) throw bad("non-finite coordinates");
+  return out;
+}
+
 // ------------------------------------------------------------------ memory
 
 std::vector<std::size_t> estimate_block_points(const BlockSummary& s, const BlockGrid& g) {

@@ -194,6 +194,19 @@ Mesh stitch_blocks(std::vector<BlockMesh>& pieces, const BlockGrid& grid, std::v
 /// The points of `source` inside block `id`'s region.
 Cloud block_points(const CloudSource& source, const BlockGrid& grid, int id);
 
+/// One streamed pass over `source` that sorts the points of the blocks `ids` into a
+/// file each, `path(id)`: block_points's points, in the same order, for every one of
+/// them at once (a rank reads the input once, not once a block). Each file is written
+/// as `path(id)` + ".part" and renamed when the pass is done, so a file at `path(id)`
+/// is whole. Memory: kBucketFlushPoints points a block. IoError naming the file when a
+/// write fails (a full disk); the .part files are removed then.
+void bucket_points(const CloudSource& source, const BlockGrid& grid, const std::vector<int>& ids,
+                   const std::function<std::string(int)>& path);
+inline constexpr std::size_t kBucketFlushPoints = 65536;
+/// A bucket file's points. FormatError naming `path` on a file that is not one (cut
+/// short, or another file).
+Cloud read_bucket(const std::string& path);
+
 struct BlockRunStats {
   int blocks = 0;
   std::array<int, 3> counts{1, 1, 1};

@@ -247,6 +247,8 @@ BlockRun run_blocks(const std::string& input, const SurfaceParams& p, int blocks
   const auto faces_file = [&](int id) { return work / ("faces_" + std::to_string(id) + ".bin"); };
   const auto piece_file = [&](int id) { return work / ("piece_" + std::to_string(id) + ".bin"); };
 
+  const auto points_file = [&](int id) { return work / ("points_" + std::to_string(id) + ".bin"); };
+
   // Waves: a wave's blocks take lattice values only from earlier waves.
   std::map<int, std::vector<int>> waves;
   for (int id : block_order(grid)) waves[block_wave(grid, id)].push_back(id);
@@ -254,8 +256,29 @@ BlockRun run_blocks(const std::string& input, const SurfaceParams& p, int blocks
   std::size_t max_points = 0;
   // Within a wave, the largest blocks first, each to the least loaded rank.
   const std::vector<std::size_t> estimate = estimate_block_points(s, grid);
+  std::map<int, std::vector<int>> owners;
+  for (const auto& [wave, ids] : waves) owners[wave] = assign_blocks(ids, estimate, ranks.size());
+  // This rank's blocks, sorted out of the input in one streamed pass (each into
+  // points_<id>.bin, removed when the block is done), not one pass a block.
+  std::vector<int> unsorted;
+  for (const auto& [wave, ids] : waves)
+    for (std::size_t t = 0; t < ids.size(); ++t) {
+      const int id = ids[t];
+      if (owners[wave][t] != ranks.rank()) continue;
+      if (resume && fs::exists(faces_file(id)) && fs::exists(piece_file(id))) continue;
+      if (resume && fs::exists(points_file(id))) continue;
+      unsorted.push_back(id);
+    }
+  error = attempt([&] {
+    if (unsorted.empty()) return;
+    note("sorting " + input + " into " + std::to_string(unsorted.size()) + " block" +
+         (unsorted.size() > 1 ? "s" : "") + " (one streamed pass)");
+    fs::create_directories(work);
+    bucket_points(source, grid, unsorted, [&](int id) { return points_file(id).string(); });
+  });
+  if (ranks.any_failed(!error.empty(), error)) fail_with(error);
   for (const auto& [wave, ids] : waves) {
-    const std::vector<int> owner = assign_blocks(ids, estimate, ranks.size());
+    const std::vector<int>& owner = owners[wave];
     error = attempt([&] {
       for (std::size_t t = 0; t < ids.size(); ++t) {
         if (owner[t] != ranks.rank()) continue;
@@ -276,12 +299,13 @@ BlockRun run_blocks(const std::string& input, const SurfaceParams& p, int blocks
           const SeamTable t = table_from_bytes(read_file_bytes(f), f.string());
           upper.insert(t.begin(), t.end());
         }
-        const Cloud pts = block_points(source, grid, id);
+        const Cloud pts = read_bucket(points_file(id).string());
         max_points = std::max(max_points, pts.size());
         SeamTable lower;
         const BlockMesh piece = reconstruct_block(pts, grid, id, s, p, upper, lower);
         write_file_atomic(piece_file(id), to_bytes(piece));
         write_file_atomic(faces_file(id), to_bytes(lower));  // last: the block counts as done
+        fs::remove(points_file(id));
         ++done;
         note(where + ": " + std::to_string(pts.size()) + " points, " + std::to_string(piece.mesh.faces.size()) +
              " faces, " + fmt("%.2f s", piece.seconds));

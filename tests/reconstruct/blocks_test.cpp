@@ -7,9 +7,13 @@
 
 #include <algorithm>
 #include <cmath>
+#include <filesystem>
+#include <random>
 #include <set>
+#include <string_view>
 #include <tuple>
 
+#include "core/atomic_file.h"
 #include "core/error.h"
 #include "core/io.h"
 #include "core/mesh_topology.h"
@@ -380,6 +384,75 @@ TEST(BlockSurface, NeedsNormalsAndPoints) {
   Cloud bad = bottle(2000);
   bad.points[5].x() = std::nanf("");
   EXPECT_THROW(reconstruct_surface_blocks(memory_source(bad), SurfaceParams{}, 8), InvalidInput);
+}
+
+}  // namespace
+}  // namespace station
+
+namespace station {
+namespace {
+
+// One pass over the input sorts every block's points into its file: the same points,
+// normals and colours, in the same order, as block_points streams for each block.
+TEST(BlockBuckets, OnePassHoldsEachBlocksPointsAsBlockPointsDoes) {
+  std::mt19937 rng(21);
+  std::uniform_real_distribution<float> u(-1, 1);
+  Cloud cloud;
+  for (int i = 0; i < 200000; ++i) {
+    cloud.points.emplace_back(u(rng), 0.8f * u(rng), u(rng));
+    cloud.normals.emplace_back(Vec3f(u(rng), u(rng), u(rng)).normalized());
+    cloud.colours.push_back(Rgb{std::uint8_t(i & 255), std::uint8_t(i >> 8 & 255), std::uint8_t(i >> 16)});
+  }
+  // The source in chunks, as a file streams; counted.
+  int passes = 0;
+  const CloudSource source = [&](const std::function<void(const Cloud&)>& chunk) {
+    ++passes;
+    for (std::size_t b = 0; b < cloud.size(); b += 30000) {
+      Cloud c;
+      for (std::size_t i = b; i < std::min(cloud.size(), b + 30000); ++i) {
+        c.points.push_back(cloud.points[i]);
+        c.normals.push_back(cloud.normals[i]);
+        c.colours.push_back(cloud.colours[i]);
+      }
+      chunk(c);
+    }
+  };
+  const BlockGrid grid = plan_blocks(cube(1.0), 96, 12, 0.07);
+  ASSERT_GE(grid.size(), 8);
+  test::TempDir dir;
+  const auto path = [&](int id) { return (dir / ("points_" + std::to_string(id) + ".bin")).string(); };
+  std::vector<int> some;
+  for (int id = 0; id < grid.size(); id += 2) some.push_back(id);
+  bucket_points(source, grid, some, path);
+  EXPECT_EQ(passes, 1);
+  std::size_t total = 0;
+  for (int id = 0; id < grid.size(); ++id) {
+    const bool wanted = id % 2 == 0;
+    EXPECT_EQ(std::filesystem::exists(path(id)), wanted) << id;
+    EXPECT_FALSE(std::filesystem::exists(path(id) + ".part")) << id;
+    if (!wanted) continue;
+    const Cloud got = read_bucket(path(id));
+    const Cloud want = block_points(source, grid, id);
+    ASSERT_EQ(got.size(), want.size()) << id;
+    EXPECT_GT(got.size(), 0u);
+    EXPECT_EQ(got.points, want.points) << id;
+    EXPECT_EQ(got.normals, want.normals) << id;
+    EXPECT_TRUE(got.colours == want.colours) << id;
+    total += got.size();
+  }
+  // The margins hold some points in more than one block.
+  EXPECT_GT(total, cloud.size() / 2);
+  // A file cut short, or not a bucket, is named.
+  const std::string bytes = read_file_bytes(path(0));
+  write_file_atomic(path(0), std::string_view(bytes).substr(0, bytes.size() - 7));
+  try {
+    (void)read_bucket(path(0));
+    ADD_FAILURE() << "a cut file was read";
+  } catch (const FormatError& e) {
+    EXPECT_NE(std::string(e.what()).find(path(0)), std::string::npos) << e.what();
+  }
+  write_file_atomic(path(0), std::string_view("ply\nformat ascii 1.0\n"));
+  EXPECT_THROW((void)read_bucket(path(0)), FormatError);
 }
 
 }  // namespace

@@ -101,6 +101,10 @@ TEST_F(BlocksCli, ResumeTakesUpTheBlocksAnInterruptedRunLeft) {
   const auto first = test::run_command(station_cmd() + " " + reconstruct(out, "--threads 2 --blocks 4"));
   EXPECT_NE(first.code, 0) << first.out;
   ASSERT_TRUE(fs::exists(out + ".blocks/summary.bin")) << first.out;
+  // Each block's points file (the input sorted into the blocks in one pass) went when
+  // the block was done.
+  for (const auto& e : fs::directory_iterator(out + ".blocks"))
+    EXPECT_NE(e.path().filename().string().rfind("points_", 0), 0u) << e.path();
   fs::remove_all(out);
   const auto again = test::run_command(station_cmd() + " " + reconstruct(out, "--threads 2 --blocks 4 --resume"));
   ASSERT_EQ(again.code, 0) << again.out;
