@@ -606,6 +606,12 @@ BlockMesh reconstruct_block(const Cloud& pts_in, const BlockGrid& grid, int id, 
   mp.epsilon0 = s.epsilon0;
   mp.threads = p.threads;
   if (s.hole == HoleMode::kKeep) mp.trust_factor = kKeepTrustFactor;
+  // The whole cloud's frame and spacing: the block's octree is the whole fit's cut at
+  // the block (the same cells, the same epsilon0 in input units, the same trust), so
+  // beyond the data, where the closing blends MPU's extrapolation in, the blocks
+  // extrapolate as the single run does.
+  mp.frame = s.bounds;
+  mp.mean_spacing = s.mean_spacing;
   const MpuSurface surface = fit_mpu(pts, mp);
   out.mpu = surface.diagnostics();
   const bool close = s.hole == HoleMode::kClose;

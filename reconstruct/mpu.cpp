@@ -674,10 +674,10 @@ MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
         "them first: core/normals.h estimate_normals + orient_normals_mst)");
   if (!(params.alpha > 0.5) || !(params.lambda > 0) || params.n_min < 6 || (params.max_fit_points != 0 && params.max_fit_points < params.n_min) || params.split_min_points < 0 || !(params.epsilon0 > 0) ||
       params.max_depth < 0 || params.max_depth > 20 || params.threads < 0 || !(params.root_margin >= 0) ||
-      !(params.trust_factor > 0))
+      !(params.trust_factor > 0) || !(params.mean_spacing >= 0) || !std::isfinite(params.mean_spacing))
     throw InvalidInput(
         "fit_mpu: parameters out of range (alpha > 0.5, lambda > 0, n_min >= 6, max_fit_points 0 or >= n_min, split_min_points >= 0, epsilon0 > 0, "
-        "0 <= max_depth <= 20, threads >= 0, root_margin >= 0, trust_factor > 0)");
+        "0 <= max_depth <= 20, threads >= 0, root_margin >= 0, trust_factor > 0, mean_spacing >= 0)");
   if (!all_finite(cloud.points)) throw InvalidInput("fit_mpu: non-finite point coordinates");
 
   auto impl = std::make_shared<MpuSurface::Impl>();
@@ -699,10 +699,14 @@ MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
                        " points with usable normals; at least n_min = " + std::to_string(params.n_min) +
                        " needed");
   s.bounds = bounding_box(s.world_points);
-  const double side = (s.bounds.max - s.bounds.min).cast<double>().maxCoeff();
+  if (params.frame.valid() &&
+      !((params.frame.min.array() <= s.bounds.min.array()).all() && (s.bounds.max.array() <= params.frame.max.array()).all()))
+    throw InvalidInput("fit_mpu: the frame does not hold the points");
+  const Aabb& frame = params.frame.valid() ? params.frame : s.bounds;
+  const double side = (frame.max - frame.min).cast<double>().maxCoeff();
   if (!(side > 0)) throw InvalidInput("fit_mpu: all points are equal");
   // Unit-diagonal bounding cube: side 1/sqrt(3).
-  s.center = s.bounds.center().cast<double>();
+  s.center = frame.center().cast<double>();
   s.scale = 1 / (side * std::sqrt(3.0));
   s.points.reserve(s.world_points.size());
   for (const Vec3f& p : s.world_points) s.points.push_back(((p.cast<double>() - s.center) * s.scale).cast<float>());
@@ -724,7 +728,8 @@ MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
     double sum = 0;
     for (double d : nnd) sum += d;
     const double spacing = sum / nnd.size();
-    s.trust_radius = params.trust_factor * std::max(spacing, 1e-9);
+    const double trusted = params.mean_spacing > 0 ? params.mean_spacing * s.scale : spacing;
+    s.trust_radius = params.trust_factor * std::max(trusted, 1e-9);
     s.diag.mean_spacing = spacing / s.scale;
     std::nth_element(density.begin(), density.begin() + density.size() / 2, density.end());
     s.diag.sample_spacing = density[density.size() / 2] / s.scale;

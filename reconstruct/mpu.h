@@ -87,6 +87,14 @@ struct MpuParams {
   /// Threads for the build and batched evaluation (0 = all cores). The result does
   /// not depend on it.
   int threads = 0;
+  /// When valid: the normalised frame (and so the octree's root cell and what epsilon0
+  /// measures) from this box instead of the points' bounding box. A part of a cloud fit
+  /// in the whole cloud's frame shares the whole fit's octree cells and tolerance (the
+  /// blocks of reconstruct/blocks.h). Must hold the points (InvalidInput otherwise).
+  Aabb frame;
+  /// The mean spacing behind trust_factor, in input units; 0: the points' own (mean
+  /// nearest-neighbour distance).
+  double mean_spacing = 0;
 };
 
 /// Per-build diagnostics (cf. the colour paper's Table 3).
