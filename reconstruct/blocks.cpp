@@ -8,6 +8,7 @@
 #include <chrono>
 #include <cmath>
 #include <cctype>
+#include <cerrno>
 #include <cstdio>
 #include <cstring>
 #include <filesystem>
@@ -367,34 +368,74 @@ Cloud block_points(const CloudSource& source, const BlockGrid& grid, int id) {
   return out;
 }
 
-// A bucket file: chunks of [u32 count][u8 flags: 1 normals, 2 colours][count points as
-// 3 floats][normals, 3 floats each][colours, 3 bytes each], native byte order (the file
-// lives in a run's work folder, read back on the same machines).
+// A bucket file: a header (magic, then the block's region as 6 floats), chunks of
+// [u32 count > 0][u8 flags: 1 normals, 2 colours][count points as 3 floats][normals, 3
+// floats each][colours, 3 bytes each], then a trailer [u32 0xFFFFFFFF][u64 points in
+// all]; native byte order (the file lives in a run's work folder, read back on the same
+// machines). The region says which grid the points were sorted for; the trailer that
+// the file is whole.
 namespace {
 
-constexpr char kBucketMagic[8] = {'S', 'T', 'B', 'U', 'C', 'K', '1', '\n'};
+constexpr char kBucketMagic[8] = {'S', 'T', 'B', 'U', 'C', 'K', '2', '\n'};
+constexpr std::uint32_t kBucketEnd = 0xFFFFFFFFu;
+constexpr std::size_t kBucketHeader = sizeof kBucketMagic + 6 * sizeof(float);
 
 static_assert(sizeof(Vec3f) == 12 && sizeof(Rgb) == 3, "bucket records are packed");
 
-// Appends a chunk (`first`: a new file, with the header).
-void write_chunk(const Cloud& c, const std::string& path, bool first) {
-  std::ofstream out(path, std::ios::binary | (first ? std::ios::trunc : std::ios::app));
-  if (first) out.write(kBucketMagic, sizeof kBucketMagic);
-  const std::uint32_t n = std::uint32_t(c.size());
-  const std::uint8_t flags = std::uint8_t((c.has_normals() ? 1 : 0) | (c.has_colours() ? 2 : 0));
-  out.write(reinterpret_cast<const char*>(&n), sizeof n);
-  out.write(reinterpret_cast<const char*>(&flags), 1);
-  for (const Vec3f& p : c.points) out.write(reinterpret_cast<const char*>(p.data()), 12);
-  for (const Vec3f& p : c.normals) out.write(reinterpret_cast<const char*>(p.data()), 12);
-  for (const Rgb& k : c.colours) out.write(reinterpret_cast<const char*>(&k), 3);
-  out.flush();
-  if (!out) throw IoError("writing " + path + " failed (disk full?)");
+void check_written(std::ofstream& out, const std::string& path) {
+  out.close();
+  if (!out) throw IoError("writing " + path + " failed: " + std::strerror(errno));
+}
+
+// Appends a chunk (`region`: a new file, with the header first).
+void write_chunk(const Cloud& c, const std::string& path, const Aabb* region) {
+  std::ofstream out(path, std::ios::binary | (region ? std::ios::trunc : std::ios::app));
+  if (region) {
+    out.write(kBucketMagic, sizeof kBucketMagic);
+    out.write(reinterpret_cast<const char*>(region->min.data()), 12);
+    out.write(reinterpret_cast<const char*>(region->max.data()), 12);
+  }
+  if (!c.empty()) {
+    const std::uint32_t n = std::uint32_t(c.size());
+    const std::uint8_t flags = std::uint8_t((c.has_normals() ? 1 : 0) | (c.has_colours() ? 2 : 0));
+    out.write(reinterpret_cast<const char*>(&n), sizeof n);
+    out.write(reinterpret_cast<const char*>(&flags), 1);
+    for (const Vec3f& p : c.points) out.write(reinterpret_cast<const char*>(p.data()), 12);
+    for (const Vec3f& p : c.normals) out.write(reinterpret_cast<const char*>(p.data()), 12);
+    for (const Rgb& k : c.colours) out.write(reinterpret_cast<const char*>(&k), 3);
+  }
+  check_written(out, path);
+}
+
+void write_trailer(const std::string& path, std::uint64_t total) {
+  std::ofstream out(path, std::ios::binary | std::ios::app);
+  out.write(reinterpret_cast<const char*>(&kBucketEnd), sizeof kBucketEnd);
+  out.write(reinterpret_cast<const char*>(&total), sizeof total);
+  check_written(out, path);
 }
 
 }  // namespace
 
+bool bucket_matches(const std::string& path, const Aabb& region) {
+  std::ifstream in(path, std::ios::binary);
+  char head[kBucketHeader];
+  if (!in.read(head, std::streamsize(sizeof head))) return false;
+  if (std::memcmp(head, kBucketMagic, sizeof kBucketMagic) != 0) return false;
+  Aabb stored;
+  std::memcpy(stored.min.data(), head + sizeof kBucketMagic, 12);
+  std::memcpy(stored.max.data(), head + sizeof kBucketMagic + 12, 12);
+  return stored.min == region.min && stored.max == region.max;
+}
+
 void bucket_points(const CloudSource& source, const BlockGrid& grid, const std::vector<int>& ids,
-                   const std::function<std::string(int)>& path) {
+                   const std::function<std::string(int)>& path, std::size_t flush_points) {
+  std::vector<int> slot(std::size_t(grid.size()), -1);
+  for (std::size_t k = 0; k < ids.size(); ++k) {
+    if (ids[k] < 0 || ids[k] >= grid.size() || slot[std::size_t(ids[k])] >= 0)
+      throw InvalidInput("bucket_points: block ids must be distinct and in [0, " + std::to_string(grid.size()) + ")");
+    slot[std::size_t(ids[k])] = int(k);
+  }
+  if (ids.empty()) return;
   // Per axis, each block index's span of its region (the same floats as region()).
   std::array<std::vector<std::pair<float, float>>, 3> span;
   for (int a = 0; a < 3; ++a)
@@ -404,18 +445,24 @@ void bucket_points(const CloudSource& source, const BlockGrid& grid, const std::
       const Aabb r = grid.region(grid.id(c[0], c[1], c[2]));
       span[std::size_t(a)].emplace_back(r.min[a], r.max[a]);
     }
-  std::vector<int> slot(std::size_t(grid.size()), -1);
-  for (std::size_t k = 0; k < ids.size(); ++k) slot[std::size_t(ids[k])] = int(k);
+  // Buffered points a block before it appends them: flush_points, fewer when many blocks
+  // would together hold more than kBucketBufferPoints.
+  const std::size_t limit =
+      std::max<std::size_t>(1024, std::min(flush_points, kBucketBufferPoints / ids.size()));
   std::vector<Cloud> buffer(ids.size());
   std::vector<std::string> part(ids.size());
-  std::vector<char> started(ids.size(), 0);
+  std::vector<std::uint64_t> total(ids.size(), 0);
   for (std::size_t k = 0; k < ids.size(); ++k) part[k] = path(ids[k]) + ".part";
-  const auto flush = [&](std::size_t k) {
-    write_chunk(buffer[k], part[k], !started[k]);
-    started[k] = 1;
-    buffer[k] = Cloud{};
-  };
   try {
+    for (std::size_t k = 0; k < ids.size(); ++k) {
+      const Aabb region = grid.region(ids[k]);
+      write_chunk(Cloud{}, part[k], &region);  // the header: every file exists, if empty
+    }
+    const auto flush = [&](std::size_t k) {
+      write_chunk(buffer[k], part[k], nullptr);
+      total[k] += buffer[k].size();
+      buffer[k] = Cloud{};
+    };
     source([&](const Cloud& c) {
       for (std::size_t i = 0; i < c.size(); ++i) {
         const Vec3f& p = c.points[i];
@@ -437,11 +484,14 @@ void bucket_points(const CloudSource& source, const BlockGrid& grid, const std::
               const int k = slot[std::size_t(grid.id(bi, bj, bk))];
               if (k < 0) continue;
               append(buffer[std::size_t(k)], c, i);
-              if (buffer[std::size_t(k)].size() >= kBucketFlushPoints) flush(std::size_t(k));
+              if (buffer[std::size_t(k)].size() >= limit) flush(std::size_t(k));
             }
       }
     });
-    for (std::size_t k = 0; k < ids.size(); ++k) flush(k);  // every file exists, if empty
+    for (std::size_t k = 0; k < ids.size(); ++k) {
+      flush(k);
+      write_trailer(part[k], total[k]);
+    }
     for (std::size_t k = 0; k < ids.size(); ++k) std::filesystem::rename(part[k], path(ids[k]));
   } catch (...) {
     for (const std::string& f : part) {
@@ -452,22 +502,32 @@ void bucket_points(const CloudSource& source, const BlockGrid& grid, const std::
   }
 }
 
-Cloud read_bucket(const std::string& path) {
+Cloud read_bucket(const std::string& path, const Aabb* region) {
   const std::string bytes = read_file_bytes(path);
   const auto bad = [&](const std::string& why) { return FormatError(path + ": not a block's points (" + why + ")"); };
-  if (bytes.size() < sizeof kBucketMagic || bytes.compare(0, sizeof kBucketMagic, kBucketMagic, sizeof kBucketMagic) != 0)
+  if (bytes.size() < kBucketHeader || bytes.compare(0, sizeof kBucketMagic, kBucketMagic, sizeof kBucketMagic) != 0)
     throw bad("no header");
+  if (region && !bucket_matches(path, *region)) throw bad("sorted for another block grid");
   Cloud out;
-  std::size_t at = sizeof kBucketMagic;
+  std::size_t at = kBucketHeader;
   int kinds = -1;
-  while (at < bytes.size()) {
+  for (;;) {
     std::uint32_t n = 0;
-    if (bytes.size() - at < 5) throw bad("cut short");
+    if (bytes.size() - at < 4) throw bad("cut short");
     std::memcpy(&n, bytes.data() + at, 4);
-    const int flags = std::uint8_t(bytes[at + 4]);
-    at += 5;
-    if (flags > 3 || (kinds >= 0 && n > 0 && flags != kinds)) throw bad("mixed attributes");
-    if (n > 0) kinds = flags;
+    at += 4;
+    if (n == kBucketEnd) {
+      std::uint64_t count = 0;
+      if (bytes.size() - at != sizeof count) throw bad("cut short, or bytes after its end");
+      std::memcpy(&count, bytes.data() + at, sizeof count);
+      if (count != out.size()) throw bad("cut short");
+      break;
+    }
+    if (n == 0 || bytes.size() - at < 1) throw bad("cut short");
+    const int flags = std::uint8_t(bytes[at]);
+    at += 1;
+    if (flags > 3 || (kinds >= 0 && flags != kinds)) throw bad("mixed attributes");
+    kinds = flags;
     const std::size_t need = std::size_t(n) * (12 + ((flags & 1) ? 12 : 0) + ((flags & 2) ? 3 : 0));
     if (bytes.size() - at < need) throw bad("cut short");
     const std::size_t base = out.size();

@@ -196,16 +196,21 @@ Cloud block_points(const CloudSource& source, const BlockGrid& grid, int id);
 
 /// One streamed pass over `source` that sorts the points of the blocks `ids` into a
 /// file each, `path(id)`: block_points's points, in the same order, for every one of
-/// them at once (a rank reads the input once, not once a block). Each file is written
-/// as `path(id)` + ".part" and renamed when the pass is done, so a file at `path(id)`
-/// is whole. Memory: kBucketFlushPoints points a block. IoError naming the file when a
-/// write fails (a full disk); the .part files are removed then.
+/// them at once (a rank reads the input once, not once a block). Each file records
+/// its block's region (the grid it was sorted for) and its point count, is written as
+/// `path(id)` + ".part" and renamed when the pass is done, so a file at `path(id)` is
+/// whole. Memory: at most flush_points points a block, and kBucketBufferPoints in all
+/// (not below 1024 a block). InvalidInput on repeated or out-of-range ids; IoError
+/// naming the file when a write fails (a full disk); the .part files are removed then.
 void bucket_points(const CloudSource& source, const BlockGrid& grid, const std::vector<int>& ids,
-                   const std::function<std::string(int)>& path);
-inline constexpr std::size_t kBucketFlushPoints = 65536;
+                   const std::function<std::string(int)>& path, std::size_t flush_points = 65536);
+inline constexpr std::size_t kBucketBufferPoints = 4u << 20;
 /// A bucket file's points. FormatError naming `path` on a file that is not one (cut
-/// short, or another file).
-Cloud read_bucket(const std::string& path);
+/// short, another file) or, with `region`, one sorted for another block's region.
+Cloud read_bucket(const std::string& path, const Aabb* region = nullptr);
+/// Whether the bucket file at `path` was sorted for `region` (false when it is not a
+/// bucket file or cannot be read).
+bool bucket_matches(const std::string& path, const Aabb& region);
 
 struct BlockRunStats {
   int blocks = 0;

@@ -699,10 +699,14 @@ MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
                        " points with usable normals; at least n_min = " + std::to_string(params.n_min) +
                        " needed");
   s.bounds = bounding_box(s.world_points);
-  if (params.frame.valid() &&
+  const bool framed = !(params.frame.min == Aabb().min && params.frame.max == Aabb().max);  // set at all
+  if (framed && !(params.frame.valid() && params.frame.min.allFinite() && params.frame.max.allFinite() &&
+                  (params.frame.max - params.frame.min).maxCoeff() > 0))
+    throw InvalidInput("fit_mpu: the frame must be a finite box of positive size");
+  if (framed &&
       !((params.frame.min.array() <= s.bounds.min.array()).all() && (s.bounds.max.array() <= params.frame.max.array()).all()))
     throw InvalidInput("fit_mpu: the frame does not hold the points");
-  const Aabb& frame = params.frame.valid() ? params.frame : s.bounds;
+  const Aabb& frame = framed ? params.frame : s.bounds;
   const double side = (frame.max - frame.min).cast<double>().maxCoeff();
   if (!(side > 0)) throw InvalidInput("fit_mpu: all points are equal");
   // Unit-diagonal bounding cube: side 1/sqrt(3).

@@ -90,7 +90,8 @@ struct MpuParams {
   /// When valid: the normalised frame (and so the octree's root cell and what epsilon0
   /// measures) from this box instead of the points' bounding box. A part of a cloud fit
   /// in the whole cloud's frame shares the whole fit's octree cells and tolerance (the
-  /// blocks of reconstruct/blocks.h). Must hold the points (InvalidInput otherwise).
+  /// blocks of reconstruct/blocks.h). Must be finite, of positive size and hold the
+  /// points with usable normals (InvalidInput otherwise). Left as Aabb{}: unset.
   Aabb frame;
   /// The mean spacing behind trust_factor, in input units; 0: the points' own (mean
   /// nearest-neighbour distance).
@@ -154,7 +155,8 @@ class MpuSurface : public ImplicitFunction {
   void values_gradients_near(const Vec3d* xs, int n, double* values, Vec3d* grads) const override;
 
   /// Normalised frame: y = (x - center()) * scale(); the bounding cube of the input
-  /// points has diagonal 1 there, and epsilon0 is measured in it.
+  /// points (of MpuParams::frame when set) has diagonal 1 there, and epsilon0 is
+  /// measured in it.
   Vec3d center() const;
   double scale() const;
   /// Bounding box of the input points (input units) and the points themselves.

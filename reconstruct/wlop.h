@@ -157,6 +157,11 @@ enum class WlopAttraction {
   /// The iterations start from a spread-out subset of the input (dart throwing in a
   /// seeded random order, a maximal Poisson-disk sample sized to |I|) instead of
   /// initial_subset's random one, whose clumps E2 evens out only slowly.
+  /// The edge variant at a crease (two or more faces found): E2 counts each neighbour
+  /// at |t| + |a|, t and a its offset's parts along and across the point's face (its
+  /// distance over the surface across a right-angled crease), with beta = theta / r
+  /// whatever repulsion_weight says: with straight distances the points left a gap on
+  /// both sides of every edge.
   /// The edge variant: where fewer than 90 % of the weight has a simple normal (eqs.
   /// 11-12, over r_f) within 35 degrees of n_i, up to three faces are fitted, each to the
   /// neighbours whose simple normal lies within 35 degrees of a face normal (the
@@ -215,7 +220,7 @@ struct WlopParams {
   WlopRepulsion repulsion = WlopRepulsion::kTangential;
   /// beta_ir of E2 (both methods).
   RepulsionWeight repulsion_weight = RepulsionWeight::kOriginal;
-  /// Seed of the random initial subset (see initial_subset).
+  /// Seed of the initial subset (initial_subset's draw; kProjection's dart order).
   unsigned seed = 1;
   /// Worker threads (0 = all cores). The output does not depend on it.
   int threads = 0;

@@ -260,16 +260,18 @@ BlockRun run_blocks(const std::string& input, const SurfaceParams& p, int blocks
   for (const auto& [wave, ids] : waves) owners[wave] = assign_blocks(ids, estimate, ranks.size());
   // This rank's blocks, sorted out of the input in one streamed pass (each into
   // points_<id>.bin, removed when the block is done), not one pass a block.
-  std::vector<int> unsorted;
-  for (const auto& [wave, ids] : waves)
-    for (std::size_t t = 0; t < ids.size(); ++t) {
-      const int id = ids[t];
-      if (owners[wave][t] != ranks.rank()) continue;
-      if (resume && fs::exists(faces_file(id)) && fs::exists(piece_file(id))) continue;
-      if (resume && fs::exists(points_file(id))) continue;
-      unsorted.push_back(id);
-    }
   error = attempt([&] {
+    // With --resume, a block's file is kept when it was sorted for this grid.
+    std::vector<int> unsorted;
+    for (const auto& [wave, ids] : waves)
+      for (std::size_t t = 0; t < ids.size(); ++t) {
+        const int id = ids[t];
+        if (owners[wave][t] != ranks.rank()) continue;
+        if (resume && fs::exists(faces_file(id)) && fs::exists(piece_file(id))) continue;
+        if (resume && fs::exists(points_file(id)) && bucket_matches(points_file(id).string(), grid.region(id)))
+          continue;
+        unsorted.push_back(id);
+      }
     if (unsorted.empty()) return;
     note("sorting " + input + " into " + std::to_string(unsorted.size()) + " block" +
          (unsorted.size() > 1 ? "s" : "") + " (one streamed pass)");
@@ -299,7 +301,8 @@ BlockRun run_blocks(const std::string& input, const SurfaceParams& p, int blocks
           const SeamTable t = table_from_bytes(read_file_bytes(f), f.string());
           upper.insert(t.begin(), t.end());
         }
-        const Cloud pts = read_bucket(points_file(id).string());
+        const Aabb region = grid.region(id);
+        const Cloud pts = read_bucket(points_file(id).string(), &region);
         max_points = std::max(max_points, pts.size());
         SeamTable lower;
         const BlockMesh piece = reconstruct_block(pts, grid, id, s, p, upper, lower);

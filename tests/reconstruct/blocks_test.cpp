@@ -393,13 +393,17 @@ namespace station {
 namespace {
 
 // One pass over the input sorts every block's points into its file: the same points,
-// normals and colours, in the same order, as block_points streams for each block.
+// normals and colours, in the same order, as block_points streams for each block, in
+// many chunks a file, and blocks without points get an empty file.
 TEST(BlockBuckets, OnePassHoldsEachBlocksPointsAsBlockPointsDoes) {
   std::mt19937 rng(21);
   std::uniform_real_distribution<float> u(-1, 1);
   Cloud cloud;
   for (int i = 0; i < 200000; ++i) {
-    cloud.points.emplace_back(u(rng), 0.8f * u(rng), u(rng));
+    // Nothing in the corner x, z > 0.3: the blocks of x, z > 0.5 are empty.
+    Vec3f q(u(rng), 0.8f * u(rng), u(rng));
+    if (q.x() > 0.3f && q.z() > 0.3f) q.x() -= 1.3f;
+    cloud.points.push_back(q);
     cloud.normals.emplace_back(Vec3f(u(rng), u(rng), u(rng)).normalized());
     cloud.colours.push_back(Rgb{std::uint8_t(i & 255), std::uint8_t(i >> 8 & 255), std::uint8_t(i >> 16)});
   }
@@ -417,42 +421,69 @@ TEST(BlockBuckets, OnePassHoldsEachBlocksPointsAsBlockPointsDoes) {
       chunk(c);
     }
   };
-  const BlockGrid grid = plan_blocks(cube(1.0), 96, 12, 0.07);
-  ASSERT_GE(grid.size(), 8);
+  const BlockGrid grid = plan_blocks(cube(1.0), 96, 64, 0.07);
+  ASSERT_GE(grid.size(), 27);
   test::TempDir dir;
   const auto path = [&](int id) { return (dir / ("points_" + std::to_string(id) + ".bin")).string(); };
-  std::vector<int> some;
-  for (int id = 0; id < grid.size(); id += 2) some.push_back(id);
-  bucket_points(source, grid, some, path);
+  std::vector<int> some, all;
+  for (int id = 0; id < grid.size(); ++id) (id % 2 == 0 ? some : all).push_back(id);
+  bucket_points(source, grid, some, path, 1000);  // chunks of 1,024 points (the least)
   EXPECT_EQ(passes, 1);
-  std::size_t total = 0;
   for (int id = 0; id < grid.size(); ++id) {
-    const bool wanted = id % 2 == 0;
-    EXPECT_EQ(std::filesystem::exists(path(id)), wanted) << id;
+    EXPECT_EQ(std::filesystem::exists(path(id)), id % 2 == 0) << id;
     EXPECT_FALSE(std::filesystem::exists(path(id) + ".part")) << id;
-    if (!wanted) continue;
-    const Cloud got = read_bucket(path(id));
+  }
+  bucket_points(source, grid, all, path, 1000);
+  std::size_t total = 0, empty = 0;
+  for (int id = 0; id < grid.size(); ++id) {
+    const Aabb region = grid.region(id);
+    const Cloud got = read_bucket(path(id), &region);
     const Cloud want = block_points(source, grid, id);
     ASSERT_EQ(got.size(), want.size()) << id;
-    EXPECT_GT(got.size(), 0u);
     EXPECT_EQ(got.points, want.points) << id;
     EXPECT_EQ(got.normals, want.normals) << id;
     EXPECT_TRUE(got.colours == want.colours) << id;
     total += got.size();
+    empty += got.empty();
   }
-  // The margins hold some points in more than one block.
-  EXPECT_GT(total, cloud.size() / 2);
-  // A file cut short, or not a bucket, is named.
-  const std::string bytes = read_file_bytes(path(0));
-  write_file_atomic(path(0), std::string_view(bytes).substr(0, bytes.size() - 7));
-  try {
-    (void)read_bucket(path(0));
-    ADD_FAILURE() << "a cut file was read";
-  } catch (const FormatError& e) {
-    EXPECT_NE(std::string(e.what()).find(path(0)), std::string::npos) << e.what();
-  }
-  write_file_atomic(path(0), std::string_view("ply\nformat ascii 1.0\n"));
-  EXPECT_THROW((void)read_bucket(path(0)), FormatError);
+  EXPECT_GT(empty, 0u);
+  EXPECT_GT(total, cloud.size());  // the margins hold some points in two blocks or more
+  // Another block's region, a file cut (at a chunk's end or inside one), not a bucket:
+  // each named.
+  const auto rejects = [&](const std::string& file, const Aabb* region, const char* why) {
+    try {
+      (void)read_bucket(file, region);
+      ADD_FAILURE() << "read: " << why;
+    } catch (const FormatError& e) {
+      EXPECT_NE(std::string(e.what()).find(file), std::string::npos) << e.what();
+    }
+  };
+  int full = 0;
+  while (read_bucket(path(full)).size() < 5000) ++full;
+  const Aabb other = grid.region(full + 1);
+  rejects(path(full), &other, "another region");
+  EXPECT_FALSE(bucket_matches(path(full), other));
+  EXPECT_TRUE(bucket_matches(path(full), grid.region(full)));
+  const std::string bytes = read_file_bytes(path(full));
+  write_file_atomic(path(full), std::string_view(bytes).substr(0, bytes.size() - 12));  // the trailer
+  rejects(path(full), nullptr, "cut at a chunk's end");
+  write_file_atomic(path(full), std::string_view(bytes).substr(0, bytes.size() / 2));
+  rejects(path(full), nullptr, "cut inside a chunk");
+  write_file_atomic(path(full), std::string_view("ply\nformat ascii 1.0\n"));
+  rejects(path(full), nullptr, "a PLY");
+  EXPECT_THROW(bucket_points(source, grid, {0, 0}, path), InvalidInput);
+  EXPECT_THROW(bucket_points(source, grid, {grid.size()}, path), InvalidInput);
+  // A source that fails half way leaves no file of the pass behind.
+  std::filesystem::remove(path(1));
+  const CloudSource failing = [&](const std::function<void(const Cloud&)>& chunk) {
+    source([&](const Cloud& c) {
+      chunk(c);
+      throw IoError("the disk went away");
+    });
+  };
+  EXPECT_THROW(bucket_points(failing, grid, {1}, path), IoError);
+  EXPECT_FALSE(std::filesystem::exists(path(1)));
+  EXPECT_FALSE(std::filesystem::exists(path(1) + ".part"));
 }
 
 }  // namespace

@@ -110,7 +110,7 @@ TEST(ConsolidationQuality, MustardBottle) {
 }
 
 TEST(ConsolidationQuality, RubiksCube) {
-  // Measured: 0.3 %: accuracy 2.39 -> 0.62 / 0.60, near edges 0.95 / 0.88 (the scanned
+  // Measured: 0.3 %: accuracy 2.39 -> 0.62 / 0.61, near edges 0.95 / 0.90 (the scanned
   // cube's edges are rounded: its "sharp edges" are the grooves between the cubelets,
   // where edge-WLOP gains 5 %, not the 20 %), uniformity 0.899 / 0.892; 1 %:
   // 7.87 -> 1.91 / 1.43, near edges 3.21 / 2.44 (24 % lower), uniformity 0.852 / 0.836

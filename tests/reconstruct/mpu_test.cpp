@@ -7,6 +7,7 @@
 #include <cmath>
 #include <functional>
 #include <random>
+#include <limits>
 #include <map>
 #include <set>
 
@@ -206,6 +207,13 @@ TEST(Mpu, APartInTheWholesFrameIsTheWholeFitThere) {
   MpuParams bad = mp;
   bad.mean_spacing = -1;
   EXPECT_THROW((void)fit_mpu(c, bad), InvalidInput);
+  MpuParams endless = mp;
+  endless.frame = bounding_box(c.points);
+  endless.frame.max.x() = std::numeric_limits<float>::infinity();
+  EXPECT_THROW((void)fit_mpu(c, endless), InvalidInput);
+  MpuParams flat = mp;
+  flat.frame.min = flat.frame.max = Vec3f::Zero();
+  EXPECT_THROW((void)fit_mpu(c, flat), InvalidInput);
 }
 
 TEST(Mpu, ScaleInvariant) {

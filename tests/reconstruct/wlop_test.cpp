@@ -231,9 +231,9 @@ TEST(Wlop, EvensOutANoisyUnevenSphereWithoutLosingAccuracy) {
   const double area = 4 * M_PI;
   const double u_in = uniformity(onto_unit_sphere(in.points), area);
   const double u_out = uniformity(onto_unit_sphere(r.cloud.points), area);
-  std::vector<Vec3f> subset;  // the starting point: a random subset of the input
-  for (int j : initial_subset(in.size(), 4000, 1)) subset.push_back(in.points[j]);
-  const double u_subset = uniformity(onto_unit_sphere(subset), area);
+  // The starting point (the projection's spread-out subset): the same call, no iterations.
+  const WlopResult start = consolidate(in, plain(4000, 0.22, 0));
+  const double u_subset = uniformity(onto_unit_sphere(start.cloud.points), area);
   EXPECT_GT(u_out, u_in + 0.04) << u_in << " -> " << u_out;
   EXPECT_GT(u_out, u_subset + 0.04) << u_subset << " -> " << u_out;
   const double acc_in = mean_sphere_distance(in.points);
@@ -837,6 +837,7 @@ TEST(WlopInput, ZeroIterationsReturnsTheInitialSubset) {
   for (const Vec3f& q : spread.cloud.points) {
     while (next < in.size() && in.points[next] != q) ++next;
     EXPECT_LT(next, in.size()) << "not an input point, or out of input order";
+    ++next;
   }
   EXPECT_GT(closest_pair(spread.cloud.points), 2 * closest_pair(r.cloud.points));
 }
