@@ -1,5 +1,8 @@
 #include "reconstruct/blocks.h"
 
+#include <fcntl.h>
+#include <unistd.h>
+
 #include <Eigen/Geometry>
 #include <tbb/parallel_for.h>
 #include <tbb/task_arena.h>
@@ -407,11 +410,17 @@ void write_chunk(const Cloud& c, const std::string& path, const Aabb* region) {
   check_written(out, path);
 }
 
+// The trailer, then the file flushed to the disk (before the rename publishes it).
 void write_trailer(const std::string& path, std::uint64_t total) {
   std::ofstream out(path, std::ios::binary | std::ios::app);
   out.write(reinterpret_cast<const char*>(&kBucketEnd), sizeof kBucketEnd);
   out.write(reinterpret_cast<const char*>(&total), sizeof total);
   check_written(out, path);
+  const int fd = ::open(path.c_str(), O_RDONLY);
+  const bool synced = fd >= 0 && ::fsync(fd) == 0;
+  const int err = errno;
+  if (fd >= 0) ::close(fd);
+  if (!synced) throw IoError("writing " + path + " failed: " + std::strerror(err));
 }
 
 }  // namespace
