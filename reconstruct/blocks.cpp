@@ -425,15 +425,24 @@ void write_trailer(const std::string& path, std::uint64_t total) {
 
 }  // namespace
 
-bool bucket_matches(const std::string& path, const Aabb& region) {
-  std::ifstream in(path, std::ios::binary);
-  char head[kBucketHeader];
-  if (!in.read(head, std::streamsize(sizeof head))) return false;
+namespace {
+
+// Whether a bucket file's first kBucketHeader bytes are a header, for `region` when given.
+bool header_matches(const char* head, const Aabb* region) {
   if (std::memcmp(head, kBucketMagic, sizeof kBucketMagic) != 0) return false;
+  if (!region) return true;
   Aabb stored;
   std::memcpy(stored.min.data(), head + sizeof kBucketMagic, 12);
   std::memcpy(stored.max.data(), head + sizeof kBucketMagic + 12, 12);
-  return stored.min == region.min && stored.max == region.max;
+  return stored.min == region->min && stored.max == region->max;
+}
+
+}  // namespace
+
+bool bucket_matches(const std::string& path, const Aabb& region) {
+  std::ifstream in(path, std::ios::binary);
+  char head[kBucketHeader];
+  return in.read(head, std::streamsize(sizeof head)) && header_matches(head, &region);
 }
 
 void bucket_points(const CloudSource& source, const BlockGrid& grid, const std::vector<int>& ids,
@@ -514,9 +523,8 @@ void bucket_points(const CloudSource& source, const BlockGrid& grid, const std::
 Cloud read_bucket(const std::string& path, const Aabb* region) {
   const std::string bytes = read_file_bytes(path);
   const auto bad = [&](const std::string& why) { return FormatError(path + ": not a block's points (" + why + ")"); };
-  if (bytes.size() < kBucketHeader || bytes.compare(0, sizeof kBucketMagic, kBucketMagic, sizeof kBucketMagic) != 0)
-    throw bad("no header");
-  if (region && !bucket_matches(path, *region)) throw bad("sorted for another block grid");
+  if (bytes.size() < kBucketHeader || !header_matches(bytes.data(), nullptr)) throw bad("no header");
+  if (region && !header_matches(bytes.data(), region)) throw bad("sorted for another block grid");
   Cloud out;
   std::size_t at = kBucketHeader;
   int kinds = -1;

@@ -178,6 +178,17 @@ std::vector<int> first_occurrences(const std::vector<Vec3d>& p) {
   return first;
 }
 
+// The first `count` entries of v drawn by a partial Fisher-Yates shuffle driven by
+// std::mt19937_64(seed), with a plain modulo (bias < 2^-40 for any size we hold;
+// std::uniform_int_distribution would differ between standard libraries).
+void shuffle_front(std::vector<int>& v, std::size_t count, unsigned seed) {
+  std::mt19937_64 rng(seed);
+  for (std::size_t i = 0; i < count; ++i) {
+    const std::size_t j = i + std::size_t(rng() % std::uint64_t(v.size() - i));
+    std::swap(v[i], v[j]);
+  }
+}
+
 // One pass of dart throwing: the candidates in the given order, each kept unless a kept
 // one lies within r of it (a grid of cells no smaller than r holds the kept ones).
 std::vector<int> dart_throw(const std::vector<Vec3d>& p, const std::vector<int>& order, double r) {
@@ -233,11 +244,7 @@ std::vector<int> dart_throw(const std::vector<Vec3d>& p, const std::vector<int>&
 // 0.852, 0.899 and 0.862.
 std::vector<int> spread_subset(const std::vector<Vec3d>& p, std::vector<int> order, std::size_t count,
                                unsigned seed, double dbb) {
-  std::mt19937_64 rng(seed);
-  for (std::size_t i = 0; i + 1 < order.size(); ++i) {  // Fisher-Yates as initial_subset's
-    const std::size_t j = i + std::size_t(rng() % std::uint64_t(order.size() - i));
-    std::swap(order[i], order[j]);
-  }
+  if (!order.empty()) shuffle_front(order, order.size() - 1, seed);
   if (count >= order.size() || count == 0) {
     order.resize(std::min(count, order.size()));
     std::sort(order.begin(), order.end());
@@ -1186,13 +1193,7 @@ std::vector<int> initial_subset(std::size_t n, std::size_t count, unsigned seed)
   count = std::min(count, n);
   std::vector<int> pool(n);
   for (std::size_t i = 0; i < n; ++i) pool[i] = int(i);
-  std::mt19937_64 rng(seed);
-  // Partial Fisher-Yates with a plain modulo (bias < 2^-40 for any n we hold);
-  // std::uniform_int_distribution would differ between standard libraries.
-  for (std::size_t i = 0; i < count; ++i) {
-    const std::size_t j = i + std::size_t(rng() % std::uint64_t(n - i));
-    std::swap(pool[i], pool[j]);
-  }
+  shuffle_front(pool, count, seed);
   pool.resize(count);
   std::sort(pool.begin(), pool.end());
   return pool;

@@ -33,6 +33,24 @@ Mesh blocks() {
   return m;
 }
 
+// A session of `views` views taken by the simulated scanner `uri` on the simulated
+// turntable into `folder`, the first at `start_deg`; crop: to the working volume.
+Session capture_sim(const std::filesystem::path& folder, const std::string& uri, int views,
+                    double start_deg = 0, bool crop = true) {
+  DeviceRegistry reg = test::sim_registry();
+  auto scanner = reg.make_scanner(uri);
+  auto table = reg.make_turntable("sim:turntable");
+  scanner->open();
+  table->open();
+  Session session = Session::create(folder, SessionManifest{});
+  CaptureParams cp;
+  cp.views = views;
+  cp.start_deg = start_deg;
+  cp.crop = crop;
+  run_capture(*scanner, *table, session, cp);
+  return session;
+}
+
 // 12 simulated views of `mesh` with depth noise 0.2 mm (0.1 % of the objects'
 // diagonal, about 0.2 m), and the prior as the issue describes it: every
 // angle but the first off by up to 3 degrees, the axis 2 % of the diagonal
@@ -40,17 +58,10 @@ Mesh blocks() {
 std::vector<Cloud> scan_with_prior_off(const test::TempDir& dir, const Mesh& mesh, int noise_seed,
                                        unsigned angle_seed, double diagonal, SessionManifest& prior) {
   write_ply(dir / "object.ply", mesh);
-  DeviceRegistry reg = test::sim_registry();
-  auto scanner = reg.make_scanner("sim:synthetic?mesh=" + (dir / "object.ply").string() +
-                                  "&noise=0.0002&width=320&height=240&color=0&seed=" +
-                                  std::to_string(noise_seed));
-  auto table = reg.make_turntable("sim:turntable");
-  scanner->open();
-  table->open();
-  Session session = Session::create(dir / "scan", SessionManifest{});
-  CaptureParams cp;
-  cp.views = 12;
-  run_capture(*scanner, *table, session, cp);
+  Session session = capture_sim(dir / "scan",
+                                "sim:synthetic?mesh=" + (dir / "object.ply").string() +
+                                    "&noise=0.0002&width=320&height=240&color=0&seed=" + std::to_string(noise_seed),
+                                12);
   EXPECT_EQ(session.manifest().views.size(), 12u);
   prior = session.manifest();
   EXPECT_TRUE(prior.axis.has_value());
@@ -476,19 +487,12 @@ TEST(SimRegistration, OffTableViewsOfANearSymmetricObjectRegister) {
   std::vector<Cloud> clouds;
   SessionManifest m;
   const auto scan = [&](const std::string& name, double elevation, int views, double start, bool angles) {
-    DeviceRegistry reg = test::sim_registry();
     // The off-table views at full resolution: from above the bottle is its cap.
     const std::string size = angles ? "&width=320&height=240" : "&width=640&height=480";
-    auto scanner = reg.make_scanner("sim:synthetic?mesh=" + mesh + "&noise=0.0005&seed=5" + size +
-                                    "&elevation_deg=" + std::to_string(elevation));
-    auto table = reg.make_turntable("sim:turntable");
-    scanner->open();
-    table->open();
-    Session s = Session::create(dir / name, SessionManifest{});
-    CaptureParams cp;
-    cp.views = views;
-    cp.start_deg = start;
-    run_capture(*scanner, *table, s, cp);
+    Session s = capture_sim(dir / name,
+                            "sim:synthetic?mesh=" + mesh + "&noise=0.0005&seed=5" + size +
+                                "&elevation_deg=" + std::to_string(elevation),
+                            views, start);
     if (!angles) {
       for (std::size_t i = 0; i < s.manifest().views.size(); ++i) {
         ViewRecord v = s.manifest().views[i];
@@ -532,21 +536,12 @@ TEST(SimRegistration, HandHeldViewsWithAThirdOverlapRegister) {
     double elevation, angle, distance, target_height, roll_deg;
   };
   const auto scan = [&](const std::string& name, const Shot& s, int views, bool table) {
-    DeviceRegistry reg = test::sim_registry();
     std::string uri = "sim:synthetic?mesh=" + mesh + "&noise=0.0005&seed=7" +
                       (table ? "&width=320&height=240" : "&width=640&height=480&table_radius=0") +
                       "&elevation_deg=" + std::to_string(s.elevation) + "&distance=" + std::to_string(s.distance);
     if (s.target_height >= 0) uri += "&target_height=" + std::to_string(s.target_height);
-    auto scanner = reg.make_scanner(uri);
-    auto turntable = reg.make_turntable("sim:turntable");
-    scanner->open();
-    turntable->open();
-    Session session = Session::create(dir / name, SessionManifest{});
-    CaptureParams cp;
-    cp.views = views;
-    cp.start_deg = s.angle;
-    cp.crop = table;  // held in the hand: no working volume, the bottom too
-    run_capture(*scanner, *turntable, session, cp);
+    // Held in the hand: no working volume (crop off), the bottom too.
+    Session session = capture_sim(dir / name, uri, views, s.angle, table);
     if (table) {
       m = session.manifest();
       for (std::size_t i = 0; i < m.views.size(); ++i) clouds.push_back(session.load_view(i));
