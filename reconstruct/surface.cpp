@@ -104,7 +104,15 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
   const bool close = out.hole == HoleMode::kClose;
   std::unique_ptr<WindingClose> winding;
   if (close && p.winding_close) {
-    winding = std::make_unique<WindingClose>(surface, input);
+    // The trust distance from the fit's own mean spacing (all points), and the voxel
+    // from the cloud's bounds: the values a block of the same cloud takes from its
+    // summary (reconstruct_block), so a blocked run closes as this one does.
+    WindingCloseParams wp;
+    if (out.mpu.mean_spacing > 0) {
+      wp.trust_distance = mp.trust_factor * out.mpu.mean_spacing;
+      wp.voxel = std::max(wp.trust_distance / 2, double(bounding_box(input.points).diagonal()) / 200);
+    }
+    winding = std::make_unique<WindingClose>(surface, input, wp);
     out.winding_points = winding->winding_points();
     out.winding_trust = winding->trust_distance();
     note("unseen parts closed by the winding number (" + std::to_string(out.winding_points) +
