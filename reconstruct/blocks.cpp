@@ -660,6 +660,33 @@ std::vector<int> assign_blocks(const std::vector<int>& ids, const std::vector<st
 
 // ------------------------------------------------------------------ one block
 
+void block_dmc_seams(DmcOptions& o, const BlockGrid& grid, int id, const SeamTable& upper, SeamTable& lower,
+                     std::unordered_map<std::uint64_t, DmcPoint>& given) {
+  const LatticeWindow window = grid.window(id);
+  for (std::size_t a = 0; a < 3; ++a) o.halo[a] = window.offset[a] > 0 ? kDmcHaloCells : 0;
+  given.clear();
+  for (const auto& [key, v] : upper)
+    if (!is_seam_position_key(key)) {
+      const auto x = upper.find(seam_position_key(key, 0)), y = upper.find(seam_position_key(key, 1)),
+                 z = upper.find(seam_position_key(key, 2)), fl = upper.find(seam_flags_key(key));
+      if (x != upper.end() && y != upper.end() && z != upper.end() && fl != upper.end())
+        given.emplace(key, DmcPoint{Vec3d(x->second, y->second, z->second), v, std::uint8_t(fl->second)});
+    }
+  o.given = &given;
+  const Vec3d origin = grid.lattice.origin;
+  const double h = grid.lattice.h;
+  o.report = [&lower, origin, h](int i, int j, int k, const DmcPoint& q) {
+    const std::uint64_t key = lattice_point_key(i, j, k);
+    const auto it = lower.find(key);
+    if (it == lower.end()) return;  // not a point of this block's lower faces
+    it->second = q.value;
+    if ((q.pos - (origin + h * Vec3d(i, j, k))).norm() > 1e-9 * h || q.flags) {
+      for (int a = 0; a < 3; ++a) lower[seam_position_key(key, a)] = q.pos[a];
+      lower[seam_flags_key(key)] = q.flags;
+    }
+  };
+}
+
 BlockMesh reconstruct_block(const Cloud& pts_in, const BlockGrid& grid, int id, const BlockSummary& s,
                             const SurfaceParams& p, const SeamTable& upper, SeamTable& lower) {
   const auto t0 = Clock::now();
@@ -732,6 +759,7 @@ BlockMesh reconstruct_block(const Cloud& pts_in, const BlockGrid& grid, int id, 
   // The walk also starts next to every crossing on the window's faces, so a piece of
   // surface that enters the window without points of its own there is not missed.
   for (const auto& [key, v] : faces) {
+    if (is_seam_position_key(key)) continue;
     const int ijk[3] = {int(key & 0xFFFFF), int(key >> 20 & 0xFFFFF), int(key >> 40 & 0xFFFFF)};
     for (int a = 0; a < 3; ++a) {
       int nb[3] = {ijk[0], ijk[1], ijk[2]};
@@ -758,6 +786,8 @@ BlockMesh reconstruct_block(const Cloud& pts_in, const BlockGrid& grid, int id, 
   if (p.extractor == Extractor::kDmc) {
     DmcOptions dopt;
     static_cast<MarchingCubesOptions&>(dopt) = mo;
+    std::unordered_map<std::uint64_t, DmcPoint> given;
+    block_dmc_seams(dopt, grid, id, upper, lower, given);
     mesh = extract_dmc(field, Aabb{}, 1, dopt, &out.dmc);
   } else {
     MarchingCubesStats ms;

@@ -23,6 +23,7 @@
 #include <vector>
 
 #include "core/geometry.h"
+#include "reconstruct/dmc.h"
 #include "reconstruct/implicit.h"
 #include "reconstruct/marching_cubes.h"
 #include "reconstruct/surface.h"
@@ -57,8 +58,25 @@ struct BlockGrid {
 /// A lattice point as a key (lattice_edge_key with axis 3).
 inline std::uint64_t lattice_point_key(int i, int j, int k) { return lattice_edge_key(i, j, k, 3); }
 
-/// Values of lattice points, by lattice_point_key.
+/// Values of lattice points, by lattice_point_key. With DMC a table also carries where
+/// a block moved a lattice point of its lower faces: the point's three coordinates
+/// under seam_position_key(its key, axis); such a point's value is at its position.
 using SeamTable = std::unordered_map<std::uint64_t, double>;
+
+/// The key of coordinate `axis` (0, 1, 2) of a moved lattice point (bits 62-63 of its
+/// lattice_point_key, otherwise 0, set to axis + 1), and of its DMC flags (the axis
+/// bits 60-61 cleared, bit 62 set).
+inline std::uint64_t seam_position_key(std::uint64_t point_key, int axis) {
+  return point_key | std::uint64_t(axis + 1) << 62;
+}
+inline std::uint64_t seam_flags_key(std::uint64_t point_key) {
+  return (point_key & ~(std::uint64_t(3) << 60)) | std::uint64_t(1) << 62;
+}
+inline bool is_seam_position_key(std::uint64_t key) { return key >> 62 != 0; }
+
+/// Cells of the lattice below a block's lower faces that its DMC also deforms
+/// (DmcOptions::halo), so that the points of those faces move as on the whole lattice.
+inline constexpr int kDmcHaloCells = 4;
 
 /// Cuts the lattice of `box` at `resolution` (the same cell as extract_marching_cubes)
 /// into about `blocks` blocks (at most that many: the longest block side is halved
@@ -179,9 +197,19 @@ struct BlockMesh {
 /// blocks below it), from f at the lattice points exactly (origin + h * index).
 SeamTable lower_face_values(const ImplicitFunction& f, const BlockGrid& grid, int id, int threads);
 
+/// DMC's options for block `id`'s window (o.window set by the caller): a halo of
+/// kDmcHaloCells below its lower faces, the points of its upper faces where `upper`
+/// puts them, with the flags DMC gave them there (`given` holds them; keep it alive through the extraction), and its lower
+/// faces' final values and positions into `lower` (which holds their lattice values,
+/// lower_face_values, and must outlive the extraction).
+void block_dmc_seams(DmcOptions& o, const BlockGrid& grid, int id, const SeamTable& upper, SeamTable& lower,
+                     std::unordered_map<std::uint64_t, DmcPoint>& given);
+
 /// The surface stage on one block: `points` are the block's (its region's), `upper`
 /// holds the lattice values of its upper faces (from the blocks above, lower_face_values);
-/// its own lower-face values go to `lower`. Extracts the block's window only; no small
+/// its own lower-face values go to `lower`. With DMC, the lower faces' points move as
+/// on the whole lattice (a halo of kDmcHaloCells below them), and `lower` takes their
+/// final values and positions; the upper faces' points stay where `upper` puts them. Extracts the block's window only; no small
 /// pieces dropped, no rim trim (the stitched mesh's), no colour-edge splits.
 BlockMesh reconstruct_block(const Cloud& points, const BlockGrid& grid, int id, const BlockSummary& summary,
                             const SurfaceParams& params, const SeamTable& upper, SeamTable& lower);

@@ -45,6 +45,14 @@ Mesh Dmc::run(DmcStats* stats) {
   t0 = Clock::now();
   if (!crossings_done) compute_crossings();
   Mesh mesh = build_mesh();
+  if (opt_.report)
+    for (std::size_t b = 0; b < nodes_.block_count(); ++b)
+      for (std::uint64_t m = nodes_.blk(std::int32_t(b)).present; m; m &= m - 1) {
+        const int l = __builtin_ctzll(m);
+        const Key p = nodes_.point(std::int32_t(b), l);
+        const Node& nd = nodes_.node(std::int32_t(b), l);
+        opt_.report(off_[0] + ki(p), off_[1] + kj(p), off_[2] + kk(p), DmcPoint{nd.pos, nd.val, nd.flags});
+      }
   st_.seconds_mesh = seconds_since(t0);
   if (stats) *stats = st_;
   return mesh;
@@ -59,7 +67,9 @@ void Dmc::ensure(std::vector<Key>& keys) {
     const Key bk = BlockIndex::block_of(k);
     if (bk != last) b = nodes_.block(ki(k) >> 2, kj(k) >> 2, kk(k) >> 2), last = bk;
     const int l = Lattice::local(k);
-    if (nodes_.enter(b, l, Node{upos(k), 0.0, std::uint8_t(on_boundary(k) ? kFixed : 0)})) {
+    Node fresh_node;
+    make_node(k, fresh_node);
+    if (nodes_.enter(b, l, fresh_node)) {
       keys[m++] = k;
       fresh.push_back(std::uint32_t(b) << 6 | std::uint32_t(l));
     }
@@ -89,6 +99,7 @@ void Dmc::evaluate(std::vector<std::uint32_t> fresh) {
         nd.val = *v;
         continue;
       }
+      if (is_given(p, nd)) continue;  // its value came with it
       at[n] = &nd;
       xs[n++] = nd.pos;
     }
@@ -191,8 +202,7 @@ void Dmc::traverse(const std::vector<std::uint64_t>& start, bool probe_first) {
         Node* nd = nodes_.claim_point(cb, cl);
         if (!nd) continue;
         const Key k = nodes_.point(cb, cl);
-        const std::uint8_t flags = on_boundary(k) ? kFixed : 0;
-        *nd = Node{upos(k), 0.0, flags};
+        if (make_node(k, *nd)) continue;  // given, with its value
         if (const double* v = scan_value(ki(k), kj(k), kk(k))) {
           nd->val = *v;
         } else {

@@ -14,7 +14,11 @@
 // Lattice values are f at the moved positions. Sparse (the lattice points near the
 // surface, in blocks of 4^3 behind a block hash), parallel (TBB), deterministic for
 // any thread count.
+#include <array>
 #include <cstddef>
+#include <cstdint>
+#include <functional>
+#include <unordered_map>
 
 #include "core/geometry.h"
 #include "reconstruct/implicit.h"
@@ -27,6 +31,13 @@ class MpuSurface;
 /// Everything MarchingCubesOptions has (iso, seeds, coarse_step, normals, untrusted,
 /// close_at_box, threads; same meaning), plus the DMC steps. A MarchingCubesOptions
 /// converts: `DmcOptions d; static_cast<MarchingCubesOptions&>(d) = mc_options;`.
+/// A lattice point as DMC left it (blocks hand their shared faces' points on).
+struct DmcPoint {
+  Vec3d pos = Vec3d::Zero();
+  double value = 0;
+  std::uint8_t flags = 0;
+};
+
 struct DmcOptions : MarchingCubesOptions {
   /// Barycentre search step s in input units; 0 = h / 5. Rounded so that h / s samples
   /// fit each axis of Omega (at most 16).
@@ -53,6 +64,20 @@ struct DmcOptions : MarchingCubesOptions {
   /// Cells with a suspected sharp feature refine their crossings to round-off for the
   /// feature planes.
   int refine_steps = 2;
+
+  // ---- blocks (reconstruct/blocks.h): DMC's moves at the faces a window shares
+  /// With a window: the lattice also covers this many cells below the window's lower
+  /// faces (within the global lattice), so that the points of those faces move as on
+  /// the whole lattice; the faces of those cells are not emitted. 0: the window's faces
+  /// are all fixed.
+  std::array<int, 3> halo{0, 0, 0};
+  /// With a window: lattice points of the window's faces that an earlier block moved
+  /// (key lattice_edge_key(i, j, k, 3), global indices): they stay there, with that
+  /// value and what DMC knew of them (its internal flags, as report gave them).
+  const std::unordered_map<std::uint64_t, DmcPoint>* given = nullptr;
+  /// With a window: receives every lattice point DMC entered (global indices): its
+  /// final position, value (f - iso) and flags.
+  std::function<void(int i, int j, int k, const DmcPoint& point)> report;
 };
 
 struct DmcStats : MarchingCubesStats {

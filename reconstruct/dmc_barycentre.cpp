@@ -359,7 +359,9 @@ std::vector<Key> Dmc::barycentre_step() {
         cand.push_back(k);
         cand_h.push_back(std::uint32_t(b) << 6 | std::uint32_t(l));
         cand_by.push_back(std::uint8_t((B.mark >> l & 1) | (B.mark2 >> l & 1) << 1));
-        if (nodes_.enter(b, l, Node{upos(k), 0.0, std::uint8_t(on_boundary(k) ? kFixed : 0)}))
+        Node fresh_node;
+        make_node(k, fresh_node);
+        if (nodes_.enter(b, l, fresh_node))
           fresh.push_back(std::uint32_t(b) << 6 | std::uint32_t(l));
       }
       B.mark = B.mark2 = 0;

@@ -4,7 +4,10 @@
 namespace station::detail::dmc {
 
 Mesh Dmc::build_mesh() {
-  const std::vector<Key> surface = sorted_surface();
+  std::vector<Key> surface = sorted_surface();
+  if (halo_[0] || halo_[1] || halo_[2])  // the halo's cells are the blocks' below
+    surface.erase(std::remove_if(surface.begin(), surface.end(), [&](Key c) { return in_halo(ki(c), kj(c), kk(c)); }),
+                  surface.end());
   st_.surface_cells = surface.size();
   const auto& table = mc::triangle_table();
   const auto& ec = mc::edge_corners();

@@ -331,14 +331,18 @@ class Dmc {
     if (opt.window) {
       // A window of a larger lattice: its points are the global ones shifted by the
       // offset (every face of the window is fixed: the lattice there is shared).
+      // With a halo, the lattice reaches that many cells below the lower faces.
       h_ = opt.window->h;
-      lo_ = opt.window->origin + h_ * Vec3d(opt.window->offset[0], opt.window->offset[1], opt.window->offset[2]);
       for (int a = 0; a < 3; ++a) {
-        n_[a] = opt.window->cells[std::size_t(a)];
-        off_[a] = opt.window->offset[std::size_t(a)];
+        const std::size_t u = std::size_t(a);
+        halo_[a] = std::clamp(opt.halo[u], 0, opt.window->offset[u]);
+        n_[a] = opt.window->cells[u] + halo_[a];
+        off_[a] = opt.window->offset[u] - halo_[a];
       }
+      origin_ = opt.window->origin;
+      lo_ = origin_ + h_ * Vec3d(off_[0], off_[1], off_[2]);
     } else {
-      lo_ = box.min.cast<double>();
+      lo_ = origin_ = box.min.cast<double>();
       const Vec3d ext = (box.max - box.min).cast<double>();
       h_ = ext.maxCoeff() / resolution;
       for (int a = 0; a < 3; ++a) n_[a] = std::max(1, int(std::ceil(ext[a] / h_ - 1e-9)));
@@ -354,7 +358,27 @@ class Dmc {
  private:
   // ---------------------------------------------------------------- evaluation
   double g(const Vec3d& x) const { return f_.value(x) - opt_.iso; }
-  Vec3d upos(Key p) const { return lo_ + h_ * Vec3d(ki(p), kj(p), kk(p)); }
+  // The global lattice's point (the same double in every window holding it).
+  Vec3d upos(Key p) const { return origin_ + h_ * Vec3d(off_[0] + ki(p), off_[1] + kj(p), off_[2] + kk(p)); }
+  // A new node for lattice point k: undeformed, or, for a fixed point an earlier block
+  // moved (DmcOptions::given), there with its value (then true: not to be evaluated).
+  bool make_node(Key k, Node& out) const {
+    const std::uint8_t flags = on_boundary(k) ? kFixed : 0;
+    if (flags && opt_.given)
+      if (const auto it = opt_.given->find(global_key(k)); it != opt_.given->end()) {
+        out = Node{it->second.pos, it->second.value, std::uint8_t(it->second.flags | kFixed)};
+        return true;
+      }
+    out = Node{upos(k), 0.0, flags};
+    return false;
+  }
+  // Whether fixed point k was given by an earlier block (its node holds the value).
+  bool is_given(Key k, const Node& nd) const {
+    return (nd.flags & kFixed) && opt_.given && opt_.given->count(global_key(k));
+  }
+  std::uint64_t global_key(Key k) const { return lattice_edge_key(off_[0] + ki(k), off_[1] + kj(k), off_[2] + kk(k), 3); }
+  // Whether cell (i, j, k) lies in the halo (its faces are not emitted).
+  bool in_halo(int i, int j, int k) const { return i < halo_[0] || j < halo_[1] || k < halo_[2]; }
   bool on_boundary(Key p) const {
     const int i = ki(p), j = kj(p), k = kk(p);
     return i == 0 || j == 0 || k == 0 || i == n_[0] || j == n_[1] || k == n_[2];
@@ -665,10 +689,12 @@ class Dmc {
   const DmcOptions& opt_;
   mutable std::atomic<std::size_t> smooth_cells_{0};  // detect(): cells left alone as smooth
   tbb::task_arena arena_;
-  Vec3d lo_;
+  Vec3d lo_;      // the lattice's first point
+  Vec3d origin_;  // the global lattice's first point (lo_ without a window)
   double h_ = 0;
   int n_[3] = {1, 1, 1};
-  int off_[3] = {0, 0, 0};  // the window's offset in the global lattice (vertex_edges)
+  int off_[3] = {0, 0, 0};  // the lattice's offset in the global lattice (vertex_edges)
+  int halo_[3] = {0, 0, 0};  // cells below the window's lower faces (DmcOptions::halo)
   int m_ = 5;
   DmcStats st_;
   Lattice nodes_;

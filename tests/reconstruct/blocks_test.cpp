@@ -5,6 +5,8 @@
 
 #include <gtest/gtest.h>
 
+#include <Eigen/Geometry>
+
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
@@ -71,20 +73,23 @@ struct Shifted : ImplicitFunction {
 // Extracts every block's window of `grid` on f (the face values from the blocks
 // above, as the block-wise stage does) and stitches them. With `shift`, block id's
 // field is f + shift * (id % 3 - 1): the blocks disagree near the faces they share.
+// With DMC and `seams`, the shared faces' points move as the whole lattice's
+// (block_dmc_seams); without, they stay on their lattice points.
 Mesh blocked(const ImplicitFunction& f0, const BlockGrid& grid, bool dmc, std::size_t* joined = nullptr,
-             double shift = 0) {
+             double shift = 0, bool seams = true) {
   std::vector<BlockMesh> pieces(std::size_t(grid.size()));
   std::vector<SeamTable> lower(std::size_t(grid.size()));
   for (const int id : block_order(grid)) {
     const auto c = grid.coords(id);
     const Shifted f(f0, shift * (id % 3 - 1));
-    SeamTable faces;
+    SeamTable upper;
     for (int q = 1; q < 8; ++q) {
       const int i = c[0] + (q & 1), j = c[1] + (q >> 1 & 1), k = c[2] + (q >> 2 & 1);
       if (i < grid.counts[0] && j < grid.counts[1] && k < grid.counts[2])
-        faces.insert(lower[std::size_t(grid.id(i, j, k))].begin(), lower[std::size_t(grid.id(i, j, k))].end());
+        upper.insert(lower[std::size_t(grid.id(i, j, k))].begin(), lower[std::size_t(grid.id(i, j, k))].end());
     }
     lower[std::size_t(id)] = lower_face_values(f, grid, id, 2);
+    SeamTable faces = upper;
     faces.insert(lower[std::size_t(id)].begin(), lower[std::size_t(id)].end());
     const SeamValues field(f, grid.lattice, faces);
     DmcOptions o;
@@ -93,6 +98,8 @@ Mesh blocked(const ImplicitFunction& f0, const BlockGrid& grid, bool dmc, std::s
     o.close_at_box = true;
     o.window = grid.window(id);
     o.vertex_edges = &pieces[std::size_t(id)].edges;
+    std::unordered_map<std::uint64_t, DmcPoint> given;
+    if (dmc && seams) block_dmc_seams(o, grid, id, upper, lower[std::size_t(id)], given);
     pieces[std::size_t(id)].mesh = dmc ? extract_dmc(field, Aabb{}, 1, o) : extract_marching_cubes(field, Aabb{}, 1, o);
   }
   std::size_t before = 0;
@@ -208,6 +215,70 @@ TEST(BlockSeams, DeformedMarchingCubesInBlocksIsClosedAndNearTheSingleMesh) {
     const EvalResult e = evaluate(m, single, ep);
     EXPECT_LT(e.hausdorff, 0.5 * g.lattice.h) << blocks << " blocks";
   }
+}
+
+// A box turned about two axes (sharp edges and corners) and a plate 0.4 cells thick
+// (a thin part), both crossing the blocks' faces at odd angles.
+struct BoxAndPlate : ImplicitFunction {
+  Eigen::Matrix3d r = (Eigen::AngleAxisd(0.5, Vec3d(0, 0, 1)) * Eigen::AngleAxisd(0.3, Vec3d(1, 0, 0))).toRotationMatrix();
+  double t = 0;  // the plate's half thickness
+  double value(const Vec3d& x) const override {
+    const Vec3d q = r.transpose() * (x - Vec3d(-0.2, 0.05, 0.03));
+    const Vec3d d = q.cwiseAbs() - Vec3d(0.33, 0.27, 0.3);
+    const double box = std::min(d.maxCoeff(), 0.0) + d.cwiseMax(0.0).norm();
+    const Vec3d p = x - Vec3d(0.4537, 0.0113, 0.0071);
+    const double plate = std::max({std::abs(p.x() + 0.2131 * p.y()) - t, std::abs(p.y()) - 0.4, std::abs(p.z()) - 0.45});
+    return std::min(box, plate);
+  }
+  Vec3d gradient(const Vec3d& x) const override {
+    const double e = 1e-7;
+    Vec3d g;
+    for (int a = 0; a < 3; ++a) {
+      Vec3d p = x, m = x;
+      p[a] += e, m[a] -= e;
+      g[a] = (value(p) - value(m)) / (2 * e);
+    }
+    return g;
+  }
+};
+
+// DMC's moves at the seams: the shared faces' points move where the whole lattice's
+// do (a halo below each block's lower faces, the moved points handed to the blocks
+// below), so the blocked mesh keeps the thin plate and the box's edges where they cross
+// a seam, as the single mesh does; with the seams' points fixed it does not.
+TEST(BlockSeams, DeformedMarchingCubesMovesTheSeamsPointsAsTheWholeLattice) {
+  BoxAndPlate f;
+  const Aabb box = cube(1.0);
+  const int res = 48;
+  const BlockGrid g = plan_blocks(box, res, 8, 0);
+  f.t = 0.2173 * g.lattice.h;
+  DmcOptions o;
+  o.threads = 2;
+  o.coarse_step = 2;
+  o.close_at_box = true;
+  DmcStats st;
+  const Mesh single = extract_dmc(f, box, res, o, &st);
+  ASSERT_GT(st.moved_barycentre, 0u);
+  ASSERT_GT(st.moved_edge, 0u);
+  EvalParams ep;
+  ep.mesh_samples = 50000;
+  ep.threads = 2;
+  double hd[2];
+  for (const bool seams : {false, true}) {
+    const Mesh m = blocked(f, g, true, nullptr, 0, seams);
+    const MeshTopology t = mesh_topology(m);
+    EXPECT_TRUE(t.closed_manifold()) << (seams ? "seams: " : "fixed: ") << t.boundary_edges << " boundary, "
+                                     << t.nonmanifold_edges << " non-manifold edges";
+    EXPECT_EQ(t.misoriented_edges, 0);
+    hd[seams] = evaluate(m, single, ep).hausdorff / g.lattice.h;
+  }
+  std::printf("box and plate in 8 blocks against the single DMC mesh: Hausdorff %.3g cells with the seams' "
+              "points fixed, %.3g moved\n", hd[0], hd[1]);
+  // Not exact: where two neighbours on either side of a seam would move at once, the
+  // single lattice decides the pair together (the veto of a move that leaves the
+  // solid) and the block below sees one of them already moved (0.37 cell here).
+  EXPECT_LT(hd[1], 0.5);
+  EXPECT_GT(hd[0], 0.8);  // the case needs the seams' moves (1.0 cell with them fixed)
 }
 
 // The bundled bottle, sampled: the whole stage in blocks against the single run.
