@@ -298,7 +298,9 @@ class Consolidator {
  public:
   Consolidator(const Cloud& input, const WlopParams& params, WlopResult& result)
       : input_(input), params_(params), result_(result), ni_(result.output_points),
-        dbb_(result.bbox_diagonal) {}
+        dbb_(result.bbox_diagonal),
+        frame_dbb_(params.frame_diagonal > 0 ? params.frame_diagonal : result.bbox_diagonal),
+        frame_nj_(double(params.frame_points > 0 ? params.frame_points : input.size())) {}
 
   void run();
 
@@ -352,6 +354,9 @@ class Consolidator {
 
   std::size_t ni_ = 0;
   double dbb_ = 0;
+  // The scale of the defaults (h, r_f) and of eq. 10: the whole cloud's when the input
+  // is a part of it (WlopParams::frame_diagonal / frame_points), else the input's.
+  double frame_dbb_ = 0, frame_nj_ = 0;
   std::size_t nj_ = 0;
   Kernel kernel_{1.0};
   Kernel repulsion_{1.0};  // E2's and w_i's theta: kernel_ but with kProjection
@@ -418,7 +423,7 @@ void Consolidator::setup() {
   nj_ = input_.size();
   p_.resize(nj_);
   for (std::size_t j = 0; j < nj_; ++j) p_[j] = input_.points[j].cast<double>();
-  const double h = params_.radius > 0 ? params_.radius : 4.0 * dbb_ / std::sqrt(double(nj_));
+  const double h = params_.radius > 0 ? params_.radius : 4.0 * frame_dbb_ / std::sqrt(frame_nj_);
   kernel_ = Kernel(h);
   result_.radius = h;
 
@@ -502,7 +507,7 @@ void Consolidator::setup() {
   if (projection_) {
     estimate_noise();
     const double rf = params_.fit_radius > 0 ? params_.fit_radius
-                                             : std::max(kFitRadii * 4.0 * dbb_ / std::sqrt(double(nj_)),
+                                             : std::max(kFitRadii * 4.0 * frame_dbb_ / std::sqrt(frame_nj_),
                                                         kFitSigmas * result_.noise);
     result_.fit_radius = rf;
     rf2_ = rf * rf;
@@ -914,9 +919,9 @@ bool Consolidator::edge_e1(const Vec3d& q, const Neighbours& nb, Scratch& s, Vec
   if (!(agreement >= kMinNormalAgreement * kh)) return false;  // normals cancel: plain E1
   const Vec3d a = -sum / agreement;                // unit axis, from c_i towards x_i
   axis = a;
-  const double D = dbb_ * agreement / (2.0 * kh);  // |x_i - c_i|
+  const double D = frame_dbb_ * agreement / (2.0 * kh);  // |x_i - c_i|
   // R must keep 2R - |p - c_i| > 0 over the neighbourhood (f stays a bijection).
-  const double R = std::max(params_.inversion_radius * dbb_, D + h);
+  const double R = std::max(params_.inversion_radius * frame_dbb_, D + h);
   const double Q = 2 * R - D;                        // |x'_i - c_i|
   const double shift = R / params_.shift_divisions;  // |l| (eq. 15)
 
@@ -1178,6 +1183,7 @@ void validate(const Cloud& input, const WlopParams& p) {
   if (p.iterations < 0) fail("iterations must be >= 0");
   if (!(p.radius >= 0) || !std::isfinite(p.radius)) fail("radius must be >= 0 and finite");
   if (!(p.fit_radius >= 0) || !std::isfinite(p.fit_radius)) fail("fit_radius must be >= 0 and finite");
+  if (!(p.frame_diagonal >= 0) || !std::isfinite(p.frame_diagonal)) fail("frame_diagonal must be >= 0 and finite");
   if (!(p.mu >= 0 && p.mu < 0.5)) fail("mu must be in [0, 0.5)");
   if (p.threads < 0) fail("threads must be >= 0");
   if (!(p.inversion_radius > 0.25) || !std::isfinite(p.inversion_radius))

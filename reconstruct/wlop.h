@@ -222,6 +222,12 @@ struct WlopParams {
   RepulsionWeight repulsion_weight = RepulsionWeight::kOriginal;
   /// Seed of the initial subset (initial_subset's draw; kProjection's dart order).
   unsigned seed = 1;
+  /// When the input is a part of a larger cloud (a block, reconstruct/blocks.h): the
+  /// whole cloud's d_bb and |J|. The defaults of h and r_f and the edge variant's
+  /// eq. 10 then take them instead of the part's, so every part works at the whole
+  /// cloud's scale. 0: the input's own.
+  double frame_diagonal = 0;
+  std::size_t frame_points = 0;
   /// Worker threads (0 = all cores). The output does not depend on it.
   int threads = 0;
   /// Called after every iteration with (iterations done, iterations in all).

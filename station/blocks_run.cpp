@@ -154,7 +154,9 @@ void send_block_job(const BlockJob* job) {
   if (job) {
     char up[128] = "none";
     if (job->up) std::snprintf(up, sizeof up, "%.17g %.17g %.17g", job->up->x(), job->up->y(), job->up->z());
-    m = "job\n" + job->input + "\n" + job->work + "\n" + up + "\n";
+    m = "job\n" + job->input + "\n" + job->work + "\n" + up + "\n" +
+        (job->kind == BlockJob::Kind::kConsolidate ? "consolidate" : "surface") + "\n" + std::to_string(job->blocks) +
+        "\n";
   } else {
     m = "stop\n";
   }
@@ -173,15 +175,100 @@ std::optional<BlockJob> receive_block_job() {
     if (end == std::string::npos) break;
     at = end + 1;
   }
-  if (lines.size() < 4 || lines[0] != "job") return std::nullopt;
+  if (lines.size() < 6 || lines[0] != "job") return std::nullopt;
   BlockJob job;
   job.input = lines[1];
   job.work = lines[2];
+  job.kind = lines[4] == "consolidate" ? BlockJob::Kind::kConsolidate : BlockJob::Kind::kSurface;
+  job.blocks = std::atoi(lines[5].c_str());
   if (lines[3] != "none") {
     Vec3d up;
     if (std::sscanf(lines[3].c_str(), "%lf %lf %lf", &up.x(), &up.y(), &up.z()) == 3) job.up = up;
   }
   return job;
+}
+
+WlopBlocksRun run_consolidate_blocks(const std::string& input, const WlopParams& params, int blocks,
+                                     const std::string& work_dir, const std::function<void(const std::string&)>& note_fn) {
+  const auto t0 = std::chrono::steady_clock::now();
+  const Ranks& ranks = Ranks::get();
+  WlopBlocksRun run;
+  run.root = ranks.rank() == 0;
+  run.ranks = ranks.size();
+  const auto note = [&](const std::string& line) {
+    if (note_fn) note_fn(ranks.size() > 1 ? "rank " + std::to_string(ranks.rank()) + ": " + line : line);
+  };
+  const CloudSource source = file_source(input);
+  const fs::path work(work_dir);
+  ConsolidationPlan plan;
+  // Every rank plans from the file: the same numbers, so nothing to send.
+  std::string error = attempt([&] { plan = plan_consolidation(source, params, blocks); });
+  if (ranks.any_failed(!error.empty(), error)) fail_with(error);
+  const BlockGrid& grid = plan.grid;
+  if (run.root)
+    note(std::to_string(plan.points) + " points in " + std::to_string(grid.size()) + " blocks (" +
+         std::to_string(grid.counts[0]) + " x " + std::to_string(grid.counts[1]) + " x " + std::to_string(grid.counts[2]) +
+         ") on " + std::to_string(ranks.size()) + " rank" + (ranks.size() > 1 ? "s" : "") + ", h " +
+         fmt("%.3g", plan.radius) + ", margin " + fmt("%.3g", grid.margin) + ", " + std::to_string(plan.output_points) +
+         " points out");
+  std::vector<int> ids(std::size_t(grid.size()));
+  for (int id = 0; id < grid.size(); ++id) ids[std::size_t(id)] = id;
+  const std::vector<int> owner = assign_blocks(ids, plan.box_points, ranks.size());
+  const auto points_file = [&](int id) { return work / ("wlop_points_" + std::to_string(id) + ".bin"); };
+  const auto out_file = [&](int id) { return work / ("wlop_" + std::to_string(id) + ".ply"); };
+  std::size_t max_points = 0;
+  error = attempt([&] {
+    std::vector<int> mine;
+    for (int id : ids)
+      if (owner[std::size_t(id)] == ranks.rank() && plan.box_points[std::size_t(id)] > 0) mine.push_back(id);
+    if (mine.empty()) return;
+    fs::create_directories(work);
+    note("sorting " + input + " into " + std::to_string(mine.size()) + " block" + (mine.size() > 1 ? "s" : "") +
+         " (one streamed pass)");
+    bucket_points(source, grid, mine, [&](int id) { return points_file(id).string(); });
+    for (int id : mine) {
+      const Aabb region = grid.region(id);
+      const Cloud pts = read_bucket(points_file(id).string(), &region);
+      max_points = std::max(max_points, pts.size());
+      const auto tb = std::chrono::steady_clock::now();
+      const Cloud part = consolidate_block(pts, plan, id, params);
+      if (!part.empty()) {  // written whole or not at all
+        const fs::path f = out_file(id), part_path = f.string() + ".part";
+        write_ply(part_path, part);
+        fs::rename(part_path, f);
+      }
+      fs::remove(points_file(id));
+      const auto c = grid.coords(id);
+      note("block " + std::to_string(id + 1) + "/" + std::to_string(grid.size()) + " (" + std::to_string(c[0]) + ", " +
+           std::to_string(c[1]) + ", " + std::to_string(c[2]) + "): " + std::to_string(pts.size()) + " points -> " +
+           std::to_string(part.size()) + ", " + fmt("%.2f s", seconds_since(tb)));
+    }
+  });
+  if (ranks.any_failed(!error.empty(), error)) fail_with(error);
+  ranks.barrier();
+  run.stats.blocks = grid.size();
+  if (run.root) {
+    error = attempt([&] {
+      for (int id : ids) {
+        if (plan.box_points[std::size_t(id)] == 0 || !fs::exists(out_file(id))) continue;
+        const Cloud part = read_cloud(out_file(id));
+        if (part.empty()) continue;
+        if (!run.cloud.empty() && (run.cloud.has_normals() != part.has_normals() ||
+                                   run.cloud.has_colours() != part.has_colours()))
+          throw FormatError(out_file(id).string() + ": its attributes differ from the other blocks'");
+        run.cloud.points.insert(run.cloud.points.end(), part.points.begin(), part.points.end());
+        run.cloud.normals.insert(run.cloud.normals.end(), part.normals.begin(), part.normals.end());
+        run.cloud.colours.insert(run.cloud.colours.end(), part.colours.begin(), part.colours.end());
+      }
+      std::error_code ec;
+      fs::remove_all(work, ec);
+    });
+  }
+  const std::vector<double> most = ranks.gather(double(max_points));
+  for (double m : most) run.stats.max_block_points = std::max(run.stats.max_block_points, std::size_t(m));
+  if (ranks.any_failed(!error.empty(), error)) fail_with(error);
+  run.stats.seconds = seconds_since(t0);
+  return run;
 }
 
 BlockRun run_blocks(const std::string& input, const SurfaceParams& p, int blocks, const std::string& work_dir,

@@ -5,11 +5,13 @@
 // process was started by mpirun (built with MPI), else in sequence. The ranks share a
 // work folder (the blocks' lower-face values and meshes, one file each): rank 0 stitches
 // the mesh. With `resume`, blocks whose files are there are not run again.
+#include <functional>
 #include <optional>
 #include <string>
 #include <vector>
 
 #include "reconstruct/blocks.h"
+#include "reconstruct/blocks_wlop.h"
 #include "reconstruct/surface.h"
 
 namespace station {
@@ -41,12 +43,32 @@ void mpi_barrier();
 /// profile is each rank's own (the same command line); the job carries what only rank
 /// 0 knows.
 struct BlockJob {
-  std::string input;        ///< the cloud the surface stage reads
+  /// What the ranks run: the surface stage's blocks, or the consolidation's
+  /// (run_consolidate_blocks, `blocks` of them: 0 auto).
+  enum class Kind { kSurface, kConsolidate } kind = Kind::kSurface;
+  int blocks = 0;
+  std::string input;        ///< the cloud the stage reads
   std::string work;         ///< the blocks' shared work folder
   std::optional<Vec3d> up;  ///< the table plane's up, from the register stage
 };
 void send_block_job(const BlockJob* job);  ///< rank 0; nothing with one rank
 std::optional<BlockJob> receive_block_job();  ///< ranks > 0; nullopt at the stop
+
+/// Consolidation in blocks (reconstruct/blocks_wlop.h): every rank plans from `input`
+/// (a PLY, streamed; the same plan on every rank), sorts the points of its blocks out
+/// of it in one streamed pass, consolidates them and writes each block's output into
+/// `work_dir` (`wlop_<id>.ply`); rank 0 returns them gathered in block order (the other
+/// ranks an empty cloud). Without MPI, or on one rank, the blocks run in sequence. The
+/// work folder is removed after a run that finished. Errors as run_blocks'.
+struct WlopBlocksRun {
+  Cloud cloud;  ///< rank 0: the consolidated cloud
+  bool root = true;
+  int ranks = 1;
+  BlockWlopStats stats;
+};
+WlopBlocksRun run_consolidate_blocks(const std::string& input, const WlopParams& params, int blocks,
+                                     const std::string& work_dir,
+                                     const std::function<void(const std::string&)>& note = {});
 
 /// `blocks` and `max_bytes` as resolve_block_count's (0: auto, a block per
 /// kAutoBlockPoints points; with max_bytes, the count that fits). The work

@@ -205,12 +205,24 @@ int cmd_devices(const Common& c) {
 
 namespace {
 
-// Ranks > 0 of `mpirun station run`: the surface stage's blocks with rank 0, until
+// Ranks > 0 of `mpirun station run`: the consolidation's and the surface stage's blocks
+// with rank 0, until
 // rank 0 says stop (station/blocks_run.h).
 int block_worker(const StationConfig& cfg, const Common& c) {
   auto threads = limit_threads(cfg.threads);
   const auto& rc = cfg.pipeline.reconstruct;
   while (const std::optional<BlockJob> job = receive_block_job()) {
+    if (job->kind == BlockJob::Kind::kConsolidate) {
+      const auto note = [&](const std::string& line) {
+        if (!c.json) std::fprintf(stderr, "  consolidate: %s\n", line.c_str());
+      };
+      try {
+        (void)run_consolidate_blocks(job->input, wlop_params(cfg.pipeline, cfg.threads), job->blocks, job->work, note);
+      } catch (const std::exception&) {
+        // Every rank fails alike; rank 0 reports it and sends the stop.
+      }
+      continue;
+    }
     SurfaceParams sp = surface_params(cfg.pipeline, cfg.threads);
     sp.table_up = job->up;
     sp.boundary_flags = true;

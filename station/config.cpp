@@ -162,7 +162,7 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
   }
   if (const YAML::Node n = root["consolidate"]) {
     r.check_keys(n, "consolidate", {"enabled", "method", "points", "ratio", "iterations", "radius", "seed",
-                                     "attraction", "fit_radius", "repulsion", "repulsion_weight"});
+                                     "attraction", "fit_radius", "repulsion", "repulsion_weight", "blocks"});
     auto& c = p.consolidate;
     if (n["enabled"]) c.enabled = r.boolean(n["enabled"], "consolidate.enabled");
     if (n["method"]) c.method = r.text(n["method"], "consolidate.method");
@@ -197,6 +197,14 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
     if (n["seed"]) c.seed = unsigned(r.integer(n["seed"], "consolidate.seed"));
     if (n["radius"]) c.radius = r.number(n["radius"], "consolidate.radius");
     if (c.radius < 0) r.fail("consolidate.radius", "must not be negative (0: 4 d_bb / sqrt(|J|))");
+    if (n["blocks"]) {
+      if (n["blocks"].IsScalar() && n["blocks"].Scalar() == "auto") {
+        c.blocks = 0;
+      } else {
+        c.blocks = r.integer(n["blocks"], "consolidate.blocks");
+        if (c.blocks < 1 || c.blocks > 4096) r.fail("consolidate.blocks", "must be auto or 1..4096");
+      }
+    }
   }
   if (const YAML::Node n = root["reconstruct"]) {
     r.check_keys(n, "reconstruct", {"surface", "resolution", "epsilon0", "extractor", "hole", "colour", "colour_method", "colour_multi",

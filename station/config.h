@@ -63,6 +63,10 @@ struct PipelineConfig {
     /// E2's beta: original (theta / r, WLOP's own) | printed (-theta, eq. 5 as printed;
     /// reconstruct/wlop.h RepulsionWeight)
     std::string repulsion_weight = "original";
+    /// In blocks (reconstruct/blocks_wlop.h, docs/blocks.md): 0 = auto (a block per 2 M
+    /// input points: smaller clouds in one piece), 1 = one piece, else about that many;
+    /// over the ranks under mpirun.
+    int blocks = 0;
   } consolidate;
   struct Reconstruct {
     std::string surface = "mpu";    ///< mpu | sdm

@@ -93,6 +93,11 @@ const std::vector<ProfileOption>& profile_options() {
           "eq. 5 as the paper prints it)",
           {"original", "printed"});
     value("consolidate.seed", "consolidate", "--seed", "seed of the initial subset");
+    value("consolidate.blocks", "consolidate", "--blocks",
+          "WLOP in blocks, each at the whole cloud's scale: auto (a block per 2 M input points), 1 (one piece) or a "
+          "count; over the ranks under mpirun (docs/blocks.md)");
+    value("consolidate.blocks", "run", "--consolidate-blocks",
+          "the consolidation in blocks: auto (a block per 2 M merged points), 1 (one piece) or a count (docs/blocks.md)");
     // station register.
     value("register.objective", "register", "--objective",
           "ICP objective; colored needs coloured views", registration_objectives());

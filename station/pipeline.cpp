@@ -194,6 +194,7 @@ std::string consolidate_key(const PipelineConfig& p) {
     << ";iterations=" << c.iterations << ";seed=" << c.seed << ";attraction=" << c.attraction << ";fit_radius=" << c.fit_radius << ";repulsion=" << c.repulsion
     << ";repulsion_weight=" << c.repulsion_weight;
   if (c.radius > 0) s << ";radius=" << fmt("%.17g", c.radius);  // (absent from keys of earlier runs)
+  if (c.blocks != 0) s << ";blocks=" << c.blocks;                  // (auto: absent, as before blocks)
   return s.str();
 }
 std::string surface_key(const PipelineConfig& p) {
@@ -567,10 +568,39 @@ class Runner {
   }
 
   void do_consolidate(StageRecord& r, const fs::path& in) {
-    const Cloud input = read_cloud(in);
+    Cloud input = read_cloud(in);
     if (input.empty()) throw InvalidInput(in.string() + ": empty cloud");
     const auto& c = cfg_.pipeline.consolidate;
     WlopParams p = wlop_params(cfg_.pipeline, cfg_.threads);
+    const int blocks = c.blocks != 0 ? c.blocks
+                                     : int((input.size() + kAutoWlopBlockPoints - 1) / kAutoWlopBlockPoints);
+    if (blocks > 1) {
+      // WLOP in blocks at the whole cloud's scale (docs/blocks.md): over the ranks
+      // under mpirun (they stream the same file), else in sequence here.
+      const std::size_t points = input.size();
+      input = Cloud{};
+      const fs::path work = req_.out_dir / "consolidate.blocks";
+      std::error_code ec;
+      fs::remove_all(work, ec);
+      const auto note = [&](const std::string& line) { say("  consolidate: " + line); };
+      WlopBlocksRun run;
+      if (req_.blocks_over_ranks) {
+        BlockJob job;
+        job.kind = BlockJob::Kind::kConsolidate;
+        job.blocks = blocks;
+        job.input = in.string();
+        job.work = work.string();
+        send_block_job(&job);
+      }
+      run = run_consolidate_blocks(in.string(), p, blocks, work.string(), note);
+      fs::remove_all(work, ec);
+      write_ply(req_.out_dir / "consolidated.ply", run.cloud);
+      r.figures["input_points"] = double(points);
+      r.figures["points"] = double(run.cloud.size());
+      r.figures["blocks"] = double(run.stats.blocks);
+      r.figures["ranks"] = double(run.ranks);
+      return;
+    }
     Progress bar(std::string("  consolidate: ") + wlop_label(c.method) + " iterations", c.iterations, req_.quiet, req_.events);
     p.progress = [&](int done, int) { bar.update(done); };
     const WlopResult w = consolidate(input, p);
@@ -606,7 +636,10 @@ class Runner {
       const fs::path work = req_.out_dir / "surface.blocks";
       std::error_code ec;
       fs::remove_all(work, ec);  // an earlier run's blocks: this stage runs again
-      BlockJob job{in.string(), work.string(), sp.table_up};
+      BlockJob job;
+      job.input = in.string();
+      job.work = work.string();
+      job.up = sp.table_up;
       send_block_job(&job);
       BlockRun run = run_blocks(in.string(), sp, c.blocks, work.string(), false, {}, c.max_memory_gb * 1e9);
       fs::remove_all(work, ec);

@@ -174,13 +174,41 @@ TEST_F(BlocksCli, MaxMemoryPicksTheBlocksOrRefusesBeforeStarting) {
   EXPECT_FALSE(fs::exists(none + ".blocks"));
 }
 
-// `mpirun -n 2 station run --blocks 4`: rank 0 runs the job, rank 1 joins its surface
-// stage's blocks; the mesh is the one-process blocked run's.
+// `station consolidate --blocks 4` (WLOP in blocks, reconstruct/blocks_wlop.h): in
+// sequence and over two ranks the same file; about the points asked for; no work
+// folder left.
+TEST_F(BlocksCli, ConsolidateInBlocksIsTheSameOnTwoRanks) {
+  setenv("OMPI_ALLOW_RUN_AS_ROOT", "1", 1);
+  setenv("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1", 1);
+  const std::string args = " consolidate " + path("bottle.ply") + " --blocks 4 --points 20000 --json -o ";
+  const auto seq = test::run_command(station_cmd() + args + path("wlop_seq.ply") + " --threads 2");
+  ASSERT_EQ(seq.code, 0) << seq.out;
+  const auto mpi = test::run_command("mpirun --oversubscribe -n 2 " + station_cmd() + args + path("wlop_mpi.ply") +
+                                     " --threads 1");
+  ASSERT_EQ(mpi.code, 0) << mpi.out;
+  EXPECT_EQ(json_number(seq.out, "blocks"), 4) << seq.out;
+  EXPECT_EQ(json_number(mpi.out, "ranks"), 2) << mpi.out;
+  EXPECT_LT(json_number(seq.out, "max_block_points"), 200000 * 0.6) << seq.out;
+  EXPECT_NEAR(json_number(seq.out, "output_points"), 20000, 400) << seq.out;
+  EXPECT_EQ(read_file_bytes(path("wlop_seq.ply")), read_file_bytes(path("wlop_mpi.ply")));
+  EXPECT_FALSE(fs::exists(path("wlop_seq.ply.blocks")));
+  EXPECT_FALSE(fs::exists(path("wlop_mpi.ply.blocks")));
+  // A block count out of range is refused by name.
+  const auto bad = test::run_command(station_cmd() + " consolidate " + path("bottle.ply") + " --blocks 0 -o " +
+                                     path("wlop_bad.ply"));
+  EXPECT_NE(bad.code, 0);
+  EXPECT_NE(bad.out.find("--blocks 0"), std::string::npos) << bad.out;
+}
+
+// `mpirun -n 2 station run --consolidate-blocks 4 --blocks 4`: rank 0 runs the job,
+// rank 1 joins the blocks of its consolidation and of its surface stage; the mesh is
+// the one-process blocked run's.
 TEST_F(BlocksCli, RunOverTwoRanksIsTheRunInOneProcess) {
   setenv("OMPI_ALLOW_RUN_AS_ROOT", "1", 1);
   setenv("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1", 1);
   const std::string args = " run " + path("bottle.ply") +
-                           " --blocks 4 --resolution 96 --no-report --json --set consolidate.points=20000 -o ";
+                           " --blocks 4 --consolidate-blocks 4 --resolution 96 --no-report --json --set "
+                           "consolidate.points=20000 -o ";
   const auto seq = test::run_command(station_cmd() + args + path("run_seq") + " --threads 1");
   ASSERT_EQ(seq.code, 0) << seq.out;
   const auto mpi = test::run_command("mpirun --oversubscribe -n 2 " + station_cmd() + args + path("run_mpi") +
@@ -190,6 +218,8 @@ TEST_F(BlocksCli, RunOverTwoRanksIsTheRunInOneProcess) {
   EXPECT_EQ(json_number(seq.out, "ranks"), 1) << seq.out;
   EXPECT_EQ(json_number(mpi.out, "blocks"), 4) << mpi.out;
   EXPECT_FALSE(fs::exists(path("run_mpi") + "/surface.blocks"));
+  EXPECT_FALSE(fs::exists(path("run_mpi") + "/consolidate.blocks"));
+  EXPECT_EQ(read_file_bytes(path("run_seq") + "/consolidated.ply"), read_file_bytes(path("run_mpi") + "/consolidated.ply"));
   const Mesh a = read_mesh(path("run_seq") + "/mesh.ply"), b = read_mesh(path("run_mpi") + "/mesh.ply");
   EXPECT_TRUE(mesh_topology(b).closed_manifold());
   EXPECT_EQ(a.faces.size(), b.faces.size());
