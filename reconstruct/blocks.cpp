@@ -32,6 +32,7 @@
 #include "reconstruct/half_space_clip.h"
 #include "reconstruct/mesh_clean.h"
 #include "reconstruct/mpu.h"
+#include "reconstruct/colour_edges.h"
 #include "reconstruct/winding_close.h"
 
 namespace station {
@@ -794,19 +795,31 @@ BlockMesh reconstruct_block(const Cloud& pts_in, const BlockGrid& grid, int id, 
     mesh = extract_marching_cubes(field, Aabb{}, 1, mo, &ms);
     static_cast<MarchingCubesStats&>(out.dmc) = ms;
   }
-  if (!close && s.mean_spacing > 0) {
-    out.far.resize(mesh.vertices.size());
-    const double bound = kRimTrimFactor * s.mean_spacing;
-    for (std::size_t v = 0; v < mesh.vertices.size(); ++v)
-      out.far[v] = !(surface.nearest_point_distance(mesh.vertices[v].cast<double>()) <= bound);
-  }
   if (p.colour && s.colours && pts.has_colours() && !mesh.vertices.empty()) {
     if (p.colour_method == ColourMethod::kNearest) {
       transfer_colours(mesh, pts, {4, p.threads});
     } else {
       const ColourFunction cf = fit_colour(pts, colour_params(p));
       out.colour_nearest_vertices = colour_mesh(mesh, cf, surface, pts, p.threads);
+      if (p.colour_edges) {
+        // As the single run splits them, but never an edge on a shared face (both its
+        // ends seam vertices): the block beyond sees the same edge and must not
+        // differ. The new vertices lie on no lattice edge.
+        ColourEdgeParams ep;
+        ep.threads = p.threads;
+        ep.keep_edge = [&](int a, int b) {
+          return grid.on_seam(out.edges[std::size_t(a)]) && grid.on_seam(out.edges[std::size_t(b)]);
+        };
+        out.colour_edges_split = sharpen_colour_edges(mesh, cf, ep).split_edges;
+        out.edges.resize(mesh.vertices.size(), kNoLatticeEdge);
+      }
     }
+  }
+  if (!close && s.mean_spacing > 0) {
+    out.far.resize(mesh.vertices.size());
+    const double bound = kRimTrimFactor * s.mean_spacing;
+    for (std::size_t v = 0; v < mesh.vertices.size(); ++v)
+      out.far[v] = !(surface.nearest_point_distance(mesh.vertices[v].cast<double>()) <= bound);
   }
   out.mesh = std::move(mesh);
   out.seconds = seconds_since(t0);
@@ -881,6 +894,7 @@ SurfaceResult block_result(const BlockGrid& grid, const BlockSummary& s) {
 
 void add_piece_figures(SurfaceResult& out, const BlockMesh& b) {
   out.colour_nearest_vertices += b.colour_nearest_vertices;
+  out.colour_edges_split += b.colour_edges_split;
   out.extraction.cells_visited += b.dmc.cells_visited;
   out.extraction.surface_cells += b.dmc.surface_cells;
   out.extraction.evaluations += b.dmc.evaluations;
@@ -1155,6 +1169,7 @@ CloudSource file_source(const std::string& path) {
 namespace {
 
 constexpr std::uint32_t kMagic = 0x4B4C4253;  // "SBLK"
+constexpr std::uint32_t kPieceFormat = 3;     // 3: with colour_edges_split (2026-12-05)
 
 class Writer {
  public:
@@ -1266,7 +1281,7 @@ BlockSummary summary_from_bytes(const std::string& bytes, const std::string& wha
 std::string to_bytes(const BlockMesh& b) {
   Writer w;
   w.put(kMagic);
-  w.put(std::uint32_t(2));
+  w.put(std::uint32_t(kPieceFormat));
   w.put_vector(b.mesh.vertices);
   w.put_vector(b.mesh.normals);
   w.put_vector(b.mesh.colours);
@@ -1280,13 +1295,14 @@ std::string to_bytes(const BlockMesh& b) {
   w.put(std::uint64_t(b.dmc.surface_cells));
   w.put(std::uint64_t(b.dmc.evaluations));
   w.put(std::uint64_t(b.dmc.dropped_faces));
+  w.put(std::uint64_t(b.colour_edges_split));
   w.put(b.seconds);
   return w.out;
 }
 
 BlockMesh piece_from_bytes(const std::string& bytes, const std::string& what) {
   Reader r(bytes, what);
-  r.header(2);
+  r.header(kPieceFormat);
   BlockMesh b;
   b.mesh.vertices = r.get_vector<Vec3f>();
   b.mesh.normals = r.get_vector<Vec3f>();
@@ -1301,6 +1317,7 @@ BlockMesh piece_from_bytes(const std::string& bytes, const std::string& what) {
   b.dmc.surface_cells = std::size_t(r.get<std::uint64_t>());
   b.dmc.evaluations = std::size_t(r.get<std::uint64_t>());
   b.dmc.dropped_faces = std::size_t(r.get<std::uint64_t>());
+  b.colour_edges_split = std::size_t(r.get<std::uint64_t>());
   b.seconds = r.get<double>();
   r.end();
   const std::size_t nv = b.mesh.vertices.size();

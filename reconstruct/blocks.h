@@ -182,12 +182,16 @@ inline constexpr std::size_t kAutoBlockPoints = 500000;
 inline constexpr int kAutoBlocksPerRank = 4;
 
 /// One block's piece of the mesh and what the stitching needs.
+/// The `edges` entry of a vertex on no lattice edge (a colour-edge split's): never on a seam.
+inline constexpr std::uint64_t kNoLatticeEdge = ~std::uint64_t(0);
+
 struct BlockMesh {
   Mesh mesh;
-  std::vector<std::uint64_t> edges;  ///< per vertex: its lattice edge (lattice_edge_key)
+  std::vector<std::uint64_t> edges;  ///< per vertex: its lattice edge (lattice_edge_key), or kNoLatticeEdge
   std::vector<char> far;             ///< per vertex, with holes kept: beyond the rim-trim bound
   std::size_t points = 0;            ///< the block's points (window and margin)
   std::size_t colour_nearest_vertices = 0;
+  std::size_t colour_edges_split = 0;  ///< edges split at colour boundaries (none on shared faces)
   MpuDiagnostics mpu;
   DmcStats dmc;
   double seconds = 0;
@@ -209,8 +213,9 @@ void block_dmc_seams(DmcOptions& o, const BlockGrid& grid, int id, const SeamTab
 /// holds the lattice values of its upper faces (from the blocks above, lower_face_values);
 /// its own lower-face values go to `lower`. With DMC, the lower faces' points move as
 /// on the whole lattice (a halo of kDmcHaloCells below them), and `lower` takes their
-/// final values and positions; the upper faces' points stay where `upper` puts them. Extracts the block's window only; no small
-/// pieces dropped, no rim trim (the stitched mesh's), no colour-edge splits.
+/// final values and positions; the upper faces' points stay where `upper` puts them.
+/// Extracts the block's window only; no small pieces dropped, no rim trim (the
+/// stitched mesh's); colour-edge splits except on the edges of shared faces.
 BlockMesh reconstruct_block(const Cloud& points, const BlockGrid& grid, int id, const BlockSummary& summary,
                             const SurfaceParams& params, const SeamTable& upper, SeamTable& lower);
 

@@ -60,7 +60,7 @@ ColourEdgeStats sharpen_colour_edges(Mesh& mesh, const ColourFunction& f, const 
   for (const Face& face : mesh.faces)
     for (int e = 0; e < 3; ++e) {
       const int a = face[e], b = face[(e + 1) % 3];
-      if (delta_e(vlab[std::size_t(a)], vlab[std::size_t(b)]) > threshold) {
+      if (delta_e(vlab[std::size_t(a)], vlab[std::size_t(b)]) > threshold && !(params.keep_edge && params.keep_edge(a, b))) {
         Split s;
         s.key = edge_key(a, b);
         splits.push_back(s);

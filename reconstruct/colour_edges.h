@@ -14,6 +14,7 @@
 // mesh stays watertight (a split edge's vertices are shared by both its faces), and no
 // face is degenerate (new vertices lie strictly inside their edges).
 #include <cstddef>
+#include <functional>
 
 #include "core/geometry.h"
 #include "reconstruct/colour_function.h"
@@ -34,6 +35,9 @@ struct ColourEdgeParams {
   double end_tolerance = 3;
   /// Threads for the bisections (0 = all cores). The result does not depend on it.
   int threads = 0;
+  /// Edges (by their end vertices) never split: a block's edges on a face it shares
+  /// with another block (reconstruct/blocks.h). Empty: none.
+  std::function<bool(int a, int b)> keep_edge;
 };
 
 struct ColourEdgeStats {
