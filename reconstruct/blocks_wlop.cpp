@@ -46,6 +46,22 @@ std::size_t output_count(std::size_t n, const WlopParams& p) {
 
 }  // namespace
 
+int wlop_block_count(std::size_t points, int blocks, double max_bytes) {
+  if (blocks < 0) throw InvalidInput("consolidate: blocks must be auto (0) or a count");
+  if (blocks > 0) return blocks;
+  std::size_t n = std::max<std::size_t>(1, (points + kAutoWlopBlockPoints - 1) / kAutoWlopBlockPoints);
+  if (max_bytes > 0) {
+    const double fit = (max_bytes - kWlopBaseBytes) / kWlopBytesPerPoint / (4.0 / 3.0);  // points a block may hold
+    if (!(fit >= 100000))
+      throw InvalidInput("consolidate: --max-memory " + std::to_string(max_bytes / 1e9).substr(0, 4) +
+                         " GB cannot hold a WLOP block of 100,000 points (about " +
+                         std::to_string((kWlopBaseBytes + 100000 * kWlopBytesPerPoint * 4 / 3) / 1e9).substr(0, 4) +
+                         " GB)");
+    n = std::max(n, std::size_t(std::ceil(double(points) / fit)));
+  }
+  return int(std::min<std::size_t>(n, 4096));
+}
+
 int wlop_block_of(const BlockGrid& grid, const Vec3f& x) {
   int ijk[3];
   for (int a = 0; a < 3; ++a) {
@@ -78,8 +94,7 @@ ConsolidationPlan plan_consolidation(const CloudSource& source, const WlopParams
     throw InvalidInput("consolidate: radius must be >= 0 and finite");
   plan.radius = params.radius > 0 ? params.radius : 4.0 * plan.diagonal / std::sqrt(double(plan.points));
   plan.output_points = output_count(plan.points, params);
-  if (blocks == 0)
-    blocks = int(std::max<std::size_t>(1, (plan.points + kAutoWlopBlockPoints - 1) / kAutoWlopBlockPoints));
+  blocks = wlop_block_count(plan.points, blocks, 0);
   plan.grid = plan_blocks(plan.bounds, 1024, blocks, kWlopMarginRadii * plan.radius);
 
   // The points of each box; with kProjection, the area on every k-th point.

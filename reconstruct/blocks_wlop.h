@@ -23,6 +23,17 @@ inline constexpr double kWlopMarginRadii = 4;
 /// `blocks` 0 (auto): a block per this many input points.
 inline constexpr std::size_t kAutoWlopBlockPoints = 2'000'000;
 
+/// A WLOP block's peak memory, fitted on the bench (docs/blocks.md: 269 MiB at 1 M
+/// points, 866 MiB at 5 M): a base and a cost a point of its region.
+inline constexpr double kWlopBaseBytes = 128.0 * (1 << 20);
+inline constexpr double kWlopBytesPerPoint = 160;
+
+/// The block count for `points` input points: `blocks` when it is a count, else (0,
+/// auto) a block per kAutoWlopBlockPoints, and with `max_bytes` > 0 at least as many
+/// as keep a block (its margin counted as a third more points) within it.
+/// InvalidInput when max_bytes cannot hold a block of 100,000 points.
+int wlop_block_count(std::size_t points, int blocks, double max_bytes);
+
 /// What the blocks of one WLOP run share: one streamed pass over the cloud.
 struct ConsolidationPlan {
   std::size_t points = 0;         ///< |J| of the whole cloud

@@ -28,9 +28,6 @@ namespace station {
 
 class MpuSurface;
 
-/// Everything MarchingCubesOptions has (iso, seeds, coarse_step, normals, untrusted,
-/// close_at_box, threads; same meaning), plus the DMC steps. A MarchingCubesOptions
-/// converts: `DmcOptions d; static_cast<MarchingCubesOptions&>(d) = mc_options;`.
 /// A lattice point as DMC left it (blocks hand their shared faces' points on).
 struct DmcPoint {
   Vec3d pos = Vec3d::Zero();
@@ -38,6 +35,9 @@ struct DmcPoint {
   std::uint8_t flags = 0;
 };
 
+/// Everything MarchingCubesOptions has (iso, seeds, coarse_step, normals, untrusted,
+/// close_at_box, threads; same meaning), plus the DMC steps. A MarchingCubesOptions
+/// converts: `DmcOptions d; static_cast<MarchingCubesOptions&>(d) = mc_options;`.
 struct DmcOptions : MarchingCubesOptions {
   /// Barycentre search step s in input units; 0 = h / 5. Rounded so that h / s samples
   /// fit each axis of Omega (at most 16).

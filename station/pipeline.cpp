@@ -572,8 +572,8 @@ class Runner {
     if (input.empty()) throw InvalidInput(in.string() + ": empty cloud");
     const auto& c = cfg_.pipeline.consolidate;
     WlopParams p = wlop_params(cfg_.pipeline, cfg_.threads);
-    const int blocks = c.blocks != 0 ? c.blocks
-                                     : int((input.size() + kAutoWlopBlockPoints - 1) / kAutoWlopBlockPoints);
+    // auto: a block per 2 M points, and within --max-memory (reconstruct.max_memory_gb).
+    const int blocks = wlop_block_count(input.size(), c.blocks, cfg_.pipeline.reconstruct.max_memory_gb * 1e9);
     if (blocks > 1) {
       // WLOP in blocks at the whole cloud's scale (docs/blocks.md): over the ranks
       // under mpirun (they stream the same file), else in sequence here.

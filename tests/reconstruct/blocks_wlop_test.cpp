@@ -103,6 +103,19 @@ TEST(BlockWlop, BlocksConsolidateAsTheWholeCloud) {
   }
 }
 
+TEST(BlockWlop, TheBlockCountFollowsThePointsAndTheMemoryBound) {
+  EXPECT_EQ(wlop_block_count(100000, 0, 0), 1);
+  EXPECT_EQ(wlop_block_count(5000000, 0, 0), 3);
+  EXPECT_EQ(wlop_block_count(5000000, 7, 0), 7);
+  // 0.5 GB holds blocks of about 1.75 M points with their margins: 3 for 5 M, 6 for 10 M.
+  EXPECT_EQ(wlop_block_count(5000000, 0, 0.5e9), 3);
+  EXPECT_EQ(wlop_block_count(10000000, 0, 0.5e9), 6);
+  // 0.3 GB: about 0.8 M points a block.
+  EXPECT_EQ(wlop_block_count(5000000, 0, 0.3e9), 7);
+  EXPECT_THROW(wlop_block_count(5000000, 0, 0.1e9), InvalidInput);
+  EXPECT_THROW(wlop_block_count(5000000, -1, 0), InvalidInput);
+}
+
 TEST(BlockWlop, BadInputIsRefusedByName) {
   Cloud empty;
   EXPECT_THROW(plan_consolidation(memory_source(empty), WlopParams{}, 2), InvalidInput);
