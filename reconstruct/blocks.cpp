@@ -681,7 +681,7 @@ void block_dmc_seams(DmcOptions& o, const BlockGrid& grid, int id, const SeamTab
     const auto it = lower.find(key);
     if (it == lower.end()) return;  // not a point of this block's lower faces
     it->second = q.value;
-    if ((q.pos - (origin + h * Vec3d(i, j, k))).norm() > 1e-9 * h || q.flags) {
+    if ((q.pos - (origin + h * Vec3d(i, j, k))).norm() > 1e-9 * h || q.flags) {  // moved, or marked by a move
       for (int a = 0; a < 3; ++a) lower[seam_position_key(key, a)] = q.pos[a];
       lower[seam_flags_key(key)] = q.flags;
     }
@@ -1169,7 +1169,9 @@ CloudSource file_source(const std::string& path) {
 namespace {
 
 constexpr std::uint32_t kMagic = 0x4B4C4253;  // "SBLK"
-constexpr std::uint32_t kPieceFormat = 3;     // 3: with colour_edges_split (2026-12-05)
+// File kinds after the magic: 1 summary, 3 seam table, 4 piece (2: a piece before
+// 2026-12-05, without colour_edges_split).
+constexpr std::uint32_t kPieceFormat = 4;
 
 class Writer {
  public:
@@ -1211,7 +1213,9 @@ class Reader {
   void end() const {
     if (at_ != b_.size()) fail();
   }
-  [[noreturn]] void fail() const { throw FormatError(what_ + ": not a block file of this station (or truncated)"); }
+  [[noreturn]] void fail() const {
+    throw FormatError(what_ + ": not a block file of this station version (or truncated); run again without --resume");
+  }
 
  private:
   void need(std::size_t n) const {

@@ -76,7 +76,7 @@ inline bool is_seam_position_key(std::uint64_t key) { return key >> 62 != 0; }
 
 /// Cells of the lattice below a block's lower faces that its DMC also deforms
 /// (DmcOptions::halo), so that the points of those faces move as on the whole lattice.
-inline constexpr int kDmcHaloCells = 4;
+inline constexpr int kDmcHaloCells = 2;
 
 /// Cuts the lattice of `box` at `resolution` (the same cell as extract_marching_cubes)
 /// into about `blocks` blocks (at most that many: the longest block side is halved

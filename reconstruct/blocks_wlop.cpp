@@ -62,6 +62,12 @@ int wlop_block_count(std::size_t points, int blocks, double max_bytes) {
   return int(std::min<std::size_t>(n, 4096));
 }
 
+std::size_t count_points(const CloudSource& source) {
+  std::size_t n = 0;
+  source([&](const Cloud& c) { n += c.size(); });
+  return n;
+}
+
 int wlop_block_of(const BlockGrid& grid, const Vec3f& x) {
   int ijk[3];
   for (int a = 0; a < 3; ++a) {
@@ -71,8 +77,10 @@ int wlop_block_of(const BlockGrid& grid, const Vec3f& x) {
   return grid.owner(ijk[0], ijk[1], ijk[2]);
 }
 
-ConsolidationPlan plan_consolidation(const CloudSource& source, const WlopParams& params, int blocks) {
+ConsolidationPlan plan_consolidation(const CloudSource& source, const WlopParams& params, int blocks,
+                                     double max_bytes) {
   if (blocks < 0) throw InvalidInput("consolidate: blocks must be auto (0) or a count");
+  const bool automatic = blocks == 0;
   ConsolidationPlan plan;
   bool finite = true;
   source([&](const Cloud& c) {
@@ -94,21 +102,29 @@ ConsolidationPlan plan_consolidation(const CloudSource& source, const WlopParams
     throw InvalidInput("consolidate: radius must be >= 0 and finite");
   plan.radius = params.radius > 0 ? params.radius : 4.0 * plan.diagonal / std::sqrt(double(plan.points));
   plan.output_points = output_count(plan.points, params);
-  blocks = wlop_block_count(plan.points, blocks, 0);
-  plan.grid = plan_blocks(plan.bounds, 1024, blocks, kWlopMarginRadii * plan.radius);
-
-  // The points of each box; with kProjection, the area on every k-th point.
-  plan.box_points.assign(std::size_t(plan.grid.size()), 0);
+  blocks = wlop_block_count(plan.points, blocks, max_bytes);
+  // The points of each box (with kProjection, on the first pass, the area's every k-th
+  // point). With a memory bound, more blocks while the largest box (a third more for
+  // its margin) does not fit: boxes are not even.
   const std::size_t every = std::max<std::size_t>(1, plan.points / 200000);
   std::vector<Vec3f> summary;
-  std::size_t index = 0;
-  source([&](const Cloud& c) {
-    for (const Vec3f& q : c.points) {
-      if (!q.allFinite()) continue;
-      ++plan.box_points[std::size_t(wlop_block_of(plan.grid, q))];
-      if (params.attraction == WlopAttraction::kProjection && index++ % every == 0) summary.push_back(q);
-    }
-  });
+  for (bool first = true;; first = false) {
+    plan.grid = plan_blocks(plan.bounds, 1024, blocks, kWlopMarginRadii * plan.radius);
+    plan.box_points.assign(std::size_t(plan.grid.size()), 0);
+    std::size_t index = 0;
+    source([&](const Cloud& c) {
+      for (const Vec3f& q : c.points) {
+        if (!q.allFinite()) continue;
+        ++plan.box_points[std::size_t(wlop_block_of(plan.grid, q))];
+        if (first && params.attraction == WlopAttraction::kProjection && index++ % every == 0) summary.push_back(q);
+      }
+    });
+    if (!automatic || !(max_bytes > 0) || blocks >= 4096) break;
+    const double largest = double(*std::max_element(plan.box_points.begin(), plan.box_points.end())) * 4 / 3;
+    const double fit = (max_bytes - kWlopBaseBytes) / kWlopBytesPerPoint;
+    if (largest <= fit) break;
+    blocks = int(std::min(4096.0, std::ceil(double(blocks) * largest / fit) + 1));
+  }
   if (!summary.empty()) {
     std::vector<std::size_t> all(summary.size());
     for (std::size_t i = 0; i < all.size(); ++i) all[i] = i;
@@ -165,9 +181,9 @@ Cloud consolidate_block(const Cloud& points, const ConsolidationPlan& plan, int 
 }
 
 Cloud consolidate_blocks(const CloudSource& source, const WlopParams& params, int blocks, BlockWlopStats* stats,
-                         const std::function<void(const std::string&)>& note) {
+                         const std::function<void(const std::string&)>& note, double max_bytes) {
   const auto t0 = std::chrono::steady_clock::now();
-  const ConsolidationPlan plan = plan_consolidation(source, params, blocks);
+  const ConsolidationPlan plan = plan_consolidation(source, params, blocks, max_bytes);
   BlockWlopStats st;
   st.blocks = plan.grid.size();
   Cloud out;

@@ -54,9 +54,14 @@ struct ConsolidationPlan {
 };
 
 /// The plan of consolidating `source` with `params` in about `blocks` blocks (0: auto,
-/// kAutoWlopBlockPoints a block). InvalidInput on an empty cloud, non-finite
-/// coordinates, all points at one place, blocks < 0, or params consolidate() refuses.
-ConsolidationPlan plan_consolidation(const CloudSource& source, const WlopParams& params, int blocks);
+/// wlop_block_count's; with `max_bytes`, more until the largest box, its margin
+/// counted, fits). InvalidInput on an empty cloud, non-finite coordinates, all points
+/// at one place, blocks < 0, a bound that cannot hold a block, or a bad radius.
+ConsolidationPlan plan_consolidation(const CloudSource& source, const WlopParams& params, int blocks,
+                                     double max_bytes = 0);
+
+/// The number of points of `source` (one streamed pass).
+std::size_t count_points(const CloudSource& source);
 
 /// Block `id`'s output: `points` are the points of its region (its box and the margin;
 /// block_points or read_bucket); WLOP with the whole cloud's scale and target
@@ -77,6 +82,6 @@ struct BlockWlopStats {
   double seconds = 0;
 };
 Cloud consolidate_blocks(const CloudSource& source, const WlopParams& params, int blocks, BlockWlopStats* stats = nullptr,
-                         const std::function<void(const std::string&)>& note = {});
+                         const std::function<void(const std::string&)>& note = {}, double max_bytes = 0);
 
 }  // namespace station

@@ -51,7 +51,9 @@ Mesh Dmc::run(DmcStats* stats) {
         const int l = __builtin_ctzll(m);
         const Key p = nodes_.point(std::int32_t(b), l);
         const Node& nd = nodes_.node(std::int32_t(b), l);
-        opt_.report(off_[0] + ki(p), off_[1] + kj(p), off_[2] + kk(p), DmcPoint{nd.pos, nd.val, nd.flags});
+        // The flags a move leaves (not kFixed, a window's own, nor kSearched).
+        opt_.report(off_[0] + ki(p), off_[1] + kj(p), off_[2] + kk(p),
+                    DmcPoint{nd.pos, nd.val, std::uint8_t(nd.flags & ~(kFixed | kSearched))});
       }
   st_.seconds_mesh = seconds_since(t0);
   if (stats) *stats = st_;
@@ -95,11 +97,11 @@ void Dmc::evaluate(std::vector<std::uint32_t> fresh) {
       const int l = int(fresh[i] & 63);
       Node& nd = nodes_.node(b, l);
       const Key p = nodes_.point(b, l);
+      if (is_given(p, nd)) continue;  // its value came with it
       if (const double* v = scan_value(ki(p), kj(p), kk(p))) {
         nd.val = *v;
         continue;
       }
-      if (is_given(p, nd)) continue;  // its value came with it
       at[n] = &nd;
       xs[n++] = nd.pos;
     }

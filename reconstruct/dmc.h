@@ -76,7 +76,7 @@ struct DmcOptions : MarchingCubesOptions {
   /// value and what DMC knew of them (its internal flags, as report gave them).
   const std::unordered_map<std::uint64_t, DmcPoint>* given = nullptr;
   /// With a window: receives every lattice point DMC entered (global indices): its
-  /// final position, value (f - iso) and flags.
+  /// final position, value (f - iso) and the flags its moves left (0: none).
   std::function<void(int i, int j, int k, const DmcPoint& point)> report;
 };
 

@@ -189,7 +189,8 @@ std::optional<BlockJob> receive_block_job() {
 }
 
 WlopBlocksRun run_consolidate_blocks(const std::string& input, const WlopParams& params, int blocks,
-                                     const std::string& work_dir, const std::function<void(const std::string&)>& note_fn) {
+                                     const std::string& work_dir, const std::function<void(const std::string&)>& note_fn,
+                                     double max_bytes) {
   const auto t0 = std::chrono::steady_clock::now();
   const Ranks& ranks = Ranks::get();
   WlopBlocksRun run;
@@ -202,8 +203,15 @@ WlopBlocksRun run_consolidate_blocks(const std::string& input, const WlopParams&
   const fs::path work(work_dir);
   ConsolidationPlan plan;
   // Every rank plans from the file: the same numbers, so nothing to send.
-  std::string error = attempt([&] { plan = plan_consolidation(source, params, blocks); });
-  if (ranks.any_failed(!error.empty(), error)) fail_with(error);
+  std::string error = attempt([&] {
+    plan = plan_consolidation(source, params, blocks, max_bytes);
+    if (run.root) {  // an earlier run's outputs must not be taken for this one's
+      std::error_code ec;
+      fs::remove_all(work, ec);
+      if (ec) throw IoError(work.string() + ": cannot clear the work folder: " + ec.message());
+    }
+  });
+  if (ranks.any_failed(!error.empty(), error)) fail_with(error);  // (every rank past the clearing)
   const BlockGrid& grid = plan.grid;
   if (run.root)
     note(std::to_string(plan.points) + " points in " + std::to_string(grid.size()) + " blocks (" +
@@ -216,6 +224,7 @@ WlopBlocksRun run_consolidate_blocks(const std::string& input, const WlopParams&
   const std::vector<int> owner = assign_blocks(ids, plan.box_points, ranks.size());
   const auto points_file = [&](int id) { return work / ("wlop_points_" + std::to_string(id) + ".bin"); };
   const auto out_file = [&](int id) { return work / ("wlop_" + std::to_string(id) + ".ply"); };
+  const auto empty_file = [&](int id) { return work / ("wlop_" + std::to_string(id) + ".empty"); };
   std::size_t max_points = 0;
   error = attempt([&] {
     std::vector<int> mine;
@@ -236,6 +245,8 @@ WlopBlocksRun run_consolidate_blocks(const std::string& input, const WlopParams&
         const fs::path f = out_file(id), part_path = f.string() + ".part";
         write_ply(part_path, part);
         fs::rename(part_path, f);
+      } else {
+        write_file_atomic(empty_file(id), "");
       }
       fs::remove(points_file(id));
       const auto c = grid.coords(id);
@@ -250,7 +261,10 @@ WlopBlocksRun run_consolidate_blocks(const std::string& input, const WlopParams&
   if (run.root) {
     error = attempt([&] {
       for (int id : ids) {
-        if (plan.box_points[std::size_t(id)] == 0 || !fs::exists(out_file(id))) continue;
+        if (plan.box_points[std::size_t(id)] == 0 || fs::exists(empty_file(id))) continue;
+        if (!fs::exists(out_file(id)))
+          throw IoError(out_file(id).string() + ": a block's output is missing (the work folder must be shared by the "
+                        "ranks)");
         const Cloud part = read_cloud(out_file(id));
         if (part.empty()) continue;
         if (!run.cloud.empty() && (run.cloud.has_normals() != part.has_normals() ||

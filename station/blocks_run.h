@@ -57,9 +57,12 @@ std::optional<BlockJob> receive_block_job();  ///< ranks > 0; nullopt at the sto
 /// Consolidation in blocks (reconstruct/blocks_wlop.h): every rank plans from `input`
 /// (a PLY, streamed; the same plan on every rank), sorts the points of its blocks out
 /// of it in one streamed pass, consolidates them and writes each block's output into
-/// `work_dir` (`wlop_<id>.ply`); rank 0 returns them gathered in block order (the other
-/// ranks an empty cloud). Without MPI, or on one rank, the blocks run in sequence. The
-/// work folder is removed after a run that finished. Errors as run_blocks'.
+/// `work_dir` (`wlop_<id>.ply`, or `wlop_<id>.empty` for a block without output); rank
+/// 0 returns them gathered in block order (the other ranks an empty cloud). The work
+/// folder is emptied first and removed after a run that finished; it must be shared by
+/// the ranks (a block's file missing at the end is an error naming it). Without MPI, or
+/// on one rank, the blocks run in sequence. `blocks` and `max_bytes` as
+/// plan_consolidation's. Errors as run_blocks'.
 struct WlopBlocksRun {
   Cloud cloud;  ///< rank 0: the consolidated cloud
   bool root = true;
@@ -68,7 +71,7 @@ struct WlopBlocksRun {
 };
 WlopBlocksRun run_consolidate_blocks(const std::string& input, const WlopParams& params, int blocks,
                                      const std::string& work_dir,
-                                     const std::function<void(const std::string&)>& note = {});
+                                     const std::function<void(const std::string&)>& note = {}, double max_bytes = 0);
 
 /// `blocks` and `max_bytes` as resolve_block_count's (0: auto, a block per
 /// kAutoBlockPoints points; with max_bytes, the count that fits). The work

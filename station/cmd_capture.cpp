@@ -217,7 +217,8 @@ int block_worker(const StationConfig& cfg, const Common& c) {
         if (!c.json) std::fprintf(stderr, "  consolidate: %s\n", line.c_str());
       };
       try {
-        (void)run_consolidate_blocks(job->input, wlop_params(cfg.pipeline, cfg.threads), job->blocks, job->work, note);
+        (void)run_consolidate_blocks(job->input, wlop_params(cfg.pipeline, cfg.threads), job->blocks, job->work, note,
+                                     rc.max_memory_gb * 1e9);
       } catch (const std::exception&) {
         // Every rank fails alike; rank 0 reports it and sends the stop.
       }

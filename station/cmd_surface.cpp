@@ -190,7 +190,7 @@ int cmd_consolidate(const Common& c, const ConsolidateArgs& a) {
     // In blocks (reconstruct/blocks_wlop.h): asked for, under mpirun, or a cloud above
     // the auto block size; streamed, over the ranks under mpirun.
     bool split = pc.blocks > 1 || mpi_ranks() > 1;
-    if (!split) split = plan_consolidation(file_source(a.in), p, 0).grid.size() > 1;
+    if (!split) split = count_points(file_source(a.in)) > kAutoWlopBlockPoints;
     if (split) {
       const auto note = [&](const std::string& line) {
         if (!c.json) std::fprintf(stderr, "consolidate: %s\n", line.c_str());

@@ -195,6 +195,7 @@ std::string consolidate_key(const PipelineConfig& p) {
     << ";repulsion_weight=" << c.repulsion_weight;
   if (c.radius > 0) s << ";radius=" << fmt("%.17g", c.radius);  // (absent from keys of earlier runs)
   if (c.blocks != 0) s << ";blocks=" << c.blocks;                  // (auto: absent, as before blocks)
+  else if (p.reconstruct.max_memory_gb > 0) s << ";max_memory=" << fmt("%.17g", p.reconstruct.max_memory_gb);
   return s.str();
 }
 std::string surface_key(const PipelineConfig& p) {
@@ -568,39 +569,47 @@ class Runner {
   }
 
   void do_consolidate(StageRecord& r, const fs::path& in) {
-    Cloud input = read_cloud(in);
-    if (input.empty()) throw InvalidInput(in.string() + ": empty cloud");
     const auto& c = cfg_.pipeline.consolidate;
     WlopParams p = wlop_params(cfg_.pipeline, cfg_.threads);
-    // auto: a block per 2 M points, and within --max-memory (reconstruct.max_memory_gb).
-    const int blocks = wlop_block_count(input.size(), c.blocks, cfg_.pipeline.reconstruct.max_memory_gb * 1e9);
-    if (blocks > 1) {
-      // WLOP in blocks at the whole cloud's scale (docs/blocks.md): over the ranks
-      // under mpirun (they stream the same file), else in sequence here.
-      const std::size_t points = input.size();
-      input = Cloud{};
-      const fs::path work = req_.out_dir / "consolidate.blocks";
-      std::error_code ec;
-      fs::remove_all(work, ec);
-      const auto note = [&](const std::string& line) { say("  consolidate: " + line); };
-      WlopBlocksRun run;
-      if (req_.blocks_over_ranks) {
-        BlockJob job;
-        job.kind = BlockJob::Kind::kConsolidate;
-        job.blocks = blocks;
-        job.input = in.string();
-        job.work = work.string();
-        send_block_job(&job);
+    const double max_bytes = cfg_.pipeline.reconstruct.max_memory_gb * 1e9;
+    // auto: a block per 2 M points, and within --max-memory (reconstruct.max_memory_gb);
+    // counted on a streamed pass, so that a cloud for blocks is never read whole.
+    if (c.blocks != 1) {
+      const CloudSource source = file_source(in.string());
+      const std::size_t points = count_points(source);
+      if (points == 0) throw InvalidInput(in.string() + ": empty cloud");
+      if (wlop_block_count(points, c.blocks, max_bytes) > 1) {
+        // WLOP in blocks at the whole cloud's scale (docs/blocks.md): over the ranks
+        // under mpirun (they stream the same file), else in sequence here (also a batch
+        // session's on its rank: the other ranks run their own sessions).
+        const auto note = [&](const std::string& line) { say("  consolidate: " + line); };
+        Cloud out;
+        if (req_.blocks_over_ranks) {
+          const fs::path work = req_.out_dir / "consolidate.blocks";
+          BlockJob job;
+          job.kind = BlockJob::Kind::kConsolidate;
+          job.blocks = c.blocks;
+          job.input = in.string();
+          job.work = work.string();
+          send_block_job(&job);
+          WlopBlocksRun run = run_consolidate_blocks(in.string(), p, c.blocks, work.string(), note, max_bytes);
+          r.figures["blocks"] = double(run.stats.blocks);
+          r.figures["ranks"] = double(run.ranks);
+          out = std::move(run.cloud);
+        } else {
+          BlockWlopStats st;
+          out = consolidate_blocks(source, p, c.blocks, &st, note, max_bytes);
+          r.figures["blocks"] = double(st.blocks);
+          r.figures["ranks"] = 1;
+        }
+        write_ply(req_.out_dir / "consolidated.ply", out);
+        r.figures["input_points"] = double(points);
+        r.figures["points"] = double(out.size());
+        return;
       }
-      run = run_consolidate_blocks(in.string(), p, blocks, work.string(), note);
-      fs::remove_all(work, ec);
-      write_ply(req_.out_dir / "consolidated.ply", run.cloud);
-      r.figures["input_points"] = double(points);
-      r.figures["points"] = double(run.cloud.size());
-      r.figures["blocks"] = double(run.stats.blocks);
-      r.figures["ranks"] = double(run.ranks);
-      return;
     }
+    const Cloud input = read_cloud(in);
+    if (input.empty()) throw InvalidInput(in.string() + ": empty cloud");
     Progress bar(std::string("  consolidate: ") + wlop_label(c.method) + " iterations", c.iterations, req_.quiet, req_.events);
     p.progress = [&](int done, int) { bar.update(done); };
     const WlopResult w = consolidate(input, p);

@@ -5,7 +5,9 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
+#include <numeric>
 #include <cstdio>
 #include <random>
 
@@ -114,6 +116,29 @@ TEST(BlockWlop, TheBlockCountFollowsThePointsAndTheMemoryBound) {
   EXPECT_EQ(wlop_block_count(5000000, 0, 0.3e9), 7);
   EXPECT_THROW(wlop_block_count(5000000, 0, 0.1e9), InvalidInput);
   EXPECT_THROW(wlop_block_count(5000000, -1, 0), InvalidInput);
+}
+
+// Boxes are not even: with a memory bound the plan adds blocks until the largest box,
+// its margin counted, fits.
+TEST(BlockWlop, ThePlanSplitsUntilTheLargestBoxFits) {
+  Cloud cloud;
+  std::mt19937 rng(3);
+  std::uniform_real_distribution<float> u(0, 1);
+  for (int i = 0; i < 600000; ++i) {
+    // Half the points in a tenth of the box's width.
+    const float x = i % 2 ? 0.1f * u(rng) : u(rng);
+    cloud.points.emplace_back(x, u(rng), 0.01f * u(rng));
+  }
+  const double max_bytes = kWlopBaseBytes + 200000 * kWlopBytesPerPoint;  // 200,000 points a block
+  const int even = wlop_block_count(cloud.size(), 0, max_bytes);
+  const ConsolidationPlan plan = plan_consolidation(memory_source(cloud), WlopParams{}, 0, max_bytes);
+  const std::size_t largest = *std::max_element(plan.box_points.begin(), plan.box_points.end());
+  std::printf("%d blocks for even boxes, %d planned; the largest box %zu points\n", even, plan.grid.size(), largest);
+  EXPECT_GT(plan.grid.size(), even);
+  EXPECT_LE(double(largest) * 4 / 3, 200000.0);
+  EXPECT_EQ(std::accumulate(plan.box_points.begin(), plan.box_points.end(), std::size_t(0)), cloud.size());
+  // Without a bound, the count asked for.
+  EXPECT_EQ(plan_consolidation(memory_source(cloud), WlopParams{}, 5).grid.size(), 4);  // at most 5: 2 x 2 x 1
 }
 
 TEST(BlockWlop, BadInputIsRefusedByName) {
