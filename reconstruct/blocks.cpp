@@ -360,7 +360,9 @@ BlockSummary summarise_cloud(const CloudSource& source, const SurfaceParams& p) 
   return s;
 }
 
-double block_margin(const BlockSummary& s, double cell) { return std::max(kMarginCells * cell, 8 * s.mean_spacing); }
+double block_margin(const BlockSummary& s, double cell) {
+  return std::max((s.hole == HoleMode::kKeep ? kKeepMarginCells : kMarginCells) * cell, 8 * s.mean_spacing);
+}
 
 Cloud block_points(const CloudSource& source, const BlockGrid& grid, int id) {
   const Aabb region = grid.region(id);

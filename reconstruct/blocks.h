@@ -149,9 +149,14 @@ CloudSource memory_source(const Cloud& cloud);
 BlockSummary summarise_cloud(const CloudSource& source, const SurfaceParams& params);
 
 /// The margin of the blocks: far enough for MPU's support near the window's faces and
-/// for the closing's trust ramp: max(kMarginCells cells, 8 mean spacings).
+/// for the closing's trust ramp: max(kMarginCells cells, or kKeepMarginCells with the
+/// holes kept, 8 mean spacings).
 double block_margin(const BlockSummary& summary, double cell);
 inline constexpr double kMarginCells = 8;
+/// With the holes kept: the rims lie where the points thin out, and MPU's balls there
+/// reach further (the dragon's blocked mesh was 0.55 cell from the single one at 8
+/// cells, 0.02 at 12).
+inline constexpr double kKeepMarginCells = 12;
 
 /// Memory of a block run per rank, as measured (docs/blocks.md: the bottle at 1 M
 /// points, 4 to 64 blocks, colour on): a base (the process, the summary and its
