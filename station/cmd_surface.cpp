@@ -186,6 +186,10 @@ int cmd_consolidate(const Common& c, const ConsolidateArgs& a) {
   StationConfig cfg = load_common(c);
   const auto& pc = cfg.pipeline.consolidate;
   WlopParams p = wlop_params(cfg.pipeline, cfg.threads);
+  // The JSON summary's common head (in blocks or in one piece).
+  const auto summary = [&] {
+    return JsonObject().add("command", "consolidate").add("input", a.in).add("output", a.out).add("method", pc.method);
+  };
   if (pc.blocks != 1) {
     // In blocks (reconstruct/blocks_wlop.h): asked for, under mpirun, or a cloud above
     // the auto block size; streamed, over the ranks under mpirun.
@@ -199,11 +203,7 @@ int cmd_consolidate(const Common& c, const ConsolidateArgs& a) {
       if (!run.root) return 0;
       write_ply(a.out, run.cloud);
       if (c.json) {
-        print_summary(JsonObject()
-                          .add("command", "consolidate")
-                          .add("input", a.in)
-                          .add("output", a.out)
-                          .add("method", pc.method)
+        print_summary(summary()
                           .add("output_points", run.cloud.size())
                           .add("blocks", run.stats.blocks)
                           .add("ranks", run.ranks)
@@ -228,11 +228,7 @@ int cmd_consolidate(const Common& c, const ConsolidateArgs& a) {
   bar.finish();
   write_ply(a.out, r.cloud);
   if (c.json) {
-    print_summary(JsonObject()
-                      .add("command", "consolidate")
-                      .add("input", a.in)
-                      .add("output", a.out)
-                      .add("method", pc.method)
+    print_summary(summary()
                       .add("input_points", r.input_points)
                       .add("output_points", r.cloud.size())
                       .add("clamped", r.clamped)

@@ -33,16 +33,10 @@ struct Sphere : ImplicitFunction {
   Vec3d gradient(const Vec3d& x) const override { return (x - c).normalized(); }
 };
 
-// Two spheres joined by a thin neck along x, crossing the block faces at odd angles.
-struct Dumbbell : ImplicitFunction {
-  double value(const Vec3d& x) const override {
-    const double a = (x - Vec3d(-0.45, 0.03, 0.02)).norm() - 0.35;
-    const double b = (x - Vec3d(0.47, -0.02, 0.05)).norm() - 0.3;
-    const double neck = std::hypot(x.y() - 0.01, x.z() - 0.03) - 0.06;
-    return std::min({a, b, std::max(neck, std::abs(x.x()) - 0.6)});
-  }
+// A field whose gradient is central differences of its value (step e).
+struct NumericGradient : ImplicitFunction {
+  double e = 1e-6;
   Vec3d gradient(const Vec3d& x) const override {
-    const double e = 1e-6;
     Vec3d g;
     for (int a = 0; a < 3; ++a) {
       Vec3d p = x, m = x;
@@ -50,6 +44,16 @@ struct Dumbbell : ImplicitFunction {
       g[a] = (value(p) - value(m)) / (2 * e);
     }
     return g;
+  }
+};
+
+// Two spheres joined by a thin neck along x, crossing the block faces at odd angles.
+struct Dumbbell : NumericGradient {
+  double value(const Vec3d& x) const override {
+    const double a = (x - Vec3d(-0.45, 0.03, 0.02)).norm() - 0.35;
+    const double b = (x - Vec3d(0.47, -0.02, 0.05)).norm() - 0.3;
+    const double neck = std::hypot(x.y() - 0.01, x.z() - 0.03) - 0.06;
+    return std::min({a, b, std::max(neck, std::abs(x.x()) - 0.6)});
   }
 };
 
@@ -219,7 +223,8 @@ TEST(BlockSeams, DeformedMarchingCubesInBlocksIsClosedAndNearTheSingleMesh) {
 
 // A box turned about two axes (sharp edges and corners) and a plate 0.4 cells thick
 // (a thin part), both crossing the blocks' faces at odd angles.
-struct BoxAndPlate : ImplicitFunction {
+struct BoxAndPlate : NumericGradient {
+  BoxAndPlate() { e = 1e-7; }
   Eigen::Matrix3d r = (Eigen::AngleAxisd(0.5, Vec3d(0, 0, 1)) * Eigen::AngleAxisd(0.3, Vec3d(1, 0, 0))).toRotationMatrix();
   double t = 0;  // the plate's half thickness
   double value(const Vec3d& x) const override {
@@ -229,16 +234,6 @@ struct BoxAndPlate : ImplicitFunction {
     const Vec3d p = x - Vec3d(0.4537, 0.0113, 0.0071);
     const double plate = std::max({std::abs(p.x() + 0.2131 * p.y()) - t, std::abs(p.y()) - 0.4, std::abs(p.z()) - 0.45});
     return std::min(box, plate);
-  }
-  Vec3d gradient(const Vec3d& x) const override {
-    const double e = 1e-7;
-    Vec3d g;
-    for (int a = 0; a < 3; ++a) {
-      Vec3d p = x, m = x;
-      p[a] += e, m[a] -= e;
-      g[a] = (value(p) - value(m)) / (2 * e);
-    }
-    return g;
   }
 };
 
