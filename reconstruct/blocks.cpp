@@ -802,6 +802,7 @@ BlockMesh reconstruct_block(const Cloud& pts_in, const BlockGrid& grid, int id, 
       transfer_colours(mesh, pts, {4, p.threads});
     } else {
       const ColourFunction cf = fit_colour(pts, colour_params(p));
+      out.colour = cf.diagnostics();
       out.colour_nearest_vertices = colour_mesh(mesh, cf, surface, pts, p.threads);
       if (p.colour_edges) {
         // As the single run splits them, but never an edge on a shared face (both its
@@ -897,6 +898,16 @@ SurfaceResult block_result(const BlockGrid& grid, const BlockSummary& s) {
 void add_piece_figures(SurfaceResult& out, const BlockMesh& b) {
   out.colour_nearest_vertices += b.colour_nearest_vertices;
   out.colour_edges_split += b.colour_edges_split;
+  if (b.colour && b.colour->input_points > 0) {
+    if (!out.colour) out.colour = ColourDiagnostics{};
+    ColourDiagnostics& c = *out.colour;
+    const double n = double(c.input_points), m = double(b.colour->input_points);
+    c.e_col = (c.e_col * n + b.colour->e_col * m) / (n + m);
+    c.input_points += b.colour->input_points;
+    c.leaves += b.colour->leaves;
+    c.cells += b.colour->cells;
+    for (int t = 0; t < 2; ++t) c.leaves_by_type[std::size_t(t)] += b.colour->leaves_by_type[std::size_t(t)];
+  }
   out.extraction.cells_visited += b.dmc.cells_visited;
   out.extraction.surface_cells += b.dmc.surface_cells;
   out.extraction.evaluations += b.dmc.evaluations;
@@ -1172,7 +1183,7 @@ namespace {
 
 constexpr std::uint32_t kMagic = 0x4B4C4253;  // "SBLK"
 // File kinds after the magic: 1 summary, 3 seam table, 4 piece (2: a piece before
-// 2026-12-05, without colour_edges_split).
+// 2026-12-05, without colour_edges_split and the colour function's figures).
 constexpr std::uint32_t kPieceFormat = 4;
 
 class Writer {
@@ -1302,6 +1313,15 @@ std::string to_bytes(const BlockMesh& b) {
   w.put(std::uint64_t(b.dmc.evaluations));
   w.put(std::uint64_t(b.dmc.dropped_faces));
   w.put(std::uint64_t(b.colour_edges_split));
+  w.put(std::uint8_t(b.colour.has_value()));
+  if (b.colour) {
+    w.put(std::uint64_t(b.colour->input_points));
+    w.put(std::uint64_t(b.colour->cells));
+    w.put(std::uint64_t(b.colour->leaves));
+    w.put(std::uint64_t(b.colour->leaves_by_type[0]));
+    w.put(std::uint64_t(b.colour->leaves_by_type[1]));
+    w.put(b.colour->e_col);
+  }
   w.put(b.seconds);
   return w.out;
 }
@@ -1324,6 +1344,16 @@ BlockMesh piece_from_bytes(const std::string& bytes, const std::string& what) {
   b.dmc.evaluations = std::size_t(r.get<std::uint64_t>());
   b.dmc.dropped_faces = std::size_t(r.get<std::uint64_t>());
   b.colour_edges_split = std::size_t(r.get<std::uint64_t>());
+  if (r.get<std::uint8_t>()) {
+    ColourDiagnostics c;
+    c.input_points = std::size_t(r.get<std::uint64_t>());
+    c.cells = std::size_t(r.get<std::uint64_t>());
+    c.leaves = std::size_t(r.get<std::uint64_t>());
+    c.leaves_by_type[0] = std::size_t(r.get<std::uint64_t>());
+    c.leaves_by_type[1] = std::size_t(r.get<std::uint64_t>());
+    c.e_col = r.get<double>();
+    b.colour = c;
+  }
   b.seconds = r.get<double>();
   r.end();
   const std::size_t nv = b.mesh.vertices.size();

@@ -23,6 +23,7 @@
 #include <vector>
 
 #include "core/geometry.h"
+#include "reconstruct/colour_function.h"
 #include "reconstruct/dmc.h"
 #include "reconstruct/implicit.h"
 #include "reconstruct/marching_cubes.h"
@@ -197,6 +198,9 @@ struct BlockMesh {
   std::size_t points = 0;            ///< the block's points (window and margin)
   std::size_t colour_nearest_vertices = 0;
   std::size_t colour_edges_split = 0;  ///< edges split at colour boundaries (none on shared faces)
+  /// The block's colour function (kMpu): its points, leaves (by type) and e_col; the
+  /// stitched result's are their sums, e_col weighted by the points (margins counted).
+  std::optional<ColourDiagnostics> colour;
   MpuDiagnostics mpu;
   DmcStats dmc;
   double seconds = 0;

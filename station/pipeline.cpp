@@ -674,8 +674,9 @@ class Runner {
       r.figures["colour_leaves_b"] = double(sr.colour->leaves_by_type[1]);
       r.figures["e_col"] = sr.colour->e_col;
       // Where the colour function splits cells at a boundary (Type B), for the report.
-      write_file_atomic(req_.out_dir / "colour_boundary.bin",
-                        std::string(sr.colour_boundary.begin(), sr.colour_boundary.end()));
+      if (!sr.colour_boundary.empty())  // (not made in blocks)
+        write_file_atomic(req_.out_dir / "colour_boundary.bin",
+                          std::string(sr.colour_boundary.begin(), sr.colour_boundary.end()));
     }
     write_ply(req_.out_dir / "mesh.ply", sr.mesh);
     r.figures["leaves"] = double(sr.mpu.leaves);

@@ -380,6 +380,18 @@ TEST(BlockSurface, ColourEdgesAreSplitInBlocksAsInTheSingleRun) {
   // boundary edge whole gives 0.011.
   EXPECT_LT(*eb.colour_error, 3 * *es.colour_error);
   EXPECT_LT(*eb.colour_error, 0.2 * *eu.colour_error);
+  // The colour function's figures: the blocks' summed (e_col weighted by points), and
+  // through a piece file as in memory.
+  ASSERT_TRUE(b.colour && single.colour);
+  EXPECT_GT(b.colour->leaves_by_type[1], 0u);
+  EXPECT_LT(b.colour->e_col, 2 * single.colour->e_col + 0.01);
+  BlockPieces pieces = reconstruct_block_pieces(memory_source(cloud), p, 8);
+  for (const BlockMesh& piece : pieces.pieces) {
+    const BlockMesh back = piece_from_bytes(to_bytes(piece), "piece");
+    ASSERT_EQ(back.colour.has_value(), piece.colour.has_value());
+    if (piece.colour) EXPECT_EQ(back.colour->e_col, piece.colour->e_col);
+    EXPECT_EQ(back.colour_edges_split, piece.colour_edges_split);
+  }
 }
 
 // The streamed writer (`station reconstruct --blocks` into a PLY) against the stitched
