@@ -598,8 +598,9 @@ std::vector<std::size_t> estimate_block_points(const BlockSummary& s, const Bloc
 
 double estimate_block_bytes(const BlockSummary& s, const BlockGrid& g) {
   const std::vector<std::size_t> n = estimate_block_points(s, g);
-  const std::size_t most = n.empty() ? 0 : *std::max_element(n.begin(), n.end());
-  return kBlockBaseBytes + kBlockBytesPerPoint * double(std::min(most, s.points));
+  const double most = double(std::min(n.empty() ? 0 : *std::max_element(n.begin(), n.end()), s.points));
+  const double cells = s.sample_spacing > 0 ? std::pow(s.sample_spacing / g.lattice.h, 2) : 1;  // a point's
+  return kBlockBaseBytes + kBlockBytesPerPoint * most + kBlockBytesPerExtraCell * most * std::max(0.0, cells - 1);
 }
 
 int resolve_block_count(const BlockSummary& s, int blocks, double max_bytes, int ranks) {

@@ -165,11 +165,17 @@ inline constexpr double kKeepMarginCells = 12;
 /// function, its window's extraction).
 inline constexpr double kBlockBaseBytes = 256.0 * 1024 * 1024;
 inline constexpr double kBlockBytesPerPoint = 1536;
+/// A lattice finer than the points' sample spacing (a --resolution above auto) makes
+/// more surface cells than points: each point stands for (spacing / cell)^2 cells,
+/// and each cell beyond the first costs this much (fitted, with some headroom, on the bundled bottle's
+/// 300k merged points in 4 blocks: 269 MiB at auto = 446 cells, 321 at 600, 671 at 1200).
+inline constexpr double kBlockBytesPerExtraCell = 620;
 
 /// Each block's points (its region's, margin included), estimated from the summary
 /// (its points, each standing for `every`).
 std::vector<std::size_t> estimate_block_points(const BlockSummary& summary, const BlockGrid& grid);
-/// A rank's peak memory for a run on `grid`: base + per point x the largest block's.
+/// A rank's peak memory for a run on `grid`: base + per point x the largest block's,
+/// + per extra surface cell where the cell is finer than the points' sample spacing.
 double estimate_block_bytes(const BlockSummary& summary, const BlockGrid& grid);
 
 /// The block count of a run: `blocks` 0 is auto (a block per kAutoBlockPoints); with
