@@ -1183,9 +1183,9 @@ CloudSource file_source(const std::string& path) {
 namespace {
 
 constexpr std::uint32_t kMagic = 0x4B4C4253;  // "SBLK"
-// File kinds after the magic: 1 summary, 3 seam table, 4 piece (2: a piece before
-// 2026-12-05, without colour_edges_split and the colour function's figures).
-constexpr std::uint32_t kPieceFormat = 4;
+// File kinds after the magic: 1 summary, 3 seam table, 5 piece (2: a piece before
+// 2026-12-05; 4 briefly, without the colour function's figures).
+constexpr std::uint32_t kPieceFormat = 5;
 
 class Writer {
  public:

@@ -155,8 +155,8 @@ BlockSummary summarise_cloud(const CloudSource& source, const SurfaceParams& par
 double block_margin(const BlockSummary& summary, double cell);
 inline constexpr double kMarginCells = 8;
 /// With the holes kept: the rims lie where the points thin out, and MPU's balls there
-/// reach further (the dragon's blocked mesh was 0.55 cell from the single one at 8
-/// cells, 0.02 at 12).
+/// reach further (the dragon session's kept mesh in blocks was 0.84 cell from the
+/// single one with 8 cells, 0.32 with 12).
 inline constexpr double kKeepMarginCells = 12;
 
 /// Memory of a block run per rank, as measured (docs/blocks.md: the bottle at 1 M
@@ -167,9 +167,10 @@ inline constexpr double kBlockBaseBytes = 256.0 * 1024 * 1024;
 inline constexpr double kBlockBytesPerPoint = 1536;
 /// A lattice finer than the points' sample spacing (a --resolution above auto) makes
 /// more surface cells than points: each point stands for (spacing / cell)^2 cells,
-/// and each cell beyond the first costs this much (fitted, with some headroom, on the bundled bottle's
-/// 300k merged points in 4 blocks: 269 MiB at auto = 446 cells, 321 at 600, 671 at 1200).
-inline constexpr double kBlockBytesPerExtraCell = 620;
+/// and each cell beyond the first costs this much: the slope from 600 to 1200 cells
+/// on the bundled bottle session's 300k merged points in 4 blocks (333 and 682 MiB;
+/// 269 MiB at the auto 446 cells, where the points' term alone over-estimates).
+inline constexpr double kBlockBytesPerExtraCell = 800;
 
 /// Each block's points (its region's, margin included), estimated from the summary
 /// (its points, each standing for `every`).

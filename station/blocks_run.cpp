@@ -129,6 +129,9 @@ std::string attempt(Fn&& fn) {
   return {};
 }
 
+// The version of the block files (summary, seam tables, pieces) a work folder holds.
+constexpr const char* kBlockFilesVersion = "station blocks 5";
+
 // Rethrows a message as the error kind its text says it was (the kinds keep their
 // exit codes); InvalidInput otherwise.
 [[noreturn]] void fail_with(const std::string& message) { throw InvalidInput(message); }
@@ -333,6 +336,23 @@ BlockRun run_blocks(const std::string& input, const SurfaceParams& p, int blocks
   if (ranks.any_failed(!error.empty(), error)) fail_with(error);
   bytes.clear();
   const BlockGrid grid = plan_blocks(s.box, s.resolution, blocks, block_margin(s, cell));
+  // The grid (and the block files' version) a work folder was made for: --resume
+  // takes up only a folder made for this one.
+  const std::string signature = std::string(kBlockFilesVersion) + " counts " + std::to_string(grid.counts[0]) + " " +
+                                std::to_string(grid.counts[1]) + " " + std::to_string(grid.counts[2]) + " margin " +
+                                fmt("%.17g", grid.margin) + "\n";
+  if (run.root) {
+    error = attempt([&] {
+      const fs::path f = work / "grid.txt";
+      if (fresh) {
+        write_file_atomic(f, signature);
+      } else if (!fs::exists(f) || read_file_bytes(f) != signature) {
+        throw InvalidInput(work.string() + ": made by another station version or for another block grid (" +
+                           "--blocks, --max-memory, --hole); run again without --resume");
+      }
+    });
+  }
+  if (ranks.any_failed(!error.empty(), error)) fail_with(error);
   root_note(std::to_string(s.points) + " points in " + std::to_string(grid.size()) + " blocks (" +
             std::to_string(grid.counts[0]) + " x " + std::to_string(grid.counts[1]) + " x " +
             std::to_string(grid.counts[2]) + ") on " + std::to_string(ranks.size()) + " rank" +

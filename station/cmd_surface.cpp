@@ -302,6 +302,8 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
                         .add("hole", std::string(r.hole == HoleMode::kClose ? "close" : "keep"))
                         .add("rim_faces", r.rim_faces)
                         .add("colours", r.coloured)
+                        .add("e_col", r.colour ? r.colour->e_col : -1.0)
+                        .add("colour_edges_split", r.colour_edges_split)
                         .add("extractor", rc.extractor)
                         .add("timings_s", JsonObject().add("total", seconds_since(t0))));
     } else {

@@ -106,6 +106,11 @@ TEST_F(BlocksCli, ResumeTakesUpTheBlocksAnInterruptedRunLeft) {
   for (const auto& e : fs::directory_iterator(out + ".blocks"))
     EXPECT_NE(e.path().filename().string().rfind("points_", 0), 0u) << e.path();
   fs::remove_all(out);
+  // Resumed for another grid: refused by name, before any block runs.
+  const auto other = test::run_command(station_cmd() + " " + reconstruct(out, "--threads 2 --blocks 8 --resume"));
+  EXPECT_NE(other.code, 0) << other.out;
+  EXPECT_NE(other.out.find("run again without --resume"), std::string::npos) << other.out;
+  EXPECT_TRUE(fs::exists(out + ".blocks/summary.bin"));
   const auto again = test::run_command(station_cmd() + " " + reconstruct(out, "--threads 2 --blocks 4 --resume"));
   ASSERT_EQ(again.code, 0) << again.out;
   EXPECT_EQ(json_number(again.out, "resumed_blocks"), 4) << again.out;
