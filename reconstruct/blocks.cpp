@@ -817,6 +817,11 @@ BlockMesh reconstruct_block(const Cloud& pts_in, const BlockGrid& grid, int id, 
         out.colour_edges_split = sharpen_colour_edges(mesh, cf, ep).split_edges;
         out.edges.resize(mesh.vertices.size(), kNoLatticeEdge);
       }
+      if (p.boundary_flags) {
+        out.boundary.resize(mesh.vertices.size());
+        for (std::size_t v = 0; v < mesh.vertices.size(); ++v)
+          out.boundary[v] = cf.dominant_type(mesh.vertices[v].cast<double>()) == ColourCellType::kB;
+      }
     }
   }
   if (!close && s.mean_spacing > 0) {
@@ -832,7 +837,8 @@ BlockMesh reconstruct_block(const Cloud& pts_in, const BlockGrid& grid, int id, 
 
 // ------------------------------------------------------------------ stitching
 
-Mesh stitch_blocks(std::vector<BlockMesh>& pieces, const BlockGrid& grid, std::vector<char>* far) {
+Mesh stitch_blocks(std::vector<BlockMesh>& pieces, const BlockGrid& grid, std::vector<char>* far,
+                   std::vector<std::uint8_t>* boundary) {
   Mesh out;
   bool normals = true, colours = true, any = false;
   std::size_t nv = 0, nf = 0;
@@ -851,6 +857,10 @@ Mesh stitch_blocks(std::vector<BlockMesh>& pieces, const BlockGrid& grid, std::v
   if (normals) out.normals.reserve(nv);
   if (colours) out.colours.reserve(nv);
   if (far) far->clear();
+  bool flags = boundary != nullptr;
+  for (const BlockMesh& b : pieces)
+    if (!b.mesh.vertices.empty()) flags = flags && b.boundary.size() == b.mesh.vertices.size();
+  if (boundary) boundary->clear();
   std::unordered_map<std::uint64_t, int> seam;
   for (BlockMesh& b : pieces) {
     if (b.mesh.vertices.empty()) continue;
@@ -868,11 +878,13 @@ Mesh stitch_blocks(std::vector<BlockMesh>& pieces, const BlockGrid& grid, std::v
       if (normals) out.normals.push_back(b.mesh.normals[v]);
       if (colours) out.colours.push_back(b.mesh.colours[v]);
       if (far) far->push_back(b.far.empty() ? 0 : b.far[v]);
+      if (flags) boundary->push_back(b.boundary[v]);
     }
     for (const Face& fc : b.mesh.faces) out.faces.push_back({id[std::size_t(fc[0])], id[std::size_t(fc[1])], id[std::size_t(fc[2])]});
     b.mesh = Mesh{};
     b.edges.clear();
     b.far.clear();
+    b.boundary.clear();
   }
   return out;
 }
@@ -930,16 +942,23 @@ SurfaceResult assemble_blocks(std::vector<BlockMesh>& pieces, const BlockGrid& g
     add_piece_figures(out, b);
   }
   std::vector<char> far;
-  Mesh mesh = stitch_blocks(pieces, grid, &far);
+  std::vector<std::uint8_t> boundary;
+  Mesh mesh = stitch_blocks(pieces, grid, &far, p.boundary_flags ? &boundary : nullptr);
   const std::size_t joined = before - mesh.vertices.size();
   if (stats) stats->seam_vertices_joined = joined;
   if (mesh.faces.empty()) throw InvalidInput("the reconstructed surface is empty");
   out.coloured = p.colour && s.colours && mesh.has_colours();
   note("stitched " + std::to_string(grid.size()) + " blocks: " + std::to_string(mesh.vertices.size()) + " vertices, " +
        std::to_string(mesh.faces.size()) + " faces (" + std::to_string(joined) + " seam vertices joined)");
-  if (s.hole == HoleMode::kKeep && far.size() == mesh.vertices.size()) out.rim_faces = trim_open_rims(mesh, far);
+  const bool flagged = !boundary.empty() && boundary.size() == mesh.vertices.size();
+  if (s.hole == HoleMode::kKeep && far.size() == mesh.vertices.size()) {
+    std::vector<std::uint64_t> keys(boundary.begin(), boundary.end());  // the flags follow the vertices kept
+    out.rim_faces = trim_open_rims(mesh, far, 16, nullptr, flagged ? &keys : nullptr);
+    if (flagged) boundary.assign(keys.begin(), keys.end());
+  }
   if (out.rim_faces > 0) note("open rims brought back to the data (" + std::to_string(out.rim_faces) + " faces)");
-  out.pieces = remove_small_components(mesh, p.min_component);
+  out.pieces = remove_small_components(mesh, p.min_component, flagged ? &boundary : nullptr);
+  if (flagged) out.colour_boundary = std::move(boundary);
   if (out.pieces.removed_components > 0)
     note("removed " + std::to_string(out.pieces.removed_components) + " small pieces (" +
          std::to_string(out.pieces.removed_faces) + " faces)");
@@ -1183,9 +1202,9 @@ CloudSource file_source(const std::string& path) {
 namespace {
 
 constexpr std::uint32_t kMagic = 0x4B4C4253;  // "SBLK"
-// File kinds after the magic: 1 summary, 3 seam table, 5 piece (2: a piece before
-// 2026-12-05; 4 briefly, without the colour function's figures).
-constexpr std::uint32_t kPieceFormat = 5;
+// File kinds after the magic: 1 summary, 3 seam table, 6 piece (2: a piece before
+// 2026-12-05; 4 and 5 briefly, without the colour function's figures or flags).
+constexpr std::uint32_t kPieceFormat = 6;
 
 class Writer {
  public:
@@ -1306,6 +1325,7 @@ std::string to_bytes(const BlockMesh& b) {
   w.put_vector(b.mesh.faces);
   w.put_vector(b.edges);
   w.put_vector(b.far);
+  w.put_vector(b.boundary);
   w.put(std::uint64_t(b.points));
   w.put(std::uint64_t(b.colour_nearest_vertices));
   w.put(std::uint64_t(b.mpu.leaves));
@@ -1337,6 +1357,7 @@ BlockMesh piece_from_bytes(const std::string& bytes, const std::string& what) {
   b.mesh.faces = r.get_vector<Face>();
   b.edges = r.get_vector<std::uint64_t>();
   b.far = r.get_vector<char>();
+  b.boundary = r.get_vector<std::uint8_t>();
   b.points = std::size_t(r.get<std::uint64_t>());
   b.colour_nearest_vertices = std::size_t(r.get<std::uint64_t>());
   b.mpu.leaves = std::size_t(r.get<std::uint64_t>());
@@ -1359,7 +1380,7 @@ BlockMesh piece_from_bytes(const std::string& bytes, const std::string& what) {
   r.end();
   const std::size_t nv = b.mesh.vertices.size();
   if ((!b.mesh.normals.empty() && b.mesh.normals.size() != nv) || (!b.mesh.colours.empty() && b.mesh.colours.size() != nv) ||
-      b.edges.size() != nv || (!b.far.empty() && b.far.size() != nv))
+      b.edges.size() != nv || (!b.far.empty() && b.far.size() != nv) || (!b.boundary.empty() && b.boundary.size() != nv))
     r.fail();
   for (const Face& f : b.mesh.faces)
     for (int t = 0; t < 3; ++t)

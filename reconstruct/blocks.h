@@ -202,6 +202,9 @@ struct BlockMesh {
   Mesh mesh;
   std::vector<std::uint64_t> edges;  ///< per vertex: its lattice edge (lattice_edge_key), or kNoLatticeEdge
   std::vector<char> far;             ///< per vertex, with holes kept: beyond the rim-trim bound
+  /// Per vertex, with SurfaceParams::boundary_flags and the colour function: 1 where a
+  /// Type B (split) colour cell dominates (SurfaceResult::colour_boundary).
+  std::vector<std::uint8_t> boundary;
   std::size_t points = 0;            ///< the block's points (window and margin)
   std::size_t colour_nearest_vertices = 0;
   std::size_t colour_edges_split = 0;  ///< edges split at colour boundaries (none on shared faces)
@@ -236,9 +239,10 @@ BlockMesh reconstruct_block(const Cloud& points, const BlockGrid& grid, int id, 
                             const SurfaceParams& params, const SeamTable& upper, SeamTable& lower);
 
 /// The blocks' meshes as one: vertices on shared faces are joined by their lattice edge
-/// (the first block's position, normal and colour kept). `far` gets the joined
-/// vertices' far flags when given.
-Mesh stitch_blocks(std::vector<BlockMesh>& pieces, const BlockGrid& grid, std::vector<char>* far = nullptr);
+/// (the first block's position, normal and colour kept). `far` and `boundary` get the
+/// joined vertices' flags when given (boundary: empty unless every piece has them).
+Mesh stitch_blocks(std::vector<BlockMesh>& pieces, const BlockGrid& grid, std::vector<char>* far = nullptr,
+                   std::vector<std::uint8_t>* boundary = nullptr);
 
 /// The points of `source` inside block `id`'s region.
 Cloud block_points(const CloudSource& source, const BlockGrid& grid, int id);

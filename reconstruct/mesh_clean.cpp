@@ -15,8 +15,11 @@
 namespace station {
 
 
-ComponentFilterStats remove_small_components(Mesh& mesh, double min_area_fraction) {
+ComponentFilterStats remove_small_components(Mesh& mesh, double min_area_fraction,
+                                             std::vector<std::uint8_t>* vertex_flags) {
   mesh.check_consistent();
+  if (vertex_flags && vertex_flags->size() != mesh.vertices.size())
+    throw InvalidInput("remove_small_components: one flag per vertex expected");
   if (!(min_area_fraction >= 0 && min_area_fraction <= 1))
     throw InvalidInput("remove_small_components: fraction " + std::to_string(min_area_fraction) +
                        " outside [0, 1]");
@@ -62,9 +65,11 @@ ComponentFilterStats remove_small_components(Mesh& mesh, double min_area_fractio
     for (int k = 0; k < 3; ++k) remap[f[k]] = 0;
   }
   Mesh out;
+  std::vector<std::uint8_t> flags;
   for (std::size_t v = 0; v < nv; ++v) {
     if (remap[v] < 0) continue;
     remap[v] = int(out.vertices.size());
+    if (vertex_flags) flags.push_back((*vertex_flags)[v]);
     out.vertices.push_back(mesh.vertices[v]);
     if (mesh.has_normals()) out.normals.push_back(mesh.normals[v]);
     if (mesh.has_colours()) out.colours.push_back(mesh.colours[v]);
@@ -72,6 +77,7 @@ ComponentFilterStats remove_small_components(Mesh& mesh, double min_area_fractio
   for (Face& f : faces) f = Face(remap[f[0]], remap[f[1]], remap[f[2]]);
   out.faces = std::move(faces);
   mesh = std::move(out);
+  if (vertex_flags) vertex_flags->swap(flags);
   return st;
 }
 

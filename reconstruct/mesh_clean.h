@@ -22,7 +22,9 @@ struct ComponentFilterStats {
 /// largest piece's area (0 keeps everything), then drops unreferenced vertices
 /// (normals and colours follow). Face order and orientation are kept.
 /// InvalidInput on an inconsistent mesh or a fraction outside [0, 1].
-ComponentFilterStats remove_small_components(Mesh& mesh, double min_area_fraction);
+/// `vertex_flags` (one per vertex, when given) follow the vertices kept.
+ComponentFilterStats remove_small_components(Mesh& mesh, double min_area_fraction,
+                                             std::vector<std::uint8_t>* vertex_flags = nullptr);
 
 /// Erodes the mesh's open rims back to the data: faces on an open boundary (with an
 /// edge used by that face alone) having a vertex further than `max_distance` from

@@ -130,7 +130,7 @@ std::string attempt(Fn&& fn) {
 }
 
 // The version of the block files (summary, seam tables, pieces) a work folder holds.
-constexpr const char* kBlockFilesVersion = "station blocks 5";
+constexpr const char* kBlockFilesVersion = "station blocks 6";
 
 // Rethrows a message as the error kind its text says it was (the kinds keep their
 // exit codes); InvalidInput otherwise.

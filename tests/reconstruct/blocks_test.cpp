@@ -359,8 +359,18 @@ TEST(BlockSurface, ColourEdgesAreSplitInBlocksAsInTheSingleRun) {
   p.threads = 2;
   p.resolution = 48;
   p.hole = HoleMode::kClose;
+  p.boundary_flags = true;
   const SurfaceResult single = reconstruct_surface(cloud, p);
   const SurfaceResult b = reconstruct_surface_blocks(memory_source(cloud), p, 8);
+  // The report's colour-boundary flags, one a vertex, about as many as the single run's.
+  ASSERT_EQ(single.colour_boundary.size(), single.mesh.vertices.size());
+  ASSERT_EQ(b.colour_boundary.size(), b.mesh.vertices.size());
+  const auto flagged = [](const std::vector<std::uint8_t>& f) { return std::count(f.begin(), f.end(), 1); };
+  std::printf("colour-boundary vertices: single %ld, blocks %ld\n", long(flagged(single.colour_boundary)),
+              long(flagged(b.colour_boundary)));
+  EXPECT_GT(flagged(b.colour_boundary), 0);
+  EXPECT_NEAR(double(flagged(b.colour_boundary)), double(flagged(single.colour_boundary)),
+              0.3 * double(flagged(single.colour_boundary)));
   EvalParams ep;
   ep.mesh_samples = 40000;
   ep.threads = 2;
@@ -392,6 +402,7 @@ TEST(BlockSurface, ColourEdgesAreSplitInBlocksAsInTheSingleRun) {
     const BlockMesh back = piece_from_bytes(to_bytes(piece), "piece");
     ASSERT_EQ(back.colour.has_value(), piece.colour.has_value());
     EXPECT_EQ(back.colour_edges_split, piece.colour_edges_split);
+    EXPECT_EQ(back.boundary, piece.boundary);
     split += piece.colour_edges_split;
     if (!piece.colour) continue;
     const ColourDiagnostics &x = *piece.colour, &y = *back.colour;

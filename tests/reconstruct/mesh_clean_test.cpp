@@ -71,7 +71,15 @@ TEST(RemoveSmallComponents, DropsSpecksAndKeepsTheObjectWithItsAttributes) {
   const Mesh speck = painted(test::icosphere(1, 0.05, Vec3f(3, 0, 0)), {0, 0, 255});
   const Mesh medium = painted(test::icosphere(2, 0.5, Vec3f(-3, 0, 0)), {0, 255, 0});
   Mesh m = join(join(speck, big), medium);  // the speck first: indices must be remapped
-  const ComponentFilterStats st = remove_small_components(m, 0.01);
+  // Per-vertex flags follow their vertices: 1 on the medium sphere's.
+  std::vector<std::uint8_t> flags(m.vertices.size());
+  for (std::size_t i = 0; i < flags.size(); ++i) flags[i] = m.vertices[i].x() < -2;
+  std::vector<std::uint8_t> short_flags(3);
+  Mesh copy = m;
+  EXPECT_THROW(remove_small_components(copy, 0.01, &short_flags), InvalidInput);
+  const ComponentFilterStats st = remove_small_components(m, 0.01, &flags);
+  ASSERT_EQ(flags.size(), m.vertices.size());
+  for (std::size_t i = 0; i < flags.size(); ++i) EXPECT_EQ(flags[i], m.vertices[i].x() < -2 ? 1 : 0);
   EXPECT_EQ(st.components, 3u);
   EXPECT_EQ(st.removed_components, 1u);
   EXPECT_EQ(st.removed_faces, speck.faces.size());
