@@ -34,15 +34,8 @@ double area_of(const PointIndex& index, const std::vector<Vec3f>& points, const 
   return sum;
 }
 
-std::size_t output_count(std::size_t n, const WlopParams& p) {
-  std::size_t want = p.target_points > 0 ? p.target_points
-                                         : std::max<std::size_t>(1, std::size_t(std::llround(p.ratio * double(n))));
-  if (p.target_points == 0) {
-    if (p.max_points > 0) want = std::min(want, p.max_points);
-    want = std::max(want, std::min(p.min_points, n));
-  }
-  return std::min(want, n);
-}
+// The points a WLOP block may hold within max_bytes (its margin included).
+double block_capacity(double max_bytes) { return (max_bytes - kWlopBaseBytes) / kWlopBytesPerPoint; }
 
 }  // namespace
 
@@ -51,7 +44,7 @@ int wlop_block_count(std::size_t points, int blocks, double max_bytes) {
   if (blocks > 0) return blocks;
   std::size_t n = std::max<std::size_t>(1, (points + kAutoWlopBlockPoints - 1) / kAutoWlopBlockPoints);
   if (max_bytes > 0) {
-    const double fit = (max_bytes - kWlopBaseBytes) / kWlopBytesPerPoint / (4.0 / 3.0);  // points a block may hold
+    const double fit = block_capacity(max_bytes) / (4.0 / 3.0);  // a box's points, its margin a third more
     if (!(fit >= 100000))
       throw InvalidInput("consolidate: --max-memory " + std::to_string(max_bytes / 1e9).substr(0, 4) +
                          " GB cannot hold a WLOP block of 100,000 points (about " +
@@ -101,7 +94,7 @@ ConsolidationPlan plan_consolidation(const CloudSource& source, const WlopParams
   if (!(params.radius >= 0) || !std::isfinite(params.radius))
     throw InvalidInput("consolidate: radius must be >= 0 and finite");
   plan.radius = params.radius > 0 ? params.radius : 4.0 * plan.diagonal / std::sqrt(double(plan.points));
-  plan.output_points = output_count(plan.points, params);
+  plan.output_points = std::min(wlop_requested_points(plan.points, params), plan.points);
   blocks = wlop_block_count(plan.points, blocks, max_bytes);
   // The points of each box (with kProjection, on the first pass, the area's every k-th
   // point). With a memory bound, more blocks while the largest box (a third more for
@@ -121,7 +114,7 @@ ConsolidationPlan plan_consolidation(const CloudSource& source, const WlopParams
     });
     if (!automatic || !(max_bytes > 0) || blocks >= 4096) break;
     const double largest = double(*std::max_element(plan.box_points.begin(), plan.box_points.end())) * 4 / 3;
-    const double fit = (max_bytes - kWlopBaseBytes) / kWlopBytesPerPoint;
+    const double fit = block_capacity(max_bytes);
     if (largest <= fit) break;
     blocks = int(std::min(4096.0, std::ceil(double(blocks) * largest / fit) + 1));
   }
@@ -180,6 +173,15 @@ Cloud consolidate_block(const Cloud& points, const ConsolidationPlan& plan, int 
   return out;
 }
 
+void append_block_output(Cloud& to, const Cloud& part, const std::string& what) {
+  if (part.empty()) return;
+  if (!to.empty() && (to.has_normals() != part.has_normals() || to.has_colours() != part.has_colours()))
+    throw FormatError(what + ": its attributes (normals, colours) differ from the other blocks'");
+  to.points.insert(to.points.end(), part.points.begin(), part.points.end());
+  to.normals.insert(to.normals.end(), part.normals.begin(), part.normals.end());
+  to.colours.insert(to.colours.end(), part.colours.begin(), part.colours.end());
+}
+
 Cloud consolidate_blocks(const CloudSource& source, const WlopParams& params, int blocks, BlockWlopStats* stats,
                          const std::function<void(const std::string&)>& note, double max_bytes) {
   const auto t0 = std::chrono::steady_clock::now();
@@ -191,14 +193,7 @@ Cloud consolidate_blocks(const CloudSource& source, const WlopParams& params, in
     const Cloud pts = block_points(source, plan.grid, id);
     st.max_block_points = std::max(st.max_block_points, pts.size());
     const Cloud part = consolidate_block(pts, plan, id, params);
-    const bool first = out.empty();
-    if (!part.empty() && (first || (out.has_normals() == part.has_normals() && out.has_colours() == part.has_colours()))) {
-      out.points.insert(out.points.end(), part.points.begin(), part.points.end());
-      out.normals.insert(out.normals.end(), part.normals.begin(), part.normals.end());
-      out.colours.insert(out.colours.end(), part.colours.begin(), part.colours.end());
-    } else if (!part.empty()) {
-      throw InvalidInput("consolidate: the blocks' outputs differ in their attributes (normals, colours)");
-    }
+    append_block_output(out, part, "consolidate: block " + std::to_string(id + 1));
     if (note) {
       char line[160];
       std::snprintf(line, sizeof line, "block %d/%d: %zu points -> %zu", id + 1, plan.grid.size(), pts.size(), part.size());

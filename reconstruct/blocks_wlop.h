@@ -74,6 +74,10 @@ Cloud consolidate_block(const Cloud& points, const ConsolidationPlan& plan, int 
 /// The block whose box holds x (the nearest box for a point outside the bounds).
 int wlop_block_of(const BlockGrid& grid, const Vec3f& x);
 
+/// Appends a block's output to the gathered cloud; FormatError naming `what` when
+/// its attributes (normals, colours) differ from those gathered so far.
+void append_block_output(Cloud& to, const Cloud& part, const std::string& what);
+
 /// The whole cloud consolidated block by block, in sequence (one block's points in
 /// memory at a time; the output whole). `note` gets a line a block.
 struct BlockWlopStats {

@@ -1205,6 +1205,13 @@ std::vector<int> initial_subset(std::size_t n, std::size_t count, unsigned seed)
   return pool;
 }
 
+std::size_t wlop_requested_points(std::size_t n, const WlopParams& params) {
+  if (params.target_points > 0) return params.target_points;
+  std::size_t want = std::max<std::size_t>(1, std::size_t(std::llround(params.ratio * double(n))));
+  if (params.max_points > 0) want = std::min(want, params.max_points);
+  return std::max(want, std::min(params.min_points, n));
+}
+
 WlopResult consolidate(const Cloud& input, const WlopParams& params) {
   validate(input, params);
   WlopResult result;
@@ -1216,14 +1223,7 @@ WlopResult consolidate(const Cloud& input, const WlopParams& params) {
   if (params.max_points > 0 && params.min_points > params.max_points)
     throw InvalidInput("consolidate: min_points (" + std::to_string(params.min_points) + ") above max_points (" +
                        std::to_string(params.max_points) + ")");
-  result.requested_points =
-      params.target_points > 0
-          ? params.target_points
-          : std::max<std::size_t>(1, std::size_t(std::llround(params.ratio * double(input.size()))));
-  if (params.target_points == 0) {
-    if (params.max_points > 0) result.requested_points = std::min(result.requested_points, params.max_points);
-    result.requested_points = std::max(result.requested_points, std::min(params.min_points, input.size()));
-  }
+  result.requested_points = wlop_requested_points(input.size(), params);
   result.clamped = result.requested_points > input.size();
   result.output_points = std::min(result.requested_points, input.size());
 

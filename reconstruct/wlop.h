@@ -319,6 +319,11 @@ struct WlopResult {
 /// shift_divisions < 1, max_copies outside [1, 64], normal_neighbours < 3).
 WlopResult consolidate(const Cloud& input, const WlopParams& params = {});
 
+/// |I| asked for from an n-point input: target_points, or round(ratio * n) (at least
+/// 1) within [min(min_points, n), max_points]; WlopResult::requested_points. The
+/// output holds min(this, n).
+std::size_t wlop_requested_points(std::size_t n, const WlopParams& params);
+
 /// The initial projected set: `count` distinct indices into an n-point input,
 /// drawn by a partial Fisher-Yates shuffle driven by std::mt19937_64(seed) and
 /// returned sorted. Same n, count and seed, same subset, on any platform.

@@ -268,14 +268,7 @@ WlopBlocksRun run_consolidate_blocks(const std::string& input, const WlopParams&
         if (!fs::exists(out_file(id)))
           throw IoError(out_file(id).string() + ": a block's output is missing (the work folder must be shared by the "
                         "ranks)");
-        const Cloud part = read_cloud(out_file(id));
-        if (part.empty()) continue;
-        if (!run.cloud.empty() && (run.cloud.has_normals() != part.has_normals() ||
-                                   run.cloud.has_colours() != part.has_colours()))
-          throw FormatError(out_file(id).string() + ": its attributes differ from the other blocks'");
-        run.cloud.points.insert(run.cloud.points.end(), part.points.begin(), part.points.end());
-        run.cloud.normals.insert(run.cloud.normals.end(), part.normals.begin(), part.normals.end());
-        run.cloud.colours.insert(run.cloud.colours.end(), part.colours.begin(), part.colours.end());
+        append_block_output(run.cloud, read_cloud(out_file(id)), out_file(id).string());
       }
       std::error_code ec;
       fs::remove_all(work, ec);
