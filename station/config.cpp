@@ -46,6 +46,13 @@ struct Reader {
       fail(key, "not an integer");
     }
   }
+  /// `auto` (0) or an integer in [lo, hi].
+  int auto_or_integer(const YAML::Node& n, const std::string& key, int lo, int hi) const {
+    if (n.IsScalar() && n.Scalar() == "auto") return 0;
+    const int v = integer(n, key);
+    if (v < lo || v > hi) fail(key, "must be auto or " + std::to_string(lo) + ".." + std::to_string(hi));
+    return v;
+  }
   bool boolean(const YAML::Node& n, const std::string& key) const {
     try {
       return n.as<bool>();
@@ -197,14 +204,7 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
     if (n["seed"]) c.seed = unsigned(r.integer(n["seed"], "consolidate.seed"));
     if (n["radius"]) c.radius = r.number(n["radius"], "consolidate.radius");
     if (c.radius < 0) r.fail("consolidate.radius", "must not be negative (0: 4 d_bb / sqrt(|J|))");
-    if (n["blocks"]) {
-      if (n["blocks"].IsScalar() && n["blocks"].Scalar() == "auto") {
-        c.blocks = 0;
-      } else {
-        c.blocks = r.integer(n["blocks"], "consolidate.blocks");
-        if (c.blocks < 1 || c.blocks > 4096) r.fail("consolidate.blocks", "must be auto or 1..4096");
-      }
-    }
+    if (n["blocks"]) c.blocks = r.auto_or_integer(n["blocks"], "consolidate.blocks", 1, 4096);
   }
   if (const YAML::Node n = root["reconstruct"]) {
     r.check_keys(n, "reconstruct", {"surface", "resolution", "epsilon0", "extractor", "hole", "colour", "colour_method", "colour_multi",
@@ -215,22 +215,8 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
     if (n["table_plane"]) c.table_plane = r.boolean(n["table_plane"], "reconstruct.table_plane");
     if (n["winding_close"]) c.winding_close = r.boolean(n["winding_close"], "reconstruct.winding_close");
     if (c.surface != "mpu" && c.surface != "sdm") r.fail("reconstruct.surface", "must be mpu or sdm");
-    if (n["resolution"]) {
-      if (n["resolution"].IsScalar() && n["resolution"].Scalar() == "auto") {
-        c.resolution = 0;
-      } else {
-        c.resolution = r.integer(n["resolution"], "reconstruct.resolution");
-        if (c.resolution < 8 || c.resolution > 4096) r.fail("reconstruct.resolution", "must be auto or 8..4096");
-      }
-    }
-    if (n["blocks"]) {
-      if (n["blocks"].IsScalar() && n["blocks"].Scalar() == "auto") {
-        c.blocks = 0;
-      } else {
-        c.blocks = r.integer(n["blocks"], "reconstruct.blocks");
-        if (c.blocks < 1 || c.blocks > 4096) r.fail("reconstruct.blocks", "must be auto or 1..4096");
-      }
-    }
+    if (n["resolution"]) c.resolution = r.auto_or_integer(n["resolution"], "reconstruct.resolution", 8, 4096);
+    if (n["blocks"]) c.blocks = r.auto_or_integer(n["blocks"], "reconstruct.blocks", 1, 4096);
     if (n["max_memory_gb"]) c.max_memory_gb = r.number(n["max_memory_gb"], "reconstruct.max_memory_gb");
     if (!(c.max_memory_gb == 0 || (c.max_memory_gb >= 0.25 && c.max_memory_gb <= 1e6)))
       r.fail("reconstruct.max_memory_gb", "must be 0 (no bound) or at least 0.25 (GB per rank)");
