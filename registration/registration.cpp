@@ -80,6 +80,21 @@ std::pair<double, double> relative_pose_error(const Eigen::Matrix4d& A0, const E
 namespace {
 
 using Clock = std::chrono::steady_clock;
+
+// Global registration against a model (docs/registration.md, "Hand-held
+// views"). Poses within kTie of the best overlap are told apart by colour. A
+// pose whose mean colour difference to the model (per channel, 0-255) is at
+// least kColourDisagrees gives way to one with at least kColourOverlapShare of
+// the best overlap and at most kColourBetter times its colour difference.
+constexpr double kTie = 0.03;
+constexpr double kColourDisagrees = 15;
+constexpr double kColourOverlapShare = 0.7;
+constexpr double kColourBetter = 0.5;
+// The colour comparison's gain per channel stays within [1/this, this].
+constexpr double kColourMaxGain = 3;
+// Turned starts refined first (all of them when those leave no pose that
+// overlaps enough and agrees in colour).
+constexpr std::size_t kSpunRefined = 4;
 double median_of(std::vector<double> v) {
   if (v.empty()) return 0;
   std::sort(v.begin(), v.end());
@@ -518,22 +533,33 @@ class Registrar {
     return cm;
   }
   // Mean colour difference (0-255, per channel) between the points of `c` moved
-  // by X and the model's nearest within `dist`; infinity when none is that near.
+  // by X and the model's nearest within `dist`, after a gain per channel that
+  // fits the view's colours to the model's best (least squares: a scanner's
+  // exposure and white balance change from view to view; a pose that brings
+  // unlike surfaces together cannot be fitted so). Infinity when no point is
+  // that near.
   static double colour_error(const Cloud& c, const ColourModel& cm, const Eigen::Matrix4d& X, double dist) {
     if (!c.has_colours() || c.empty()) return std::numeric_limits<double>::infinity();
     const std::size_t stride = std::max<std::size_t>(1, c.size() / 3000);
     const Eigen::Matrix4f Xf = X.cast<float>();
-    double sum = 0;
-    std::size_t n = 0;
+    std::vector<std::pair<Vec3d, Vec3d>> pairs;
+    Vec3d ab = Vec3d::Zero(), aa = Vec3d::Zero();
     for (std::size_t k = 0; k < c.size(); k += stride) {
       const auto [j, d] = cm.index->nearest(Xf.block<3, 3>(0, 0) * c.points[k] + Xf.block<3, 1>(0, 3));
       if (j < 0 || d > float(dist)) continue;
       const Rgb& a = c.colours[k];
       const Rgb& b = cm.colours[std::size_t(j)];
-      sum += (std::abs(int(a.r) - int(b.r)) + std::abs(int(a.g) - int(b.g)) + std::abs(int(a.b) - int(b.b))) / 3.0;
-      ++n;
+      pairs.push_back({Vec3d(a.r, a.g, a.b), Vec3d(b.r, b.g, b.b)});
+      ab += pairs.back().first.cwiseProduct(pairs.back().second);
+      aa += pairs.back().first.cwiseProduct(pairs.back().first);
     }
-    return n ? sum / double(n) : std::numeric_limits<double>::infinity();
+    if (pairs.empty()) return std::numeric_limits<double>::infinity();
+    Vec3d gain = Vec3d::Ones();
+    for (int ch = 0; ch < 3; ++ch)
+      if (aa[ch] > 0) gain[ch] = std::clamp(ab[ch] / aa[ch], 1.0 / kColourMaxGain, kColourMaxGain);
+    double sum = 0;
+    for (const auto& [a, b] : pairs) sum += (gain.cwiseProduct(a) - b).cwiseAbs().sum() / 3.0;
+    return sum / double(pairs.size());
   }
 
   // Feature registration of view `src` onto a target, each hypothesis refined
@@ -550,7 +576,7 @@ class Registrar {
   GlobalAlign global_align(int src, const PreparedView& target, const std::vector<FeatureView>& target_feats,
                            const ColourModel* colour, const std::optional<std::pair<Vec3d, Vec3d>>& axis) {
     return global_align(views_[src], all_features_of(src), views_[src].full, target, pointers(target_feats),
-                        colour, axis, true);
+                        colour, axis, true, true);
   }
   // The same for any source: a view, or a run of views merged (`coloured`: its
   // points with colours, for the colour check). `source_feats` and
@@ -562,11 +588,16 @@ class Registrar {
   // first scale's features and once on each further scale's
   // (global_extra_radii), every run's hypotheses pooled and ranked by the
   // overlap they give; twice the ICP candidates; the best pose turned (below);
-  // near ties decided by colour.
+  // near ties decided by colour. `until_settled` (a view against the model, not
+  // a merged run: a second pass whose runs do not overlap would be placed where
+  // some turned start happens to fit) refines every turned start, and goes on
+  // with ICP that ran out of iterations, while no pose both overlaps enough and
+  // agrees in colour.
   GlobalAlign global_align(const PreparedView& source, const std::vector<const FeatureView*>& source_feats,
                            const Cloud& coloured, const PreparedView& target,
                            const std::vector<const FeatureView*>& target_feats, const ColourModel* colour,
-                           const std::optional<std::pair<Vec3d, Vec3d>>& axis, bool multi = false) {
+                           const std::optional<std::pair<Vec3d, Vec3d>>& axis, bool multi = false,
+                           bool until_settled = false) {
     GlobalAlign out;
     GlobalRegistrationParams gp = global_params();
     if (multi) gp.hypotheses = std::max(gp.hypotheses, 2 * p_.global_icp_candidates);
@@ -619,14 +650,61 @@ class Registrar {
       r[k] = icp_point_to_plane(source, target, g.hypotheses[rank[k].second].transform, ip);
     });
     std::string why;
+    // The best converged pose; else the best that did not converge yet (a
+    // partial view sliding on a flat part): the turned starts go from it.
     int best = -1;
+    bool best_converged = false;
     for (std::size_t k = 0; k < r.size(); ++k) {
-      if (!r[k].converged) {
-        if (why.empty()) why = r[k].message;
-        continue;
+      if (!r[k].converged && why.empty()) why = r[k].message;
+      const bool better = best < 0 || (r[k].converged && !best_converged) ||
+                          (r[k].converged == best_converged && r[k].fitness > r[best].fitness);
+      if (better && (r[k].converged || r[k].fitness > 0)) {
+        best = int(k);
+        best_converged = r[k].converged;
       }
-      if (best < 0 || r[k].fitness > r[best].fitness) best = int(k);
     }
+    // The choice: the best overlap; among near ties (kTie), the best colour
+    // agreement. Then a pose whose colours clearly disagree with the model's (a
+    // near-symmetric shape turned: its overlap can exceed the right pose's,
+    // which sees a part no other view saw) gives way to one with at least
+    // kColourOverlapShare of its overlap whose colours agree at least
+    // 1 / kColourBetter times better (docs/registration.md, "Hand-held views").
+    double chosen_colour = std::numeric_limits<double>::infinity();
+    const auto choose = [&] {
+      out.fitness = 0;
+      out.transform = Eigen::Matrix4d::Identity();
+      double best_fit = 0;
+      for (const IcpResult& x : r)
+        if (x.converged) best_fit = std::max(best_fit, x.fitness);
+      std::vector<double> err(r.size(), std::numeric_limits<double>::infinity());
+      double best_score = std::numeric_limits<double>::infinity();
+      for (std::size_t k = 0; k < r.size(); ++k) {
+        const IcpResult& x = r[k];
+        if (!x.converged) continue;
+        if (!colour) {
+          if (x.fitness > out.fitness) {
+            out.fitness = x.fitness;
+            out.transform = x.transform;
+          }
+          continue;
+        }
+        if (x.fitness >= kColourOverlapShare * best_fit)
+          err[k] = colour_error(coloured, *colour, x.transform, ip.max_distance_end);
+        if (x.fitness >= best_fit - kTie && (err[k] < best_score || (err[k] == best_score && x.fitness > out.fitness))) {
+          best_score = err[k];
+          out.fitness = x.fitness;
+          out.transform = x.transform;
+        }
+      }
+      chosen_colour = best_score;
+      if (!(colour && std::isfinite(best_score) && best_score >= kColourDisagrees)) return;
+      for (std::size_t k = 0; k < r.size(); ++k)
+        if (err[k] <= kColourBetter * best_score && err[k] < chosen_colour) {
+          chosen_colour = err[k];
+          out.fitness = r[k].fitness;
+          out.transform = r[k].transform;
+        }
+    };
     if (best >= 0 && multi) {
       // More starts from the best pose: turned about the turntable axis in eighths,
       // and about the model's principal axes through the view's centre in quarters
@@ -646,8 +724,6 @@ class Registrar {
       for (int a = 0; a < 3; ++a)
         for (int k = 1; k < 4; ++k)
           turns.push_back({model_mean, Eigen::AngleAxisd(M_PI * k / 2, pca.eigenvectors().col(a)).toRotationMatrix()});
-      // Only the starts with the best overlap are refined (ICP is the cost).
-      constexpr std::size_t kSpunRefined = 4;
       std::vector<std::pair<double, Eigen::Matrix4d>> starts(turns.size());
       tbb::parallel_for(std::size_t(0), turns.size(), [&](std::size_t k) {
         Eigen::Matrix4d S = Eigen::Matrix4d::Identity();
@@ -657,33 +733,47 @@ class Registrar {
       });
       std::stable_sort(starts.begin(), starts.end(),
                        [](const auto& a, const auto& b) { return a.first < b.first; });
-      starts.resize(std::min(starts.size(), kSpunRefined));
-      std::vector<IcpResult> spun(starts.size());
-      tbb::parallel_for(std::size_t(0), starts.size(), [&](std::size_t k) {
-        spun[k] = icp_point_to_plane(source, target, starts[k].second, ip);
-      });
-      for (IcpResult& x : spun)
-        if (x.converged) r.push_back(std::move(x));
-    }
-    // The choice: the best overlap; among near ties, the best colour agreement.
-    constexpr double kTie = 0.03;
-    double best_fit = 0;
-    for (const IcpResult& x : r)
-      if (x.converged) best_fit = std::max(best_fit, x.fitness);
-    double best_score = std::numeric_limits<double>::infinity();
-    for (const IcpResult& x : r) {
-      if (!x.converged) continue;
-      if (colour && x.fitness >= best_fit - kTie) {
-        const double e = colour_error(coloured, *colour, x.transform, ip.max_distance_end);
-        if (e < best_score || (e == best_score && x.fitness > out.fitness)) {
-          best_score = e;
-          out.fitness = x.fitness;
-          out.transform = x.transform;
-        }
-      } else if (!colour && x.fitness > out.fitness) {
-        out.fitness = x.fitness;
-        out.transform = x.transform;
+      // ICP is the cost: the starts with the best overlap are refined, and the
+      // others only when no pose is left that both overlaps enough and agrees
+      // in colour. The start's overlap ranks poorly: the right pose of the
+      // hand-held view from nearly straight below started 10th of 16.
+      const auto refine = [&](std::size_t from, std::size_t to) {
+        std::vector<IcpResult> spun(to - from);
+        tbb::parallel_for(from, to, [&](std::size_t k) {
+          spun[k - from] = icp_point_to_plane(source, target, starts[k].second, ip);
+        });
+        for (IcpResult& x : spun) r.push_back(std::move(x));
+        choose();
+      };
+      const std::size_t first = std::min(starts.size(), kSpunRefined);
+      refine(0, first);
+      const auto settled = [&] {
+        return !until_settled ||
+               (out.fitness >= p_.global_min_fitness && !(colour && chosen_colour >= kColourDisagrees));
+      };
+      if (!settled()) refine(first, starts.size());
+      if (!settled()) {
+        // ICP that ran out of iterations while still sliding (a view that
+        // overlaps the model along a narrow band, a flat part the model lacks):
+        // continued at the final distance, the best of them by overlap.
+        std::vector<std::size_t> sliding;
+        for (std::size_t k = 0; k < r.size(); ++k)
+          if (!r[k].converged && r[k].fitness >= p_.global_min_fitness) sliding.push_back(k);
+        std::stable_sort(sliding.begin(), sliding.end(),
+                         [&](std::size_t a, std::size_t b) { return r[a].fitness > r[b].fitness; });
+        sliding.resize(std::min(sliding.size(), std::size_t(2 * kSpunRefined)));
+        IcpParams more = ip;
+        more.max_distance_start = ip.max_distance_end;
+        more.max_iterations = 2 * ip.max_iterations;
+        std::vector<IcpResult> cont(sliding.size());
+        tbb::parallel_for(std::size_t(0), sliding.size(), [&](std::size_t k) {
+          cont[k] = icp_point_to_plane(source, target, r[sliding[k]].transform, more);
+        });
+        for (IcpResult& x : cont) r.push_back(std::move(x));
+        choose();
       }
+    } else {
+      choose();
     }
     if (out.fitness >= p_.global_min_fitness) {
       out.ok = true;

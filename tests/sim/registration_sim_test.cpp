@@ -566,6 +566,12 @@ TEST(SimRegistration, HandHeldViewsWithAThirdOverlapRegister) {
       {-50, 320, 0.30, 0.05, 45},   // nearer, below the label
       {-40, 200, 0.30, 0.05, -120}, // nearer, low down
       {-20, 250, 0.30, -1, 90},     // a little below
+      // Nearly straight below: the flat bottom (which no table view saw) and a
+      // band of the side; the overlap 0.27-0.52.
+      {-65, 40, 0.35, -1, 30},
+      {-70, 280, 0.35, -1, -60},
+      {-80, 0, 0.35, -1, 100},
+      {-55, 180, 0.40, -1, 10},
   };
   for (std::size_t k = 0; k < hand.size(); ++k) scan("hand" + std::to_string(k), hand[k], 1, false);
   ASSERT_EQ(clouds.size(), 8u + hand.size());
@@ -594,12 +600,17 @@ TEST(SimRegistration, HandHeldViewsWithAThirdOverlapRegister) {
     const Eigen::Matrix4d G = *m.views[0].reference_pose * rigid_inverse(r.poses[0]) * r.poses[i];
     std::printf("  hand-held view %zu: %zu points, overlap %.2f (%.2f where registered)\n", i, clouds[i].size(),
                 overlap[i], overlap_at(i, G.cast<float>()));
+    // Registered or not, never wrong: a view under 30 % may fail, by name.
+    if (r.views[i].registered) {
+      ASSERT_TRUE(r.views[i].rotation_error_deg.has_value()) << i;
+      EXPECT_LT(*r.views[i].rotation_error_deg, 0.5) << i;
+      EXPECT_LT(*r.views[i].object_translation_error, 0.001) << i;
+    } else {
+      EXPECT_FALSE(r.views[i].message.empty()) << i;
+    }
     if (overlap[i] < 0.3) continue;
     partial += overlap[i] < 0.7;
-    ASSERT_TRUE(r.views[i].registered) << i << ": " << r.views[i].message;
-    ASSERT_TRUE(r.views[i].rotation_error_deg.has_value()) << i;
-    EXPECT_LT(*r.views[i].rotation_error_deg, 0.5) << i;
-    EXPECT_LT(*r.views[i].object_translation_error, 0.001) << i;
+    EXPECT_TRUE(r.views[i].registered) << i << ": " << r.views[i].message;
   }
   EXPECT_GE(partial, 2);  // the case holds views that see only a part of what the table saw
   for (std::size_t i = 0; i < 8; ++i) EXPECT_TRUE(r.views[i].registered) << i;
