@@ -134,6 +134,26 @@ void run_multiview_cases(const Options& options, Report& report) {
                     mm(ours.extraction.cell_size) + " mm) " + quality(ours.mesh, merged, threads));
       report.note("dragon " + mode + ": Poisson depth " + std::to_string(depth) +
                   " on the merged cloud " + quality(poisson.mesh, merged, threads));
+      if (depth != 9 || poisson.mesh.vertices.empty() || ours.mesh.vertices.empty()) continue;
+      // Matched vertex count (issue 32's targets): ours again at the
+      // resolution whose mesh has about Poisson depth 9's vertices (the count
+      // grows with the square of the resolution; one correction step).
+      SurfaceParams matched_sp = sp;
+      SurfaceResult at;
+      const auto resolution_for = [](const SurfaceResult& r, std::size_t want) {
+        return int(std::lround(r.resolution * std::sqrt(double(want) / double(r.mesh.vertices.size()))));
+      };
+      matched_sp.resolution = resolution_for(ours, poisson.mesh.vertices.size());
+      at = reconstruct_surface(consolidated.cloud, matched_sp);
+      matched_sp.resolution = resolution_for(at, poisson.mesh.vertices.size());
+      auto run_matched = [&] { at = reconstruct_surface(consolidated.cloud, matched_sp); };
+      Row mrow{"dragon session, " + mode + ": surface stage at Poisson's vertex count (" +
+                   std::to_string(matched_sp.resolution) + " cells)",
+               "CreateFromPointCloudPoisson depth 9" + std::string(closed ? "" : " + density trim")};
+      std::tie(mrow.ours, mrow.theirs) = measure_pair(opt, run_matched, [&] { poisson.run(pcd); });
+      report.rows.push_back(mrow);
+      report.note("dragon " + mode + ": ours at " + std::to_string(matched_sp.resolution) + " cells (cell " +
+                  mm(at.extraction.cell_size) + " mm) " + quality(at.mesh, merged, threads));
     }
   }
 }
