@@ -113,4 +113,44 @@ std::vector<std::pair<int, float>> PointIndex::radius_unsorted(const Vec3f& q, f
   return radius_search(q, radius, false);
 }
 
+namespace {
+
+// nanoflann's radius result set that gives up past `cap` points (addPoint
+// returning false ends the search).
+struct CappedRadiusSet {
+  using DistanceType = float;
+  using IndexType = std::uint32_t;
+  float radius;
+  std::size_t cap;
+  std::vector<std::pair<std::uint32_t, float>>& hits;
+  bool over = false;
+  void init() { hits.clear(); }
+  std::size_t size() const { return hits.size(); }
+  bool full() const { return true; }
+  bool addPoint(float dist, std::uint32_t index) {
+    if (dist < radius) hits.emplace_back(index, dist);
+    over = hits.size() > cap;
+    return !over;
+  }
+  float worstDist() const { return radius; }
+};
+
+}  // namespace
+
+std::optional<std::vector<std::pair<int, float>>> PointIndex::radius_at_most(const Vec3f& q, float radius,
+                                                                             std::size_t count) const {
+  std::vector<std::pair<int, float>> out;
+  if (!impl_->tree || !(radius >= 0)) return out;
+  std::vector<std::pair<std::uint32_t, float>> hits;
+  // The bound and the order of radius_search (sorted as nanoflann sorts it).
+  const float r_sq = std::nextafter(radius * radius, std::numeric_limits<float>::infinity());
+  CappedRadiusSet set{r_sq, count, hits};
+  impl_->tree->radiusSearchCustomCallback(q.data(), set, nanoflann::SearchParams(32, 0.f, false));
+  if (set.over) return std::nullopt;
+  std::sort(hits.begin(), hits.end(), nanoflann::IndexDist_Sorter());
+  out.reserve(hits.size());
+  for (const auto& h : hits) out.emplace_back(int(h.first), std::sqrt(h.second));
+  return out;
+}
+
 }  // namespace station

@@ -4,6 +4,7 @@
 // thread-safe.
 #include <cstdint>
 #include <memory>
+#include <optional>
 #include <utility>
 #include <vector>
 
@@ -37,6 +38,11 @@ class PointIndex {
   /// The same points in the index's own order (deterministic for the index, not
   /// sorted by distance): cheaper when the order does not matter.
   std::vector<std::pair<int, float>> radius_unsorted(const Vec3f& q, float radius) const;
+  /// radius(q, radius) when it holds at most `count` points (the same points in the
+  /// same order), else nothing: the search stops at the (count + 1)-th point, so a
+  /// ball holding most of the cloud costs no more than a small one.
+  std::optional<std::vector<std::pair<int, float>>> radius_at_most(const Vec3f& q, float radius,
+                                                                   std::size_t count) const;
 
  private:
   std::vector<std::pair<int, float>> radius_search(const Vec3f& q, float radius, bool sorted) const;

@@ -741,10 +741,18 @@ CellResult fit_cell(const Impl& s, const Vec3d& o, double half, int depth) {
   const ColourParams& p = s.params;
   CellResult cr;
   const double R0 = p.alpha * 2 * half * std::sqrt(3.0);
-  auto nn = s.index->radius(o.cast<float>(), float(R0));
-  if (int(nn.size()) > p.n_max && depth < p.max_depth) {
-    cr.split = true;
-    return cr;
+  // A ball holding more than n_max points is split; the search gives up past them
+  // (near the root the ball holds most of the cloud).
+  std::vector<std::pair<int, float>> nn;
+  if (depth < p.max_depth) {
+    auto at_most = s.index->radius_at_most(o.cast<float>(), float(R0), std::size_t(std::max(p.n_max, 0)));
+    if (!at_most) {
+      cr.split = true;
+      return cr;
+    }
+    nn = std::move(*at_most);
+  } else {
+    nn = s.index->radius(o.cast<float>(), float(R0));
   }
   if (nn.empty()) {
     // No data within the cell's support: no leaf (docs/colour.md). MPU grows such balls

@@ -160,6 +160,37 @@ TEST(PointIndex, RadiusUnsortedHoldsTheSamePointsAsRadius) {
   EXPECT_TRUE(index.radius_unsorted(Vec3f(9, 9, 9), 0.1f).empty());
 }
 
+// radius_at_most: radius() itself (the same points in the same order) when the
+// ball holds at most `count` points, nothing when it holds more; inclusive at the
+// count and at the radius.
+TEST(PointIndex, RadiusAtMostIsRadiusOrNothing) {
+  const auto pts = random_points(3000, 11);
+  PointIndex index(pts);
+  int whole = 0, refused = 0;
+  for (const Vec3f& q : random_points(60, 12)) {
+    for (float r : {0.05f, 0.2f, 0.6f}) {
+      const auto all = index.radius(q, r);
+      for (std::size_t count : {std::size_t(0), std::size_t(5), all.size(), all.size() + 1, std::size_t(200)}) {
+        const auto got = index.radius_at_most(q, r, count);
+        if (all.size() <= count) {
+          ASSERT_TRUE(got.has_value()) << all.size() << " <= " << count;
+          EXPECT_EQ(*got, all);
+          ++whole;
+        } else {
+          EXPECT_FALSE(got.has_value()) << all.size() << " > " << count;
+          ++refused;
+        }
+      }
+    }
+  }
+  EXPECT_GT(whole, 100);
+  EXPECT_GT(refused, 100);
+  PointIndex three({Vec3f(0, 0, 0), Vec3f(1, 0, 0), Vec3f(3, 0, 0)});
+  EXPECT_EQ(three.radius_at_most(Vec3f(0, 0, 0), 1.f, 2)->size(), 2u);  // the point at 1 counts
+  EXPECT_FALSE(three.radius_at_most(Vec3f(0, 0, 0), 1.f, 1).has_value());
+  EXPECT_TRUE(PointIndex(std::vector<Vec3f>{}).radius_at_most(Vec3f::Zero(), 1.f, 0)->empty());
+}
+
 TEST(PointIndex, RadiusIsInclusive) {
   PointIndex index({Vec3f(0, 0, 0), Vec3f(1, 0, 0), Vec3f(3, 0, 0)});
   const auto got = index.radius(Vec3f(0, 0, 0), 1.f);
