@@ -95,6 +95,7 @@ constexpr double kColourMaxGain = 3;
 // Turned starts refined first (all of them when those leave no pose that
 // overlaps enough and agrees in colour).
 constexpr std::size_t kSpunRefined = 4;
+
 double median_of(std::vector<double> v) {
   if (v.empty()) return 0;
   std::sort(v.begin(), v.end());
