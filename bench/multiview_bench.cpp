@@ -145,6 +145,7 @@ void run_multiview_cases(const Options& options, Report& report) {
       };
       matched_sp.resolution = resolution_for(ours, poisson.mesh.vertices.size());
       at = reconstruct_surface(consolidated.cloud, matched_sp);
+      if (at.mesh.vertices.empty()) continue;
       matched_sp.resolution = resolution_for(at, poisson.mesh.vertices.size());
       auto run_matched = [&] { at = reconstruct_surface(consolidated.cloud, matched_sp); };
       Row mrow{"dragon session, " + mode + ": surface stage at Poisson's vertex count (" +

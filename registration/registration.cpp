@@ -82,15 +82,16 @@ namespace {
 using Clock = std::chrono::steady_clock;
 
 // Global registration against a model (docs/registration.md, "Hand-held
-// views"). Poses within kTie of the best overlap are told apart by colour. A
-// pose whose mean colour difference to the model (per channel, 0-255) is at
-// least kColourDisagrees gives way to one with at least kColourOverlapShare of
-// the best overlap and at most kColourBetter times its colour difference.
+// views"). Poses within kTie of the best overlap are told apart by colour. For
+// a single view, a pose whose mean colour difference to the model (per channel,
+// 0-255) is at least kColourDisagrees gives way to one with at least
+// kColourOverlapShare of the best overlap and at most kColourBetter times its
+// colour difference, and such a view is not settled (more starts are refined).
 constexpr double kTie = 0.03;
 constexpr double kColourDisagrees = 15;
 constexpr double kColourOverlapShare = 0.7;
 constexpr double kColourBetter = 0.5;
-// The colour comparison's gain per channel stays within [1/this, this].
+// The colour comparison's gain (one for all channels) stays within [1/this, this].
 constexpr double kColourMaxGain = 3;
 // Turned starts refined first (all of them when those leave no pose that
 // overlaps enough and agrees in colour).
@@ -534,32 +535,30 @@ class Registrar {
     return cm;
   }
   // Mean colour difference (0-255, per channel) between the points of `c` moved
-  // by X and the model's nearest within `dist`, after a gain per channel that
-  // fits the view's colours to the model's best (least squares: a scanner's
-  // exposure and white balance change from view to view; a pose that brings
-  // unlike surfaces together cannot be fitted so). Infinity when no point is
-  // that near.
+  // by X and the model's nearest within `dist`, after one gain on all channels
+  // that fits the view's colours to the model's best (least squares, within
+  // [1 / kColourMaxGain, kColourMaxGain]: a scanner's exposure changes from view
+  // to view; one gain cannot turn one hue into another). Infinity when no point
+  // is that near.
   static double colour_error(const Cloud& c, const ColourModel& cm, const Eigen::Matrix4d& X, double dist) {
     if (!c.has_colours() || c.empty()) return std::numeric_limits<double>::infinity();
     const std::size_t stride = std::max<std::size_t>(1, c.size() / 3000);
     const Eigen::Matrix4f Xf = X.cast<float>();
     std::vector<std::pair<Vec3d, Vec3d>> pairs;
-    Vec3d ab = Vec3d::Zero(), aa = Vec3d::Zero();
+    double ab = 0, aa = 0;
     for (std::size_t k = 0; k < c.size(); k += stride) {
       const auto [j, d] = cm.index->nearest(Xf.block<3, 3>(0, 0) * c.points[k] + Xf.block<3, 1>(0, 3));
       if (j < 0 || d > float(dist)) continue;
       const Rgb& a = c.colours[k];
       const Rgb& b = cm.colours[std::size_t(j)];
       pairs.push_back({Vec3d(a.r, a.g, a.b), Vec3d(b.r, b.g, b.b)});
-      ab += pairs.back().first.cwiseProduct(pairs.back().second);
-      aa += pairs.back().first.cwiseProduct(pairs.back().first);
+      ab += pairs.back().first.dot(pairs.back().second);
+      aa += pairs.back().first.squaredNorm();
     }
     if (pairs.empty()) return std::numeric_limits<double>::infinity();
-    Vec3d gain = Vec3d::Ones();
-    for (int ch = 0; ch < 3; ++ch)
-      if (aa[ch] > 0) gain[ch] = std::clamp(ab[ch] / aa[ch], 1.0 / kColourMaxGain, kColourMaxGain);
+    const double gain = aa > 0 ? std::clamp(ab / aa, 1.0 / kColourMaxGain, kColourMaxGain) : 1.0;
     double sum = 0;
-    for (const auto& [a, b] : pairs) sum += (gain.cwiseProduct(a) - b).cwiseAbs().sum() / 3.0;
+    for (const auto& [a, b] : pairs) sum += (gain * a - b).cwiseAbs().sum() / 3.0;
     return sum / double(pairs.size());
   }
 
@@ -651,25 +650,27 @@ class Registrar {
       r[k] = icp_point_to_plane(source, target, g.hypotheses[rank[k].second].transform, ip);
     });
     std::string why;
-    // The best converged pose; else the best that did not converge yet (a
-    // partial view sliding on a flat part): the turned starts go from it.
+    // The best converged pose; else, for a single view (`until_settled`), the
+    // best that did not converge yet (a partial view sliding on a flat part):
+    // the turned starts go from it.
     int best = -1;
     bool best_converged = false;
     for (std::size_t k = 0; k < r.size(); ++k) {
       if (!r[k].converged && why.empty()) why = r[k].message;
       const bool better = best < 0 || (r[k].converged && !best_converged) ||
                           (r[k].converged == best_converged && r[k].fitness > r[best].fitness);
-      if (better && (r[k].converged || r[k].fitness > 0)) {
+      if (better && (r[k].converged || (until_settled && r[k].fitness > 0))) {
         best = int(k);
         best_converged = r[k].converged;
       }
     }
     // The choice: the best overlap; among near ties (kTie), the best colour
-    // agreement. Then a pose whose colours clearly disagree with the model's (a
-    // near-symmetric shape turned: its overlap can exceed the right pose's,
-    // which sees a part no other view saw) gives way to one with at least
-    // kColourOverlapShare of its overlap whose colours agree at least
-    // 1 / kColourBetter times better (docs/registration.md, "Hand-held views").
+    // agreement. Then, for a single view (`until_settled`), a pose whose colours
+    // clearly disagree with the model's (a near-symmetric shape turned: its
+    // overlap can exceed the right pose's, which sees a part no other view saw)
+    // gives way to the most overlapping pose with at least kColourOverlapShare
+    // of the best overlap whose colours agree at least 1 / kColourBetter times
+    // better (docs/registration.md, "Hand-held views").
     double chosen_colour = std::numeric_limits<double>::infinity();
     const auto choose = [&] {
       out.fitness = 0;
@@ -698,9 +699,11 @@ class Registrar {
         }
       }
       chosen_colour = best_score;
-      if (!(colour && std::isfinite(best_score) && best_score >= kColourDisagrees)) return;
+      if (!(until_settled && colour && std::isfinite(best_score) && best_score >= kColourDisagrees)) return;
+      double swap_fit = -1;
       for (std::size_t k = 0; k < r.size(); ++k)
-        if (err[k] <= kColourBetter * best_score && err[k] < chosen_colour) {
+        if (err[k] <= kColourBetter * best_score && r[k].fitness >= p_.global_min_fitness && r[k].fitness > swap_fit) {
+          swap_fit = r[k].fitness;
           chosen_colour = err[k];
           out.fitness = r[k].fitness;
           out.transform = r[k].transform;
@@ -749,8 +752,10 @@ class Registrar {
       const std::size_t first = std::min(starts.size(), kSpunRefined);
       refine(0, first);
       const auto settled = [&] {
-        return !until_settled ||
-               (out.fitness >= p_.global_min_fitness && !(colour && chosen_colour >= kColourDisagrees));
+        // A pose whose colours could not be compared (a view without colours, no
+        // sample near the model) counts as agreeing.
+        return !until_settled || (out.fitness >= p_.global_min_fitness &&
+                                  !(colour && std::isfinite(chosen_colour) && chosen_colour >= kColourDisagrees));
       };
       if (!settled()) refine(first, starts.size());
       if (!settled()) {

@@ -134,7 +134,12 @@ struct RegistrationParams {
   /// twice as many, plus the best pose turned about the turntable axis in
   /// eighths and about the model's principal axes in quarters (through the
   /// model's centre; the 4 of those with the best overlap); among poses within 0.03 of the best overlap the one whose
-  /// colours agree best with the model's wins (docs/registration.md).
+  /// colours agree best with the model's wins. A single view whose chosen pose
+  /// overlaps too little or whose colours disagree with the model's (15 per
+  /// channel) is not settled: every turned start is refined, then ICP runs that
+  /// ran out of iterations go on, and a pose with 0.7 of the best overlap and
+  /// half the colour difference may replace it (docs/registration.md,
+  /// "Hand-held views").
   int global_icp_candidates = 6;
   /// Against a model (the multi-start path above; issue 26, item 3): RANSAC
   /// runs with this many more seeds on the same features, and once at each of

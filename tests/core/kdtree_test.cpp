@@ -186,9 +186,13 @@ TEST(PointIndex, RadiusAtMostIsRadiusOrNothing) {
   EXPECT_GT(whole, 100);
   EXPECT_GT(refused, 100);
   PointIndex three({Vec3f(0, 0, 0), Vec3f(1, 0, 0), Vec3f(3, 0, 0)});
-  EXPECT_EQ(three.radius_at_most(Vec3f(0, 0, 0), 1.f, 2)->size(), 2u);  // the point at 1 counts
+  const auto two = three.radius_at_most(Vec3f(0, 0, 0), 1.f, 2);
+  ASSERT_TRUE(two.has_value());
+  EXPECT_EQ(two->size(), 2u);  // the point at 1 counts
   EXPECT_FALSE(three.radius_at_most(Vec3f(0, 0, 0), 1.f, 1).has_value());
-  EXPECT_TRUE(PointIndex(std::vector<Vec3f>{}).radius_at_most(Vec3f::Zero(), 1.f, 0)->empty());
+  const auto none = PointIndex(std::vector<Vec3f>{}).radius_at_most(Vec3f::Zero(), 1.f, 0);
+  ASSERT_TRUE(none.has_value());
+  EXPECT_TRUE(none->empty());
 }
 
 TEST(PointIndex, RadiusIsInclusive) {
