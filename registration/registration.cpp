@@ -672,6 +672,9 @@ class Registrar {
     // of the best overlap whose colours agree at least 1 / kColourBetter times
     // better (docs/registration.md, "Hand-held views").
     double chosen_colour = std::numeric_limits<double>::infinity();
+    // Each result's colour difference, once (choose runs again as results are
+    // added; the best overlap only grows, so a result left out stays out).
+    std::vector<std::optional<double>> colour_of;
     const auto choose = [&] {
       out.fitness = 0;
       out.transform = Eigen::Matrix4d::Identity();
@@ -690,8 +693,11 @@ class Registrar {
           }
           continue;
         }
-        if (x.fitness >= kColourOverlapShare * best_fit)
-          err[k] = colour_error(coloured, *colour, x.transform, ip.max_distance_end);
+        if (x.fitness >= kColourOverlapShare * best_fit) {
+          colour_of.resize(r.size());
+          if (!colour_of[k]) colour_of[k] = colour_error(coloured, *colour, x.transform, ip.max_distance_end);
+          err[k] = *colour_of[k];
+        }
         if (x.fitness >= best_fit - kTie && (err[k] < best_score || (err[k] == best_score && x.fitness > out.fitness))) {
           best_score = err[k];
           out.fitness = x.fitness;

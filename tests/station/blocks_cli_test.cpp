@@ -52,6 +52,12 @@ class BlocksCli : public ::testing::Test {
   static std::string reconstruct(const std::string& out, const std::string& extra) {
     return "reconstruct " + path("bottle.ply") + " -o " + out + " --resolution 160 --no-colour --json " + extra;
   }
+  // The command prefix for two ranks on this machine (root allowed: CI runs as root).
+  static std::string mpirun2() {
+    setenv("OMPI_ALLOW_RUN_AS_ROOT", "1", 1);
+    setenv("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1", 1);
+    return "mpirun --oversubscribe -n 2 " + station_cmd();
+  }
   static test::TempDir* dir_;
 };
 test::TempDir* BlocksCli::dir_ = nullptr;
@@ -64,10 +70,7 @@ TEST_F(BlocksCli, BlocksInSequenceAndOverTwoRanksAreTheSingleMesh) {
   EXPECT_EQ(json_number(seq.out, "blocks"), 8);
   EXPECT_GT(json_number(seq.out, "seam_vertices_joined"), 100);
   EXPECT_FALSE(fs::exists(path("seq.ply.blocks")));  // the work folder goes once the mesh is written
-  // Two ranks on this machine (root allowed: CI runs as root).
-  setenv("OMPI_ALLOW_RUN_AS_ROOT", "1", 1);
-  setenv("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1", 1);
-  const auto mpi = test::run_command("mpirun --oversubscribe -n 2 " + station_cmd() + " " +
+  const auto mpi = test::run_command(mpirun2() + " " +
                                      reconstruct(path("mpi.ply"), "--threads 1 --blocks 8"));
   ASSERT_EQ(mpi.code, 0) << mpi.out;
   EXPECT_EQ(json_number(mpi.out, "ranks"), 2) << mpi.out;
@@ -183,12 +186,10 @@ TEST_F(BlocksCli, MaxMemoryPicksTheBlocksOrRefusesBeforeStarting) {
 // sequence and over two ranks the same file; about the points asked for; no work
 // folder left.
 TEST_F(BlocksCli, ConsolidateInBlocksIsTheSameOnTwoRanks) {
-  setenv("OMPI_ALLOW_RUN_AS_ROOT", "1", 1);
-  setenv("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1", 1);
   const std::string args = " consolidate " + path("bottle.ply") + " --blocks 4 --points 20000 --json -o ";
   const auto seq = test::run_command(station_cmd() + args + path("wlop_seq.ply") + " --threads 2");
   ASSERT_EQ(seq.code, 0) << seq.out;
-  const auto mpi = test::run_command("mpirun --oversubscribe -n 2 " + station_cmd() + args + path("wlop_mpi.ply") +
+  const auto mpi = test::run_command(mpirun2() + args + path("wlop_mpi.ply") +
                                      " --threads 1");
   ASSERT_EQ(mpi.code, 0) << mpi.out;
   EXPECT_EQ(json_number(seq.out, "blocks"), 4) << seq.out;
@@ -209,14 +210,12 @@ TEST_F(BlocksCli, ConsolidateInBlocksIsTheSameOnTwoRanks) {
 // rank 1 joins the blocks of its consolidation and of its surface stage; the mesh is
 // the one-process blocked run's.
 TEST_F(BlocksCli, RunOverTwoRanksIsTheRunInOneProcess) {
-  setenv("OMPI_ALLOW_RUN_AS_ROOT", "1", 1);
-  setenv("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1", 1);
   const std::string args = " run " + path("bottle.ply") +
                            " --blocks 4 --consolidate-blocks 4 --resolution 96 --no-report --json --set "
                            "consolidate.points=20000 -o ";
   const auto seq = test::run_command(station_cmd() + args + path("run_seq") + " --threads 1");
   ASSERT_EQ(seq.code, 0) << seq.out;
-  const auto mpi = test::run_command("mpirun --oversubscribe -n 2 " + station_cmd() + args + path("run_mpi") +
+  const auto mpi = test::run_command(mpirun2() + args + path("run_mpi") +
                                      " --threads 1");
   ASSERT_EQ(mpi.code, 0) << mpi.out;
   EXPECT_EQ(json_number(mpi.out, "ranks"), 2) << mpi.out;
@@ -240,8 +239,6 @@ TEST_F(BlocksCli, RunOverTwoRanksIsTheRunInOneProcess) {
 // single run's trust distance from a subset, DMC's fixed seam points), the kept ones
 // 0.84 cell (MPU's balls beyond an 8-cell margin at the thinning rims).
 TEST_F(BlocksCli, DragonSessionInBlocksIsTheSingleRunWithinHalfACell) {
-  setenv("OMPI_ALLOW_RUN_AS_ROOT", "1", 1);
-  setenv("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1", 1);
   std::string files;
   for (int a = 0; a < 360; a += 24)
     files += " " + (test::source_dir() / ("data/dragon_stand/dragonStandRight_" + std::to_string(a) + ".ply")).string();
@@ -254,7 +251,7 @@ TEST_F(BlocksCli, DragonSessionInBlocksIsTheSingleRunWithinHalfACell) {
     const std::string args = " run " + session + " --hole " + hole + " --no-report --json -o ";
     const auto single = test::run_command(station_cmd() + args + path("dragon_single_" + hole) + " --threads 2");
     ASSERT_EQ(single.code, 0) << single.out;
-    const auto blocks = test::run_command("mpirun --oversubscribe -n 2 " + station_cmd() + args +
+    const auto blocks = test::run_command(mpirun2() + args +
                                           path("dragon_blocks_" + hole) + " --blocks 8 --threads 1");
     ASSERT_EQ(blocks.code, 0) << blocks.out;
     const Mesh a = read_mesh(path("dragon_single_" + hole) + "/mesh.ply"),
@@ -262,7 +259,9 @@ TEST_F(BlocksCli, DragonSessionInBlocksIsTheSingleRunWithinHalfACell) {
     const double cell = json_number(single.out, "cell_size");
     ASSERT_GT(cell, 0) << single.out;
     const MeshTopology ta = mesh_topology(a), tb = mesh_topology(b);
-    if (hole == "auto") EXPECT_TRUE(tb.closed_manifold() && ta.closed_manifold());
+    if (hole == "auto") {
+      EXPECT_TRUE(tb.closed_manifold() && ta.closed_manifold());
+    }
     EXPECT_EQ(tb.nonmanifold_edges, 0) << hole;
     const double d = hausdorff(a, b);
     std::printf("dragon, --hole %s: blocks vs single Hausdorff %.3f cells; %zu / %zu faces\n", hole.c_str(), d / cell,
@@ -274,8 +273,6 @@ TEST_F(BlocksCli, DragonSessionInBlocksIsTheSingleRunWithinHalfACell) {
 // `station run --batch`: the sessions of a list over two ranks, a failing one named
 // in the table without stopping the others, exit 3.
 TEST_F(BlocksCli, BatchRunsEverySessionOfTheListAndTabulatesThem) {
-  setenv("OMPI_ALLOW_RUN_AS_ROOT", "1", 1);
-  setenv("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1", 1);
   Cloud small = read_cloud(path("bottle.ply"));
   small.points.resize(30000);
   small.normals.resize(30000);
@@ -285,7 +282,7 @@ TEST_F(BlocksCli, BatchRunsEverySessionOfTheListAndTabulatesThem) {
     std::ofstream list(path("batch.txt"));
     list << "# three sessions\nsmall.ply\n\n" << path("small.ply") << "\nmissing_session\n";
   }
-  const auto r = test::run_command("mpirun --oversubscribe -n 2 " + station_cmd() + " run --batch " +
+  const auto r = test::run_command(mpirun2() + " run --batch " +
                                    path("batch.txt") + " -o " + path("batch_out") +
                                    " --resolution 64 --no-report --threads 1 --set consolidate.points=5000");
   EXPECT_EQ(r.code, 3) << r.out;
