@@ -10,6 +10,8 @@
 #include <Eigen/Sparse>
 #include <algorithm>
 #include <chrono>
+#include <cstdint>
+#include <unordered_map>
 #include <functional>
 #include <cmath>
 #include <limits>
@@ -60,18 +62,25 @@ struct RbfPart {
   int cols = 0;
 };
 
+// A Type B leaf's RBFs (held apart from Leaf: most leaves are Type A, and a leaf's
+// size is the colour function's memory on large clouds).
+struct TypeBData {
+  double rbf_support = 0.4;          // in local units
+  std::vector<Vec3d> nodes;          // local coordinates of the ball's points, by u
+  std::vector<double> node_u;        // their u coordinates, ascending
+  std::vector<RbfPart> clusters;     // colour per cluster (cols = 3)
+  RbfPart boundary;                  // cols = 1 (two clusters: b >= 0 -> cluster 0) or k
+};
+
 struct Leaf {
   ColourCellType type = ColourCellType::kA;
   Vec3d o = Vec3d::Zero(), u = Vec3d::UnitX(), v = Vec3d::UnitY();
   double inv_r = 1;  // 1 / R_k: local coordinates d = (y - o) / R_k
   // Type A: per channel c0 a^2 + c1 ab + c2 b^2 + c3 a + c4 b + c5, (a, b) = (d.u, d.v).
   double coef[kChannels][6] = {};
-  // Type B.
-  double rbf_support = 0.4;          // in local units
-  std::vector<Vec3d> nodes;          // local coordinates of the ball's points, by u
-  std::vector<double> node_u;        // their u coordinates, ascending
-  std::vector<RbfPart> clusters;     // colour per cluster (cols = 3)
-  RbfPart boundary;                  // cols = 1 (two clusters: b >= 0 -> cluster 0) or k
+  // Type B (set with type kB).
+  std::shared_ptr<TypeBData> rbf;
+  int cluster_count() const { return rbf ? int(rbf->clusters.size()) : 0; }
 
   // The paper's Q_k(y): Type A's quadratic, or Type B's cluster chosen by its own
   // boundary function(s).
@@ -81,7 +90,7 @@ struct Leaf {
   int eval_clusters(const Vec3d& y, double* score, Lab* colour) const {
     int chosen = 0;
     eval_impl(y, score, colour);
-    for (int k = 1; k < int(clusters.size()); ++k)
+    for (int k = 1; k < cluster_count(); ++k)
       if (score[k] > score[chosen]) chosen = k;
     return chosen;
   }
@@ -100,6 +109,12 @@ struct Leaf {
       }
       return out;
     }
+    const TypeBData& t = *rbf;
+    const std::vector<Vec3d>& nodes = t.nodes;
+    const std::vector<double>& node_u = t.node_u;
+    const std::vector<RbfPart>& clusters = t.clusters;
+    const RbfPart& boundary = t.boundary;
+    const double rbf_support = t.rbf_support;
     // Nodes are sorted by their u coordinate: only those with |node_u - a| < support
     // can be within the RBF support.
     const std::size_t lo = std::lower_bound(node_u.begin(), node_u.end(), a - rbf_support) - node_u.begin();
@@ -168,6 +183,9 @@ struct ColourFunction::Impl {
   std::vector<Vec3f> points;  // normalised
   std::vector<Vec3d> normals;  // empty when the input has none
   std::vector<Lab> labs;
+  /// Per point and channel, how far its L*a*b* can be from the colour its 8-bit value
+  /// stands for (ColourParams::quantisation_tolerance); empty when off.
+  std::vector<std::array<float, 3>> quant;
   std::unique_ptr<PointIndex> index;
   std::vector<Node> nodes;
   std::vector<Leaf> leaves;
@@ -272,7 +290,7 @@ struct ColourFunction::Impl {
       Lab colour[16];
       leaf.eval_clusters(y, score, colour);
       const std::size_t first = at.size();
-      for (int c = 0; c < int(leaf.clusters.size()); ++c)
+      for (int c = 0; c < leaf.cluster_count(); ++c)
         add(first, i, class_of(colour[c]), std::clamp(score[c], -1.0, 1.0), colour[c]);
     };
     visit_b(ref);
@@ -484,7 +502,7 @@ bool solve_rbf(const Leaf& leaf, const std::vector<int>& ids, const Eigen::Matri
   const int cols = int(rhs.cols());
   Eigen::MatrixXd P(n, 3);
   for (int i = 0; i < n; ++i) {
-    const Vec3d& p = leaf.nodes[ids[i]];
+    const Vec3d& p = leaf.rbf->nodes[ids[i]];
     P(i, 0) = 1;
     P(i, 1) = p.dot(leaf.u);
     P(i, 2) = p.dot(leaf.v);
@@ -494,7 +512,7 @@ bool solve_rbf(const Leaf& leaf, const std::vector<int>& ids, const Eigen::Matri
     Eigen::MatrixXd B(n, n);
     for (int i = 0; i < n; ++i) {
       B(i, i) = 1 + kRbfRidge;
-      for (int j = 0; j < i; ++j) B(i, j) = B(j, i) = psi((leaf.nodes[ids[i]] - leaf.nodes[ids[j]]).norm(), leaf.rbf_support);
+      for (int j = 0; j < i; ++j) B(i, j) = B(j, i) = psi((leaf.rbf->nodes[ids[i]] - leaf.rbf->nodes[ids[j]]).norm(), leaf.rbf->rbf_support);
     }
     Eigen::LLT<Eigen::MatrixXd> llt(B);
     if (llt.info() != Eigen::Success) return false;
@@ -505,7 +523,7 @@ bool solve_rbf(const Leaf& leaf, const std::vector<int>& ids, const Eigen::Matri
     for (int i = 0; i < n; ++i) {
       trip.emplace_back(i, i, 1 + kRbfRidge);
       for (int j = 0; j < i; ++j) {
-        const double v = psi((leaf.nodes[ids[i]] - leaf.nodes[ids[j]]).norm(), leaf.rbf_support);
+        const double v = psi((leaf.rbf->nodes[ids[i]] - leaf.rbf->nodes[ids[j]]).norm(), leaf.rbf->rbf_support);
         if (v > 0) trip.emplace_back(i, j, v), trip.emplace_back(j, i, v);
       }
     }
@@ -676,7 +694,9 @@ bool noise_check(const Impl& s, const std::vector<int>& ids, std::vector<int>& l
 bool fit_type_b(const Impl& s, std::vector<int> ids, const std::vector<int>& label_in, int k, CellResult& cr) {
   Leaf& leaf = cr.leaf;
   leaf.type = ColourCellType::kB;
-  leaf.rbf_support = s.params.rbf_radius_factor;
+  leaf.rbf = std::make_shared<TypeBData>();
+  TypeBData& tb = *leaf.rbf;
+  tb.rbf_support = s.params.rbf_radius_factor;
   // Nodes in ascending u (ties by point index), for the range search in eval().
   std::vector<int> order(ids.size());
   std::vector<double> us(ids.size());
@@ -689,20 +709,20 @@ bool fit_type_b(const Impl& s, std::vector<int> ids, const std::vector<int>& lab
   for (std::size_t i = 0; i < ids.size(); ++i) ids_sorted[i] = ids[order[i]], label_sorted[i] = label_in[order[i]];
   const std::vector<int>& label = label_sorted;
   ids = ids_sorted;
-  leaf.nodes.resize(ids.size());
-  leaf.node_u.resize(ids.size());
+  tb.nodes.resize(ids.size());
+  tb.node_u.resize(ids.size());
   for (std::size_t i = 0; i < ids.size(); ++i) {
-    leaf.nodes[i] = (s.points[ids[i]].cast<double>() - leaf.o) * leaf.inv_r;
-    leaf.node_u[i] = us[order[i]];
+    tb.nodes[i] = (s.points[ids[i]].cast<double>() - leaf.o) * leaf.inv_r;
+    tb.node_u[i] = us[order[i]];
   }
-  leaf.clusters.assign(k, RbfPart{});
+  tb.clusters.assign(k, RbfPart{});
   for (int j = 0; j < k; ++j) {
     std::vector<int> sel;
     for (std::size_t i = 0; i < ids.size(); ++i)
       if (label[i] == j) sel.push_back(int(i));
     if (int(sel.size()) < std::max(s.params.min_rbf_points, 4)) {
       // Too few for an RBF with a linear polynomial: the cluster's mean colour.
-      RbfPart& part = leaf.clusters[j];
+      RbfPart& part = tb.clusters[j];
       part.cols = kChannels;
       part.poly.assign(3 * kChannels, 0);
       for (int i : sel)
@@ -713,16 +733,16 @@ bool fit_type_b(const Impl& s, std::vector<int> ids, const std::vector<int>& lab
     Eigen::MatrixXd rhs(sel.size(), kChannels);
     for (std::size_t i = 0; i < sel.size(); ++i)
       for (int c = 0; c < kChannels; ++c) rhs(i, c) = s.labs[ids[sel[i]]][c];
-    if (!solve_rbf(leaf, sel, rhs, leaf.clusters[j])) return false;
+    if (!solve_rbf(leaf, sel, rhs, tb.clusters[j])) return false;
   }
   if (k == 2 && s.params.linear_boundary) {
     std::vector<Eigen::Vector2d> pos, neg;
     for (std::size_t i = 0; i < ids.size(); ++i)
-      (label[i] == 0 ? pos : neg).emplace_back(leaf.nodes[i].dot(leaf.u), leaf.nodes[i].dot(leaf.v));
+      (label[i] == 0 ? pos : neg).emplace_back(tb.nodes[i].dot(leaf.u), tb.nodes[i].dot(leaf.v));
     if (const std::optional<Eigen::Vector3d> q = max_margin_line(pos, neg)) {
-      leaf.boundary = RbfPart{};
-      leaf.boundary.cols = 1;
-      leaf.boundary.poly = {(*q)(0), (*q)(1), (*q)(2)};
+      tb.boundary = RbfPart{};
+      tb.boundary.cols = 1;
+      tb.boundary.poly = {(*q)(0), (*q)(1), (*q)(2)};
       ++cr.linear_boundaries;
       return true;
     }
@@ -734,7 +754,36 @@ bool fit_type_b(const Impl& s, std::vector<int> ids, const std::vector<int>& lab
     for (int c = 0; c < cols; ++c) rhs(i, c) = label[i] == c ? 1.0 : -1.0;
   std::vector<int> all(ids.size());
   for (std::size_t i = 0; i < ids.size(); ++i) all[i] = int(i);
-  return solve_rbf(leaf, all, rhs, leaf.boundary);
+  return solve_rbf(leaf, all, rhs, tb.boundary);
+}
+
+// Per colour, the largest L*a*b* change per channel within half an 8-bit step of each
+// sRGB channel (first order: the half-step changes of R, G and B added up), cached
+// per distinct colour.
+std::vector<std::array<float, 3>> quantisation_bounds(const std::vector<Rgb>& colours) {
+  std::unordered_map<std::uint32_t, std::array<float, 3>> cache;
+  std::vector<std::array<float, 3>> out(colours.size());
+  for (std::size_t i = 0; i < colours.size(); ++i) {
+    const Rgb& c = colours[i];
+    const std::uint32_t key = std::uint32_t(c.r) << 16 | std::uint32_t(c.g) << 8 | std::uint32_t(c.b);
+    auto it = cache.find(key);
+    if (it == cache.end()) {
+      const double rgb[3] = {c.r / 255.0, c.g / 255.0, c.b / 255.0};
+      const Lab at = srgb_to_lab(rgb[0], rgb[1], rgb[2]);
+      std::array<float, 3> q{};
+      for (int j = 0; j < 3; ++j) {
+        double up[3] = {rgb[0], rgb[1], rgb[2]}, down[3] = {rgb[0], rgb[1], rgb[2]};
+        up[j] += 0.5 / 255;
+        down[j] -= 0.5 / 255;
+        const Lab a = srgb_to_lab(up[0], up[1], up[2]), b = srgb_to_lab(down[0], down[1], down[2]);
+        for (int k = 0; k < 3; ++k)
+          q[k] += float(std::max(std::abs(a[k] - at[k]), std::abs(b[k] - at[k])));
+      }
+      it = cache.emplace(key, q).first;
+    }
+    out[i] = it->second;
+  }
+  return out;
 }
 
 CellResult fit_cell(const Impl& s, const Vec3d& o, double half, int depth) {
@@ -829,7 +878,11 @@ CellResult fit_cell(const Impl& s, const Vec3d& o, double half, int depth) {
     if (nn[i].second >= R0) continue;
     const Lab q = leaf.eval(s.points[ids[i]].cast<double>());
     const double phi = bspline2(1.5 * nn[i].second / R);
-    for (int c = 0; c < kChannels; ++c) err = std::max(err, std::abs(q[c] - s.labs[ids[i]][c]) / kRange[c] * phi);
+    for (int c = 0; c < kChannels; ++c) {
+      double d = std::abs(q[c] - s.labs[ids[i]][c]);
+      if (!s.quant.empty()) d = std::max(0.0, d - double(s.quant[ids[i]][c]));
+      err = std::max(err, d / kRange[c] * phi);
+    }
   }
   cr.converged = err < p.epsilon_col || (p.noise_robust && rms <= p.noise_accept_rms);
   if (!cr.converged && !cr.grew && depth < p.max_depth && int(ids.size()) >= p.split_min_points) cr.split = true;
@@ -879,6 +932,7 @@ ColourFunction fit_colour(const Cloud& cloud, const ColourParams& params) {
   }
   s.labs.resize(cloud.size());
   for (std::size_t i = 0; i < cloud.size(); ++i) s.labs[i] = rgb_to_lab(cloud.colours[i]);
+  if (p.quantisation_tolerance) s.quant = quantisation_bounds(cloud.colours);
   s.index = std::make_unique<PointIndex>(s.points);
 
   tbb::task_arena arena(worker_threads(p.threads));
@@ -890,18 +944,24 @@ ColourFunction fit_colour(const Cloud& cloud, const ColourParams& params) {
     root.half = 0.5 / std::sqrt(3.0) * (1 + p.root_margin);
     s.nodes.push_back(root);
     std::vector<int> frontier{0};
+    // The cells of a level in chunks, so that only a chunk's results are held at once
+    // (a level of a million-point cloud holds hundreds of thousands of cells).
+    constexpr std::size_t kChunk = 16384;
+    std::vector<CellResult> res;
     for (int depth = 0; !frontier.empty(); ++depth) {
-      std::vector<CellResult> res(frontier.size());
-      tbb::parallel_for(tbb::blocked_range<std::size_t>(0, frontier.size(), 1), [&](const auto& range) {
+      std::vector<int> next;
+      for (std::size_t begin = 0; begin < frontier.size(); begin += kChunk) {
+      const std::size_t end = std::min(frontier.size(), begin + kChunk);
+      res.assign(end - begin, CellResult{});
+      tbb::parallel_for(tbb::blocked_range<std::size_t>(begin, end, 1), [&](const auto& range) {
         for (std::size_t i = range.begin(); i != range.end(); ++i) {
           const Node& nd = s.nodes[frontier[i]];
-          res[i] = fit_cell(s, nd.center, nd.half, depth);
+          res[i - begin] = fit_cell(s, nd.center, nd.half, depth);
         }
       });
-      std::vector<int> next;
-      for (std::size_t i = 0; i < frontier.size(); ++i) {
+      for (std::size_t i = begin; i < end; ++i) {
         const int id = frontier[i];
-        CellResult& cr = res[i];
+        CellResult& cr = res[i - begin];
         if (cr.split) {
           const int first = int(s.nodes.size());
           s.nodes[id].first_child = first;
@@ -925,7 +985,7 @@ ColourFunction fit_colour(const Cloud& cloud, const ColourParams& params) {
         nd.radius = cr.radius;
         nd.leaf = int(s.leaves.size());
         const int type = int(cr.leaf.type);
-        if (cr.leaf.type == ColourCellType::kB && cr.leaf.clusters.size() > 2) ++s.diag.multi_colour_leaves;
+        if (cr.leaf.type == ColourCellType::kB && cr.leaf.cluster_count() > 2) ++s.diag.multi_colour_leaves;
         s.leaves.push_back(std::move(cr.leaf));
         ++s.diag.leaves;
         ++s.diag.leaves_by_type[type];
@@ -937,6 +997,7 @@ ColourFunction fit_colour(const Cloud& cloud, const ColourParams& params) {
         s.diag.linear_boundaries += cr.linear_boundaries;
         s.diag.rejected_type_b += cr.rejected_b;
         s.diag.fallback_type_a += cr.fallback_a;
+      }
       }
       frontier.swap(next);
     }
