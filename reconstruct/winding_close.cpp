@@ -7,6 +7,9 @@
 #include <unordered_map>
 #include <vector>
 
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
 #include "core/error.h"
 #include "core/kdtree.h"
 #include "reconstruct/mpu.h"
@@ -88,12 +91,14 @@ WindingNumber::WindingNumber(const std::vector<Vec3f>& points, const std::vector
     }
   const PointIndex index(finite);
   std::vector<double> area(finite.size(), 0);
-  for (std::size_t i = 0; i < finite.size(); ++i) {
-    const auto nn = index.knn(finite[i], kNeighbours + 1);  // the point itself first
-    if (nn.size() < 2) continue;
-    const double r = nn.back().second;
-    area[i] = 3.14159265358979323846 * r * r / double(nn.size() - 1);
-  }
+  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, finite.size(), 1024), [&](const auto& range) {
+    for (std::size_t i = range.begin(); i != range.end(); ++i) {
+      const auto nn = index.knn(finite[i], kNeighbours + 1);  // the point itself first
+      if (nn.size() < 2) continue;
+      const double r = nn.back().second;
+      area[i] = 3.14159265358979323846 * r * r / double(nn.size() - 1);
+    }
+  });
   struct Acc {
     Vec3d p = Vec3d::Zero(), dipole = Vec3d::Zero();
     double weight = 0;
