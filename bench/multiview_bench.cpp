@@ -155,6 +155,23 @@ void run_multiview_cases(const Options& options, Report& report) {
       report.rows.push_back(mrow);
       report.note("dragon " + mode + ": ours at " + std::to_string(matched_sp.resolution) + " cells (cell " +
                   mm(at.extraction.cell_size) + " mm) " + quality(at.mesh, merged, threads));
+      // The same with the vertices onto the merged scans' local mean
+      // (reconstruct.snap_to_scans, reconstruct/scan_snap.h), at two significances.
+      for (const double k : {1.0, 0.5}) {
+        SurfaceParams snap_sp = matched_sp;
+        snap_sp.scans = &merged;
+        snap_sp.snap_significance = k;
+        SurfaceResult sn;
+        Row srow{"dragon session, " + mode + ": at Poisson's vertex count, snapped to the scans (significance " +
+                     format_fixed(k, 1) + ")",
+                 mrow.anchor + " (same runs as above)"};
+        srow.ours = measure(opt, [&] { sn = reconstruct_surface(consolidated.cloud, snap_sp); });
+        srow.theirs = mrow.theirs;
+        report.rows.push_back(srow);
+        report.note("dragon " + mode + ": ours at " + std::to_string(snap_sp.resolution) + " cells, snapped (" +
+                    format_fixed(k, 1) + "; " + std::to_string(sn.snapped_vertices) + " vertices moved) " +
+                    quality(sn.mesh, merged, threads));
+      }
     }
   }
 }

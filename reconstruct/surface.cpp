@@ -14,6 +14,7 @@
 #include "reconstruct/colour_transfer.h"
 #include "reconstruct/colour_edges.h"
 #include "reconstruct/half_space_clip.h"
+#include "reconstruct/scan_snap.h"
 #include "reconstruct/winding_close.h"
 
 namespace station {
@@ -177,6 +178,22 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
     if (out.rim_faces > 0)
       note("open rims brought back to the data (" + std::to_string(out.rim_faces) + " faces further than " +
            fmt("%.3g", kRimTrimFactor * out.mpu.mean_spacing) + " from the points)");
+  }
+  if (p.scans && !p.scans->empty()) {
+    if (!p.scans->has_normals()) {
+      note("the scans have no normals: the mesh stays on the fitted surface");
+    } else {
+      ScanSnapParams sp;
+      sp.cell = out.extraction.cell_size;
+      sp.significance = p.snap_significance;
+      sp.threads = p.threads;
+      const ScanSnapStats st = snap_to_scans(mesh, *p.scans, sp);
+      out.snapped_vertices = st.moved;
+      out.snap_mean_move = st.mean_move;
+      note("vertices onto the scans' local mean: " + std::to_string(st.moved) + " of " +
+           std::to_string(mesh.vertices.size()) + " moved, by " + fmt("%.3g", st.mean_move) + " on average (within " +
+           fmt("%.3g", st.radius) + ")");
+    }
   }
   out.pieces = remove_small_components(mesh, p.min_component);
   if (out.pieces.removed_components > 0)

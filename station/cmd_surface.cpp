@@ -263,6 +263,8 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
   sp.note = [&](const std::string& line) {
     if (!c.json) std::fprintf(stderr, "%s\n", surface_note(a.in, line, "reconstruct: ", "note: ").c_str());
   };
+  if (!a.scans.empty() && (rc.blocks != 1 || a.resume || rc.max_memory_gb > 0))
+    throw InvalidInput("--scans does not go with --blocks or --max-memory (the blocks are not snapped)");
   if (rc.blocks != 1 || a.resume || rc.max_memory_gb > 0) {
     // Blocks of one lattice: streamed, never the whole cloud in memory; over the MPI
     // ranks under mpirun (station/blocks_run.h).
@@ -314,6 +316,13 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
     return 0;
   }
   Cloud input = read_cloud(a.in);
+  Cloud scans;
+  if (!a.scans.empty()) {
+    scans = read_cloud(a.scans);
+    if (scans.empty()) throw InvalidInput(a.scans + ": no points");
+    if (!scans.has_normals()) throw InvalidInput(a.scans + ": the scans have no normals (needed to tell a thin part's sides apart)");
+    sp.scans = &scans;
+  }
   const std::size_t points = input.size();
   const double t_read = seconds_since(t0);
   const SurfaceResult r = reconstruct_surface(std::move(input), sp);
@@ -344,6 +353,7 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
                       .add("hole", std::string(r.hole == HoleMode::kClose ? "close" : "keep"))
                       .add("enclosure", r.enclosure ? *r.enclosure : std::nan(""))
                       .add("rim_faces", r.rim_faces)
+                      .add("snapped_vertices", r.snapped_vertices)
                       .add("colours", r.coloured)
                       .add("extractor", rc.extractor)
                       .add("winding_close", r.winding_points > 0)
@@ -437,6 +447,9 @@ void add_surface_commands(CLI::App& app, std::vector<Command>& out) {
   rec->add_option("input", rec_args.in, "cloud with normals (estimated when missing)")->required();
   rec->add_option("-o,--out", rec_args.out, "mesh (.ply or .obj)")->required();
   add_profile_options(rec, "reconstruct", c_rec);
+  rec->add_option("--scans", rec_args.scans,
+                  "the scans the input was consolidated from (e.g. a run's merged.ply, with normals): the mesh's "
+                  "vertices move onto their local mean, keeping the scans' detail (docs/run.md)");
   rec->add_flag("--resume", rec_args.resume,
                 "with --blocks: blocks finished by an interrupted run (in OUT.blocks/) are not run again");
   rec->add_option("--up", rec_args.up,

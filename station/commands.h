@@ -102,6 +102,9 @@ struct ReconstructArgs {
   std::string up;
   /// With --blocks: blocks already done in OUT.blocks/ are not run again.
   bool resume = false;
+  /// The scans the input was consolidated from (with normals): the vertices move onto
+  /// their local mean (reconstruct/scan_snap.h). Empty: none.
+  std::string scans;
 };
 
 void add_common(CLI::App* cmd, Common& c);

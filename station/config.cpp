@@ -209,11 +209,15 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
   if (const YAML::Node n = root["reconstruct"]) {
     r.check_keys(n, "reconstruct", {"surface", "resolution", "epsilon0", "extractor", "hole", "colour", "colour_method", "colour_multi",
                                      "colour_noise_robust", "colour_edges", "min_component", "table_plane", "winding_close",
-                                     "blocks", "max_memory_gb"});
+                                     "blocks", "max_memory_gb", "snap_to_scans", "snap_significance"});
     auto& c = p.reconstruct;
     if (n["surface"]) c.surface = r.text(n["surface"], "reconstruct.surface");
     if (n["table_plane"]) c.table_plane = r.boolean(n["table_plane"], "reconstruct.table_plane");
     if (n["winding_close"]) c.winding_close = r.boolean(n["winding_close"], "reconstruct.winding_close");
+    if (n["snap_to_scans"]) c.snap_to_scans = r.boolean(n["snap_to_scans"], "reconstruct.snap_to_scans");
+    if (n["snap_significance"]) c.snap_significance = r.number(n["snap_significance"], "reconstruct.snap_significance");
+    if (!(c.snap_significance >= 0 && c.snap_significance <= 100))
+      r.fail("reconstruct.snap_significance", "must be 0..100 (standard errors)");
     if (c.surface != "mpu" && c.surface != "sdm") r.fail("reconstruct.surface", "must be mpu or sdm");
     if (n["resolution"]) c.resolution = r.auto_or_integer(n["resolution"], "reconstruct.resolution", 8, 4096);
     if (n["blocks"]) c.blocks = r.auto_or_integer(n["blocks"], "reconstruct.blocks", 1, 4096);

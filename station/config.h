@@ -89,6 +89,12 @@ struct PipelineConfig {
     /// (reconstruct/colour_edges.h; colour_method mpu only).
     bool colour_edges = true;
     double min_component = 0.01;    ///< drop pieces below this fraction of the largest's area
+    /// station run, after consolidation: the mesh's vertices move onto the scans' local
+    /// mean (the cloud before consolidation; reconstruct/scan_snap.h). Not with blocks.
+    /// Off by default: it helps clean, dense scans and fits the noise of noisy ones
+    /// (docs/run.md).
+    bool snap_to_scans = false;
+    double snap_significance = 1;  ///< ScanSnapParams::significance
     /// The surface stage in blocks of one lattice (reconstruct/blocks.h, docs/blocks.md):
     /// 1 = one piece (no blocks), 0 = auto (a block per 500k points, at least 4 a rank), else about that many.
     int blocks = 1;

@@ -58,6 +58,12 @@ const std::vector<ProfileOption>& profile_options() {
           "memory per rank in GB for the blocks: the fewest blocks that fit it (or --blocks checked against "
           "it); a run that cannot fit says so before it starts; 0: no bound");
     value("reconstruct.surface", "run", "--surface", "surface method", {"mpu", "sdm"});
+    flag("reconstruct.snap_to_scans", "run", "--snap-to-scans", "true",
+         "after consolidation, move the mesh's vertices onto the scans' local mean (clean, dense scans: closer "
+         "to them; noisy scans: the noise comes back; docs/run.md)");
+    value("reconstruct.snap_significance", "run", "--snap-significance",
+          "with --snap-to-scans: a vertex moves by the part of the scans' mean height beyond this many standard "
+          "errors (1: cautious, noise stays out; 0.5: closer to clean scans; 0: the whole mean)");
     value("reconstruct.max_memory_gb", "run", "--max-memory",
           "memory per rank in GB for the surface stage's blocks (0: no bound; docs/blocks.md)");
     value("reconstruct.blocks", "run", "--blocks",
@@ -178,6 +184,7 @@ SurfaceParams surface_params(const PipelineConfig& pipeline, int threads) {
   p.colour_noise_robust = c.colour_noise_robust;
   p.colour_edges = c.colour_edges;
   p.min_component = c.min_component;
+  p.snap_significance = c.snap_significance;
   p.threads = threads;
   return p;
 }

@@ -207,6 +207,8 @@ std::string surface_key(const PipelineConfig& p) {
     << ";colour_edges=" << c.colour_edges
     << ";min_component=" << fmt("%.17g", c.min_component) << ";table_plane=" << c.table_plane
     << ";winding_close=" << c.winding_close;
+  if (c.snap_to_scans && p.consolidate.enabled)  // (absent from keys before issue 32's snap)
+    s << ";snap_to_scans=1;snap_significance=" << fmt("%.17g", c.snap_significance);
   // Since issue 32: what decides the unseen parts and the kept rims.
   if (c.hole != "close")
     s << ";enclosed_above=" << kEnclosedAbove << ";keep_trust=" << kKeepTrustFactor << ";rim_trim=" << kRimTrimFactor;
@@ -415,7 +417,9 @@ class Runner {
       cloud_file = req_.out_dir / "merged.ply";
       if (stopped()) return finish_interrupted();
     }
+    fs::path scans_file;  // the cloud the consolidation thins (the surface's scans)
     if (cfg_.pipeline.consolidate.enabled) {
+      scans_file = cloud_file;
       key = hash_hex(key + consolidate_key(cfg_.pipeline));
       stage(++index, total, "consolidate", cloud_file, key, "consolidated.ply",
             [&](StageRecord& r) { do_consolidate(r, cloud_file); });
@@ -423,7 +427,7 @@ class Runner {
       if (stopped()) return finish_interrupted();
     }
     key = hash_hex(key + surface_key(cfg_.pipeline));
-    stage(++index, total, "surface", cloud_file, key, "mesh.ply", [&](StageRecord& r) { do_surface(r, cloud_file); });
+    stage(++index, total, "surface", cloud_file, key, "mesh.ply", [&](StageRecord& r) { do_surface(r, cloud_file, scans_file); });
     result_.mesh = req_.out_dir / "mesh.ply";
     if (req_.report) {
       say("run: writing the report");
@@ -620,7 +624,7 @@ class Runner {
     r.figures["radius"] = w.radius;
   }
 
-  void do_surface(StageRecord& r, const fs::path& in) {
+  void do_surface(StageRecord& r, const fs::path& in, const fs::path& scans_file) {
     std::error_code ec;
     fs::remove(req_.out_dir / "colour_boundary.bin", ec);  // a report side file of the last surface
     const auto& c = cfg_.pipeline.reconstruct;
@@ -638,6 +642,8 @@ class Runner {
     sp.boundary_flags = true;
     sp.note = [&](const std::string& line) { say(surface_note(in, line, "  surface: ", "  note: ")); };
     SurfaceResult sr;
+    if ((c.blocks != 1 || c.max_memory_gb > 0) && c.snap_to_scans)
+      say("  note: reconstruct.snap_to_scans is not done in blocks: the mesh stays on the fitted surface");
     if ((c.blocks != 1 || c.max_memory_gb > 0) && req_.blocks_over_ranks) {
       // Blocks of one lattice over the MPI ranks: the others run them with this one
       // from the same file (docs/blocks.md).
@@ -662,7 +668,17 @@ class Runner {
       r.figures["blocks"] = double(st.blocks);
       r.figures["ranks"] = 1;
     } else {
+      // The scans the consolidation thinned: the mesh's vertices onto their local mean.
+      Cloud scans;
+      if (c.snap_to_scans && !scans_file.empty()) {
+        scans = read_cloud(scans_file);
+        if (scans.has_normals())
+          sp.scans = &scans;
+        else
+          say("  note: " + scans_file.filename().string() + " has no normals: the mesh stays on the fitted surface");
+      }
       sr = reconstruct_surface(std::move(input), sp);
+      if (sp.scans) r.figures["snapped_vertices"] = double(sr.snapped_vertices);
     }
     if (sr.winding_points > 0) r.figures["winding_points"] = double(sr.winding_points);
     if (sr.table_height) r.figures["table_height"] = *sr.table_height;

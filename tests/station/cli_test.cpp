@@ -213,6 +213,39 @@ TEST(Cli, DragonRunIsOneSheetNearTheScans) {
   const std::regex a_to_b("\"a_to_b\":\\{\"mean\":([-0-9.eE+]+),\"rms\":[-0-9.eE+]+,\"p95\":([-0-9.eE+]+)");
   ASSERT_TRUE(std::regex_search(r.out, m, a_to_b)) << r.out;
   EXPECT_LT(std::stod(m[1]), 0.002) << r.out;
+
+  // The same consolidated points meshed with and without their scans (issue 32's
+  // snap): closer to the scans, no further from them the other way.
+  const std::string cons = closed + "/consolidated.ply", merged = closed + "/merged.ply";
+  const std::string plain = (dir / "plain.ply").string(), snapped = (dir / "snapped.ply").string();
+  r = run("reconstruct " + cons + " -o " + plain + " --hole close --json");
+  ASSERT_EQ(r.code, 0) << r.out;
+  r = run("reconstruct " + cons + " -o " + snapped + " --hole close --scans " + merged + " --json");
+  ASSERT_EQ(r.code, 0) << r.out;
+  EXPECT_GT(json_number(r.out, "snapped_vertices"), 1000) << r.out;
+  const std::regex b_to_a("\"b_to_a\":\\{\"mean\":([-0-9.eE+]+)");
+  double to_mesh[2], to_scans[2];
+  for (int k = 0; k < 2; ++k) {
+    r = run("eval " + (k ? snapped : plain) + " " + merged + " --json");
+    ASSERT_EQ(r.code, 0) << r.out;
+    ASSERT_TRUE(std::regex_search(r.out, m, b_to_a)) << r.out;
+    to_mesh[k] = std::stod(m[1]);
+    ASSERT_TRUE(std::regex_search(r.out, m, a_to_b)) << r.out;
+    to_scans[k] = std::stod(m[1]);
+  }
+  std::printf("dragon, scans -> mesh %.5f -> %.5f mm; mesh -> scans %.4f -> %.4f mm\n", to_mesh[0] * 1e3,
+              to_mesh[1] * 1e3, to_scans[0] * 1e3, to_scans[1] * 1e3);
+  EXPECT_LT(to_mesh[1], 0.99 * to_mesh[0]);
+  EXPECT_LT(to_scans[1], 1.02 * to_scans[0]);
+  // Scans without normals: a one-line error naming the file.
+  Cloud bare = read_cloud(merged);
+  bare.normals.clear();
+  const std::string bare_file = (dir / "bare.ply").string();
+  write_ply(bare_file, bare);
+  r = run("reconstruct " + cons + " -o " + (dir / "bare_mesh.ply").string() + " --scans " + bare_file);
+  EXPECT_NE(r.code, 0);
+  EXPECT_NE(r.out.find("bare.ply: the scans have no normals"), std::string::npos) << r.out;
+
   r = run("run " + session + " -o " + kept + " --no-report --hole keep --quiet");
   ASSERT_EQ(r.code, 0) << r.out;
   r = run("eval " + kept + "/mesh.ply " + kept + "/merged.ply --json");
