@@ -62,7 +62,7 @@ std::string quality(const Mesh& mesh, const Cloud& scans, int threads) {
   const EvalResult r = evaluate(mesh, scans, ep);
   return std::to_string(mesh.vertices.size()) + " vertices; mesh -> scans mean / p95 / max " +
          mm(r.a_to_b.mean) + " / " + mm(r.a_to_b.p95) + " / " + mm(r.a_to_b.max) +
-         " mm, scans -> mesh mean " + mm(r.b_to_a.mean) + " mm";
+         " mm, scans -> mesh mean " + format_fixed(r.b_to_a.mean * 1000.0, 4) + " mm";
 }
 
 void run_multiview_cases(const Options& options, Report& report) {

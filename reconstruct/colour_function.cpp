@@ -951,53 +951,53 @@ ColourFunction fit_colour(const Cloud& cloud, const ColourParams& params) {
     for (int depth = 0; !frontier.empty(); ++depth) {
       std::vector<int> next;
       for (std::size_t begin = 0; begin < frontier.size(); begin += kChunk) {
-      const std::size_t end = std::min(frontier.size(), begin + kChunk);
-      res.assign(end - begin, CellResult{});
-      tbb::parallel_for(tbb::blocked_range<std::size_t>(begin, end, 1), [&](const auto& range) {
-        for (std::size_t i = range.begin(); i != range.end(); ++i) {
-          const Node& nd = s.nodes[frontier[i]];
-          res[i - begin] = fit_cell(s, nd.center, nd.half, depth);
-        }
-      });
-      for (std::size_t i = begin; i < end; ++i) {
-        const int id = frontier[i];
-        CellResult& cr = res[i - begin];
-        if (cr.split) {
-          const int first = int(s.nodes.size());
-          s.nodes[id].first_child = first;
-          const Node parent = s.nodes[id];
-          for (int c = 0; c < 8; ++c) {
-            Node ch;
-            ch.half = parent.half / 2;
-            ch.center = parent.center + ch.half * Vec3d(c & 1 ? 1 : -1, c & 2 ? 1 : -1, c & 4 ? 1 : -1);
-            ch.depth = depth + 1;
-            s.nodes.push_back(ch);
-            next.push_back(first + c);
+        const std::size_t end = std::min(frontier.size(), begin + kChunk);
+        res.assign(end - begin, CellResult{});
+        tbb::parallel_for(tbb::blocked_range<std::size_t>(begin, end, 1), [&](const auto& range) {
+          for (std::size_t i = range.begin(); i != range.end(); ++i) {
+            const Node& nd = s.nodes[frontier[i]];
+            res[i - begin] = fit_cell(s, nd.center, nd.half, depth);
           }
-          continue;
+        });
+        for (std::size_t i = begin; i < end; ++i) {
+          const int id = frontier[i];
+          CellResult& cr = res[i - begin];
+          if (cr.split) {
+            const int first = int(s.nodes.size());
+            s.nodes[id].first_child = first;
+            const Node parent = s.nodes[id];
+            for (int c = 0; c < 8; ++c) {
+              Node ch;
+              ch.half = parent.half / 2;
+              ch.center = parent.center + ch.half * Vec3d(c & 1 ? 1 : -1, c & 2 ? 1 : -1, c & 4 ? 1 : -1);
+              ch.depth = depth + 1;
+              s.nodes.push_back(ch);
+              next.push_back(first + c);
+            }
+            continue;
+          }
+          Node& nd = s.nodes[id];
+          if (cr.empty) {
+            nd.radius = 0;  // a leaf without a function: never visited
+            ++s.diag.empty_cells;
+            continue;
+          }
+          nd.radius = cr.radius;
+          nd.leaf = int(s.leaves.size());
+          const int type = int(cr.leaf.type);
+          if (cr.leaf.type == ColourCellType::kB && cr.leaf.cluster_count() > 2) ++s.diag.multi_colour_leaves;
+          s.leaves.push_back(std::move(cr.leaf));
+          ++s.diag.leaves;
+          ++s.diag.leaves_by_type[type];
+          if (s.diag.leaves_by_depth.size() <= std::size_t(depth)) s.diag.leaves_by_depth.resize(depth + 1);
+          ++s.diag.leaves_by_depth[depth][type];
+          if (cr.grew) ++s.diag.grown_leaves;
+          if (type == 0 && !cr.converged) ++s.diag.unconverged_leaves;
+          s.diag.constant_clusters += cr.constant_clusters;
+          s.diag.linear_boundaries += cr.linear_boundaries;
+          s.diag.rejected_type_b += cr.rejected_b;
+          s.diag.fallback_type_a += cr.fallback_a;
         }
-        Node& nd = s.nodes[id];
-        if (cr.empty) {
-          nd.radius = 0;  // a leaf without a function: never visited
-          ++s.diag.empty_cells;
-          continue;
-        }
-        nd.radius = cr.radius;
-        nd.leaf = int(s.leaves.size());
-        const int type = int(cr.leaf.type);
-        if (cr.leaf.type == ColourCellType::kB && cr.leaf.cluster_count() > 2) ++s.diag.multi_colour_leaves;
-        s.leaves.push_back(std::move(cr.leaf));
-        ++s.diag.leaves;
-        ++s.diag.leaves_by_type[type];
-        if (s.diag.leaves_by_depth.size() <= std::size_t(depth)) s.diag.leaves_by_depth.resize(depth + 1);
-        ++s.diag.leaves_by_depth[depth][type];
-        if (cr.grew) ++s.diag.grown_leaves;
-        if (type == 0 && !cr.converged) ++s.diag.unconverged_leaves;
-        s.diag.constant_clusters += cr.constant_clusters;
-        s.diag.linear_boundaries += cr.linear_boundaries;
-        s.diag.rejected_type_b += cr.rejected_b;
-        s.diag.fallback_type_a += cr.fallback_a;
-      }
       }
       frontier.swap(next);
     }

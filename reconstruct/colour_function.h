@@ -46,7 +46,7 @@ struct ColourParams {
   int split_min_points = 30;
   /// Eq. 4 measures each point's residual beyond its own quantisation: how far the
   /// colour its 8-bit value stands for can lie from it (half a step in each sRGB
-  /// channel, in L*a*b*: 0.1-0.9 for L*, up to ~1 for a*, b*). Not in the paper; the
+  /// channel, in L*a*b*: 0.10-0.26 for L*, 0.15-0.77 for a*, 0.16-0.71 for b*). Not in the paper; the
   /// paper's epsilon_col (0.1 L*) is below that, so on 8-bit texture a cell's fit
   /// fails eq. 4 on quantisation alone and splits down to split_min_points
   /// (docs/colour.md). false: the paper's test.

@@ -20,8 +20,8 @@ ScanSnapStats snap_to_scans(Mesh& mesh, const Cloud& scans, const ScanSnapParams
   const double radius = p.radius > 0 ? p.radius : p.cell;
   const double max_move = p.max_move > 0 ? p.max_move : 0.5 * p.cell;
   if (!(radius > 0) || !(max_move > 0) || !std::isfinite(radius) || !std::isfinite(max_move) || p.threads < 0 ||
-      !(p.significance >= 0))
-    throw InvalidInput("snap to scans: need a positive radius and largest move (or cell), significance >= 0, threads >= 0");
+      !(p.significance >= 0) || !(p.min_cos >= -1 && p.min_cos <= 1) || p.min_points < 1)
+    throw InvalidInput("snap to scans: need a positive radius and largest move (or cell), significance >= 0, -1 <= min_cos <= 1, min_points >= 1, threads >= 0");
   stats.radius = radius;
   if (mesh.vertices.empty() || scans.points.empty()) return stats;
   const PointIndex index(scans.points);
@@ -59,7 +59,8 @@ ScanSnapStats snap_to_scans(Mesh& mesh, const Cloud& scans, const ScanSnapParams
         const double mean = sh / sw;
         const double var = std::max(0.0, shh / sw - mean * mean);
         const double n_eff = sw * sw / sw2;
-        const double se = n_eff > 1 ? std::sqrt(var / (n_eff - 1)) : std::sqrt(var);
+        if (!(n_eff > 1)) continue;  // one point's worth: no spread to judge it by
+        const double se = std::sqrt(var / (n_eff - 1));
         const double beyond = std::max(0.0, std::abs(mean) - p.significance * se);
         if (!(beyond > 0)) continue;
         const double h = std::clamp(std::copysign(beyond, mean), -max_move, max_move);

@@ -1,5 +1,7 @@
 #include "reconstruct/surface.h"
 
+#include <tbb/task_arena.h>
+
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -68,7 +70,8 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
 
   out.hole = p.hole;
   if (p.hole == HoleMode::kAuto) {
-    out.enclosure = cloud_enclosure(input);
+    // (in an arena of p.threads: the winding number's construction runs in parallel)
+    tbb::task_arena(worker_threads(p.threads)).execute([&] { out.enclosure = cloud_enclosure(input); });
     if (*out.enclosure <= -kEnclosedAbove) {
       // A closed cloud whose normals all face inwards: turned, then closed.
       for (Vec3f& n : input.normals) n = -n;
@@ -113,7 +116,7 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
       wp.trust_distance = mp.trust_factor * out.mpu.mean_spacing;
       wp.voxel = std::max(wp.trust_distance / 2, double(bounding_box(input.points).diagonal()) / 200);
     }
-    winding = std::make_unique<WindingClose>(surface, input, wp);
+    tbb::task_arena(worker_threads(p.threads)).execute([&] { winding = std::make_unique<WindingClose>(surface, input, wp); });
     out.winding_points = winding->winding_points();
     out.winding_trust = winding->trust_distance();
     note("unseen parts closed by the winding number (" + std::to_string(out.winding_points) +

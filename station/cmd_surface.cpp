@@ -264,7 +264,7 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
     if (!c.json) std::fprintf(stderr, "%s\n", surface_note(a.in, line, "reconstruct: ", "note: ").c_str());
   };
   if (!a.scans.empty() && (rc.blocks != 1 || a.resume || rc.max_memory_gb > 0))
-    throw InvalidInput("--scans does not go with --blocks or --max-memory (the blocks are not snapped)");
+    throw InvalidInput("--scans does not go with --blocks, --max-memory or --resume (the blocks are not snapped)");
   if (rc.blocks != 1 || a.resume || rc.max_memory_gb > 0) {
     // Blocks of one lattice: streamed, never the whole cloud in memory; over the MPI
     // ranks under mpirun (station/blocks_run.h).

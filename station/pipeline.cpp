@@ -207,8 +207,12 @@ std::string surface_key(const PipelineConfig& p) {
     << ";colour_edges=" << c.colour_edges
     << ";min_component=" << fmt("%.17g", c.min_component) << ";table_plane=" << c.table_plane
     << ";winding_close=" << c.winding_close;
-  if (c.snap_to_scans && p.consolidate.enabled)  // (absent from keys before issue 32's snap)
+  // (absent from keys before issue 32's snap; not done in blocks)
+  if (c.snap_to_scans && p.consolidate.enabled && c.blocks == 1 && !(c.max_memory_gb > 0))
     s << ";snap_to_scans=1;snap_significance=" << fmt("%.17g", c.snap_significance);
+  // Since issue 27 the colour function's eq. 4 counts residuals beyond each colour's
+  // 8-bit quantisation: a run before it is redone.
+  if (c.colour && c.colour_method == "mpu") s << ";colour_eq4=quantised";
   // Since issue 32: what decides the unseen parts and the kept rims.
   if (c.hole != "close")
     s << ";enclosed_above=" << kEnclosedAbove << ";keep_trust=" << kKeepTrustFactor << ";rim_trim=" << kRimTrimFactor;
@@ -670,6 +674,9 @@ class Runner {
     } else {
       // The scans the consolidation thinned: the mesh's vertices onto their local mean.
       Cloud scans;
+      if (c.snap_to_scans && scans_file.empty())
+        say("  note: reconstruct.snap_to_scans needs the consolidation (the cloud it thins): the mesh stays on the "
+            "fitted surface");
       if (c.snap_to_scans && !scans_file.empty()) {
         scans = read_cloud(scans_file);
         if (scans.has_normals())

@@ -57,13 +57,14 @@ TEST(ScanSnap, VerticesGoOntoTheScansOfASphere) {
 }
 
 TEST(ScanSnap, AThinPartKeepsBothSidesAndMovesAtMostHalfACell) {
-  // A plate 0.1 thick (faces at z = +-0.05, scanned from both sides with a little
-  // noise); the mesh's two sheets fitted 0.03 outside each face. Each sheet must go
-  // onto its own face: with every scan point counted, both would meet in the middle.
+  // A plate 0.04 thick (faces at z = +-0.02, scanned from both sides with a little
+  // noise); the mesh's two sheets fitted 0.02 outside each face. The search radius
+  // (a cell, 0.1) reaches both faces: each sheet must go onto its own, where every
+  // scan point counted would put both near the middle.
   Cloud scans;
-  add_face(scans, 40000, 0.05f, 1.f, 0.002, 1);
-  add_face(scans, 40000, -0.05f, -1.f, 0.002, 2);
-  Mesh top = plate(20, 0.08f, true), bottom = plate(20, -0.08f, false);
+  add_face(scans, 40000, 0.02f, 1.f, 0.001, 1);
+  add_face(scans, 40000, -0.02f, -1.f, 0.001, 2);
+  Mesh top = plate(20, 0.04f, true), bottom = plate(20, -0.04f, false);
   ScanSnapParams p;
   p.cell = 0.1;
   snap_to_scans(top, scans, p);
@@ -71,12 +72,41 @@ TEST(ScanSnap, AThinPartKeepsBothSidesAndMovesAtMostHalfACell) {
   double top_z = 0, bottom_z = 0;
   for (const Vec3f& v : top.vertices) top_z += v.z() / double(top.vertices.size());
   for (const Vec3f& v : bottom.vertices) bottom_z += v.z() / double(bottom.vertices.size());
-  EXPECT_NEAR(top_z, 0.05, 0.005);
-  EXPECT_NEAR(bottom_z, -0.05, 0.005);
-  // A sheet 0.2 off its face moves by half a cell at most.
-  Mesh far = plate(20, 0.25f, true);
-  snap_to_scans(far, scans, p);
-  for (const Vec3f& v : far.vertices) EXPECT_GE(v.z(), 0.25f - 0.05f - 1e-5f);
+  EXPECT_NEAR(top_z, 0.02, 0.002);
+  EXPECT_NEAR(bottom_z, -0.02, 0.002);
+  // A sheet 0.08 off its face (within the radius) moves by half a cell, no more.
+  Mesh far = plate(20, 0.10f, true);
+  const ScanSnapStats st = snap_to_scans(far, scans, p);
+  EXPECT_EQ(st.moved, far.vertices.size());
+  for (const Vec3f& v : far.vertices) EXPECT_NEAR(v.z(), 0.10f - 0.05f, 1e-4f);
+}
+
+TEST(ScanSnap, NoiseAloneDoesNotMoveTheMesh) {
+  // A sheet on the face of noisy scans (sigma 0.01, a tenth of a cell): at the default
+  // significance almost nothing moves; by the whole mean (0) every vertex takes the
+  // noise of its neighbourhood's mean.
+  Cloud scans;
+  add_face(scans, 20000, 0.f, 1.f, 0.01, 3);
+  Mesh cautious = plate(20, 0.f, true), whole = cautious;
+  ScanSnapParams p;
+  p.cell = 0.1;
+  const ScanSnapStats a = snap_to_scans(cautious, scans, p);
+  p.significance = 0;
+  const ScanSnapStats b = snap_to_scans(whole, scans, p);
+  std::printf("noise: significance 1 moved %zu (mean %.5f), 0 moved %zu (mean %.5f) of %zu\n", a.moved, a.mean_move,
+              b.moved, b.mean_move, whole.vertices.size());
+  // How far each sheet now lies from the true face z = 0 (RMS).
+  const auto rms = [](const Mesh& m) {
+    double s = 0;
+    for (const Vec3f& v : m.vertices) s += double(v.z()) * v.z();
+    return std::sqrt(s / double(m.vertices.size()));
+  };
+  std::printf("noise: RMS off the face %.5f (significance 1) against %.5f (0)\n", rms(cautious), rms(whole));
+  EXPECT_EQ(b.moved, whole.vertices.size());
+  // Measured: 133 of 441 moved (a third of pure-noise means lie beyond one standard
+  // error), RMS 0.00049 against 0.00127.
+  EXPECT_LT(double(a.moved), 0.4 * double(b.moved));
+  EXPECT_LT(rms(cautious), 0.4 * rms(whole));
 }
 
 TEST(ScanSnap, ScansWithoutNormalsAreRefused) {

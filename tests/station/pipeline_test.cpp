@@ -163,6 +163,25 @@ TEST_F(PipelineTest, OnlyStagesWhoseParametersOrInputsChangedAreRedone) {
   EXPECT_LT(plain.stages[2].figures.at("faces"), fused.stages[2].figures.at("faces"));
 }
 
+// reconstruct.snap_to_scans (issue 32): the surface stage takes the merged scans
+// (the consolidation's input), is redone when it is switched on or its significance
+// changes, and kept when nothing changed.
+TEST_F(PipelineTest, SnapToScansIsASurfaceParameter) {
+  test::TempDir out("station-run");
+  const RunResult plain = run_pipeline(config(), request(out.path()));
+  EXPECT_EQ(plain.stages[2].figures.count("snapped_vertices"), 0u);
+  const RunResult snapped = run_pipeline(config({"reconstruct.snap_to_scans=true"}), request(out.path(), true));
+  EXPECT_EQ(names(snapped), (std::vector<std::string>{"register*", "consolidate*", "surface"}));
+  ASSERT_TRUE(snapped.stages[2].figures.count("snapped_vertices"));
+  EXPECT_GT(snapped.stages[2].figures.at("snapped_vertices"), 0);
+  EXPECT_EQ(names(run_pipeline(config({"reconstruct.snap_to_scans=true"}), request(out.path(), true))),
+            (std::vector<std::string>{"register*", "consolidate*", "surface*"}));
+  const RunResult closer = run_pipeline(config({"reconstruct.snap_to_scans=true", "reconstruct.snap_significance=0"}),
+                                        request(out.path(), true));
+  EXPECT_EQ(names(closer), (std::vector<std::string>{"register*", "consolidate*", "surface"}));
+  EXPECT_GT(closer.stages[2].figures.at("snapped_vertices"), snapped.stages[2].figures.at("snapped_vertices"));
+}
+
 TEST_F(PipelineTest, AFailedWriteLeavesEarlierOutputsIntact) {
   test::TempDir out("station-run");
   run_pipeline(config(), request(out.path()));
