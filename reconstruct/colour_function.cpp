@@ -1,5 +1,6 @@
 #include "reconstruct/colour_function.h"
 #include "reconstruct/colour_transfer.h"
+#include "reconstruct/detail/octree_split.h"
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
@@ -963,17 +964,7 @@ ColourFunction fit_colour(const Cloud& cloud, const ColourParams& params) {
           const int id = frontier[i];
           CellResult& cr = res[i - begin];
           if (cr.split) {
-            const int first = int(s.nodes.size());
-            s.nodes[id].first_child = first;
-            const Node parent = s.nodes[id];
-            for (int c = 0; c < 8; ++c) {
-              Node ch;
-              ch.half = parent.half / 2;
-              ch.center = parent.center + ch.half * Vec3d(c & 1 ? 1 : -1, c & 2 ? 1 : -1, c & 4 ? 1 : -1);
-              ch.depth = depth + 1;
-              s.nodes.push_back(ch);
-              next.push_back(first + c);
-            }
+            detail::split_cell(s.nodes, id, depth, next);
             continue;
           }
           Node& nd = s.nodes[id];

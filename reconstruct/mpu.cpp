@@ -14,6 +14,7 @@
 #include "core/kdtree.h"
 #include "core/normals.h"
 #include "core/threads.h"
+#include "reconstruct/detail/octree_split.h"
 
 namespace station {
 namespace {
@@ -761,17 +762,7 @@ MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
         const bool split = cf.error > params.epsilon0 && !cf.grew && cf.points >= params.split_min_points &&
                            depth < params.max_depth;
         if (split) {
-          const int first = int(s.nodes.size());
-          s.nodes[id].first_child = first;
-          const Node parent = s.nodes[id];
-          for (int c = 0; c < 8; ++c) {
-            Node ch;
-            ch.half = parent.half / 2;
-            ch.center = parent.center + ch.half * Vec3d(c & 1 ? 1 : -1, c & 2 ? 1 : -1, c & 4 ? 1 : -1);
-            ch.depth = depth + 1;
-            s.nodes.push_back(ch);
-            next.push_back(first + c);
-          }
+          detail::split_cell(s.nodes, id, depth, next);
         } else {
           Node& nd = s.nodes[id];
           nd.radius = cf.radius;
