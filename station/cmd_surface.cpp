@@ -263,9 +263,10 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
   sp.note = [&](const std::string& line) {
     if (!c.json) std::fprintf(stderr, "%s\n", surface_note(a.in, line, "reconstruct: ", "note: ").c_str());
   };
-  if (!a.scans.empty() && (rc.blocks != 1 || a.resume || rc.max_memory_gb > 0))
+  const bool in_blocks = rc.in_blocks() || a.resume;
+  if (!a.scans.empty() && in_blocks)
     throw InvalidInput("--scans does not go with --blocks, --max-memory or --resume (the blocks are not snapped)");
-  if (rc.blocks != 1 || a.resume || rc.max_memory_gb > 0) {
+  if (in_blocks) {
     // Blocks of one lattice: streamed, never the whole cloud in memory; over the MPI
     // ranks under mpirun (station/blocks_run.h).
     if (rc.blocks == 1 && rc.max_memory_gb == 0)

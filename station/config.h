@@ -101,6 +101,8 @@ struct PipelineConfig {
     /// Memory per rank for the blocks (GB): the block count that fits it is picked
     /// (or --blocks checked against it); 0 = no bound.
     double max_memory_gb = 0;
+    /// The surface stage runs in blocks (a block count or a memory bound given).
+    bool in_blocks() const { return blocks != 1 || max_memory_gb > 0; }
   } reconstruct;
   struct Sdm {
     int level = 5;  ///< icosphere template subdivision level

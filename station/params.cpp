@@ -61,14 +61,11 @@ const std::vector<ProfileOption>& profile_options() {
     flag("reconstruct.snap_to_scans", "run", "--snap-to-scans", "true",
          "after consolidation, move the mesh's vertices onto the scans' local mean (clean, dense scans: closer "
          "to them; noisy scans: the noise comes back; docs/run.md)");
-    value("reconstruct.snap_significance", "reconstruct", "--snap-significance",
-          "with --snap-to-scans (run) or --scans (reconstruct): a vertex moves by the part of the scans' mean "
-          "height beyond this many standard errors (1: keeps most of the noise out; 0.5: closer to clean scans; "
-          "0: the whole mean)");
-    value("reconstruct.snap_significance", "run", "--snap-significance",
-          "with --snap-to-scans (run) or --scans (reconstruct): a vertex moves by the part of the scans' mean "
-          "height beyond this many standard errors (1: keeps most of the noise out; 0.5: closer to clean scans; "
-          "0: the whole mean)");
+    for (const char* cmd : {"reconstruct", "run"})
+      value("reconstruct.snap_significance", cmd, "--snap-significance",
+            "with --snap-to-scans (run) or --scans (reconstruct): a vertex moves by the part of the scans' mean "
+            "height beyond this many standard errors (1: keeps most of the noise out; 0.5: closer to clean scans; "
+            "0: the whole mean)");
     value("reconstruct.max_memory_gb", "run", "--max-memory",
           "memory per rank in GB for the surface stage's blocks (0: no bound; docs/blocks.md)");
     value("reconstruct.blocks", "run", "--blocks",

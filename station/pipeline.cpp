@@ -208,7 +208,7 @@ std::string surface_key(const PipelineConfig& p) {
     << ";min_component=" << fmt("%.17g", c.min_component) << ";table_plane=" << c.table_plane
     << ";winding_close=" << c.winding_close;
   // (absent from keys before issue 32's snap; not done in blocks)
-  if (c.snap_to_scans && p.consolidate.enabled && c.blocks == 1 && !(c.max_memory_gb > 0))
+  if (c.snap_to_scans && p.consolidate.enabled && !c.in_blocks())
     s << ";snap_to_scans=1;snap_significance=" << fmt("%.17g", c.snap_significance);
   // Since issue 27 the colour function's eq. 4 counts residuals beyond each colour's
   // 8-bit quantisation: a run before it is redone.
@@ -646,9 +646,9 @@ class Runner {
     sp.boundary_flags = true;
     sp.note = [&](const std::string& line) { say(surface_note(in, line, "  surface: ", "  note: ")); };
     SurfaceResult sr;
-    if ((c.blocks != 1 || c.max_memory_gb > 0) && c.snap_to_scans)
+    if (c.in_blocks() && c.snap_to_scans)
       say("  note: reconstruct.snap_to_scans is not done in blocks: the mesh stays on the fitted surface");
-    if ((c.blocks != 1 || c.max_memory_gb > 0) && req_.blocks_over_ranks) {
+    if (c.in_blocks() && req_.blocks_over_ranks) {
       // Blocks of one lattice over the MPI ranks: the others run them with this one
       // from the same file (docs/blocks.md).
       input = Cloud{};
@@ -665,7 +665,7 @@ class Runner {
       r.figures["blocks"] = double(run.stats.blocks);
       r.figures["ranks"] = double(run.ranks);
       sr = std::move(run.result);
-    } else if (c.blocks != 1 || c.max_memory_gb > 0) {
+    } else if (c.in_blocks()) {
       // Blocks of one lattice, in sequence here (docs/blocks.md).
       BlockRunStats st;
       sr = reconstruct_surface_blocks(memory_source(input), sp, c.blocks, &st, c.max_memory_gb * 1e9);
@@ -679,10 +679,7 @@ class Runner {
             "fitted surface");
       if (c.snap_to_scans && !scans_file.empty()) {
         scans = read_cloud(scans_file);
-        if (scans.has_normals())
-          sp.scans = &scans;
-        else
-          say("  note: " + scans_file.filename().string() + " has no normals: the mesh stays on the fitted surface");
+        sp.scans = &scans;  // (without normals reconstruct_surface says so and leaves the mesh)
       }
       sr = reconstruct_surface(std::move(input), sp);
       if (sp.scans) r.figures["snapped_vertices"] = double(sr.snapped_vertices);
