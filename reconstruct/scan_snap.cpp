@@ -6,65 +6,159 @@
 
 #include <algorithm>
 #include <cmath>
+#include <optional>
 
 #include "core/error.h"
 #include "core/kdtree.h"
 #include "core/threads.h"
 
 namespace station {
+namespace {
+
+// Which scan points a pass counts: all of them, or one half by index parity (the
+// merged scans hold each view's points in scan order, so alternate points are two
+// even, interleaved halves of every view).
+enum class Half { kAll, kEven, kOdd };
+
+bool counts(Half half, std::size_t j) {
+  return half == Half::kAll || (j % 2 == 0) == (half == Half::kEven);
+}
+
+struct HeightFit {
+  double a = 0;   ///< the height at the vertex, along its normal
+  double se = 0;  ///< its standard error
+};
+
+// h(t) = a + b t^2 by weighted least squares over the points of `half` within `radius`
+// along the tangent plane whose normals face n's way; biweight weights in t / radius.
+std::optional<HeightFit> fit_height(const PointIndex& index, const Cloud& scans, const Vec3f& vertex, const Vec3d& n,
+                                    double radius, Half half, const ScanSnapParams& p) {
+  const Vec3d v = vertex.cast<double>();
+  double s0 = 0, s1 = 0, s2 = 0, sh = 0, sht = 0, shh = 0, q0 = 0, q1 = 0, q2 = 0;
+  int count = 0;
+  for (const auto& [j, d] : index.radius_unsorted(vertex, float(radius))) {
+    if (!counts(half, std::size_t(j))) continue;
+    const Vec3d sn = scans.normals[std::size_t(j)].cast<double>();
+    const double len = sn.norm();
+    if (!(len > 0) || sn.dot(n) < p.min_cos * len) continue;
+    const Vec3d q = scans.points[std::size_t(j)].cast<double>() - v;
+    const double h = q.dot(n);
+    const double t2 = (q - h * n).squaredNorm() / (radius * radius);
+    if (t2 >= 1) continue;
+    const double w = (1 - t2) * (1 - t2);
+    s0 += w, s1 += w * t2, s2 += w * t2 * t2;
+    sh += w * h, sht += w * h * t2, shh += w * h * h;
+    q0 += w * w, q1 += w * w * t2, q2 += w * w * t2 * t2;
+    ++count;
+  }
+  if (count < p.min_points || !(s0 > 0)) return std::nullopt;
+  const double det = s0 * s2 - s1 * s1;
+  if (!(det > 1e-9 * s0 * s2)) return std::nullopt;  // every point at one distance
+  const double a = (s2 * sh - s1 * sht) / det, b = (s0 * sht - s1 * sh) / det;
+  const double n_eff = s0 * s0 / q0;
+  if (!(n_eff > 2) || !std::isfinite(a)) return std::nullopt;
+  const double rss = std::max(0.0, shh - 2 * (a * sh + b * sht) + a * a * s0 + 2 * a * b * s1 + b * b * s2);
+  const double sigma2 = rss / s0 * n_eff / (n_eff - 2);
+  // Var a = sigma^2 [M^-1 W M^-1]_00 (weighted least squares, W the squared weights'
+  // moments); the first row of M^-1 is (s2, -s1) / det.
+  const double r0 = s2 / det, r1 = -s1 / det;
+  const double var = sigma2 * (r0 * r0 * q0 + 2 * r0 * r1 * q1 + r1 * r1 * q2);
+  return HeightFit{a, std::sqrt(std::max(0.0, var))};
+}
+
+double move_of(const HeightFit& f, const ScanSnapParams& p, double max_move) {
+  const double beyond = std::max(0.0, std::abs(f.a) - p.significance * f.se);
+  return std::clamp(std::copysign(beyond, f.a), -max_move, max_move);
+}
+
+// At most this many vertices are cross-validated (evenly strided): enough to tell a
+// gain of a few per cent, at a fraction of the snap's own cost.
+constexpr std::size_t kHeldOutVertices = 40000;
+
+}  // namespace
 
 ScanSnapStats snap_to_scans(Mesh& mesh, const Cloud& scans, const ScanSnapParams& p) {
   ScanSnapStats stats;
   if (!scans.has_normals()) throw InvalidInput("snap to scans: the scans have no normals");
   if (!all_finite(scans.points)) throw InvalidInput("snap to scans: non-finite scan coordinates");
-  const double radius = p.radius > 0 ? p.radius : p.cell;
+  if (!(p.radius >= 0) || !(p.max_move >= 0) || !(p.cell >= 0) || !std::isfinite(p.radius) ||
+      !std::isfinite(p.max_move) || !std::isfinite(p.cell) || (p.cell == 0 && (p.radius == 0 || p.max_move == 0)) ||
+      p.threads < 0 || !(p.significance >= 0) || !(p.min_cos >= -1 && p.min_cos <= 1) || p.min_points < 3)
+    throw InvalidInput(
+        "snap to scans: need a positive radius and largest move (or cell), significance >= 0, -1 <= min_cos <= 1, "
+        "min_points >= 3, threads >= 0");
+  double radius = p.radius;
+  if (radius == 0) {
+    // The scans' WLOP support (reconstruct/wlop.h's default h) over their bounding box.
+    const Aabb box = bounding_box(scans.points);
+    const double diagonal = (box.max - box.min).cast<double>().norm();
+    radius = scans.points.empty() ? p.cell : std::max(p.cell, 4 * diagonal / std::sqrt(double(scans.size())));
+  }
   const double max_move = p.max_move > 0 ? p.max_move : 0.5 * p.cell;
-  if (!(radius > 0) || !(max_move > 0) || !std::isfinite(radius) || !std::isfinite(max_move) || p.threads < 0 ||
-      !(p.significance >= 0) || !(p.min_cos >= -1 && p.min_cos <= 1) || p.min_points < 1)
-    throw InvalidInput("snap to scans: need a positive radius and largest move (or cell), significance >= 0, -1 <= min_cos <= 1, min_points >= 1, threads >= 0");
   stats.radius = radius;
-  if (mesh.vertices.empty() || scans.points.empty()) return stats;
+  if (mesh.vertices.empty() || scans.points.empty() || !(radius > 0)) return stats;
   const PointIndex index(scans.points);
   const std::vector<Vec3f> normals = vertex_normals(mesh);
+  const auto usable = [&](std::size_t i) {
+    return normals[i].squaredNorm() > 0.5f && mesh.vertices[i].allFinite();
+  };
+  tbb::task_arena arena(worker_threads(p.threads));
+
+  if (p.cross_validate) {
+    // Two fits at evenly strided vertices, one from the even and one from the odd scan
+    // points: independent estimates m_e, m_o of the move, each with the variance v of
+    // a half's fit. With mu the move the whole scans' fit tends to, E[m_e m_o] = mu^2,
+    // the mesh's squared error to that height if it stays; E[(m_e - m_o)^2] / 4 = v / 2,
+    // about the whole fit's variance, its squared error if it moves. A vertex without
+    // a fit from either half counts as staying (0 in both sums).
+    const std::size_t stride = std::max<std::size_t>(1, mesh.vertices.size() / kHeldOutVertices);
+    const std::size_t samples = (mesh.vertices.size() + stride - 1) / stride;
+    std::vector<double> stay(samples, 0), go(samples, 0);
+    std::vector<char> fitted(samples, 0);
+    arena.execute([&] {
+      tbb::parallel_for(tbb::blocked_range<std::size_t>(0, samples, 256), [&](const auto& range) {
+        for (std::size_t s = range.begin(); s != range.end(); ++s) {
+          const std::size_t i = s * stride;
+          if (!usable(i)) continue;
+          const Vec3d n = normals[i].cast<double>();
+          const auto even = fit_height(index, scans, mesh.vertices[i], n, radius, Half::kEven, p);
+          if (!even) continue;
+          const auto odd = fit_height(index, scans, mesh.vertices[i], n, radius, Half::kOdd, p);
+          if (!odd) continue;
+          const double me = move_of(*even, p, max_move), mo = move_of(*odd, p, max_move);
+          stay[s] = me * mo;
+          go[s] = 0.25 * (me - mo) * (me - mo);
+          fitted[s] = 1;
+        }
+      });
+    });
+    double sum_stay = 0, sum_go = 0;  // in vertex order: the same for any thread count
+    for (std::size_t s = 0; s < samples; ++s)
+      if (fitted[s]) sum_stay += stay[s], sum_go += go[s], ++stats.held_out_vertices;
+    if (stats.held_out_vertices == 0) {
+      stats.declined = true;
+      return stats;
+    }
+    stats.held_out_rms_kept = std::sqrt(std::max(0.0, sum_stay) / double(stats.held_out_vertices));
+    stats.held_out_rms_snapped = std::sqrt(sum_go / double(stats.held_out_vertices));
+    if (!(sum_go < sum_stay)) {
+      stats.declined = true;
+      return stats;
+    }
+  }
+
   std::vector<Vec3f> moved = mesh.vertices;
   std::vector<double> move(mesh.vertices.size(), -1);
-  tbb::task_arena arena(worker_threads(p.threads));
   arena.execute([&] {
-    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, mesh.vertices.size(), 512), [&](const auto& range) {
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, mesh.vertices.size(), 256), [&](const auto& range) {
       for (std::size_t i = range.begin(); i != range.end(); ++i) {
+        if (!usable(i)) continue;
         const Vec3d n = normals[i].cast<double>();
-        if (!(n.squaredNorm() > 0.5) || !mesh.vertices[i].allFinite()) continue;
-        const Vec3d v = mesh.vertices[i].cast<double>();
-        double sw = 0, sw2 = 0, sh = 0, shh = 0;
-        int count = 0;
-        for (const auto& [j, d] : index.radius_unsorted(mesh.vertices[i], float(radius))) {
-          const Vec3d sn = scans.normals[std::size_t(j)].cast<double>();
-          const double len = sn.norm();
-          if (!(len > 0) || sn.dot(n) < p.min_cos * len) continue;
-          const Vec3d q = scans.points[std::size_t(j)].cast<double>() - v;
-          const double h = q.dot(n);
-          const double t2 = (q - h * n).squaredNorm() / (radius * radius);
-          if (t2 >= 1) continue;
-          const double w = (1 - t2) * (1 - t2);
-          sw += w;
-          sw2 += w * w;
-          sh += w * h;
-          shh += w * h * h;
-          ++count;
-        }
-        if (count < p.min_points || !(sw > 0)) continue;
-        // The mean height's standard error from the points' spread about it
-        // (effective count (sum w)^2 / sum w^2): only the part of the mean beyond
-        // `significance` standard errors moves the vertex, so scan noise does not.
-        const double mean = sh / sw;
-        const double var = std::max(0.0, shh / sw - mean * mean);
-        const double n_eff = sw * sw / sw2;
-        if (!(n_eff > 1)) continue;  // one point's worth: no spread to judge it by
-        const double se = std::sqrt(var / (n_eff - 1));
-        const double beyond = std::max(0.0, std::abs(mean) - p.significance * se);
-        if (!(beyond > 0)) continue;
-        const double h = std::clamp(std::copysign(beyond, mean), -max_move, max_move);
-        moved[i] = (v + h * n).cast<float>();
+        const auto fit = fit_height(index, scans, mesh.vertices[i], n, radius, Half::kAll, p);
+        if (!fit) continue;
+        const double h = move_of(*fit, p, max_move);
+        if (h == 0) continue;
+        moved[i] = (mesh.vertices[i].cast<double>() + h * n).cast<float>();
         move[i] = std::abs(h);
       }
     });

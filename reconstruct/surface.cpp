@@ -193,9 +193,20 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
       const ScanSnapStats st = snap_to_scans(mesh, *p.scans, sp);
       out.snapped_vertices = st.moved;
       out.snap_mean_move = st.mean_move;
-      note("vertices onto the scans' local mean: " + std::to_string(st.moved) + " of " +
-           std::to_string(mesh.vertices.size()) + " moved, by " + fmt("%.3g", st.mean_move) + " on average (within " +
-           fmt("%.3g", st.radius) + ")");
+      out.snap_declined = st.declined;
+      const std::string held_out = st.held_out_vertices == 0
+                                       ? std::string()
+                                       : " (a held-out half of the scans, RMS off " +
+                                             std::to_string(st.held_out_vertices) + " vertices: " +
+                                             fmt("%.3g", st.held_out_rms_kept) + " as fitted, " +
+                                             fmt("%.3g", st.held_out_rms_snapped) + " snapped)";
+      if (st.declined)
+        note("vertices stay on the fitted surface: local fits of the scans within " + fmt("%.3g", st.radius) +
+             " would not bring it closer to them" + held_out);
+      else
+        note("vertices onto local fits of the scans within " + fmt("%.3g", st.radius) + ": " +
+             std::to_string(st.moved) + " of " + std::to_string(mesh.vertices.size()) + " moved, by " +
+             fmt("%.3g", st.mean_move) + " on average" + held_out);
     }
   }
   out.pieces = remove_small_components(mesh, p.min_component);

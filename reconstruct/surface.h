@@ -60,11 +60,12 @@ struct SurfaceParams {
   /// "--resolution 4096"); empty: "resolution N".
   std::string resolution_name;
   /// The scans `input` was consolidated from (e.g. the registered views merged), with
-  /// normals: after extraction the vertices move onto their local mean
+  /// normals: after extraction the vertices move onto a local fit of them
   /// (reconstruct/scan_snap.h), so the mesh keeps the scans' detail that thinning and
-  /// evening smoothed. nullptr: the mesh stays on the fitted surface.
+  /// evening smoothed, where a held-out half of the scans says that helps. nullptr:
+  /// the mesh stays on the fitted surface.
   const Cloud* scans = nullptr;
-  double snap_significance = 1;  ///< ScanSnapParams::significance
+  double snap_significance = 0;  ///< ScanSnapParams::significance
   int threads = 0;  ///< 0 = all cores; the mesh does not depend on it
   /// Progress lines (what is being done, with its figures); may be empty.
   std::function<void(const std::string&)> note;
@@ -95,6 +96,7 @@ struct SurfaceResult {
   std::size_t rim_faces = 0;        ///< kKeep: faces dropped at the open rims
   std::size_t snapped_vertices = 0; ///< with SurfaceParams::scans: vertices moved onto them
   double snap_mean_move = 0;        ///< their mean move, input units
+  bool snap_declined = false;       ///< the scans' held-out half said the snap would not help
   ComponentFilterStats pieces;
   bool coloured = false;
   std::size_t colour_nearest_vertices = 0;  ///< kMpu: vertices coloured from the nearest point

@@ -94,7 +94,7 @@ struct PipelineConfig {
     /// Off by default: it helps clean, dense scans and fits the noise of noisy ones
     /// (docs/run.md).
     bool snap_to_scans = false;
-    double snap_significance = 1;  ///< ScanSnapParams::significance
+    double snap_significance = 0;  ///< ScanSnapParams::significance
     /// The surface stage in blocks of one lattice (reconstruct/blocks.h, docs/blocks.md):
     /// 1 = one piece (no blocks), 0 = auto (a block per 500k points, at least 4 a rank), else about that many.
     int blocks = 1;

@@ -209,7 +209,7 @@ std::string surface_key(const PipelineConfig& p) {
     << ";winding_close=" << c.winding_close;
   // (absent from keys before issue 32's snap; not done in blocks)
   if (c.snap_to_scans && p.consolidate.enabled && !c.in_blocks())
-    s << ";snap_to_scans=1;snap_significance=" << fmt("%.17g", c.snap_significance);
+    s << ";snap_to_scans=1;snap_significance=" << fmt("%.17g", c.snap_significance) << ";snap_fit=paraboloid_cv";
   // Since issue 27 the colour function's eq. 4 counts residuals beyond each colour's
   // 8-bit quantisation: a run before it is redone.
   if (c.colour && c.colour_method == "mpu") s << ";colour_eq4=quantised";
@@ -672,7 +672,7 @@ class Runner {
       r.figures["blocks"] = double(st.blocks);
       r.figures["ranks"] = 1;
     } else {
-      // The scans the consolidation thinned: the mesh's vertices onto their local mean.
+      // The scans the consolidation thinned: the mesh's vertices onto local fits of them.
       Cloud scans;
       if (c.snap_to_scans && scans_file.empty())
         say("  note: reconstruct.snap_to_scans needs the consolidation (the cloud it thins): the mesh stays on the "
@@ -682,7 +682,10 @@ class Runner {
         sp.scans = &scans;  // (without normals reconstruct_surface says so and leaves the mesh)
       }
       sr = reconstruct_surface(std::move(input), sp);
-      if (sp.scans) r.figures["snapped_vertices"] = double(sr.snapped_vertices);
+      if (sp.scans) {
+        r.figures["snapped_vertices"] = double(sr.snapped_vertices);
+        r.figures["snap_declined"] = sr.snap_declined ? 1 : 0;
+      }
     }
     if (sr.winding_points > 0) r.figures["winding_points"] = double(sr.winding_points);
     if (sr.table_height) r.figures["table_height"] = *sr.table_height;
