@@ -93,7 +93,7 @@ struct PipelineConfig {
     /// mean (the cloud before consolidation; reconstruct/scan_snap.h). Not with blocks.
     /// Off by default: it helps clean, dense scans and fits the noise of noisy ones
     /// (docs/run.md).
-    bool snap_to_scans = false;
+    bool snap_to_scans = true;
     double snap_significance = 0;  ///< ScanSnapParams::significance
     /// The surface stage in blocks of one lattice (reconstruct/blocks.h, docs/blocks.md):
     /// 1 = one piece (no blocks), 0 = auto (a block per 500k points, at least 4 a rank), else about that many.

@@ -59,13 +59,15 @@ const std::vector<ProfileOption>& profile_options() {
           "it); a run that cannot fit says so before it starts; 0: no bound");
     value("reconstruct.surface", "run", "--surface", "surface method", {"mpu", "sdm"});
     flag("reconstruct.snap_to_scans", "run", "--snap-to-scans", "true",
-         "after consolidation, move the mesh's vertices onto the scans' local mean (clean, dense scans: closer "
-         "to them; noisy scans: the noise comes back; docs/run.md)");
+         "after consolidation, move the mesh's vertices onto local fits of the scans where a held-out half of "
+         "them says that brings the mesh closer (the default; docs/run.md)");
+    flag("reconstruct.snap_to_scans", "run", "--no-snap-to-scans", "false",
+         "leave the mesh on the surface fitted to the consolidated points");
     for (const char* cmd : {"reconstruct", "run"})
       value("reconstruct.snap_significance", cmd, "--snap-significance",
-            "with --snap-to-scans (run) or --scans (reconstruct): a vertex moves by the part of the scans' mean "
-            "height beyond this many standard errors (1: keeps most of the noise out; 0.5: closer to clean scans; "
-            "0: the whole mean)");
+            "with the snap to the scans (run) or --scans (reconstruct): a vertex moves only by the part of its "
+            "fit's height beyond this many standard errors (0: all of it; the held-out check already keeps "
+            "noise out)");
     value("reconstruct.max_memory_gb", "run", "--max-memory",
           "memory per rank in GB for the surface stage's blocks (0: no bound; docs/blocks.md)");
     value("reconstruct.blocks", "run", "--blocks",

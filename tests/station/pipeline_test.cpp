@@ -170,7 +170,7 @@ TEST_F(PipelineTest, OnlyStagesWhoseParametersOrInputsChangedAreRedone) {
 // significance the check still runs.
 TEST_F(PipelineTest, SnapToScansIsASurfaceParameter) {
   test::TempDir out("station-run");
-  const RunResult plain = run_pipeline(config(), request(out.path()));
+  const RunResult plain = run_pipeline(config({"reconstruct.snap_to_scans=false"}), request(out.path()));
   EXPECT_EQ(plain.stages[2].figures.count("snapped_vertices"), 0u);
   const std::string mesh = hash_file(out.path() / "mesh.ply");
   const RunResult snapped = run_pipeline(config({"reconstruct.snap_to_scans=true"}), request(out.path(), true));
