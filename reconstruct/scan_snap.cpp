@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <cmath>
 #include <optional>
+#include <string>
 
 #include "core/error.h"
 #include "core/kdtree.h"
@@ -31,11 +32,15 @@ struct HeightFit {
 
 // h(t) = a + b t^2 by weighted least squares over the points of `half` within `radius`
 // along the tangent plane whose normals face n's way; biweight weights in t / radius.
+// A fit needs min_points; a half's own fit (Half::kEven, kOdd) half of them, which is
+// what each half holds of a whole fit's points. `each_half`: with Half::kAll, also
+// that many from each half, so that the vertices that move are those the
+// cross-validation could judge.
 std::optional<HeightFit> fit_height(const PointIndex& index, const Cloud& scans, const Vec3f& vertex, const Vec3d& n,
-                                    double radius, Half half, const ScanSnapParams& p) {
+                                    double radius, Half half, const ScanSnapParams& p, bool each_half = false) {
   const Vec3d v = vertex.cast<double>();
   double s0 = 0, s1 = 0, s2 = 0, sh = 0, sht = 0, shh = 0, q0 = 0, q1 = 0, q2 = 0;
-  int count = 0;
+  int count = 0, even = 0;
   for (const auto& [j, d] : index.radius_unsorted(vertex, float(radius))) {
     if (!counts(half, std::size_t(j))) continue;
     const Vec3d sn = scans.normals[std::size_t(j)].cast<double>();
@@ -50,8 +55,11 @@ std::optional<HeightFit> fit_height(const PointIndex& index, const Cloud& scans,
     sh += w * h, sht += w * h * t2, shh += w * h * h;
     q0 += w * w, q1 += w * w * t2, q2 += w * w * t2 * t2;
     ++count;
+    even += j % 2 == 0;
   }
-  if (count < p.min_points || !(s0 > 0)) return std::nullopt;
+  const int half_min = std::max(3, p.min_points / 2);
+  if (count < (half == Half::kAll ? p.min_points : half_min) || !(s0 > 0)) return std::nullopt;
+  if (each_half && (even < half_min || count - even < half_min)) return std::nullopt;
   const double det = s0 * s2 - s1 * s1;
   if (!(det > 1e-9 * s0 * s2)) return std::nullopt;  // every point at one distance
   const double a = (s2 * sh - s1 * sht) / det, b = (s0 * sht - s1 * sh) / det;
@@ -80,6 +88,9 @@ constexpr std::size_t kHeldOutVertices = 40000;
 ScanSnapStats snap_to_scans(Mesh& mesh, const Cloud& scans, const ScanSnapParams& p) {
   ScanSnapStats stats;
   if (!scans.has_normals()) throw InvalidInput("snap to scans: the scans have no normals");
+  if (scans.normals.size() != scans.points.size())
+    throw InvalidInput("snap to scans: " + std::to_string(scans.normals.size()) + " normals for " +
+                       std::to_string(scans.points.size()) + " scan points");
   if (!all_finite(scans.points)) throw InvalidInput("snap to scans: non-finite scan coordinates");
   if (!(p.radius >= 0) || !(p.max_move >= 0) || !(p.cell >= 0) || !std::isfinite(p.radius) ||
       !std::isfinite(p.max_move) || !std::isfinite(p.cell) || (p.cell == 0 && (p.radius == 0 || p.max_move == 0)) ||
@@ -109,9 +120,9 @@ ScanSnapStats snap_to_scans(Mesh& mesh, const Cloud& scans, const ScanSnapParams
     // points: independent estimates m_e, m_o of the move, each with the variance v of
     // a half's fit. With mu the move the whole scans' fit tends to, E[m_e m_o] = mu^2,
     // the mesh's squared error to that height if it stays; E[(m_e - m_o)^2] / 4 = v / 2,
-    // about the whole fit's variance, its squared error if it moves. A vertex without
-    // a fit from either half counts as staying (0 in both sums).
-    const std::size_t stride = std::max<std::size_t>(1, mesh.vertices.size() / kHeldOutVertices);
+    // about the whole fit's variance, its squared error if it moves. A vertex that
+    // either half cannot fit alone is left out of the sums, and does not move below either.
+    const std::size_t stride = std::max<std::size_t>(1, (mesh.vertices.size() + kHeldOutVertices - 1) / kHeldOutVertices);
     const std::size_t samples = (mesh.vertices.size() + stride - 1) / stride;
     std::vector<double> stay(samples, 0), go(samples, 0);
     std::vector<char> fitted(samples, 0);
@@ -154,7 +165,7 @@ ScanSnapStats snap_to_scans(Mesh& mesh, const Cloud& scans, const ScanSnapParams
       for (std::size_t i = range.begin(); i != range.end(); ++i) {
         if (!usable(i)) continue;
         const Vec3d n = normals[i].cast<double>();
-        const auto fit = fit_height(index, scans, mesh.vertices[i], n, radius, Half::kAll, p);
+        const auto fit = fit_height(index, scans, mesh.vertices[i], n, radius, Half::kAll, p, p.cross_validate);
         if (!fit) continue;
         const double h = move_of(*fit, p, max_move);
         if (h == 0) continue;

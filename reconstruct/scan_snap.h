@@ -11,15 +11,20 @@
 // and the other face at a crease, are left out), at least `min_points` of them; the
 // vertex moves by a, never further than `max_move`.
 //
-// Whether to move at all is decided by the scans themselves (`cross_validate`): the
-// fits are made from every other scan point, and the snap is done only when their
-// heights predict the other half's local mean height at the vertices better than
-// the mesh does. On clean, dense scans (the Stanford dragon) it does; on scans whose
-// noise the fitted surface has averaged better than any local fit can (the demo's
-// simulated bottle) it does not, and the mesh stays. A snap that only ever looked at
-// the points it fits would follow their noise: with a radius of one cell the old
-// snap brought the dragon's mesh 5 % closer to the scans it fitted and 2 % further
-// from a held-out half (docs/run.md).
+// Whether to move at all is decided by the scans themselves (`cross_validate`): at
+// strided vertices the fit is made twice, from the even and from the odd scan points,
+// two independent estimates m_e, m_o of the move. Their product estimates the square
+// of the offset between the mesh and where the fits tend (E[m_e m_o] = mu^2), a
+// quarter of their squared difference the variance of the fit from all the points;
+// the snap is done only when, summed over the vertices, the offset is the larger. On
+// clean, dense scans (the Stanford dragon) it is; on scans whose noise the fitted
+// surface has averaged better than a local fit can (the demo's simulated bottle) it
+// is not, and the mesh stays. The halves share what every view shares (its
+// registration error, noise correlated along a scan line), which reads as offset, and
+// the check measures against the fits' expectation, not the true surface: it tells
+// noise from a real offset, not a fit's bias from the mesh's. A snap judged only on
+// the points it fits follows their noise: the old one-cell mean brought the dragon's
+// mesh 14 % closer to the half it fitted and 3 % closer to the other (docs/run.md).
 // Vertices far from any scan (a closed bottom the scanner never saw) stay.
 #include <cstddef>
 
@@ -28,9 +33,9 @@
 namespace station {
 
 struct ScanSnapParams {
-  /// The fit's radius along the surface, input units; 0: the scans' WLOP support
-  /// h = 4 d_bb / sqrt(n) (the scale the consolidation averaged them over), at least
-  /// one `cell`.
+  /// The fit's radius along the surface, input units; 0: the scans' default WLOP
+  /// support h = 4 d_bb / sqrt(n) (the scale the consolidation averages them over at
+  /// its default radius), at least one `cell`.
   double radius = 0;
   double max_move = 0;  ///< input units; 0: 0.5 x `cell`
   double cell = 0;      ///< the extraction lattice's cell (sets the defaults above)
@@ -40,7 +45,9 @@ struct ScanSnapParams {
   /// all of a). The cross-validation already keeps noise out; this is for callers
   /// who want to move only where a fit is sure.
   double significance = 0;
-  /// Snap only when the fits predict a held-out half of the scans better than the mesh.
+  /// Snap only when the two halves of the scans agree on an offset larger than the fit's
+  /// noise (above); then only vertices that each half alone can fit (min_points / 2
+  /// points) move.
   bool cross_validate = true;
   int threads = 0;  ///< 0 = all cores; the result does not depend on it
 };
@@ -49,16 +56,18 @@ struct ScanSnapStats {
   std::size_t moved = 0;  ///< vertices moved
   double mean_move = 0;   ///< mean |move| over those, input units
   double radius = 0;      ///< the fit's radius used
-  /// The cross-validation (RMS over the sampled vertices of the held-out half's local
-  /// mean height against the vertex, input units): as the mesh is, and as the fits
-  /// from the other half would put it. 0 and 0 when not cross-validated.
+  /// The cross-validation, over the sampled vertices fitted from both halves (input
+  /// units): sqrt(mean m_e m_o), the mesh's RMS offset from where the fits tend (0
+  /// when the mean is negative), and sqrt(mean (m_e - m_o)^2 / 4), the fit's RMS
+  /// noise. 0 and 0 when not cross-validated.
   double held_out_rms_kept = 0, held_out_rms_snapped = 0;
-  std::size_t held_out_vertices = 0;
-  bool declined = false;  ///< the cross-validation kept the mesh as it was
+  std::size_t held_out_vertices = 0;  ///< sampled vertices fitted from both halves
+  bool declined = false;  ///< the cross-validation kept the mesh as it was (also when no vertex was fitted)
 };
 
-/// Moves mesh.vertices (faces unchanged). InvalidInput when the scans have no
-/// normals or non-finite points, or when neither radius nor cell is positive.
+/// Moves mesh.vertices (faces unchanged). InvalidInput when the scans have no normals
+/// (or not one per point) or non-finite points, or when the radius or the largest
+/// move is neither given nor set by a positive cell.
 ScanSnapStats snap_to_scans(Mesh& mesh, const Cloud& scans, const ScanSnapParams& params);
 
 }  // namespace station

@@ -196,11 +196,15 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
       out.snap_declined = st.declined;
       const std::string held_out = st.held_out_vertices == 0
                                        ? std::string()
-                                       : " (a held-out half of the scans, RMS off " +
-                                             std::to_string(st.held_out_vertices) + " vertices: " +
-                                             fmt("%.3g", st.held_out_rms_kept) + " as fitted, " +
-                                             fmt("%.3g", st.held_out_rms_snapped) + " snapped)";
-      if (st.declined)
+                                       : " (fits from each half of the scans at " +
+                                             std::to_string(st.held_out_vertices) + " vertices: the mesh " +
+                                             fmt("%.3g", st.held_out_rms_kept) + " RMS off them, their noise " +
+                                             fmt("%.3g", st.held_out_rms_snapped) + ")";
+      if (st.declined && st.held_out_vertices == 0)
+        note("vertices stay on the fitted surface: no vertex has " + std::to_string(sp.min_points) +
+             " scan points facing its way within " + fmt("%.3g", st.radius) +
+             " in each half of the scans (are they of this object, in its units, with outward normals?)");
+      else if (st.declined)
         note("vertices stay on the fitted surface: local fits of the scans within " + fmt("%.3g", st.radius) +
              " would not bring it closer to them" + held_out);
       else

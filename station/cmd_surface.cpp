@@ -355,6 +355,7 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
                       .add("enclosure", r.enclosure ? *r.enclosure : std::nan(""))
                       .add("rim_faces", r.rim_faces)
                       .add("snapped_vertices", r.snapped_vertices)
+                      .add("snap_declined", r.snap_declined)
                       .add("colours", r.coloured)
                       .add("extractor", rc.extractor)
                       .add("winding_close", r.winding_points > 0)
@@ -450,7 +451,8 @@ void add_surface_commands(CLI::App& app, std::vector<Command>& out) {
   add_profile_options(rec, "reconstruct", c_rec);
   rec->add_option("--scans", rec_args.scans,
                   "the scans the input was consolidated from (e.g. a run's merged.ply, with normals): the mesh's "
-                  "vertices move onto their local mean, keeping the scans' detail (docs/run.md)");
+                  "vertices move onto local fits of them where a held-out half says so, keeping the scans' detail "
+                  "(docs/run.md)");
   rec->add_flag("--resume", rec_args.resume,
                 "with --blocks: blocks finished by an interrupted run (in OUT.blocks/) are not run again");
   rec->add_option("--up", rec_args.up,

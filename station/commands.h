@@ -103,7 +103,7 @@ struct ReconstructArgs {
   /// With --blocks: blocks already done in OUT.blocks/ are not run again.
   bool resume = false;
   /// The scans the input was consolidated from (with normals): the vertices move onto
-  /// their local mean (reconstruct/scan_snap.h). Empty: none.
+  /// local fits of them where a held-out half says so (reconstruct/scan_snap.h). Empty: none.
   std::string scans;
 };
 

@@ -89,10 +89,10 @@ struct PipelineConfig {
     /// (reconstruct/colour_edges.h; colour_method mpu only).
     bool colour_edges = true;
     double min_component = 0.01;    ///< drop pieces below this fraction of the largest's area
-    /// station run, after consolidation: the mesh's vertices move onto the scans' local
-    /// mean (the cloud before consolidation; reconstruct/scan_snap.h). Not with blocks.
-    /// Off by default: it helps clean, dense scans and fits the noise of noisy ones
-    /// (docs/run.md).
+    /// station run, after consolidation: the mesh's vertices move onto local fits of
+    /// the scans (the cloud before consolidation; reconstruct/scan_snap.h) where a
+    /// held-out half of them says so: clean, dense scans gain, noisy ones are left as
+    /// they are (docs/run.md). Not with blocks.
     bool snap_to_scans = true;
     double snap_significance = 0;  ///< ScanSnapParams::significance
     /// The surface stage in blocks of one lattice (reconstruct/blocks.h, docs/blocks.md):

@@ -99,7 +99,7 @@ TEST(ScanSnap, NoiseAloneDoesNotMoveTheMesh) {
     for (const Vec3f& v : m.vertices) s += double(v.z()) * v.z();
     return std::sqrt(s / double(m.vertices.size()));
   };
-  std::printf("noise: held-out RMS %.5f as fitted, %.5f snapped (%zu vertices); declined %d; unchecked: %zu moved, "
+  std::printf("noise: the mesh %.5f RMS off the halves' fits, their noise %.5f (%zu vertices); declined %d; unchecked: %zu moved, "
               "RMS off the face %.5f\n",
               a.held_out_rms_kept, a.held_out_rms_snapped, a.held_out_vertices, int(a.declined), b.moved, rms(unchecked));
   EXPECT_TRUE(a.declined);
@@ -142,6 +142,52 @@ TEST(ScanSnap, TheDefaultRadiusIsTheScansWlopSupport) {
   p.cell = 0.1;
   Mesh b = mesh;
   EXPECT_DOUBLE_EQ(snap_to_scans(b, scans, p).radius, 0.1);
+}
+
+TEST(ScanSnap, ASignificanceMovesOnlyBeyondTheFitsStandardError) {
+  // A sheet 0.01 below noisy scans of a plane (sigma 0.01, a fit over about 240 points:
+  // standard error about 0.001): with significance 0 each vertex takes its fit's
+  // height, about 0.01; with significance 3 each moves three standard errors less; with
+  // significance 20 (beyond the offset) none moves.
+  Cloud scans;
+  add_face(scans, 60000, 0.f, 1.f, 0.01, 4);
+  Mesh whole = plate(20, -0.01f, true), surer = whole, none = whole;
+  ScanSnapParams p;
+  p.cell = 0.1;
+  const ScanSnapStats a = snap_to_scans(whole, scans, p);
+  p.significance = 3;
+  const ScanSnapStats b = snap_to_scans(surer, scans, p);
+  p.significance = 20;
+  const ScanSnapStats c = snap_to_scans(none, scans, p);
+  std::printf("significance 0 / 3 / 20: %zu / %zu / %zu moved, mean move %.5f / %.5f / %.5f\n", a.moved, b.moved,
+              c.moved, a.mean_move, b.mean_move, c.mean_move);
+  EXPECT_EQ(a.moved, whole.vertices.size());
+  EXPECT_NEAR(a.mean_move, 0.01, 0.001);
+  EXPECT_GT(b.moved, whole.vertices.size() / 2);
+  EXPECT_LT(b.mean_move, a.mean_move - 0.001);  // three standard errors of about 0.001 less
+  EXPECT_GT(b.mean_move, a.mean_move - 0.006);
+  EXPECT_EQ(c.moved, 0u);
+}
+
+TEST(ScanSnap, SameMeshForAnyThreadCountAndAtMost40000VerticesChecked) {
+  Mesh mesh = test::icosphere(6, 0.995);  // 40,962 vertices: the check takes every other one
+  const Cloud scans = test::fibonacci_sphere(120000, 1.0);
+  ScanSnapParams p;
+  p.cell = 0.01;
+  p.threads = 1;
+  Mesh one = mesh;
+  const ScanSnapStats a = snap_to_scans(one, scans, p);
+  p.threads = 2;
+  Mesh two = mesh;
+  const ScanSnapStats b = snap_to_scans(two, scans, p);
+  EXPECT_FALSE(a.declined);
+  EXPECT_EQ(a.moved, b.moved);
+  EXPECT_EQ(a.held_out_rms_kept, b.held_out_rms_kept);
+  EXPECT_EQ(a.held_out_rms_snapped, b.held_out_rms_snapped);
+  ASSERT_EQ(one.vertices.size(), two.vertices.size());
+  for (std::size_t i = 0; i < one.vertices.size(); ++i) ASSERT_EQ(one.vertices[i], two.vertices[i]) << i;
+  EXPECT_LE(a.held_out_vertices, 40000u);
+  EXPECT_GT(a.held_out_vertices, 20000u);
 }
 
 TEST(ScanSnap, ScansWithoutNormalsAreRefused) {
