@@ -62,6 +62,11 @@ struct ScanSnapStats {
   /// noise. 0 and 0 when not cross-validated.
   double held_out_rms_kept = 0, held_out_rms_snapped = 0;
   std::size_t held_out_vertices = 0;  ///< sampled vertices fitted from both halves
+  std::size_t sampled_vertices = 0;   ///< vertices sampled (with a normal)
+  /// Declined because under a tenth of the sampled vertices have scan points facing
+  /// their way in each half: the scans hardly meet the mesh (inward normals, other
+  /// units, another object).
+  bool too_few_fitted = false;
   bool declined = false;  ///< the cross-validation kept the mesh as it was (also when no vertex was fitted)
 };
 

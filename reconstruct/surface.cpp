@@ -200,9 +200,10 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
                                              std::to_string(st.held_out_vertices) + " vertices: the mesh " +
                                              fmt("%.3g", st.held_out_rms_kept) + " RMS off them, their noise " +
                                              fmt("%.3g", st.held_out_rms_snapped) + ")";
-      if (st.declined && st.held_out_vertices == 0)
-        note("vertices stay on the fitted surface: no vertex has " + std::to_string(sp.min_points) +
-             " scan points facing its way within " + fmt("%.3g", st.radius) +
+      if (st.too_few_fitted)
+        note("vertices stay on the fitted surface: only " + std::to_string(st.held_out_vertices) + " of " +
+             std::to_string(st.sampled_vertices) + " sampled vertices have scan points facing their way within " +
+             fmt("%.3g", st.radius) +
              " in each half of the scans (are they of this object, in its units, with outward normals?)");
       else if (st.declined)
         note("vertices stay on the fitted surface: local fits of the scans within " + fmt("%.3g", st.radius) +

@@ -190,6 +190,47 @@ TEST(ScanSnap, SameMeshForAnyThreadCountAndAtMost40000VerticesChecked) {
   EXPECT_GT(a.held_out_vertices, 20000u);
 }
 
+TEST(ScanSnap, ScansThatHardlyMeetTheMeshAreDeclined) {
+  // A sheet 0.02 below scans that cover only a corner of it (4 % of its vertices):
+  // those few fits agree on the offset, but they cannot speak for the whole mesh.
+  // Scans whose normals face inwards meet no vertex at all. Scans over the whole
+  // sheet move it.
+  std::mt19937 rng(6);
+  std::uniform_real_distribution<float> u(0.6f, 1.2f);
+  Cloud corner;
+  for (int k = 0; k < 5000; ++k) {
+    corner.points.emplace_back(u(rng), u(rng), 0.f);
+    corner.normals.emplace_back(0.f, 0.f, 1.f);
+  }
+  Mesh a = plate(20, -0.02f, true);
+  ScanSnapParams p;
+  p.cell = 0.1;
+  const ScanSnapStats st = snap_to_scans(a, corner, p);
+  std::printf("corner: %zu of %zu sampled vertices fitted; declined %d\n", st.held_out_vertices,
+              st.sampled_vertices, int(st.declined));
+  EXPECT_TRUE(st.declined);
+  EXPECT_TRUE(st.too_few_fitted);
+  EXPECT_GT(st.held_out_vertices, 0u);
+  EXPECT_EQ(st.moved, 0u);
+
+  Cloud whole;
+  add_face(whole, 40000, 0.f, 1.f, 0.001, 7);
+  Mesh b = plate(20, -0.02f, true);
+  const ScanSnapStats moved = snap_to_scans(b, whole, p);
+  EXPECT_FALSE(moved.declined);
+  EXPECT_EQ(moved.moved, b.vertices.size());
+
+  Mesh sphere = test::icosphere(4, 0.98);
+  Cloud inward = test::fibonacci_sphere(60000, 1.0);
+  for (Vec3f& n : inward.normals) n = -n;
+  p.cell = 0.08;
+  const ScanSnapStats in = snap_to_scans(sphere, inward, p);
+  EXPECT_TRUE(in.declined);
+  EXPECT_TRUE(in.too_few_fitted);
+  EXPECT_EQ(in.held_out_vertices, 0u);
+  EXPECT_EQ(in.moved, 0u);
+}
+
 TEST(ScanSnap, ScansWithoutNormalsAreRefused) {
   Mesh mesh = plate(4, 0.f, true);
   Cloud scans;
