@@ -5,6 +5,7 @@
 #include <tbb/task_arena.h>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <optional>
 #include <string>
@@ -16,13 +17,42 @@
 namespace station {
 namespace {
 
-// Which scan points a pass counts: all of them, or one half by index parity (the
-// merged scans hold each view's points in scan order, so alternate points are two
-// even, interleaved halves of every view).
-enum class Half { kAll, kEven, kOdd };
+// The weighted moments of a paraboloid fit h(t) = a + b t^2 (biweight weights w of
+// t / radius along the tangent plane; q*: the squared weights', for the standard
+// error).
+struct Moments {
+  double s0 = 0, s1 = 0, s2 = 0, sh = 0, sht = 0, shh = 0, q0 = 0, q1 = 0, q2 = 0;
+  int count = 0;
+  void add(double w, double t2, double h) {
+    s0 += w, s1 += w * t2, s2 += w * t2 * t2;
+    sh += w * h, sht += w * h * t2, shh += w * h * h;
+    q0 += w * w, q1 += w * w * t2, q2 += w * w * t2 * t2;
+    ++count;
+  }
+};
 
-bool counts(Half half, std::size_t j) {
-  return half == Half::kAll || (j % 2 == 0) == (half == Half::kEven);
+// One neighbourhood search for a vertex: the moments of the scan points within
+// `radius` along the tangent plane whose normals face n's way, [0] over the
+// even-indexed points, [1] over the odd-indexed ones (the merged scans hold each
+// view's points in scan order, so these are two even, interleaved halves of every
+// view), [2] over all of them (summed in the search's order).
+std::array<Moments, 3> moments(const PointIndex& index, const Cloud& scans, const Vec3f& vertex, const Vec3d& n,
+                               double radius, double min_cos) {
+  const Vec3d v = vertex.cast<double>();
+  std::array<Moments, 3> m;
+  for (const auto& [j, d] : index.radius_unsorted(vertex, float(radius))) {
+    const Vec3d sn = scans.normals[std::size_t(j)].cast<double>();
+    const double len = sn.norm();
+    if (!(len > 0) || sn.dot(n) < min_cos * len) continue;
+    const Vec3d q = scans.points[std::size_t(j)].cast<double>() - v;
+    const double h = q.dot(n);
+    const double t2 = (q - h * n).squaredNorm() / (radius * radius);
+    if (t2 >= 1) continue;
+    const double w = (1 - t2) * (1 - t2);
+    m[std::size_t(j) % 2].add(w, t2, h);
+    m[2].add(w, t2, h);
+  }
+  return m;
 }
 
 struct HeightFit {
@@ -30,49 +60,26 @@ struct HeightFit {
   double se = 0;  ///< its standard error
 };
 
-// h(t) = a + b t^2 by weighted least squares over the points of `half` within `radius`
-// along the tangent plane whose normals face n's way; biweight weights in t / radius.
-// A fit needs min_points; a half's own fit (Half::kEven, kOdd) half of them, which is
-// what each half holds of a whole fit's points. `each_half`: with Half::kAll, also
-// that many from each half, so that the vertices that move are those the
-// cross-validation could judge.
-std::optional<HeightFit> fit_height(const PointIndex& index, const Cloud& scans, const Vec3f& vertex, const Vec3d& n,
-                                    double radius, Half half, const ScanSnapParams& p, bool each_half = false) {
-  const Vec3d v = vertex.cast<double>();
-  double s0 = 0, s1 = 0, s2 = 0, sh = 0, sht = 0, shh = 0, q0 = 0, q1 = 0, q2 = 0;
-  int count = 0, even = 0;
-  for (const auto& [j, d] : index.radius_unsorted(vertex, float(radius))) {
-    if (!counts(half, std::size_t(j))) continue;
-    const Vec3d sn = scans.normals[std::size_t(j)].cast<double>();
-    const double len = sn.norm();
-    if (!(len > 0) || sn.dot(n) < p.min_cos * len) continue;
-    const Vec3d q = scans.points[std::size_t(j)].cast<double>() - v;
-    const double h = q.dot(n);
-    const double t2 = (q - h * n).squaredNorm() / (radius * radius);
-    if (t2 >= 1) continue;
-    const double w = (1 - t2) * (1 - t2);
-    s0 += w, s1 += w * t2, s2 += w * t2 * t2;
-    sh += w * h, sht += w * h * t2, shh += w * h * h;
-    q0 += w * w, q1 += w * w * t2, q2 += w * w * t2 * t2;
-    ++count;
-    even += j % 2 == 0;
-  }
-  const int half_min = std::max(3, p.min_points / 2);
-  if (count < (half == Half::kAll ? p.min_points : half_min) || !(s0 > 0)) return std::nullopt;
-  if (each_half && (even < half_min || count - even < half_min)) return std::nullopt;
-  const double det = s0 * s2 - s1 * s1;
-  if (!(det > 1e-9 * s0 * s2)) return std::nullopt;  // every point at one distance
-  const double a = (s2 * sh - s1 * sht) / det, b = (s0 * sht - s1 * sh) / det;
-  const double n_eff = s0 * s0 / q0;
+// The weighted least-squares fit from the moments, when they hold `min_points` points.
+std::optional<HeightFit> solve(const Moments& m, int min_points) {
+  if (m.count < min_points || !(m.s0 > 0)) return std::nullopt;
+  const double det = m.s0 * m.s2 - m.s1 * m.s1;
+  if (!(det > 1e-9 * m.s0 * m.s2)) return std::nullopt;  // every point at one distance
+  const double a = (m.s2 * m.sh - m.s1 * m.sht) / det, b = (m.s0 * m.sht - m.s1 * m.sh) / det;
+  const double n_eff = m.s0 * m.s0 / m.q0;
   if (!(n_eff > 2) || !std::isfinite(a)) return std::nullopt;
-  const double rss = std::max(0.0, shh - 2 * (a * sh + b * sht) + a * a * s0 + 2 * a * b * s1 + b * b * s2);
-  const double sigma2 = rss / s0 * n_eff / (n_eff - 2);
+  const double rss =
+      std::max(0.0, m.shh - 2 * (a * m.sh + b * m.sht) + a * a * m.s0 + 2 * a * b * m.s1 + b * b * m.s2);
+  const double sigma2 = rss / m.s0 * n_eff / (n_eff - 2);
   // Var a = sigma^2 [M^-1 W M^-1]_00 (weighted least squares, W the squared weights'
   // moments); the first row of M^-1 is (s2, -s1) / det.
-  const double r0 = s2 / det, r1 = -s1 / det;
-  const double var = sigma2 * (r0 * r0 * q0 + 2 * r0 * r1 * q1 + r1 * r1 * q2);
+  const double r0 = m.s2 / det, r1 = -m.s1 / det;
+  const double var = sigma2 * (r0 * r0 * m.q0 + 2 * r0 * r1 * m.q1 + r1 * r1 * m.q2);
   return HeightFit{a, std::sqrt(std::max(0.0, var))};
 }
+
+// A half's own fit needs half the points a whole fit does (what each half holds of them).
+int half_min_points(const ScanSnapParams& p) { return std::max(3, p.min_points / 2); }
 
 double move_of(const HeightFit& f, const ScanSnapParams& p, double max_move) {
   const double beyond = std::max(0.0, std::abs(f.a) - p.significance * f.se);
@@ -110,11 +117,11 @@ ScanSnapStats snap_to_scans(Mesh& mesh, const Cloud& scans, const ScanSnapParams
     // The scans' WLOP support (reconstruct/wlop.h's default h) over their bounding box.
     const Aabb box = bounding_box(scans.points);
     const double diagonal = (box.max - box.min).cast<double>().norm();
-    radius = scans.points.empty() ? p.cell : std::max(p.cell, 4 * diagonal / std::sqrt(double(scans.size())));
+    radius = std::max(p.cell, 4 * diagonal / std::sqrt(double(scans.size())));
   }
   const double max_move = p.max_move > 0 ? p.max_move : 0.5 * p.cell;
   stats.radius = radius;
-  if (mesh.vertices.empty() || scans.points.empty() || !(radius > 0)) return stats;
+  if (mesh.vertices.empty() || !(radius > 0)) return stats;
   const PointIndex index(scans.points);
   const std::vector<Vec3f> normals = vertex_normals(mesh);
   const auto usable = [&](std::size_t i) {
@@ -138,10 +145,10 @@ ScanSnapStats snap_to_scans(Mesh& mesh, const Cloud& scans, const ScanSnapParams
         for (std::size_t s = range.begin(); s != range.end(); ++s) {
           const std::size_t i = s * stride;
           if (!usable(i)) continue;
-          const Vec3d n = normals[i].cast<double>();
-          const auto even = fit_height(index, scans, mesh.vertices[i], n, radius, Half::kEven, p);
+          const auto m = moments(index, scans, mesh.vertices[i], normals[i].cast<double>(), radius, p.min_cos);
+          const auto even = solve(m[0], half_min_points(p));
           if (!even) continue;
-          const auto odd = fit_height(index, scans, mesh.vertices[i], n, radius, Half::kOdd, p);
+          const auto odd = solve(m[1], half_min_points(p));
           if (!odd) continue;
           const double me = move_of(*even, p, max_move), mo = move_of(*odd, p, max_move);
           stay[s] = me * mo;
@@ -176,7 +183,10 @@ ScanSnapStats snap_to_scans(Mesh& mesh, const Cloud& scans, const ScanSnapParams
       for (std::size_t i = range.begin(); i != range.end(); ++i) {
         if (!usable(i)) continue;
         const Vec3d n = normals[i].cast<double>();
-        const auto fit = fit_height(index, scans, mesh.vertices[i], n, radius, Half::kAll, p, p.cross_validate);
+        const auto m = moments(index, scans, mesh.vertices[i], n, radius, p.min_cos);
+        // With the check, only vertices that each half alone can fit (those it judged).
+        if (p.cross_validate && (m[0].count < half_min_points(p) || m[1].count < half_min_points(p))) continue;
+        const auto fit = solve(m[2], p.min_points);
         if (!fit) continue;
         const double h = move_of(*fit, p, max_move);
         if (h == 0) continue;
