@@ -89,6 +89,10 @@ using Clock = std::chrono::steady_clock;
 // colour difference, and such a view is not settled (more starts are refined).
 constexpr double kTie = 0.03;
 constexpr double kColourDisagrees = 15;
+// ...or, where the model's own views disagree more among themselves (light and
+// shading that change from view to view on a real scanner), this many times
+// their median pair difference.
+constexpr double kColourDisagreesOverViews = 2.5;
 constexpr double kColourOverlapShare = 0.7;
 constexpr double kColourBetter = 0.5;
 // The colour comparison's gain (one for all channels) stays within [1/this, this].
@@ -96,6 +100,15 @@ constexpr double kColourMaxGain = 3;
 // Turned starts refined first (all of them when those leave no pose that
 // overlaps enough and agrees in colour).
 constexpr std::size_t kSpunRefined = 4;
+// A view still not settled after every start: each distinct converged pose is
+// slid along the direction its ICP system constrains least (translation with
+// the rotation free), in steps of kSlideStep ICP start distances out to
+// kSlideReach of the session size either way; at each place the overlap and
+// the colours are compared (at the ICP start distance), and ICP goes on from
+// the kSlideRefined best-coloured places of each pose.
+constexpr double kSlideStep = 0.6;
+constexpr double kSlideReach = 0.25;
+constexpr std::size_t kSlideRefined = 2;
 
 double median_of(std::vector<double> v) {
   if (v.empty()) return 0;
@@ -512,6 +525,12 @@ class Registrar {
   struct ColourModel {
     std::vector<Rgb> colours;
     std::unique_ptr<PointIndex> index;
+    /// How far a pose's colour difference to this model (colour_error) may go
+    /// before the colours disagree: kColourDisagrees, or kColourDisagreesOverViews
+    /// times the median difference between consecutive member views at their
+    /// poses, whichever is larger.
+    double disagrees = kColourDisagrees;
+    double views_differ = 0;  ///< that median (0: fewer than two members compared)
   };
   std::unique_ptr<ColourModel> colour_model_of(const std::vector<int>& members) const {
     std::size_t total = 0;
@@ -532,6 +551,28 @@ class Registrar {
     }
     if (pts.empty()) return nullptr;
     cm->index = std::make_unique<PointIndex>(std::move(pts));
+    // How much right poses disagree here: each member against the next one
+    // (capture order: neighbours on the table overlap most).
+    std::vector<double> diffs(members.size() > 1 ? members.size() - 1 : 0, std::numeric_limits<double>::infinity());
+    tbb::parallel_for(std::size_t(0), diffs.size(), [&](std::size_t k) {
+      const int a = members[k], b = members[k + 1];
+      const Cloud& cb = views_[b].full;
+      const std::size_t sb = std::max<std::size_t>(1, cb.size() / 20000);
+      const Eigen::Matrix4f Xb = res_.poses[b].cast<float>();
+      ColourModel one;
+      std::vector<Vec3f> pb;
+      for (std::size_t q = 0; q < cb.size(); q += sb) {
+        pb.push_back(Xb.block<3, 3>(0, 0) * cb.points[q] + Xb.block<3, 1>(0, 3));
+        one.colours.push_back(cb.colours[q]);
+      }
+      one.index = std::make_unique<PointIndex>(std::move(pb));
+      diffs[k] = colour_error(views_[a].full, one, res_.poses[a], 2 * p_.icp_end_rel * diag_);
+    });
+    diffs.erase(std::remove_if(diffs.begin(), diffs.end(), [](double d) { return !std::isfinite(d); }), diffs.end());
+    if (!diffs.empty()) {
+      cm->views_differ = median_of(diffs);
+      cm->disagrees = std::max(kColourDisagrees, kColourDisagreesOverViews * cm->views_differ);
+    }
     return cm;
   }
   // Mean colour difference (0-255, per channel) between the points of `c` moved
@@ -705,7 +746,7 @@ class Registrar {
         }
       }
       chosen_colour = best_score;
-      if (!(until_settled && colour && std::isfinite(best_score) && best_score >= kColourDisagrees)) return;
+      if (!(until_settled && colour && std::isfinite(best_score) && best_score >= colour->disagrees)) return;
       double swap_fit = -1;
       for (std::size_t k = 0; k < r.size(); ++k)
         if (err[k] <= kColourBetter * best_score && r[k].fitness >= p_.global_min_fitness && r[k].fitness > swap_fit) {
@@ -743,6 +784,29 @@ class Registrar {
       });
       std::stable_sort(starts.begin(), starts.end(),
                        [](const auto& a, const auto& b) { return a.first < b.first; });
+      if (until_settled) {
+        // Turned about the view's own principal axes through its placed centre,
+        // in quarters (a partial view of a near-symmetric band fits it upside
+        // down or mirrored in place, where turns about the model's centre would
+        // carry it elsewhere). Refined only with the rest, when the first
+        // starts leave the view not settled.
+        Vec3d vm = Vec3d::Zero();
+        Eigen::Matrix3d vc = Eigen::Matrix3d::Zero();
+        std::vector<Vec3d> placed;
+        placed.reserve(source.points.size());
+        for (const Vec3f& q : source.points) placed.push_back((T * q.cast<double>().homogeneous()).head<3>());
+        for (const Vec3d& q : placed) vm += q;
+        vm /= double(std::max<std::size_t>(1, placed.size()));
+        for (const Vec3d& q : placed) vc += (q - vm) * (q - vm).transpose();
+        const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> vp(vc);
+        for (int a = 0; a < 3; ++a)
+          for (int k = 1; k < 4; ++k) {
+            Eigen::Matrix4d S = Eigen::Matrix4d::Identity();
+            S.block<3, 3>(0, 0) = Eigen::AngleAxisd(M_PI * k / 2, vp.eigenvectors().col(a)).toRotationMatrix();
+            S.block<3, 1>(0, 3) = vm - S.block<3, 3>(0, 0) * vm;
+            starts.push_back({0.0, S * T});
+          }
+      }
       // ICP is the cost: the starts with the best overlap are refined, and the
       // others only when no pose is left that both overlaps enough and agrees
       // in colour. The start's overlap ranks poorly: the right pose of the
@@ -761,7 +825,7 @@ class Registrar {
         // A pose whose colours could not be compared (a view without colours, no
         // sample near the model) counts as agreeing.
         return !until_settled || (out.fitness >= p_.global_min_fitness &&
-                                  !(colour && std::isfinite(chosen_colour) && chosen_colour >= kColourDisagrees));
+                                  !(colour && std::isfinite(chosen_colour) && chosen_colour >= colour->disagrees));
       };
       if (!settled()) refine(first, starts.size());
       if (!settled()) {
@@ -784,16 +848,89 @@ class Registrar {
         for (IcpResult& x : cont) r.push_back(std::move(x));
         choose();
       }
+      if (!settled() && colour && coloured.has_colours()) {
+        slide(source, target, coloured, *colour, ip, r);
+        choose();
+      }
     } else {
       choose();
     }
-    if (out.fitness >= p_.global_min_fitness) {
+    if (out.fitness >= p_.global_min_fitness && until_settled && colour && std::isfinite(chosen_colour) &&
+        chosen_colour >= colour->disagrees) {
+      // Every start tried and the best pose's colours still disagree: a shape
+      // that fits turned or slid (a near-symmetric part), not the view's place.
+      // A view fails by name rather than land wrong.
+      std::ostringstream w;
+      w.precision(3);
+      w << "global registration found no pose whose colours agree with the model's (the best, overlap "
+        << out.fitness << ", differs by " << chosen_colour << " per channel; the model's views differ by "
+        << colour->views_differ << " among themselves)";
+      out.message = w.str();
+    } else if (out.fitness >= p_.global_min_fitness) {
       out.ok = true;
     } else {
       out.message = "global registration found no pose with enough overlap (best ICP fitness " +
                     std::to_string(out.fitness) + (why.empty() ? "" : ", " + why) + ")";
     }
     return out;
+  }
+
+  // A converged pose may be right but for a slide along a direction the shape
+  // leaves almost free (a band of a prism-like part seen from below: ICP stops
+  // where the band still half overlaps): each distinct converged pose of `r` is
+  // moved along its weakest translation (the Schur complement of its ICP system
+  // with the rotation free) in steps of kSlideStep ICP start distances, out to
+  // kSlideReach of the session size either way; the places that overlap at
+  // least half as well as the pose itself are ranked by colour agreement, and
+  // ICP goes on from the kSlideRefined best of each. The results join `r`.
+  void slide(const PreparedView& source, const PreparedView& target, const Cloud& coloured, const ColourModel& colour,
+             const IcpParams& ip, std::vector<IcpResult>& r) const {
+    Vec3d c = Vec3d::Zero();
+    for (const Vec3f& q : source.points) c += q.cast<double>();
+    c /= double(std::max<std::size_t>(1, source.points.size()));
+    std::vector<Eigen::Matrix4d> poses;
+    std::vector<Vec3d> dirs;
+    for (const IcpResult& x : r) {
+      if (!x.converged || x.fitness < p_.global_min_fitness) continue;
+      const Vec3d at = (x.transform * c.homogeneous()).head<3>();
+      bool seen = false;
+      for (const Eigen::Matrix4d& P : poses)
+        seen = seen || (rotation_angle_deg(rigid_inverse(P) * x.transform) < 2 &&
+                        ((P * c.homogeneous()).head<3>() - at).norm() < ip.max_distance_end);
+      if (seen) continue;
+      const Matrix6d& H = x.hessian;
+      const Eigen::Matrix3d Hrr = H.block<3, 3>(0, 0);
+      if (std::abs(Hrr.determinant()) < 1e-300) continue;
+      const Eigen::Matrix3d Htt = H.block<3, 3>(3, 3) - H.block<3, 3>(3, 0) * Hrr.inverse() * H.block<3, 3>(0, 3);
+      const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es(Htt);
+      if (es.info() != Eigen::Success || !es.eigenvectors().col(0).allFinite()) continue;
+      poses.push_back(x.transform);
+      dirs.push_back(es.eigenvectors().col(0));
+    }
+    const double step = kSlideStep * ip.max_distance_start;
+    const int steps = std::max(1, int(kSlideReach * diag_ / step));
+    std::vector<Eigen::Matrix4d> starts;
+    for (std::size_t k = 0; k < poses.size(); ++k) {
+      const double base = overlap(source, target, poses[k], ip.max_distance_start);
+      std::vector<std::pair<double, Eigen::Matrix4d>> places(std::size_t(2 * steps));
+      tbb::parallel_for(0, 2 * steps, [&](int s) {
+        const int o = s < steps ? s - steps : s - steps + 1;  // -steps..-1, 1..steps
+        Eigen::Matrix4d X = poses[k];
+        X.block<3, 1>(0, 3) += dirs[k] * (o * step);
+        const double ov = overlap(source, target, X, ip.max_distance_start);
+        const double col = ov >= 0.5 * base ? colour_error(coloured, colour, X, ip.max_distance_start)
+                                            : std::numeric_limits<double>::infinity();
+        places[std::size_t(s)] = {col, X};
+      });
+      std::stable_sort(places.begin(), places.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
+      for (std::size_t j = 0; j < std::min(kSlideRefined, places.size()); ++j)
+        if (std::isfinite(places[j].first)) starts.push_back(places[j].second);
+    }
+    std::vector<IcpResult> slid(starts.size());
+    tbb::parallel_for(std::size_t(0), starts.size(), [&](std::size_t k) {
+      slid[k] = icp_point_to_plane(source, target, starts[k], ip);
+    });
+    for (IcpResult& x : slid) r.push_back(std::move(x));
   }
 
   // The run of table views after the move, merged, registered globally onto the

@@ -517,25 +517,26 @@ TEST(SimRegistration, OffTableViewsOfANearSymmetricObjectRegister) {
 }
 
 
-// Issue 26, item 3, as the issue states it: hand-held views (no angle) from
-// above and below, nearer than the table's scanner, so that some see only a
-// part of the bottle, and held turned in the hand (rolled about the optical
-// axis: any rotation about the camera centre keeps the sensor at the origin).
-// Each view's overlap with the table views is measured from the truth; every
-// view with 30 % or more must register within 0.5 deg / 1 mm at the object.
-// With one RANSAC run at one FPFH radius (global_extra_seeds 0, no
-// global_extra_radii) the two views from below (overlap 0.59 and 0.68) came
-// out half-turned (179.5 and 177.7 deg, 61 and 55 mm at the object); the second
-// radius and seed find them.
-TEST(SimRegistration, HandHeldViewsWithAThirdOverlapRegister) {
-  test::TempDir dir("station-handheld");
-  const std::string mesh = (test::source_dir() / "data" / "mustard_bottle" / "textured.obj").string();
+// Hand-held views of the bundled mustard bottle (no angle) after 8 table views
+// at 20 degrees elevation: each shot is taken from `elevation` at `distance`,
+// aimed at `target_height` (or the bottle's middle), and held turned in the hand
+// (rolled about the optical axis: any rotation about the camera centre keeps the
+// sensor at the origin). Each view's overlap with the table views is measured
+// from the truth: the share of its points within 2 mm of a table view's point.
+struct HandShot {
+  double elevation, angle, distance, target_height, roll_deg;
+};
+struct HandHeldSession {
   std::vector<Cloud> clouds;
-  SessionManifest m;
-  struct Shot {
-    double elevation, angle, distance, target_height, roll_deg;
-  };
-  const auto scan = [&](const std::string& name, const Shot& s, int views, bool table) {
+  SessionManifest manifest;
+  std::vector<double> overlap;  // per view; 1 for the table views
+};
+HandHeldSession hand_held_session(const std::filesystem::path& dir, const std::vector<HandShot>& hand) {
+  const std::string mesh = (test::source_dir() / "data" / "mustard_bottle" / "textured.obj").string();
+  HandHeldSession out;
+  std::vector<Cloud>& clouds = out.clouds;
+  SessionManifest& m = out.manifest;
+  const auto scan = [&](const std::string& name, const HandShot& s, int views, bool table) {
     std::string uri = "sim:synthetic?mesh=" + mesh + "&noise=0.0005&seed=7" +
                       (table ? "&width=320&height=240" : "&width=640&height=480&table_radius=0") +
                       "&elevation_deg=" + std::to_string(s.elevation) + "&distance=" + std::to_string(s.distance);
@@ -560,7 +561,39 @@ TEST(SimRegistration, HandHeldViewsWithAThirdOverlapRegister) {
     clouds.push_back(std::move(c));
   };
   scan("table", {20, 0, 0.45, -1, 0}, 8, true);
-  const std::vector<Shot> hand = {
+  for (std::size_t k = 0; k < hand.size(); ++k) scan("hand" + std::to_string(k), hand[k], 1, false);
+  for (std::size_t i = 0; i < 8; ++i) std::printf("  table view %zu: %zu points\n", i, clouds[i].size());
+  std::vector<Vec3f> table_points;
+  for (std::size_t i = 0; i < 8; ++i) {
+    const Eigen::Matrix4f X = m.views[i].reference_pose->cast<float>();
+    for (const Vec3f& p : clouds[i].points) table_points.push_back(X.block<3, 3>(0, 0) * p + X.block<3, 1>(0, 3));
+  }
+  const PointIndex table_index(std::move(table_points));
+  out.overlap.assign(clouds.size(), 1.0);
+  for (std::size_t i = 8; i < clouds.size(); ++i) {
+    const Eigen::Matrix4f X = m.views[i].reference_pose->cast<float>();
+    std::size_t n = 0, near = 0;
+    for (std::size_t k = 0; k < clouds[i].size(); k += 7, ++n)
+      near += table_index.nearest_within(X.block<3, 3>(0, 0) * clouds[i].points[k] + X.block<3, 1>(0, 3), 0.002f).first >= 0;
+    out.overlap[i] = double(near) / double(std::max<std::size_t>(1, n));
+  }
+  return out;
+}
+
+// Issue 26, item 3, as the issue states it: hand-held views (no angle) from
+// above and below, nearer than the table's scanner, so that some see only a
+// part of the bottle; every view with 30 % or more overlap must register within
+// 0.5 deg / 1 mm at the object. With one RANSAC run at one FPFH radius
+// (global_extra_seeds 0, no global_extra_radii) the two views from below
+// (overlap 0.59 and 0.68) came out half-turned (179.5 and 177.7 deg, 61 and
+// 55 mm at the object); the second radius and seed find them. The view from 75
+// degrees below aimed 8 cm up (overlap 0.37) failed by name until the turns
+// about the view's own axes and the slide along the weakest direction
+// (2026-12-05): no RANSAC hypothesis came within 25 degrees of it, and the turn
+// that did came to rest 23 mm off along the band it shares with the model.
+TEST(SimRegistration, HandHeldViewsWithAThirdOverlapRegister) {
+  test::TempDir dir("station-handheld");
+  const std::vector<HandShot> hand = {
       {70, 30, 0.45, -1, 70},       // from above: the cap and shoulders
       {-60, 100, 0.45, -1, 160},    // from below: the bottom and a band of the side
       {-50, 320, 0.30, 0.05, 45},   // nearer, below the label
@@ -572,34 +605,17 @@ TEST(SimRegistration, HandHeldViewsWithAThirdOverlapRegister) {
       {-70, 280, 0.35, -1, -60},
       {-80, 0, 0.35, -1, 100},
       {-55, 180, 0.40, -1, 10},
+      {-75, 120, 0.30, 0.08, 0},    // nearer, aimed 8 cm up: overlap 0.37
   };
-  for (std::size_t k = 0; k < hand.size(); ++k) scan("hand" + std::to_string(k), hand[k], 1, false);
+  const HandHeldSession s = hand_held_session(dir.path(), hand);
+  const std::vector<Cloud>& clouds = s.clouds;
+  const SessionManifest& m = s.manifest;
   ASSERT_EQ(clouds.size(), 8u + hand.size());
-  for (std::size_t i = 0; i < 8; ++i) std::printf("  table view %zu: %zu points\n", i, clouds[i].size());
-  // Overlap from the truth: the share of a hand-held view's points within
-  // 2 mm of a table view's point.
-  std::vector<Vec3f> table_points;
-  for (std::size_t i = 0; i < 8; ++i) {
-    const Eigen::Matrix4f X = m.views[i].reference_pose->cast<float>();
-    for (const Vec3f& p : clouds[i].points) table_points.push_back(X.block<3, 3>(0, 0) * p + X.block<3, 1>(0, 3));
-  }
-  const PointIndex table_index(std::move(table_points));
-  const auto overlap_at = [&](std::size_t i, const Eigen::Matrix4f& X) {
-    std::size_t n = 0, near = 0;
-    for (std::size_t k = 0; k < clouds[i].size(); k += 7, ++n)
-      near += table_index.nearest_within(X.block<3, 3>(0, 0) * clouds[i].points[k] + X.block<3, 1>(0, 3), 0.002f).first >= 0;
-    return double(near) / double(std::max<std::size_t>(1, n));
-  };
-  std::vector<double> overlap(clouds.size(), 1.0);
-  for (std::size_t i = 8; i < clouds.size(); ++i) overlap[i] = overlap_at(i, m.views[i].reference_pose->cast<float>());
   const RegistrationResult r = register_views(clouds, m);
   print_prior("hand-held views", r);
   int partial = 0, assessed = 0;
   for (std::size_t i = 8; i < clouds.size(); ++i) {
-    // At the registered pose (in the truth's frame: view 0 as reference).
-    const Eigen::Matrix4d G = *m.views[0].reference_pose * rigid_inverse(r.poses[0]) * r.poses[i];
-    std::printf("  hand-held view %zu: %zu points, overlap %.2f (%.2f where registered)\n", i, clouds[i].size(),
-                overlap[i], overlap_at(i, G.cast<float>()));
+    std::printf("  hand-held view %zu: %zu points, overlap %.2f\n", i, clouds[i].size(), s.overlap[i]);
     // Registered or not, never wrong: a view under 30 % may fail, by name.
     if (r.views[i].registered) {
       ASSERT_TRUE(r.views[i].rotation_error_deg.has_value()) << i;
@@ -608,13 +624,61 @@ TEST(SimRegistration, HandHeldViewsWithAThirdOverlapRegister) {
     } else {
       EXPECT_FALSE(r.views[i].message.empty()) << i;
     }
-    if (overlap[i] < 0.3) continue;
+    if (s.overlap[i] < 0.3) continue;
     ++assessed;
-    partial += overlap[i] < 0.7;
+    partial += s.overlap[i] < 0.7;
     EXPECT_TRUE(r.views[i].registered) << i << ": " << r.views[i].message;
   }
   EXPECT_GE(partial, 2);  // the case holds views that see only a part of what the table saw
-  EXPECT_GE(assessed, 8);  // five views from above and the side, three of the four from below
+  EXPECT_GE(assessed, 9);  // five views from above and the side, four of the five from below
+  for (std::size_t i = 0; i < 8; ++i) EXPECT_TRUE(r.views[i].registered) << i;
+}
+
+// The hand-held session above with four more views from 70-80 degrees below,
+// near (0.30 m): a third of each is the band of the side the table views saw,
+// the rest the flat bottom. The shape fits several of them turned or slid, and
+// for three no pose is found whose colours agree with the model's. Before the
+// colour refusal and the slide (2026-12-05) the one from 75 degrees below at 0
+// degrees landed 104 deg / 54 mm off, silently; now it fails by name, and the
+// one from 70 degrees below registers. Each view must register right or fail
+// by name. (Not every such session passes: with a fifth view, from 75 degrees
+// below at 60 degrees, that view lands 97 deg off with colours that differ by
+// 11.7 per channel, under the refusal's 15; docs/registration.md.)
+TEST(SimRegistration, ViewsFromNearlyStraightBelowLandRightOrFailByName) {
+  test::TempDir dir("station-below");
+  const std::vector<HandShot> hand = {
+      {70, 30, 0.45, -1, 70},
+      {-60, 100, 0.45, -1, 160},
+      {-50, 320, 0.30, 0.05, 45},
+      {-40, 200, 0.30, 0.05, -120},
+      {-20, 250, 0.30, -1, 90},
+      {-65, 40, 0.35, -1, 30},
+      {-70, 280, 0.35, -1, -60},
+      {-80, 0, 0.35, -1, 100},
+      {-55, 180, 0.40, -1, 10},
+      {-75, 0, 0.30, 0.08, 30},
+      {-70, 150, 0.30, 0.08, 120},
+      {-80, 250, 0.30, 0.06, -30},
+      {-75, 300, 0.30, 0.08, 0},
+  };
+  const HandHeldSession s = hand_held_session(dir.path(), hand);
+  ASSERT_EQ(s.clouds.size(), 8u + hand.size());
+  const RegistrationResult r = register_views(s.clouds, s.manifest);
+  print_prior("views from nearly straight below", r);
+  int registered = 0;
+  for (std::size_t i = 8; i < s.clouds.size(); ++i) {
+    std::printf("  view %zu: %zu points, overlap %.2f: %s\n", i, s.clouds[i].size(), s.overlap[i],
+                r.views[i].registered ? "registered" : r.views[i].message.c_str());
+    if (r.views[i].registered) {
+      ++registered;
+      ASSERT_TRUE(r.views[i].rotation_error_deg.has_value()) << i;
+      EXPECT_LT(*r.views[i].rotation_error_deg, 0.5) << i;
+      EXPECT_LT(*r.views[i].object_translation_error, 0.001) << i;
+    } else {
+      EXPECT_NE(r.views[i].message.find("view_000.ply"), std::string::npos) << i << ": " << r.views[i].message;
+    }
+  }
+  EXPECT_GE(registered, 8 + 2);  // the hand-held session's but the 0.27 view; 70 deg below; 300 deg
   for (std::size_t i = 0; i < 8; ++i) EXPECT_TRUE(r.views[i].registered) << i;
 }
 
