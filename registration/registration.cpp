@@ -109,6 +109,13 @@ constexpr std::size_t kSpunRefined = 4;
 constexpr double kSlideStep = 0.6;
 constexpr double kSlideReach = 0.25;
 constexpr std::size_t kSlideRefined = 2;
+// A pose against a model is refused when more than this share of the view's
+// points lie where a model view with a known sensor saw through: in front of
+// what that view saw along the same line of sight, by more than kSeenMargin
+// registration voxels (free space; a near-symmetric shape fitted turned puts
+// part of the view outside the object).
+constexpr double kSeenThrough = 0.2;
+constexpr double kSeenMargin = 3;
 
 double median_of(std::vector<double> v) {
   if (v.empty()) return 0;
@@ -522,6 +529,64 @@ class Registrar {
   // The coloured points of the posed views, thinned, for telling apart poses that
   // fit the shape equally well (a near-symmetric object turned half way: the
   // mustard bottle's front and back) by the colours they bring together.
+  // Free space as the model's views saw it: per member view whose sensor is
+  // the scanner-frame origin (not estimated from the normals), the directions
+  // from the sensor to its registration points, placed, and their ranges.
+  struct FreeSpace {
+    struct Sight {
+      Vec3d origin = Vec3d::Zero();
+      std::unique_ptr<PointIndex> directions;  // unit vectors
+      std::vector<float> ranges;
+    };
+    std::vector<Sight> sights;
+  };
+  std::unique_ptr<FreeSpace> free_space_of(const std::vector<int>& members) const {
+    auto fs = std::make_unique<FreeSpace>();
+    for (int j : members) {
+      if (!views_[j].viewpoint_at_origin || views_[j].points.empty()) continue;
+      const Eigen::Matrix4d& P = res_.poses[j];
+      FreeSpace::Sight sight;
+      sight.origin = P.block<3, 1>(0, 3);
+      std::vector<Vec3f> us;
+      for (const Vec3f& q : views_[j].points) {
+        const Vec3d d = P.block<3, 3>(0, 0) * q.cast<double>();
+        const double r = d.norm();
+        if (!(r > 0)) continue;
+        us.push_back((d / r).cast<float>());
+        sight.ranges.push_back(float(r));
+      }
+      if (us.empty()) continue;
+      sight.directions = std::make_unique<PointIndex>(std::move(us));
+      fs->sights.push_back(std::move(sight));
+    }
+    if (fs->sights.empty()) return nullptr;
+    return fs;
+  }
+  // Share of (up to ~1000 of) `src`'s registration points, moved by X, that lie
+  // in front of what some sight saw in their direction (within two voxels'
+  // angle at their range), by more than kSeenMargin voxels.
+  double seen_through(const FreeSpace& fs, const PreparedView& src, const Eigen::Matrix4d& X) const {
+    const double voxel = std::max(p_.voxel_rel, 1e-4) * diag_;
+    const double margin = kSeenMargin * voxel;
+    const std::size_t stride = std::max<std::size_t>(1, src.points.size() / 1000);
+    std::size_t total = 0, seen = 0;
+    for (std::size_t k = 0; k < src.points.size(); k += stride) {
+      const Vec3d x = (X * src.points[k].cast<double>().homogeneous()).head<3>();
+      ++total;
+      for (const FreeSpace::Sight& sight : fs.sights) {
+        const Vec3d d = x - sight.origin;
+        const double r = d.norm();
+        if (!(r > margin)) continue;
+        const auto [j, dist] = sight.directions->nearest_within((d / r).cast<float>(), float(2 * voxel / r));
+        if (j >= 0 && double(sight.ranges[std::size_t(j)]) > r + margin) {
+          ++seen;
+          break;
+        }
+      }
+    }
+    return total ? double(seen) / double(total) : 0.0;
+  }
+
   struct ColourModel {
     std::vector<Rgb> colours;
     std::unique_ptr<PointIndex> index;
@@ -615,9 +680,10 @@ class Registrar {
   }
   // Against a model (every feature scale; see below).
   GlobalAlign global_align(int src, const PreparedView& target, const std::vector<FeatureView>& target_feats,
-                           const ColourModel* colour, const std::optional<std::pair<Vec3d, Vec3d>>& axis) {
+                           const ColourModel* colour, const std::optional<std::pair<Vec3d, Vec3d>>& axis,
+                           const FreeSpace* free) {
     return global_align(views_[src], all_features_of(src), views_[src].full, target, pointers(target_feats),
-                        colour, axis, true, true);
+                        colour, axis, true, true, free);
   }
   // The same for any source: a view, or a run of views merged (`coloured`: its
   // points with colours, for the colour check). `source_feats` and
@@ -638,7 +704,7 @@ class Registrar {
                            const Cloud& coloured, const PreparedView& target,
                            const std::vector<const FeatureView*>& target_feats, const ColourModel* colour,
                            const std::optional<std::pair<Vec3d, Vec3d>>& axis, bool multi = false,
-                           bool until_settled = false) {
+                           bool until_settled = false, const FreeSpace* free = nullptr) {
     GlobalAlign out;
     GlobalRegistrationParams gp = global_params();
     if (multi) gp.hypotheses = std::max(gp.hypotheses, 2 * p_.global_icp_candidates);
@@ -716,17 +782,33 @@ class Registrar {
     // Each result's colour difference, once (choose runs again as results are
     // added; the best overlap only grows, so a result left out stays out).
     std::vector<std::optional<double>> colour_of;
+    // Each converged result's share seen through by the model's views (`free`),
+    // once; a result above kSeenThrough is never chosen.
+    std::vector<std::optional<double>> seen_of;
+    double refused_seen = -1, refused_fit = 0;  // the best-overlapping result refused so
+    const auto in_free_space = [&](std::size_t k) {
+      if (!free) return true;
+      seen_of.resize(r.size());
+      if (!seen_of[k]) seen_of[k] = seen_through(*free, source, r[k].transform);
+      if (*seen_of[k] <= kSeenThrough) return true;
+      if (r[k].fitness > refused_fit) refused_fit = r[k].fitness, refused_seen = *seen_of[k];
+      return false;
+    };
     const auto choose = [&] {
       out.fitness = 0;
       out.transform = Eigen::Matrix4d::Identity();
       double best_fit = 0;
-      for (const IcpResult& x : r)
-        if (x.converged) best_fit = std::max(best_fit, x.fitness);
+      std::vector<char> usable(r.size(), 0);
+      for (std::size_t k = 0; k < r.size(); ++k)
+        if (r[k].converged && in_free_space(k)) {
+          usable[k] = 1;
+          best_fit = std::max(best_fit, r[k].fitness);
+        }
       std::vector<double> err(r.size(), std::numeric_limits<double>::infinity());
       double best_score = std::numeric_limits<double>::infinity();
       for (std::size_t k = 0; k < r.size(); ++k) {
         const IcpResult& x = r[k];
-        if (!x.converged) continue;
+        if (!usable[k]) continue;
         if (!colour) {
           if (x.fitness > out.fitness) {
             out.fitness = x.fitness;
@@ -749,7 +831,8 @@ class Registrar {
       if (!(until_settled && colour && std::isfinite(best_score) && best_score >= colour->disagrees)) return;
       double swap_fit = -1;
       for (std::size_t k = 0; k < r.size(); ++k)
-        if (err[k] <= kColourBetter * best_score && r[k].fitness >= p_.global_min_fitness && r[k].fitness > swap_fit) {
+        if (usable[k] && err[k] <= kColourBetter * best_score && r[k].fitness >= p_.global_min_fitness &&
+            r[k].fitness > swap_fit) {
           swap_fit = r[k].fitness;
           chosen_colour = err[k];
           out.fitness = r[k].fitness;
@@ -868,6 +951,12 @@ class Registrar {
       out.message = w.str();
     } else if (out.fitness >= p_.global_min_fitness) {
       out.ok = true;
+    } else if (refused_seen >= 0) {
+      std::ostringstream w;
+      w.precision(3);
+      w << "global registration found no pose that the model's views do not see through (the best, overlap "
+        << refused_fit << ", puts " << 100 * refused_seen << " % of the view where they saw through)";
+      out.message = w.str();
     } else {
       out.message = "global registration found no pose with enough overlap (best ICP fitness " +
                     std::to_string(out.fitness) + (why.empty() ? "" : ", " + why) + ")";
@@ -1053,9 +1142,10 @@ class Registrar {
         const PreparedView model = model_of(chain);
         const std::vector<FeatureView> model_feat = model_features(model);
         const std::unique_ptr<ColourModel> colours = colour_model_of(chain);
+        const std::unique_ptr<FreeSpace> free = free_space_of(chain);
         std::vector<std::pair<int, std::string>> still;
         for (const auto& [i, why] : missed) {
-          const GlobalAlign a = global_align(i, model, model_feat, colours.get(), std::nullopt);
+          const GlobalAlign a = global_align(i, model, model_feat, colours.get(), std::nullopt, free.get());
           if (!a.ok) {
             against_model[i] = "; " + a.message + " against the model of the others";
             still.push_back({i, why});
@@ -1075,10 +1165,11 @@ class Registrar {
     report("global", 0, int(todo.size()));
     const std::vector<FeatureView> model_feat = model_features(model);
     const std::unique_ptr<ColourModel> colours = colour_model_of(have);
+    const std::unique_ptr<FreeSpace> free = free_space_of(have);
     const auto axis = object_axis(have);
     for (std::size_t k = 0; k < todo.size(); ++k) {
       const int i = todo[k];
-      const GlobalAlign a = global_align(i, model, model_feat, colours.get(), axis);
+      const GlobalAlign a = global_align(i, model, model_feat, colours.get(), axis, free.get());
       report("global", int(k + 1), int(todo.size()));
       if (!a.ok) {
         fail(i, "no initial pose or angle, and " + a.message + " against the merged model");
@@ -1125,9 +1216,10 @@ class Registrar {
     const PreparedView model = model_of(others);
     const std::vector<FeatureView> model_feat = model_features(model);
     const std::unique_ptr<ColourModel> colours = colour_model_of(others);
+    const std::unique_ptr<FreeSpace> free = free_space_of(others);
     const auto axis = object_axis(others);
     for (int i : suspects) {
-      const GlobalAlign g = global_align(i, model, model_feat, colours.get(), axis);
+      const GlobalAlign g = global_align(i, model, model_feat, colours.get(), axis, free.get());
       if (!g.ok) continue;  // the refinement decides (and fails it if nothing overlaps)
       const double off = rotation_angle_deg(rigid_inverse(res_.poses[i]) * g.transform);
       if (off < p_.wrong_angle_deg) continue;
