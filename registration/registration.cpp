@@ -21,6 +21,7 @@
 #include "core/camera.h"
 #include "core/threads.h"
 #include "registration/axis_calibration.h"
+#include "registration/free_space.h"
 #include "registration/pose_graph.h"
 #include "registration/prior_check.h"
 #include "core/atomic_file.h"
@@ -115,7 +116,12 @@ constexpr std::size_t kSlideRefined = 2;
 // registration voxels (free space; a near-symmetric shape fitted turned puts
 // part of the view outside the object).
 constexpr double kSeenThrough = 0.2;
+// ...by more than kSeenMargin registration voxels or kSeenNoise times the
+// pose's ICP point-to-plane RMS, whichever is larger: a real depth camera's
+// noise (a Kinect's frames at 1 mm voxels: 10-12 % of a right pose "seen
+// through" by 3 voxels, 3-4 % by this; a pose 20 deg off: 30 %).
 constexpr double kSeenMargin = 3;
+constexpr double kSeenNoise = 3;
 
 double median_of(std::vector<double> v) {
   if (v.empty()) return 0;
@@ -529,62 +535,15 @@ class Registrar {
   // The coloured points of the posed views, thinned, for telling apart poses that
   // fit the shape equally well (a near-symmetric object turned half way: the
   // mustard bottle's front and back) by the colours they bring together.
-  // Free space as the model's views saw it: per member view whose sensor is
-  // the scanner-frame origin (not estimated from the normals), the directions
-  // from the sensor to its registration points, placed, and their ranges.
-  struct FreeSpace {
-    struct Sight {
-      Vec3d origin = Vec3d::Zero();
-      std::unique_ptr<PointIndex> directions;  // unit vectors
-      std::vector<float> ranges;
-    };
-    std::vector<Sight> sights;
-  };
+  // Free space as the model's views saw it (registration/free_space.h): the
+  // member views whose sensor is the scanner-frame origin (not estimated from
+  // the normals). Null without any.
   std::unique_ptr<FreeSpace> free_space_of(const std::vector<int>& members) const {
     auto fs = std::make_unique<FreeSpace>();
-    for (int j : members) {
-      if (!views_[j].viewpoint_at_origin || views_[j].points.empty()) continue;
-      const Eigen::Matrix4d& P = res_.poses[j];
-      FreeSpace::Sight sight;
-      sight.origin = P.block<3, 1>(0, 3);
-      std::vector<Vec3f> us;
-      for (const Vec3f& q : views_[j].points) {
-        const Vec3d d = P.block<3, 3>(0, 0) * q.cast<double>();
-        const double r = d.norm();
-        if (!(r > 0)) continue;
-        us.push_back((d / r).cast<float>());
-        sight.ranges.push_back(float(r));
-      }
-      if (us.empty()) continue;
-      sight.directions = std::make_unique<PointIndex>(std::move(us));
-      fs->sights.push_back(std::move(sight));
-    }
-    if (fs->sights.empty()) return nullptr;
+    for (int j : members)
+      if (views_[j].viewpoint_at_origin) fs->add(views_[j].points, res_.poses[j]);
+    if (fs->empty()) return nullptr;
     return fs;
-  }
-  // Share of (up to ~1000 of) `src`'s registration points, moved by X, that lie
-  // in front of what some sight saw in their direction (within two voxels'
-  // angle at their range), by more than kSeenMargin voxels.
-  double seen_through(const FreeSpace& fs, const PreparedView& src, const Eigen::Matrix4d& X) const {
-    const double voxel = std::max(p_.voxel_rel, 1e-4) * diag_;
-    const double margin = kSeenMargin * voxel;
-    const std::size_t stride = std::max<std::size_t>(1, src.points.size() / 1000);
-    std::size_t total = 0, seen = 0;
-    for (std::size_t k = 0; k < src.points.size(); k += stride) {
-      const Vec3d x = (X * src.points[k].cast<double>().homogeneous()).head<3>();
-      ++total;
-      for (const FreeSpace::Sight& sight : fs.sights) {
-        const Vec3d d = x - sight.origin;
-        const double r = d.norm();
-        if (!(r > margin)) continue;
-        const auto [j, dist] = sight.directions->nearest_within((d / r).cast<float>(), float(2 * voxel / r));
-        if (j >= 0 && double(sight.ranges[std::size_t(j)]) > r + margin) {
-          ++seen;
-          break;
-        }
-      }
-    }
-    return total ? double(seen) / double(total) : 0.0;
   }
 
   struct ColourModel {
@@ -789,7 +748,11 @@ class Registrar {
     const auto in_free_space = [&](std::size_t k) {
       if (!free) return true;
       seen_of.resize(r.size());
-      if (!seen_of[k]) seen_of[k] = seen_through(*free, source, r[k].transform);
+      if (!seen_of[k]) {
+        const double voxel = std::max(p_.voxel_rel, 1e-4) * diag_;
+        seen_of[k] = free->seen_through(source.points, r[k].transform,
+                                        std::max(kSeenMargin * voxel, kSeenNoise * r[k].plane_rmse), voxel);
+      }
       if (*seen_of[k] <= kSeenThrough) return true;
       if (r[k].fitness > refused_fit) refused_fit = r[k].fitness, refused_seen = *seen_of[k];
       return false;
