@@ -102,8 +102,8 @@ constexpr double kColourMaxGain = 3;
 // overlaps enough and agrees in colour).
 constexpr std::size_t kSpunRefined = 4;
 // A view still not settled after every start: each distinct converged pose is
-// slid along the direction its ICP system constrains least (translation with
-// the rotation free), in steps of kSlideStep ICP start distances out to
+// slid along the translation its ICP system constrains least, in steps of
+// kSlideStep ICP start distances out to
 // kSlideReach of the session size either way; at each place the overlap and
 // the colours are compared (at the ICP start distance), and ICP goes on from
 // the kSlideRefined best-coloured places of each pose.
@@ -117,11 +117,14 @@ constexpr std::size_t kSlideRefined = 2;
 // part of the view outside the object).
 constexpr double kSeenThrough = 0.2;
 // ...by more than kSeenMargin registration voxels or kSeenNoise times the
-// pose's ICP point-to-plane RMS, whichever is larger: a real depth camera's
-// noise (a Kinect's frames at 1 mm voxels: 10-12 % of a right pose "seen
-// through" by 3 voxels, 3-4 % by this; a pose 20 deg off: 30 %).
+// median ICP point-to-plane RMS of the view's converged poses, whichever is
+// larger: a real depth camera's noise (test
+// KinectFrames.ARightPoseIsNotSeenThroughAndATurnedOneIs).
 constexpr double kSeenMargin = 3;
 constexpr double kSeenNoise = 3;
+// Only the view's points within this share of the session size of the model's
+// bounding box count (a hand or a stand in a hand-held view is not the object).
+constexpr double kSeenGrow = 0.1;
 
 double median_of(std::vector<double> v) {
   if (v.empty()) return 0;
@@ -532,9 +535,6 @@ class Registrar {
     std::string message;
   };
 
-  // The coloured points of the posed views, thinned, for telling apart poses that
-  // fit the shape equally well (a near-symmetric object turned half way: the
-  // mustard bottle's front and back) by the colours they bring together.
   // Free space as the model's views saw it (registration/free_space.h): the
   // member views whose sensor is the scanner-frame origin (not estimated from
   // the normals). Null without any.
@@ -546,6 +546,9 @@ class Registrar {
     return fs;
   }
 
+  // The coloured points of the posed views, thinned, for telling apart poses that
+  // fit the shape equally well (a near-symmetric object turned half way: the
+  // mustard bottle's front and back) by the colours they bring together.
   struct ColourModel {
     std::vector<Rgb> colours;
     std::unique_ptr<PointIndex> index;
@@ -590,7 +593,7 @@ class Registrar {
         one.colours.push_back(cb.colours[q]);
       }
       one.index = std::make_unique<PointIndex>(std::move(pb));
-      diffs[k] = colour_error(views_[a].full, one, res_.poses[a], 2 * p_.icp_end_rel * diag_);
+      diffs[k] = colour_error(views_[a].full, one, res_.poses[a], p_.icp_end_rel * diag_);
     });
     diffs.erase(std::remove_if(diffs.begin(), diffs.end(), [](double d) { return !std::isfinite(d); }), diffs.end());
     if (!diffs.empty()) {
@@ -745,13 +748,24 @@ class Registrar {
     // once; a result above kSeenThrough is never chosen.
     std::vector<std::optional<double>> seen_of;
     double refused_seen = -1, refused_fit = 0;  // the best-overlapping result refused so
+    // The noise the margin allows for: the median ICP residual of the first
+    // converged results (not each pose's own: a pose that fits worse would get a
+    // wider margin).
+    double noise_rms = -1;
     const auto in_free_space = [&](std::size_t k) {
       if (!free) return true;
       seen_of.resize(r.size());
       if (!seen_of[k]) {
+        if (noise_rms < 0) {
+          std::vector<double> rms;
+          for (const IcpResult& x : r)
+            if (x.converged) rms.push_back(x.plane_rmse);
+          noise_rms = median_of(rms);
+        }
         const double voxel = std::max(p_.voxel_rel, 1e-4) * diag_;
         seen_of[k] = free->seen_through(source.points, r[k].transform,
-                                        std::max(kSeenMargin * voxel, kSeenNoise * r[k].plane_rmse), voxel);
+                                        std::max(kSeenMargin * voxel, kSeenNoise * noise_rms), voxel,
+                                        kSeenGrow * diag_);
       }
       if (*seen_of[k] <= kSeenThrough) return true;
       if (r[k].fitness > refused_fit) refused_fit = r[k].fitness, refused_seen = *seen_of[k];
@@ -909,12 +923,13 @@ class Registrar {
       std::ostringstream w;
       w.precision(3);
       w << "global registration found no pose whose colours agree with the model's (the best, overlap "
-        << out.fitness << ", differs by " << chosen_colour << " per channel; the model's views differ by "
-        << colour->views_differ << " among themselves)";
+        << out.fitness << ", differs by " << chosen_colour << " per channel";
+      if (colour->views_differ > 0) w << "; the model's views differ by " << colour->views_differ << " among themselves";
+      w << ")";
       out.message = w.str();
     } else if (out.fitness >= p_.global_min_fitness) {
       out.ok = true;
-    } else if (refused_seen >= 0) {
+    } else if (refused_seen >= 0 && refused_fit >= p_.global_min_fitness) {
       std::ostringstream w;
       w.precision(3);
       w << "global registration found no pose that the model's views do not see through (the best, overlap "
@@ -930,8 +945,8 @@ class Registrar {
   // A converged pose may be right but for a slide along a direction the shape
   // leaves almost free (a band of a prism-like part seen from below: ICP stops
   // where the band still half overlaps): each distinct converged pose of `r` is
-  // moved along its weakest translation (the Schur complement of its ICP system
-  // with the rotation free) in steps of kSlideStep ICP start distances, out to
+  // moved along its weakest translation (the smallest eigenvector of its ICP
+  // system's translation block) in steps of kSlideStep ICP start distances, out to
   // kSlideReach of the session size either way; the places that overlap at
   // least half as well as the pose itself are ranked by colour agreement, and
   // ICP goes on from the kSlideRefined best of each. The results join `r`.
@@ -950,10 +965,9 @@ class Registrar {
         seen = seen || (rotation_angle_deg(rigid_inverse(P) * x.transform) < 2 &&
                         ((P * c.homogeneous()).head<3>() - at).norm() < ip.max_distance_end);
       if (seen) continue;
-      const Matrix6d& H = x.hessian;
-      const Eigen::Matrix3d Hrr = H.block<3, 3>(0, 0);
-      if (std::abs(Hrr.determinant()) < 1e-300) continue;
-      const Eigen::Matrix3d Htt = H.block<3, 3>(3, 3) - H.block<3, 3>(3, 0) * Hrr.inverse() * H.block<3, 3>(0, 3);
+      // The slide is a translation: its information is the system's translation
+      // block (sum of n n^T over the correspondences, whatever the rotation's centre).
+      const Eigen::Matrix3d Htt = x.hessian.block<3, 3>(3, 3);
       const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es(Htt);
       if (es.info() != Eigen::Success || !es.eigenvectors().col(0).allFinite()) continue;
       poses.push_back(x.transform);
