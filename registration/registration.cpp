@@ -103,18 +103,17 @@ constexpr double kColourMaxGain = 3;
 constexpr std::size_t kSpunRefined = 4;
 // A view still not settled after every start: each distinct converged pose is
 // slid along the translation its ICP system constrains least, in steps of
-// kSlideStep ICP start distances out to
-// kSlideReach of the session size either way; at each place the overlap and
-// the colours are compared (at the ICP start distance), and ICP goes on from
-// the kSlideRefined best-coloured places of each pose.
+// kSlideStep ICP start distances out to kSlideReach of the session size either
+// way; at each place the overlap and the colours are compared (at the ICP start
+// distance), and ICP goes on from the kSlideRefined best-coloured places of
+// each pose.
 constexpr double kSlideStep = 0.6;
 constexpr double kSlideReach = 0.25;
 constexpr std::size_t kSlideRefined = 2;
 // A pose against a model is refused when more than this share of the view's
 // points lie where a model view with a known sensor saw through: in front of
-// what that view saw along the same line of sight, by more than kSeenMargin
-// registration voxels (free space; a near-symmetric shape fitted turned puts
-// part of the view outside the object).
+// what that view saw along the same line of sight (free space; a near-symmetric
+// shape fitted turned puts part of the view outside the object)...
 constexpr double kSeenThrough = 0.2;
 // ...by more than kSeenMargin registration voxels or kSeenNoise times the
 // median ICP point-to-plane RMS of the view's converged poses, whichever is
