@@ -558,13 +558,15 @@ class Registrar {
     double disagrees = kColourDisagrees;
     double views_differ = 0;  ///< that median (0: fewer than two members compared)
   };
-  std::unique_ptr<ColourModel> colour_model_of(const std::vector<int>& members) const {
+  // The members' coloured points placed by their poses, thinned to about
+  // `max_points`; null when a member has no colours or nothing is left.
+  std::unique_ptr<ColourModel> placed_colours(const std::vector<int>& members, std::size_t max_points) const {
     std::size_t total = 0;
     for (int j : members) {
       if (!views_[j].full.has_colours()) return nullptr;
       total += views_[j].full.size();
     }
-    const std::size_t stride = std::max<std::size_t>(1, total / 300000);
+    const std::size_t stride = std::max<std::size_t>(1, total / max_points);
     auto cm = std::make_unique<ColourModel>();
     std::vector<Vec3f> pts;
     for (int j : members) {
@@ -577,22 +579,17 @@ class Registrar {
     }
     if (pts.empty()) return nullptr;
     cm->index = std::make_unique<PointIndex>(std::move(pts));
+    return cm;
+  }
+  std::unique_ptr<ColourModel> colour_model_of(const std::vector<int>& members) const {
+    std::unique_ptr<ColourModel> cm = placed_colours(members, 300000);
+    if (!cm) return nullptr;
     // How much right poses disagree here: each member against the next one
     // (capture order: neighbours on the table overlap most).
     std::vector<double> diffs(members.size() > 1 ? members.size() - 1 : 0, std::numeric_limits<double>::infinity());
     tbb::parallel_for(std::size_t(0), diffs.size(), [&](std::size_t k) {
-      const int a = members[k], b = members[k + 1];
-      const Cloud& cb = views_[b].full;
-      const std::size_t sb = std::max<std::size_t>(1, cb.size() / 20000);
-      const Eigen::Matrix4f Xb = res_.poses[b].cast<float>();
-      ColourModel one;
-      std::vector<Vec3f> pb;
-      for (std::size_t q = 0; q < cb.size(); q += sb) {
-        pb.push_back(Xb.block<3, 3>(0, 0) * cb.points[q] + Xb.block<3, 1>(0, 3));
-        one.colours.push_back(cb.colours[q]);
-      }
-      one.index = std::make_unique<PointIndex>(std::move(pb));
-      diffs[k] = colour_error(views_[a].full, one, res_.poses[a], p_.icp_end_rel * diag_);
+      const std::unique_ptr<ColourModel> next = placed_colours({members[k + 1]}, 20000);
+      if (next) diffs[k] = colour_error(views_[members[k]].full, *next, res_.poses[members[k]], p_.icp_end_rel * diag_);
     });
     diffs.erase(std::remove_if(diffs.begin(), diffs.end(), [](double d) { return !std::isfinite(d); }), diffs.end());
     if (!diffs.empty()) {
@@ -821,19 +818,26 @@ class Registrar {
       // (a view upside down, or from the far side, of a shape that looks alike).
       const Eigen::Matrix4d T = r[best].transform;
       std::vector<std::pair<Vec3d, Eigen::Matrix3d>> turns;  // about a point
-      Vec3d model_mean = Vec3d::Zero();
-      Eigen::Matrix3d cov = Eigen::Matrix3d::Zero();
-      for (const Vec3f& q : target.points) model_mean += q.cast<double>();
-      model_mean /= double(std::max<std::size_t>(1, target.points.size()));
-      for (const Vec3f& q : target.points) cov += (q.cast<double>() - model_mean) * (q.cast<double>() - model_mean).transpose();
-      const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> pca(cov);
+      // Mean and principal axes (eigenvectors of the scatter) of points moved by X.
+      const auto axes_of = [](const std::vector<Vec3f>& pts, const Eigen::Matrix4d& X) {
+        std::vector<Vec3d> placed;
+        placed.reserve(pts.size());
+        for (const Vec3f& q : pts) placed.push_back((X * q.cast<double>().homogeneous()).head<3>());
+        Vec3d mean = Vec3d::Zero();
+        for (const Vec3d& q : placed) mean += q;
+        mean /= double(std::max<std::size_t>(1, placed.size()));
+        Eigen::Matrix3d cov = Eigen::Matrix3d::Zero();
+        for (const Vec3d& q : placed) cov += (q - mean) * (q - mean).transpose();
+        return std::make_pair(mean, Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>(cov).eigenvectors());
+      };
+      const auto [model_mean, model_axes] = axes_of(target.points, Eigen::Matrix4d::Identity());
       // About lines through the model's centre (the object need not stand on the axis).
       if (axis)
         for (int k = 1; k < 8; ++k)
           turns.push_back({model_mean, Eigen::AngleAxisd(M_PI * k / 4, axis->second).toRotationMatrix()});
       for (int a = 0; a < 3; ++a)
         for (int k = 1; k < 4; ++k)
-          turns.push_back({model_mean, Eigen::AngleAxisd(M_PI * k / 2, pca.eigenvectors().col(a)).toRotationMatrix()});
+          turns.push_back({model_mean, Eigen::AngleAxisd(M_PI * k / 2, model_axes.col(a)).toRotationMatrix()});
       std::vector<std::pair<double, Eigen::Matrix4d>> starts(turns.size());
       tbb::parallel_for(std::size_t(0), turns.size(), [&](std::size_t k) {
         Eigen::Matrix4d S = Eigen::Matrix4d::Identity();
@@ -849,19 +853,11 @@ class Registrar {
         // down or mirrored in place, where turns about the model's centre would
         // carry it elsewhere). Refined only with the rest, when the first
         // starts leave the view not settled.
-        Vec3d vm = Vec3d::Zero();
-        Eigen::Matrix3d vc = Eigen::Matrix3d::Zero();
-        std::vector<Vec3d> placed;
-        placed.reserve(source.points.size());
-        for (const Vec3f& q : source.points) placed.push_back((T * q.cast<double>().homogeneous()).head<3>());
-        for (const Vec3d& q : placed) vm += q;
-        vm /= double(std::max<std::size_t>(1, placed.size()));
-        for (const Vec3d& q : placed) vc += (q - vm) * (q - vm).transpose();
-        const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> vp(vc);
+        const auto [vm, view_axes] = axes_of(source.points, T);
         for (int a = 0; a < 3; ++a)
           for (int k = 1; k < 4; ++k) {
             Eigen::Matrix4d S = Eigen::Matrix4d::Identity();
-            S.block<3, 3>(0, 0) = Eigen::AngleAxisd(M_PI * k / 2, vp.eigenvectors().col(a)).toRotationMatrix();
+            S.block<3, 3>(0, 0) = Eigen::AngleAxisd(M_PI * k / 2, view_axes.col(a)).toRotationMatrix();
             S.block<3, 1>(0, 3) = vm - S.block<3, 3>(0, 0) * vm;
             starts.push_back({0.0, S * T});
           }
