@@ -1642,6 +1642,52 @@ int registered_count(const RegistrationResult& r, const std::vector<bool>& at_ta
   return n;
 }
 
+// Registered views (at the table) in the largest group that the last round's
+// converged pairs join: the views whose places relative to each other are
+// measured, not held by the angles alone (warn_unlinked names the rest).
+std::vector<int> linked_group(const RegistrationResult& r, const std::vector<bool>& at_table) {
+  std::map<int, std::vector<int>> groups;
+  const int last = r.pairs.empty() ? -1 : r.pairs.back().round;
+  UnionFind uf(r.views.size());
+  for (const PairDiagnostics& pd : r.pairs)
+    if (pd.round == last && pd.converged && r.views[std::size_t(pd.from)].registered &&
+        r.views[std::size_t(pd.to)].registered)
+      uf.unite(pd.from, pd.to);
+  std::vector<int> best;
+  for (std::size_t i = 0; i < r.views.size(); ++i)
+    if (r.views[i].registered && at_table[i]) {
+      std::vector<int>& g = groups[uf.find(int(i))];
+      g.push_back(int(i));
+      if (g.size() > best.size()) best = g;
+    }
+  return best;
+}
+
+// Whether run `b` places the views of `group` where run `a` does, relative to
+// each other: within kAgreeDeg, and within kAgreeAtObject of the session size
+// at each view's centroid (`centres`, in its scanner frame).
+constexpr double kAgreeDeg = 2.0;
+constexpr double kAgreeAtObject = 0.02;
+bool runs_agree(const RegistrationResult& a, const RegistrationResult& b, const std::vector<int>& group,
+                const std::vector<Vec3d>& centres) {
+  if (group.empty()) return true;
+  const int g0 = group.front();
+  if (!b.views[std::size_t(g0)].registered) return false;
+  for (int i : group) {
+    if (!b.views[std::size_t(i)].registered) return false;
+    const Eigen::Matrix4d ra = rigid_inverse(a.poses[std::size_t(g0)]) * a.poses[std::size_t(i)];
+    const Eigen::Matrix4d rb = rigid_inverse(b.poses[std::size_t(g0)]) * b.poses[std::size_t(i)];
+    if (rotation_angle_deg(rigid_inverse(ra) * rb) > kAgreeDeg) return false;
+    const Vec3d& c = centres[std::size_t(i)];
+    if (c.allFinite() && ((ra - rb) * c.homogeneous()).norm() > kAgreeAtObject * a.diagonal) return false;
+  }
+  return true;
+}
+
+int linked_count(const RegistrationResult& r, const std::vector<bool>& at_table) {
+  return int(linked_group(r, at_table).size());
+}
+
 std::vector<bool> views_at_table(const std::vector<Cloud>& clouds, double diagonal) {
   std::vector<Vec3d> c(clouds.size(), Vec3d::Constant(std::nan("")));
   std::vector<double> xs[3];
@@ -1665,6 +1711,10 @@ std::vector<bool> views_at_table(const std::vector<Cloud>& clouds, double diagon
 // view with points failed, or a commanded angle was rejected.
 bool prior_suspect(const RegistrationResult& r, const RegistrationParams& p, const std::vector<bool>& at_table) {
   if (p.rigid_turntable == RigidTurntable::kAuto && !r.rigid_turntable && r.rigid_deviation_deg > 0) return true;
+  // Views held to the rest by the angles alone: a gap in the coverage, or the
+  // object moved where no angle check could see it (a whole run of views moved
+  // together agrees with itself). Only the run without angles tells which.
+  if (r.unlinked_views > 0) return true;
   for (const ViewDiagnostics& v : r.views)
     if (v.angle_rejected) return true;
   for (std::size_t i = 0; i < r.views.size(); ++i)
@@ -1675,8 +1725,10 @@ bool prior_suspect(const RegistrationResult& r, const RegistrationParams& p, con
 std::string run_summary(const char* name, const RegistrationResult& r, const std::vector<bool>& at_table) {
   std::ostringstream o;
   o.precision(3);
-  o << name << ": " << registered_count(r, at_table) << " of " << r.views.size() << " views, pair residual "
-    << 1000 * r.mean_pair_rmse << " mm";
+  const int reg = registered_count(r, at_table), linked = linked_count(r, at_table);
+  o << name << ": " << reg << " of " << r.views.size() << " views";
+  if (linked < reg) o << " (" << linked << " joined by pairs)";
+  o << ", pair residual " << 1000 * r.mean_pair_rmse << " mm";
   return o.str();
 }
 
@@ -1717,6 +1769,51 @@ MovedRun moved_run(const AnglePriorFit& fit, const SessionManifest& manifest, do
 }
 
 }  // namespace
+
+// T^s for a rigid motion T that turns about one line (a turntable's motion
+// between two views, with any slide along the axis scaled too).
+Eigen::Matrix4d screw_power(const Eigen::Matrix4d& T, double s) {
+  const Eigen::AngleAxisd aa(Eigen::Matrix3d(T.block<3, 3>(0, 0)));
+  const Vec3d d = aa.axis().normalized();
+  const Vec3d t = T.block<3, 1>(0, 3);
+  const Vec3d along = t.dot(d) * d, across = t - along;
+  // A point of the axis line: t_across = (I - R) p, p across the axis.
+  const double half = 0.5 * aa.angle();
+  const Vec3d p = std::abs(std::sin(half)) > 1e-9 ? Vec3d(0.5 * (across + std::cos(half) / std::sin(half) * d.cross(across)))
+                                                   : Vec3d::Zero();
+  Eigen::Matrix4d out = Eigen::Matrix4d::Identity();
+  const Eigen::Matrix3d Rs = Eigen::AngleAxisd(s * aa.angle(), d).toRotationMatrix();
+  out.block<3, 3>(0, 0) = Rs;
+  out.block<3, 1>(0, 3) = (Eigen::Matrix3d::Identity() - Rs) * p + s * along;
+  return out;
+}
+
+// Where the angles place view `j`, which run `r` did not register: from two
+// registered views k, m of the session with angles, nearest to j in capture
+// order, whose motion turns by what their angles say (within `tol_deg`; so no
+// move of the object between them), T = P_k^-1 P_m taken to the fraction of
+// its turn that j's angle is. None when no such pair is found.
+std::optional<Eigen::Matrix4d> pose_from_neighbours_angles(const RegistrationResult& r, const SessionManifest& m,
+                                                            int j, double scale, double tol_deg) {
+  const auto wrap = [](double a) { return a - 360.0 * std::round(a / 360.0); };
+  if (!m.views[std::size_t(j)].angle_deg) return std::nullopt;
+  std::vector<int> near;
+  for (std::size_t i = 0; i < m.views.size(); ++i)
+    if (int(i) != j && r.views[i].registered && m.views[i].angle_deg) near.push_back(int(i));
+  std::stable_sort(near.begin(), near.end(), [j](int a, int b) { return std::abs(a - j) < std::abs(b - j); });
+  const std::size_t tries = std::min<std::size_t>(near.size(), 4);
+  for (std::size_t x = 0; x < tries; ++x)
+    for (std::size_t y = x + 1; y < tries; ++y) {
+      const int k = near[x], l = near[y];
+      const double dl = wrap(scale * (*m.views[std::size_t(l)].angle_deg - *m.views[std::size_t(k)].angle_deg));
+      const double dj = wrap(scale * (*m.views[std::size_t(j)].angle_deg - *m.views[std::size_t(k)].angle_deg));
+      if (std::abs(dl) < 5) continue;
+      const Eigen::Matrix4d T = rigid_inverse(r.poses[std::size_t(k)]) * r.poses[std::size_t(l)];
+      if (std::abs(rotation_angle_deg(T) - std::abs(dl)) > tol_deg) continue;
+      return Eigen::Matrix4d(r.poses[std::size_t(k)] * screw_power(T, dj / dl));
+    }
+  return std::nullopt;
+}
 
 RegistrationResult register_views(const std::vector<Cloud>& clouds, const SessionManifest& manifest,
                                   const RegistrationParams& params,
@@ -1811,7 +1908,53 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
   // The corrected prior replaces the given one when it registers more views or
   // fits clearly better (5 %): where both agree, the run as given is kept.
   if (corrected && better(*corrected, with, 0.95)) prior_best = &*corrected;
-  const bool keep_free = !better(*prior_best, free, 1.05);
+  // A run without angles that joins, by converged pairs, more views than the
+  // prior's does: the prior held views apart from the rest where the data joins
+  // them (the object moved, more than once perhaps). Where the data joins no
+  // more (a gap in the coverage), the prior's run is compared as before.
+  std::vector<Vec3d> centres(n, Vec3d::Constant(std::nan("")));
+  for (std::size_t i = 0; i < n; ++i) {
+    Vec3d sum = Vec3d::Zero();
+    std::size_t k = 0;
+    for (const Vec3f& p : clouds[i].points)
+      if (p.allFinite()) sum += p.cast<double>(), ++k;
+    if (k) centres[i] = sum / double(k);
+  }
+  // ...and that agrees with the prior's run where that one measured (its joined
+  // views): a run without angles that links more views by placing some of them
+  // wrong (a half turn of a near-symmetric object) contradicts the pairs the
+  // prior's run did converge.
+  const std::vector<int> prior_linked = linked_group(*prior_best, at_table);
+  const bool free_links_more = linked_count(free, at_table) > int(prior_linked.size()) &&
+                               runs_agree(*prior_best, free, prior_linked, centres);
+  const bool keep_free = free_links_more || !better(*prior_best, free, 1.05);
+  // Views with an angle that the run without angles could not place (too little
+  // overlap to find from scratch) are placed from the angles of registered
+  // neighbours that turn as their angles say (the object may have moved
+  // between runs of views; within one, the angles hold), and the run is made
+  // again from those poses. Kept when it registers more views and agrees with
+  // the run without angles where that one joined views by pairs.
+  std::vector<int> filled;
+  if (keep_free) {
+    SessionManifest fm = bare;
+    for (std::size_t i = 0; i < n; ++i) {
+      if (free.views[i].registered) {
+        fm.views[i].initial_pose = free.poses[i];
+        continue;
+      }
+      const auto X = pose_from_neighbours_angles(free, manifest, int(i), fit.ok ? fit.scale : 1.0,
+                                                 params.wrong_angle_deg);
+      if (X) fm.views[i].initial_pose = *X, filled.push_back(int(i));
+    }
+    if (!filled.empty()) {
+      RegistrationResult again = Registrar(clouds, fm, params, named("the failed views from their neighbours' angles")).run();
+      if (registered_count(again, at_table) > registered_count(free, at_table) &&
+          runs_agree(free, again, linked_group(free, at_table), centres))
+        free = std::move(again);
+      else
+        filled.clear();
+    }
+  }
   const std::string comparison = run_summary("with the angles", with, at_table) + "; " +
                                  (corrected ? run_summary("corrected angles", *corrected, at_table) + "; " : std::string()) +
                                  run_summary("without angles", free, at_table);
@@ -1839,6 +1982,11 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
   for (std::size_t i = 0; i < n; ++i) {
     if (fit.residual_deg[i]) out.views[i].angle_error_deg = fit.residual_deg[i];
     if (keep_free && manifest.views[i].angle_deg) out.views[i].prior = PriorUse::kIgnored;
+  }
+  for (int i : filled) {
+    if (!out.views[std::size_t(i)].registered) continue;
+    out.views[std::size_t(i)].prior = PriorUse::kUsed;
+    out.views[std::size_t(i)].initial = InitialPoseSource::kTurntableAxis;
   }
   std::vector<std::string> notes;
   std::ostringstream w;
@@ -1875,6 +2023,13 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
               : "registered without it");
     notes.push_back(w.str());
     if (out.views[i].message.empty() && out.views[i].registered) out.views[i].message = w.str();
+    w.str("");
+  }
+  if (!filled.empty()) {
+    w << filled.size() << " view" << (filled.size() == 1 ? "" : "s") << " that the run without angles could not place ("
+      << view_name(manifest, std::size_t(filled.front())) << (filled.size() > 1 ? ", ..." : "")
+      << ") started from the angles of neighbours that turn as their angles say";
+    notes.push_back(w.str());
     w.str("");
   }
   out.warnings.insert(out.warnings.begin(), notes.begin(), notes.end());

@@ -295,6 +295,47 @@ TEST(GlobalRegistration, DragonWithTheSignFlippedOrTheObjectMovedLandsWhereTheCl
 }
 
 
+// Two moves on the table (issue 26, item 2, more than one): the dragon turned
+// 90 deg and moved 3 cm after view 4, then turned -60 deg and moved 3 cm after
+// view 9, the angles recorded as if nothing had moved. No pair across a move
+// converges at the prior's poses, so the run with the angles leaves views 5-14
+// held to the rest by the angles alone (before: 30-90 deg off, all counted as
+// registered; only "overlap none of the other views" was said). The run
+// without angles joins more views by converged pairs and agrees with the
+// prior's run where that one measured, so it is kept; the two views it could
+// not place (too little overlap from scratch) start from their neighbours'
+// angles. Every view within the issue's 0.5 deg / 1 mm at the object of the
+// clean session (measured 0.44 deg / 0.36 mm).
+TEST(GlobalRegistration, DragonMovedTwiceOnTheTableLandsRight) {
+  const auto& [clouds, m, clean] = clean_dragon();
+  ASSERT_EQ(m.views.size(), 15u);
+  Eigen::Matrix4d first = Eigen::Matrix4d::Identity(), second = Eigen::Matrix4d::Identity();
+  first.block<3, 3>(0, 0) = Eigen::AngleAxisd(M_PI / 2, Vec3d::UnitY()).toRotationMatrix();
+  first.block<3, 1>(0, 3) = Vec3d(0.03, 0, 0.01);
+  second.block<3, 3>(0, 0) = Eigen::AngleAxisd(-M_PI / 3, Vec3d::UnitY()).toRotationMatrix();
+  second.block<3, 1>(0, 3) = Vec3d(-0.01, 0, 0.03);
+  std::vector<Cloud> moved = clouds;
+  const auto m1 = move_object(moved, m, first, 5, 14);
+  const auto m2 = move_object(moved, m, second, 10, 14);
+  std::vector<Eigen::Matrix4d> moves(15);
+  SessionManifest tm = m;
+  for (std::size_t i = 0; i < 15; ++i) {
+    moves[i] = m2[i] * m1[i];
+    const Eigen::Matrix4d D = i >= 10 ? Eigen::Matrix4d(second * first) : i >= 5 ? first : Eigen::Matrix4d::Identity();
+    *tm.views[i].reference_pose = rigid_inverse(D) * *m.views[i].reference_pose;
+  }
+  const RegistrationResult r = register_views(moved, tm);
+  expect_as_clean(clean, r, moved, "moved twice (after views 4 and 9)", &moves);
+  EXPECT_EQ(r.prior_kept, "no prior");
+  for (std::size_t i = 0; i < 15; ++i)
+    std::printf("  view %zu against Stanford's pose: %.3f deg %.3f mm at the object\n", i,
+                r.views[i].rotation_error_deg.value_or(-1), 1000 * r.views[i].object_translation_error.value_or(-1));
+  // Views 11 and 12 were placed from their neighbours' angles.
+  bool said = false;
+  for (const std::string& w : r.warnings) said = said || w.find("started from the angles of neighbours") != std::string::npos;
+  EXPECT_TRUE(said);
+}
+
 // The dragon's files in a shell glob's order (dragonStandRight_0, _120, _144,
 // ..., _24, _240, ...: lexical, not the turntable's) and without angles, as
 // `station import dragonStandRight_*.ply` makes it without --step. With the
