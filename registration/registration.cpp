@@ -1924,8 +1924,12 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
   // views): a run without angles that links more views by placing some of them
   // wrong (a half turn of a near-symmetric object) contradicts the pairs the
   // prior's run did converge.
+  // The free run's joined group must hold the prior's: a larger group of views
+  // elsewhere (joined among themselves, placed wrong as a whole) is no measure.
   const std::vector<int> prior_linked = linked_group(*prior_best, at_table);
-  const bool free_links_more = linked_count(free, at_table) > int(prior_linked.size()) &&
+  const std::vector<int> free_linked = linked_group(free, at_table);
+  const bool holds = std::includes(free_linked.begin(), free_linked.end(), prior_linked.begin(), prior_linked.end());
+  const bool free_links_more = free_linked.size() > prior_linked.size() && holds &&
                                runs_agree(*prior_best, free, prior_linked, centres);
   const bool keep_free = free_links_more || !better(*prior_best, free, 1.05);
   // Views with an angle that the run without angles could not place (too little
@@ -1948,8 +1952,9 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
     }
     if (!filled.empty()) {
       RegistrationResult again = Registrar(clouds, fm, params, named("the failed views from their neighbours' angles")).run();
+      const std::vector<int> was = linked_group(free, at_table), now = linked_group(again, at_table);
       if (registered_count(again, at_table) > registered_count(free, at_table) &&
-          runs_agree(free, again, linked_group(free, at_table), centres))
+          std::includes(now.begin(), now.end(), was.begin(), was.end()) && runs_agree(free, again, was, centres))
         free = std::move(again);
       else
         filled.clear();
