@@ -1711,10 +1711,6 @@ std::vector<bool> views_at_table(const std::vector<Cloud>& clouds, double diagon
 // view with points failed, or a commanded angle was rejected.
 bool prior_suspect(const RegistrationResult& r, const RegistrationParams& p, const std::vector<bool>& at_table) {
   if (p.rigid_turntable == RigidTurntable::kAuto && !r.rigid_turntable && r.rigid_deviation_deg > 0) return true;
-  // Views held to the rest by the angles alone: a gap in the coverage, or the
-  // object moved where no angle check could see it (a whole run of views moved
-  // together agrees with itself). Only the run without angles tells which.
-  if (r.unlinked_views > 0) return true;
   for (const ViewDiagnostics& v : r.views)
     if (v.angle_rejected) return true;
   for (std::size_t i = 0; i < r.views.size(); ++i)
@@ -1770,17 +1766,23 @@ MovedRun moved_run(const AnglePriorFit& fit, const SessionManifest& manifest, do
 
 }  // namespace
 
+namespace {
+
 // T^s for a rigid motion T that turns about one line (a turntable's motion
 // between two views, with any slide along the axis scaled too).
 Eigen::Matrix4d screw_power(const Eigen::Matrix4d& T, double s) {
   const Eigen::AngleAxisd aa(Eigen::Matrix3d(T.block<3, 3>(0, 0)));
   const Vec3d d = aa.axis().normalized();
   const Vec3d t = T.block<3, 1>(0, 3);
+  if (std::abs(aa.angle()) < 1e-9) {  // no turn: a slide
+    Eigen::Matrix4d out = Eigen::Matrix4d::Identity();
+    out.block<3, 1>(0, 3) = s * t;
+    return out;
+  }
   const Vec3d along = t.dot(d) * d, across = t - along;
   // A point of the axis line: t_across = (I - R) p, p across the axis.
   const double half = 0.5 * aa.angle();
-  const Vec3d p = std::abs(std::sin(half)) > 1e-9 ? Vec3d(0.5 * (across + std::cos(half) / std::sin(half) * d.cross(across)))
-                                                   : Vec3d::Zero();
+  const Vec3d p = 0.5 * (across + std::cos(half) / std::sin(half) * d.cross(across));
   Eigen::Matrix4d out = Eigen::Matrix4d::Identity();
   const Eigen::Matrix3d Rs = Eigen::AngleAxisd(s * aa.angle(), d).toRotationMatrix();
   out.block<3, 3>(0, 0) = Rs;
@@ -1789,31 +1791,41 @@ Eigen::Matrix4d screw_power(const Eigen::Matrix4d& T, double s) {
 }
 
 // Where the angles place view `j`, which run `r` did not register: from two
-// registered views k, m of the session with angles, nearest to j in capture
-// order, whose motion turns by what their angles say (within `tol_deg`; so no
-// move of the object between them), T = P_k^-1 P_m taken to the fraction of
-// its turn that j's angle is. None when no such pair is found.
+// registered views k < j < l with angles that bracket it in capture order (the
+// nearest one or two on each side), whose motion turns by what their angles
+// say (within `tol_deg`, at least 15 deg and twice that and at most 180 less
+// twice that: a turn Eigen's angle cannot tell from its opposite is not used),
+// about a line with no slide along it (a turntable's motion; under 2 % of the
+// session size), so that the object did not move between them. T = P_k^-1 P_l
+// taken to the fraction of its turn that j's angle is (between 0 and 1). None
+// when no such pair is found.
 std::optional<Eigen::Matrix4d> pose_from_neighbours_angles(const RegistrationResult& r, const SessionManifest& m,
                                                             int j, double scale, double tol_deg) {
   const auto wrap = [](double a) { return a - 360.0 * std::round(a / 360.0); };
   if (!m.views[std::size_t(j)].angle_deg) return std::nullopt;
-  std::vector<int> near;
-  for (std::size_t i = 0; i < m.views.size(); ++i)
-    if (int(i) != j && r.views[i].registered && m.views[i].angle_deg) near.push_back(int(i));
-  std::stable_sort(near.begin(), near.end(), [j](int a, int b) { return std::abs(a - j) < std::abs(b - j); });
-  const std::size_t tries = std::min<std::size_t>(near.size(), 4);
-  for (std::size_t x = 0; x < tries; ++x)
-    for (std::size_t y = x + 1; y < tries; ++y) {
-      const int k = near[x], l = near[y];
+  std::vector<int> below, above;
+  for (int i = j - 1; i >= 0 && below.size() < 2; --i)
+    if (r.views[std::size_t(i)].registered && m.views[std::size_t(i)].angle_deg) below.push_back(i);
+  for (int i = j + 1; i < int(m.views.size()) && above.size() < 2; ++i)
+    if (r.views[std::size_t(i)].registered && m.views[std::size_t(i)].angle_deg) above.push_back(i);
+  const double min_turn = std::max(15.0, 2 * tol_deg), max_turn = 180.0 - 2 * tol_deg;
+  for (int k : below)
+    for (int l : above) {
       const double dl = wrap(scale * (*m.views[std::size_t(l)].angle_deg - *m.views[std::size_t(k)].angle_deg));
       const double dj = wrap(scale * (*m.views[std::size_t(j)].angle_deg - *m.views[std::size_t(k)].angle_deg));
-      if (std::abs(dl) < 5) continue;
+      if (std::abs(dl) < min_turn || std::abs(dl) > max_turn) continue;
+      const double f = dj / dl;
+      if (!(f > 0 && f < 1)) continue;
       const Eigen::Matrix4d T = rigid_inverse(r.poses[std::size_t(k)]) * r.poses[std::size_t(l)];
       if (std::abs(rotation_angle_deg(T) - std::abs(dl)) > tol_deg) continue;
-      return Eigen::Matrix4d(r.poses[std::size_t(k)] * screw_power(T, dj / dl));
+      const Eigen::AngleAxisd aa(Eigen::Matrix3d(T.block<3, 3>(0, 0)));
+      if (std::abs(T.block<3, 1>(0, 3).dot(aa.axis())) > 0.02 * r.diagonal) continue;
+      return Eigen::Matrix4d(r.poses[std::size_t(k)] * screw_power(T, f));
     }
   return std::nullopt;
 }
+
+}  // namespace
 
 RegistrationResult register_views(const std::vector<Cloud>& clouds, const SessionManifest& manifest,
                                   const RegistrationParams& params,
@@ -1835,7 +1847,13 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
                                             [](const ViewRecord& v) { return v.angle_deg.has_value(); }));
   if (!params.prior_check || with_angles < 2 || !params.global_registration) return with;
   const std::vector<bool> at_table = views_at_table(clouds, with.diagonal);
-  if (!prior_suspect(with, params, at_table)) return with;
+  // Views held to the rest by the angles alone: a gap in the coverage, or the
+  // object moved where no angle check could see it (a whole run of views moved
+  // together agrees with itself). Only the run without angles tells which; such
+  // a run alone is compared by the rule below (joined views), nothing else.
+  const bool suspect = prior_suspect(with, params, at_table);
+  const bool only_unlinked = !suspect && with.unlinked_views > 0;
+  if (!suspect && !only_unlinked) return with;
 
   // The same views without any angle (or axis): what the data says alone.
   SessionManifest bare = manifest;
@@ -1865,7 +1883,7 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
   // (Nothing new when the only wrong angles are those the run with the prior
   // rejected already.)
   const bool news = std::any_of(fit.wrong.begin(), fit.wrong.end(), [&](int i) { return !with.views[i].angle_rejected; });
-  if (fit.ok && (news || !fit.convention.empty())) {
+  if (!only_unlinked && fit.ok && (news || !fit.convention.empty())) {
     const MovedRun moved = moved_run(fit, manifest, params.wrong_angle_deg);
     SessionManifest m = manifest;
     for (std::size_t i = 0; i < n; ++i) {
@@ -1931,15 +1949,16 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
   const bool holds = std::includes(free_linked.begin(), free_linked.end(), prior_linked.begin(), prior_linked.end());
   const bool free_links_more = free_linked.size() > prior_linked.size() && holds &&
                                runs_agree(*prior_best, free, prior_linked, centres);
-  const bool keep_free = free_links_more || !better(*prior_best, free, 1.05);
   // Views with an angle that the run without angles could not place (too little
-  // overlap to find from scratch) are placed from the angles of registered
-  // neighbours that turn as their angles say (the object may have moved
-  // between runs of views; within one, the angles hold), and the run is made
-  // again from those poses. Kept when it registers more views and agrees with
-  // the run without angles where that one joined views by pairs.
+  // overlap to find from scratch), where it is kept for joining more views, are
+  // placed from the angles of registered neighbours that bracket them and turn
+  // as their angles say (the object may have moved between runs of views;
+  // within one, the angles hold), and the run is made again from those poses.
+  // Kept when it registers more views and agrees with the run without angles
+  // where that one joined views by pairs.
+  std::string free_summary = run_summary("without angles", free, at_table);
   std::vector<int> filled;
-  if (keep_free) {
+  if (free_links_more) {
     SessionManifest fm = bare;
     for (std::size_t i = 0; i < n; ++i) {
       if (free.views[i].registered) {
@@ -1954,15 +1973,30 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
       RegistrationResult again = Registrar(clouds, fm, params, named("the failed views from their neighbours' angles")).run();
       const std::vector<int> was = linked_group(free, at_table), now = linked_group(again, at_table);
       if (registered_count(again, at_table) > registered_count(free, at_table) &&
-          std::includes(now.begin(), now.end(), was.begin(), was.end()) && runs_agree(free, again, was, centres))
+          std::includes(now.begin(), now.end(), was.begin(), was.end()) && runs_agree(free, again, was, centres)) {
+        // The views it had placed keep their own initial source.
+        for (std::size_t i = 0; i < n; ++i)
+          if (free.views[i].registered) again.views[i].initial = free.views[i].initial;
+        filled.erase(std::remove_if(filled.begin(), filled.end(),
+                                    [&](int i) { return !again.views[std::size_t(i)].registered; }),
+                     filled.end());
         free = std::move(again);
-      else
+        free_summary += " (" + std::to_string(filled.size()) + " more from their neighbours' angles)";
+      } else {
         filled.clear();
+      }
     }
   }
+  // Never fewer registered views than the prior's run for joining more.
+  const bool keep_free = (free_links_more && registered_count(free, at_table) >= registered_count(*prior_best, at_table)) ||
+                         (!only_unlinked && !better(*prior_best, free, 1.05));
+  if (!keep_free) filled.clear();
+  // A session suspect only for its unlinked views, where the run without angles
+  // joins no more of them: a gap in the coverage; the run as given stands as it was.
+  if (only_unlinked && !keep_free) return with;
   const std::string comparison = run_summary("with the angles", with, at_table) + "; " +
                                  (corrected ? run_summary("corrected angles", *corrected, at_table) + "; " : std::string()) +
-                                 run_summary("without angles", free, at_table);
+                                 free_summary;
   const bool kept_given = !keep_free && prior_best == &with;
   std::vector<bool> rejected_before(n);
   for (std::size_t i = 0; i < n; ++i) rejected_before[i] = with.views[i].angle_rejected;

@@ -331,6 +331,9 @@ TEST(GlobalRegistration, DragonMovedTwiceOnTheTableLandsRight) {
     std::printf("  view %zu against Stanford's pose: %.3f deg %.3f mm at the object\n", i,
                 r.views[i].rotation_error_deg.value_or(-1), 1000 * r.views[i].object_translation_error.value_or(-1));
   // Views 11 and 12 were placed from their neighbours' angles.
+  EXPECT_EQ(r.views[11].prior, PriorUse::kUsed);
+  EXPECT_EQ(r.views[12].prior, PriorUse::kUsed);
+  EXPECT_EQ(r.views[13].prior, PriorUse::kIgnored);
   bool said = false;
   for (const std::string& w : r.warnings) said = said || w.find("started from the angles of neighbours") != std::string::npos;
   EXPECT_TRUE(said);

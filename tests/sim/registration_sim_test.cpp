@@ -457,6 +457,9 @@ TEST(SimRegistration, ViewsThatNoPairJoinsAreNamed) {
   print_prior("two runs 120 degrees apart", r);
   EXPECT_TRUE(r.failed_views.empty());
   EXPECT_EQ(r.unlinked_views, 3);
+  // A gap in the coverage is not taken for a move: the run without angles joins
+  // no more views across it, so the prior's run is kept.
+  EXPECT_EQ(r.prior_kept, "prior");
   bool named = false;
   for (const std::string& w : r.warnings)
     named = named || w.find("views[3] (view_006.ply) to views[5] (view_008.ply) (3 views) overlap none of the other "
