@@ -1688,22 +1688,29 @@ int linked_count(const RegistrationResult& r, const std::vector<bool>& at_table)
   return int(linked_group(r, at_table).size());
 }
 
-std::vector<bool> views_at_table(const std::vector<Cloud>& clouds, double diagonal) {
+// Each view's centroid of its finite points, in its scanner frame (NaN for a
+// view without any).
+std::vector<Vec3d> view_centres(const std::vector<Cloud>& clouds) {
   std::vector<Vec3d> c(clouds.size(), Vec3d::Constant(std::nan("")));
-  std::vector<double> xs[3];
   for (std::size_t i = 0; i < clouds.size(); ++i) {
     Vec3d sum = Vec3d::Zero();
     std::size_t k = 0;
     for (const Vec3f& p : clouds[i].points)
       if (p.allFinite()) sum += p.cast<double>(), ++k;
-    if (k == 0) continue;
-    c[i] = sum / double(k);
-    for (int a = 0; a < 3; ++a) xs[a].push_back(c[i][a]);
+    if (k) c[i] = sum / double(k);
   }
-  std::vector<bool> out(clouds.size(), false);
+  return c;
+}
+
+std::vector<bool> views_at_table(const std::vector<Vec3d>& c, double diagonal) {
+  std::vector<double> xs[3];
+  for (const Vec3d& x : c)
+    if (x.allFinite())
+      for (int a = 0; a < 3; ++a) xs[a].push_back(x[a]);
+  std::vector<bool> out(c.size(), false);
   if (xs[0].empty()) return out;
   const Vec3d median(median_of(xs[0]), median_of(xs[1]), median_of(xs[2]));
-  for (std::size_t i = 0; i < clouds.size(); ++i) out[i] = c[i].allFinite() && (c[i] - median).norm() <= diagonal;
+  for (std::size_t i = 0; i < c.size(); ++i) out[i] = c[i].allFinite() && (c[i] - median).norm() <= diagonal;
   return out;
 }
 
@@ -1846,7 +1853,8 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
   const int with_angles = int(std::count_if(manifest.views.begin(), manifest.views.end(),
                                             [](const ViewRecord& v) { return v.angle_deg.has_value(); }));
   if (!params.prior_check || with_angles < 2 || !params.global_registration) return with;
-  const std::vector<bool> at_table = views_at_table(clouds, with.diagonal);
+  const std::vector<Vec3d> centres = view_centres(clouds);
+  const std::vector<bool> at_table = views_at_table(centres, with.diagonal);
   // Views held to the rest by the angles alone: a gap in the coverage, or the
   // object moved where no angle check could see it (a whole run of views moved
   // together agrees with itself). Only the run without angles tells which; such
@@ -1930,14 +1938,6 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
   // prior's does: the prior held views apart from the rest where the data joins
   // them (the object moved, more than once perhaps). Where the data joins no
   // more (a gap in the coverage), the prior's run is compared as before.
-  std::vector<Vec3d> centres(n, Vec3d::Constant(std::nan("")));
-  for (std::size_t i = 0; i < n; ++i) {
-    Vec3d sum = Vec3d::Zero();
-    std::size_t k = 0;
-    for (const Vec3f& p : clouds[i].points)
-      if (p.allFinite()) sum += p.cast<double>(), ++k;
-    if (k) centres[i] = sum / double(k);
-  }
   // ...and that agrees with the prior's run where that one measured (its joined
   // views): a run without angles that links more views by placing some of them
   // wrong (a half turn of a near-symmetric object) contradicts the pairs the
