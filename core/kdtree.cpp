@@ -153,4 +153,20 @@ std::optional<std::vector<std::pair<int, float>>> PointIndex::radius_at_most(con
   return out;
 }
 
+double sample_spacing(const PointIndex& index, std::size_t max_samples) {
+  constexpr int kNeighbours = 8;
+  const std::size_t n = index.size();
+  if (n <= std::size_t(kNeighbours) || max_samples == 0) return 0;
+  const std::size_t stride = std::max<std::size_t>(1, n / max_samples);
+  std::vector<double> r;
+  r.reserve(n / stride + 1);
+  for (std::size_t i = 0; i < n; i += stride) {
+    const auto k = index.knn(index.points()[i], kNeighbours + 1);
+    if (k.size() > std::size_t(kNeighbours)) r.push_back(k[kNeighbours].second);
+  }
+  if (r.empty()) return 0;
+  std::nth_element(r.begin(), r.begin() + std::ptrdiff_t(r.size() / 2), r.end());
+  return r[r.size() / 2] * std::sqrt(M_PI / kNeighbours);
+}
+
 }  // namespace station

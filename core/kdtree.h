@@ -50,4 +50,9 @@ class PointIndex {
   std::unique_ptr<Impl> impl_;
 };
 
+/// The points' sample spacing, 1 / sqrt(density) with the density from the distance
+/// to the 8th neighbour (as MpuDiagnostics::sample_spacing): the median over up to
+/// `max_samples` evenly strided points. 0 with fewer than 9 points.
+double sample_spacing(const PointIndex& index, std::size_t max_samples = 4096);
+
 }  // namespace station

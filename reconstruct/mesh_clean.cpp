@@ -3,6 +3,7 @@
 #include <Eigen/Geometry>
 
 #include <algorithm>
+#include <memory>
 #include <cstdint>
 #include <numeric>
 #include <utility>
@@ -10,13 +11,42 @@
 #include <vector>
 
 #include "core/error.h"
+#include "core/kdtree.h"
 #include "core/union_find.h"
 
 namespace station {
 
 
+namespace {
+
+// Per piece root, the data points whose nearest vertex (of the whole mesh) lies in a
+// piece marked `small` and within `reach`.
+std::vector<std::size_t> support_counts(const Mesh& mesh, UnionFind& uf, const std::vector<char>& small,
+                                        const PieceSupport& support) {
+  std::vector<std::size_t> count(mesh.vertices.size(), 0);
+  std::vector<Vec3f> small_vertices;
+  for (std::size_t v = 0; v < mesh.vertices.size(); ++v)
+    if (small[std::size_t(uf.find(int(v)))]) small_vertices.push_back(mesh.vertices[v]);
+  if (small_vertices.empty()) return count;
+  // The small pieces' own vertices first (most data points lie far from all of them),
+  // then the whole mesh for the few within reach: a point nearer the large piece
+  // counts for it, not for a speck beside it.
+  const PointIndex near_small(std::move(small_vertices));
+  std::unique_ptr<PointIndex> all;
+  const float reach = float(support.reach);
+  for (const Vec3f& q : *support.points) {
+    if (!q.allFinite() || near_small.nearest_within(q, reach).first < 0) continue;
+    if (!all) all = std::make_unique<PointIndex>(mesh.vertices);
+    const auto [v, d] = all->nearest(q);
+    if (v >= 0 && d <= reach) ++count[std::size_t(uf.find(v))];
+  }
+  return count;
+}
+
+}  // namespace
+
 ComponentFilterStats remove_small_components(Mesh& mesh, double min_area_fraction,
-                                             std::vector<std::uint8_t>* vertex_flags) {
+                                             std::vector<std::uint8_t>* vertex_flags, const PieceSupport* support) {
   mesh.check_consistent();
   if (vertex_flags && vertex_flags->size() != mesh.vertices.size())
     throw InvalidInput("remove_small_components: one flag per vertex expected");
@@ -48,10 +78,19 @@ ComponentFilterStats remove_small_components(Mesh& mesh, double min_area_fractio
   const double min_area = min_area_fraction * st.largest_area;
   std::vector<char> keep_root(nv, 1);
   for (std::size_t r = 0; r < nv; ++r)
-    if (has_face[r] && uf.find(int(r)) == int(r) && area[r] < min_area) {
-      keep_root[r] = 0;
-      ++st.removed_components;
-    }
+    if (has_face[r] && uf.find(int(r)) == int(r) && area[r] < min_area) keep_root[r] = 0;
+  if (support && support->points && support->min_points > 0 && support->reach > 0) {
+    std::vector<char> small(nv, 0);
+    for (std::size_t r = 0; r < nv; ++r) small[r] = !keep_root[r];
+    const std::vector<std::size_t> count = support_counts(mesh, uf, small, *support);
+    for (std::size_t r = 0; r < nv; ++r)
+      if (small[r] && count[r] >= support->min_points) {
+        keep_root[r] = 1;
+        ++st.supported_components;
+      }
+  }
+  for (std::size_t r = 0; r < nv; ++r)
+    if (!keep_root[r]) ++st.removed_components;
   if (st.removed_components == 0) return st;
   std::vector<Face> faces;
   faces.reserve(mesh.faces.size());

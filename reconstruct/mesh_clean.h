@@ -16,15 +16,28 @@ struct ComponentFilterStats {
   std::size_t removed_components = 0;
   std::size_t removed_faces = 0;
   double largest_area = 0;
+  std::size_t supported_components = 0;  ///< below the area bound, kept for their data (PieceSupport)
+};
+
+/// Data that keeps a piece the area bound would drop: real surface seen sparsely (a
+/// crevice, a part one view saw at a glancing angle) rather than a speck. A data point
+/// counts for the piece of the mesh vertex nearest it, when that vertex lies within
+/// `reach`.
+struct PieceSupport {
+  const std::vector<Vec3f>* points = nullptr;  ///< e.g. the registered scans
+  double reach = 0;
+  std::size_t min_points = 0;  ///< a small piece stays when at least this many count for it
 };
 
 /// Drops every connected piece whose area is below `min_area_fraction` x the
 /// largest piece's area (0 keeps everything), then drops unreferenced vertices
-/// (normals and colours follow). Face order and orientation are kept.
+/// (normals and colours follow). Face order and orientation are kept. With `support`,
+/// a piece below the bound stays when enough of its data count for it (PieceSupport).
 /// InvalidInput on an inconsistent mesh or a fraction outside [0, 1].
 /// `vertex_flags` (one per vertex, when given) follow the vertices kept.
 ComponentFilterStats remove_small_components(Mesh& mesh, double min_area_fraction,
-                                             std::vector<std::uint8_t>* vertex_flags = nullptr);
+                                             std::vector<std::uint8_t>* vertex_flags = nullptr,
+                                             const PieceSupport* support = nullptr);
 
 /// Erodes the mesh's open rims back to the data: faces on an open boundary (with an
 /// edge used by that face alone) having a vertex further than `max_distance` from

@@ -1,5 +1,6 @@
 #include "reconstruct/surface.h"
 
+#include <tbb/parallel_for.h>
 #include <tbb/task_arena.h>
 
 #include <algorithm>
@@ -11,6 +12,7 @@
 #include <memory>
 
 #include "core/error.h"
+#include "core/kdtree.h"
 #include "core/normals.h"
 #include "core/threads.h"
 #include "reconstruct/colour_transfer.h"
@@ -182,6 +184,7 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
       note("open rims brought back to the data (" + std::to_string(out.rim_faces) + " faces further than " +
            fmt("%.3g", kRimTrimFactor * out.mpu.mean_spacing) + " from the points)");
   }
+  bool scans_meet_mesh = false;  // the snap ran and found the scans around the mesh
   if (p.scans && !p.scans->empty()) {
     if (!p.scans->has_normals()) {
       note("the scans have no normals: the mesh stays on the fitted surface");
@@ -212,12 +215,39 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
         note("vertices onto local fits of the scans within " + fmt("%.3g", st.radius) + ": " +
              std::to_string(st.moved) + " of " + std::to_string(mesh.vertices.size()) + " moved, by " +
              fmt("%.3g", st.mean_move) + " on average" + held_out);
+      if (!st.too_few_fitted) scans_meet_mesh = true;
     }
   }
-  out.pieces = remove_small_components(mesh, p.min_component);
+  PieceSupport support;
+  if (scans_meet_mesh) {
+    // The scans are the data the mesh must stay near: with holes kept its rims come
+    // back to them (the consolidated points' rims lie inside the scans' own), and
+    // small pieces that they support stay (kScanRimFactor, kPieceMinScans).
+    const PointIndex scan_index(p.scans->points);
+    const double reach = kScanRimFactor * sample_spacing(scan_index);
+    if (reach > 0) {
+      support = {&p.scans->points, reach, kPieceMinScans};
+      if (!close) {
+        std::vector<char> far(mesh.vertices.size(), 0);
+        tbb::task_arena(worker_threads(p.threads)).execute([&] {
+          tbb::parallel_for(std::size_t(0), mesh.vertices.size(), [&](std::size_t v) {
+            far[v] = scan_index.nearest_within(mesh.vertices[v], float(reach)).first < 0;
+          });
+        });
+        out.scan_rim_faces = trim_open_rims(mesh, far);
+        if (out.scan_rim_faces > 0)
+          note("open rims brought back to the scans (" + std::to_string(out.scan_rim_faces) +
+               " faces further than " + fmt("%.3g", reach) + ", " + fmt("%.3g", kScanRimFactor) + " of their sample spacings)");
+      }
+    }
+  }
+  out.pieces = remove_small_components(mesh, p.min_component, nullptr, support.points ? &support : nullptr);
   if (out.pieces.removed_components > 0)
     note("removed " + std::to_string(out.pieces.removed_components) + " small pieces (" +
          std::to_string(out.pieces.removed_faces) + " faces)");
+  if (out.pieces.supported_components > 0)
+    note("kept " + std::to_string(out.pieces.supported_components) + " small pieces that " +
+         std::to_string(kPieceMinScans) + " or more scan points support");
 
   const auto t4 = Clock::now();
   out.coloured = p.colour && input.has_colours();

@@ -209,7 +209,8 @@ std::string surface_key(const PipelineConfig& p) {
     << ";winding_close=" << c.winding_close;
   // (absent from keys before issue 32's snap; not done in blocks)
   if (c.snap_to_scans && p.consolidate.enabled && !c.in_blocks())
-    s << ";snap_to_scans=1;snap_significance=" << fmt("%.17g", c.snap_significance) << ";snap_fit=paraboloid_cv";
+    s << ";snap_to_scans=1;snap_significance=" << fmt("%.17g", c.snap_significance) << ";snap_fit=paraboloid_cv"
+      << ";scan_rim=" << kScanRimFactor << ";piece_scans=" << kPieceMinScans;
   // Since issue 27 the colour function's eq. 4 counts residuals beyond each colour's
   // 8-bit quantisation: a run before it is redone.
   if (c.colour && c.colour_method == "mpu") s << ";colour_eq4=quantised";
@@ -708,6 +709,8 @@ class Runner {
     r.figures["resolution"] = double(sr.resolution);
     r.figures["closed"] = sr.hole == HoleMode::kClose ? 1.0 : 0.0;
     r.figures["rim_faces"] = double(sr.rim_faces);
+    r.figures["scan_rim_faces"] = double(sr.scan_rim_faces);
+    r.figures["supported_pieces"] = double(sr.pieces.supported_components);
     if (sr.enclosure) r.figures["enclosure"] = *sr.enclosure;
     r.figures["vertices"] = double(sr.mesh.vertices.size());
     r.figures["faces"] = double(sr.mesh.faces.size());

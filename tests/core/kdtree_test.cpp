@@ -204,6 +204,23 @@ TEST(PointIndex, RadiusIsInclusive) {
   EXPECT_EQ(got[1].second, 1.f);
 }
 
+// 1 / sqrt(density) from the 8th neighbour: a random sample of a square of side 1
+// with n points has spacing 1 / sqrt(n); a plane grid of step s reads 0.886 s
+// (its 8th neighbour lies at sqrt(2) s).
+TEST(SampleSpacing, OneOverTheSquareRootOfTheDensity) {
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<float> u(0, 1);
+  std::vector<Vec3f> p(40000);
+  for (auto& x : p) x = Vec3f(u(rng), u(rng), 0.5f);
+  EXPECT_NEAR(sample_spacing(PointIndex(p)), 1.0 / 200, 0.1 / 200);
+  std::vector<Vec3f> grid;
+  for (int i = 0; i < 100; ++i)
+    for (int j = 0; j < 100; ++j) grid.emplace_back(0.002f * float(i), 0.002f * float(j), 0);
+  EXPECT_NEAR(sample_spacing(PointIndex(grid)), 0.002 * std::sqrt(2.0) * std::sqrt(M_PI / 8), 1e-5);
+  EXPECT_EQ(sample_spacing(PointIndex(std::vector<Vec3f>(8, Vec3f::Zero()))), 0.0);
+  EXPECT_EQ(sample_spacing(PointIndex({})), 0.0);
+}
+
 TEST(PointIndex, EmptySet) {
   PointIndex index(std::vector<Vec3f>{});
   EXPECT_EQ(index.size(), 0u);

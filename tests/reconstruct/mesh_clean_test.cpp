@@ -102,6 +102,36 @@ TEST(RemoveSmallComponents, DropsSpecksAndKeepsTheObjectWithItsAttributes) {
   EXPECT_EQ(m3.faces.size(), big.faces.size() + speck.faces.size());
 }
 
+// A piece below the area bound stays when enough data points lie nearest to it; a
+// point nearer the large piece counts for that one, not for a speck beside it.
+TEST(RemoveSmallComponents, DataKeepsASupportedSmallPiece) {
+  const Mesh big = test::icosphere(3, 1.0);
+  const Mesh seen = test::icosphere(1, 0.05, Vec3f(3, 0, 0));     // seen by 12 data points
+  const Mesh unseen = test::icosphere(1, 0.05, Vec3f(0, 3, 0));   // by 11
+  const Mesh beside = test::icosphere(1, 0.05, Vec3f(1.2f, 0, 0));  // 0.15 from the big sphere
+  std::vector<Vec3f> data;
+  // 0.001 outside the specks' vertices.
+  for (int i = 0; i < 12; ++i) data.push_back(Vec3f(3, 0, 0) + 1.02f * (seen.vertices[std::size_t(i)] - Vec3f(3, 0, 0)));
+  for (int i = 0; i < 11; ++i) data.push_back(Vec3f(0, 3, 0) + 1.02f * (unseen.vertices[std::size_t(i)] - Vec3f(0, 3, 0)));
+  // On the big sphere, within reach of the speck beside it too, but nearer the sphere.
+  for (int i = 0; i < 30; ++i) data.push_back(Vec3f(1.02f, 0.001f * float(i), 0));
+  data.push_back(Vec3f(std::nanf(""), 0, 0));  // ignored
+  PieceSupport support{&data, 0.2, 12};
+  Mesh m = join(join(join(big, seen), unseen), beside);
+  const ComponentFilterStats st = remove_small_components(m, 0.01, nullptr, &support);
+  EXPECT_EQ(st.components, 4u);
+  EXPECT_EQ(st.supported_components, 1u);
+  EXPECT_EQ(st.removed_components, 2u);
+  EXPECT_EQ(m.faces.size(), big.faces.size() + seen.faces.size());
+  for (const Vec3f& v : m.vertices) EXPECT_TRUE(v.norm() < 1.01f || (v - Vec3f(3, 0, 0)).norm() < 0.06f);
+  // Out of reach the same points keep nothing; without support the area bound alone.
+  Mesh far = join(join(join(big, seen), unseen), beside);
+  support.reach = 1e-6;
+  EXPECT_EQ(remove_small_components(far, 0.01, nullptr, &support).removed_components, 3u);
+  Mesh none = join(join(join(big, seen), unseen), beside);
+  EXPECT_EQ(remove_small_components(none, 0.01).removed_components, 3u);
+}
+
 TEST(RemoveSmallComponents, EmptyAndBadInput) {
   Mesh empty;
   EXPECT_EQ(remove_small_components(empty, 0.1).components, 0u);

@@ -4,8 +4,10 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 
+#include "core/kdtree.h"
 #include "reconstruct/winding_close.h"
 #include "test_util.h"
 
@@ -118,6 +120,65 @@ TEST(SurfaceHole, AutoClosesAnObjectAndKeepsAPatchOpen) {
   // Closed by force, the same patch becomes a solid: no boundary edges.
   p.hole = HoleMode::kClose;
   EXPECT_EQ(boundary_edges(reconstruct_surface(cap(24000, 0.1, 0.33), p).mesh), 0);
+}
+
+// Issue 32: with holes kept and the scans given, the rims come back to within
+// kScanRimFactor of the scans' sample spacings (the consolidated points are 3 times
+// sparser, and their own trim leaves the rims up to 1.5 of their spacings past the
+// scans), and a small separate patch that 25 scan points support stays, while a speck
+// of 9 goes; without the scans both go by the area bound and the rims flare.
+TEST(SurfaceScans, KeptRimsComeBackToTheScansAndSupportedPiecesStay) {
+  const float step = 0.0004f;
+  Cloud scans, consolidated;
+  // An n x n grid from (x0, y0) in the plane z = 0, normals up; the consolidated
+  // points every third one (`thinned`) or the grid's centre alone.
+  auto add_patch = [&](float x0, float y0, int n, bool thinned) {
+    for (int i = 0; i < n; ++i)
+      for (int j = 0; j < n; ++j) {
+        const Vec3f q(x0 + step * float(i), y0 + step * float(j), 0);
+        scans.points.push_back(q);
+        scans.normals.push_back(Vec3f::UnitZ());
+        if (thinned ? i % 3 == 1 && j % 3 == 1 : i == n / 2 && j == n / 2) {
+          consolidated.points.push_back(q);
+          consolidated.normals.push_back(Vec3f::UnitZ());
+        }
+      }
+  };
+  add_patch(0, 0, 101, true);         // 40 x 40 mm
+  add_patch(0.05f, 0.02f, 5, false);  // 25 scan points, 10 mm beyond its edge
+  add_patch(0.02f, 0.05f, 3, false);  // 9
+  const Vec3f supported(0.0508f, 0.0208f, 0), speck(0.0204f, 0.0504f, 0);
+  SurfaceParams p;
+  p.threads = 2;
+  p.resolution = 128;
+  p.hole = HoleMode::kKeep;
+  p.colour = false;
+  const PointIndex scan_index(scans.points);
+  const double reach = kScanRimFactor * sample_spacing(scan_index);
+  ASSERT_GT(reach, 0.0003);
+  auto furthest = [&](const Mesh& m) {
+    double d = 0;
+    for (const Vec3f& v : m.vertices) d = std::max(d, double(scan_index.nearest(v).second));
+    return d;
+  };
+  auto near = [](const Mesh& m, const Vec3f& c, float r) {
+    int n = 0;
+    for (const Vec3f& v : m.vertices) n += (v - c).norm() < r;
+    return n;
+  };
+  const SurfaceResult alone = reconstruct_surface(consolidated, p);
+  EXPECT_GT(furthest(alone.mesh), 2 * reach);
+  EXPECT_EQ(near(alone.mesh, supported, 0.002f), 0);
+  EXPECT_EQ(alone.pieces.supported_components, 0u);
+
+  p.scans = &scans;
+  const SurfaceResult r = reconstruct_surface(consolidated, p);
+  EXPECT_GT(r.scan_rim_faces, 0u);
+  EXPECT_LE(furthest(r.mesh), reach + 1e-6);
+  EXPECT_GT(near(r.mesh, supported, 0.0005f), 0);
+  EXPECT_EQ(near(r.mesh, speck, 0.002f), 0);
+  EXPECT_EQ(r.pieces.supported_components, 1u);
+  EXPECT_EQ(test::open_edges(r.mesh) > 0, true);
 }
 
 }  // namespace
