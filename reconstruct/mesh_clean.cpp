@@ -140,36 +140,47 @@ std::size_t trim_open_rims(Mesh& mesh, const std::vector<char>& far, int max_pas
     const Face& t = mesh.faces[f];
     return far[t[0]] || far[t[1]] || far[t[2]];
   };
-  // Edges once: (key, face) sorted by key; each face's three edge groups; the
-  // faces still alive on each edge.
-  std::vector<std::pair<std::uint64_t, std::uint32_t>> ef;
-  ef.reserve(3 * nf);
+  // The faces at each vertex (each face once), by a counting sort: the faces on an
+  // edge {a, b} are among a's. No global edge table: sorting 3 F edge keys was
+  // most of the trim's time (0.34 s of 0.35 at 900k faces).
+  const std::size_t nv = mesh.vertices.size();
+  std::vector<std::uint32_t> vf_start(nv + 1, 0), vf(3 * nf);
+  auto distinct = [&](const Face& t, int k) {
+    return (k == 0 || t[k] != t[0]) && (k < 2 || t[2] != t[1]);
+  };
   for (std::size_t f = 0; f < nf; ++f)
-    for (int k = 0; k < 3; ++k) {
-      std::uint32_t a = std::uint32_t(mesh.faces[f][k]), b = std::uint32_t(mesh.faces[f][(k + 1) % 3]);
-      if (a > b) std::swap(a, b);
-      ef.emplace_back((std::uint64_t(a) << 32) | b, std::uint32_t(f));
-    }
-  std::sort(ef.begin(), ef.end());
-  std::vector<std::uint32_t> group_start, face_edge(3 * nf);
-  std::vector<int> alive_on;
-  std::vector<int> next_slot(nf, 0);
-  for (std::size_t i = 0; i < ef.size(); ++i) {
-    if (i == 0 || ef[i].first != ef[i - 1].first) {
-      group_start.push_back(std::uint32_t(i));
-      // A pinned edge has faces beyond this mesh: never down to one.
-      const std::uint32_t a = std::uint32_t(ef[i].first >> 32), b = std::uint32_t(ef[i].first & 0xffffffffu);
-      alive_on.push_back(pinned && (*pinned)[a] && (*pinned)[b] ? 2 : 0);
-    }
-    const std::uint32_t g = std::uint32_t(group_start.size() - 1), f = ef[i].second;
-    face_edge[3 * f + std::size_t(next_slot[f]++)] = g;
-    ++alive_on[g];
-  }
-  group_start.push_back(std::uint32_t(ef.size()));
-  std::vector<char> alive(nf, 1);
-  auto on_rim = [&](std::size_t f) {
     for (int k = 0; k < 3; ++k)
-      if (alive_on[face_edge[3 * f + std::size_t(k)]] == 1) return true;
+      if (distinct(mesh.faces[f], k)) ++vf_start[std::size_t(mesh.faces[f][k]) + 1];
+  for (std::size_t v = 0; v < nv; ++v) vf_start[v + 1] += vf_start[v];
+  {
+    std::vector<std::uint32_t> fill(vf_start.begin(), vf_start.end() - 1);
+    for (std::size_t f = 0; f < nf; ++f)
+      for (int k = 0; k < 3; ++k)
+        if (distinct(mesh.faces[f], k)) vf[fill[std::size_t(mesh.faces[f][k])]++] = std::uint32_t(f);
+  }
+  std::vector<char> alive(nf, 1);
+  // How many edges of the live faces are {a, b} (a face that repeats a vertex can
+  // hold the same edge twice); a pinned edge has faces beyond this mesh, two more.
+  auto holds = [](const Face& t, int a, int b) {
+    int count = 0;
+    for (int k = 0; k < 3; ++k) {
+      const int x = t[k], y = t[(k + 1) % 3];
+      count += (x == a && y == b) || (x == b && y == a);
+    }
+    return count;
+  };
+  auto live_on = [&](int a, int b) {
+    int count = pinned && (*pinned)[std::size_t(a)] && (*pinned)[std::size_t(b)] ? 2 : 0;
+    for (std::uint32_t i = vf_start[std::size_t(a)]; i < vf_start[std::size_t(a) + 1]; ++i)
+      if (alive[vf[i]]) count += holds(mesh.faces[vf[i]], a, b);
+    return count;
+  };
+  auto edge = [&](std::size_t f, int k) { return std::pair{mesh.faces[f][k], mesh.faces[f][(k + 1) % 3]}; };
+  auto on_rim = [&](std::size_t f) {
+    for (int k = 0; k < 3; ++k) {
+      const auto [a, b] = edge(f, k);
+      if (live_on(a, b) == 1) return true;
+    }
     return false;
   };
   std::vector<std::uint32_t> layer;
@@ -181,16 +192,15 @@ std::size_t trim_open_rims(Mesh& mesh, const std::vector<char>& far, int max_pas
     for (const std::uint32_t f : layer) {
       alive[f] = 0;
       ++dropped;
-      for (int k = 0; k < 3; ++k) --alive_on[face_edge[3 * std::size_t(f) + std::size_t(k)]];
     }
     std::vector<std::uint32_t> next;
     for (const std::uint32_t f : layer)
       for (int k = 0; k < 3; ++k) {
-        const std::uint32_t g = face_edge[3 * std::size_t(f) + std::size_t(k)];
-        if (alive_on[g] != 1) continue;
-        for (std::uint32_t i = group_start[g]; i < group_start[g + 1]; ++i) {
-          const std::uint32_t h = ef[i].second;
-          if (alive[h] && far_face(h)) next.push_back(h);
+        const auto [a, b] = edge(f, k);
+        if (live_on(a, b) != 1) continue;
+        for (std::uint32_t i = vf_start[std::size_t(a)]; i < vf_start[std::size_t(a) + 1]; ++i) {
+          const std::uint32_t h = vf[i];
+          if (alive[h] && holds(mesh.faces[h], a, b) > 0 && far_face(h)) next.push_back(h);
         }
       }
     std::sort(next.begin(), next.end());

@@ -33,6 +33,17 @@ std::string fmt(const char* f, double v) {
   return buf;
 }
 
+// One flag per vertex of `mesh`: far(vertex), in parallel over `threads`.
+template <class Far>
+std::vector<char> far_from(const Mesh& mesh, int threads, const Far& far) {
+  std::vector<char> flags(mesh.vertices.size(), 0);
+  tbb::task_arena(worker_threads(threads)).execute([&] {
+    tbb::parallel_for(std::size_t(0), mesh.vertices.size(),
+                      [&](std::size_t v) { flags[v] = far(mesh.vertices[v]) ? 1 : 0; });
+  });
+  return flags;
+}
+
 }  // namespace
 
 const char* extractor_label(Extractor extractor) {
@@ -178,8 +189,10 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
   if (mesh.faces.empty()) throw InvalidInput("the reconstructed surface is empty");
   if (!close && out.mpu.mean_spacing > 0) {
     // Holes kept: the rims come back to the data (no flaps beyond the points).
-    out.rim_faces = trim_open_rims(
-        mesh, [&](const Vec3d& x) { return surface.nearest_point_distance(x); }, kRimTrimFactor * out.mpu.mean_spacing);
+    const double bound = kRimTrimFactor * out.mpu.mean_spacing;
+    out.rim_faces = trim_open_rims(mesh, far_from(mesh, p.threads, [&](const Vec3f& x) {
+                                     return !(surface.nearest_point_distance(x.cast<double>()) <= bound);
+                                   }));
     if (out.rim_faces > 0)
       note("open rims brought back to the data (" + std::to_string(out.rim_faces) + " faces further than " +
            fmt("%.3g", kRimTrimFactor * out.mpu.mean_spacing) + " from the points)");
@@ -228,13 +241,9 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
     if (reach > 0) {
       support = {&p.scans->points, reach, kPieceMinScans};
       if (!close) {
-        std::vector<char> far(mesh.vertices.size(), 0);
-        tbb::task_arena(worker_threads(p.threads)).execute([&] {
-          tbb::parallel_for(std::size_t(0), mesh.vertices.size(), [&](std::size_t v) {
-            far[v] = scan_index.nearest_within(mesh.vertices[v], float(reach)).first < 0;
-          });
-        });
-        out.scan_rim_faces = trim_open_rims(mesh, far);
+        out.scan_rim_faces = trim_open_rims(mesh, far_from(mesh, p.threads, [&](const Vec3f& x) {
+                                              return scan_index.nearest_within(x, float(reach)).first < 0;
+                                            }));
         if (out.scan_rim_faces > 0)
           note("open rims brought back to the scans (" + std::to_string(out.scan_rim_faces) +
                " faces further than " + fmt("%.3g", reach) + ", " + fmt("%.3g", kScanRimFactor) + " of their sample spacings)");
