@@ -334,9 +334,16 @@ TEST(GlobalRegistration, DragonMovedTwiceOnTheTableLandsRight) {
   EXPECT_EQ(r.views[11].prior, PriorUse::kUsed);
   EXPECT_EQ(r.views[12].prior, PriorUse::kUsed);
   EXPECT_EQ(r.views[13].prior, PriorUse::kIgnored);
-  bool said = false;
-  for (const std::string& w : r.warnings) said = said || w.find("started from the angles of neighbours") != std::string::npos;
+  bool said = false, between = false, nowhere = false;
+  for (const std::string& w : r.warnings) {
+    said = said || w.find("started from the angles of neighbours") != std::string::npos;
+    // Said as a move between passes, not as a turntable that did not turn.
+    between = between || w.find("the object moved on the table between them") != std::string::npos;
+    nowhere = nowhere || w.find("fit the registered poses nowhere") != std::string::npos;
+  }
   EXPECT_TRUE(said);
+  EXPECT_TRUE(between);
+  EXPECT_FALSE(nowhere);
 }
 
 // The dragon's files in a shell glob's order (dragonStandRight_0, _120, _144,
