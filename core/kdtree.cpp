@@ -157,7 +157,7 @@ double sample_spacing(const PointIndex& index, std::size_t max_samples) {
   constexpr int kNeighbours = 8;
   const std::size_t n = index.size();
   if (n <= std::size_t(kNeighbours) || max_samples == 0) return 0;
-  const std::size_t stride = std::max<std::size_t>(1, n / max_samples);
+  const std::size_t stride = (n + max_samples - 1) / max_samples;
   std::vector<double> r;
   r.reserve(n / stride + 1);
   for (std::size_t i = 0; i < n; i += stride) {

@@ -136,6 +136,11 @@ std::size_t trim_open_rims(Mesh& mesh, const std::vector<char>& far, int max_pas
     throw InvalidInput("trim_open_rims: one pinned flag per vertex expected");
   const std::size_t nf = mesh.faces.size();
   if (nf == 0) return 0;
+  for (const Face& t : mesh.faces)
+    for (int k = 0; k < 3; ++k)
+      if (t[k] < 0 || std::size_t(t[k]) >= far.size())
+        throw InvalidInput("trim_open_rims: face index " + std::to_string(t[k]) + " outside the " +
+                           std::to_string(far.size()) + " vertices");
   auto far_face = [&](std::size_t f) {
     const Face& t = mesh.faces[f];
     return far[t[0]] || far[t[1]] || far[t[2]];
@@ -169,9 +174,17 @@ std::size_t trim_open_rims(Mesh& mesh, const std::vector<char>& far, int max_pas
     }
     return count;
   };
+  // The faces of the vertex of {a, b} that has fewer (a fan round one far vertex
+  // would otherwise cost its size squared).
+  auto fewer = [&](int a, int b) {
+    return vf_start[std::size_t(b) + 1] - vf_start[std::size_t(b)] < vf_start[std::size_t(a) + 1] - vf_start[std::size_t(a)]
+               ? b
+               : a;
+  };
   auto live_on = [&](int a, int b) {
     int count = pinned && (*pinned)[std::size_t(a)] && (*pinned)[std::size_t(b)] ? 2 : 0;
-    for (std::uint32_t i = vf_start[std::size_t(a)]; i < vf_start[std::size_t(a) + 1]; ++i)
+    const int c = fewer(a, b);
+    for (std::uint32_t i = vf_start[std::size_t(c)]; i < vf_start[std::size_t(c) + 1]; ++i)
       if (alive[vf[i]]) count += holds(mesh.faces[vf[i]], a, b);
     return count;
   };
@@ -198,7 +211,8 @@ std::size_t trim_open_rims(Mesh& mesh, const std::vector<char>& far, int max_pas
       for (int k = 0; k < 3; ++k) {
         const auto [a, b] = edge(f, k);
         if (live_on(a, b) != 1) continue;
-        for (std::uint32_t i = vf_start[std::size_t(a)]; i < vf_start[std::size_t(a) + 1]; ++i) {
+        const int c = fewer(a, b);
+        for (std::uint32_t i = vf_start[std::size_t(c)]; i < vf_start[std::size_t(c) + 1]; ++i) {
           const std::uint32_t h = vf[i];
           if (alive[h] && holds(mesh.faces[h], a, b) > 0 && far_face(h)) next.push_back(h);
         }

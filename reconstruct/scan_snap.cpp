@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <memory>
 #include <optional>
 #include <string>
 
@@ -122,7 +123,12 @@ ScanSnapStats snap_to_scans(Mesh& mesh, const Cloud& scans, const ScanSnapParams
   const double max_move = p.max_move > 0 ? p.max_move : 0.5 * p.cell;
   stats.radius = radius;
   if (mesh.vertices.empty() || !(radius > 0)) return stats;
-  const PointIndex index(scans.points);
+  if (p.index && p.index->size() != scans.size())
+    throw InvalidInput("snap to scans: the index holds " + std::to_string(p.index->size()) + " points for " +
+                       std::to_string(scans.size()) + " scan points");
+  std::unique_ptr<PointIndex> own;
+  if (!p.index) own = std::make_unique<PointIndex>(scans.points);
+  const PointIndex& index = p.index ? *p.index : *own;
   const std::vector<Vec3f> normals = vertex_normals(mesh);
   const auto usable = [&](std::size_t i) {
     return normals[i].squaredNorm() > 0.5f && mesh.vertices[i].allFinite();

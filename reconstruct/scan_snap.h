@@ -32,6 +32,8 @@
 
 namespace station {
 
+class PointIndex;
+
 struct ScanSnapParams {
   /// The fit's radius along the surface, input units; 0: the scans' default WLOP
   /// support h = 4 d_bb / sqrt(n) (the scale the consolidation averages them over at
@@ -50,6 +52,9 @@ struct ScanSnapParams {
   /// points) move.
   bool cross_validate = true;
   int threads = 0;  ///< 0 = all cores; the result does not depend on it
+  /// An index over the scans' points, when the caller has one (built here when null);
+  /// InvalidInput when it does not hold as many points as the scans.
+  const PointIndex* index = nullptr;
 };
 
 struct ScanSnapStats {

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <random>
 
 #include "core/error.h"
 #include "core/kdtree.h"
@@ -64,6 +65,118 @@ TEST(TrimOpenRims, ErodesFromTheRimToTheDataOnly) {
   const std::size_t faces = sphere.faces.size();
   EXPECT_EQ(trim_open_rims(sphere, distance, 1.0), 0u);
   EXPECT_EQ(sphere.faces.size(), faces);
+}
+
+// trim_open_rims before 2026-12-06 (a sorted table of every face's edges): the
+// reference the faster version must match face for face.
+std::size_t sorted_edges_trim(Mesh& mesh, const std::vector<char>& far, int max_passes,
+                              const std::vector<char>* pinned, std::vector<std::uint64_t>* vertex_keys) {
+  const std::size_t nf = mesh.faces.size();
+  if (nf == 0) return 0;
+  auto far_face = [&](std::size_t f) {
+    const Face& t = mesh.faces[f];
+    return far[t[0]] || far[t[1]] || far[t[2]];
+  };
+  // Edges once: (key, face) sorted by key; each face's three edge groups; the
+  // faces still alive on each edge.
+  std::vector<std::pair<std::uint64_t, std::uint32_t>> ef;
+  ef.reserve(3 * nf);
+  for (std::size_t f = 0; f < nf; ++f)
+    for (int k = 0; k < 3; ++k) {
+      std::uint32_t a = std::uint32_t(mesh.faces[f][k]), b = std::uint32_t(mesh.faces[f][(k + 1) % 3]);
+      if (a > b) std::swap(a, b);
+      ef.emplace_back((std::uint64_t(a) << 32) | b, std::uint32_t(f));
+    }
+  std::sort(ef.begin(), ef.end());
+  std::vector<std::uint32_t> group_start, face_edge(3 * nf);
+  std::vector<int> alive_on;
+  std::vector<int> next_slot(nf, 0);
+  for (std::size_t i = 0; i < ef.size(); ++i) {
+    if (i == 0 || ef[i].first != ef[i - 1].first) {
+      group_start.push_back(std::uint32_t(i));
+      // A pinned edge has faces beyond this mesh: never down to one.
+      const std::uint32_t a = std::uint32_t(ef[i].first >> 32), b = std::uint32_t(ef[i].first & 0xffffffffu);
+      alive_on.push_back(pinned && (*pinned)[a] && (*pinned)[b] ? 2 : 0);
+    }
+    const std::uint32_t g = std::uint32_t(group_start.size() - 1), f = ef[i].second;
+    face_edge[3 * f + std::size_t(next_slot[f]++)] = g;
+    ++alive_on[g];
+  }
+  group_start.push_back(std::uint32_t(ef.size()));
+  std::vector<char> alive(nf, 1);
+  auto on_rim = [&](std::size_t f) {
+    for (int k = 0; k < 3; ++k)
+      if (alive_on[face_edge[3 * f + std::size_t(k)]] == 1) return true;
+    return false;
+  };
+  std::vector<std::uint32_t> layer;
+  for (std::size_t f = 0; f < nf; ++f)
+    if (far_face(f) && on_rim(f)) layer.push_back(std::uint32_t(f));
+  std::size_t dropped = 0;
+  for (int pass = 0; pass < max_passes && !layer.empty(); ++pass) {
+    // Drop the whole layer first (a ring), then find the faces it exposed.
+    for (const std::uint32_t f : layer) {
+      alive[f] = 0;
+      ++dropped;
+      for (int k = 0; k < 3; ++k) --alive_on[face_edge[3 * std::size_t(f) + std::size_t(k)]];
+    }
+    std::vector<std::uint32_t> next;
+    for (const std::uint32_t f : layer)
+      for (int k = 0; k < 3; ++k) {
+        const std::uint32_t g = face_edge[3 * std::size_t(f) + std::size_t(k)];
+        if (alive_on[g] != 1) continue;
+        for (std::uint32_t i = group_start[g]; i < group_start[g + 1]; ++i) {
+          const std::uint32_t h = ef[i].second;
+          if (alive[h] && far_face(h)) next.push_back(h);
+        }
+      }
+    std::sort(next.begin(), next.end());
+    next.erase(std::unique(next.begin(), next.end()), next.end());
+    layer.swap(next);
+  }
+  if (dropped > 0) keep_faces(mesh, alive, vertex_keys);
+  return dropped;
+}
+
+// The same faces, vertices and keys as the sorted-table version on random meshes: a
+// grid with faces left out (rims, holes), degenerate faces (a repeated vertex),
+// faces doubled, random far and pinned flags.
+TEST(TrimOpenRims, MatchesTheSortedEdgeTableOnRandomMeshes) {
+  std::mt19937 rng(17);
+  std::uniform_real_distribution<float> u(0, 1);
+  for (int trial = 0; trial < 60; ++trial) {
+    Mesh m = grid(12);
+    std::vector<Face> faces;
+    for (const Face& f : m.faces) {
+      const float r = u(rng);
+      if (r < 0.08f) continue;                           // a hole
+      if (r < 0.12f) faces.push_back(Face(f[0], f[0], f[1]));  // degenerate
+      if (r > 0.96f) faces.push_back(f);                 // doubled
+      faces.push_back(f);
+    }
+    if (trial % 5 == 0) faces.push_back(Face(3, 3, 3));
+    m.faces = faces;
+    const std::size_t nv = m.vertices.size();
+    std::vector<char> far(nv), pinned(nv);
+    const float far_share = 0.2f + 0.6f * u(rng);
+    for (std::size_t v = 0; v < nv; ++v) far[v] = u(rng) < far_share, pinned[v] = u(rng) < 0.15f;
+    std::vector<std::uint64_t> keys(nv);
+    for (std::size_t v = 0; v < nv; ++v) keys[v] = 1000 + v;
+    Mesh a = m, b = m;
+    std::vector<std::uint64_t> ka = keys, kb = keys;
+    const bool with_pins = trial % 2 == 1;
+    const int passes = 1 + trial % 7;
+    const std::size_t da = trim_open_rims(a, far, passes, with_pins ? &pinned : nullptr, &ka);
+    const std::size_t db = sorted_edges_trim(b, far, passes, with_pins ? &pinned : nullptr, &kb);
+    ASSERT_EQ(da, db) << "trial " << trial;
+    ASSERT_EQ(a.faces, b.faces) << "trial " << trial;
+    ASSERT_EQ(a.vertices, b.vertices) << "trial " << trial;
+    ASSERT_EQ(ka, kb) << "trial " << trial;
+  }
+  // Out-of-range indices are refused, not written past.
+  Mesh bad = grid(3);
+  bad.faces.push_back(Face(0, 1, 999));
+  EXPECT_THROW(trim_open_rims(bad, std::vector<char>(bad.vertices.size(), 1)), InvalidInput);
 }
 
 TEST(RemoveSmallComponents, DropsSpecksAndKeepsTheObjectWithItsAttributes) {
