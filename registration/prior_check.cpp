@@ -152,4 +152,76 @@ TurntableSplit find_turntable_split(const std::vector<Eigen::Matrix4d>& poses, c
   return best;
 }
 
+Eigen::Matrix4d screw_power(const Eigen::Matrix4d& T, double s) {
+  const Eigen::AngleAxisd aa(Eigen::Matrix3d(T.block<3, 3>(0, 0)));
+  const Vec3d d = aa.axis().normalized();
+  const Vec3d t = T.block<3, 1>(0, 3);
+  if (std::abs(aa.angle()) < 1e-9) {  // no turn: a slide
+    Eigen::Matrix4d out = Eigen::Matrix4d::Identity();
+    out.block<3, 1>(0, 3) = s * t;
+    return out;
+  }
+  const Vec3d along = t.dot(d) * d, across = t - along;
+  // A point of the axis line: t_across = (I - R) p, p across the axis.
+  const double half = 0.5 * aa.angle();
+  const Vec3d p = 0.5 * (across + std::cos(half) / std::sin(half) * d.cross(across));
+  Eigen::Matrix4d out = Eigen::Matrix4d::Identity();
+  const Eigen::Matrix3d Rs = Eigen::AngleAxisd(s * aa.angle(), d).toRotationMatrix();
+  out.block<3, 3>(0, 0) = Rs;
+  out.block<3, 1>(0, 3) = (Eigen::Matrix3d::Identity() - Rs) * p + s * along;
+  return out;
+}
+
+std::optional<Eigen::Matrix4d> pose_from_neighbours_angles(const std::vector<Eigen::Matrix4d>& poses,
+                                                            const std::vector<bool>& registered,
+                                                            const SessionManifest& m, int j, double scale,
+                                                            double tol_deg, double diagonal) {
+  const auto wrap = [](double a) { return a - 360.0 * std::round(a / 360.0); };
+  const std::size_t n = m.views.size();
+  if (poses.size() != n || registered.size() != n || j < 0 || std::size_t(j) >= n || !m.views[std::size_t(j)].angle_deg)
+    return std::nullopt;
+  const auto usable = [&](int i) { return registered[std::size_t(i)] && m.views[std::size_t(i)].angle_deg.has_value(); };
+  const double min_turn = std::max(15.0, 2 * tol_deg), max_turn = 180.0 - 2 * tol_deg;
+  // The turn from a to b as its angles say (scaled, wrapped), when it is one that
+  // tells its sense; and the axis the poses turn about, signed so that it is the
+  // table's direction for a motion that turns as the angles say (P_a^-1 P_b turns
+  // by minus the angle about it), when they turn by that much with no slide.
+  struct Turn {
+    double commanded = 0;
+    Eigen::Matrix4d T;
+    Vec3d sense;
+  };
+  const auto turn = [&](int a, int b) -> std::optional<Turn> {
+    const double d = wrap(scale * (*m.views[std::size_t(b)].angle_deg - *m.views[std::size_t(a)].angle_deg));
+    if (std::abs(d) < min_turn || std::abs(d) > max_turn) return std::nullopt;
+    const Eigen::Matrix4d T = rigid_inverse(poses[std::size_t(a)]) * poses[std::size_t(b)];
+    if (std::abs(rotation_angle_deg(T) - std::abs(d)) > tol_deg) return std::nullopt;
+    const Eigen::AngleAxisd aa(Eigen::Matrix3d(T.block<3, 3>(0, 0)));
+    if (std::abs(T.block<3, 1>(0, 3).dot(aa.axis())) > 0.02 * diagonal) return std::nullopt;
+    return Turn{d, T, (d > 0 ? -1.0 : 1.0) * aa.axis().normalized()};
+  };
+  std::vector<int> below, above;
+  for (int i = j - 1; i >= 0 && below.size() < 2; --i)
+    if (usable(i)) below.push_back(i);
+  for (int i = j + 1; i < int(n) && above.size() < 2; ++i)
+    if (usable(i)) above.push_back(i);
+  for (int k : below)
+    for (int l : above) {
+      const std::optional<Turn> kl = turn(k, l);
+      if (!kl) continue;
+      const double dj = wrap(scale * (*m.views[std::size_t(j)].angle_deg - *m.views[std::size_t(k)].angle_deg));
+      const double f = dj / kl->commanded;
+      if (!(f > 0 && f < 1)) continue;
+      // The sense, from the nearest pair beside this one that turns as its angles say.
+      std::optional<Turn> beside;
+      for (int i = k - 1; i >= 0 && !beside; --i)
+        if (usable(i)) beside = turn(i, k);
+      for (int i = l + 1; i < int(n) && !beside; ++i)
+        if (usable(i)) beside = turn(l, i);
+      if (beside && kl->sense.dot(beside->sense) < 0) continue;
+      return Eigen::Matrix4d(poses[std::size_t(k)] * screw_power(kl->T, f));
+    }
+  return std::nullopt;
+}
+
 }  // namespace station

@@ -62,4 +62,26 @@ struct TurntableSplit {
 TurntableSplit find_turntable_split(const std::vector<Eigen::Matrix4d>& poses, const std::vector<int>& order,
                                     const std::vector<double>& angles_deg, double min_misfit);
 
+/// T^s for a rigid motion T that turns about one line (a turntable's motion between
+/// two views, with any slide along the axis scaled too).
+Eigen::Matrix4d screw_power(const Eigen::Matrix4d& T, double s);
+
+/// Where the angles place view `j`, which a run did not register (poses[i] and
+/// registered[i] per view of `m`; `diagonal` the session's size): from two
+/// registered views k < j < l with angles that bracket it in capture order (the
+/// nearest one or two on each side), whose motion T = P_k^-1 P_l turns by what
+/// their angles say (`scale` x the difference, within `tol_deg`; at least 15 deg
+/// and twice `tol_deg`, and at most 180 less twice `tol_deg`) about a line with no
+/// slide along it (under 2 % of `diagonal`), so that the object did not move
+/// between them, and in the same sense as a pair beside it (the nearest registered
+/// view before k, else after l, with k, else l, turning as their angles say): a
+/// move that turned the object by minus twice the step between k and l turns it by
+/// the right amount the wrong way. T taken to the fraction of its turn that j's
+/// angle is (between 0 and 1). None when no such pair is found. Without a pair
+/// beside it the sense is not checked.
+std::optional<Eigen::Matrix4d> pose_from_neighbours_angles(const std::vector<Eigen::Matrix4d>& poses,
+                                                            const std::vector<bool>& registered,
+                                                            const SessionManifest& m, int j, double scale,
+                                                            double tol_deg, double diagonal);
+
 }  // namespace station

@@ -1797,67 +1797,6 @@ std::vector<std::vector<int>> agreeing_runs(const AnglePriorFit& fit, const Sess
 
 }  // namespace
 
-namespace {
-
-// T^s for a rigid motion T that turns about one line (a turntable's motion
-// between two views, with any slide along the axis scaled too).
-Eigen::Matrix4d screw_power(const Eigen::Matrix4d& T, double s) {
-  const Eigen::AngleAxisd aa(Eigen::Matrix3d(T.block<3, 3>(0, 0)));
-  const Vec3d d = aa.axis().normalized();
-  const Vec3d t = T.block<3, 1>(0, 3);
-  if (std::abs(aa.angle()) < 1e-9) {  // no turn: a slide
-    Eigen::Matrix4d out = Eigen::Matrix4d::Identity();
-    out.block<3, 1>(0, 3) = s * t;
-    return out;
-  }
-  const Vec3d along = t.dot(d) * d, across = t - along;
-  // A point of the axis line: t_across = (I - R) p, p across the axis.
-  const double half = 0.5 * aa.angle();
-  const Vec3d p = 0.5 * (across + std::cos(half) / std::sin(half) * d.cross(across));
-  Eigen::Matrix4d out = Eigen::Matrix4d::Identity();
-  const Eigen::Matrix3d Rs = Eigen::AngleAxisd(s * aa.angle(), d).toRotationMatrix();
-  out.block<3, 3>(0, 0) = Rs;
-  out.block<3, 1>(0, 3) = (Eigen::Matrix3d::Identity() - Rs) * p + s * along;
-  return out;
-}
-
-// Where the angles place view `j`, which run `r` did not register: from two
-// registered views k < j < l with angles that bracket it in capture order (the
-// nearest one or two on each side), whose motion turns by what their angles
-// say (within `tol_deg`, at least 15 deg and twice that and at most 180 less
-// twice that: a turn Eigen's angle cannot tell from its opposite is not used),
-// about a line with no slide along it (a turntable's motion; under 2 % of the
-// session size), so that the object did not move between them. T = P_k^-1 P_l
-// taken to the fraction of its turn that j's angle is (between 0 and 1). None
-// when no such pair is found.
-std::optional<Eigen::Matrix4d> pose_from_neighbours_angles(const RegistrationResult& r, const SessionManifest& m,
-                                                            int j, double scale, double tol_deg) {
-  const auto wrap = [](double a) { return a - 360.0 * std::round(a / 360.0); };
-  if (!m.views[std::size_t(j)].angle_deg) return std::nullopt;
-  std::vector<int> below, above;
-  for (int i = j - 1; i >= 0 && below.size() < 2; --i)
-    if (r.views[std::size_t(i)].registered && m.views[std::size_t(i)].angle_deg) below.push_back(i);
-  for (int i = j + 1; i < int(m.views.size()) && above.size() < 2; ++i)
-    if (r.views[std::size_t(i)].registered && m.views[std::size_t(i)].angle_deg) above.push_back(i);
-  const double min_turn = std::max(15.0, 2 * tol_deg), max_turn = 180.0 - 2 * tol_deg;
-  for (int k : below)
-    for (int l : above) {
-      const double dl = wrap(scale * (*m.views[std::size_t(l)].angle_deg - *m.views[std::size_t(k)].angle_deg));
-      const double dj = wrap(scale * (*m.views[std::size_t(j)].angle_deg - *m.views[std::size_t(k)].angle_deg));
-      if (std::abs(dl) < min_turn || std::abs(dl) > max_turn) continue;
-      const double f = dj / dl;
-      if (!(f > 0 && f < 1)) continue;
-      const Eigen::Matrix4d T = rigid_inverse(r.poses[std::size_t(k)]) * r.poses[std::size_t(l)];
-      if (std::abs(rotation_angle_deg(T) - std::abs(dl)) > tol_deg) continue;
-      const Eigen::AngleAxisd aa(Eigen::Matrix3d(T.block<3, 3>(0, 0)));
-      if (std::abs(T.block<3, 1>(0, 3).dot(aa.axis())) > 0.02 * r.diagonal) continue;
-      return Eigen::Matrix4d(r.poses[std::size_t(k)] * screw_power(T, f));
-    }
-  return std::nullopt;
-}
-
-}  // namespace
-
 RegistrationResult register_views(const std::vector<Cloud>& clouds, const SessionManifest& manifest,
                                   const RegistrationParams& params,
                                   const RegistrationCallback& progress) {
@@ -1989,8 +1928,10 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
         fm.views[i].initial_pose = free.poses[i];
         continue;
       }
-      const auto X = pose_from_neighbours_angles(free, manifest, int(i), fit.ok ? fit.scale : 1.0,
-                                                 params.wrong_angle_deg);
+      std::vector<bool> placed(n);
+      for (std::size_t k = 0; k < n; ++k) placed[k] = free.views[k].registered;
+      const auto X = pose_from_neighbours_angles(free.poses, placed, manifest, int(i), fit.ok ? fit.scale : 1.0,
+                                                 params.wrong_angle_deg, free.diagonal);
       if (X) fm.views[i].initial_pose = *X, filled.push_back(int(i));
     }
     if (!filled.empty()) {
