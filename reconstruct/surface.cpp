@@ -247,7 +247,7 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
       support = {&p.scans->points, reach, kPieceMinScans};
       // One bound for the whole mesh, from the scans' median spacing: where they are
       // sparser the trim can reach into them (docs/run.md: the local spacing instead
-      // kept 7x more rim and cost more than it gave).
+      // trimmed 7x fewer faces and cost more than it gave).
       out.scan_rim_faces = trim_open_rims(mesh, far_from(mesh, p.threads, [&](const Vec3f& x) {
                                             return scan_index->nearest_within(x, float(reach)).first < 0;
                                           }));

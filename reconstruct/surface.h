@@ -143,7 +143,7 @@ inline constexpr double kRimTrimFactor = 1.5;
 /// the consolidated points (above) still flare past sparse scans, and sparse real
 /// surface (a crevice) is left as pieces too small for the area bound. Measured on
 /// the dragon session at 505 cells (docs/run.md): mesh -> scans mean / p95 0.217 /
-/// 0.434 -> 0.202 / 0.376 mm, scans -> mesh 0.088 -> 0.078 mm (trimmed Poisson at
+/// 0.434 -> 0.202 / 0.377 mm, scans -> mesh 0.088 -> 0.078 mm (trimmed Poisson at
 /// depth 9: 0.220 / 0.434, 0.081). Where the scans are as dense as their median, a
 /// vertex on their surface lies beyond 1.5 spacings of every scan point with
 /// probability exp(-2.25 pi) < 0.1 %; where they are sparser the trim reaches into

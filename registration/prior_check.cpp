@@ -212,16 +212,57 @@ std::optional<Eigen::Matrix4d> pose_from_neighbours_angles(const std::vector<Eig
       const double dj = wrap(scale * (*m.views[std::size_t(j)].angle_deg - *m.views[std::size_t(k)].angle_deg));
       const double f = dj / kl->commanded;
       if (!(f > 0 && f < 1)) continue;
-      // The sense, from the nearest pair beside this one that turns as its angles say.
+      // The sense, from the pair beside this one: the nearest usable view before k
+      // with k, else l with the nearest after it, when it turns as its angles say.
+      // Within one pass every pair turns about the same line, so its direction must
+      // agree within the tolerance (a move that tipped the object fails too).
       std::optional<Turn> beside;
-      for (int i = k - 1; i >= 0 && !beside; --i)
-        if (usable(i)) beside = turn(i, k);
-      for (int i = l + 1; i < int(n) && !beside; ++i)
-        if (usable(i)) beside = turn(l, i);
-      if (beside && kl->sense.dot(beside->sense) < 0) continue;
+      for (int i = k - 1; i >= 0; --i)
+        if (usable(i)) {
+          beside = turn(i, k);
+          break;
+        }
+      if (!beside)
+        for (int i = l + 1; i < int(n); ++i)
+          if (usable(i)) {
+            beside = turn(l, i);
+            break;
+          }
+      if (beside && kl->sense.dot(beside->sense) < std::cos(tol_deg * M_PI / 180)) continue;
       return Eigen::Matrix4d(poses[std::size_t(k)] * screw_power(kl->T, f));
     }
   return std::nullopt;
+}
+
+std::vector<std::vector<int>> agreeing_runs(const AnglePriorFit& fit, const SessionManifest& manifest,
+                                            double tolerance_deg, double min_turn_deg) {
+  const auto wrap = [](double a) { return a - 360.0 * std::round(a / 360.0); };
+  std::vector<std::vector<int>> runs;
+  std::vector<int> run;
+  std::size_t with_residual = 0, in_runs = 0;
+  const auto close_run = [&] {
+    if (run.size() >= 3) {
+      double lo = 0, hi = 0;  // the angles' span, from the first, unwrapped along the run
+      const double a0 = *manifest.views[std::size_t(run.front())].angle_deg;
+      for (int i : run) {
+        const double a = wrap(*manifest.views[std::size_t(i)].angle_deg - a0);
+        lo = std::min(lo, a), hi = std::max(hi, a);
+      }
+      if (hi - lo >= min_turn_deg) runs.push_back(run), in_runs += run.size();
+    }
+    run.clear();
+  };
+  for (std::size_t k = 0; k < manifest.views.size(); ++k) {
+    if (!manifest.views[k].angle_deg || !fit.residual_deg[k]) continue;
+    ++with_residual;
+    if (!run.empty() && std::abs(wrap(*fit.residual_deg[k] - *fit.residual_deg[std::size_t(run.front())])) >
+                            tolerance_deg)
+      close_run();
+    run.push_back(int(k));
+  }
+  close_run();
+  if (2 * in_runs < with_residual) runs.clear();
+  return runs;
 }
 
 }  // namespace station

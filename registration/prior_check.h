@@ -62,6 +62,17 @@ struct TurntableSplit {
 TurntableSplit find_turntable_split(const std::vector<Eigen::Matrix4d>& poses, const std::vector<int>& order,
                                     const std::vector<double>& angles_deg, double min_misfit);
 
+/// Runs of consecutive views (capture order, among those with an angle and a
+/// prior-free pose) whose angles are off by one amount: each within
+/// `tolerance_deg` of the run's first view. Where the object moved on the table
+/// between passes, each pass turns as its angles say and is off from the others by
+/// the move's turn. Only runs of three views or more, whose angles span a turn of
+/// at least `min_turn_deg` (a table that did not turn drifts by its step from view
+/// to view and fits no such run), and only when they hold at least half the views
+/// with a residual; else none.
+std::vector<std::vector<int>> agreeing_runs(const AnglePriorFit& fit, const SessionManifest& manifest,
+                                            double tolerance_deg, double min_turn_deg);
+
 /// T^s for a rigid motion T that turns about one line (a turntable's motion between
 /// two views, with any slide along the axis scaled too).
 Eigen::Matrix4d screw_power(const Eigen::Matrix4d& T, double s);
@@ -73,12 +84,13 @@ Eigen::Matrix4d screw_power(const Eigen::Matrix4d& T, double s);
 /// their angles say (`scale` x the difference, within `tol_deg`; at least 15 deg
 /// and twice `tol_deg`, and at most 180 less twice `tol_deg`) about a line with no
 /// slide along it (under 2 % of `diagonal`), so that the object did not move
-/// between them, and in the same sense as a pair beside it (the nearest registered
-/// view before k, else after l, with k, else l, turning as their angles say): a
-/// move that turned the object by minus twice the step between k and l turns it by
-/// the right amount the wrong way. T taken to the fraction of its turn that j's
-/// angle is (between 0 and 1). None when no such pair is found. Without a pair
-/// beside it the sense is not checked.
+/// between them, and about the same line in the same sense (within `tol_deg`) as the
+/// pair beside it (the nearest registered view with an angle before k, with k; else
+/// l with the nearest after l; when that pair turns as its angles say): a move that
+/// turned the object by minus twice the step between k and l turns it by the right
+/// amount the wrong way. T taken to the fraction of its turn that j's angle is
+/// (between 0 and 1). None when no such pair is found. Without a pair beside it the
+/// sense is not checked.
 std::optional<Eigen::Matrix4d> pose_from_neighbours_angles(const std::vector<Eigen::Matrix4d>& poses,
                                                             const std::vector<bool>& registered,
                                                             const SessionManifest& m, int j, double scale,

@@ -1771,30 +1771,6 @@ MovedRun moved_run(const AnglePriorFit& fit, const SessionManifest& manifest, do
   return out;
 }
 
-// Runs of consecutive views (capture order, among those with an angle and a
-// prior-free pose) whose angles are off by one amount, each within
-// `tolerance_deg` of the run's previous view: where the object moved on the
-// table between passes, each pass turns as its angles say and is off from the
-// others by the move's turn. Runs of one view are left out.
-std::vector<std::vector<int>> agreeing_runs(const AnglePriorFit& fit, const SessionManifest& manifest,
-                                            double tolerance_deg) {
-  const auto wrap = [](double a) { return a - 360.0 * std::round(a / 360.0); };
-  std::vector<std::vector<int>> runs;
-  std::vector<int> run;
-  double last = 0;
-  for (std::size_t k = 0; k < manifest.views.size(); ++k) {
-    if (!manifest.views[k].angle_deg || !fit.residual_deg[k]) continue;
-    if (!run.empty() && std::abs(wrap(*fit.residual_deg[k] - last)) > tolerance_deg) {
-      if (run.size() > 1) runs.push_back(run);
-      run.clear();
-    }
-    run.push_back(int(k));
-    last = *fit.residual_deg[k];
-  }
-  if (run.size() > 1) runs.push_back(run);
-  return runs;
-}
-
 }  // namespace
 
 RegistrationResult register_views(const std::vector<Cloud>& clouds, const SessionManifest& manifest,
@@ -1928,9 +1904,7 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
         fm.views[i].initial_pose = free.poses[i];
         continue;
       }
-      std::vector<bool> placed(n);
-      for (std::size_t k = 0; k < n; ++k) placed[k] = free.views[k].registered;
-      const auto X = pose_from_neighbours_angles(free.poses, placed, manifest, int(i), fit.ok ? fit.scale : 1.0,
+      const auto X = pose_from_neighbours_angles(free.poses, reg, manifest, int(i), fit.ok ? fit.scale : 1.0,
                                                  params.wrong_angle_deg, free.diagonal);
       if (X) fm.views[i].initial_pose = *X, filled.push_back(int(i));
     }
@@ -2008,15 +1982,17 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
     w.str("");
   }
   const std::vector<std::vector<int>> passes =
-      keep_free && free_links_more ? agreeing_runs(fit, manifest, params.wrong_angle_deg) : std::vector<std::vector<int>>{};
+      keep_free && free_links_more
+          ? agreeing_runs(fit, manifest, params.wrong_angle_deg, std::max(15.0, 2 * params.wrong_angle_deg))
+          : std::vector<std::vector<int>>{};
   if (!fit.ok && passes.size() >= 2) {
     // Not a turntable that did not turn: the pairs joined the passes, each turning
     // as its angles say.
     w << "the commanded angles fit " << passes.size() << " runs of views apart (";
     for (std::size_t k = 0; k < passes.size(); ++k)
-      w << (k ? ", " : "") << "views " << passes[k].front() << "-" << passes[k].back();
-    w << "), each turning as its angles say but off from the others: the object moved on the table between "
-         "them";
+      w << (k ? ", " : "") << "views[" << passes[k].front() << "]-views[" << passes[k].back() << "]";
+    w << "), each turning as its angles say but off from the runs beside it: the object moved on the table "
+         "between them";
     notes.push_back(w.str());
     w.str("");
   } else if (!fit.ok && fit.views >= 3 && 2 * fit.agreeing < fit.views) {

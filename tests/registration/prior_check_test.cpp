@@ -8,6 +8,9 @@
 
 #include <Eigen/Geometry>
 #include <cmath>
+#include <optional>
+#include <utility>
+#include <vector>
 
 #include "registration/icp.h"
 
@@ -75,11 +78,76 @@ TEST(NeighboursAngles, APairThatTurnsTheWrongWayPlacesNothing) {
   SessionManifest bare = m;
   for (int i : {0, 1, 5}) bare.views[std::size_t(i)].angle_deg.reset();
   EXPECT_TRUE(pose_from_neighbours_angles(poses, registered, bare, 3, 1.0, 8.0, 0.3).has_value());
+  // The pair beside taken after the bracket (views 0 and 1 without angles: 4-5 tells
+  // the sense, and 4-5 moved with 4, so 2-4 still turns the wrong way).
+  SessionManifest late = m;
+  for (int i : {0, 1}) late.views[std::size_t(i)].angle_deg.reset();
+  EXPECT_FALSE(pose_from_neighbours_angles(poses, registered, late, 3, 1.0, 8.0, 0.3).has_value());
+  // Angles recorded with the opposite sign and fitted with scale -1: the same answers.
+  SessionManifest negated = m;
+  for (ViewRecord& v : negated.views) v.angle_deg = -*v.angle_deg;
+  EXPECT_FALSE(pose_from_neighbours_angles(poses, registered, negated, 3, -1.0, 8.0, 0.3).has_value());
+  std::vector<Eigen::Matrix4d> right;
+  for (int i = 0; i < 6; ++i) right.push_back(table_pose(30.0 * i));
+  const auto X = pose_from_neighbours_angles(right, registered, negated, 3, -1.0, 8.0, 0.3);
+  ASSERT_TRUE(X.has_value());
+  EXPECT_LT((*X - table_pose(90)).norm(), 1e-9);
   // A pair that slides along its axis (the object lifted) is not a turntable's motion.
   std::vector<Eigen::Matrix4d> lifted;
   for (int i = 0; i < 6; ++i) lifted.push_back(table_pose(30.0 * i));
   for (int i = 4; i < 6; ++i) lifted[std::size_t(i)](2, 3) += 0.05;
   EXPECT_FALSE(pose_from_neighbours_angles(lifted, registered, m, 3, 1.0, 8.0, 0.3).has_value());
+}
+
+// A fit's residuals per view (NaN: no residual) for a manifest of `angles`.
+std::pair<AnglePriorFit, SessionManifest> residuals(const std::vector<double>& angles,
+                                                     const std::vector<double>& res) {
+  SessionManifest m;
+  AnglePriorFit fit;
+  for (std::size_t i = 0; i < angles.size(); ++i) {
+    ViewRecord v;
+    v.angle_deg = angles[i];
+    m.views.push_back(v);
+    fit.residual_deg.push_back(std::isnan(res[i]) ? std::nullopt : std::optional<double>(res[i]));
+  }
+  return {fit, m};
+}
+
+TEST(AgreeingRuns, PassesOffByTheirMovesTurn) {
+  // Three passes of five views 24 deg apart, the second off by 90 deg, the third by
+  // 30 (the twice-moved dragon); one view without a residual inside the third.
+  std::vector<double> angles, res;
+  for (int i = 0; i < 15; ++i) {
+    angles.push_back(24.0 * i);
+    res.push_back(i < 5 ? 0.3 * (i % 2) : i < 10 ? 90.0 - 0.4 * (i % 3) : 30.0 + 0.2 * (i % 2));
+  }
+  res[11] = std::nan("");
+  const auto [fit, m] = residuals(angles, res);
+  const auto runs = agreeing_runs(fit, m, 8.0, 16.0);
+  ASSERT_EQ(runs.size(), 3u);
+  EXPECT_EQ(runs[0], (std::vector<int>{0, 1, 2, 3, 4}));
+  EXPECT_EQ(runs[1], (std::vector<int>{5, 6, 7, 8, 9}));
+  EXPECT_EQ(runs[2], (std::vector<int>{10, 12, 13, 14}));
+  // Residuals either side of +-180 are one amount.
+  const auto [fit2, m2] = residuals({0, 30, 60, 90, 120, 150}, {179, -179, 178, 10, 11, 12});
+  const auto wrapped = agreeing_runs(fit2, m2, 8.0, 16.0);
+  ASSERT_EQ(wrapped.size(), 2u);
+  EXPECT_EQ(wrapped[0], (std::vector<int>{0, 1, 2}));
+}
+
+// A table that did not turn: 72 views 5 deg apart, the residuals drifting by the
+// step, one view missing in the middle. Chained view to view, the drift made runs;
+// anchored to each run's first view they are shorter than 16 deg of turn.
+TEST(AgreeingRuns, ATableThatDidNotTurnMakesNone) {
+  std::vector<double> angles, res;
+  for (int i = 0; i < 72; ++i) angles.push_back(5.0 * i), res.push_back(-5.0 * i);
+  res[31] = std::nan("");
+  const auto [fit, m] = residuals(angles, res);
+  EXPECT_TRUE(agreeing_runs(fit, m, 8.0, 16.0).empty());
+  // Runs that hold fewer than half the views say nothing either.
+  const auto [fit2, m2] = residuals({0, 30, 60, 90, 120, 150, 180, 210},
+                                     {0, 0, 0, 50, 100, 150, -150, -100});
+  EXPECT_TRUE(agreeing_runs(fit2, m2, 8.0, 16.0).empty());
 }
 
 }  // namespace
