@@ -20,13 +20,13 @@ namespace station {
 namespace {
 
 // Per piece root, the data points whose nearest vertex (of the whole mesh) lies in a
-// piece marked `small` and within `reach`.
-std::vector<std::size_t> support_counts(const Mesh& mesh, UnionFind& uf, const std::vector<char>& small,
+// piece not kept (keep_root 0) and within `reach`.
+std::vector<std::size_t> support_counts(const Mesh& mesh, UnionFind& uf, const std::vector<char>& keep_root,
                                         const PieceSupport& support) {
   std::vector<std::size_t> count(mesh.vertices.size(), 0);
   std::vector<Vec3f> small_vertices;
   for (std::size_t v = 0; v < mesh.vertices.size(); ++v)
-    if (small[std::size_t(uf.find(int(v)))]) small_vertices.push_back(mesh.vertices[v]);
+    if (!keep_root[std::size_t(uf.find(int(v)))]) small_vertices.push_back(mesh.vertices[v]);
   if (small_vertices.empty()) return count;
   // The small pieces' own vertices first (most data points lie far from all of them),
   // then the whole mesh for the few within reach: a point nearer the large piece
@@ -80,11 +80,9 @@ ComponentFilterStats remove_small_components(Mesh& mesh, double min_area_fractio
   for (std::size_t r = 0; r < nv; ++r)
     if (has_face[r] && uf.find(int(r)) == int(r) && area[r] < min_area) keep_root[r] = 0;
   if (support && support->points && support->min_points > 0 && support->reach > 0) {
-    std::vector<char> small(nv, 0);
-    for (std::size_t r = 0; r < nv; ++r) small[r] = !keep_root[r];
-    const std::vector<std::size_t> count = support_counts(mesh, uf, small, *support);
+    const std::vector<std::size_t> count = support_counts(mesh, uf, keep_root, *support);
     for (std::size_t r = 0; r < nv; ++r)
-      if (small[r] && count[r] >= support->min_points) {
+      if (!keep_root[r] && count[r] >= support->min_points) {
         keep_root[r] = 1;
         ++st.supported_components;
       }

@@ -195,7 +195,7 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
                                    }));
     if (out.rim_faces > 0)
       note("open rims brought back to the data (" + std::to_string(out.rim_faces) + " faces further than " +
-           fmt("%.3g", kRimTrimFactor * out.mpu.mean_spacing) + " from the points)");
+           fmt("%.3g", bound) + " from the points)");
   }
   bool scans_meet_mesh = false;  // the snap ran and found the scans around the mesh
   std::unique_ptr<PointIndex> scan_index;
@@ -256,7 +256,7 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
              fmt("%.3g", reach) + ", " + fmt("%.3g", kScanRimFactor) + " of their median sample spacing)");
     }
   }
-  out.pieces = remove_small_components(mesh, p.min_component, nullptr, support.points ? &support : nullptr);
+  out.pieces = remove_small_components(mesh, p.min_component, nullptr, &support);
   if (out.pieces.removed_components > 0)
     note("removed " + std::to_string(out.pieces.removed_components) + " small pieces (" +
          std::to_string(out.pieces.removed_faces) + " faces)");

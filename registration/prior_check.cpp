@@ -176,7 +176,6 @@ std::optional<Eigen::Matrix4d> pose_from_neighbours_angles(const std::vector<Eig
                                                             const std::vector<bool>& registered,
                                                             const SessionManifest& m, int j, double scale,
                                                             double tol_deg, double diagonal) {
-  const auto wrap = [](double a) { return a - 360.0 * std::round(a / 360.0); };
   const std::size_t n = m.views.size();
   if (poses.size() != n || registered.size() != n || j < 0 || std::size_t(j) >= n || !m.views[std::size_t(j)].angle_deg)
     return std::nullopt;
@@ -192,7 +191,7 @@ std::optional<Eigen::Matrix4d> pose_from_neighbours_angles(const std::vector<Eig
     Vec3d sense;
   };
   const auto turn = [&](int a, int b) -> std::optional<Turn> {
-    const double d = wrap(scale * (*m.views[std::size_t(b)].angle_deg - *m.views[std::size_t(a)].angle_deg));
+    const double d = wrap_angle_deg(scale * (*m.views[std::size_t(b)].angle_deg - *m.views[std::size_t(a)].angle_deg));
     if (std::abs(d) < min_turn || std::abs(d) > max_turn) return std::nullopt;
     const Eigen::Matrix4d T = rigid_inverse(poses[std::size_t(a)]) * poses[std::size_t(b)];
     if (std::abs(rotation_angle_deg(T) - std::abs(d)) > tol_deg) return std::nullopt;
@@ -209,7 +208,7 @@ std::optional<Eigen::Matrix4d> pose_from_neighbours_angles(const std::vector<Eig
     for (int l : above) {
       const std::optional<Turn> kl = turn(k, l);
       if (!kl) continue;
-      const double dj = wrap(scale * (*m.views[std::size_t(j)].angle_deg - *m.views[std::size_t(k)].angle_deg));
+      const double dj = wrap_angle_deg(scale * (*m.views[std::size_t(j)].angle_deg - *m.views[std::size_t(k)].angle_deg));
       const double f = dj / kl->commanded;
       if (!(f > 0 && f < 1)) continue;
       // The sense, from the pair beside this one: the nearest usable view before k
@@ -236,7 +235,6 @@ std::optional<Eigen::Matrix4d> pose_from_neighbours_angles(const std::vector<Eig
 
 std::vector<std::vector<int>> agreeing_runs(const AnglePriorFit& fit, const SessionManifest& manifest,
                                             double tolerance_deg, double min_turn_deg) {
-  const auto wrap = [](double a) { return a - 360.0 * std::round(a / 360.0); };
   std::vector<std::vector<int>> runs;
   std::vector<int> run;
   std::size_t with_residual = 0, in_runs = 0;
@@ -245,7 +243,7 @@ std::vector<std::vector<int>> agreeing_runs(const AnglePriorFit& fit, const Sess
       double lo = 0, hi = 0;  // the angles' span, from the first, unwrapped along the run
       const double a0 = *manifest.views[std::size_t(run.front())].angle_deg;
       for (int i : run) {
-        const double a = wrap(*manifest.views[std::size_t(i)].angle_deg - a0);
+        const double a = wrap_angle_deg(*manifest.views[std::size_t(i)].angle_deg - a0);
         lo = std::min(lo, a), hi = std::max(hi, a);
       }
       if (hi - lo >= min_turn_deg) runs.push_back(run), in_runs += run.size();
@@ -255,7 +253,7 @@ std::vector<std::vector<int>> agreeing_runs(const AnglePriorFit& fit, const Sess
   for (std::size_t k = 0; k < manifest.views.size(); ++k) {
     if (!manifest.views[k].angle_deg || !fit.residual_deg[k]) continue;
     ++with_residual;
-    if (!run.empty() && std::abs(wrap(*fit.residual_deg[k] - *fit.residual_deg[std::size_t(run.front())])) >
+    if (!run.empty() && std::abs(wrap_angle_deg(*fit.residual_deg[k] - *fit.residual_deg[std::size_t(run.front())])) >
                             tolerance_deg)
       close_run();
     run.push_back(int(k));

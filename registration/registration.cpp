@@ -1910,9 +1910,10 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
     }
     if (!filled.empty()) {
       RegistrationResult again = Registrar(clouds, fm, params, named("the failed views from their neighbours' angles")).run();
-      const std::vector<int> was = linked_group(free, at_table), now = linked_group(again, at_table);
+      const std::vector<int> now = linked_group(again, at_table);
       if (registered_count(again, at_table) > registered_count(free, at_table) &&
-          std::includes(now.begin(), now.end(), was.begin(), was.end()) && runs_agree(free, again, was, centres)) {
+          std::includes(now.begin(), now.end(), free_linked.begin(), free_linked.end()) &&
+          runs_agree(free, again, free_linked, centres)) {
         // The views it had placed keep their own initial source.
         for (std::size_t i = 0; i < n; ++i)
           if (free.views[i].registered) again.views[i].initial = free.views[i].initial;
