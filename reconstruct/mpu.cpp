@@ -132,7 +132,8 @@ struct Node {
   double radius = 0;  // support radius R (leaves)
   double reach = 0;   // max distance from center to any point of a descendant leaf's ball
   int first_child = -1;
-  int fit = -1;
+  int fit = -1;     // a leaf's fit in Impl::fits (sharp or quadric fits), or -1
+  int single = -1;  // a leaf's single bivariate fit in Impl::singles, or -1
   int depth = 0;
 };
 
@@ -149,7 +150,11 @@ struct MpuSurface::Impl {
   std::vector<Vec3d> normals;
   std::unique_ptr<PointIndex> index;  // over `points`
   std::vector<Node> nodes;
+  // The leaves' fits: the common single bivariate ones (144 bytes) apart from the
+  // others (a LocalFit holds every kind, 560 bytes); `singles` is only needed until
+  // build_walk has copied them into the leaf records.
   std::vector<LocalFit> fits;
+  std::vector<Bivariate> singles;
   double trust_radius = 0;  // normalised
 
   // Evaluation layout, built once after the fit (the queries' time is mostly
@@ -193,9 +198,8 @@ struct MpuSurface::Impl {
       rec.center = nd.center;
       rec.radius = nd.radius;
       rec.fit = nd.fit;
-      const LocalFit& f = fits[nd.fit];
-      rec.single = f.type != MpuFitType::kQuadric && f.pieces == 1 && !f.saddle;
-      if (rec.single) rec.bivariate = f.piece[0];
+      rec.single = nd.single >= 0;
+      if (rec.single) rec.bivariate = singles[std::size_t(nd.single)];
       w.link = -std::int32_t(leaf_records.size()) - 1;
       leaf_records.push_back(rec);
     }
@@ -204,7 +208,7 @@ struct MpuSurface::Impl {
     for (std::size_t i = nodes.size(); i-- > 0;) {
       const Node& nd = nodes[i];
       if (nd.first_child < 0) {
-        sharp_below[i] = fits[nd.fit].pieces > 1;
+        sharp_below[i] = nd.fit >= 0 && fits[std::size_t(nd.fit)].pieces > 1;
       } else {
         for (int c = 0; c < 8; ++c) sharp_below[i] |= sharp_below[std::size_t(nd.first_child + c)];
       }
@@ -747,8 +751,11 @@ MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
     s.nodes.push_back(root);
     std::vector<int> frontier{0};
     s.diag.leaves_by_depth.assign(params.max_depth + 1, 0);
+    // One buffer for every level's fits: a fresh one per level (CellFit is over 600
+    // bytes) was a fifth of the fit's time in zeroing, copying and page faults.
+    std::vector<CellFit> fits;
     for (int depth = 0; !frontier.empty(); ++depth) {
-      std::vector<CellFit> fits(frontier.size());
+      fits.resize(frontier.size());
       tbb::parallel_for(std::size_t(0), frontier.size(), [&](std::size_t i) {
         const Node& nd = s.nodes[frontier[i]];
         fits[i] = fit_cell(s, nd.center, nd.half);
@@ -766,8 +773,14 @@ MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
         } else {
           Node& nd = s.nodes[id];
           nd.radius = cf.radius;
-          nd.fit = int(s.fits.size());
-          s.fits.push_back(cf.fit);
+          const LocalFit& f = cf.fit;
+          if (f.type != MpuFitType::kQuadric && f.pieces == 1 && !f.saddle) {
+            nd.single = int(s.singles.size());
+            s.singles.push_back(f.piece[0]);
+          } else {
+            nd.fit = int(s.fits.size());
+            s.fits.push_back(f);
+          }
           ++s.diag.leaves;
           ++s.diag.leaves_by_type[int(cf.fit.type)];
           ++s.diag.leaves_by_depth[depth];
@@ -793,6 +806,7 @@ MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
     }
   }
   s.build_walk();
+  s.singles = {};  // copied into the leaf records
   s.diag.cells = s.nodes.size();
   while (s.diag.leaves_by_depth.size() > 1 && s.diag.leaves_by_depth.back() == 0) s.diag.leaves_by_depth.pop_back();
   s.diag.fit_seconds = seconds_since(t0);
