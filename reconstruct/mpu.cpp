@@ -187,6 +187,7 @@ struct MpuSurface::Impl {
   void build_walk() {
     walk.resize(nodes.size());
     leaf_records.clear();
+    leaf_records.reserve(singles.size() + fits.size());
     for (std::size_t i = 0; i < nodes.size(); ++i) {
       const Node& nd = nodes[i];
       const double r = (nd.first_child < 0 ? nd.radius : nd.reach) * (1 + 1e-6) + 1e-6;
@@ -223,6 +224,11 @@ struct MpuSurface::Impl {
     if (n <= 0) return;
     thread_local std::vector<Vec3d> ys;
     thread_local std::vector<std::int32_t> leaves;
+    // The gathered leaves' centres and radii, side by side: most leaves miss most of
+    // the batch's points (the DMC's batches: ~16 points, ~150 leaves each), and their
+    // exact test then reads these instead of each leaf's 192-byte record.
+    thread_local std::vector<Vec3d> lc;
+    thread_local std::vector<double> lr;
     ys.resize(std::size_t(n));
     Vec3d lo = Vec3d::Constant(std::numeric_limits<double>::infinity()), hi = -lo;
     for (int i = 0; i < n; ++i) {
@@ -240,27 +246,44 @@ struct MpuSurface::Impl {
     const Vec3d mid = 0.5 * (lo + hi);
     const double rb = 0.5 * (hi - lo).norm() * (1 + 1e-9) + 1e-12;
     leaves.clear();
+    lc.clear(), lr.clear();
     int stack[64 * 8];
     int top = 0;
     stack[top++] = 0;
     while (top > 0) {
       const int i = stack[--top];
-      const Node& nd = nodes[std::size_t(i)];
-      const double reach = (nd.first_child < 0 ? nd.radius : nd.reach) * (1 + 1e-9) + rb;
-      if ((mid - nd.center).squaredNorm() > reach * reach) continue;
-      const std::int32_t link = walk[std::size_t(i)].link;
+      // A node is passed over when the ball (mid, rb) misses its reach (a leaf's: its
+      // radius) times 1 + 1e-9. Decided on the walk's float bounds, which exceed that
+      // reach by at least 9e-7 (build_walk: 1e-6, less r2's rounding), more than its
+      // centre's rounding (nodes lie within the unit cube: under 1.1e-7): any node the
+      // exact test would keep is kept, and a node kept beyond it only adds a leaf whose
+      // per-point test below finds nothing (the same sums, bit for bit).
+      const WalkNode& b = walk[std::size_t(i)];
+      const double dx = mid.x() - double(b.x), dy = mid.y() - double(b.y), dz = mid.z() - double(b.z);
+      const double bound = std::sqrt(double(b.r2)) + rb;
+      if (dx * dx + dy * dy + dz * dz > bound * bound) continue;
+      const std::int32_t link = b.link;
       if (link >= 0) {
         for (int c = 7; c >= 0; --c) stack[top++] = link + c;
       } else {
         leaves.push_back(-link - 1);
+        const LeafRecord& leaf = leaf_records[std::size_t(-link - 1)];
+        lc.push_back(leaf.center);
+        lr.push_back(leaf.radius);
       }
     }
+    const std::size_t m = leaves.size();
     for (int k = 0; k < n; ++k) {
       const Vec3d& y = ys[std::size_t(k)];
       double swq = 0, sw = 0;
       Vec3d gwq = Vec3d::Zero(), gw = Vec3d::Zero();
-      for (const std::int32_t li : leaves)
-        add_leaf(leaf_records[std::size_t(li)], y, swq, sw, grads ? &gwq : nullptr, &gw);
+      for (std::size_t j = 0; j < m; ++j) {
+        Vec3d d;
+        double r = 0;
+        const double w = leaf_weight(lc[j], lr[j], y, d, r);
+        if (w <= 0) continue;
+        add_weighted(leaf_records[std::size_t(leaves[j])], y, w, d, r, swq, sw, grads ? &gwq : nullptr, &gw);
+      }
       if (grads) grads[k] = gradient_from(y, swq, sw, gwq, gw);
       if (out) out[k] = value_from(y, swq, sw);
     }
@@ -326,13 +349,13 @@ struct MpuSurface::Impl {
 
   // The weight of a leaf at y, decided exactly (0 outside its support), with d = y -
   // its centre and r = |d| (for the weight's gradient).
-  static double leaf_weight(const LeafRecord& leaf, const Vec3d& y, Vec3d& d, double& r) {
-    d = y - leaf.center;
+  static double leaf_weight(const Vec3d& center, double radius, const Vec3d& y, Vec3d& d, double& r) {
+    d = y - center;
     const double r2 = d.squaredNorm();
-    if (r2 > leaf.radius * leaf.radius * (1 + 1e-12)) return 0;
+    if (r2 > radius * radius * (1 + 1e-12)) return 0;
     r = std::sqrt(r2);
-    if (r >= leaf.radius) return 0;
-    return bspline2(1.5 * r / leaf.radius);
+    if (r >= radius) return 0;
+    return bspline2(1.5 * r / radius);
   }
   double leaf_fit(const LeafRecord& leaf, const Vec3d& y, Vec3d* g) const {
     return leaf.single ? leaf.bivariate.eval(y, g) : fits[leaf.fit].eval(y, g);
@@ -350,8 +373,12 @@ struct MpuSurface::Impl {
                 Vec3d* gw) const {
     Vec3d d;
     double r = 0;
-    const double w = leaf_weight(leaf, y, d, r);
-    if (w <= 0) return;
+    const double w = leaf_weight(leaf.center, leaf.radius, y, d, r);
+    if (w > 0) add_weighted(leaf, y, w, d, r, swq, sw, gwq, gw);
+  }
+  // The same with the leaf's weight w > 0 at y, d and r from leaf_weight.
+  void add_weighted(const LeafRecord& leaf, const Vec3d& y, double w, const Vec3d& d, double r, double& swq,
+                    double& sw, Vec3d* gwq, Vec3d* gw) const {
     if (!gwq) {
       swq += w * leaf_fit(leaf, y, nullptr);
       sw += w;
