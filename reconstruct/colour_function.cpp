@@ -1022,7 +1022,22 @@ ColourFunction fit_colour(const Cloud& cloud, const ColourParams& params) {
   out.impl_ = impl;
   if (p.compute_e_col) {
     const auto t1 = std::chrono::steady_clock::now();
-    impl->diag.e_col = out.e_col(cloud, p.threads);
+    if (p.e_col_max_points > 0 && cloud.size() > p.e_col_max_points) {
+      Cloud sample;
+      const std::size_t m = p.e_col_max_points;
+      sample.points.reserve(m);
+      sample.colours.reserve(m);
+      for (std::size_t i = 0; i < m; ++i) {
+        const std::size_t k = i * cloud.size() / m;  // evenly strided, the first point included
+        sample.points.push_back(cloud.points[k]);
+        sample.colours.push_back(cloud.colours[k]);
+      }
+      impl->diag.e_col = out.e_col(sample, p.threads);
+      impl->diag.e_col_points = m;
+    } else {
+      impl->diag.e_col = out.e_col(cloud, p.threads);
+      impl->diag.e_col_points = cloud.size();
+    }
     impl->diag.e_col_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t1).count();
   }
   return out;

@@ -115,6 +115,10 @@ struct ColourParams {
   /// Evaluate e_col on the input points after the fit (ColourDiagnostics::e_col; about a
   /// quarter of the total time). false: e_col stays 0.
   bool compute_e_col = true;
+  /// e_col over at most this many of the input points, evenly strided (0: all of them).
+  /// The mean over 50,000 of 100,000 clean mustard samples is within 1 % of the whole
+  /// cloud's; evaluating every point of a 1 M cloud took 1.5 s of a 27 s surface stage.
+  std::size_t e_col_max_points = 0;
   /// Threads for the build and batched evaluation (0 = all cores). The result does not
   /// depend on it.
   int threads = 0;
@@ -140,6 +144,7 @@ struct ColourDiagnostics {
   /// e_col on the input points (the paper's: mean over points of |dR|+|dG|+|dB|, sRGB
   /// channels in [0, 1], the function's colour unquantised vs the point's colour).
   double e_col = 0;
+  std::size_t e_col_points = 0;  ///< the input points e_col was taken over
   double fit_seconds = 0;   ///< building the octree and the local functions
   double e_col_seconds = 0; ///< evaluating e_col
 };

@@ -62,6 +62,7 @@ ColourParams colour_params(const SurfaceParams& p) {
   cp.threads = p.threads;
   cp.multi_colour = p.colour_multi;
   cp.noise_robust = p.colour_noise_robust;
+  cp.e_col_max_points = kEColPoints;
   return cp;
 }
 
@@ -281,6 +282,9 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
     note("colour function: " + std::to_string(out.colour->leaves_by_type[0]) + " cells smooth (A), " +
          std::to_string(out.colour->leaves_by_type[1]) + " split at a boundary (B), e_col " +
          fmt("%.4f", out.colour->e_col) +
+         (out.colour->e_col_points < input.size()
+              ? " over " + std::to_string(out.colour->e_col_points) + " of the points"
+              : std::string()) +
          (out.colour_edges_split ? "; " + std::to_string(out.colour_edges_split) + " edges split at colour boundaries"
                                  : std::string()));
     if (p.boundary_flags) {

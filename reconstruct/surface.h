@@ -154,6 +154,11 @@ inline constexpr double kScanRimFactor = 1.5;
 /// the snap needs (ScanSnapParams::min_points).
 inline constexpr std::size_t kPieceMinScans = 12;
 
+/// The surface stage's e_col (ColourDiagnostics::e_col, a figure of the report) is
+/// taken over at most this many input points, evenly strided
+/// (ColourParams::e_col_max_points).
+inline constexpr std::size_t kEColPoints = 50000;
+
 /// The colour function's parameters of the surface stage (also the SDM surface's).
 ColourParams colour_params(const SurfaceParams& params);
 

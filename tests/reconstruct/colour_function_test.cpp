@@ -511,6 +511,29 @@ TEST(ColourFunction, WithoutNormalsAndDeterministicAcrossThreads) {
   for (std::size_t i = 0; i < xs.size(); ++i) EXPECT_TRUE(batch[i] == a.rgb(xs[i].cast<double>()));
 }
 
+// e_col over a strided sample (ColourParams::e_col_max_points, the surface stage's
+// kEColPoints): exactly e_col() on every (n / m)-th point, and all points at or below m.
+TEST(ColourFunction, EColOverAStridedSampleOfThePoints) {
+  const Cloud c = sphere_cloud(6000, three_sectors);
+  ColourParams all, some, enough;
+  some.e_col_max_points = 1000;
+  enough.e_col_max_points = 6000;
+  const ColourFunction fa = fit_colour(c, all), fs = fit_colour(c, some), fe = fit_colour(c, enough);
+  EXPECT_EQ(fa.diagnostics().e_col_points, 6000u);
+  EXPECT_EQ(fe.diagnostics().e_col_points, 6000u);
+  EXPECT_EQ(fe.diagnostics().e_col, fa.diagnostics().e_col);
+  EXPECT_EQ(fs.diagnostics().e_col_points, 1000u);
+  Cloud every_sixth;
+  for (std::size_t i = 0; i < c.size(); i += 6) {
+    every_sixth.points.push_back(c.points[i]);
+    every_sixth.colours.push_back(c.colours[i]);
+  }
+  ASSERT_EQ(every_sixth.size(), 1000u);
+  EXPECT_EQ(fs.diagnostics().e_col, fa.e_col(every_sixth));
+  EXPECT_NE(fs.diagnostics().e_col, fa.diagnostics().e_col);  // a sample, not the whole cloud
+  EXPECT_GT(fs.diagnostics().e_col, 0);
+}
+
 // labs() groups nearby points and walks the octree once per group: the values must be
 // lab()'s bit for bit, wherever the points are (on, off and far from the surface, in
 // any order, non-finite ones {0, 0, 0}).
