@@ -13,4 +13,8 @@ cmake --build build-bench -j"$(nproc)" --target station_bench station >/dev/null
 # cores (Poisson 10x slower under load: docs/benchmarks.md); libgomp reads this
 # at load time, so it is set here rather than in main().
 export OMP_WAIT_POLICY="${OMP_WAIT_POLICY:-passive}"
+# glibc backs large blocks with transparent huge pages only when asked at start-up;
+# the station binary asks for it itself (station/main.cpp, docs/run.md "Huge
+# pages"), station_bench runs both sides in one process, so it is set here for both.
+export GLIBC_TUNABLES="${GLIBC_TUNABLES:-glibc.malloc.hugetlb=1}"
 build-bench/bin/station_bench "$@"
