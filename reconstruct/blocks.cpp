@@ -916,6 +916,7 @@ void add_piece_figures(SurfaceResult& out, const BlockMesh& b) {
     ColourDiagnostics& c = *out.colour;
     const double n = double(c.input_points), m = double(b.colour->input_points);
     c.e_col = (c.e_col * n + b.colour->e_col * m) / (n + m);
+    c.e_col_points += b.colour->e_col_points;
     c.input_points += b.colour->input_points;
     c.leaves += b.colour->leaves;
     c.cells += b.colour->cells;
@@ -1202,9 +1203,10 @@ CloudSource file_source(const std::string& path) {
 namespace {
 
 constexpr std::uint32_t kMagic = 0x4B4C4253;  // "SBLK"
-// File kinds after the magic: 1 summary, 3 seam table, 6 piece (2: a piece before
-// 2026-12-05; 4 and 5 briefly, without the colour function's figures or flags).
-constexpr std::uint32_t kPieceFormat = 6;
+// File kinds after the magic: 1 summary, 3 seam table, 7 piece (2: a piece before
+// 2026-12-05; 4 and 5 briefly, without the colour function's figures or flags; 6
+// without the points e_col was taken over).
+constexpr std::uint32_t kPieceFormat = 7;
 
 class Writer {
  public:
@@ -1342,6 +1344,7 @@ std::string to_bytes(const BlockMesh& b) {
     w.put(std::uint64_t(b.colour->leaves_by_type[0]));
     w.put(std::uint64_t(b.colour->leaves_by_type[1]));
     w.put(b.colour->e_col);
+    w.put(std::uint64_t(b.colour->e_col_points));
   }
   w.put(b.seconds);
   return w.out;
@@ -1374,6 +1377,7 @@ BlockMesh piece_from_bytes(const std::string& bytes, const std::string& what) {
     c.leaves_by_type[0] = std::size_t(r.get<std::uint64_t>());
     c.leaves_by_type[1] = std::size_t(r.get<std::uint64_t>());
     c.e_col = r.get<double>();
+    c.e_col_points = std::size_t(r.get<std::uint64_t>());
     b.colour = c;
   }
   b.seconds = r.get<double>();

@@ -252,12 +252,13 @@ struct MpuSurface::Impl {
     stack[top++] = 0;
     while (top > 0) {
       const int i = stack[--top];
-      // A node is passed over when the ball (mid, rb) misses its reach (a leaf's: its
-      // radius) times 1 + 1e-9. Decided on the walk's float bounds, which exceed that
-      // reach by at least 9e-7 (build_walk: 1e-6, less r2's rounding), more than its
-      // centre's rounding (nodes lie within the unit cube: under 1.1e-7): any node the
-      // exact test would keep is kept, and a node kept beyond it only adds a leaf whose
-      // per-point test below finds nothing (the same sums, bit for bit).
+      // A node is passed over when the ball (mid, rb) misses its bound on the walk
+      // (its reach, a leaf's radius, times 1 + 1e-6 plus 1e-6, in float). Every leaf
+      // whose support holds one of the batch's points is kept: that point lies within
+      // rb of mid, and the bound exceeds the support by more than the float rounding
+      // of the node's centre (the octree lies within its root cube, |c| < 1). A leaf
+      // kept beyond those adds nothing: the per-point test below gives it weight 0, in
+      // the same depth-first order, so the sums are accumulate()'s bit for bit.
       const WalkNode& b = walk[std::size_t(i)];
       const double dx = mid.x() - double(b.x), dy = mid.y() - double(b.y), dz = mid.z() - double(b.z);
       const double bound = std::sqrt(double(b.r2)) + rb;

@@ -282,7 +282,7 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
     note("colour function: " + std::to_string(out.colour->leaves_by_type[0]) + " cells smooth (A), " +
          std::to_string(out.colour->leaves_by_type[1]) + " split at a boundary (B), e_col " +
          fmt("%.4f", out.colour->e_col) +
-         (out.colour->e_col_points < input.size()
+         (out.colour->e_col_points > 0 && out.colour->e_col_points < input.size()
               ? " over " + std::to_string(out.colour->e_col_points) + " of the points"
               : std::string()) +
          (out.colour_edges_split ? "; " + std::to_string(out.colour_edges_split) + " edges split at colour boundaries"
