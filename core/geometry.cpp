@@ -1,7 +1,9 @@
 #include "core/geometry.h"
 
 #include <Eigen/Dense>
+#include <algorithm>
 #include <cmath>
+#include <utility>
 #include <string>
 
 #include "core/error.h"
@@ -53,6 +55,61 @@ Aabb bounding_box(const std::vector<Vec3f>& points) {
   Aabb box;
   for (const Vec3f& p : points) box.extend(p);
   return box;
+}
+
+namespace {
+
+// The low 21 bits of x, spread to every third bit.
+std::uint64_t spread_bits3(std::uint64_t x) {
+  x &= 0x1fffff;
+  x = (x | x << 32) & 0x1f00000000ffffull;
+  x = (x | x << 16) & 0x1f0000ff0000ffull;
+  x = (x | x << 8) & 0x100f00f00f00f00full;
+  x = (x | x << 4) & 0x10c30c30c30c30c3ull;
+  x = (x | x << 2) & 0x1249249249249249ull;
+  return x;
+}
+
+}  // namespace
+
+std::vector<std::uint32_t> spatial_order(const std::vector<Vec3f>& points) {
+  if (points.size() > std::numeric_limits<std::uint32_t>::max())
+    throw InvalidInput("spatial_order: more than 2^32 - 1 points");
+  Aabb box;
+  for (const Vec3f& p : points)
+    if (p.allFinite()) box.extend(p);
+  std::vector<std::pair<std::uint64_t, std::uint32_t>> keys(points.size());
+  const double side = box.valid() ? double((box.max - box.min).maxCoeff()) : 0.0;
+  const double scale = side > 0 ? double((1u << 21) - 1) / side : 0.0;
+  for (std::size_t i = 0; i < points.size(); ++i) {
+    std::uint64_t key = 0;
+    if (points[i].allFinite()) {
+      std::uint64_t q[3];
+      for (int a = 0; a < 3; ++a)
+        q[a] = std::uint64_t(std::clamp((double(points[i][a]) - double(box.min[a])) * scale, 0.0, double((1u << 21) - 1)));
+      key = 1 + (spread_bits3(q[0]) | spread_bits3(q[1]) << 1 | spread_bits3(q[2]) << 2);
+    }
+    keys[i] = {key, std::uint32_t(i)};
+  }
+  std::sort(keys.begin(), keys.end());  // (key, index): ties in index order
+  std::vector<std::uint32_t> order(points.size());
+  for (std::size_t i = 0; i < keys.size(); ++i) order[i] = keys[i].second;
+  return order;
+}
+
+Cloud reordered(const Cloud& cloud, const std::vector<std::uint32_t>& order) {
+  cloud.check_consistent("reordered cloud");
+  Cloud out;
+  out.points.reserve(order.size());
+  if (cloud.has_normals()) out.normals.reserve(order.size());
+  if (cloud.has_colours()) out.colours.reserve(order.size());
+  for (const std::uint32_t i : order) {
+    if (i >= cloud.size()) throw InvalidInput("reordered: index " + std::to_string(i) + " out of range");
+    out.points.push_back(cloud.points[i]);
+    if (cloud.has_normals()) out.normals.push_back(cloud.normals[i]);
+    if (cloud.has_colours()) out.colours.push_back(cloud.colours[i]);
+  }
+  return out;
 }
 
 bool all_finite(const std::vector<Vec3f>& points) {

@@ -69,6 +69,15 @@ Aabb bounding_box(const std::vector<Vec3f>& points);
 /// True when every coordinate of every point is finite.
 bool all_finite(const std::vector<Vec3f>& points);
 
+/// The points' indices in Z order (Morton order on a 2^21 lattice over the finite
+/// points' bounding cube); equal cells and non-finite points keep their index order
+/// (non-finite ones first). Nearby points come out near each other, so neighbourhood
+/// work on a cloud taken in this order reads memory in runs.
+std::vector<std::uint32_t> spatial_order(const std::vector<Vec3f>& points);
+
+/// The cloud's points, with their normals and colours, in `order` (indices into it).
+Cloud reordered(const Cloud& cloud, const std::vector<std::uint32_t>& order);
+
 /// Area-weighted per-vertex normals (unit length; zero for isolated vertices).
 std::vector<Vec3f> vertex_normals(const Mesh& mesh);
 

@@ -3,7 +3,9 @@
 #include <gtest/gtest.h>
 
 #include <Eigen/Geometry>
+#include <algorithm>
 #include <cmath>
+#include <random>
 #include <limits>
 
 #include "core/error.h"
@@ -127,6 +129,50 @@ TEST(Geometry, TransformCloudKeepsNormalsPerpendicularUnderScaling) {
   const Vec3f along = c.points[1] - c.points[0];
   EXPECT_NEAR(c.normals[0].dot(along), 0.f, 1e-5);
   EXPECT_NEAR(c.normals[0].norm(), 1.f, 1e-5);
+}
+
+// spatial_order: a permutation; nearby points next to each other (an 8 x 8 x 8 grid in
+// random order comes out as its 2 x 2 x 2 blocks, one after another, each block's
+// points within one cell of each other); equal points and non-finite ones in index
+// order, non-finite first; reordered carries normals and colours along.
+TEST(Geometry, SpatialOrderIsZOrder) {
+  std::vector<Vec3f> grid;
+  for (int x = 0; x < 8; ++x)
+    for (int y = 0; y < 8; ++y)
+      for (int z = 0; z < 8; ++z) grid.emplace_back(float(x), float(y), float(z));
+  std::vector<Vec3f> shuffled = grid;
+  std::mt19937 rng(3);
+  std::shuffle(shuffled.begin(), shuffled.end(), rng);
+  const std::vector<std::uint32_t> order = spatial_order(shuffled);
+  ASSERT_EQ(order.size(), shuffled.size());
+  std::vector<std::uint32_t> sorted = order;
+  std::sort(sorted.begin(), sorted.end());
+  for (std::size_t i = 0; i < sorted.size(); ++i) ASSERT_EQ(sorted[i], i);  // a permutation
+  for (std::size_t b = 0; b < order.size(); b += 8) {
+    const Vec3f first = shuffled[order[b]];
+    for (std::size_t i = b; i < b + 8; ++i) {
+      const Vec3f p = shuffled[order[i]];
+      // the same 2 x 2 x 2 block as the run's first point
+      EXPECT_EQ((p / 2).array().floor().matrix(), (first / 2).array().floor().matrix()) << "run " << b / 8;
+    }
+  }
+  EXPECT_EQ(shuffled[order.front()], Vec3f(0, 0, 0));
+  EXPECT_EQ(shuffled[order.back()], Vec3f(7, 7, 7));
+
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  const std::vector<Vec3f> odd{{1, 1, 1}, {0, 0, 0}, {nan, 0, 0}, {1, 1, 1}, {0, 0, std::numeric_limits<float>::infinity()}};
+  EXPECT_EQ(spatial_order(odd), (std::vector<std::uint32_t>{2, 4, 1, 0, 3}));
+  EXPECT_TRUE(spatial_order({}).empty());
+
+  Cloud c;
+  c.points = {{2, 0, 0}, {0, 0, 0}};
+  c.normals = {{1, 0, 0}, {0, 1, 0}};
+  c.colours = {Rgb{1, 2, 3}, Rgb{4, 5, 6}};
+  const Cloud r = reordered(c, spatial_order(c.points));
+  EXPECT_EQ(r.points[0], Vec3f(0, 0, 0));
+  EXPECT_EQ(r.normals[0], Vec3f(0, 1, 0));
+  EXPECT_TRUE(r.colours[0] == (Rgb{4, 5, 6}));
+  EXPECT_THROW(reordered(c, {0, 2}), InvalidInput);
 }
 
 }  // namespace
