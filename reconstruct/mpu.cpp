@@ -228,7 +228,8 @@ struct MpuSurface::Impl {
     // the batch's points (the DMC's batches: ~16 points, ~150 leaves each), and their
     // exact test then reads these instead of each leaf's 192-byte record.
     thread_local std::vector<Vec3d> lc;
-    thread_local std::vector<double> lr;
+    thread_local std::vector<double> lr, lx, ly, lz, lr2;
+    thread_local std::vector<std::uint32_t> inside;
     ys.resize(std::size_t(n));
     Vec3d lo = Vec3d::Constant(std::numeric_limits<double>::infinity()), hi = -lo;
     for (int i = 0; i < n; ++i) {
@@ -246,7 +247,7 @@ struct MpuSurface::Impl {
     const Vec3d mid = 0.5 * (lo + hi);
     const double rb = 0.5 * (hi - lo).norm() * (1 + 1e-9) + 1e-12;
     leaves.clear();
-    lc.clear(), lr.clear();
+    lc.clear(), lr.clear(), lx.clear(), ly.clear(), lz.clear(), lr2.clear();
     int stack[64 * 8];
     int top = 0;
     stack[top++] = 0;
@@ -271,6 +272,8 @@ struct MpuSurface::Impl {
         const LeafRecord& leaf = leaf_records[std::size_t(-link - 1)];
         lc.push_back(leaf.center);
         lr.push_back(leaf.radius);
+        lx.push_back(leaf.center.x()), ly.push_back(leaf.center.y()), lz.push_back(leaf.center.z());
+        lr2.push_back(leaf.radius * leaf.radius * (1 + 1e-12));
       }
     }
     const std::size_t m = leaves.size();
@@ -278,7 +281,19 @@ struct MpuSurface::Impl {
       const Vec3d& y = ys[std::size_t(k)];
       double swq = 0, sw = 0;
       Vec3d gwq = Vec3d::Zero(), gw = Vec3d::Zero();
+      // First the leaves whose support may hold y, all at once on the side-by-side
+      // coordinates (leaf_weight's first test, the same arithmetic), in order; then
+      // leaf_weight decides each of those exactly.
+      inside.resize(m);
+      std::size_t count = 0;
+      const double yx = y.x(), yy = y.y(), yz = y.z();
       for (std::size_t j = 0; j < m; ++j) {
+        const double dx = yx - lx[j], dy = yy - ly[j], dz = yz - lz[j];
+        inside[count] = std::uint32_t(j);
+        count += dx * dx + dy * dy + dz * dz > lr2[j] ? 0 : 1;
+      }
+      for (std::size_t c = 0; c < count; ++c) {
+        const std::size_t j = inside[c];
         Vec3d d;
         double r = 0;
         const double w = leaf_weight(lc[j], lr[j], y, d, r);
