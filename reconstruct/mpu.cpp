@@ -273,18 +273,19 @@ struct MpuSurface::Impl {
         lc.push_back(leaf.center);
         lr.push_back(leaf.radius);
         lx.push_back(leaf.center.x()), ly.push_back(leaf.center.y()), lz.push_back(leaf.center.z());
-        lr2.push_back(leaf.radius * leaf.radius * (1 + 1e-12));
+        lr2.push_back(leaf.radius * leaf.radius * (1 + 1e-9));  // looser than leaf_weight's 1e-12
       }
     }
     const std::size_t m = leaves.size();
+    inside.resize(m);
     for (int k = 0; k < n; ++k) {
       const Vec3d& y = ys[std::size_t(k)];
       double swq = 0, sw = 0;
       Vec3d gwq = Vec3d::Zero(), gw = Vec3d::Zero();
       // First the leaves whose support may hold y, all at once on the side-by-side
-      // coordinates (leaf_weight's first test, the same arithmetic), in order; then
+      // coordinates (leaf_weight's first test with a looser bound, so it keeps every leaf
+      // that test keeps however the squared distance is summed), in order; then
       // leaf_weight decides each of those exactly.
-      inside.resize(m);
       std::size_t count = 0;
       const double yx = y.x(), yy = y.y(), yz = y.z();
       for (std::size_t j = 0; j < m; ++j) {

@@ -120,8 +120,9 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
   // (mustard 100k in random order: 3.2-3.4 -> 2.3-2.8 s; docs/mpu.md). The statistics
   // taken over the input's order (epsilon0's and the enclosure's samples, the winding
   // closing's clusters) keep it, as a blocked run's summary does.
-  const Cloud ordered = reordered(input, spatial_order(input.points));
-  const MpuSurface surface = fit_mpu(ordered, mp);
+  // (The sorted copy lives only for each fit: MpuSurface keeps its own points.)
+  const std::vector<std::uint32_t> z_order = spatial_order(input.points);
+  const MpuSurface surface = fit_mpu(reordered(input, z_order), mp);
   out.mpu = surface.diagnostics();
   out.seconds.fit = seconds_since(t1);
 
@@ -278,7 +279,7 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
     transfer_colours(mesh, input, {4, p.threads});
   } else if (out.coloured) {
     note("colour function on " + std::to_string(input.size()) + " points");
-    const ColourFunction cf = fit_colour(ordered, colour_params(p));
+    const ColourFunction cf = fit_colour(reordered(input, z_order), colour_params(p));
     out.colour_nearest_vertices = colour_mesh(mesh, cf, surface, input, p.threads);
     if (p.colour_edges) {
       ColourEdgeParams ep;

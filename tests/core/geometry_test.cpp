@@ -158,6 +158,20 @@ TEST(Geometry, SpatialOrderIsZOrder) {
   }
   EXPECT_EQ(shuffled[order.front()], Vec3f(0, 0, 0));
   EXPECT_EQ(shuffled[order.back()], Vec3f(7, 7, 7));
+  // On the 0..7 grid the top three of the 21 bits per axis are x, y, z themselves, so
+  // the whole order is the plain bit interleave of (x, y, z), x lowest.
+  auto interleave = [](const Vec3f& p) {
+    int key = 0;
+    for (int bit = 0; bit < 3; ++bit)
+      for (int a = 0; a < 3; ++a) key |= ((int(p[a]) >> bit) & 1) << (3 * bit + a);
+    return key;
+  };
+  for (std::size_t i = 0; i < order.size(); ++i) ASSERT_EQ(interleave(shuffled[order[i]]), int(i)) << i;
+  // One point, equal points, a flat cloud (one side of zero extent).
+  EXPECT_EQ(spatial_order({Vec3f(1, 2, 3)}), (std::vector<std::uint32_t>{0}));
+  EXPECT_EQ(spatial_order({Vec3f(1, 2, 3), Vec3f(1, 2, 3)}), (std::vector<std::uint32_t>{0, 1}));
+  EXPECT_EQ(spatial_order({Vec3f(3, 0, 5), Vec3f(0, 0, 5), Vec3f(0, 3, 5), Vec3f(3, 3, 5)}),
+            (std::vector<std::uint32_t>{1, 0, 2, 3}));
 
   const float nan = std::numeric_limits<float>::quiet_NaN();
   const std::vector<Vec3f> odd{{1, 1, 1}, {0, 0, 0}, {nan, 0, 0}, {1, 1, 1}, {0, 0, std::numeric_limits<float>::infinity()}};
