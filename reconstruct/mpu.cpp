@@ -227,8 +227,7 @@ struct MpuSurface::Impl {
     // The gathered leaves' centres and radii, side by side: most leaves miss most of
     // the batch's points (the DMC's batches: ~16 points, ~150 leaves each), and their
     // exact test then reads these instead of each leaf's 192-byte record.
-    thread_local std::vector<Vec3d> lc;
-    thread_local std::vector<double> lr, lx, ly, lz, lr2;
+    thread_local std::vector<double> lx, ly, lz, lr, lr2;
     thread_local std::vector<std::uint32_t> inside;
     ys.resize(std::size_t(n));
     Vec3d lo = Vec3d::Constant(std::numeric_limits<double>::infinity()), hi = -lo;
@@ -247,7 +246,7 @@ struct MpuSurface::Impl {
     const Vec3d mid = 0.5 * (lo + hi);
     const double rb = 0.5 * (hi - lo).norm() * (1 + 1e-9) + 1e-12;
     leaves.clear();
-    lc.clear(), lr.clear(), lx.clear(), ly.clear(), lz.clear(), lr2.clear();
+    lx.clear(), ly.clear(), lz.clear(), lr.clear(), lr2.clear();
     int stack[64 * 8];
     int top = 0;
     stack[top++] = 0;
@@ -270,7 +269,6 @@ struct MpuSurface::Impl {
       } else {
         leaves.push_back(-link - 1);
         const LeafRecord& leaf = leaf_records[std::size_t(-link - 1)];
-        lc.push_back(leaf.center);
         lr.push_back(leaf.radius);
         lx.push_back(leaf.center.x()), ly.push_back(leaf.center.y()), lz.push_back(leaf.center.z());
         lr2.push_back(leaf.radius * leaf.radius * (1 + 1e-9));  // looser than leaf_weight's 1e-12
@@ -297,7 +295,7 @@ struct MpuSurface::Impl {
         const std::size_t j = inside[c];
         Vec3d d;
         double r = 0;
-        const double w = leaf_weight(lc[j], lr[j], y, d, r);
+        const double w = leaf_weight(Vec3d(lx[j], ly[j], lz[j]), lr[j], y, d, r);
         if (w <= 0) continue;
         add_weighted(leaf_records[std::size_t(leaves[j])], y, w, d, r, swq, sw, grads ? &gwq : nullptr, &gw);
       }
