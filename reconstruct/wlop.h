@@ -145,7 +145,7 @@ enum class WlopAttraction {
   ///        weighted centroid c_i and least-spread direction n_i (PCA);
   ///   x_i <- x_i + ((c_i - x_i) . n_i) n_i      onto the plane,
   ///          + pull                             the centroid's offset along the plane,
-  ///                                             beyond a dead zone of 0.3 standard
+  ///                                             beyond a dead zone of 0.4 standard
   ///                                             deviations of the weights,
   ///          + mu E2_t                          E2 (eq. 3) without its part along n_i,
   /// E2 and w_i (eq. 7) with theta over a radius of 2.6 output spacings (from the area
@@ -153,7 +153,8 @@ enum class WlopAttraction {
   /// last iteration every point goes onto its plane once more. Inputs with normals
   /// (taken as oriented, as scans' are) fit each point to the neighbours facing its way,
   /// which keeps the two faces of a part thinner than r_f apart, and the fits' 1 / v_j
-  /// then count the neighbours facing the same way only.
+  /// then count the neighbours facing the same way only; so does the area, measured
+  /// again after the 6th iteration (each face is even by then).
   /// The iterations start from a spread-out subset of the input (dart throwing in a
   /// seeded random order, a maximal Poisson-disk sample sized to |I|) instead of
   /// initial_subset's random one, whose clumps E2 evens out only slowly.
@@ -290,8 +291,9 @@ struct WlopResult {
   /// holding about 96 within r_f where the input is denser).
   std::size_t fit_points = 0;
   /// kProjection: the surface area estimated from the projected points (each standing
-  /// for pi rho^2 / 15, rho the distance to its 16th nearest, itself counted) and the
-  /// radius of E2 and w_i: 2.6 x the output's spacing on that area,
+  /// for pi rho^2 / 15, rho the distance to its 16th nearest, itself counted; with
+  /// oriented normals, the 16th facing its way, measured again after the 6th
+  /// iteration) and the radius of E2 and w_i: 2.6 x the output's spacing on that area,
   /// sqrt(2 A / (sqrt 3 |I|)). kL1: h.
   double area = 0;
   double repulsion_radius = 0;
