@@ -83,6 +83,7 @@ struct DmcOptions : MarchingCubesOptions {
 struct DmcStats : MarchingCubesStats {
   std::size_t gradient_evaluations = 0;  ///< gradients of f taken (search pruning, crossings)
   std::size_t probed = 0;            ///< lattice points given the thin-part probe
+  std::size_t lattice_thick = 0;     ///< of those, answered by the lattice alone (no evaluation)
   std::size_t searched = 0;          ///< lattice points whose Omega was sampled at step s
   std::size_t moved_barycentre = 0;  ///< moved into thin inside parts (step 1)
   std::size_t moved_gap = 0;         ///< moved into thin outside gaps (beyond the paper)

@@ -105,6 +105,37 @@ bool Dmc::lattice_gradient(const Node& nd, const Neighbours& nb, Vec3d& gr) cons
   return true;
 }
 
+bool Dmc::lattice_thick(Key p, std::int32_t b, int l, const Node& nd, const Vec3d& gr) const {
+  const double gn = gr.norm();
+  if (!(gn > 0) || !std::isfinite(gn)) return false;
+  int a = 0;
+  for (int c = 1; c < 3; ++c)
+    if (std::abs(gr[c]) > std::abs(gr[a])) a = c;
+  // One h along the normal is 1 / |n_a| steps along the axis (a plane's).
+  const double reach = gn / std::abs(gr[a]);
+  // Towards the near surface: against grad f outside (f > 0), along it inside.
+  const int step = (nd.val < 0) == (gr[a] > 0) ? 1 : -1;
+  const bool inside = nd.val < 0;
+  double prev = nd.val, crossing = -1;
+  for (int k = 1; k <= kThickSteps; ++k) {
+    double v;
+    if (!neighbour_value(p, b, l, a, k * step, v)) return false;
+    const bool other = (v < 0) != inside;
+    if (crossing < 0) {
+      if (!other) {
+        prev = v;
+        continue;
+      }
+      // The near surface between steps k - 1 and k (linear).
+      crossing = k - 1 + std::abs(prev) / (std::abs(prev) + std::abs(v));
+    } else if (!other) {
+      return false;  // back on its side within reach of the crossing: thin
+    }
+    if (k >= crossing + reach) return true;
+  }
+  return false;
+}
+
 bool Dmc::probe(const Node& nd, char role) const {
   const Vec3d gr = f_.gradient(nd.pos);
   const double gn = gr.norm();
@@ -174,7 +205,7 @@ void Dmc::probe_first_wave(ProbeBatch& batch, std::vector<Key>& todo, std::size_
 std::vector<Key> Dmc::first_wave_todo() {
   tbb::enumerable_thread_specific<std::vector<Key>> todo_local;
   tbb::enumerable_thread_specific<std::vector<std::int32_t>> marked_local;
-  tbb::enumerable_thread_specific<std::size_t> probed_local(0), exact_local(0), probes_local(0);
+  tbb::enumerable_thread_specific<std::size_t> probed_local(0), exact_local(0), probes_local(0), thick_local(0);
   tbb::enumerable_thread_specific<ProbeBatch> batch_local;
   parallel(nodes_.block_count(), [&](std::size_t bs) {
     const std::int32_t b = std::int32_t(bs);
@@ -203,6 +234,15 @@ std::vector<Key> Dmc::first_wave_todo() {
           batch.keys.push_back(p);
           batch.grads.emplace_back();
           batch.has_grad.push_back(lattice_gradient(nd, nb, batch.grads.back()));
+          // Most of the lattice's thick parts need no probe (the values beyond the
+          // near surface are there); only with the lattice's gradient (f about linear).
+          if (batch.has_grad.back() && lattice_thick(p, cb, cl, nd, batch.grads.back())) {
+            ++thick_local.local();
+            batch.nodes.pop_back();
+            batch.keys.pop_back();
+            batch.grads.pop_back();
+            batch.has_grad.pop_back();
+          }
         }
         nd.flags |= kSearched;
       }
@@ -214,6 +254,7 @@ std::vector<Key> Dmc::first_wave_todo() {
   for (std::size_t n : exact_local) st_.gradient_evaluations += n;
   for (std::size_t n : probes_local) st_.evaluations += n;
   st_.probed += probed;
+  for (std::size_t n : thick_local) st_.lattice_thick += n;
   for (const auto& v : marked_local)
     for (std::int32_t b : v) nodes_.blk(b).mark = 0;
   std::vector<Key> todo;

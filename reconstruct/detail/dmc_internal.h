@@ -521,6 +521,16 @@ class Dmc {
   // neighbours): the first wave's probe direction.
   static constexpr double kLinear = 3, kTangent = 0.25;
   bool lattice_gradient(const Node& nd, const Neighbours& nb, Vec3d& gr) const;
+  // The first wave's probe answered from the lattice where it can be (no evaluation):
+  // along the axis nearest the lattice gradient gr, towards the near surface, every
+  // evaluated lattice point from the first past that surface (|f| / |gr| away along
+  // gr) to the first at least one h past it, measured along gr, lies on the other
+  // side. Then the part (or gap) beyond the near surface is at least as thick there
+  // as the probe asks, and the point is done. False (probe it) where a lattice point
+  // on the way is on its side or was never evaluated, or more than kThickSteps steps
+  // are needed.
+  static constexpr int kThickSteps = 4;
+  bool lattice_thick(Key p, std::int32_t b, int l, const Node& nd, const Vec3d& gr) const;
 
   // How far from its lattice point Omega reaches towards a plane of unit normal n
   // (h/2 |n|_1), plus kReachSlack h for the first-order distance's error: a point whose

@@ -230,6 +230,9 @@ TEST(Dmc, SphereIsClosedManifoldAndOnTheSurface) {
   EXPECT_LT(worst, 1e-3 * h);  // refined crossings
   // A smooth thick surface needs no moves.
   EXPECT_EQ(st.moved_barycentre + st.moved_gap + st.moved_corner + st.moved_edge, 0u);
+  // Most of its thin-part probes are answered by the lattice's own values.
+  std::printf("sphere: %zu probed, %zu answered by the lattice\n", st.probed, st.lattice_thick);
+  EXPECT_GT(st.lattice_thick, st.probed / 3);
   ASSERT_EQ(m.normals.size(), m.vertices.size());
   for (std::size_t i = 0; i < m.vertices.size(); ++i)
     EXPECT_GT(m.normals[i].dot((m.vertices[i].cast<double>() - s.c).normalized().cast<float>()), 0.99f);
@@ -291,14 +294,16 @@ TEST(Dmc, ContactLensIsAClosedShell) {
   const double cov_dmc = covered(dmc, pts, 0.1 * h), cov_mc = covered(mc, pts, 0.1 * h);
   const double true_area = 2 * M_PI * 9 + 2 * M_PI * 8.9 + M_PI * 0.1;
   std::printf("lens: DMC %zu faces, area %.2f / %.2f, covered %.4f; MC %zu faces covered %.4f; moved %zu, "
-              "searched %zu\n",
+              "searched %zu, probed %zu, answered by the lattice %zu\n",
               dmc.faces.size(), area(dmc), true_area, cov_dmc, mc.faces.size(), cov_mc, st.moved_barycentre,
-              st.searched);
+              st.searched, st.probed, st.lattice_thick);
   // Closed (every edge in exactly two faces), covering the analytic surface: 99 % of
   // its samples within a tenth of a cell of the mesh, 99 % of its area (and not more:
   // no stray sheets), where MC keeps a few percent.
   EXPECT_EQ(bad_edges(dmc), 0);
   EXPECT_EQ(degenerate_faces(dmc), 0);
+  // A shell thinner than a cell everywhere: the lattice takes no part for thick.
+  EXPECT_EQ(st.lattice_thick, 0u);
   EXPECT_GE(cov_dmc, 0.99);
   EXPECT_LT(cov_mc, 0.1);
   EXPECT_GE(area(dmc), 0.99 * true_area);
