@@ -8,6 +8,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdint>
+#include <mutex>
 #include <string>
 
 #include "core/error.h"
@@ -15,6 +16,7 @@
 #include "core/normals.h"
 #include "core/threads.h"
 #include "reconstruct/detail/octree_split.h"
+#include "reconstruct/near_grid.h"
 
 namespace station {
 namespace {
@@ -156,6 +158,10 @@ struct MpuSurface::Impl {
   std::vector<LocalFit> fits;
   std::vector<Bivariate> singles;
   double trust_radius = 0;  // normalised
+  // Cells surely within trust_radius of a point (trusted() without a search); built
+  // on the first trusted() call.
+  mutable NearGrid trust_grid;
+  mutable std::once_flag trust_grid_once;
 
   // Evaluation layout, built once after the fit (the queries' time is mostly
   // cache misses on the octree's nodes and fits, docs/mpu.md "Evaluation"):
@@ -962,7 +968,10 @@ bool MpuSurface::may_be_sharp(const Vec3d& x, double radius) const {
   return impl_->may_be_sharp((x - impl_->center) * impl_->scale, radius * impl_->scale);
 }
 bool MpuSurface::trusted(const Vec3d& x) const {
-  const auto [id, d] = impl_->index->nearest(((x - impl_->center) * impl_->scale).cast<float>());
+  std::call_once(impl_->trust_grid_once, [&] { impl_->trust_grid = NearGrid(impl_->points, impl_->trust_radius); });
+  const Vec3d q = (x - impl_->center) * impl_->scale;
+  if (impl_->trust_grid.surely_near(q)) return true;
+  const auto [id, d] = impl_->index->nearest(q.cast<float>());
   return id >= 0 && d <= impl_->trust_radius;
 }
 Vec3d MpuSurface::center() const { return impl_->center; }

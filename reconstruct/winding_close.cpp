@@ -13,6 +13,7 @@
 #include "core/error.h"
 #include "core/kdtree.h"
 #include "reconstruct/mpu.h"
+#include "reconstruct/near_grid.h"
 
 namespace station {
 
@@ -286,6 +287,7 @@ double cloud_enclosure(const Cloud& cloud) {
 
 struct WindingClose::Index {
   PointIndex points;
+  NearGrid near;  // within t1 of the data: beta = 0 without a search
 };
 
 WindingClose::WindingClose(const ImplicitFunction& f, const Cloud& cloud, const WindingCloseParams& params)
@@ -294,7 +296,7 @@ WindingClose::WindingClose(const ImplicitFunction& f, const Cloud& cloud, const 
   if (!cloud.has_normals()) throw InvalidInput("winding close: the cloud has no normals");
   if (!(params.ramp > 1) || !(params.trust_distance >= 0) || !(params.voxel >= 0))
     throw InvalidInput("winding close: need ramp > 1, trust_distance >= 0, voxel >= 0");
-  index_ = std::make_unique<Index>(Index{PointIndex(cloud.points)});
+  index_ = std::make_unique<Index>(Index{PointIndex(cloud.points), NearGrid()});
   t1_ = params.trust_distance;
   if (t1_ <= 0) t1_ = 4 * subset_spacing(index_->points, cloud.points);
   const Aabb box = bounding_box(cloud.points);
@@ -302,12 +304,17 @@ WindingClose::WindingClose(const ImplicitFunction& f, const Cloud& cloud, const 
   if (!(t1_ > 0)) t1_ = 1e-3 * std::max(diag, 1e-9);
   t2_ = params.ramp * t1_;
   const double voxel = params.voxel > 0 ? params.voxel : std::max(0.5 * t1_, diag / 200);
+  index_->near = NearGrid(cloud.points, t1_);
   w_ = std::make_unique<WindingNumber>(cloud.points, cloud.normals, voxel);
 }
 
 WindingClose::~WindingClose() = default;
 
 double WindingClose::blend(const Vec3d& x, Vec3d* grad) const {
+  if (index_->near.surely_near(x)) {  // d <= t1: what the search below would give
+    if (grad) *grad = Vec3d::Zero();
+    return 0;
+  }
   const auto [id, d] = index_->points.nearest(x.cast<float>());
   const double beta = std::clamp((d - t1_) / (t2_ - t1_), 0.0, 1.0);
   if (grad) {
@@ -329,6 +336,12 @@ double WindingClose::value(const Vec3d& x) const {
 }
 
 bool WindingClose::all_trusted(const Vec3d* xs, int n) const {
+  if (n < 1) return false;
+  {
+    int i = 0;
+    while (i < n && index_->near.surely_near(xs[i])) ++i;
+    if (i == n) return true;
+  }
   if (n < 2) return false;
   Vec3d lo = xs[0], hi = xs[0];
   for (int i = 1; i < n; ++i) {
