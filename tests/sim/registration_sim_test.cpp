@@ -534,7 +534,29 @@ struct HandHeldSession {
   SessionManifest manifest;
   std::vector<double> overlap;  // per view; 1 for the table views
 };
-HandHeldSession hand_held_session(const std::filesystem::path& dir, const std::vector<HandShot>& hand) {
+// A lamp on the scanner, off its axis: each point's colour scaled by
+// ambient + (1 - ambient) max(0, n . l) for its (camera-facing) normal n and
+// the camera-frame direction l to the lamp. A surface point seen from two views is
+// lit differently in each, as under a real scanner's light (the simulator's colours
+// are the texture's, unlit).
+void light_by_lamp(Cloud& c, const Vec3f& to_lamp, double ambient) {
+  const Vec3f l = to_lamp.normalized();
+  for (std::size_t i = 0; i < c.size() && i < c.colours.size() && i < c.normals.size(); ++i) {
+    Vec3f n = c.normals[i];
+    if (n.dot(c.points[i]) > 0) n = -n;  // facing the camera at the origin
+    const float k = float(ambient + (1 - ambient) * std::max(0.0f, n.dot(l)));
+    Rgb& col = c.colours[i];
+    col = Rgb{std::uint8_t(std::lround(col.r * k)), std::uint8_t(std::lround(col.g * k)),
+              std::uint8_t(std::lround(col.b * k))};
+  }
+}
+
+struct Lamp {
+  Vec3f to_lamp;   // camera frame
+  double ambient;  // the share of the texture's brightness a point facing away keeps
+};
+HandHeldSession hand_held_session(const std::filesystem::path& dir, const std::vector<HandShot>& hand,
+                                  const Lamp* lamp = nullptr) {
   const std::string mesh = (test::source_dir() / "data" / "mustard_bottle" / "textured.obj").string();
   HandHeldSession out;
   std::vector<Cloud>& clouds = out.clouds;
@@ -548,7 +570,10 @@ HandHeldSession hand_held_session(const std::filesystem::path& dir, const std::v
     Session session = capture_sim(dir / name, uri, views, s.angle, table);
     if (table) {
       m = session.manifest();
-      for (std::size_t i = 0; i < m.views.size(); ++i) clouds.push_back(session.load_view(i));
+      for (std::size_t i = 0; i < m.views.size(); ++i) {
+        clouds.push_back(session.load_view(i));
+        if (lamp) light_by_lamp(clouds.back(), lamp->to_lamp, lamp->ambient);
+      }
       return;
     }
     ViewRecord v = session.manifest().views.at(0);
@@ -557,6 +582,7 @@ HandHeldSession hand_held_session(const std::filesystem::path& dir, const std::v
     const Eigen::Matrix3f R = Eigen::AngleAxisf(float(s.roll_deg * M_PI / 180), Vec3f::UnitZ()).toRotationMatrix();
     for (Vec3f& p : c.points) p = R * p;
     for (Vec3f& q : c.normals) q = R * q;
+    if (lamp) light_by_lamp(c, lamp->to_lamp, lamp->ambient);  // on the scanner, turned with it
     Eigen::Matrix4d Rinv = Eigen::Matrix4d::Identity();
     Rinv.block<3, 3>(0, 0) = R.transpose().cast<double>();
     *v.reference_pose = *v.reference_pose * Rinv;
@@ -682,6 +708,55 @@ TEST(SimRegistration, ViewsFromNearlyStraightBelowLandRightOrFailByName) {
     }
   }
   EXPECT_GE(registered, 8 + 2);  // the hand-held session's but the 0.27 view; two from below
+  for (std::size_t i = 0; i < 8; ++i) EXPECT_TRUE(r.views[i].registered) << i;
+}
+
+// Issue 26: the colour checks (the refusal at 15 per channel or 2.5 x the model views'
+// own median difference, the swap, the near-tie choice) under a lamp on the scanner
+// instead of the simulator's unlit texture: every surface point's colour changes
+// from view to view with its angle to the lamp, which one gain per view cannot undo.
+// The hand-held session of HandHeldViewsWithAThirdOverlapRegister, lit; no view may
+// land wrong. FAILS TODAY, hence disabled (docs/registration.md, "Under a lamp",
+// 2026-12-06): with ambient 0.35 the view from above (overlap 1.0) lands 179.5 deg
+// off (its right and half-turned poses overlap 0.909 / 0.904 and differ in colour
+// from the model by 35.0 / 34.6 per channel; the table views differ by 25.7 among
+// themselves), and even with ambient 0.8 the view from 65 degrees below lands 179 deg
+// off. Run it with --gtest_also_run_disabled_tests.
+TEST(SimRegistration, DISABLED_HandHeldViewsUnderALampRegisterOrFailByName) {
+  test::TempDir dir("station-lamp");
+  const std::vector<HandShot> hand = {
+      {70, 30, 0.45, -1, 70},
+      {-60, 100, 0.45, -1, 160},
+      {-50, 320, 0.30, 0.05, 45},
+      {-40, 200, 0.30, 0.05, -120},
+      {-20, 250, 0.30, -1, 90},
+      {-65, 40, 0.35, -1, 30},
+      {-70, 280, 0.35, -1, -60},
+      {-80, 0, 0.35, -1, 100},
+      {-55, 180, 0.40, -1, 10},
+      {-75, 120, 0.30, 0.08, 0},
+  };
+  const Lamp lamp{Vec3f(0.6f, -0.5f, -1.0f), 0.35};  // up and to the side of the lens
+  const HandHeldSession s = hand_held_session(dir.path(), hand, &lamp);
+  ASSERT_EQ(s.clouds.size(), 8u + hand.size());
+  const RegistrationResult r = register_views(s.clouds, s.manifest);
+  print_prior("hand-held views under a lamp", r);
+  int assessed = 0, registered = 0;
+  for (std::size_t i = 8; i < s.clouds.size(); ++i) {
+    std::printf("  view %zu: overlap %.2f: %s\n", i, s.overlap[i],
+                r.views[i].registered ? "registered" : r.views[i].message.c_str());
+    if (r.views[i].registered) {
+      ++registered;
+      ASSERT_TRUE(r.views[i].rotation_error_deg.has_value()) << i;
+      EXPECT_LT(*r.views[i].rotation_error_deg, 0.5) << i;
+      EXPECT_LT(*r.views[i].object_translation_error, 0.001) << i;
+    } else {
+      EXPECT_FALSE(r.views[i].message.empty()) << i;
+    }
+    if (s.overlap[i] >= 0.3) ++assessed;
+  }
+  std::printf("  %d of %zu hand-held views registered (%d with a third or more overlap)\n", registered,
+              hand.size(), assessed);
   for (std::size_t i = 0; i < 8; ++i) EXPECT_TRUE(r.views[i].registered) << i;
 }
 
