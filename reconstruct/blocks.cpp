@@ -720,7 +720,9 @@ BlockMesh reconstruct_block(const Cloud& pts_in, const BlockGrid& grid, int id, 
   // extrapolate as the single run does.
   mp.frame = s.bounds;
   mp.mean_spacing = s.mean_spacing;
-  const MpuSurface surface = fit_mpu(pts, mp);
+  // The fits take the points in Z order, as the single run's (reconstruct_surface).
+  const std::vector<std::uint32_t> z_order = spatial_order(pts.points);
+  const MpuSurface surface = fit_mpu(reordered(pts, z_order), mp);
   out.mpu = surface.diagnostics();
   const bool close = s.hole == HoleMode::kClose;
   std::unique_ptr<WindingClose> winding;
@@ -802,7 +804,7 @@ BlockMesh reconstruct_block(const Cloud& pts_in, const BlockGrid& grid, int id, 
     if (p.colour_method == ColourMethod::kNearest) {
       transfer_colours(mesh, pts, {4, p.threads});
     } else {
-      const ColourFunction cf = fit_colour(pts, colour_params(p));
+      const ColourFunction cf = fit_colour(reordered(pts, z_order), colour_params(p));
       out.colour = cf.diagnostics();
       out.colour_nearest_vertices = colour_mesh(mesh, cf, surface, pts, p.threads);
       if (p.colour_edges) {
