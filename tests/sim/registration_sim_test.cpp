@@ -609,20 +609,32 @@ HandHeldSession hand_held_session(const std::filesystem::path& dir, const std::v
   return out;
 }
 
-// Issue 26, item 3, as the issue states it: hand-held views (no angle) from
-// above and below, nearer than the table's scanner, so that some see only a
-// part of the bottle; every view with 30 % or more overlap must register within
-// 0.5 deg / 1 mm at the object. With one RANSAC run at one FPFH radius
-// (global_extra_seeds 0, no global_extra_radii) the two views from below
-// (overlap 0.59 and 0.68) came out half-turned (179.5 and 177.7 deg, 61 and
-// 55 mm at the object); the second radius and seed find them. The view from 75
-// degrees below aimed 8 cm up (overlap 0.37) failed by name until the turns
-// about the view's own axes and the slide along the weakest direction
-// (2026-12-05): no RANSAC hypothesis came within 25 degrees of it, and the turn
-// that did came to rest 23 mm off along the band it shares with the model.
-TEST(SimRegistration, HandHeldViewsWithAThirdOverlapRegister) {
-  test::TempDir dir("station-handheld");
-  const std::vector<HandShot> hand = {
+// Each hand-held view (after the 8 table views) registered within 0.5 deg / 1 mm at
+// the object of the truth, or failed with a message that names it; returns how many
+// registered.
+int hand_held_right_or_named(const HandHeldSession& s, const RegistrationResult& r) {
+  int registered = 0;
+  for (std::size_t i = 8; i < s.clouds.size(); ++i) {
+    std::printf("  view %zu: %zu points, overlap %.2f: %s\n", i, s.clouds[i].size(), s.overlap[i],
+                r.views[i].registered ? "registered" : r.views[i].message.c_str());
+    if (r.views[i].registered) {
+      ++registered;
+      EXPECT_TRUE(r.views[i].rotation_error_deg.has_value()) << i;
+      if (!r.views[i].rotation_error_deg) continue;
+      EXPECT_LT(*r.views[i].rotation_error_deg, 0.5) << i;
+      EXPECT_LT(*r.views[i].object_translation_error, 0.001) << i;
+    } else {
+      EXPECT_EQ(r.views[i].message.rfind("views[" + std::to_string(i) + "]", 0), 0u) << i << ": " << r.views[i].message;
+    }
+  }
+  return registered;
+}
+
+// The hand-held shots of HandHeldViewsWithAThirdOverlapRegister (and, lit, of
+// DISABLED_HandHeldViewsUnderALampRegisterOrFailByName); the first nine also open
+// ViewsFromNearlyStraightBelowLandRightOrFailByName.
+std::vector<HandShot> hand_held_shots() {
+  return {
       {70, 30, 0.45, -1, 70},       // from above: the cap and shoulders
       {-60, 100, 0.45, -1, 160},    // from below: the bottom and a band of the side
       {-50, 320, 0.30, 0.05, 45},   // nearer, below the label
@@ -636,6 +648,22 @@ TEST(SimRegistration, HandHeldViewsWithAThirdOverlapRegister) {
       {-55, 180, 0.40, -1, 10},
       {-75, 120, 0.30, 0.08, 0},    // nearer, aimed 8 cm up: overlap 0.37
   };
+}
+
+// Issue 26, item 3, as the issue states it: hand-held views (no angle) from
+// above and below, nearer than the table's scanner, so that some see only a
+// part of the bottle; every view with 30 % or more overlap must register within
+// 0.5 deg / 1 mm at the object. With one RANSAC run at one FPFH radius
+// (global_extra_seeds 0, no global_extra_radii) the two views from below
+// (overlap 0.59 and 0.68) came out half-turned (179.5 and 177.7 deg, 61 and
+// 55 mm at the object); the second radius and seed find them. The view from 75
+// degrees below aimed 8 cm up (overlap 0.37) failed by name until the turns
+// about the view's own axes and the slide along the weakest direction
+// (2026-12-05): no RANSAC hypothesis came within 25 degrees of it, and the turn
+// that did came to rest 23 mm off along the band it shares with the model.
+TEST(SimRegistration, HandHeldViewsWithAThirdOverlapRegister) {
+  test::TempDir dir("station-handheld");
+  const std::vector<HandShot> hand = hand_held_shots();
   const HandHeldSession s = hand_held_session(dir.path(), hand);
   const std::vector<Cloud>& clouds = s.clouds;
   const SessionManifest& m = s.manifest;
@@ -674,39 +702,20 @@ TEST(SimRegistration, HandHeldViewsWithAThirdOverlapRegister) {
 // register right or fail by name.
 TEST(SimRegistration, ViewsFromNearlyStraightBelowLandRightOrFailByName) {
   test::TempDir dir("station-below");
-  const std::vector<HandShot> hand = {
-      {70, 30, 0.45, -1, 70},
-      {-60, 100, 0.45, -1, 160},
-      {-50, 320, 0.30, 0.05, 45},
-      {-40, 200, 0.30, 0.05, -120},
-      {-20, 250, 0.30, -1, 90},
-      {-65, 40, 0.35, -1, 30},
-      {-70, 280, 0.35, -1, -60},
-      {-80, 0, 0.35, -1, 100},
-      {-55, 180, 0.40, -1, 10},
+  std::vector<HandShot> hand = hand_held_shots();
+  hand.resize(9);
+  hand.insert(hand.end(), {
       {-75, 0, 0.30, 0.08, 30},
       {-75, 60, 0.30, 0.08, -90},
       {-70, 150, 0.30, 0.08, 120},
       {-80, 250, 0.30, 0.06, -30},
       {-75, 300, 0.30, 0.08, 0},
-  };
+  });
   const HandHeldSession s = hand_held_session(dir.path(), hand);
   ASSERT_EQ(s.clouds.size(), 8u + hand.size());
   const RegistrationResult r = register_views(s.clouds, s.manifest);
   print_prior("views from nearly straight below", r);
-  int registered = 0;
-  for (std::size_t i = 8; i < s.clouds.size(); ++i) {
-    std::printf("  view %zu: %zu points, overlap %.2f: %s\n", i, s.clouds[i].size(), s.overlap[i],
-                r.views[i].registered ? "registered" : r.views[i].message.c_str());
-    if (r.views[i].registered) {
-      ++registered;
-      ASSERT_TRUE(r.views[i].rotation_error_deg.has_value()) << i;
-      EXPECT_LT(*r.views[i].rotation_error_deg, 0.5) << i;
-      EXPECT_LT(*r.views[i].object_translation_error, 0.001) << i;
-    } else {
-      EXPECT_EQ(r.views[i].message.rfind("views[" + std::to_string(i) + "]", 0), 0u) << i << ": " << r.views[i].message;
-    }
-  }
+  const int registered = hand_held_right_or_named(s, r);
   EXPECT_GE(registered, 8 + 2);  // the hand-held session's but the 0.27 view; two from below
   for (std::size_t i = 0; i < 8; ++i) EXPECT_TRUE(r.views[i].registered) << i;
 }
@@ -724,37 +733,15 @@ TEST(SimRegistration, ViewsFromNearlyStraightBelowLandRightOrFailByName) {
 // off. Run it with --gtest_also_run_disabled_tests.
 TEST(SimRegistration, DISABLED_HandHeldViewsUnderALampRegisterOrFailByName) {
   test::TempDir dir("station-lamp");
-  const std::vector<HandShot> hand = {
-      {70, 30, 0.45, -1, 70},
-      {-60, 100, 0.45, -1, 160},
-      {-50, 320, 0.30, 0.05, 45},
-      {-40, 200, 0.30, 0.05, -120},
-      {-20, 250, 0.30, -1, 90},
-      {-65, 40, 0.35, -1, 30},
-      {-70, 280, 0.35, -1, -60},
-      {-80, 0, 0.35, -1, 100},
-      {-55, 180, 0.40, -1, 10},
-      {-75, 120, 0.30, 0.08, 0},
-  };
+  const std::vector<HandShot> hand = hand_held_shots();
   const Lamp lamp{Vec3f(0.6f, -0.5f, -1.0f), 0.35};  // up and to the side of the lens
   const HandHeldSession s = hand_held_session(dir.path(), hand, &lamp);
   ASSERT_EQ(s.clouds.size(), 8u + hand.size());
   const RegistrationResult r = register_views(s.clouds, s.manifest);
   print_prior("hand-held views under a lamp", r);
-  int assessed = 0, registered = 0;
-  for (std::size_t i = 8; i < s.clouds.size(); ++i) {
-    std::printf("  view %zu: overlap %.2f: %s\n", i, s.overlap[i],
-                r.views[i].registered ? "registered" : r.views[i].message.c_str());
-    if (r.views[i].registered) {
-      ++registered;
-      ASSERT_TRUE(r.views[i].rotation_error_deg.has_value()) << i;
-      EXPECT_LT(*r.views[i].rotation_error_deg, 0.5) << i;
-      EXPECT_LT(*r.views[i].object_translation_error, 0.001) << i;
-    } else {
-      EXPECT_FALSE(r.views[i].message.empty()) << i;
-    }
-    if (s.overlap[i] >= 0.3) ++assessed;
-  }
+  const int registered = hand_held_right_or_named(s, r);
+  int assessed = 0;
+  for (std::size_t i = 8; i < s.clouds.size(); ++i) assessed += s.overlap[i] >= 0.3;
   std::printf("  %d of %zu hand-held views registered (%d with a third or more overlap)\n", registered,
               hand.size(), assessed);
   for (std::size_t i = 0; i < 8; ++i) EXPECT_TRUE(r.views[i].registered) << i;
