@@ -1,5 +1,6 @@
 #include "reconstruct/mpu.h"
 
+#include <tbb/collaborative_call_once.h>
 #include <tbb/parallel_for.h>
 #include <tbb/task_arena.h>
 
@@ -8,7 +9,6 @@
 #include <chrono>
 #include <cmath>
 #include <cstdint>
-#include <mutex>
 #include <string>
 
 #include "core/error.h"
@@ -159,9 +159,11 @@ struct MpuSurface::Impl {
   std::vector<Bivariate> singles;
   double trust_radius = 0;  // normalised
   // Cells surely within trust_radius of a point (trusted() without a search); built
-  // on the first trusted() call.
+  // on the first trusted() call. Those calls come from inside parallel loops and the
+  // build runs one itself: collaborative_call_once lets a thread that waits on the
+  // build work on it (std::call_once could be re-entered on the building thread).
   mutable NearGrid trust_grid;
-  mutable std::once_flag trust_grid_once;
+  mutable tbb::collaborative_once_flag trust_grid_once;
 
   // Evaluation layout, built once after the fit (the queries' time is mostly
   // cache misses on the octree's nodes and fits, docs/mpu.md "Evaluation"):
@@ -968,7 +970,8 @@ bool MpuSurface::may_be_sharp(const Vec3d& x, double radius) const {
   return impl_->may_be_sharp((x - impl_->center) * impl_->scale, radius * impl_->scale);
 }
 bool MpuSurface::trusted(const Vec3d& x) const {
-  std::call_once(impl_->trust_grid_once, [&] { impl_->trust_grid = NearGrid(impl_->points, impl_->trust_radius); });
+  tbb::collaborative_call_once(impl_->trust_grid_once,
+                               [&] { impl_->trust_grid = NearGrid(impl_->points, impl_->trust_radius); });
   const Vec3d q = (x - impl_->center) * impl_->scale;
   if (impl_->trust_grid.surely_near(q)) return true;
   const auto [id, d] = impl_->index->nearest(q.cast<float>());

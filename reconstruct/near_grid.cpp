@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 
 #include <tbb/parallel_for.h>
 
@@ -27,7 +28,9 @@ NearGrid::NearGrid(const std::vector<Vec3f>& points, double radius) {
     for (int a = 0; a < 3; ++a) total *= std::floor(ext[a] / c) + 1;
     return total;
   };
-  if (const double total = cells(cell_); total > kMaxCells) cell_ *= 1.01 * std::cbrt(total / kMaxCells);
+  // Coarser until it fits (a flat or long box shrinks on fewer axes than the cube root
+  // assumes).
+  for (double total = cells(cell_); total > kMaxCells; total = cells(cell_)) cell_ *= 1.01 * std::cbrt(total / kMaxCells);
   // Every point of a cell within `inner` of its centre's point is within the radius,
   // less a margin for the float coordinates and distance a k-d tree query uses.
   const double inner = radius * (1 - 1e-5) - 0.5 * std::sqrt(3.0) * cell_ - 4e-7 * max_abs;

@@ -36,8 +36,9 @@ class NearGrid {
   }
   bool empty() const { return bits_.empty(); }
   double cell() const { return cell_; }
-  /// Cells set (for tests and diagnostics).
+  /// Cells set, and cells in all (for tests and diagnostics).
   std::size_t set_cells() const;
+  std::size_t cells() const { return std::size_t(dims_[0]) * std::size_t(dims_[1]) * std::size_t(dims_[2]); }
 
   static constexpr double kMaxCells = 1 << 27;  // 16 MiB of bits
 

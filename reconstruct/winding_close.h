@@ -111,7 +111,8 @@ class WindingClose : public ImplicitFunction {
  private:
   double blend(const Vec3d& x, Vec3d* grad) const;
   // Whether every one of the n points is surely within the trust distance t1 of an
-  // input point (one nearest-point query for the cluster): blend() is 0 for all.
+  // input point (each in a cell of the NearGrid, else one nearest-point query for the
+  // cluster): blend() is 0 for all.
   bool all_trusted(const Vec3d* xs, int n) const;
   // values_gradients_near through the blend for every point (no trusted shortcut).
   void blended_values_gradients(const Vec3d* xs, int n, double* values, Vec3d* grads) const;

@@ -745,9 +745,10 @@ void Consolidator::repulsion_radius(bool one_side) {
   tbb::parallel_for(tbb::blocked_range<std::size_t>(0, ni_, kGrain), [&](const tbb::blocked_range<std::size_t>& r) {
     for (std::size_t i = r.begin(); i < r.end(); ++i) {
       double rho = 0;
-      if (one_side) {
+      if (one_side && side_[i].squaredNorm() > 0) {
         // The k-th nearest facing i's way among its kOneSideSearch * k nearest (the
-        // farthest of those where fewer face its way).
+        // farthest of those where fewer face its way). A point without a side (a zero
+        // normal) counts both sides, as fit_plane does.
         const auto nn = index.knn(pts[i], kOneSideSearch * k);
         int same = 0;
         for (const auto& [j, d] : nn) {

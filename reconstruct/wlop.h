@@ -146,7 +146,9 @@ enum class WlopAttraction {
   ///   x_i <- x_i + ((c_i - x_i) . n_i) n_i      onto the plane,
   ///          + pull                             the centroid's offset along the plane,
   ///                                             beyond a dead zone of 0.4 standard
-  ///                                             deviations of the weights,
+  ///                                             deviations of the weights (0.3
+  ///                                             where the edge variant fits two
+  ///                                             or more faces),
   ///          + mu E2_t                          E2 (eq. 3) without its part along n_i,
   /// E2 and w_i (eq. 7) with theta over a radius of 2.6 output spacings (from the area
   /// the projected points cover, WlopResult::repulsion_radius) instead of h. After the

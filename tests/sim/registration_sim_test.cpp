@@ -670,17 +670,10 @@ TEST(SimRegistration, HandHeldViewsWithAThirdOverlapRegister) {
   ASSERT_EQ(clouds.size(), 8u + hand.size());
   const RegistrationResult r = register_views(clouds, m);
   print_prior("hand-held views", r);
+  // Registered or not, never wrong: a view under 30 % may fail, by name.
+  hand_held_right_or_named(s, r);
   int partial = 0, assessed = 0;
   for (std::size_t i = 8; i < clouds.size(); ++i) {
-    std::printf("  hand-held view %zu: %zu points, overlap %.2f\n", i, clouds[i].size(), s.overlap[i]);
-    // Registered or not, never wrong: a view under 30 % may fail, by name.
-    if (r.views[i].registered) {
-      ASSERT_TRUE(r.views[i].rotation_error_deg.has_value()) << i;
-      EXPECT_LT(*r.views[i].rotation_error_deg, 0.5) << i;
-      EXPECT_LT(*r.views[i].object_translation_error, 0.001) << i;
-    } else {
-      EXPECT_FALSE(r.views[i].message.empty()) << i;
-    }
     if (s.overlap[i] < 0.3) continue;
     ++assessed;
     partial += s.overlap[i] < 0.7;
