@@ -83,9 +83,17 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
   out.seconds.normals = seconds_since(t0);
 
   out.hole = p.hole;
+  // The winding number's area per point, for the enclosure and the closing alike
+  // (the points do not change between them; a turn of the normals does not matter).
+  std::vector<double> areas;
+  const auto point_areas_once = [&]() -> const std::vector<double>* {
+    if (areas.empty()) tbb::task_arena(worker_threads(p.threads)).execute([&] { areas = point_areas(input.points); });
+    return &areas;
+  };
   if (p.hole == HoleMode::kAuto) {
     // (in an arena of p.threads: the winding number's construction runs in parallel)
-    tbb::task_arena(worker_threads(p.threads)).execute([&] { out.enclosure = cloud_enclosure(input); });
+    const std::vector<double>* a = point_areas_once();
+    tbb::task_arena(worker_threads(p.threads)).execute([&] { out.enclosure = cloud_enclosure(input, a); });
     if (*out.enclosure <= -kEnclosedAbove) {
       // A closed cloud whose normals all face inwards: turned, then closed.
       for (Vec3f& n : input.normals) n = -n;
@@ -138,6 +146,7 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
       wp.trust_distance = mp.trust_factor * out.mpu.mean_spacing;
       wp.voxel = std::max(wp.trust_distance / 2, double(bounding_box(input.points).diagonal()) / 200);
     }
+    wp.areas = point_areas_once();
     tbb::task_arena(worker_threads(p.threads)).execute([&] { winding = std::make_unique<WindingClose>(surface, input, wp); });
     out.winding_points = winding->winding_points();
     out.winding_trust = winding->trust_distance();

@@ -75,31 +75,50 @@ struct WindingNumber::Impl {
   }
 };
 
-WindingNumber::WindingNumber(const std::vector<Vec3f>& points, const std::vector<Vec3f>& normals, double voxel)
-    : impl_(std::make_unique<Impl>()) {
-  if (points.size() != normals.size()) throw InvalidInput("winding number: points and normals differ in count");
-  if (!(voxel > 0) || !std::isfinite(voxel)) throw InvalidInput("winding number: the voxel must be positive");
+std::vector<double> point_areas(const std::vector<Vec3f>& points) {
   // Area per point from the local density: the disc reaching the k-th neighbour
   // holds k points, so a point stands for pi r_k^2 / k (uneven density, such as the
   // overlaps of merged views, is handled by construction).
   constexpr int kNeighbours = 8;
   std::vector<Vec3f> finite;
-  std::vector<Vec3d> fnormals;
+  std::vector<std::size_t> at;
   for (std::size_t i = 0; i < points.size(); ++i)
-    if (points[i].allFinite() && normals[i].allFinite()) {
+    if (points[i].allFinite()) {
       finite.push_back(points[i]);
-      fnormals.push_back(normals[i].cast<double>());
+      at.push_back(i);
     }
   const PointIndex index(finite);
-  std::vector<double> area(finite.size(), 0);
+  std::vector<double> area(points.size(), 0);
   tbb::parallel_for(tbb::blocked_range<std::size_t>(0, finite.size(), 1024), [&](const auto& range) {
     for (std::size_t i = range.begin(); i != range.end(); ++i) {
       const auto nn = index.knn(finite[i], kNeighbours + 1);  // the point itself first
       if (nn.size() < 2) continue;
       const double r = nn.back().second;
-      area[i] = 3.14159265358979323846 * r * r / double(nn.size() - 1);
+      area[at[i]] = 3.14159265358979323846 * r * r / double(nn.size() - 1);
     }
   });
+  return area;
+}
+
+WindingNumber::WindingNumber(const std::vector<Vec3f>& points, const std::vector<Vec3f>& normals, double voxel,
+                             const std::vector<double>* areas)
+    : impl_(std::make_unique<Impl>()) {
+  if (points.size() != normals.size()) throw InvalidInput("winding number: points and normals differ in count");
+  if (!(voxel > 0) || !std::isfinite(voxel)) throw InvalidInput("winding number: the voxel must be positive");
+  if (areas && areas->size() != points.size()) throw InvalidInput("winding number: areas and points differ in count");
+  // The areas over the points with finite coordinates and normals (point_areas counts
+  // the points with finite coordinates: a non-finite normal does not move a neighbour).
+  const std::vector<double> computed = areas ? std::vector<double>() : point_areas(points);
+  const std::vector<double>& all_areas = areas ? *areas : computed;
+  std::vector<Vec3f> finite;
+  std::vector<Vec3d> fnormals;
+  std::vector<double> area;
+  for (std::size_t i = 0; i < points.size(); ++i)
+    if (points[i].allFinite() && normals[i].allFinite()) {
+      finite.push_back(points[i]);
+      fnormals.push_back(normals[i].cast<double>());
+      area.push_back(all_areas[i]);
+    }
   struct Acc {
     Vec3d p = Vec3d::Zero(), dipole = Vec3d::Zero();
     double weight = 0;
@@ -261,13 +280,13 @@ double subset_spacing(const PointIndex& index, const std::vector<Vec3f>& points)
 
 }  // namespace
 
-double cloud_enclosure(const Cloud& cloud) {
+double cloud_enclosure(const Cloud& cloud, const std::vector<double>* areas) {
   if (cloud.points.empty() || !cloud.has_normals()) return 0;
   const PointIndex index(cloud.points);
   const double diag = bounding_box(cloud.points).diagonal();
   const double t1 = 4 * subset_spacing(index, cloud.points);
   const double voxel = std::max(0.5 * t1, std::max(diag, 1e-9) / 200);
-  const WindingNumber w(cloud.points, cloud.normals, voxel);
+  const WindingNumber w(cloud.points, cloud.normals, voxel, areas);
   const std::size_t n = cloud.points.size(), m = std::min<std::size_t>(n, 2000);
   std::vector<double> sums;
   sums.reserve(m);
@@ -305,7 +324,7 @@ WindingClose::WindingClose(const ImplicitFunction& f, const Cloud& cloud, const 
   t2_ = params.ramp * t1_;
   const double voxel = params.voxel > 0 ? params.voxel : std::max(0.5 * t1_, diag / 200);
   index_->near = NearGrid(cloud.points, t1_);
-  w_ = std::make_unique<WindingNumber>(cloud.points, cloud.normals, voxel);
+  w_ = std::make_unique<WindingNumber>(cloud.points, cloud.normals, voxel, params.areas);
 }
 
 WindingClose::~WindingClose() = default;

@@ -30,8 +30,11 @@ namespace station {
 /// after construction.
 class WindingNumber {
  public:
-  /// points and unit normals (outwards), same size; voxel > 0.
-  WindingNumber(const std::vector<Vec3f>& points, const std::vector<Vec3f>& normals, double voxel);
+  /// points and unit normals (outwards), same size; voxel > 0. `areas`: each point's
+  /// area as point_areas gives it for these points (taken instead of computing it
+  /// again; the same values), or null.
+  WindingNumber(const std::vector<Vec3f>& points, const std::vector<Vec3f>& normals, double voxel,
+                const std::vector<double>* areas = nullptr);
   ~WindingNumber();
   WindingNumber(WindingNumber&&) noexcept;
   WindingNumber& operator=(WindingNumber&&) noexcept;
@@ -50,6 +53,12 @@ class WindingNumber {
   std::unique_ptr<Impl> impl_;
 };
 
+/// The area each point stands for in the winding number: pi r_8^2 / 8 over the finite
+/// points (r_8: the distance to the 8th nearest), 0 for a non-finite one. One k-d tree
+/// and one 9-nearest query per point: the surface stage computes it once for the
+/// enclosure and the closing.
+std::vector<double> point_areas(const std::vector<Vec3f>& points);
+
 /// How much an oriented cloud encloses: the median, over up to 2,000 of its points
 /// p with normals n, of w(p - d n) + w(p + d n), with d the winding number's voxel
 /// (half WindingClose's default trust distance, at least diagonal / 200). Just
@@ -58,7 +67,7 @@ class WindingNumber {
 /// rest of the cloud adds (a plane 0, a hemisphere 0.65: its rim sees most of it). The
 /// surface stage's HoleMode::kAuto closes at kEnclosedAbove and above. 0 for an
 /// empty cloud or one without normals.
-double cloud_enclosure(const Cloud& cloud);
+double cloud_enclosure(const Cloud& cloud, const std::vector<double>* areas = nullptr);
 /// Measured: whole turntable sessions 1.00 (the bundled bottle) and 0.92 (the
 /// Stanford dragon, open under its stand); single views 0.47 (a simulated bottle
 /// view, half its side), 0.21 (a dragon scan), 0.17 (a Kinect scene); a sphere
@@ -81,6 +90,9 @@ struct WindingCloseParams {
   double ramp = 1.5;
   /// Voxel of the winding-number reduction; 0 = max(t1 / 2, diagonal / 200).
   double voxel = 0;
+  /// point_areas of the cloud's points, when the caller has them (read during
+  /// construction only), or null.
+  const std::vector<double>* areas = nullptr;
 };
 
 /// g(x) = (1 - beta) f(x) + beta s(x), beta = clamp((d(x) - t1) / (t2 - t1), 0, 1),
