@@ -599,16 +599,21 @@ class Registrar {
     return cm;
   }
   // Mean colour difference (0-255, per channel) between the points of `c` moved
-  // by X and the model's nearest within `dist`, after one gain on all channels
-  // that fits the view's colours to the model's best (least squares, within
+  // by X and the model's nearest within `dist`, after a gain on all channels that
+  // fits the view's colours to the model's best (least squares; each point's within
   // [1 / kColourMaxGain, kColourMaxGain]: a scanner's exposure changes from view
-  // to view; one gain cannot turn one hue into another). Infinity when no point
-  // is that near.
+  // to view; a gain cannot turn one hue into another). With normals the gain is
+  // affine in the point's normal (facing the sensor at the origin), g0 + g . n: a
+  // lamp on the scanner lights each point by its angle to it (Lambert), which one
+  // gain per view cannot undo (docs/registration.md, "Under a lamp"); without, one
+  // gain. Infinity when no point is that near.
   static double colour_error(const Cloud& c, const ColourModel& cm, const Eigen::Matrix4d& X, double dist) {
     if (!c.has_colours() || c.empty()) return std::numeric_limits<double>::infinity();
     const std::size_t stride = std::max<std::size_t>(1, c.size() / 3000);
     const Eigen::Matrix4f Xf = X.cast<float>();
     std::vector<std::pair<Vec3d, Vec3d>> pairs;
+    std::vector<Eigen::Vector4d> basis;  // (1, n): the gain's terms at each pair
+    const bool by_normal = c.has_normals();
     double ab = 0, aa = 0;
     for (std::size_t k = 0; k < c.size(); k += stride) {
       const auto [j, d] = cm.index->nearest(Xf.block<3, 3>(0, 0) * c.points[k] + Xf.block<3, 1>(0, 3));
@@ -618,9 +623,36 @@ class Registrar {
       pairs.push_back({Vec3d(a.r, a.g, a.b), Vec3d(b.r, b.g, b.b)});
       ab += pairs.back().first.dot(pairs.back().second);
       aa += pairs.back().first.squaredNorm();
+      if (by_normal) {
+        Vec3d n = c.normals[k].cast<double>();
+        if (!n.allFinite()) n = Vec3d::Zero();
+        if (n.dot(c.points[k].cast<double>()) > 0) n = -n;  // towards the sensor
+        basis.push_back(Eigen::Vector4d(1, n.x(), n.y(), n.z()));
+      }
     }
     if (pairs.empty()) return std::numeric_limits<double>::infinity();
     const double gain = aa > 0 ? std::clamp(ab / aa, 1.0 / kColourMaxGain, kColourMaxGain) : 1.0;
+    if (by_normal && pairs.size() >= 8) {
+      // A gain affine in the view's normal: a lamp on the scanner lights each point by
+      // its angle to it (Lambert), which one gain cannot undo.
+      Eigen::Matrix4d A = Eigen::Matrix4d::Zero();
+      Eigen::Vector4d rhs = Eigen::Vector4d::Zero();
+      for (std::size_t k = 0; k < pairs.size(); ++k) {
+        const double s = pairs[k].first.squaredNorm(), t = pairs[k].first.dot(pairs[k].second);
+        A += s * basis[k] * basis[k].transpose();
+        rhs += t * basis[k];
+      }
+      A += 1e-6 * A.trace() * Eigen::Matrix4d::Identity();
+      const Eigen::Vector4d g = A.ldlt().solve(rhs);
+      if (g.allFinite()) {
+        double sum = 0;
+        for (std::size_t k = 0; k < pairs.size(); ++k) {
+          const double gk = std::clamp(g.dot(basis[k]), 1.0 / kColourMaxGain, kColourMaxGain);
+          sum += (gk * pairs[k].first - pairs[k].second).cwiseAbs().sum() / 3.0;
+        }
+        return sum / double(pairs.size());
+      }
+    }
     double sum = 0;
     for (const auto& [a, b] : pairs) sum += (gain * a - b).cwiseAbs().sum() / 3.0;
     return sum / double(pairs.size());

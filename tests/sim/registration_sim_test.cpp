@@ -716,28 +716,39 @@ TEST(SimRegistration, ViewsFromNearlyStraightBelowLandRightOrFailByName) {
 // Issue 26: the colour checks (the refusal at 15 per channel or 2.5 x the model views'
 // own median difference, the swap, the near-tie choice) under a lamp on the scanner
 // instead of the simulator's unlit texture: every surface point's colour changes
-// from view to view with its angle to the lamp, which one gain per view cannot undo.
-// The hand-held session of HandHeldViewsWithAThirdOverlapRegister, lit; no view may
-// land wrong. FAILS TODAY, hence disabled (docs/registration.md, "Under a lamp",
-// 2026-12-06): with ambient 0.35 the view from above (overlap 1.0) lands 179.5 deg
-// off (its right and half-turned poses overlap 0.909 / 0.904 and differ in colour
-// from the model by 35.0 / 34.6 per channel; the table views differ by 25.7 among
-// themselves), and even with ambient 0.8 the view from 65 degrees below lands 179 deg
-// off. Run it with --gtest_also_run_disabled_tests.
-TEST(SimRegistration, DISABLED_HandHeldViewsUnderALampRegisterOrFailByName) {
-  test::TempDir dir("station-lamp");
+// from view to view with its angle to the lamp. The hand-held session of
+// HandHeldViewsWithAThirdOverlapRegister, lit; no view may land wrong. Returns how
+// many hand-held views registered.
+int lamp_session(const std::filesystem::path& dir, const Lamp& lamp) {
   const std::vector<HandShot> hand = hand_held_shots();
-  const Lamp lamp{Vec3f(0.6f, -0.5f, -1.0f), 0.35};  // up and to the side of the lens
-  const HandHeldSession s = hand_held_session(dir.path(), hand, &lamp);
-  ASSERT_EQ(s.clouds.size(), 8u + hand.size());
+  const HandHeldSession s = hand_held_session(dir, hand, &lamp);
+  EXPECT_EQ(s.clouds.size(), 8u + hand.size());
   const RegistrationResult r = register_views(s.clouds, s.manifest);
   print_prior("hand-held views under a lamp", r);
   const int registered = hand_held_right_or_named(s, r);
-  int assessed = 0;
-  for (std::size_t i = 8; i < s.clouds.size(); ++i) assessed += s.overlap[i] >= 0.3;
-  std::printf("  %d of %zu hand-held views registered (%d with a third or more overlap)\n", registered,
-              hand.size(), assessed);
+  std::printf("  ambient %.2f: %d of %zu hand-held views registered\n", lamp.ambient, registered, hand.size());
   for (std::size_t i = 0; i < 8; ++i) EXPECT_TRUE(r.views[i].registered) << i;
+  return registered;
+}
+
+// A lamp that keeps 0.7 of the texture's brightness where it lights a point edge-on,
+// from two sides of the lens. With one gain per view (before 2026-12-06) the view
+// from 65 degrees below (overlap 0.38) landed 179.2 deg / 86 mm off, silently, under
+// the second lamp (and under the first at 0.8); the gain affine in the view's normal
+// (colour_error) registers it. Measured: 9 of 10 under each, as unlit.
+TEST(SimRegistration, HandHeldViewsUnderALampRegisterOrFailByName) {
+  test::TempDir dir("station-lamp");
+  EXPECT_GE(lamp_session(dir.path() / "a", Lamp{Vec3f(0.6f, -0.5f, -1.0f), 0.7}), 8);
+  EXPECT_GE(lamp_session(dir.path() / "b", Lamp{Vec3f(-0.4f, 0.6f, -1.0f), 0.7}), 8);
+}
+
+// The same under a harsher lamp (a point lit edge-on keeps 0.35 of its brightness).
+// FAILS TODAY, hence disabled (docs/registration.md, "Under a lamp"): the view from
+// 65 degrees below lands 179.2 deg off (so it does at 0.6). Run it with
+// --gtest_also_run_disabled_tests.
+TEST(SimRegistration, DISABLED_HandHeldViewsUnderAHarshLampRegisterOrFailByName) {
+  test::TempDir dir("station-harsh-lamp");
+  lamp_session(dir.path(), Lamp{Vec3f(0.6f, -0.5f, -1.0f), 0.35});
 }
 
 }  // namespace
