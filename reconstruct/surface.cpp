@@ -87,7 +87,7 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
   // (the points do not change between them; a turn of the normals does not matter).
   std::vector<double> areas;
   const auto point_areas_once = [&]() -> const std::vector<double>* {
-    if (areas.empty()) tbb::task_arena(worker_threads(p.threads)).execute([&] { areas = point_areas(input.points); });
+    if (areas.empty()) tbb::task_arena(worker_threads(p.threads)).execute([&] { areas = point_areas(input.points, input.normals); });
     return &areas;
   };
   if (p.hole == HoleMode::kAuto) {

@@ -75,7 +75,8 @@ struct WindingNumber::Impl {
   }
 };
 
-std::vector<double> point_areas(const std::vector<Vec3f>& points) {
+std::vector<double> point_areas(const std::vector<Vec3f>& points, const std::vector<Vec3f>& normals) {
+  if (points.size() != normals.size()) throw InvalidInput("winding number: points and normals differ in count");
   // Area per point from the local density: the disc reaching the k-th neighbour
   // holds k points, so a point stands for pi r_k^2 / k (uneven density, such as the
   // overlaps of merged views, is handled by construction).
@@ -83,7 +84,7 @@ std::vector<double> point_areas(const std::vector<Vec3f>& points) {
   std::vector<Vec3f> finite;
   std::vector<std::size_t> at;
   for (std::size_t i = 0; i < points.size(); ++i)
-    if (points[i].allFinite()) {
+    if (points[i].allFinite() && normals[i].allFinite()) {
       finite.push_back(points[i]);
       at.push_back(i);
     }
@@ -106,9 +107,9 @@ WindingNumber::WindingNumber(const std::vector<Vec3f>& points, const std::vector
   if (points.size() != normals.size()) throw InvalidInput("winding number: points and normals differ in count");
   if (!(voxel > 0) || !std::isfinite(voxel)) throw InvalidInput("winding number: the voxel must be positive");
   if (areas && areas->size() != points.size()) throw InvalidInput("winding number: areas and points differ in count");
-  // The areas over the points with finite coordinates and normals (point_areas counts
-  // the points with finite coordinates: a non-finite normal does not move a neighbour).
-  const std::vector<double> computed = areas ? std::vector<double>() : point_areas(points);
+  // The areas of the points with finite coordinates and normals (the others are left
+  // out of the tree and the sums alike).
+  const std::vector<double> computed = areas ? std::vector<double>() : point_areas(points, normals);
   const std::vector<double>& all_areas = areas ? *areas : computed;
   std::vector<Vec3f> finite;
   std::vector<Vec3d> fnormals;

@@ -53,11 +53,12 @@ class WindingNumber {
   std::unique_ptr<Impl> impl_;
 };
 
-/// The area each point stands for in the winding number: pi r_8^2 / 8 over the finite
-/// points (r_8: the distance to the 8th nearest), 0 for a non-finite one. One k-d tree
-/// and one 9-nearest query per point: the surface stage computes it once for the
-/// enclosure and the closing.
-std::vector<double> point_areas(const std::vector<Vec3f>& points);
+/// The area each point stands for in the winding number: pi r_8^2 / 8 over the points
+/// whose coordinates and normal are finite (r_8: the distance to the 8th nearest of
+/// them), 0 for the others. One k-d tree and one 9-nearest query per point: the
+/// surface stage computes it once for the enclosure and the closing. InvalidInput when
+/// the sizes differ.
+std::vector<double> point_areas(const std::vector<Vec3f>& points, const std::vector<Vec3f>& normals);
 
 /// How much an oriented cloud encloses: the median, over up to 2,000 of its points
 /// p with normals n, of w(p - d n) + w(p + d n), with d the winding number's voxel

@@ -589,7 +589,9 @@ class Registrar {
     std::vector<double> diffs(members.size() > 1 ? members.size() - 1 : 0, std::numeric_limits<double>::infinity());
     tbb::parallel_for(std::size_t(0), diffs.size(), [&](std::size_t k) {
       const std::unique_ptr<ColourModel> next = placed_colours({members[k + 1]}, 20000);
-      if (next) diffs[k] = colour_error(views_[members[k]].full, *next, res_.poses[members[k]], p_.icp_end_rel * diag_);
+      if (next)
+        diffs[k] = colour_error(views_[members[k]].full, *next, res_.poses[members[k]], p_.icp_end_rel * diag_,
+                                views_[members[k]].viewpoint);
     });
     diffs.erase(std::remove_if(diffs.begin(), diffs.end(), [](double d) { return !std::isfinite(d); }), diffs.end());
     if (!diffs.empty()) {
@@ -599,21 +601,26 @@ class Registrar {
     return cm;
   }
   // Mean colour difference (0-255, per channel) between the points of `c` moved
-  // by X and the model's nearest within `dist`, after a gain on all channels that
-  // fits the view's colours to the model's best (least squares; each point's within
+  // by X and the model's nearest within `dist`, after one gain on all channels that
+  // fits the view's colours to the model's best (least squares, within
   // [1 / kColourMaxGain, kColourMaxGain]: a scanner's exposure changes from view
-  // to view; a gain cannot turn one hue into another). With normals the gain is
-  // affine in the point's normal (facing the sensor at the origin), g0 + g . n: a
-  // lamp on the scanner lights each point by its angle to it (Lambert), which one
-  // gain per view cannot undo (docs/registration.md, "Under a lamp"); without, one
-  // gain. Infinity when no point is that near.
-  static double colour_error(const Cloud& c, const ColourModel& cm, const Eigen::Matrix4d& X, double dist) {
+  // to view; a gain cannot turn one hue into another). With normals, the view's
+  // shading too: a lamp on the scanner lights each point by its angle to it
+  // (Lambert), a brightness affine in the point's normal n (turned towards the
+  // sensor `eye`), which one gain per view cannot undo (docs/registration.md, "Under
+  // a lamp"). So the model's colour b is fitted to the view's a as h(n) b with
+  // h = h0 + h . n (least squares, the normal terms lightly damped towards one gain),
+  // and the difference taken as |a / h(n) - b|, each h within the same bounds.
+  // Points without a usable normal take the one gain. Infinity when no point is that
+  // near.
+  static double colour_error(const Cloud& c, const ColourModel& cm, const Eigen::Matrix4d& X, double dist,
+                             const Vec3f& eye = Vec3f::Zero()) {
     if (!c.has_colours() || c.empty()) return std::numeric_limits<double>::infinity();
     const std::size_t stride = std::max<std::size_t>(1, c.size() / 3000);
     const Eigen::Matrix4f Xf = X.cast<float>();
     std::vector<std::pair<Vec3d, Vec3d>> pairs;
-    std::vector<Eigen::Vector4d> basis;  // (1, n): the gain's terms at each pair
-    const bool by_normal = c.has_normals();
+    std::vector<Eigen::Vector4d> basis;  // (1, n) at each pair; (0, 0, 0, 0): no normal
+    const bool shading = c.has_normals();
     double ab = 0, aa = 0;
     for (std::size_t k = 0; k < c.size(); k += stride) {
       const auto [j, d] = cm.index->nearest(Xf.block<3, 3>(0, 0) * c.points[k] + Xf.block<3, 1>(0, 3));
@@ -623,32 +630,46 @@ class Registrar {
       pairs.push_back({Vec3d(a.r, a.g, a.b), Vec3d(b.r, b.g, b.b)});
       ab += pairs.back().first.dot(pairs.back().second);
       aa += pairs.back().first.squaredNorm();
-      if (by_normal) {
+      if (shading) {
         Vec3d n = c.normals[k].cast<double>();
-        if (!n.allFinite()) n = Vec3d::Zero();
-        if (n.dot(c.points[k].cast<double>()) > 0) n = -n;  // towards the sensor
+        const double len = n.norm();
+        if (!(len > 0) || !std::isfinite(len)) {
+          basis.push_back(Eigen::Vector4d::Zero());
+          continue;
+        }
+        n /= len;
+        if (n.dot((eye - c.points[k]).cast<double>()) < 0) n = -n;
         basis.push_back(Eigen::Vector4d(1, n.x(), n.y(), n.z()));
       }
     }
     if (pairs.empty()) return std::numeric_limits<double>::infinity();
     const double gain = aa > 0 ? std::clamp(ab / aa, 1.0 / kColourMaxGain, kColourMaxGain) : 1.0;
-    if (by_normal && pairs.size() >= 8) {
-      // A gain affine in the view's normal: a lamp on the scanner lights each point by
-      // its angle to it (Lambert), which one gain cannot undo.
+    if (shading) {
+      // h(n) b ~ a over the pairs with a normal: sum |b|^2 phi phi^T h = sum (a . b) phi.
       Eigen::Matrix4d A = Eigen::Matrix4d::Zero();
       Eigen::Vector4d rhs = Eigen::Vector4d::Zero();
+      double bb = 0;
       for (std::size_t k = 0; k < pairs.size(); ++k) {
-        const double s = pairs[k].first.squaredNorm(), t = pairs[k].first.dot(pairs[k].second);
+        if (basis[k][0] == 0) continue;
+        const double s = pairs[k].second.squaredNorm();
         A += s * basis[k] * basis[k].transpose();
-        rhs += t * basis[k];
+        rhs += pairs[k].first.dot(pairs[k].second) * basis[k];
+        bb += s;
       }
-      A += 1e-6 * A.trace() * Eigen::Matrix4d::Identity();
-      const Eigen::Vector4d g = A.ldlt().solve(rhs);
-      if (g.allFinite()) {
+      // The normal terms damped (1e-3 of the total weight): nearly equal normals
+      // leave one gain rather than fit the texture through their noise.
+      for (int t = 1; t < 4; ++t) A(t, t) += 1e-3 * bb;
+      const Eigen::Vector4d h = bb > 0 ? Eigen::Vector4d(A.ldlt().solve(rhs)) : Eigen::Vector4d::Zero();
+      if (bb > 0 && h.allFinite()) {
         double sum = 0;
         for (std::size_t k = 0; k < pairs.size(); ++k) {
-          const double gk = std::clamp(g.dot(basis[k]), 1.0 / kColourMaxGain, kColourMaxGain);
-          sum += (gk * pairs[k].first - pairs[k].second).cwiseAbs().sum() / 3.0;
+          const auto& [a, b] = pairs[k];
+          if (basis[k][0] == 0) {
+            sum += (gain * a - b).cwiseAbs().sum() / 3.0;
+            continue;
+          }
+          const double hk = std::clamp(h.dot(basis[k]), 1.0 / kColourMaxGain, kColourMaxGain);
+          sum += (a / hk - b).cwiseAbs().sum() / 3.0;
         }
         return sum / double(pairs.size());
       }
@@ -823,7 +844,7 @@ class Registrar {
         }
         if (x.fitness >= kColourOverlapShare * best_fit) {
           colour_of.resize(r.size());
-          if (!colour_of[k]) colour_of[k] = colour_error(coloured, *colour, x.transform, ip.max_distance_end);
+          if (!colour_of[k]) colour_of[k] = colour_error(coloured, *colour, x.transform, ip.max_distance_end, source.viewpoint);
           err[k] = *colour_of[k];
         }
         if (x.fitness >= best_fit - kTie && (err[k] < best_score || (err[k] == best_score && x.fitness > out.fitness))) {
@@ -1011,7 +1032,7 @@ class Registrar {
         Eigen::Matrix4d X = poses[k];
         X.block<3, 1>(0, 3) += dirs[k] * (o * step);
         const double ov = overlap(source, target, X, ip.max_distance_start);
-        const double col = ov >= 0.5 * base ? colour_error(coloured, colour, X, ip.max_distance_start)
+        const double col = ov >= 0.5 * base ? colour_error(coloured, colour, X, ip.max_distance_start, source.viewpoint)
                                             : std::numeric_limits<double>::infinity();
         places[std::size_t(s)] = {col, X};
       });
