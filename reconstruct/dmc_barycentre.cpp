@@ -230,18 +230,17 @@ std::vector<Key> Dmc::first_wave_todo() {
         neighbour_values(p, cb, cl, nb);
         if (cheap_candidate(nd, nb, h_)) {
           ++probed_local.local();
-          batch.nodes.push_back(&nd);
-          batch.keys.push_back(p);
-          batch.grads.emplace_back();
-          batch.has_grad.push_back(lattice_gradient(nd, nb, batch.grads.back()));
+          Vec3d gr = Vec3d::Zero();
+          const bool has_grad = lattice_gradient(nd, nb, gr);
           // Most of the lattice's thick parts need no probe (the values beyond the
           // near surface are there); only with the lattice's gradient (f about linear).
-          if (batch.has_grad.back() && lattice_thick(p, cb, cl, nd, batch.grads.back())) {
+          if (has_grad && lattice_thick(p, cb, cl, nd, gr)) {
             ++thick_local.local();
-            batch.nodes.pop_back();
-            batch.keys.pop_back();
-            batch.grads.pop_back();
-            batch.has_grad.pop_back();
+          } else {
+            batch.nodes.push_back(&nd);
+            batch.keys.push_back(p);
+            batch.grads.push_back(gr);
+            batch.has_grad.push_back(has_grad);
           }
         }
         nd.flags |= kSearched;

@@ -644,6 +644,8 @@ class Registrar {
     }
     if (pairs.empty()) return std::numeric_limits<double>::infinity();
     const double gain = aa > 0 ? std::clamp(ab / aa, 1.0 / kColourMaxGain, kColourMaxGain) : 1.0;
+    Eigen::Vector4d h = Eigen::Vector4d::Zero();
+    bool fitted = false;
     if (shading) {
       // h(n) b ~ a over the pairs with a normal: sum |b|^2 phi phi^T h = sum (a . b) phi.
       Eigen::Matrix4d A = Eigen::Matrix4d::Zero();
@@ -659,23 +661,19 @@ class Registrar {
       // The normal terms damped (1e-3 of the total weight): nearly equal normals
       // leave one gain rather than fit the texture through their noise.
       for (int t = 1; t < 4; ++t) A(t, t) += 1e-3 * bb;
-      const Eigen::Vector4d h = bb > 0 ? Eigen::Vector4d(A.ldlt().solve(rhs)) : Eigen::Vector4d::Zero();
-      if (bb > 0 && h.allFinite()) {
-        double sum = 0;
-        for (std::size_t k = 0; k < pairs.size(); ++k) {
-          const auto& [a, b] = pairs[k];
-          if (basis[k][0] == 0) {
-            sum += (gain * a - b).cwiseAbs().sum() / 3.0;
-            continue;
-          }
-          const double hk = std::clamp(h.dot(basis[k]), 1.0 / kColourMaxGain, kColourMaxGain);
-          sum += (a / hk - b).cwiseAbs().sum() / 3.0;
-        }
-        return sum / double(pairs.size());
-      }
+      if (bb > 0) h = A.ldlt().solve(rhs);
+      fitted = bb > 0 && h.allFinite();
     }
     double sum = 0;
-    for (const auto& [a, b] : pairs) sum += (gain * a - b).cwiseAbs().sum() / 3.0;
+    for (std::size_t k = 0; k < pairs.size(); ++k) {
+      const auto& [a, b] = pairs[k];
+      if (fitted && basis[k][0] != 0) {
+        const double hk = std::clamp(h.dot(basis[k]), 1.0 / kColourMaxGain, kColourMaxGain);
+        sum += (a / hk - b).cwiseAbs().sum() / 3.0;
+      } else {
+        sum += (gain * a - b).cwiseAbs().sum() / 3.0;
+      }
+    }
     return sum / double(pairs.size());
   }
 
