@@ -8,8 +8,13 @@
 // not the mean height of a curved patch) over the scan points within `radius` along
 // the surface (biweight of the distance along the vertex's tangent plane) whose
 // normals face the vertex's way within 30 degrees (the other side of a thin part,
-// and the other face at a crease, are left out), at least `min_points` of them; the
-// vertex moves by a, never further than `max_move`.
+// and the other face at a crease, are left out), at least `min_points` of them. The
+// fit is in absolute distances (least squares refitted by reweighting), as the mesh
+// is measured against the scans by their mean absolute distance and a scanner's
+// noise has tails. The vertex moves by a, less its facets' sag (the flat triangles
+// between vertices on a curved surface cut it: b' S / 12 on average, S the sum of a
+// triangle's squared edges, b' the fit's curvature term), never further than
+// `max_move`.
 //
 // Whether to move at all is decided by the scans themselves (`cross_validate`): at
 // strided vertices the fit is made twice, from the even and from the odd scan points,
