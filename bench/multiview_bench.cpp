@@ -6,6 +6,7 @@
 // lowest density removed), at the depth whose vertex count is nearest ours and
 // at depth 9. Distances against the merged scans, as `station eval MESH merged.ply`.
 #include <omp.h>
+#include <opencv2/imgcodecs.hpp>
 #include <open3d/geometry/PointCloud.h>
 #include <open3d/geometry/TriangleMesh.h>
 
@@ -17,6 +18,7 @@
 #include <string>
 #include <vector>
 
+#include "capture/capture.h"
 #include "dragon_session.h"
 #include "eval/eval.h"
 #include "harness.h"
@@ -65,26 +67,13 @@ std::string quality(const Mesh& mesh, const Cloud& scans, int threads) {
          " mm, scans -> mesh mean " + format_fixed(r.b_to_a.mean * 1000.0, 4) + " mm";
 }
 
-void run_multiview_cases(const Options& options, Report& report) {
+// Ours (the profile's consolidation, then the surface stage in each of `modes`: closed
+// or with holes kept) against Poisson on the same merged cloud, with the held-out
+// halves at Poisson depth 9's vertex count. `label` starts every row and note.
+void compare_with_poisson(const std::string& label, const Cloud& merged, const std::optional<Vec3d>& up,
+                          const std::vector<bool>& modes, const StationConfig& cfg, const Options& options,
+                          Report& report) {
   const int threads = options.threads;
-  const DragonSession s = load_dragon(options);
-  const StationConfig cfg = load_config(options.source_dir / "config" / "default.yaml");
-  const RegistrationResult reg =
-      register_views(s.clouds, s.manifest, registration_params(cfg.pipeline));
-  const Cloud& merged = reg.merged;
-  if (merged.empty() || !merged.has_normals())
-    throw std::runtime_error("multiview: the dragon did not register");
-  std::optional<Vec3d> up;
-  if (reg.axis && !reg.poses.empty()) {
-    std::size_t first = 0;  // the first registered view, as the run takes it
-    while (first + 1 < reg.views.size() && !reg.views[first].registered) ++first;
-    up = reg.poses[first].topLeftCorner<3, 3>() * reg.axis->direction;
-  }
-  report.note("multiview: " + s.where + ", " + std::to_string(s.clouds.size()) +
-              " views registered by the profile (" + std::to_string(reg.failed_views.size()) +
-              " failed), merged " + std::to_string(merged.size()) +
-              " points with normals; distances in mm against the merged scans");
-
   // Ours: the profile's consolidation, then the surface stage (closed, kept).
   WlopParams wp = wlop_params(cfg.pipeline, threads);
   auto t0 = Clock::now();
@@ -98,7 +87,7 @@ void run_multiview_cases(const Options& options, Report& report) {
     Cloud even, odd, consolidated;
   };
   std::optional<Halves> half;
-  for (const bool closed : {true, false}) {
+  for (const bool closed : modes) {
     SurfaceParams sp = surface_params(cfg.pipeline, threads);
     // The run's default: the mesh onto local fits of the merged scans where a
     // held-out half of them says so (reconstruct.snap_to_scans).
@@ -130,17 +119,17 @@ void run_multiview_cases(const Options& options, Report& report) {
       poisson.depth = depth;
       poisson.threads = threads;
       poisson.trim = !closed;
-      Row row{"dragon session, " + mode + ": surface stage (" + std::to_string(ours.resolution) +
+      Row row{label + " session, " + mode + ": surface stage (" + std::to_string(ours.resolution) +
                   " cells)",
               "CreateFromPointCloudPoisson depth " + std::to_string(depth) +
                   (closed ? "" : " + density trim")};
       std::tie(row.ours, row.theirs) = measure_pair(opt, run_ours, [&] { poisson.run(pcd); });
       report.rows.push_back(row);
       if (depth == depths.front())
-        report.note("dragon " + mode + ": ours (consolidation " + format_fixed(consolidate_s, 2) + " s to " +
+        report.note(label + " " + mode + ": ours (consolidation " + format_fixed(consolidate_s, 2) + " s to " +
                     std::to_string(consolidated.cloud.size()) + " points, not in the rows; cell " +
                     mm(ours.extraction.cell_size) + " mm) " + quality(ours.mesh, merged, threads));
-      report.note("dragon " + mode + ": Poisson depth " + std::to_string(depth) +
+      report.note(label + " " + mode + ": Poisson depth " + std::to_string(depth) +
                   " on the merged cloud " + quality(poisson.mesh, merged, threads));
       if (depth != 9 || poisson.mesh.vertices.empty() || ours.mesh.vertices.empty()) continue;
       // Matched vertex count (issue 32's targets): ours again at the
@@ -156,24 +145,24 @@ void run_multiview_cases(const Options& options, Report& report) {
       if (at.mesh.vertices.empty()) continue;
       matched_sp.resolution = resolution_for(at, poisson.mesh.vertices.size());
       auto run_matched = [&] { at = reconstruct_surface(consolidated.cloud, matched_sp); };
-      Row mrow{"dragon session, " + mode + ": surface stage at Poisson's vertex count (" +
+      Row mrow{label + " session, " + mode + ": surface stage at Poisson's vertex count (" +
                    std::to_string(matched_sp.resolution) + " cells)",
                "CreateFromPointCloudPoisson depth 9" + std::string(closed ? "" : " + density trim")};
       std::tie(mrow.ours, mrow.theirs) = measure_pair(opt, run_matched, [&] { poisson.run(pcd); });
       report.rows.push_back(mrow);
-      report.note("dragon " + mode + ": ours at " + std::to_string(matched_sp.resolution) + " cells (cell " +
+      report.note(label + " " + mode + ": ours at " + std::to_string(matched_sp.resolution) + " cells (cell " +
                   mm(at.extraction.cell_size) + " mm) " + quality(at.mesh, merged, threads));
       // The same without the snap to the scans, for comparison.
       {
         SurfaceParams plain_sp = matched_sp;
         plain_sp.scans = nullptr;
         SurfaceResult pl;
-        Row prow{"dragon session, " + mode + ": at Poisson's vertex count, without the snap to the scans",
+        Row prow{label + " session, " + mode + ": at Poisson's vertex count, without the snap to the scans",
                  mrow.anchor + " (same runs as above)"};
         prow.ours = measure(opt, [&] { pl = reconstruct_surface(consolidated.cloud, plain_sp); });
         prow.theirs = mrow.theirs;
         report.rows.push_back(prow);
-        report.note("dragon " + mode + ": ours at " + std::to_string(plain_sp.resolution) +
+        report.note(label + " " + mode + ": ours at " + std::to_string(plain_sp.resolution) +
                     " cells without the snap " + quality(pl.mesh, merged, threads));
       }
       // Held out: ours and Poisson from the even half of the merged scans,
@@ -191,7 +180,7 @@ void run_multiview_cases(const Options& options, Report& report) {
           }
           half->consolidated = consolidate(half->even, wp).cloud;
         }
-        const std::string held = closed ? "dragon held out" : "dragon held out, holes kept / trimmed 5 %";
+        const std::string held = label + (closed ? " held out" : " held out, holes kept / trimmed 5 %");
         for (const bool snap : {true, false}) {
           SurfaceParams hsp = matched_sp;
           hsp.scans = snap ? &half->even : nullptr;
@@ -214,10 +203,106 @@ void run_multiview_cases(const Options& options, Report& report) {
   }
 }
 
+void run_multiview_cases(const Options& options, Report& report) {
+  const DragonSession s = load_dragon(options);
+  const StationConfig cfg = load_config(options.source_dir / "config" / "default.yaml");
+  const RegistrationResult reg =
+      register_views(s.clouds, s.manifest, registration_params(cfg.pipeline));
+  const Cloud& merged = reg.merged;
+  if (merged.empty() || !merged.has_normals())
+    throw std::runtime_error("multiview: the dragon did not register");
+  std::optional<Vec3d> up;
+  if (reg.axis && !reg.poses.empty()) {
+    std::size_t first = 0;  // the first registered view, as the run takes it
+    while (first + 1 < reg.views.size() && !reg.views[first].registered) ++first;
+    up = reg.poses[first].topLeftCorner<3, 3>() * reg.axis->direction;
+  }
+  report.note("multiview: " + s.where + ", " + std::to_string(s.clouds.size()) +
+              " views registered by the profile (" + std::to_string(reg.failed_views.size()) +
+              " failed), merged " + std::to_string(merged.size()) +
+              " points with normals; distances in mm against the merged scans");
+  compare_with_poisson("dragon", merged, up, {true, false}, cfg, options, report);
+}
+
 [[maybe_unused]] const bool registered = register_group(
     "multiview",
     "real multi-view session: surface stage vs Open3D Poisson on the same merged cloud (issue 32)",
     &run_multiview_cases);
+
+
+// The three real Kinect frames of ../shared/data/rgbd_frames/pcl_kinect_sequence
+// (640 x 480, depth in mm, fx = fy = 525, cx = 320, cy = 240), or the bundled
+// half-resolution copies (tests/data/kinect_frames) when that is missing: a
+// hand-held sensor's views of a laptop and a box on a carpet, no poses, no angles.
+struct KinectSession {
+  std::vector<Cloud> clouds;
+  SessionManifest manifest;
+  std::string where;
+};
+
+KinectSession load_kinect(const Options& options) {
+  KinectSession s;
+  const fs::path shared = options.shared_dir / "rgbd_frames" / "pcl_kinect_sequence";
+  std::vector<std::pair<std::string, std::string>> files;  // depth, colour
+  double scale = 1;
+  if (options.use_shared && fs::exists(shared)) {
+    for (const char* t : {"20121214T142255.814212", "20121214T142256.068683", "20121214T142256.332395"})
+      files.emplace_back((shared / (std::string("frame_") + t + "_depth.tiff")).string(),
+                         (shared / (std::string("frame_") + t + "_rgb.tiff")).string());
+    s.where = "../shared/data/rgbd_frames/pcl_kinect_sequence (3 frames, 640 x 480)";
+  } else {
+    const fs::path dir = options.source_dir / "tests" / "data" / "kinect_frames";
+    for (int k = 0; k < 3; ++k)
+      files.emplace_back((dir / ("frame" + std::to_string(k) + "_depth.png")).string(),
+                         (dir / ("frame" + std::to_string(k) + "_rgb.png")).string());
+    scale = 0.5;
+    s.where = "tests/data/kinect_frames (bundled: 3 frames at 320 x 240; ../shared missing)";
+  }
+  s.manifest.scanner = "import";
+  for (const auto& [depth_file, colour_file] : files) {
+    const cv::Mat depth = cv::imread(depth_file, cv::IMREAD_UNCHANGED);
+    const cv::Mat bgr = cv::imread(colour_file, cv::IMREAD_COLOR);
+    if (depth.type() != CV_16UC1 || bgr.type() != CV_8UC3 || depth.size() != bgr.size())
+      throw std::runtime_error("multiview: cannot read the Kinect frame " + depth_file);
+    Frame f;
+    f.intrinsics.width = depth.cols;
+    f.intrinsics.height = depth.rows;
+    f.intrinsics.fx = f.intrinsics.fy = 525 * scale;
+    f.intrinsics.cx = 320 * scale;
+    f.intrinsics.cy = 240 * scale;
+    f.colour_intrinsics = f.intrinsics;
+    for (int v = 0; v < depth.rows; ++v)
+      for (int u = 0; u < depth.cols; ++u) {
+        f.depth.push_back(0.001f * float(depth.at<std::uint16_t>(v, u)));
+        const cv::Vec3b c = bgr.at<cv::Vec3b>(v, u);
+        f.colour.insert(f.colour.end(), {c[2], c[1], c[0]});
+      }
+    s.clouds.push_back(frame_to_cloud(f));
+    ViewRecord view;
+    view.file = fs::path(depth_file).filename().string();
+    s.manifest.views.push_back(view);
+  }
+  return s;
+}
+
+// The Kinect frames registered by the profile (no angles), then compared as the
+// dragon is, with holes kept: a one-sided scene, which `hole: auto` leaves open.
+void run_multiview_kinect_cases(const Options& options, Report& report) {
+  const KinectSession s = load_kinect(options);
+  const StationConfig cfg = load_config(options.source_dir / "config" / "default.yaml");
+  const RegistrationResult reg = register_views(s.clouds, s.manifest, registration_params(cfg.pipeline));
+  if (reg.merged.empty() || !reg.merged.has_normals())
+    throw std::runtime_error("multiview: the Kinect frames did not register");
+  report.note("multiview kinect: " + s.where + ", registered by the profile without angles (" +
+              std::to_string(reg.failed_views.size()) + " failed), merged " + std::to_string(reg.merged.size()) +
+              " points with normals; distances in mm against the merged scans");
+  compare_with_poisson("kinect", reg.merged, std::nullopt, {false}, cfg, options, report);
+}
+
+[[maybe_unused]] const bool registered_kinect = register_group(
+    "multiview_kinect",
+    "real multi-view Kinect frames (a one-sided scene): surface stage vs Open3D Poisson, holes kept (issue 32)",
+    &run_multiview_kinect_cases);
 
 }  // namespace
 

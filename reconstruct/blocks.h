@@ -103,6 +103,7 @@ class SeamValues : public ImplicitFunction {
   double value(const Vec3d& x) const override;
   Vec3d gradient(const Vec3d& x) const override { return f_.gradient(x); }
   bool trusted(const Vec3d& x) const override { return f_.trusted(x); }
+  bool may_be_trusted_near(const Vec3d& x, double radius) const override { return f_.may_be_trusted_near(x, radius); }
   bool may_be_sharp(const Vec3d& x, double radius) const override { return f_.may_be_sharp(x, radius); }
   void values_near(const Vec3d* xs, int n, double* out) const override;
   void gradients_near(const Vec3d* xs, int n, Vec3d* out) const override { f_.gradients_near(xs, n, out); }

@@ -17,6 +17,9 @@ class ImplicitFunction {
   /// Whether f is backed by data near x (default: everywhere). Extraction can drop
   /// the surface where it is not (MarchingCubesOptions::untrusted).
   virtual bool trusted(const Vec3d& x) const { return true; }
+  /// False only when no point within `radius` of x is trusted (an extraction that drops
+  /// the untrusted surface need not walk there); true may mean either. Default: true.
+  virtual bool may_be_trusted_near(const Vec3d& x, double radius) const { return true; }
   /// Whether f may have a sharp edge or corner within `radius` of x (default: it may,
   /// anywhere). A function that knows where it is smooth (the MPU surface: only its
   /// leaves with an edge or corner fit make creases) lets DMC's feature step skip the

@@ -977,6 +977,14 @@ bool MpuSurface::trusted(const Vec3d& x) const {
   const auto [id, d] = impl_->index->nearest(q.cast<float>());
   return id >= 0 && d <= impl_->trust_radius;
 }
+bool MpuSurface::may_be_trusted_near(const Vec3d& x, double radius) const {
+  if (trusted(x)) return true;
+  const Vec3d q = (x - impl_->center) * impl_->scale;
+  const auto [id, d] = impl_->index->nearest(q.cast<float>());
+  // A float distance's rounding: a millionth of the reach more.
+  const double reach = impl_->trust_radius + radius * impl_->scale;
+  return id >= 0 && d <= reach * (1 + 1e-6);
+}
 Vec3d MpuSurface::center() const { return impl_->center; }
 double MpuSurface::scale() const { return impl_->scale; }
 Aabb MpuSurface::bounds() const { return impl_->bounds; }

@@ -142,6 +142,8 @@ class MpuSurface : public ImplicitFunction {
   double nearest_point_distance(const Vec3d& x) const;
   /// nearest_point_distance(x) <= trust_factor * mean spacing (MpuParams).
   bool trusted(const Vec3d& x) const override;
+  /// The nearest input point within the trust distance plus `radius`.
+  bool may_be_trusted_near(const Vec3d& x, double radius) const override;
   /// Whether a leaf with a sharp fit (edge or corner, MpuParams::sharp_features) has
   /// its support ball within `radius` of x: elsewhere f is a blend of smooth
   /// quadratics and has no crease.

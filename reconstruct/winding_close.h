@@ -115,6 +115,7 @@ class WindingClose : public ImplicitFunction {
   /// Both; f's in one values_gradients_near where the cluster is surely trusted.
   void values_gradients_near(const Vec3d* xs, int n, double* values, Vec3d* grads) const override;
   bool trusted(const Vec3d& x) const override { return f_.trusted(x); }
+  bool may_be_trusted_near(const Vec3d& x, double radius) const override { return f_.may_be_trusted_near(x, radius); }
   /// The blend with the smooth winding field adds no crease: as f.
   bool may_be_sharp(const Vec3d& x, double radius) const override { return f_.may_be_sharp(x, radius); }
   double winding(const Vec3d& x) const { return (*w_)(x); }

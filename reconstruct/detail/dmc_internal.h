@@ -650,7 +650,11 @@ class Dmc {
   // Crosses the batch's edges and stores the crossings; returns the values of f taken
   // and adds the gradients taken to `gradients`.
   static constexpr double kNewtonDone = 1e-4;   // mesh crossings: done at 1e-4 of the edge
-  static constexpr double kNewtonTrust = 1e-2;  // Newton trusted up to 1e-2 of the edge
+  static constexpr double kNewtonTrust = 1e-2;
+  // The walk's reach beyond the trust distance with the untrusted surface dropped, in
+  // cells from a cell's centre: half a diagonal (where its faces lie) and two cells
+  // (the neighbours whose searches move its vertices).
+  static constexpr double kPruneReach = 0.8660254037844386 + 2;  // Newton trusted up to 1e-2 of the edge
   static constexpr double kLocated = 1e-9;      // a crossing this close (of the edge) is done
   std::size_t solve(EdgeBatch& eb, int steps, double done_error, std::size_t& gradients) const;
 

@@ -13,6 +13,7 @@
 
 #include "core/error.h"
 #include "eval/eval.h"
+#include "reconstruct/dmc.h"
 #include "reconstruct/marching_cubes.h"
 #include "test_util.h"
 
@@ -261,6 +262,66 @@ TEST(Mpu, UntrustedRegionsCanBeLeftOpen) {
   double far = 0;
   for (const Vec3f& v : open.vertices) far = std::max(far, s.nearest_point_distance(v.cast<double>()));
   EXPECT_LT(far, s.params().trust_factor * s.diagnostics().mean_spacing + st.cell_size);
+}
+
+// f as it is, except that it never says where it is surely untrusted: the walk of an
+// extraction then goes wherever the surface goes.
+class WalkEverywhere : public ImplicitFunction {
+ public:
+  explicit WalkEverywhere(const ImplicitFunction& f) : f_(f) {}
+  double value(const Vec3d& x) const override { return f_.value(x); }
+  Vec3d gradient(const Vec3d& x) const override { return f_.gradient(x); }
+  bool trusted(const Vec3d& x) const override { return f_.trusted(x); }
+  bool may_be_sharp(const Vec3d& x, double radius) const override { return f_.may_be_sharp(x, radius); }
+  void values_near(const Vec3d* xs, int n, double* out) const override { f_.values_near(xs, n, out); }
+  void gradients_near(const Vec3d* xs, int n, Vec3d* out) const override { f_.gradients_near(xs, n, out); }
+  void values_gradients_near(const Vec3d* xs, int n, double* values, Vec3d* grads) const override {
+    f_.values_gradients_near(xs, n, values, grads);
+  }
+
+ private:
+  const ImplicitFunction& f_;
+};
+
+TEST(Mpu, LeftOpenTheWalkStopsBeyondTheTrustDistance) {
+  // A cap of a sphere (z > 0.6: a one-sided patch). MPU's extrapolation beyond it is a
+  // surface the walk used to follow all the way, only to drop it. With the untrusted
+  // surface dropped the walk now stops beyond the trust distance: the same mesh, bit
+  // for bit, for both extractors, from a fraction of the cells.
+  Cloud full = sphere_cloud(20000, 1.0), c;
+  for (std::size_t i = 0; i < full.size(); ++i)
+    if (full.points[i].z() > 0.6f) c.points.push_back(full.points[i]), c.normals.push_back(full.normals[i]);
+  const MpuSurface s = fit_mpu(c);
+  const WalkEverywhere everywhere(s);
+  const Aabb box = extraction_box(s);
+  DmcOptions opt;
+  opt.seeds = s.points();
+  opt.close_at_box = true;
+  opt.untrusted = UntrustedRegions::kLeaveOpen;
+  MarchingCubesStats mc_bounded, mc_everywhere;
+  const Mesh a = extract_marching_cubes(s, box, 96, opt, &mc_bounded);
+  const Mesh b = extract_marching_cubes(everywhere, box, 96, opt, &mc_everywhere);
+  DmcStats dmc_bounded, dmc_everywhere;
+  const Mesh d = extract_dmc(s, box, 96, opt, &dmc_bounded);
+  const Mesh e = extract_dmc(everywhere, box, 96, opt, &dmc_everywhere);
+  std::printf("cap left open, bounded / everywhere: MC %zu / %zu cells visited, %zu / %zu faces dropped; DMC %zu / "
+              "%zu surface cells, %zu / %zu faces dropped\n",
+              mc_bounded.cells_visited, mc_everywhere.cells_visited, mc_bounded.dropped_faces,
+              mc_everywhere.dropped_faces, dmc_bounded.surface_cells, dmc_everywhere.surface_cells,
+              dmc_bounded.dropped_faces, dmc_everywhere.dropped_faces);
+  ASSERT_GT(a.faces.size(), 1000u);
+  EXPECT_EQ(a.vertices, b.vertices);
+  EXPECT_EQ(a.faces, b.faces);
+  EXPECT_EQ(a.normals, b.normals);
+  ASSERT_GT(d.faces.size(), 1000u);
+  EXPECT_EQ(d.vertices, e.vertices);
+  EXPECT_EQ(d.faces, e.faces);
+  // The walk's first wave visits the seeds' neighbourhoods either way; what goes is the
+  // surface beyond them.
+  EXPECT_LT(mc_bounded.cells_visited, mc_everywhere.cells_visited);
+  EXPECT_LT(5 * mc_bounded.dropped_faces, mc_everywhere.dropped_faces);
+  EXPECT_LT(dmc_bounded.surface_cells, dmc_everywhere.surface_cells);
+  EXPECT_LT(2 * dmc_bounded.dropped_faces, dmc_everywhere.dropped_faces);
 }
 
 TEST(Mpu, BadInput) {
