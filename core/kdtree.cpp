@@ -153,6 +153,33 @@ std::optional<std::vector<std::pair<int, float>>> PointIndex::radius_at_most(con
   return out;
 }
 
+double local_sample_spacing(const PointIndex& index, int point) {
+  constexpr int kNeighbours = 8;
+  if (point < 0 || std::size_t(point) >= index.size()) return 0;
+  const Vec3f& q = index.points()[std::size_t(point)];
+  const auto k = index.knn(q, kNeighbours + 1);
+  if (k.size() <= std::size_t(kNeighbours)) return 0;
+  Vec3d centroid = Vec3d::Zero();
+  for (std::size_t t = 1; t < k.size(); ++t) centroid += index.points()[std::size_t(k[t].first)].cast<double>();
+  centroid /= double(k.size() - 1);
+  const double r = k[kNeighbours].second;
+  if (!(r > 0)) return 0;
+  // The sector of angle theta whose centroid lies where the neighbours' does: a
+  // sector's centroid lies 4 r sin(theta / 2) / (3 theta) from its apex (0 for the
+  // whole disc, 0.42 r for a half, 0.60 r for a quarter), decreasing in theta.
+  // Less what chance alone puts there: 8 points uniform on a disc have their centroid
+  // r / 4 off on average in root mean square (E|x|^2 = r^2 / 2 over 8).
+  const double seen = (centroid - q.cast<double>()).squaredNorm() / (r * r);
+  const double offset = std::min(std::sqrt(std::max(0.0, seen - 0.5 / kNeighbours)), 0.66);
+  double lo = 1e-3, hi = 2 * M_PI;
+  for (int it = 0; it < 30; ++it) {
+    const double mid = 0.5 * (lo + hi);
+    (4 * std::sin(mid / 2) / (3 * mid) > offset ? lo : hi) = mid;
+  }
+  const double theta = 0.5 * (lo + hi);
+  return r * std::sqrt(theta / (2.0 * kNeighbours));  // sqrt(area / 8), area theta r^2 / 2
+}
+
 double sample_spacing(const PointIndex& index, std::size_t max_samples) {
   constexpr int kNeighbours = 8;
   const std::size_t n = index.size();

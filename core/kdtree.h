@@ -55,4 +55,12 @@ class PointIndex {
 /// `max_samples` evenly strided points. 0 with fewer than 9 points.
 double sample_spacing(const PointIndex& index, std::size_t max_samples = 4096);
 
+/// The sample spacing at one of the index's points, from its 8 nearest neighbours:
+/// sqrt(area / 8), the area that of the disc to the 8th neighbour (radius r_8), or of
+/// the sector whose centroid lies where the neighbours' does (a point at the data's
+/// edge has them on one side: a half disc's centroid lies 0.42 r_8 off the point, a
+/// quarter's at a corner 0.60 r_8), less the offset chance alone gives 8 points
+/// (r_8 / 4 in root mean square). 0 with fewer than 9 points.
+double local_sample_spacing(const PointIndex& index, int point);
+
 }  // namespace station

@@ -263,15 +263,22 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
     const double reach = kScanRimFactor * spacing;
     if (reach > 0) {
       support = {&p.scans->points, reach, kPieceMinScans};
-      // One bound for the whole mesh, from the scans' median spacing: where they are
-      // sparser the trim can reach into them (docs/run.md: the local spacing instead
-      // trimmed 7x fewer faces and cost more than it gave).
+      // A vertex is far when it lies beyond kScanRimFactor of the scans' spacing from
+      // every scan point: their median spacing, or where the nearest scan point's own
+      // is kSparseScans times that or more (a depth camera's far field), that one. The
+      // local estimate is rough at the data's corners (up to 1.3x on a grid), hence
+      // the margin before it counts.
       out.scan_rim_faces = trim_open_rims(mesh, far_from(mesh, p.threads, [&](const Vec3f& x) {
-                                            return scan_index->nearest_within(x, float(reach)).first < 0;
+                                            if (scan_index->nearest_within(x, float(reach)).first >= 0) return false;
+                                            const auto [j, d] = scan_index->nearest(x);
+                                            if (j < 0) return true;
+                                            const double local = local_sample_spacing(*scan_index, j);
+                                            return local < kSparseScans * spacing || d > kScanRimFactor * local;
                                           }));
       if (out.scan_rim_faces > 0)
         note("open rims brought back to the scans (" + std::to_string(out.scan_rim_faces) + " faces further than " +
-             fmt("%.3g", reach) + ", " + fmt("%.3g", kScanRimFactor) + " of their median sample spacing)");
+             fmt("%.3g", reach) + ", " + fmt("%.3g", kScanRimFactor) +
+             " of their median sample spacing, or of the local one where sparser)");
     }
   }
   out.pieces = remove_small_components(mesh, p.min_component, nullptr, &support);

@@ -221,6 +221,36 @@ TEST(SampleSpacing, OneOverTheSquareRootOfTheDensity) {
   EXPECT_EQ(sample_spacing(PointIndex({})), 0.0);
 }
 
+// The spacing at a point, from its own 8 neighbours: a random sample at two densities
+// (3x the spacing on the right) reads each side's, and at the data's edge, where the
+// neighbours lie on one side, the same as inside (the disc alone reads sqrt 2 more).
+TEST(SampleSpacing, LocalSpacingFollowsTheDensityAndTheEdge) {
+  std::mt19937 rng(6);
+  std::uniform_real_distribution<float> left(0, 0.5f), right(0.5f, 1), v(0, 1);
+  std::vector<Vec3f> p;
+  for (int i = 0; i < 36000; ++i) p.emplace_back(left(rng), v(rng), 0.f);  // density 72,000
+  for (int i = 0; i < 4000; ++i) p.emplace_back(right(rng), v(rng), 0.f);  // density 8,000
+  const PointIndex index(p);
+  auto median = [&](auto&& in) {
+    std::vector<double> s;
+    for (std::size_t i = 0; i < p.size(); ++i)
+      if (in(p[i])) s.push_back(local_sample_spacing(index, int(i)));
+    std::nth_element(s.begin(), s.begin() + std::ptrdiff_t(s.size() / 2), s.end());
+    return s[s.size() / 2];
+  };
+  const double dense = median([](const Vec3f& x) { return x.x() > 0.1f && x.x() < 0.4f && x.y() > 0.1f && x.y() < 0.9f; });
+  const double sparse = median([](const Vec3f& x) { return x.x() > 0.6f && x.x() < 0.9f && x.y() > 0.1f && x.y() < 0.9f; });
+  const double edge = median([](const Vec3f& x) { return x.x() < 0.001f && x.y() > 0.1f && x.y() < 0.9f; });
+  std::printf("local spacing: dense %.5f (1 / sqrt(density) %.5f), sparse %.5f (%.5f), at the edge %.5f\n", dense,
+              1 / std::sqrt(72000.0), sparse, 1 / std::sqrt(8000.0), edge);
+  EXPECT_NEAR(dense, 1 / std::sqrt(72000.0), 0.15 / std::sqrt(72000.0));
+  EXPECT_NEAR(sparse, 1 / std::sqrt(8000.0), 0.15 / std::sqrt(8000.0));
+  EXPECT_NEAR(edge, dense, 0.15 * dense);
+  EXPECT_EQ(local_sample_spacing(PointIndex(std::vector<Vec3f>(8, Vec3f::Zero())), 0), 0.0);
+  EXPECT_EQ(local_sample_spacing(index, -1), 0.0);
+  EXPECT_EQ(local_sample_spacing(index, int(p.size())), 0.0);
+}
+
 TEST(PointIndex, EmptySet) {
   PointIndex index(std::vector<Vec3f>{});
   EXPECT_EQ(index.size(), 0u);
