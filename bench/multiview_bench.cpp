@@ -6,7 +6,6 @@
 // lowest density removed), at the depth whose vertex count is nearest ours and
 // at depth 9. Distances against the merged scans, as `station eval MESH merged.ply`.
 #include <omp.h>
-#include <opencv2/imgcodecs.hpp>
 #include <open3d/geometry/PointCloud.h>
 #include <open3d/geometry/TriangleMesh.h>
 
@@ -259,24 +258,12 @@ KinectSession load_kinect(const Options& options) {
     s.where = "tests/data/kinect_frames (bundled: 3 frames at 320 x 240; ../shared missing)";
   }
   s.manifest.scanner = "import";
+  Intrinsics in;
+  in.fx = in.fy = 525 * scale;
+  in.cx = 320 * scale;
+  in.cy = 240 * scale;
   for (const auto& [depth_file, colour_file] : files) {
-    const cv::Mat depth = cv::imread(depth_file, cv::IMREAD_UNCHANGED);
-    const cv::Mat bgr = cv::imread(colour_file, cv::IMREAD_COLOR);
-    if (depth.type() != CV_16UC1 || bgr.type() != CV_8UC3 || depth.size() != bgr.size())
-      throw std::runtime_error("multiview: cannot read the Kinect frame " + depth_file);
-    Frame f;
-    f.intrinsics.width = depth.cols;
-    f.intrinsics.height = depth.rows;
-    f.intrinsics.fx = f.intrinsics.fy = 525 * scale;
-    f.intrinsics.cx = 320 * scale;
-    f.intrinsics.cy = 240 * scale;
-    f.colour_intrinsics = f.intrinsics;
-    for (int v = 0; v < depth.rows; ++v)
-      for (int u = 0; u < depth.cols; ++u) {
-        f.depth.push_back(0.001f * float(depth.at<std::uint16_t>(v, u)));
-        const cv::Vec3b c = bgr.at<cv::Vec3b>(v, u);
-        f.colour.insert(f.colour.end(), {c[2], c[1], c[0]});
-      }
+    const Frame f = read_rgbd_frame(depth_file, colour_file, in);
     s.clouds.push_back(frame_to_cloud(f));
     ViewRecord view;
     view.file = fs::path(depth_file).filename().string();

@@ -57,6 +57,14 @@ struct CaptureResult {
 /// Non-finite values are dropped.
 Cloud frame_to_cloud(const Frame& frame, double normal_max_depth_jump = 0.05);
 
+/// A depth camera's frame from two image files: 16-bit depth (PNG or TIFF; value x
+/// `depth_unit` metres, 0 = no data) and 8-bit colour registered with it pixel for
+/// pixel (`colour_file` empty: none). `intrinsics` hold fx, fy, cx, cy at the images'
+/// size (width and height are taken from the depth image). InvalidInput naming the
+/// file when one cannot be read, is not 16-bit, or differs in size.
+Frame read_rgbd_frame(const std::string& depth_file, const std::string& colour_file, Intrinsics intrinsics,
+                      double depth_unit = 0.001);
+
 
 /// Keeps the points inside the working volume (scanner frame in and out).
 Cloud crop_to_volume(const Cloud& cloud, const TurntableAxis& axis, const WorkingVolume& volume);

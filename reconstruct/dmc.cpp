@@ -182,8 +182,8 @@ void Dmc::traverse(const std::vector<std::uint64_t>& start, bool probe_first) {
   bool first = probe_first;
   // With the untrusted surface dropped, a crossed cell whose centre lies beyond the
   // trust distance plus kPruneReach cells is not part of the surface and does not pass
-  // the walk on (as extract_marching_cubes; the margin is wider than half a diagonal so
-  // that the cells whose faces stay keep every neighbour that moves their vertices).
+  // the walk on (as extract_marching_cubes; the margin is wider so that the cells whose
+  // faces stay keep every neighbour that moves their vertices).
   const bool prune = opt_.untrusted == UntrustedRegions::kLeaveOpen;
   const double prune_reach = kPruneReach * h_;
   while (!frontier.empty()) {

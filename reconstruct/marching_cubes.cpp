@@ -362,7 +362,9 @@ Mesh extract_marching_cubes(const ImplicitFunction& f, const Aabb& box, int reso
   // trust distance plus half a cell diagonal holds no face that stays (a face's
   // centroid lies in its cell): it is not part of the surface and does not pass the
   // walk on. On a one-sided scene the extrapolated surface beyond the data was 85 % of
-  // the faces, walked and then dropped (docs/run.md). The faces kept are the same.
+  // the faces, walked and then dropped (docs/run.md). The faces kept are the same
+  // wherever every trusted face connects to where the walk starts through cells within
+  // that reach (a trusted patch reached only across untrusted surface is not).
   const bool prune = opt.untrusted == UntrustedRegions::kLeaveOpen;
   const double prune_reach = 0.5 * std::sqrt(3.0) * h * (1 + 1e-6);
   auto beyond_trust = [&](int i, int j, int k) {

@@ -82,7 +82,7 @@ struct MarchingCubesOptions {
 
 struct MarchingCubesStats {
   std::size_t cells_visited = 0;    ///< cells whose corners were evaluated
-  std::size_t surface_cells = 0;    ///< cells the surface crosses
+  std::size_t surface_cells = 0;    ///< cells the surface crosses (kLeaveOpen: those the walk kept)
   std::size_t evaluations = 0;      ///< f evaluations at grid vertices
   std::size_t dropped_faces = 0;    ///< faces removed as untrusted
   double cell_size = 0;             ///< h, input units

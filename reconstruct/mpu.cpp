@@ -978,8 +978,10 @@ bool MpuSurface::trusted(const Vec3d& x) const {
   return id >= 0 && d <= impl_->trust_radius;
 }
 bool MpuSurface::may_be_trusted_near(const Vec3d& x, double radius) const {
-  if (trusted(x)) return true;
+  tbb::collaborative_call_once(impl_->trust_grid_once,
+                               [&] { impl_->trust_grid = NearGrid(impl_->points, impl_->trust_radius); });
   const Vec3d q = (x - impl_->center) * impl_->scale;
+  if (impl_->trust_grid.surely_near(q)) return true;
   const auto [id, d] = impl_->index->nearest(q.cast<float>());
   // A float distance's rounding: a millionth of the reach more.
   const double reach = impl_->trust_radius + radius * impl_->scale;

@@ -98,7 +98,8 @@ constexpr double kL1Settled = 0.01;
 // each point's weight over max(|r|, a floor)). The station's measure of a mesh against
 // scans is their mean absolute distance, which a least-absolute fit minimises, and a
 // scanner's noise has tails (mixed pixels at silhouettes, speckle) that pull a
-// least-squares fit. The standard error is the least-squares fit's. `absolute` false:
+// least-squares fit. The standard error is the least-squares fit's, times sqrt(pi / 2)
+// after the refit (what a median loses against a mean on normal noise). `absolute` false:
 // the least-squares fit alone (the held-out check's, below).
 std::optional<HeightFit> fit_heights(const std::vector<Sample>& samples, int half, int min_points, bool absolute) {
   Moments m;
@@ -123,19 +124,24 @@ std::optional<HeightFit> fit_heights(const std::vector<Sample>& samples, int hal
     a = next;
     if (settled) break;
   }
-  if (std::isfinite(a) && std::isfinite(b)) fit->a = a, fit->b = b;
+  if (std::isfinite(a) && std::isfinite(b)) {
+    fit->a = a, fit->b = b;
+    // A least-absolute estimate's standard error on normal noise: sqrt(pi / 2) the
+    // least-squares one (its efficiency 2 / pi).
+    fit->se *= std::sqrt(M_PI / 2);
+  }
   return fit;
 }
 
 // A half's own fit needs half the points a whole fit does (what each half holds of them).
 int half_min_points(const ScanSnapParams& p) { return std::max(3, p.min_points / 2); }
 
-// The move along the normal: the part of the fit's height beyond `significance` standard
-// errors (none when that is nothing), plus `correction` (the sag's), at most max_move.
+// The move along the normal: the part of the fit's height plus `correction` (the sag's)
+// beyond `significance` standard errors, at most max_move.
 double move_of(const HeightFit& f, const ScanSnapParams& p, double max_move, double correction = 0) {
-  const double beyond = std::max(0.0, std::abs(f.a) - p.significance * f.se);
-  if (beyond == 0) return 0;
-  return std::clamp(std::copysign(beyond, f.a) + correction, -max_move, max_move);
+  const double target = f.a + correction;
+  const double beyond = std::max(0.0, std::abs(target) - p.significance * f.se);
+  return std::clamp(std::copysign(beyond, target), -max_move, max_move);
 }
 
 // At most this many vertices are cross-validated (evenly strided): enough to tell a

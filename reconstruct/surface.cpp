@@ -272,7 +272,7 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
                                             if (scan_index->nearest_within(x, float(reach)).first >= 0) return false;
                                             const auto [j, d] = scan_index->nearest(x);
                                             if (j < 0) return true;
-                                            const double local = local_sample_spacing(*scan_index, j);
+                                            const double local = std::min(local_sample_spacing(*scan_index, j), kSparseScansCap * spacing);
                                             return local < kSparseScans * spacing || d > kScanRimFactor * local;
                                           }));
       if (out.scan_rim_faces > 0)

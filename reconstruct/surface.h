@@ -155,6 +155,9 @@ inline constexpr double kRimTrimFactor = 1.5;
 /// trimmed Poisson on scans -> mesh).
 inline constexpr double kScanRimFactor = 1.5;
 inline constexpr double kSparseScans = 1.5;
+/// ... and at most this many times the median: a stray scan point (a depth camera's
+/// flying pixel) reads as very sparse and would hold a rim near it.
+inline constexpr double kSparseScansCap = 4;
 /// The scan points a small piece needs to stay (above): as many as one local fit of
 /// the snap needs (ScanSnapParams::min_points).
 inline constexpr std::size_t kPieceMinScans = 12;

@@ -4,14 +4,13 @@
 // (the loop), and the objectives against each other.
 #include <gtest/gtest.h>
 
-#include <opencv2/imgcodecs.hpp>
-
 #include <cstdio>
 #include <map>
 
 #include <Eigen/Geometry>
 
 #include "capture/capture.h"
+#include "core/error.h"
 #include "registration/free_space.h"
 #include "registration/icp.h"
 #include "test_util.h"
@@ -22,24 +21,11 @@ namespace {
 Cloud load_frame(int k) {
   const auto dir = test::source_dir() / "tests/data/kinect_frames";
   const std::string stem = (dir / ("frame" + std::to_string(k))).string();
-  const cv::Mat depth = cv::imread(stem + "_depth.png", cv::IMREAD_UNCHANGED);
-  const cv::Mat bgr = cv::imread(stem + "_rgb.png", cv::IMREAD_COLOR);
-  EXPECT_EQ(depth.type(), CV_16UC1) << stem;
-  EXPECT_EQ(bgr.type(), CV_8UC3) << stem;
-  Frame f;
-  f.intrinsics.width = depth.cols;
-  f.intrinsics.height = depth.rows;
-  f.intrinsics.fx = f.intrinsics.fy = 262.5;
-  f.intrinsics.cx = 160;
-  f.intrinsics.cy = 120;
-  f.colour_intrinsics = f.intrinsics;
-  for (int v = 0; v < depth.rows; ++v)
-    for (int u = 0; u < depth.cols; ++u) {
-      f.depth.push_back(0.001f * float(depth.at<std::uint16_t>(v, u)));
-      const cv::Vec3b c = bgr.at<cv::Vec3b>(v, u);
-      f.colour.insert(f.colour.end(), {c[2], c[1], c[0]});
-    }
-  return frame_to_cloud(f);
+  Intrinsics in;
+  in.fx = in.fy = 262.5;
+  in.cx = 160;
+  in.cy = 120;
+  return frame_to_cloud(read_rgbd_frame(stem + "_depth.png", stem + "_rgb.png", in));
 }
 
 struct Motions {
@@ -150,6 +136,29 @@ TEST(KinectFrames, ARightPoseIsNotSeenThroughAndATurnedOneIs) {
     EXPECT_LT(right, 0.1) << k;
     EXPECT_GT(wrong, 0.2) << k;
   }
+}
+
+
+TEST(KinectFrames, ImagesThatAreNotADepthFrameAreNamed) {
+  const auto dir = test::source_dir() / "tests/data/kinect_frames";
+  const std::string depth = (dir / "frame0_depth.png").string(), rgb = (dir / "frame0_rgb.png").string();
+  Intrinsics in;
+  in.fx = in.fy = 262.5;
+  auto message = [&](const std::string& d, const std::string& c) {
+    try {
+      read_rgbd_frame(d, c, in);
+    } catch (const InvalidInput& e) {
+      return std::string(e.what());
+    }
+    return std::string("no error");
+  };
+  EXPECT_NE(message(rgb, "").find("frame0_rgb.png: the depth image is not 16-bit"), std::string::npos);
+  EXPECT_NE(message(depth + ".missing", rgb).find("frame0_depth.png.missing: cannot read"), std::string::npos);
+  EXPECT_NE(message(depth, rgb + ".missing").find("frame0_rgb.png.missing: cannot read"), std::string::npos);
+  const Frame f = read_rgbd_frame(depth, "", in);
+  EXPECT_EQ(f.intrinsics.width, 320);
+  EXPECT_EQ(f.depth.size(), 320u * 240u);
+  EXPECT_TRUE(f.colour.empty());
 }
 
 }  // namespace

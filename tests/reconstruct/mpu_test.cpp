@@ -322,6 +322,48 @@ TEST(Mpu, LeftOpenTheWalkStopsBeyondTheTrustDistance) {
   EXPECT_LT(5 * mc_bounded.dropped_faces, mc_everywhere.dropped_faces);
   EXPECT_LT(dmc_bounded.surface_cells, dmc_everywhere.surface_cells);
   EXPECT_LT(2 * dmc_bounded.dropped_faces, dmc_everywhere.dropped_faces);
+  EXPECT_EQ(d.normals, e.normals);
+  // Without seeds (the walk starts from scan lines) the same.
+  DmcOptions lines = opt;
+  lines.seeds.clear();
+  EXPECT_EQ(extract_marching_cubes(s, box, 96, lines).faces, extract_marching_cubes(everywhere, box, 96, lines).faces);
+}
+
+TEST(Mpu, LeftOpenTheWalkStopsBeyondTheTrustDistanceAtCreases) {
+  // The upper part of a cube (its top and the sides above z = -0.1): sharp edges and
+  // corners, which DMC's feature step moves lattice points onto, and open below. The
+  // same meshes with the walk bounded and unbounded.
+  Cloud c;
+  std::mt19937 rng(12);
+  std::uniform_real_distribution<float> u(-0.5f, 0.5f), side(-0.1f, 0.5f);
+  for (int k = 0; k < 6000; ++k) {
+    c.points.emplace_back(u(rng), u(rng), 0.5f);
+    c.normals.emplace_back(0.f, 0.f, 1.f);
+  }
+  for (int k = 0; k < 3000; ++k)
+    for (int f = 0; f < 4; ++f) {
+      const float a = u(rng), z = side(rng), sign = f % 2 ? 1.f : -1.f;
+      if (f < 2) c.points.emplace_back(0.5f * sign, a, z), c.normals.emplace_back(sign, 0.f, 0.f);
+      else c.points.emplace_back(a, 0.5f * sign, z), c.normals.emplace_back(0.f, sign, 0.f);
+    }
+  const MpuSurface s = fit_mpu(c);
+  const WalkEverywhere everywhere(s);
+  const Aabb box = extraction_box(s);
+  DmcOptions opt;
+  opt.seeds = s.points();
+  opt.close_at_box = true;
+  opt.untrusted = UntrustedRegions::kLeaveOpen;
+  DmcStats bounded, unbounded;
+  const Mesh d = extract_dmc(s, box, 64, opt, &bounded);
+  const Mesh e = extract_dmc(everywhere, box, 64, opt, &unbounded);
+  std::printf("cube's top left open: DMC %zu / %zu surface cells, %zu corner and %zu edge moves\n",
+              bounded.surface_cells, unbounded.surface_cells, bounded.moved_corner, bounded.moved_edge);
+  ASSERT_GT(d.faces.size(), 1000u);
+  EXPECT_GT(bounded.moved_edge, 0u);
+  EXPECT_LT(bounded.surface_cells, unbounded.surface_cells);
+  EXPECT_EQ(d.vertices, e.vertices);
+  EXPECT_EQ(d.faces, e.faces);
+  EXPECT_EQ(d.normals, e.normals);
 }
 
 TEST(Mpu, BadInput) {
