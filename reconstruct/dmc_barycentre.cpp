@@ -357,8 +357,13 @@ std::vector<Key> Dmc::barycentre_step() {
     };
     tbb::enumerable_thread_specific<std::vector<std::int32_t>> touched_local;
     tbb::enumerable_thread_specific<std::vector<std::pair<std::size_t, int>>> missing_local;  // (spread item, q)
+    // With the untrusted surface dropped, the floods stay within the walk's reach too
+    // (beyond it nothing is kept, and a flood there would walk the extrapolation the
+    // walk left out, a search at every point).
+    const bool prune = opt_.untrusted == UntrustedRegions::kLeaveOpen;
     parallel(spread.size(), [&](std::size_t si) {
       const auto [p, kind] = spread[si];
+      if (prune && !f_.may_be_trusted_near(upos(p), kPruneReach * h_)) return;
       const std::int32_t b = nodes_.block_of(p);
       const int l = Lattice::local(p);
       std::vector<std::int32_t>& touched_here = touched_local.local();
@@ -377,6 +382,7 @@ std::vector<Key> Dmc::barycentre_step() {
     for (const auto& v : touched_local) touched.insert(touched.end(), v.begin(), v.end());
     std::vector<std::pair<std::size_t, int>> missing;  // in spread order: blocks made as in one serial pass
     for (const auto& v : missing_local) missing.insert(missing.end(), v.begin(), v.end());
+    // (items skipped above add nothing here: they listed no missing blocks)
     std::sort(missing.begin(), missing.end());
     for (const auto& [si, q] : missing) {
       const auto [p, kind] = spread[si];

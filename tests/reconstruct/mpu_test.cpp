@@ -323,6 +323,9 @@ TEST(Mpu, LeftOpenTheWalkStopsBeyondTheTrustDistance) {
   EXPECT_LT(dmc_bounded.surface_cells, dmc_everywhere.surface_cells);
   EXPECT_LT(2 * dmc_bounded.dropped_faces, dmc_everywhere.dropped_faces);
   EXPECT_EQ(d.normals, e.normals);
+  // The thin-part floods stay within the walk's reach too (on the Kinect scene a flood
+  // that did not searched 78x the points, walking the extrapolation point by point).
+  EXPECT_LE(dmc_bounded.searched, dmc_everywhere.searched);
   // Without seeds (the walk starts from scan lines) the same.
   DmcOptions lines = opt;
   lines.seeds.clear();
@@ -361,6 +364,7 @@ TEST(Mpu, LeftOpenTheWalkStopsBeyondTheTrustDistanceAtCreases) {
   ASSERT_GT(d.faces.size(), 1000u);
   EXPECT_GT(bounded.moved_edge, 0u);
   EXPECT_LT(bounded.surface_cells, unbounded.surface_cells);
+  EXPECT_LE(bounded.searched, unbounded.searched);
   EXPECT_EQ(d.vertices, e.vertices);
   EXPECT_EQ(d.faces, e.faces);
   EXPECT_EQ(d.normals, e.normals);
