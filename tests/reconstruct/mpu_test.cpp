@@ -283,6 +283,15 @@ class WalkEverywhere : public ImplicitFunction {
   const ImplicitFunction& f_;
 };
 
+// As extract_marching_cubes / extract_dmc do for an MPU surface, untrusted surface dropped.
+DmcOptions left_open(const MpuSurface& s) {
+  DmcOptions opt;
+  opt.seeds = s.points();
+  opt.close_at_box = true;
+  opt.untrusted = UntrustedRegions::kLeaveOpen;
+  return opt;
+}
+
 TEST(Mpu, LeftOpenTheWalkStopsBeyondTheTrustDistance) {
   // A cap of a sphere (z > 0.6: a one-sided patch). MPU's extrapolation beyond it is a
   // surface the walk used to follow all the way, only to drop it. With the untrusted
@@ -294,10 +303,7 @@ TEST(Mpu, LeftOpenTheWalkStopsBeyondTheTrustDistance) {
   const MpuSurface s = fit_mpu(c);
   const WalkEverywhere everywhere(s);
   const Aabb box = extraction_box(s);
-  DmcOptions opt;
-  opt.seeds = s.points();
-  opt.close_at_box = true;
-  opt.untrusted = UntrustedRegions::kLeaveOpen;
+  const DmcOptions opt = left_open(s);
   MarchingCubesStats mc_bounded, mc_everywhere;
   const Mesh a = extract_marching_cubes(s, box, 96, opt, &mc_bounded);
   const Mesh b = extract_marching_cubes(everywhere, box, 96, opt, &mc_everywhere);
@@ -352,10 +358,7 @@ TEST(Mpu, LeftOpenTheWalkStopsBeyondTheTrustDistanceAtCreases) {
   const MpuSurface s = fit_mpu(c);
   const WalkEverywhere everywhere(s);
   const Aabb box = extraction_box(s);
-  DmcOptions opt;
-  opt.seeds = s.points();
-  opt.close_at_box = true;
-  opt.untrusted = UntrustedRegions::kLeaveOpen;
+  const DmcOptions opt = left_open(s);
   DmcStats bounded, unbounded;
   const Mesh d = extract_dmc(s, box, 64, opt, &bounded);
   const Mesh e = extract_dmc(everywhere, box, 64, opt, &unbounded);
