@@ -181,11 +181,9 @@ void Dmc::traverse(const std::vector<std::uint64_t>& start, bool probe_first) {
   const auto& faces_of = mc::crossed_faces();
   bool first = probe_first;
   // With the untrusted surface dropped, a crossed cell whose centre lies beyond the
-  // trust distance plus kPruneReach cells is not part of the surface and does not pass
-  // the walk on (as extract_marching_cubes; the margin is wider so that the cells whose
-  // faces stay keep every neighbour that moves their vertices).
-  const bool prune = opt_.untrusted == UntrustedRegions::kLeaveOpen;
-  const double prune_reach = kPruneReach * h_;
+  // trust distance plus kPruneReach cells (beyond_reach) is not part of the surface and
+  // does not pass the walk on (as extract_marching_cubes; the margin is wider so that
+  // the cells whose faces stay keep every neighbour that moves their vertices).
   while (!frontier.empty()) {
     // Blocks holding the wave's corners (serial: blocks are created here) and room for
     // their nodes.
@@ -274,7 +272,7 @@ void Dmc::traverse(const std::vector<std::uint64_t>& start, bool probe_first) {
             if (q != 13) push(q % 3 - 1, q / 3 % 3 - 1, q / 9 - 1);
         return;
       }
-      if (prune && !f_.may_be_trusted_near(lo_ + h_ * Vec3d(i + 0.5, j + 0.5, k + 0.5), prune_reach)) {
+      if (beyond_reach(lo_ + h_ * Vec3d(i + 0.5, j + 0.5, k + 0.5))) {
         __atomic_fetch_and(&B.surface, ~m, __ATOMIC_RELAXED);
         return;
       }

@@ -360,10 +360,9 @@ std::vector<Key> Dmc::barycentre_step() {
     // With the untrusted surface dropped, the floods stay within the walk's reach too
     // (beyond it nothing is kept, and a flood there would walk the extrapolation the
     // walk left out, a search at every point).
-    const bool prune = opt_.untrusted == UntrustedRegions::kLeaveOpen;
     parallel(spread.size(), [&](std::size_t si) {
       const auto [p, kind] = spread[si];
-      if (prune && !f_.may_be_trusted_near(upos(p), kPruneReach * h_)) return;
+      if (beyond_reach(upos(p))) return;
       const std::int32_t b = nodes_.block_of(p);
       const int l = Lattice::local(p);
       std::vector<std::int32_t>& touched_here = touched_local.local();

@@ -9,6 +9,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdint>
+#include <limits>
 #include <string>
 
 #include "core/error.h"
@@ -164,6 +165,14 @@ struct MpuSurface::Impl {
   // build work on it (std::call_once could be re-entered on the building thread).
   mutable NearGrid trust_grid;
   mutable tbb::collaborative_once_flag trust_grid_once;
+  // The distance from q (normalised) to its nearest point, or 0 where the trust grid
+  // proves it within trust_radius (infinite with no points).
+  double trust_distance(const Vec3d& q) const {
+    tbb::collaborative_call_once(trust_grid_once, [&] { trust_grid = NearGrid(points, trust_radius); });
+    if (trust_grid.surely_near(q)) return 0;
+    const auto [id, d] = index->nearest(q.cast<float>());
+    return id >= 0 ? double(d) : std::numeric_limits<double>::infinity();
+  }
 
   // Evaluation layout, built once after the fit (the queries' time is mostly
   // cache misses on the octree's nodes and fits, docs/mpu.md "Evaluation"):
@@ -970,22 +979,12 @@ bool MpuSurface::may_be_sharp(const Vec3d& x, double radius) const {
   return impl_->may_be_sharp((x - impl_->center) * impl_->scale, radius * impl_->scale);
 }
 bool MpuSurface::trusted(const Vec3d& x) const {
-  tbb::collaborative_call_once(impl_->trust_grid_once,
-                               [&] { impl_->trust_grid = NearGrid(impl_->points, impl_->trust_radius); });
-  const Vec3d q = (x - impl_->center) * impl_->scale;
-  if (impl_->trust_grid.surely_near(q)) return true;
-  const auto [id, d] = impl_->index->nearest(q.cast<float>());
-  return id >= 0 && d <= impl_->trust_radius;
+  return impl_->trust_distance((x - impl_->center) * impl_->scale) <= impl_->trust_radius;
 }
 bool MpuSurface::may_be_trusted_near(const Vec3d& x, double radius) const {
-  tbb::collaborative_call_once(impl_->trust_grid_once,
-                               [&] { impl_->trust_grid = NearGrid(impl_->points, impl_->trust_radius); });
-  const Vec3d q = (x - impl_->center) * impl_->scale;
-  if (impl_->trust_grid.surely_near(q)) return true;
-  const auto [id, d] = impl_->index->nearest(q.cast<float>());
   // A float distance's rounding: a millionth of the reach more.
   const double reach = impl_->trust_radius + radius * impl_->scale;
-  return id >= 0 && d <= reach * (1 + 1e-6);
+  return impl_->trust_distance((x - impl_->center) * impl_->scale) <= reach * (1 + 1e-6);
 }
 Vec3d MpuSurface::center() const { return impl_->center; }
 double MpuSurface::scale() const { return impl_->scale; }

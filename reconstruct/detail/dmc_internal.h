@@ -658,6 +658,11 @@ class Dmc {
   // starts in a cell beyond that is not made: meshes the same on the dragon and the
   // Kinect scene and in the tests, not a guarantee (docs/run.md).
   static constexpr double kPruneReach = 2 * 1.7320508075688772 + 1;
+  // With the untrusted surface dropped: x lies beyond the walk's reach (the walk and
+  // the thin-part floods stop there).
+  bool beyond_reach(const Vec3d& x) const {
+    return opt_.untrusted == UntrustedRegions::kLeaveOpen && !f_.may_be_trusted_near(x, kPruneReach * h_);
+  }
   static constexpr double kLocated = 1e-9;      // a crossing this close (of the edge) is done
   std::size_t solve(EdgeBatch& eb, int steps, double done_error, std::size_t& gradients) const;
 
