@@ -153,6 +153,34 @@ std::optional<std::vector<std::pair<int, float>>> PointIndex::radius_at_most(con
   return out;
 }
 
+namespace {
+
+// nanoflann's radius result set that keeps the indices only, in the caller's buffer.
+struct IndexRadiusSet {
+  using DistanceType = float;
+  using IndexType = std::uint32_t;
+  float radius;
+  std::vector<std::uint32_t>& hits;
+  void init() { hits.clear(); }
+  std::size_t size() const { return hits.size(); }
+  bool full() const { return true; }
+  bool addPoint(float dist, std::uint32_t index) {
+    if (dist < radius) hits.push_back(index);
+    return true;
+  }
+  float worstDist() const { return radius; }
+};
+
+}  // namespace
+
+void PointIndex::radius_into(const Vec3f& q, float radius, std::vector<std::uint32_t>& index) const {
+  index.clear();
+  if (!impl_->tree || !(radius >= 0)) return;
+  // radius_search's bound: squared, the next float up (inclusive).
+  IndexRadiusSet set{std::nextafter(radius * radius, std::numeric_limits<float>::infinity()), index};
+  impl_->tree->radiusSearchCustomCallback(q.data(), set, nanoflann::SearchParams(32, 0.f, false));
+}
+
 double local_sample_spacing(const PointIndex& index, int point) {
   constexpr int kNeighbours = 8;
   if (point < 0 || std::size_t(point) >= index.size()) return 0;

@@ -9,6 +9,7 @@
 #include <cmath>
 #include <memory>
 #include <optional>
+#include <stdexcept>
 #include <string>
 
 #include "core/error.h"
@@ -32,31 +33,37 @@ struct Moments {
   }
 };
 
-// A scan point round a vertex: its biweight weight along the tangent plane, t^2 (its
+// The scan points round a vertex, side by side (the reweighted fits' loops run over
+// them many times): each point's biweight weight w along the tangent plane, t^2 (its
 // squared distance along the plane over the radius squared), its height h along the
-// vertex's normal, and which half of the scans it is in (its index's parity: the
-// merged scans hold each view's points in scan order, so the two halves are even,
-// interleaved halves of every view).
-struct Sample {
-  double w, t2, h;
-  int half;
+// vertex's normal, and which half of the scans it is in (its index's parity: the merged
+// scans hold each view's points in scan order, so the two halves are even, interleaved
+// halves of every view).
+struct Samples {
+  std::vector<double> w, t2, h;
+  std::vector<unsigned char> half;
+  std::vector<std::uint32_t> found;  // the search's buffer
+  std::size_t size() const { return w.size(); }
+  std::size_t count(int which) const { return std::size_t(std::count(half.begin(), half.end(), which)); }
 };
 
 // One neighbourhood search for a vertex: the scan points within `radius` along the
 // tangent plane whose normals face n's way.
 void gather(const PointIndex& index, const Cloud& scans, const Vec3f& vertex, const Vec3d& n, double radius,
-            double min_cos, std::vector<Sample>& out) {
-  out.clear();
+            double min_cos, Samples& out) {
+  out.w.clear(), out.t2.clear(), out.h.clear(), out.half.clear();
   const Vec3d v = vertex.cast<double>();
-  for (const auto& [j, d] : index.radius_unsorted(vertex, float(radius))) {
-    const Vec3d sn = scans.normals[std::size_t(j)].cast<double>();
+  index.radius_into(vertex, float(radius), out.found);
+  for (const std::uint32_t j : out.found) {
+    const Vec3d sn = scans.normals[j].cast<double>();
     const double len = sn.norm();
     if (!(len > 0) || sn.dot(n) < min_cos * len) continue;
-    const Vec3d q = scans.points[std::size_t(j)].cast<double>() - v;
+    const Vec3d q = scans.points[j].cast<double>() - v;
     const double h = q.dot(n);
     const double t2 = (q - h * n).squaredNorm() / (radius * radius);
     if (t2 >= 1) continue;
-    out.push_back({(1 - t2) * (1 - t2), t2, h, int(std::size_t(j) % 2)});
+    out.w.push_back((1 - t2) * (1 - t2)), out.t2.push_back(t2), out.h.push_back(h);
+    out.half.push_back((unsigned char)(j % 2));
   }
 }
 
@@ -100,21 +107,26 @@ constexpr double kL1Settled = 0.01;
 // scanner's noise has tails (mixed pixels at silhouettes, speckle) that pull a
 // least-squares fit. The standard error is the least-squares fit's, times sqrt(pi / 2)
 // after the refit (what a median loses against a mean on normal noise). `absolute` false:
-// the least-squares fit alone (the held-out check's, below).
-std::optional<HeightFit> fit_heights(const std::vector<Sample>& samples, int half, int min_points, bool absolute) {
+// the least-squares fit alone (the held-out check's, below). The refit is over all the
+// samples only (what the snap moves by).
+std::optional<HeightFit> fit_heights(const Samples& samples, int half, int min_points, bool absolute) {
   Moments m;
-  for (const Sample& q : samples)
-    if (half < 0 || q.half == half) m.add(q.w, q.t2, q.h);
+  const std::size_t n = samples.size();
+  for (std::size_t k = 0; k < n; ++k)
+    if (half < 0 || samples.half[k] == half) m.add(samples.w[k], samples.t2[k], samples.h[k]);
   auto fit = solve(m, min_points);
   if (!absolute || !fit || !(fit->sigma > 0)) return fit;
+  if (half >= 0) throw std::logic_error("snap to scans: a half's fit is least squares");
   const double floor = kL1Floor * fit->sigma;
   double a = fit->a, b = fit->b;
+  const double* w = samples.w.data();
+  const double* t2 = samples.t2.data();
+  const double* h = samples.h.data();
   for (int it = 0; it < kL1Iterations; ++it) {
     double s0 = 0, s1 = 0, s2 = 0, sh = 0, sht = 0;  // the reweighted normal equations
-    for (const Sample& q : samples) {
-      if (half >= 0 && q.half != half) continue;
-      const double w = q.w / std::max(floor, std::abs(q.h - a - b * q.t2));
-      s0 += w, s1 += w * q.t2, s2 += w * q.t2 * q.t2, sh += w * q.h, sht += w * q.h * q.t2;
+    for (std::size_t k = 0; k < n; ++k) {
+      const double wk = w[k] / std::max(floor, std::abs(h[k] - a - b * t2[k]));
+      s0 += wk, s1 += wk * t2[k], s2 += wk * t2[k] * t2[k], sh += wk * h[k], sht += wk * h[k] * t2[k];
     }
     const double det = s0 * s2 - s1 * s1;
     if (!(det > 1e-9 * s0 * s2)) break;
@@ -212,7 +224,7 @@ ScanSnapStats snap_to_scans(Mesh& mesh, const Cloud& scans, const ScanSnapParams
         for (std::size_t s = range.begin(); s != range.end(); ++s) {
           const std::size_t i = s * stride;
           if (!usable(i)) continue;
-          thread_local std::vector<Sample> ss;
+          thread_local Samples ss;
           gather(index, scans, mesh.vertices[i], normals[i].cast<double>(), radius, p.min_cos, ss);
           const auto even = fit_heights(ss, 0, half_min_points(p), false);
           if (!even) continue;
@@ -263,9 +275,9 @@ ScanSnapStats snap_to_scans(Mesh& mesh, const Cloud& scans, const ScanSnapParams
       for (std::size_t i = range.begin(); i != range.end(); ++i) {
         if (!usable(i)) continue;
         const Vec3d n = normals[i].cast<double>();
-        thread_local std::vector<Sample> ss;
+        thread_local Samples ss;
         gather(index, scans, mesh.vertices[i], n, radius, p.min_cos, ss);
-        const auto even = std::count_if(ss.begin(), ss.end(), [](const Sample& q) { return q.half == 0; });
+        const auto even = std::ptrdiff_t(ss.count(0));
         const auto odd = std::ptrdiff_t(ss.size()) - even;
         // With the check, only vertices that each half alone can fit (those it judged).
         if (p.cross_validate && (even < half_min_points(p) || odd < half_min_points(p))) continue;

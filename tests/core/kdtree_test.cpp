@@ -160,6 +160,33 @@ TEST(PointIndex, RadiusUnsortedHoldsTheSamePointsAsRadius) {
   EXPECT_TRUE(index.radius_unsorted(Vec3f(9, 9, 9), 0.1f).empty());
 }
 
+// radius_into: radius_unsorted's indices in its order, into a reused buffer that it
+// clears first (a point exactly at the radius included, as radius() includes it).
+TEST(PointIndex, RadiusIntoIsRadiusUnsortedsIndices) {
+  const auto pts = random_points(3000, 19);
+  PointIndex index(pts);
+  std::vector<std::uint32_t> got{7, 7, 7};  // stale contents must go
+  std::size_t found = 0;
+  for (const Vec3f& q : random_points(50, 20)) {
+    for (float r : {0.0f, 0.1f, 0.3f}) {
+      index.radius_into(q, r, got);
+      std::vector<std::uint32_t> expect;
+      for (const auto& [j, d] : index.radius_unsorted(q, r)) expect.push_back(std::uint32_t(j));
+      ASSERT_EQ(got, expect);
+      found += got.size();
+    }
+  }
+  EXPECT_GT(found, 1000u);
+  index.radius_into(pts[5], 0.0f, got);  // the query on a point: that point, at distance 0
+  EXPECT_NE(std::find(got.begin(), got.end(), 5u), got.end());
+  index.radius_into(Vec3f(9, 9, 9), 0.1f, got);
+  EXPECT_TRUE(got.empty());
+  PointIndex none(std::vector<Vec3f>{});
+  got = {1};
+  none.radius_into(Vec3f::Zero(), 1.0f, got);
+  EXPECT_TRUE(got.empty());
+}
+
 // radius_at_most: radius() itself (the same points in the same order) when the
 // ball holds at most `count` points, nothing when it holds more; inclusive at the
 // count and at the radius.
