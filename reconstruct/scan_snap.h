@@ -37,8 +37,6 @@
 
 namespace station {
 
-class PointIndex;
-
 struct ScanSnapParams {
   /// The fit's radius along the surface, input units; 0: the scans' default WLOP
   /// support h = 4 d_bb / sqrt(n) (the scale the consolidation averages them over at
@@ -57,9 +55,6 @@ struct ScanSnapParams {
   /// points) move.
   bool cross_validate = true;
   int threads = 0;  ///< 0 = all cores; the result does not depend on it
-  /// An index over the scans' points, when the caller has one (built here when null);
-  /// InvalidInput when it does not hold as many points as the scans.
-  const PointIndex* index = nullptr;
 };
 
 struct ScanSnapStats {

@@ -215,17 +215,14 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
       note("open rims brought back to the data (" + std::to_string(out.rim_faces) + " faces further than " +
            fmt("%.3g", bound) + " from the points)");
   }
+  const auto t_scans = Clock::now();
   bool scans_meet_mesh = false;  // the snap ran and found the scans around the mesh
   std::unique_ptr<PointIndex> scan_index;
   if (p.scans && !p.scans->empty()) {
     if (!p.scans->has_normals()) {
       note("the scans have no normals: the mesh stays on the fitted surface");
     } else {
-      // One index over the scans for the snap and what follows (non-finite scans: the
-      // snap says so).
-      if (all_finite(p.scans->points)) scan_index = std::make_unique<PointIndex>(p.scans->points);
       ScanSnapParams sp;
-      sp.index = scan_index.get();
       sp.cell = out.extraction.cell_size;
       sp.significance = p.snap_significance;
       sp.threads = p.threads;
@@ -255,7 +252,9 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
     }
   }
   PieceSupport support;
-  if (scans_meet_mesh && !close && scan_index) {
+  // Non-finite scans: the snap has said so.
+  if (scans_meet_mesh && !close) scan_index = std::make_unique<PointIndex>(p.scans->points);
+  if (scan_index) {
     // Holes kept: the scans are the data the mesh must stay near. Its rims come back
     // to them (the consolidated points' rims lie inside the scans' own), and small
     // pieces that they support stay (kScanRimFactor, kPieceMinScans).
@@ -281,6 +280,7 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
              " of their median sample spacing, or of the local one where sparser)");
     }
   }
+  out.seconds.scans = seconds_since(t_scans);
   out.pieces = remove_small_components(mesh, p.min_component, nullptr, &support);
   if (out.pieces.removed_components > 0)
     note("removed " + std::to_string(out.pieces.removed_components) + " small pieces (" +

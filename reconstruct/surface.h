@@ -73,6 +73,8 @@ struct SurfaceParams {
 
 struct SurfaceTimings {
   double normals = 0, fit = 0, closing = 0, extract = 0, colour = 0, total = 0;  ///< seconds
+  /// The mesh back to the scans (their index, the snap, rims and pieces they support).
+  double scans = 0;
 };
 
 struct SurfaceResult {

@@ -382,6 +382,7 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
                                             .add("read", t_read)
                                             .add("fit", r.seconds.normals + r.seconds.fit)
                                             .add("extract", r.seconds.closing + r.seconds.extract)
+                                            .add("scans", r.seconds.scans)
                                             .add("colour", r.seconds.colour)
                                             .add("total", seconds_since(t0))));
   } else {

@@ -282,6 +282,31 @@ TEST(ScanSnap, SameMeshForAnyThreadCountAndAtMost40000VerticesChecked) {
   EXPECT_GT(a.held_out_vertices, 20000u);
 }
 
+// The scans are bucketed in cubes of the radius, keyed modulo 2^21 cubes per axis: scan
+// points 2^21 cubes away share the near cubes' runs and must still be left out, and
+// points far beyond that must not break the keys.
+TEST(ScanSnap, FarScanPointsChangeNothing) {
+  const Mesh mesh = test::icosphere(4, 0.98);
+  Cloud scans = test::fibonacci_sphere(60000, 1.0);
+  ScanSnapParams p;
+  p.radius = 0.1;
+  p.max_move = 0.04;
+  Mesh near_only = mesh;
+  const ScanSnapStats a = snap_to_scans(near_only, scans, p);
+  ASSERT_GT(a.moved, mesh.vertices.size() / 2);
+  const float wrap = float(std::ldexp(p.radius, 21));  // 2^21 cubes along x
+  for (const Vec3f& q : {Vec3f(wrap + 0.98f, 0.f, 0.f), Vec3f(wrap, wrap, wrap), Vec3f(-3e30f, 0.f, 1e30f)}) {
+    scans.points.push_back(q);  // after the sphere's points: their halves stay as they were
+    scans.normals.emplace_back(1.f, 0.f, 0.f);
+  }
+  Mesh with_far = mesh;
+  const ScanSnapStats b = snap_to_scans(with_far, scans, p);
+  EXPECT_EQ(a.moved, b.moved);
+  EXPECT_EQ(a.held_out_rms_kept, b.held_out_rms_kept);
+  for (std::size_t i = 0; i < mesh.vertices.size(); ++i) ASSERT_EQ(near_only.vertices[i], with_far.vertices[i]) << i;
+
+}
+
 TEST(ScanSnap, ScansThatHardlyMeetTheMeshAreDeclined) {
   // A sheet 0.02 below scans that cover only a corner of it (4 % of its vertices):
   // those few fits agree on the offset, but they cannot speak for the whole mesh.
