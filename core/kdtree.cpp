@@ -208,6 +208,20 @@ double local_sample_spacing(const PointIndex& index, int point) {
   return r * std::sqrt(theta / (2.0 * kNeighbours));  // sqrt(area / 8), area theta r^2 / 2
 }
 
+double sparse_allowance(const PointIndex& index, int point, double median, double from) {
+  if (!(median > 0) || point < 0 || std::size_t(point) >= index.size()) return 1;
+  // The median over the point and its 8 nearest neighbours: a stray point (or a few)
+  // near denser data reads as very sparse alone, not through its neighbours.
+  const auto k = index.knn(index.points()[std::size_t(point)], 9);
+  std::vector<double> spacing;
+  spacing.reserve(k.size());
+  for (const auto& [j, d] : k) spacing.push_back(local_sample_spacing(index, j));
+  if (spacing.empty()) return 1;
+  std::nth_element(spacing.begin(), spacing.begin() + spacing.size() / 2, spacing.end());
+  const double ratio = spacing[spacing.size() / 2] / median;
+  return ratio >= from ? std::min(ratio, kSparseSpacingCap) : 1;
+}
+
 double sample_spacing(const PointIndex& index, std::size_t max_samples) {
   constexpr int kNeighbours = 8;
   const std::size_t n = index.size();

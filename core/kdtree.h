@@ -67,4 +67,16 @@ double sample_spacing(const PointIndex& index, std::size_t max_samples = 4096);
 /// (r_8 / 4 in root mean square). 0 with fewer than 9 points.
 double local_sample_spacing(const PointIndex& index, int point);
 
+/// Where data are sparser than usual (a depth camera's far field, a part seen at a
+/// glancing angle), distances measured in their spacing reach further there: a point's
+/// allowance is the local spacing round it over `median` (the median of
+/// local_sample_spacing over the point and its 8 nearest neighbours, over
+/// sample_spacing) where that is kSparseSpacing or more, at most kSparseSpacingCap, else
+/// 1. The margin: the local estimate is rough at the data's corners (up to 1.3x on a
+/// grid). The neighbours' median: a stray point near denser data (a depth camera's
+/// flying pixel) reads as very sparse alone, and would hold surface round it.
+inline constexpr double kSparseSpacing = 1.5;
+inline constexpr double kSparseSpacingCap = 4;
+double sparse_allowance(const PointIndex& index, int point, double median, double from = kSparseSpacing);
+
 }  // namespace station

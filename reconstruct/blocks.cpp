@@ -713,13 +713,14 @@ BlockMesh reconstruct_block(const Cloud& pts_in, const BlockGrid& grid, int id, 
   MpuParams mp;
   mp.epsilon0 = s.epsilon0;
   mp.threads = p.threads;
-  if (s.hole == HoleMode::kKeep) mp.trust_factor = kKeepTrustFactor;
-  // The whole cloud's frame and spacing: the block's octree is the whole fit's cut at
+  if (s.hole == HoleMode::kKeep) mp.trust_factor = kKeepTrustFactor, mp.sparse_trust = true;
+  // The whole cloud's frame and spacings: the block's octree is the whole fit's cut at
   // the block (the same cells, the same epsilon0 in input units, the same trust), so
   // beyond the data, where the closing blends MPU's extrapolation in, the blocks
   // extrapolate as the single run does.
   mp.frame = s.bounds;
   mp.mean_spacing = s.mean_spacing;
+  mp.median_spacing = s.sample_spacing;
   // The fits take the points in Z order, as the single run's (reconstruct_surface).
   const std::vector<std::uint32_t> z_order = spatial_order(pts.points);
   const MpuSurface surface = fit_mpu(reordered(pts, z_order), mp);
@@ -830,7 +831,7 @@ BlockMesh reconstruct_block(const Cloud& pts_in, const BlockGrid& grid, int id, 
     out.far.resize(mesh.vertices.size());
     const double bound = kRimTrimFactor * s.mean_spacing;
     for (std::size_t v = 0; v < mesh.vertices.size(); ++v)
-      out.far[v] = !(surface.nearest_point_distance(mesh.vertices[v].cast<double>()) <= bound);
+      out.far[v] = !surface.near_points(mesh.vertices[v].cast<double>(), bound);
   }
   out.mesh = std::move(mesh);
   out.seconds = seconds_since(t0);

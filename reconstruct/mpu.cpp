@@ -6,6 +6,7 @@
 
 #include <Eigen/Dense>
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <cstdint>
@@ -172,6 +173,30 @@ struct MpuSurface::Impl {
     if (trust_grid.surely_near(q)) return 0;
     const auto [id, d] = index->nearest(q.cast<float>());
     return id >= 0 ? double(d) : std::numeric_limits<double>::infinity();
+  }
+
+  // With params.sparse_trust: each point's allowance (sparse_allowance), computed when
+  // first asked for (a pure function of the points, so threads that race store the
+  // same value).
+  double median_spacing = 0;  // normalised; 0: sparse_trust off
+  mutable std::unique_ptr<std::atomic<float>[]> allowances;
+  double allowance(int k) const {
+    float a = allowances[std::size_t(k)].load(std::memory_order_relaxed);
+    if (a < 0) {
+      a = float(sparse_allowance(*index, k, median_spacing, kSparseTrustFrom));
+      allowances[std::size_t(k)].store(a, std::memory_order_relaxed);
+    }
+    return a;
+  }
+  // Some point p within reach x allowance(p) + extra of q (normalised), given that the
+  // nearest one lies `nearest` away; without sparse_trust, the nearest within reach + extra.
+  bool within_allowance(const Vec3d& q, double nearest, double reach, double extra) const {
+    const double slack = 1 + 1e-6;  // a float distance's rounding
+    if (nearest <= (reach + extra) * slack) return true;
+    if (!(median_spacing > 0) || !(nearest <= (reach * kSparseSpacingCap + extra) * slack)) return false;
+    for (const auto& [k, d] : index->radius_unsorted(q.cast<float>(), float((reach * kSparseSpacingCap + extra) * slack)))
+      if (d <= (reach * allowance(k) + extra) * slack) return true;
+    return false;
   }
 
   // Evaluation layout, built once after the fit (the queries' time is mostly
@@ -738,10 +763,11 @@ MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
         "them first: core/normals.h estimate_normals + orient_normals_mst)");
   if (!(params.alpha > 0.5) || !(params.lambda > 0) || params.n_min < 6 || (params.max_fit_points != 0 && params.max_fit_points < params.n_min) || params.split_min_points < 0 || !(params.epsilon0 > 0) ||
       params.max_depth < 0 || params.max_depth > 20 || params.threads < 0 || !(params.root_margin >= 0) ||
-      !(params.trust_factor > 0) || !(params.mean_spacing >= 0) || !std::isfinite(params.mean_spacing))
+      !(params.trust_factor > 0) || !(params.mean_spacing >= 0) || !std::isfinite(params.mean_spacing) ||
+      !(params.median_spacing >= 0) || !std::isfinite(params.median_spacing))
     throw InvalidInput(
         "fit_mpu: parameters out of range (alpha > 0.5, lambda > 0, n_min >= 6, max_fit_points 0 or >= n_min, split_min_points >= 0, epsilon0 > 0, "
-        "0 <= max_depth <= 20, threads >= 0, root_margin >= 0, trust_factor > 0, mean_spacing >= 0)");
+        "0 <= max_depth <= 20, threads >= 0, root_margin >= 0, trust_factor > 0, mean_spacing >= 0, median_spacing >= 0)");
   if (!all_finite(cloud.points)) throw InvalidInput("fit_mpu: non-finite point coordinates");
 
   auto impl = std::make_shared<MpuSurface::Impl>();
@@ -798,9 +824,14 @@ MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
     const double spacing = sum / nnd.size();
     const double trusted = params.mean_spacing > 0 ? params.mean_spacing * s.scale : spacing;
     s.trust_radius = params.trust_factor * std::max(trusted, 1e-9);
-    s.diag.mean_spacing = spacing / s.scale;
     std::nth_element(density.begin(), density.begin() + density.size() / 2, density.end());
     s.diag.sample_spacing = density[density.size() / 2] / s.scale;
+    if (params.sparse_trust) {
+      s.median_spacing = params.median_spacing > 0 ? params.median_spacing * s.scale : density[density.size() / 2];
+      s.allowances = std::make_unique<std::atomic<float>[]>(s.points.size());
+      for (std::size_t i = 0; i < s.points.size(); ++i) s.allowances[i].store(-1.f, std::memory_order_relaxed);
+    }
+    s.diag.mean_spacing = spacing / s.scale;
 
     // Breadth-first build: each level's cells are fitted in parallel into their own
     // slots, then children are appended in cell order: deterministic for any thread count.
@@ -979,12 +1010,19 @@ bool MpuSurface::may_be_sharp(const Vec3d& x, double radius) const {
   return impl_->may_be_sharp((x - impl_->center) * impl_->scale, radius * impl_->scale);
 }
 bool MpuSurface::trusted(const Vec3d& x) const {
-  return impl_->trust_distance((x - impl_->center) * impl_->scale) <= impl_->trust_radius;
+  const Vec3d q = (x - impl_->center) * impl_->scale;
+  const double d = impl_->trust_distance(q);
+  if (d <= impl_->trust_radius) return true;
+  return impl_->median_spacing > 0 && impl_->within_allowance(q, d, impl_->trust_radius, 0);
 }
 bool MpuSurface::may_be_trusted_near(const Vec3d& x, double radius) const {
-  // A float distance's rounding: a millionth of the reach more.
-  const double reach = impl_->trust_radius + radius * impl_->scale;
-  return impl_->trust_distance((x - impl_->center) * impl_->scale) <= reach * (1 + 1e-6);
+  const Vec3d q = (x - impl_->center) * impl_->scale;
+  return impl_->within_allowance(q, impl_->trust_distance(q), impl_->trust_radius, radius * impl_->scale);
+}
+bool MpuSurface::near_points(const Vec3d& x, double distance) const {
+  const Vec3d q = (x - impl_->center) * impl_->scale;
+  const auto [id, d] = impl_->index->nearest(q.cast<float>());
+  return id >= 0 && impl_->within_allowance(q, d, distance * impl_->scale, 0);
 }
 Vec3d MpuSurface::center() const { return impl_->center; }
 double MpuSurface::scale() const { return impl_->scale; }

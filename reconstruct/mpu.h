@@ -31,6 +31,16 @@ enum class MpuFitType {
   kCorner,     ///< max/min of three bivariate quadratics (sharp corner, three clusters)
 };
 
+/// MpuParams::sparse_trust from this local spacing over the median (core/kdtree.h's
+/// sparse_allowance; the rims' trim to the scans starts at 1.5). The trust fills
+/// surface between points, so it waits for sparser data: on the real dragon session
+/// (holes kept, 509 cells) mesh -> scans mean / p95 0.21 / 0.40 mm without it (458,607
+/// vertices), 0.217 / 0.432 from 1.5 (476,032), 0.212 / 0.415 from 2 (472,360), 0.207 /
+/// 0.402 from 2.5 (467,657); scans -> mesh 0.0715, 0.0694, 0.0696, 0.0702 mm; on the
+/// Kinect scene (537 cells) scans -> mesh 1.0197 mm without it, 0.9840 / 0.9843 /
+/// 0.9873 mm.
+inline constexpr double kSparseTrustFrom = 2.0;
+
 struct MpuParams {
   /// alpha: support radius R = alpha * (cell diagonal). Paper: 0.75.
   double alpha = 0.75;
@@ -84,6 +94,13 @@ struct MpuParams {
   /// "Where there is no data": x is trusted when its nearest input point lies within
   /// trust_factor x the mean point spacing (mean nearest-neighbour distance).
   double trust_factor = 4.0;
+  /// Where the points are sparse (sparse_allowance, core/kdtree.h: a local spacing
+  /// kSparseTrustFrom times their median or more), a point's trust reaches that many
+  /// times further, at most 4: x is trusted when some point p lies within trust_factor x
+  /// mean spacing x p's allowance. A depth camera's far field is sampled several times
+  /// more sparsely than its near field, and a trust distance from the mean spacing alone
+  /// cut holes there (docs/run.md, "Holes kept: sparse data trusted").
+  bool sparse_trust = false;
   /// Threads for the build and batched evaluation (0 = all cores). The result does
   /// not depend on it.
   int threads = 0;
@@ -96,6 +113,10 @@ struct MpuParams {
   /// The mean spacing behind trust_factor, in input units; 0: the points' own (mean
   /// nearest-neighbour distance).
   double mean_spacing = 0;
+  /// The median sample spacing that sparse_trust's allowances are measured against, in
+  /// input units; 0: the points' own (MpuDiagnostics::sample_spacing). A block of a
+  /// larger cloud takes the whole cloud's (reconstruct/blocks.h).
+  double median_spacing = 0;
 };
 
 /// Per-build diagnostics (cf. the colour paper's Table 3).
@@ -140,10 +161,15 @@ class MpuSurface : public ImplicitFunction {
   double weight_sum(const Vec3d& x) const;
   /// Distance from x to the nearest input point (input units).
   double nearest_point_distance(const Vec3d& x) const;
-  /// nearest_point_distance(x) <= trust_factor * mean spacing (MpuParams).
+  /// nearest_point_distance(x) <= trust_factor * mean spacing (MpuParams); with
+  /// sparse_trust, some point within that times its allowance.
   bool trusted(const Vec3d& x) const override;
-  /// The nearest input point within the trust distance plus `radius`.
+  /// Some point within the trust distance (times its allowance, with sparse_trust)
+  /// plus `radius`: trusted(y) can hold for a y within `radius` of x.
   bool may_be_trusted_near(const Vec3d& x, double radius) const override;
+  /// Some input point within `distance` of x (input units), times that point's
+  /// allowance with sparse_trust (MpuParams): "near the data" on the data's own scale.
+  bool near_points(const Vec3d& x, double distance) const;
   /// Whether a leaf with a sharp fit (edge or corner, MpuParams::sharp_features) has
   /// its support ball within `radius` of x: elsewhere f is a blend of smooth
   /// quadratics and has no crease.

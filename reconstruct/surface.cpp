@@ -118,7 +118,7 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
   mp.epsilon0 = p.epsilon0 > 0 ? p.epsilon0 : std::max(mp.epsilon0, suggest_epsilon0(input));
   mp.threads = p.threads;
   // Holes kept: the mesh stops within kKeepTrustFactor spacings of the points.
-  if (out.hole == HoleMode::kKeep) mp.trust_factor = kKeepTrustFactor;
+  if (out.hole == HoleMode::kKeep) mp.trust_factor = kKeepTrustFactor, mp.sparse_trust = true;
   out.epsilon0 = mp.epsilon0;
   note("MPU on " + std::to_string(input.size()) + " points (epsilon0 " + fmt("%.3g", mp.epsilon0) + ")");
   const auto t1 = Clock::now();
@@ -209,7 +209,7 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
     // Holes kept: the rims come back to the data (no flaps beyond the points).
     const double bound = kRimTrimFactor * out.mpu.mean_spacing;
     out.rim_faces = trim_open_rims(mesh, far_from(mesh, p.threads, [&](const Vec3f& x) {
-                                     return !(surface.nearest_point_distance(x.cast<double>()) <= bound);
+                                     return !surface.near_points(x.cast<double>(), bound);
                                    }));
     if (out.rim_faces > 0)
       note("open rims brought back to the data (" + std::to_string(out.rim_faces) + " faces further than " +
@@ -263,16 +263,14 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
     if (reach > 0) {
       support = {&p.scans->points, reach, kPieceMinScans};
       // A vertex is far when it lies beyond kScanRimFactor of the scans' spacing from
-      // every scan point: their median spacing, or where the nearest scan point's own
-      // is kSparseScans times that or more (a depth camera's far field), that one. The
-      // local estimate is rough at the data's corners (up to 1.3x on a grid), hence
-      // the margin before it counts.
+      // every scan point: their median spacing, or where the nearest scan point's data
+      // are sparse, its own (sparse_allowance).
       out.scan_rim_faces = trim_open_rims(mesh, far_from(mesh, p.threads, [&](const Vec3f& x) {
                                             if (scan_index->nearest_within(x, float(reach)).first >= 0) return false;
                                             const auto [j, d] = scan_index->nearest(x);
                                             if (j < 0) return true;
-                                            const double local = std::min(local_sample_spacing(*scan_index, j), kSparseScansCap * spacing);
-                                            return local < kSparseScans * spacing || d > kScanRimFactor * local;
+                                            const double a = sparse_allowance(*scan_index, j, spacing);
+                                            return a == 1 || d > reach * a;
                                           }));
       if (out.scan_rim_faces > 0)
         note("open rims brought back to the scans (" + std::to_string(out.scan_rim_faces) + " faces further than " +

@@ -151,15 +151,12 @@ inline constexpr double kRimTrimFactor = 1.5;
 /// probability exp(-2.25 pi) < 0.1 %; where they are sparser the trim reaches into
 /// them (3-18 % at 4-2 points per mm^2 on the dragon, against its median 8.4), which
 /// the measured scans -> mesh includes. Closed meshes are left as they were.
-/// Where the nearest scan point's own spacing (local_sample_spacing) is kSparseScans
-/// times the median or more, the bound is 1.5 of that one: a depth camera's far field
-/// (the Kinect scene: 5 % of the scan points beyond 1.6 m made all of the gap to
-/// trimmed Poisson on scans -> mesh).
+/// Where the nearest scan point's own spacing is sparse (sparse_allowance,
+/// core/kdtree.h: 1.5 times the median or more, at most 4 times, so that a depth
+/// camera's flying pixel, which reads as very sparse, holds no rim near it), the bound
+/// is 1.5 of that one: a depth camera's far field (the Kinect scene: 5 % of the scan
+/// points beyond 1.6 m made all of the gap to trimmed Poisson on scans -> mesh).
 inline constexpr double kScanRimFactor = 1.5;
-inline constexpr double kSparseScans = 1.5;
-/// ... and at most this many times the median: a stray scan point (a depth camera's
-/// flying pixel) reads as very sparse and would hold a rim near it.
-inline constexpr double kSparseScansCap = 4;
 /// The scan points a small piece needs to stay (above): as many as one local fit of
 /// the snap needs (ScanSnapParams::min_points).
 inline constexpr std::size_t kPieceMinScans = 12;

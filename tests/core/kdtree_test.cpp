@@ -278,6 +278,50 @@ TEST(SampleSpacing, LocalSpacingFollowsTheDensityAndTheEdge) {
   EXPECT_EQ(local_sample_spacing(index, int(p.size())), 0.0);
 }
 
+// sparse_allowance: 1 on the dense half and on a stray point beside it (its
+// neighbours' spacing decides, not its own), the density ratio's square root (3) on the
+// sparse half, capped at kSparseSpacingCap, and from `from` on only.
+TEST(SampleSpacing, SparseAllowanceFollowsTheNeighbourhoodNotAStrayPoint) {
+  std::mt19937 rng(8);
+  std::uniform_real_distribution<float> left(0, 0.5f), right(0.5f, 1), v(0, 1);
+  std::vector<Vec3f> p;
+  const Vec3f hole(0.25f, 0.5f, 0.f);  // a hole of 20 mm radius in the dense half, a stray point at its centre
+  for (int i = 0; i < 36000; ++i) {
+    const Vec3f q(left(rng), v(rng), 0.f);  // density 72,000
+    if ((q - hole).norm() > 0.02f) p.push_back(q);
+  }
+  for (int i = 0; i < 4000; ++i) p.emplace_back(right(rng), v(rng), 0.f);  // density 8,000
+  const int stray = int(p.size());
+  p.push_back(hole);
+  const PointIndex index(p);
+  const double median = sample_spacing(index);
+  ASSERT_NEAR(median, 1 / std::sqrt(72000.0), 0.15 / std::sqrt(72000.0));
+  EXPECT_GT(local_sample_spacing(index, stray), 2 * kSparseSpacing * median);  // alone it reads sparse
+  EXPECT_EQ(sparse_allowance(index, stray, median), 1.0);
+  std::vector<double> dense, sparse;
+  for (int i = 0; i < stray; ++i) {
+    if (p[std::size_t(i)].y() < 0.1f || p[std::size_t(i)].y() > 0.9f) continue;
+    if (p[std::size_t(i)].x() > 0.1f && p[std::size_t(i)].x() < 0.4f && (p[std::size_t(i)] - hole).norm() > 0.03f && i % 20 == 0)
+      dense.push_back(sparse_allowance(index, i, median));
+    if (p[std::size_t(i)].x() > 0.6f && p[std::size_t(i)].x() < 0.9f && i % 2 == 0) sparse.push_back(sparse_allowance(index, i, median));
+  }
+  const auto share_one = [](const std::vector<double>& a) {
+    return double(std::count(a.begin(), a.end(), 1.0)) / double(a.size());
+  };
+  std::sort(sparse.begin(), sparse.end());
+  std::printf("allowance: dense %.3f at 1, sparse median %.2f (sqrt 9 = 3)\n", share_one(dense), sparse[sparse.size() / 2]);
+  EXPECT_GT(share_one(dense), 0.99);
+  EXPECT_NEAR(sparse[sparse.size() / 2], 3.0, 0.3);
+  EXPECT_LE(sparse.back(), kSparseSpacingCap);
+  // From 3.5 on, the sparse half (3x) stays at 1 too.
+  int i = 0;
+  while (!(p[std::size_t(i)].x() > 0.7f && p[std::size_t(i)].x() < 0.8f && p[std::size_t(i)].y() > 0.4f && p[std::size_t(i)].y() < 0.6f)) ++i;
+  EXPECT_GT(sparse_allowance(index, i, median), 2.0);
+  EXPECT_EQ(sparse_allowance(index, i, median, 3.5), 1.0);
+  EXPECT_EQ(sparse_allowance(index, i, 0.0), 1.0);
+  EXPECT_EQ(sparse_allowance(index, -1, median), 1.0);
+}
+
 TEST(PointIndex, EmptySet) {
   PointIndex index(std::vector<Vec3f>{});
   EXPECT_EQ(index.size(), 0u);

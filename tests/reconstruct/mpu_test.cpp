@@ -338,6 +338,84 @@ TEST(Mpu, LeftOpenTheWalkStopsBeyondTheTrustDistance) {
   EXPECT_EQ(extract_marching_cubes(s, box, 96, lines).faces, extract_marching_cubes(everywhere, box, 96, lines).faces);
 }
 
+// MpuParams::sparse_trust: a plane sampled densely on its left half and at 3x the
+// spacing on its right (a depth camera's far field), with a stray point in the middle
+// of a 20 mm hole in the dense half. The plain trust distance (from the mean spacing,
+// which the dense half sets) leaves gaps all over the sparse half; each point's
+// allowance closes them, while the stray, whose neighbours are dense, holds no more
+// than before. may_be_trusted_near stays a bound of trusted (the walk bounded by it
+// gives the same mesh as an unbounded one).
+TEST(Mpu, SparseTrustReachesOverSparseDataNotRoundAStray) {
+  std::mt19937 rng(12);
+  std::uniform_real_distribution<float> u(0, 1);
+  const Vec3f hole(0.25f, 0.5f, 0.f);
+  Cloud c;
+  auto add = [&](const Vec3f& q) { c.points.push_back(q), c.normals.push_back(Vec3f::UnitZ()); };
+  for (int i = 0; i < 18000; ++i) {  // spacing 1 / sqrt(36,000) = 5.3 mm
+    const Vec3f q(0.5f * u(rng), u(rng), 0.f);
+    if ((q - hole).norm() > 0.02f) add(q);
+  }
+  for (int i = 0; i < 2000; ++i) add(Vec3f(0.5f + 0.5f * u(rng), u(rng), 0.f));  // 15.8 mm
+  add(hole);
+  MpuParams p;
+  p.trust_factor = 2;
+  const MpuSurface plain = fit_mpu(c, p);
+  p.sparse_trust = true;
+  const MpuSurface sparse = fit_mpu(c, p);
+  int inside = 0, plain_trusted = 0, sparse_trusted = 0;
+  for (int i = 0; i < 4000; ++i) {
+    const Vec3d x(0.6 + 0.3 * u(rng), 0.1 + 0.8 * u(rng), 0);
+    ++inside;
+    plain_trusted += plain.trusted(x);
+    sparse_trusted += sparse.trusted(x);
+  }
+  std::printf("sparse half trusted: %.3f plain, %.3f with the allowance\n", double(plain_trusted) / inside,
+              double(sparse_trusted) / inside);
+  EXPECT_LT(plain_trusted, 0.5 * inside);
+  EXPECT_GT(sparse_trusted, 0.95 * inside);
+  // Round the stray: the same answers.
+  for (int i = 0; i < 400; ++i) {
+    const double a = 2 * M_PI * u(rng), r = 0.004 + 0.012 * u(rng);
+    const Vec3d x = hole.cast<double>() + r * Vec3d(std::cos(a), std::sin(a), 0);
+    ASSERT_EQ(plain.trusted(x), sparse.trusted(x)) << r;
+  }
+  // The dense half's gaps: no change.
+  for (int i = 0; i < 2000; ++i) {
+    const Vec3d x(0.05 + 0.35 * u(rng), 0.05 + 0.9 * u(rng), 0.01 * (u(rng) - 0.5));
+    if ((x - hole.cast<double>()).norm() < 0.04) continue;
+    ASSERT_EQ(plain.trusted(x), sparse.trusted(x));
+  }
+  // may_be_trusted_near(x, r) holds wherever some y within r of x is trusted.
+  int bounded = 0;
+  for (int i = 0; i < 600; ++i) {
+    const Vec3d x(1.2 * u(rng) - 0.1, 1.2 * u(rng) - 0.1, 0.1 * (u(rng) - 0.5));
+    const double r = 0.02 * u(rng);
+    for (int t = 0; t < 30; ++t) {
+      const Vec3d y = x + r * Vec3d(u(rng) - 0.5, u(rng) - 0.5, u(rng) - 0.5).normalized() * double(u(rng));
+      if (sparse.trusted(y)) {
+        ASSERT_TRUE(sparse.may_be_trusted_near(x, r)) << x.transpose() << " r " << r;
+        ++bounded;
+        break;
+      }
+    }
+  }
+  EXPECT_GT(bounded, 100);
+  // The walk bounded by it: the same mesh as walking everywhere.
+  const WalkEverywhere everywhere(sparse);
+  const Aabb box = extraction_box(sparse);
+  const DmcOptions opt = left_open(sparse);
+  const Mesh a = extract_marching_cubes(sparse, box, 128, opt), b = extract_marching_cubes(everywhere, box, 128, opt);
+  ASSERT_GT(a.faces.size(), 1000u);
+  EXPECT_EQ(a.faces, b.faces);
+  EXPECT_EQ(a.vertices, b.vertices);
+  // near_points: the rims' test on the same scale.
+  const Vec3d gap(0.75, 0.5, 0);
+  const double d = sparse.nearest_point_distance(gap);
+  EXPECT_EQ(plain.near_points(gap, 0.5 * d), false);
+  EXPECT_EQ(plain.near_points(gap, 1.01 * d), true);
+  EXPECT_EQ(sparse.near_points(gap, 1.01 * d), true);
+}
+
 TEST(Mpu, LeftOpenTheWalkStopsBeyondTheTrustDistanceAtCreases) {
   // The upper part of a cube (its top and the sides above z = -0.1): sharp edges and
   // corners, which DMC's feature step moves lattice points onto, and open below. The
