@@ -1,6 +1,7 @@
 #include "core/kdtree.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <limits>
@@ -208,18 +209,59 @@ double local_sample_spacing(const PointIndex& index, int point) {
   return r * std::sqrt(theta / (2.0 * kNeighbours));  // sqrt(area / 8), area theta r^2 / 2
 }
 
-double sparse_allowance(const PointIndex& index, int point, double median, double from) {
+namespace {
+
+// The allowance from the point's and its neighbours' local spacings (sparse_allowance).
+template <class Local>
+double allowance_from(const PointIndex& index, int point, double median, double from, Local&& local) {
   if (!(median > 0) || point < 0 || std::size_t(point) >= index.size()) return 1;
   // The median over the point and its 8 nearest neighbours: a stray point (or a few)
   // near denser data reads as very sparse alone, not through its neighbours.
-  const auto k = index.knn(index.points()[std::size_t(point)], 9);
-  std::vector<double> spacing;
-  spacing.reserve(k.size());
-  for (const auto& [j, d] : k) spacing.push_back(local_sample_spacing(index, j));
-  if (spacing.empty()) return 1;
-  std::nth_element(spacing.begin(), spacing.begin() + spacing.size() / 2, spacing.end());
-  const double ratio = spacing[spacing.size() / 2] / median;
+  std::uint32_t near[9];
+  float dist_sq[9];
+  const int found = index.knn_into(index.points()[std::size_t(point)], 9, near, dist_sq);
+  if (found == 0) return 1;
+  double spacing[9];
+  for (int t = 0; t < found; ++t) spacing[t] = local(int(near[t]));
+  std::nth_element(spacing, spacing + found / 2, spacing + found);
+  const double ratio = spacing[found / 2] / median;
   return ratio >= from ? std::min(ratio, kSparseSpacingCap) : 1;
+}
+
+}  // namespace
+
+double sparse_allowance(const PointIndex& index, int point, double median, double from) {
+  return allowance_from(index, point, median, from, [&](int j) { return local_sample_spacing(index, j); });
+}
+
+SparseAllowances::SparseAllowances(const PointIndex& index, double median, double from)
+    : index_(index),
+      median_(median),
+      from_(from),
+      local_(new std::atomic<float>[index.size()]),
+      allowance_(new std::atomic<float>[index.size()]) {
+  for (std::size_t i = 0; i < index.size(); ++i)
+    local_[i].store(-1.f, std::memory_order_relaxed), allowance_[i].store(-1.f, std::memory_order_relaxed);
+}
+SparseAllowances::~SparseAllowances() = default;
+
+double SparseAllowances::local(int point) const {
+  float v = local_[std::size_t(point)].load(std::memory_order_relaxed);
+  if (v < 0) {
+    v = float(local_sample_spacing(index_, point));
+    local_[std::size_t(point)].store(v, std::memory_order_relaxed);
+  }
+  return v;
+}
+
+double SparseAllowances::operator()(int point) const {
+  if (point < 0 || std::size_t(point) >= index_.size()) return 1;
+  float v = allowance_[std::size_t(point)].load(std::memory_order_relaxed);
+  if (v < 0) {
+    v = float(allowance_from(index_, point, median_, from_, [&](int j) { return local(j); }));
+    allowance_[std::size_t(point)].store(v, std::memory_order_relaxed);
+  }
+  return v;
 }
 
 double sample_spacing(const PointIndex& index, std::size_t max_samples) {

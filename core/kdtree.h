@@ -2,6 +2,7 @@
 // Nearest-neighbour index over a fixed set of 3-D points (nanoflann inside;
 // kept out of this header so including it stays cheap). Queries are const and
 // thread-safe.
+#include <atomic>
 #include <cstdint>
 #include <memory>
 #include <optional>
@@ -78,5 +79,20 @@ double local_sample_spacing(const PointIndex& index, int point);
 inline constexpr double kSparseSpacing = 1.5;
 inline constexpr double kSparseSpacingCap = 4;
 double sparse_allowance(const PointIndex& index, int point, double median, double from = kSparseSpacing);
+
+/// sparse_allowance at the index's points, each local spacing computed once, when first
+/// asked for (thread-safe: racing threads store the same value). The index must outlive it.
+class SparseAllowances {
+ public:
+  SparseAllowances(const PointIndex& index, double median, double from = kSparseSpacing);
+  ~SparseAllowances();
+  double operator()(int point) const;
+
+ private:
+  double local(int point) const;
+  const PointIndex& index_;
+  double median_, from_;
+  std::unique_ptr<std::atomic<float>[]> local_, allowance_;  // < 0: not yet computed
+};
 
 }  // namespace station

@@ -176,18 +176,10 @@ struct MpuSurface::Impl {
   }
 
   // With params.sparse_trust: each point's allowance (sparse_allowance), computed when
-  // first asked for (a pure function of the points, so threads that race store the
-  // same value).
+  // first asked for.
   double median_spacing = 0;  // normalised; 0: sparse_trust off
-  mutable std::unique_ptr<std::atomic<float>[]> allowances;
-  double allowance(int k) const {
-    float a = allowances[std::size_t(k)].load(std::memory_order_relaxed);
-    if (a < 0) {
-      a = float(sparse_allowance(*index, k, median_spacing, kSparseTrustFrom));
-      allowances[std::size_t(k)].store(a, std::memory_order_relaxed);
-    }
-    return a;
-  }
+  std::unique_ptr<SparseAllowances> allowances;
+  double allowance(int k) const { return (*allowances)(k); }
   // Some point p within reach x allowance(p) + extra of q (normalised), given that the
   // nearest one lies `nearest` away; without sparse_trust, the nearest within reach + extra.
   bool within_allowance(const Vec3d& q, double nearest, double reach, double extra) const {
@@ -828,8 +820,7 @@ MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
     s.diag.sample_spacing = density[density.size() / 2] / s.scale;
     if (params.sparse_trust) {
       s.median_spacing = params.median_spacing > 0 ? params.median_spacing * s.scale : density[density.size() / 2];
-      s.allowances = std::make_unique<std::atomic<float>[]>(s.points.size());
-      for (std::size_t i = 0; i < s.points.size(); ++i) s.allowances[i].store(-1.f, std::memory_order_relaxed);
+      s.allowances = std::make_unique<SparseAllowances>(*s.index, s.median_spacing, kSparseTrustFrom);
     }
     s.diag.mean_spacing = spacing / s.scale;
 

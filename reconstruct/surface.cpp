@@ -265,11 +265,12 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
       // A vertex is far when it lies beyond kScanRimFactor of the scans' spacing from
       // every scan point: their median spacing, or where the nearest scan point's data
       // are sparse, its own (sparse_allowance).
+      const SparseAllowances allowance(*scan_index, spacing);
       out.scan_rim_faces = trim_open_rims(mesh, far_from(mesh, p.threads, [&](const Vec3f& x) {
                                             if (scan_index->nearest_within(x, float(reach)).first >= 0) return false;
                                             const auto [j, d] = scan_index->nearest(x);
                                             if (j < 0) return true;
-                                            const double a = sparse_allowance(*scan_index, j, spacing);
+                                            const double a = allowance(j);
                                             return a == 1 || d > reach * a;
                                           }));
       if (out.scan_rim_faces > 0)
