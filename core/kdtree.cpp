@@ -156,30 +156,32 @@ std::optional<std::vector<std::pair<int, float>>> PointIndex::radius_at_most(con
 
 namespace {
 
-// nanoflann's radius result set that keeps the indices only, in the caller's buffer.
-struct IndexRadiusSet {
+// nanoflann's radius result set that hands each point to a test and ends the search
+// at the first one it accepts (addPoint returning false).
+struct AcceptRadiusSet {
   using DistanceType = float;
   using IndexType = std::uint32_t;
   float radius;
-  std::vector<std::uint32_t>& hits;
-  void init() { hits.clear(); }
-  std::size_t size() const { return hits.size(); }
+  const std::function<bool(int, float)>& accept;
+  bool found = false;
+  void init() {}
+  std::size_t size() const { return 0; }
   bool full() const { return true; }
   bool addPoint(float dist, std::uint32_t index) {
-    if (dist < radius) hits.push_back(index);
-    return true;
+    if (dist < radius && accept(int(index), std::sqrt(dist))) found = true;
+    return !found;
   }
   float worstDist() const { return radius; }
 };
 
 }  // namespace
 
-void PointIndex::radius_into(const Vec3f& q, float radius, std::vector<std::uint32_t>& index) const {
-  index.clear();
-  if (!impl_->tree || !(radius >= 0)) return;
+bool PointIndex::any_in_radius(const Vec3f& q, float radius, const std::function<bool(int, float)>& accept) const {
+  if (!impl_->tree || !(radius >= 0)) return false;
   // radius_search's bound: squared, the next float up (inclusive).
-  IndexRadiusSet set{std::nextafter(radius * radius, std::numeric_limits<float>::infinity()), index};
+  AcceptRadiusSet set{std::nextafter(radius * radius, std::numeric_limits<float>::infinity()), accept};
   impl_->tree->radiusSearchCustomCallback(q.data(), set, nanoflann::SearchParams(32, 0.f, false));
+  return set.found;
 }
 
 double local_sample_spacing(const PointIndex& index, int point) {

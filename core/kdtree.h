@@ -4,6 +4,7 @@
 // thread-safe.
 #include <atomic>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <optional>
 #include <utility>
@@ -44,10 +45,10 @@ class PointIndex {
   /// ball holding most of the cloud costs no more than a small one.
   std::optional<std::vector<std::pair<int, float>>> radius_at_most(const Vec3f& q, float radius,
                                                                    std::size_t count) const;
-  /// The indices of radius_unsorted(q, radius), in the same order, into the caller's
-  /// buffer (cleared first; no allocation once it has grown): for tight loops of
-  /// searches that need no distances.
-  void radius_into(const Vec3f& q, float radius, std::vector<std::uint32_t>& index) const;
+  /// Whether `accept(index, distance)` holds for some point within `radius` (inclusive,
+  /// as radius()): the points are offered in radius_unsorted's order, and the search
+  /// stops at the first accepted one.
+  bool any_in_radius(const Vec3f& q, float radius, const std::function<bool(int, float)>& accept) const;
 
  private:
   std::vector<std::pair<int, float>> radius_search(const Vec3f& q, float radius, bool sorted) const;

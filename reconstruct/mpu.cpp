@@ -180,15 +180,17 @@ struct MpuSurface::Impl {
   double median_spacing = 0;  // normalised; 0: sparse_trust off
   std::unique_ptr<SparseAllowances> allowances;
   double allowance(int k) const { return (*allowances)(k); }
-  // Some point p within reach x allowance(p) + extra of q (normalised), given that the
-  // nearest one lies `nearest` away; without sparse_trust, the nearest within reach + extra.
-  bool within_allowance(const Vec3d& q, double nearest, double reach, double extra) const {
-    const double slack = 1 + 1e-6;  // a float distance's rounding
+  // Some point p within (reach x allowance(p) + extra) x slack of q (normalised), given
+  // that the nearest one lies `nearest` away; without sparse_trust, the nearest within
+  // that with an allowance of 1. `slack` > 1 makes a bound (may_be_trusted_near) safe
+  // against float rounding; the test itself (trusted) takes 1.
+  bool within_allowance(const Vec3d& q, double nearest, double reach, double extra, double slack) const {
     if (nearest <= (reach + extra) * slack) return true;
     if (!(median_spacing > 0) || !(nearest <= (reach * kSparseSpacingCap + extra) * slack)) return false;
-    for (const auto& [k, d] : index->radius_unsorted(q.cast<float>(), float((reach * kSparseSpacingCap + extra) * slack)))
-      if (d <= (reach * allowance(k) + extra) * slack) return true;
-    return false;
+    const float search = float((reach * kSparseSpacingCap + extra) * slack);
+    return index->any_in_radius(q.cast<float>(), search, [&](int k, float d) {
+      return d <= (reach * allowance(k) + extra) * slack;
+    });
   }
 
   // Evaluation layout, built once after the fit (the queries' time is mostly
@@ -1004,16 +1006,17 @@ bool MpuSurface::trusted(const Vec3d& x) const {
   const Vec3d q = (x - impl_->center) * impl_->scale;
   const double d = impl_->trust_distance(q);
   if (d <= impl_->trust_radius) return true;
-  return impl_->median_spacing > 0 && impl_->within_allowance(q, d, impl_->trust_radius, 0);
+  return impl_->median_spacing > 0 && impl_->within_allowance(q, d, impl_->trust_radius, 0, 1);
 }
 bool MpuSurface::may_be_trusted_near(const Vec3d& x, double radius) const {
+  // A float distance's rounding: a millionth of the reach more.
   const Vec3d q = (x - impl_->center) * impl_->scale;
-  return impl_->within_allowance(q, impl_->trust_distance(q), impl_->trust_radius, radius * impl_->scale);
+  return impl_->within_allowance(q, impl_->trust_distance(q), impl_->trust_radius, radius * impl_->scale, 1 + 1e-6);
 }
 bool MpuSurface::near_points(const Vec3d& x, double distance) const {
   const Vec3d q = (x - impl_->center) * impl_->scale;
   const auto [id, d] = impl_->index->nearest(q.cast<float>());
-  return id >= 0 && impl_->within_allowance(q, d, distance * impl_->scale, 0);
+  return id >= 0 && impl_->within_allowance(q, d, distance * impl_->scale, 0, 1);
 }
 Vec3d MpuSurface::center() const { return impl_->center; }
 double MpuSurface::scale() const { return impl_->scale; }

@@ -51,8 +51,9 @@ struct Samples {
 // The scans bucketed in cubes of side `radius`, sorted cube by cube, side by side: a
 // vertex's neighbours are in the 27 cubes round its own, read in runs instead of walked
 // to through a k-d tree (half the snap's time on the Kinect scene went to that walk and
-// its scattered reads). The same points as a k-d tree's radius search (the same float
-// distance test), in another order. The cubes start at the origin, so a point's cube
+// its scattered reads). The points of a k-d tree's radius search (a float ball test;
+// the tree squares the float radius where this rounds the squared one, which can differ
+// by one unit in the last place exactly at the radius), in another order. The cubes start at the origin, so a point's cube
 // does not depend on the others (an outlier far away changes nothing). A cube's key holds its coordinates modulo 2^21: cubes
 // that far apart share a run, which costs distance tests, never a wrong point.
 class ScanGrid {
@@ -60,6 +61,8 @@ class ScanGrid {
   ScanGrid(const Cloud& scans, double radius) : radius_sq_(float(radius * radius)) {
     inv_ = 1 / radius;
     const std::size_t n = scans.size();
+    if (n >= std::numeric_limits<std::uint32_t>::max())
+      throw InvalidInput("snap to scans: " + std::to_string(n) + " scan points; at most 2^32 - 2 are supported");
     std::vector<std::uint64_t> cube(n);
     std::vector<std::uint32_t> order(n);
     tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, 4096), [&](const auto& r) {
@@ -80,14 +83,15 @@ class ScanGrid {
     std::size_t cubes = 0;
     for (std::size_t k = 0; k < n; ++k) cubes += k == 0 || !(cube[order[k]] == cube[order[k - 1]]);
     std::size_t capacity = 16;
-    while (capacity < 2 * cubes) capacity *= 2;
+    shift_ = 60;
+    while (capacity < 2 * cubes) capacity *= 2, --shift_;
     mask_ = capacity - 1;
     slots_.assign(capacity, Slot{});
     for (std::size_t k = 0; k < n;) {
       const std::uint64_t c = cube[order[k]];
       std::size_t end = k + 1;
       while (end < n && cube[order[end]] == c) ++end;
-      std::size_t s = hash(c) & mask_;
+      std::size_t s = hash(c);
       while (slots_[s].end != 0) s = (s + 1) & mask_;
       slots_[s] = Slot{c, std::uint32_t(k), std::uint32_t(end)};
       k = end;
@@ -142,12 +146,11 @@ class ScanGrid {
     return (std::uint64_t(c.i) & kMask) | (std::uint64_t(c.j) & kMask) << 21 | (std::uint64_t(c.k) & kMask) << 42;
   }
   std::uint64_t cube_of(const Vec3f& p) const { return key(coordinates(p)); }
-  static std::size_t hash(std::uint64_t key) {
-    const std::uint64_t h = key * 0x9E3779B97F4A7C15ull;
-    return std::size_t(h ^ (h >> 29));
-  }
+  // The product's high bits (Fibonacci hashing): every bit of the key reaches them, so
+  // a tall column of cubes (x and y alike) spreads over the table too.
+  std::size_t hash(std::uint64_t key) const { return std::size_t((key * 0x9E3779B97F4A7C15ull) >> shift_); }
   const Slot* find(std::uint64_t key) const {
-    for (std::size_t s = hash(key) & mask_;; s = (s + 1) & mask_) {
+    for (std::size_t s = hash(key);; s = (s + 1) & mask_) {
       if (slots_[s].end == 0) return nullptr;
       if (slots_[s].key == key) return &slots_[s];
     }
@@ -159,6 +162,7 @@ class ScanGrid {
   std::vector<unsigned char> half_;
   std::vector<Slot> slots_;
   std::size_t mask_ = 0;
+  int shift_ = 60;  // 64 - log2(the table's size)
   static thread_local std::vector<std::uint32_t> hits_;
 };
 

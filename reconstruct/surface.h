@@ -73,7 +73,8 @@ struct SurfaceParams {
 
 struct SurfaceTimings {
   double normals = 0, fit = 0, closing = 0, extract = 0, colour = 0, total = 0;  ///< seconds
-  /// The mesh back to the scans (their index, the snap, rims and pieces they support).
+  /// The mesh back to the scans: the snap, the scans' index and the rims' trim to them
+  /// (the small pieces they support are decided after, outside this figure).
   double scans = 0;
 };
 

@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <thread>
 #include <cmath>
 #include <random>
 
@@ -160,31 +161,31 @@ TEST(PointIndex, RadiusUnsortedHoldsTheSamePointsAsRadius) {
   EXPECT_TRUE(index.radius_unsorted(Vec3f(9, 9, 9), 0.1f).empty());
 }
 
-// radius_into: radius_unsorted's indices in its order, into a reused buffer that it
-// clears first (a point exactly at the radius included, as radius() includes it).
-TEST(PointIndex, RadiusIntoIsRadiusUnsortedsIndices) {
+// any_in_radius: the points of radius_unsorted offered in its order until one is
+// accepted (inclusive at the radius); false when none is, or none lies within.
+TEST(PointIndex, AnyInRadiusOffersTheBallUntilOneIsAccepted) {
   const auto pts = random_points(3000, 19);
   PointIndex index(pts);
-  std::vector<std::uint32_t> got{7, 7, 7};  // stale contents must go
-  std::size_t found = 0;
+  int answered = 0;
   for (const Vec3f& q : random_points(50, 20)) {
     for (float r : {0.0f, 0.1f, 0.3f}) {
-      index.radius_into(q, r, got);
-      std::vector<std::uint32_t> expect;
-      for (const auto& [j, d] : index.radius_unsorted(q, r)) expect.push_back(std::uint32_t(j));
-      ASSERT_EQ(got, expect);
-      found += got.size();
+      const auto ball = index.radius_unsorted(q, r);
+      std::vector<std::pair<int, float>> offered;
+      // Accept nothing: every point of the ball offered, in its order.
+      EXPECT_FALSE(index.any_in_radius(q, r, [&](int j, float d) { return offered.emplace_back(j, d), false; }));
+      ASSERT_EQ(offered, ball);
+      // Accept the third: the search stops there.
+      offered.clear();
+      const bool found = index.any_in_radius(q, r, [&](int j, float d) { return offered.emplace_back(j, d), offered.size() == 3; });
+      EXPECT_EQ(found, ball.size() >= 3);
+      EXPECT_EQ(offered.size(), std::min<std::size_t>(3, ball.size()));
+      answered += found;
     }
   }
-  EXPECT_GT(found, 1000u);
-  index.radius_into(pts[5], 0.0f, got);  // the query on a point: that point, at distance 0
-  EXPECT_NE(std::find(got.begin(), got.end(), 5u), got.end());
-  index.radius_into(Vec3f(9, 9, 9), 0.1f, got);
-  EXPECT_TRUE(got.empty());
-  PointIndex none(std::vector<Vec3f>{});
-  got = {1};
-  none.radius_into(Vec3f::Zero(), 1.0f, got);
-  EXPECT_TRUE(got.empty());
+  EXPECT_GT(answered, 30);
+  EXPECT_TRUE(index.any_in_radius(pts[5], 0.0f, [](int j, float) { return j == 5; }));  // at distance 0
+  EXPECT_FALSE(index.any_in_radius(Vec3f(9, 9, 9), 0.1f, [](int, float) { return true; }));
+  EXPECT_FALSE(PointIndex(std::vector<Vec3f>{}).any_in_radius(Vec3f::Zero(), 1.0f, [](int, float) { return true; }));
 }
 
 // radius_at_most: radius() itself (the same points in the same order) when the
@@ -320,6 +321,34 @@ TEST(SampleSpacing, SparseAllowanceFollowsTheNeighbourhoodNotAStrayPoint) {
   EXPECT_EQ(sparse_allowance(index, i, median, 3.5), 1.0);
   EXPECT_EQ(sparse_allowance(index, i, 0.0), 1.0);
   EXPECT_EQ(sparse_allowance(index, -1, median), 1.0);
+}
+
+// SparseAllowances: sparse_allowance at every point, cached, from two threads at once
+// (the cache keeps each local spacing as a float: the same to float rounding).
+TEST(SampleSpacing, CachedAllowancesAreSparseAllowances) {
+  std::mt19937 rng(9);
+  std::uniform_real_distribution<float> left(0, 0.5f), right(0.5f, 1), v(0, 1);
+  std::vector<Vec3f> p;
+  for (int i = 0; i < 9000; ++i) p.emplace_back(left(rng), v(rng), 0.f);
+  for (int i = 0; i < 1000; ++i) p.emplace_back(right(rng), v(rng), 0.f);
+  const PointIndex index(p);
+  const double median = sample_spacing(index);
+  const SparseAllowances cached(index, median, 2.0);
+  std::vector<double> got(p.size());
+  std::thread other([&] {
+    for (std::size_t i = p.size(); i-- > 0;) got[i] = cached(int(i));
+  });
+  for (std::size_t i = 0; i < p.size(); ++i) got[i] = cached(int(i));
+  other.join();
+  int sparse = 0;
+  for (std::size_t i = 0; i < p.size(); ++i) {
+    const double expect = sparse_allowance(index, int(i), median, 2.0);
+    ASSERT_NEAR(got[i], expect, 1e-5 * expect) << i;
+    sparse += got[i] > 1;
+  }
+  EXPECT_GT(sparse, 500);
+  EXPECT_EQ(cached(-1), 1.0);
+  EXPECT_EQ(cached(int(p.size())), 1.0);
 }
 
 TEST(PointIndex, EmptySet) {

@@ -413,7 +413,8 @@ TEST(Mpu, SparseTrustReachesOverSparseDataNotRoundAStray) {
   const double d = sparse.nearest_point_distance(gap);
   EXPECT_EQ(plain.near_points(gap, 0.5 * d), false);
   EXPECT_EQ(plain.near_points(gap, 1.01 * d), true);
-  EXPECT_EQ(sparse.near_points(gap, 1.01 * d), true);
+  EXPECT_EQ(sparse.near_points(gap, 0.5 * d), true);  // its nearest points' allowance is 2 or more
+  EXPECT_EQ(sparse.near_points(gap, 0.1 * d), false);  // at most 4
 }
 
 TEST(Mpu, LeftOpenTheWalkStopsBeyondTheTrustDistanceAtCreases) {

@@ -304,7 +304,6 @@ TEST(ScanSnap, FarScanPointsChangeNothing) {
   EXPECT_EQ(a.moved, b.moved);
   EXPECT_EQ(a.held_out_rms_kept, b.held_out_rms_kept);
   for (std::size_t i = 0; i < mesh.vertices.size(); ++i) ASSERT_EQ(near_only.vertices[i], with_far.vertices[i]) << i;
-
 }
 
 TEST(ScanSnap, ScansThatHardlyMeetTheMeshAreDeclined) {
