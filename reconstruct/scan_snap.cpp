@@ -53,9 +53,15 @@ struct Samples {
 // to through a k-d tree (half the snap's time on the Kinect scene went to that walk and
 // its scattered reads). The points of a k-d tree's radius search (a float ball test;
 // the tree squares the float radius where this rounds the squared one, which can differ
-// by one unit in the last place exactly at the radius), in another order. The cubes start at the origin, so a point's cube
-// does not depend on the others (an outlier far away changes nothing). A cube's key holds its coordinates modulo 2^21: cubes
-// that far apart share a run, which costs distance tests, never a wrong point.
+// by one unit in the last place exactly at the radius), in another order. The cubes
+// start at the origin, so a point's cube does not depend on the others (an outlier far
+// away changes nothing). A cube's key holds its coordinates modulo 2^21: cubes that far
+// apart share a run, which costs distance tests, never a wrong point.
+// Not WLOP's detail::RadiusGrid: its dense cell array may take 16 cells per point (64
+// bytes per point, on top of double coordinates), and the snap runs over all the
+// registered scans, tens of millions of points in a large session; here only the
+// occupied cubes sit in a hash table (2-4 slots of 16 bytes per occupied cube), besides
+// 25 bytes per point.
 class ScanGrid {
  public:
   ScanGrid(const Cloud& scans, double radius) : radius_sq_(float(radius * radius)) {
