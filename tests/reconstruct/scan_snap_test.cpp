@@ -2,6 +2,7 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <random>
 
@@ -9,6 +10,8 @@
 
 #include "core/error.h"
 #include "reconstruct/scan_snap.h"
+#include "reconstruct/detail/scan_grid.h"
+#include "core/kdtree.h"
 #include "test_util.h"
 
 namespace station {
@@ -304,6 +307,60 @@ TEST(ScanSnap, FarScanPointsChangeNothing) {
   EXPECT_EQ(a.moved, b.moved);
   EXPECT_EQ(a.held_out_rms_kept, b.held_out_rms_kept);
   for (std::size_t i = 0; i < mesh.vertices.size(); ++i) ASSERT_EQ(near_only.vertices[i], with_far.vertices[i]) << i;
+}
+
+// The snap's grid finds the k-d tree's ball (the same float test, up to one ulp of the
+// squared radius): random points, queries on them, near cube faces (multiples of the
+// radius) and far away, and points spread over a box 2^21 cubes long on one axis (its
+// keys wrap).
+TEST(ScanGrid, FindsTheKdTreesBall) {
+  std::mt19937 rng(4);
+  std::uniform_real_distribution<float> u(-1, 1);
+  for (const double radius : {0.05, 0.13, 0.4}) {
+    Cloud scans;
+    for (int i = 0; i < 20000; ++i) {
+      scans.points.emplace_back(u(rng), u(rng), 0.3f * u(rng));
+      scans.normals.emplace_back(0.f, 0.f, 1.f);
+    }
+    scans.points.emplace_back(float(std::ldexp(radius, 21)) + 0.2f, 0.1f, 0.f);  // wraps onto the cubes near x = 0.2
+    scans.normals.emplace_back(0.f, 0.f, 1.f);
+    const detail::ScanGrid grid(scans, radius);
+    const PointIndex tree(scans.points);
+    std::vector<Vec3f> queries(scans.points.begin(), scans.points.begin() + 200);
+    for (int i = 0; i < 200; ++i)  // on cube faces and corners
+      queries.emplace_back(float(radius * std::round(u(rng) / radius)), u(rng), float(radius * std::round(u(rng) / radius)));
+    queries.emplace_back(0.2f, 0.1f, 0.f);
+    queries.emplace_back(5.f, 5.f, 5.f);
+    std::size_t found = 0, boundary = 0;
+    using P = std::array<float, 3>;
+    for (const Vec3f& q : queries) {
+      std::vector<P> from_grid, from_tree;  // the points found, as coordinates
+      grid.for_each_within(q, [&](std::uint32_t k) {
+        const Vec3f p = grid.point(k);
+        from_grid.push_back({p.x(), p.y(), p.z()});
+      });
+      for (const auto& [j, d] : tree.radius_unsorted(q, float(radius))) {
+        const Vec3f& p = scans.points[std::size_t(j)];
+        from_tree.push_back({p.x(), p.y(), p.z()});
+      }
+      std::sort(from_grid.begin(), from_grid.end());
+      std::sort(from_tree.begin(), from_tree.end());
+      if (from_grid != from_tree) {
+        // Only a point within one ulp of the squared radius may differ.
+        std::vector<P> diff;
+        std::set_symmetric_difference(from_grid.begin(), from_grid.end(), from_tree.begin(), from_tree.end(),
+                                      std::back_inserter(diff));
+        for (const P& p : diff) {
+          const float d2 = (Vec3f(p[0], p[1], p[2]) - q).squaredNorm();
+          ASSERT_NEAR(d2, float(radius * radius), 4e-7f * float(radius * radius)) << "radius " << radius;
+          ++boundary;
+        }
+      }
+      found += from_tree.size();
+    }
+    EXPECT_GT(found, 1000u);
+    EXPECT_LE(boundary, 2u);
+  }
 }
 
 TEST(ScanSnap, ScansThatHardlyMeetTheMeshAreDeclined) {
