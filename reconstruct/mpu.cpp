@@ -6,7 +6,6 @@
 
 #include <Eigen/Dense>
 #include <algorithm>
-#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <cstdint>
@@ -175,21 +174,19 @@ struct MpuSurface::Impl {
     return id >= 0 ? double(d) : std::numeric_limits<double>::infinity();
   }
 
-  // With params.sparse_trust: each point's allowance (sparse_allowance), computed when
-  // first asked for.
-  double median_spacing = 0;  // normalised; 0: sparse_trust off
+  // With params.sparse_trust (and a median spacing): each point's allowance
+  // (sparse_allowance), computed when first asked for; null otherwise.
   std::unique_ptr<SparseAllowances> allowances;
-  double allowance(int k) const { return (*allowances)(k); }
   // Some point p within (reach x allowance(p) + extra) x slack of q (normalised), given
   // that the nearest one lies `nearest` away; without sparse_trust, the nearest within
   // that with an allowance of 1. `slack` > 1 makes a bound (may_be_trusted_near) safe
   // against float rounding; the test itself (trusted) takes 1.
   bool within_allowance(const Vec3d& q, double nearest, double reach, double extra, double slack) const {
     if (nearest <= (reach + extra) * slack) return true;
-    if (!(median_spacing > 0) || !(nearest <= (reach * kSparseSpacingCap + extra) * slack)) return false;
+    if (!allowances || !(nearest <= (reach * kSparseSpacingCap + extra) * slack)) return false;
     const float search = float((reach * kSparseSpacingCap + extra) * slack);
     return index->any_in_radius(q.cast<float>(), search, [&](int k, float d) {
-      return d <= (reach * allowance(k) + extra) * slack;
+      return d <= (reach * (*allowances)(k) + extra) * slack;
     });
   }
 
@@ -820,10 +817,9 @@ MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
     s.trust_radius = params.trust_factor * std::max(trusted, 1e-9);
     std::nth_element(density.begin(), density.begin() + density.size() / 2, density.end());
     s.diag.sample_spacing = density[density.size() / 2] / s.scale;
-    if (params.sparse_trust) {
-      s.median_spacing = params.median_spacing > 0 ? params.median_spacing * s.scale : density[density.size() / 2];
-      s.allowances = std::make_unique<SparseAllowances>(*s.index, s.median_spacing, kSparseTrustFrom);
-    }
+    const double median = params.median_spacing > 0 ? params.median_spacing * s.scale : density[density.size() / 2];
+    if (params.sparse_trust && median > 0)
+      s.allowances = std::make_unique<SparseAllowances>(*s.index, median, kSparseTrustFrom);
     s.diag.mean_spacing = spacing / s.scale;
 
     // Breadth-first build: each level's cells are fitted in parallel into their own
@@ -1004,9 +1000,7 @@ bool MpuSurface::may_be_sharp(const Vec3d& x, double radius) const {
 }
 bool MpuSurface::trusted(const Vec3d& x) const {
   const Vec3d q = (x - impl_->center) * impl_->scale;
-  const double d = impl_->trust_distance(q);
-  if (d <= impl_->trust_radius) return true;
-  return impl_->median_spacing > 0 && impl_->within_allowance(q, d, impl_->trust_radius, 0, 1);
+  return impl_->within_allowance(q, impl_->trust_distance(q), impl_->trust_radius, 0, 1);
 }
 bool MpuSurface::may_be_trusted_near(const Vec3d& x, double radius) const {
   // A float distance's rounding: a millionth of the reach more.

@@ -2,14 +2,12 @@
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
-#include <tbb/parallel_sort.h>
 #include <tbb/task_arena.h>
 
 #include <algorithm>
 #include <array>
 #include <cmath>
 #include <cstdint>
-#include <limits>
 #include <memory>
 #include <optional>
 #include <stdexcept>
@@ -50,7 +48,6 @@ struct Samples {
 };
 
 using detail::ScanGrid;
-
 
 // One neighbourhood search for a vertex: the scan points within `radius` along the
 // tangent plane whose normals face n's way.
