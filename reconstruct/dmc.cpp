@@ -276,6 +276,7 @@ void Dmc::traverse(const std::vector<std::uint64_t>& start, bool probe_first) {
         __atomic_fetch_and(&B.surface, ~m, __ATOMIC_RELAXED);
         return;
       }
+      B.cfg[l] = std::uint8_t(cfg);
       __atomic_fetch_or(&B.surface, m, __ATOMIC_RELAXED);
       const int fc = faces_of[cfg];
       if (fc & 1) push(-1, 0, 0);

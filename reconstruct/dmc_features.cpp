@@ -124,7 +124,7 @@ std::size_t Dmc::solve(EdgeBatch& eb, int steps, double done_error, std::size_t&
 void Dmc::want_crossings(std::int32_t b, int l) {
   const auto& ec = mc::edge_corners();
   const int li = l & 3, lj = l >> 2 & 3, lk = l >> 4;
-  const int cfg = config(b, l);
+  const int cfg = nodes_.blk(b).cfg[l];
   for (int e = 0; e < 12; ++e) {
     if (!crossed(cfg, e)) continue;
     const int c0 = ec[e][0];

@@ -20,7 +20,7 @@ Mesh Dmc::build_mesh() {
     const std::int32_t b = nodes_.block_of(surface[i]);
     const int l = Lattice::local(surface[i]);
     handle[i] = std::uint32_t(b) << 6 | std::uint32_t(l);
-    cfgs[i] = std::uint8_t(config(b, l));
+    cfgs[i] = nodes_.blk(b).cfg[l];
   });
   std::vector<std::size_t> first(surface.size() + 1, 0);
   for (std::size_t i = 0; i < surface.size(); ++i) first[i + 1] = first[i] + table[cfgs[i]].size();

@@ -145,6 +145,9 @@ class Lattice {
     std::int32_t xs;        // crossing slots of the block, or kNone
     std::uint64_t xwant[3];  // edges from the points along each axis to compute (scratch)
     std::uint32_t node[64];  // index of the point's node, where present
+    // A crossed cell's configuration, as its last walk found it: every move is followed
+    // by update_surface, which walks the cells round the moved point again.
+    std::uint8_t cfg[64];
   };
   static constexpr std::uint32_t kNoCrossing = 0xFFFFFFFFu;
   Lattice() = default;

@@ -2,9 +2,13 @@
 // Storage shared by the sparse block lattices of marching cubes
 // (marching_cubes.cpp) and Deformed Marching Cubes (dmc.cpp). Internal to
 // reconstruct/.
+#include <algorithm>
+#include <atomic>
 #include <cstddef>
 #include <cstdint>
 #include <memory>
+#include <new>
+#include <type_traits>
 #include <utility>
 #include <vector>
 
@@ -93,31 +97,79 @@ class BlockTable {
 };
 
 /// Vector in chunks of 4096: no copy when it grows (no transient doubling of
-/// memory), and references stay valid.
+/// memory), and references stay valid. A chunk is allocated when its first element is
+/// made, by the thread that makes it (claim() may run in parallel), and each element
+/// is constructed where it is made: memory is first touched where it is used, and
+/// room reserved for more claims than are made costs no memory. (First-touch page
+/// faults are most of the cost of fresh memory on the VMs we measure on, about
+/// 3 ms per MiB, and were taken serially here before: docs/dmc.md, "2026-12-06:
+/// memory touched where it is used".) T must be trivially destructible.
 template <class T>
 class Chunked {
+  static_assert(std::is_trivially_destructible_v<T>, "Chunked never runs destructors");
+
  public:
   static constexpr std::size_t kChunk = 4096;
-  T& operator[](std::size_t i) { return chunks_[i / kChunk][i % kChunk]; }
-  const T& operator[](std::size_t i) const { return chunks_[i / kChunk][i % kChunk]; }
+  Chunked() = default;
+  Chunked(const Chunked&) = delete;
+  Chunked& operator=(const Chunked&) = delete;
+  ~Chunked() { clear(); }
+  T& operator[](std::size_t i) { return chunk(i / kChunk)[i % kChunk]; }
+  const T& operator[](std::size_t i) const { return chunk(i / kChunk)[i % kChunk]; }
   std::size_t size() const { return size_; }
+  /// Serial.
   void push_back(const T& v) {
-    if (size_ == chunks_.size() * kChunk) chunks_.emplace_back(new T[kChunk]);
-    (*this)[size_++] = v;
+    reserve_more(1);
+    ::new (static_cast<void*>(made(size_))) T(v);
+    ++size_;
   }
-  /// Room for n more elements (serial), so that claim() may run in parallel.
+  /// Room for n more elements (serial), so that claim() may run in parallel: room in
+  /// the chunk table only; the chunks come with their first element.
   void reserve_more(std::size_t n) {
-    while (chunks_.size() * kChunk < size_ + n) chunks_.emplace_back(new T[kChunk]);
+    const std::size_t need = (size_ + n + kChunk - 1) / kChunk;
+    if (need <= slots_) return;
+    const std::size_t grown = std::max(need, 2 * slots_);
+    std::unique_ptr<std::atomic<T*>[]> table(new std::atomic<T*>[grown]);
+    for (std::size_t c = 0; c < grown; ++c)
+      table[c].store(c < slots_ ? table_[c].load(std::memory_order_relaxed) : nullptr, std::memory_order_relaxed);
+    table_ = std::move(table);
+    slots_ = grown;
   }
-  /// Index of a new element, within the room made by reserve_more (parallel).
-  std::size_t claim() { return __atomic_fetch_add(&size_, std::size_t(1), __ATOMIC_RELAXED); }
+  /// Index of a new element (value-initialised), within the room made by reserve_more
+  /// (parallel).
+  std::size_t claim() {
+    const std::size_t i = __atomic_fetch_add(&size_, std::size_t(1), __ATOMIC_RELAXED);
+    ::new (static_cast<void*>(made(i))) T();
+    return i;
+  }
   void clear() {
-    chunks_.clear();
+    for (std::size_t c = 0; c < slots_; ++c)
+      if (T* p = table_[c].load(std::memory_order_relaxed)) ::operator delete(p, std::align_val_t(alignof(T)));
+    table_.reset();
+    slots_ = 0;
     size_ = 0;
   }
 
  private:
-  std::vector<std::unique_ptr<T[]>> chunks_;
+  T* chunk(std::size_t c) const { return table_[c].load(std::memory_order_acquire); }
+  // Where element i goes, its chunk allocated when missing (two threads that both
+  // find it missing race; one allocation is kept).
+  T* made(std::size_t i) {
+    std::atomic<T*>& slot = table_[i / kChunk];
+    T* p = slot.load(std::memory_order_acquire);
+    if (!p) {
+      T* fresh = static_cast<T*>(::operator new(sizeof(T) * kChunk, std::align_val_t(alignof(T))));
+      if (slot.compare_exchange_strong(p, fresh, std::memory_order_acq_rel, std::memory_order_acquire)) {
+        p = fresh;
+      } else {
+        ::operator delete(fresh, std::align_val_t(alignof(T)));
+      }
+    }
+    return p + i % kChunk;
+  }
+
+  std::unique_ptr<std::atomic<T*>[]> table_;
+  std::size_t slots_ = 0;
   std::size_t size_ = 0;
 };
 
