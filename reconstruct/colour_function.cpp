@@ -943,6 +943,11 @@ ColourFunction fit_colour(const Cloud& cloud, const ColourParams& params) {
     Node root;
     root.center = Vec3d::Zero();
     root.half = 0.5 / std::sqrt(3.0) * (1 + p.root_margin);
+    // Room for a leaf per point and for twice as many cells: growing by doubling copied
+    // the leaves into fresh memory several times over, in serial code (room never used
+    // is never touched; docs/dmc.md, "2026-12-06: memory touched where it is used").
+    s.leaves.reserve(s.points.size());
+    s.nodes.reserve(2 * s.points.size());
     s.nodes.push_back(root);
     std::vector<int> frontier{0};
     // The cells of a level in chunks, so that only a chunk's results are held at once

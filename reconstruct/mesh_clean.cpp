@@ -8,6 +8,7 @@
 #include <numeric>
 #include <utility>
 #include <string>
+#include <type_traits>
 #include <vector>
 
 #include "core/error.h"
@@ -227,32 +228,37 @@ std::size_t keep_faces(Mesh& mesh, const std::vector<char>& keep, std::vector<st
   if (keep.size() != mesh.faces.size()) throw InvalidInput("keep_faces: one flag per face expected");
   if (vertex_keys && vertex_keys->size() != mesh.vertices.size())
     throw InvalidInput("keep_faces: one key per vertex expected");
-  std::vector<std::uint64_t> keys;
-  const bool normals = mesh.has_normals(), colours = mesh.has_colours();
+  // The kept faces in place, their vertices numbered by first use; then each vertex
+  // array once, at its final size (growing new arrays by doubling took about twice their
+  // size in fresh memory, which costs more than the copies: docs/dmc.md, "2026-12-06:
+  // memory touched where it is used").
   std::vector<int> remap(mesh.vertices.size(), -1);
-  Mesh out;
-  std::size_t dropped = 0;
+  std::vector<int> used;  // new vertex -> old
+  std::size_t kept = 0;
   for (std::size_t fi = 0; fi < mesh.faces.size(); ++fi) {
-    if (!keep[fi]) {
-      ++dropped;
-      continue;
-    }
+    if (!keep[fi]) continue;
     Face fc = mesh.faces[fi];
     for (int t = 0; t < 3; ++t) {
       int& r = remap[fc[t]];
       if (r < 0) {
-        r = int(out.vertices.size());
-        out.vertices.push_back(mesh.vertices[fc[t]]);
-        if (normals) out.normals.push_back(mesh.normals[fc[t]]);
-        if (colours) out.colours.push_back(mesh.colours[fc[t]]);
-        if (vertex_keys) keys.push_back((*vertex_keys)[fc[t]]);
+        r = int(used.size());
+        used.push_back(fc[t]);
       }
       fc[t] = r;
     }
-    out.faces.push_back(fc);
+    mesh.faces[kept++] = fc;
   }
-  mesh = std::move(out);
-  if (vertex_keys) vertex_keys->swap(keys);
+  const std::size_t dropped = mesh.faces.size() - kept;
+  mesh.faces.resize(kept);
+  auto gather = [&](auto& values) {
+    std::remove_reference_t<decltype(values)> out(used.size());
+    for (std::size_t k = 0; k < used.size(); ++k) out[k] = values[std::size_t(used[k])];
+    values.swap(out);
+  };
+  gather(mesh.vertices);
+  if (mesh.has_normals()) gather(mesh.normals);
+  if (mesh.has_colours()) gather(mesh.colours);
+  if (vertex_keys) gather(*vertex_keys);
   return dropped;
 }
 

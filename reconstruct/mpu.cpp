@@ -831,41 +831,53 @@ MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
     std::vector<int> frontier{0};
     s.diag.leaves_by_depth.assign(params.max_depth + 1, 0);
     // One buffer for every level's fits: a fresh one per level (CellFit is over 600
-    // bytes) was a fifth of the fit's time in zeroing, copying and page faults.
+    // bytes) was a fifth of the fit's time in zeroing, copying and page faults. A level
+    // in chunks, so that the buffer holds a chunk's fits: sized for a whole level it was
+    // 30-60 MiB of fresh memory, value-initialised in serial code (fresh memory costs
+    // about 3 ms per MiB in page faults on the VMs we measure on; docs/dmc.md, "2026-12-06:
+    // memory touched where it is used").
+    constexpr std::size_t kChunk = 16384;
     std::vector<CellFit> fits;
+    // Room for a leaf per point, and for twice as many cells: growing by doubling copied
+    // each store into fresh memory several times over (room never used is never touched).
+    s.singles.reserve(s.points.size());
+    s.nodes.reserve(2 * s.points.size());
     for (int depth = 0; !frontier.empty(); ++depth) {
-      fits.resize(frontier.size());
-      tbb::parallel_for(std::size_t(0), frontier.size(), [&](std::size_t i) {
-        const Node& nd = s.nodes[frontier[i]];
-        fits[i] = fit_cell(s, nd.center, nd.half);
-      });
       std::vector<int> next;
-      for (std::size_t i = 0; i < frontier.size(); ++i) {
-        const int id = frontier[i];
-        const CellFit& cf = fits[i];
-        // A grown ball already holds only the n_min nearest points: splitting
-        // would fit the same points again, so it stays a leaf.
-        const bool split = cf.error > params.epsilon0 && !cf.grew && cf.points >= params.split_min_points &&
-                           depth < params.max_depth;
-        if (split) {
-          detail::split_cell(s.nodes, id, depth, next);
-        } else {
-          Node& nd = s.nodes[id];
-          nd.radius = cf.radius;
-          const LocalFit& f = cf.fit;
-          if (f.type != MpuFitType::kQuadric && f.pieces == 1 && !f.saddle) {
-            nd.single = int(s.singles.size());
-            s.singles.push_back(f.piece[0]);
+      for (std::size_t begin = 0; begin < frontier.size(); begin += kChunk) {
+        const std::size_t end = std::min(frontier.size(), begin + kChunk);
+        fits.resize(end - begin);
+        tbb::parallel_for(begin, end, [&](std::size_t i) {
+          const Node& nd = s.nodes[frontier[i]];
+          fits[i - begin] = fit_cell(s, nd.center, nd.half);
+        });
+        for (std::size_t i = begin; i < end; ++i) {
+          const int id = frontier[i];
+          const CellFit& cf = fits[i - begin];
+          // A grown ball already holds only the n_min nearest points: splitting
+          // would fit the same points again, so it stays a leaf.
+          const bool split = cf.error > params.epsilon0 && !cf.grew &&
+                             cf.points >= params.split_min_points && depth < params.max_depth;
+          if (split) {
+            detail::split_cell(s.nodes, id, depth, next);
           } else {
-            nd.fit = int(s.fits.size());
-            s.fits.push_back(f);
+            Node& nd = s.nodes[id];
+            nd.radius = cf.radius;
+            const LocalFit& f = cf.fit;
+            if (f.type != MpuFitType::kQuadric && f.pieces == 1 && !f.saddle) {
+              nd.single = int(s.singles.size());
+              s.singles.push_back(f.piece[0]);
+            } else {
+              nd.fit = int(s.fits.size());
+              s.fits.push_back(f);
+            }
+            ++s.diag.leaves;
+            ++s.diag.leaves_by_type[int(cf.fit.type)];
+            ++s.diag.leaves_by_depth[depth];
+            if (cf.grew) ++s.diag.grown_leaves;
+            if (cf.error > params.epsilon0) ++s.diag.unconverged_leaves;
+            s.diag.max_leaf_error = std::max(s.diag.max_leaf_error, cf.error);
           }
-          ++s.diag.leaves;
-          ++s.diag.leaves_by_type[int(cf.fit.type)];
-          ++s.diag.leaves_by_depth[depth];
-          if (cf.grew) ++s.diag.grown_leaves;
-          if (cf.error > params.epsilon0) ++s.diag.unconverged_leaves;
-          s.diag.max_leaf_error = std::max(s.diag.max_leaf_error, cf.error);
         }
       }
       frontier.swap(next);
