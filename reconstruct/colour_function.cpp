@@ -952,7 +952,7 @@ ColourFunction fit_colour(const Cloud& cloud, const ColourParams& params) {
     std::vector<int> frontier{0};
     // The cells of a level in chunks, so that only a chunk's results are held at once
     // (a level of a million-point cloud holds hundreds of thousands of cells).
-    constexpr std::size_t kChunk = 16384;
+    constexpr std::size_t kChunk = 4096;
     std::vector<CellResult> res;
     for (int depth = 0; !frontier.empty(); ++depth) {
       std::vector<int> next;

@@ -49,8 +49,11 @@ Mesh Dmc::build_mesh() {
       ++f;
     }
   });
+  // At most one vertex per crossing: room for all at once (no doubling into fresh memory).
   std::vector<const Crossing*> edges;
+  edges.reserve(nodes_.crossing_count());
   std::vector<std::uint64_t> edge_keys;
+  if (opt_.vertex_edges) edge_keys.reserve(nodes_.crossing_count());
   for (std::size_t f = 0; f < mesh.faces.size(); ++f)
     for (int t = 0; t < 3; ++t) {
       Face& fc = mesh.faces[f];

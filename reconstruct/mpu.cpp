@@ -832,11 +832,11 @@ MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
     s.diag.leaves_by_depth.assign(params.max_depth + 1, 0);
     // One buffer for every level's fits: a fresh one per level (CellFit is over 600
     // bytes) was a fifth of the fit's time in zeroing, copying and page faults. A level
-    // in chunks, so that the buffer holds a chunk's fits: sized for a whole level it was
+    // in chunks of 4096 cells (2.5 MiB of fits): sized for a whole level the buffer was
     // 30-60 MiB of fresh memory, value-initialised in serial code (fresh memory costs
-    // about 3 ms per MiB in page faults on the VMs we measure on; docs/dmc.md, "2026-12-06:
-    // memory touched where it is used").
-    constexpr std::size_t kChunk = 16384;
+    // about 3 ms per MiB in page faults on the VMs we measure on; docs/dmc.md,
+    // "2026-12-06: memory touched where it is used").
+    constexpr std::size_t kChunk = 4096;
     std::vector<CellFit> fits;
     // Room for a leaf per point, and for twice as many cells: growing by doubling copied
     // each store into fresh memory several times over (room never used is never touched).

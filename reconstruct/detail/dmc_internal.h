@@ -289,6 +289,7 @@ class Lattice {
   Crossing& crossing_at(std::uint32_t e) { return crossings_[e]; }
   /// A new crossing (parallel, after reserve_crossings).
   std::uint32_t claim_crossing() { return std::uint32_t(crossings_.claim()); }
+  std::size_t crossing_count() const { return crossings_.size(); }
   bool is_surface(Key c) const {
     const std::int32_t b = block_of(c);
     return b >= 0 && (blk(b).surface >> local(c) & 1);
