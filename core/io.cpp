@@ -143,6 +143,18 @@ std::string ply_bytes(const std::vector<Vec3f>& pts, const std::vector<Vec3f>& n
 
 }  // namespace
 
+bool same_file(const fs::path& a, const fs::path& b) {
+  if (a.empty() || b.empty()) return false;
+  std::error_code ea, eb, ec;
+  if (fs::exists(a, ea) && fs::exists(b, eb)) {
+    const bool same = fs::equivalent(a, b, ec);
+    if (!ec) return same;
+  }
+  const fs::path ca = fs::weakly_canonical(fs::absolute(a, ea), ea), cb = fs::weakly_canonical(fs::absolute(b, eb), eb);
+  if (ea || eb) return fs::absolute(a, ea).lexically_normal() == fs::absolute(b, eb).lexically_normal();
+  return ca == cb;
+}
+
 std::string ply_header(std::size_t vertices, bool normals, bool colours, std::size_t faces, bool with_faces,
                        PlyFormat format) {
   std::string out = "ply\nformat ";

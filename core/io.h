@@ -50,6 +50,10 @@ Mesh parse_off(std::string_view bytes, const std::string& name);
 
 // ---- files -------------------------------------------------------------------
 
+/// Whether two paths name the same file: std::filesystem::equivalent when both
+/// exist, else the same weakly canonical path (an output not written yet).
+bool same_file(const fs::path& a, const fs::path& b);
+
 /// Reads the whole file; IoError naming it when that fails.
 std::string read_file_bytes(const fs::path& path);
 

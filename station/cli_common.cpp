@@ -132,6 +132,18 @@ void check_output_name(const std::string& out, const char* kind, std::initialize
   throw InvalidInput(out + ": " + kind + " is written as " + list + "; name the output that way");
 }
 
+void check_not_an_input(const std::vector<std::string>& outputs, const std::vector<std::string>& inputs) {
+  for (std::size_t i = 0; i < outputs.size(); ++i) {
+    const std::string& out = outputs[i];
+    if (out.empty()) continue;
+    for (const std::string& in : inputs)
+      if (same_file(out, in)) throw InvalidInput(out + " is also an input; choose another output");
+    for (std::size_t k = 0; k < i; ++k)
+      if (same_file(out, outputs[k]))
+        throw InvalidInput(out + " is named for two outputs; give each its own file");
+  }
+}
+
 DeviceRegistry make_registry() {
   DeviceRegistry reg;
   register_sim_devices(reg);

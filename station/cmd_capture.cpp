@@ -483,6 +483,20 @@ int cmd_import(const Common& c, const ImportArgs& a) {
   const auto t0 = std::chrono::steady_clock::now();
   load_common(c);
   if (a.every < 1) throw InvalidInput("--every must be at least 1");
+  {
+    // The session's files (its manifest, view_NNN.ply) never replace a file being imported.
+    std::vector<std::string> outputs{(fs::path(a.out) / kManifestName).string()};
+    for (std::size_t i = 0; i < a.files.size(); ++i) {
+      char name[64];
+      std::snprintf(name, sizeof name, "view_%03zu.ply", i);
+      outputs.push_back((fs::path(a.out) / name).string());
+    }
+    std::vector<std::string> inputs = a.files;
+    inputs.push_back(a.stanford_conf);
+    for (const std::string& out : outputs)
+      for (const std::string& in : inputs)
+        if (same_file(out, in)) throw InvalidInput(in + " is also an input; choose another output folder");
+  }
   std::map<std::string, Eigen::Matrix4d> poses;
   if (!a.stanford_conf.empty())
     for (const StanfordScan& scan : read_stanford_conf(a.stanford_conf)) poses[scan.file] = scan.pose;

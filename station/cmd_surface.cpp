@@ -73,6 +73,7 @@ std::optional<Vec3d> parse_up(const std::string& text) {
 int cmd_fit(const Common& c, const FitArgs& a) {
   const auto t0 = std::chrono::steady_clock::now();
   check_output_name(a.out, "a mesh", {".ply", ".obj"});
+  check_not_an_input({a.out}, {a.in, a.landmarks, a.templ.rfind("icosphere:", 0) == 0 ? std::string() : a.templ});
   StationConfig cfg = load_common(c);
   auto threads = limit_threads(cfg.threads);
   const Cloud target = read_cloud(a.in);
@@ -141,6 +142,7 @@ int cmd_parameterise(const Common& c, const ParameteriseArgs& a) {
   auto threads = limit_threads(cfg.threads);
   check_output_name(a.out, "a mesh with UVs", {".obj"});
   check_not_a_recording(a.mapped);
+  check_not_an_input({a.out, a.mapped}, {a.in});
   const SimpleSurface surface = a.onto == "plane" ? SimpleSurface::kPlane
                                 : a.onto == "cylinder" ? SimpleSurface::kCylinder
                                                        : SimpleSurface::kSphere;
@@ -183,6 +185,7 @@ int cmd_parameterise(const Common& c, const ParameteriseArgs& a) {
 int cmd_consolidate(const Common& c, const ConsolidateArgs& a) {
   const auto t0 = std::chrono::steady_clock::now();
   check_output_name(a.out, "a cloud", {".ply"});
+  check_not_an_input({a.out}, {a.in});
   StationConfig cfg = load_common(c);
   const auto& pc = cfg.pipeline.consolidate;
   WlopParams p = wlop_params(cfg.pipeline, cfg.threads);
@@ -255,6 +258,7 @@ int cmd_consolidate(const Common& c, const ConsolidateArgs& a) {
 int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
   const auto t0 = std::chrono::steady_clock::now();
   check_output_name(a.out, "a mesh", {".ply", ".obj"});
+  check_not_an_input({a.out}, {a.in, a.scans});
   StationConfig cfg = load_common(c);
   const auto& rc = cfg.pipeline.reconstruct;
   SurfaceParams sp = surface_params(cfg.pipeline, cfg.threads);

@@ -131,6 +131,10 @@ void check_not_a_recording(const std::string& out);
 // written ("a cloud", "a mesh"), `exts` the lower-case extensions it can be written as.
 void check_output_name(const std::string& out, const char* kind, std::initializer_list<const char*> exts);
 
+// An output never replaces an input of the same command: each output (empty: none) is
+// compared with each input (same_file), before the work; the error names the file.
+void check_not_an_input(const std::vector<std::string>& outputs, const std::vector<std::string>& inputs);
+
 DeviceRegistry make_registry();
 
 /// Writes the turntable-merged cloud of a session next to it, when it has an axis.

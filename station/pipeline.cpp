@@ -390,6 +390,7 @@ class Runner {
     result_.session = session_;
     std::error_code ec;
     const fs::path state_file = req_.out_dir / kStateFile;
+    check_outputs_are_not_inputs();
     // The run writes merged.ply, mesh.ply, report.html... into its folder: never into a
     // session (a scan's own merged.ply would be replaced) or over files it did not write.
     if (fs::is_directory(req_.out_dir, ec) && !fs::exists(state_file, ec)) {
@@ -443,6 +444,33 @@ class Runner {
   }
 
  private:
+  /// The files the run writes into its folder never replace its input (a cloud file
+  /// in the run folder, or a session's manifest or views): refused before any work.
+  void check_outputs_are_not_inputs() const {
+    std::vector<fs::path> inputs;
+    if (!session_) {
+      inputs.push_back(req_.input);
+    } else {
+      const fs::path dir = fs::is_directory(req_.input) ? req_.input : req_.input.parent_path();
+      inputs.push_back(dir / "session.yaml");
+      try {
+        for (const ViewRecord& v : read_manifest(dir).views) {
+          inputs.push_back(dir / v.file);
+          if (!v.colour_image.empty()) inputs.push_back(dir / v.colour_image);
+        }
+      } catch (const Error&) {
+        // An unreadable manifest is reported by the register stage; it lists nothing here.
+      }
+    }
+    for (const char* name : {kStateFile, "merged.ply", "consolidated.ply", "mesh.ply", "report.html",
+                             "colour_boundary.bin"})
+      for (const fs::path& in : inputs)
+        if (const fs::path out = req_.out_dir / name; same_file(out, in))
+          throw InvalidInput(out.string() + " is also an input" +
+                             (out.lexically_normal() == in.lexically_normal() ? "" : " (" + in.string() + ")") +
+                             "; choose another output folder");
+  }
+
   bool stopped() const { return req_.stop && req_.stop->load(); }
   RunResult finish_interrupted() {
     result_.interrupted = true;

@@ -618,5 +618,47 @@ TEST(Cli, ExistingSessionIsNeverOverwritten) {
   EXPECT_EQ(json_number(resumed.out, "recorded"), 0);
 }
 
+// An output named like one of the command's inputs is refused before the work, naming
+// the file, and the input is left as it was (it used to be replaced, exit 0).
+TEST(Cli, OutputThatIsAnInputIsRefused) {
+  test::TempDir dir;
+  const std::string a = (dir / "a.ply").string(), b = (dir / "b.ply").string();
+  write_ply(a, test::fibonacci_sphere(400, 0.05));
+  write_ply(b, test::fibonacci_sphere(300, 0.05));
+  const std::string a_bytes = read_file_bytes(a), b_bytes = read_file_bytes(b);
+  const auto refused = [&](const std::string& args, const std::string& named) {
+    const CmdResult r = run(args);
+    EXPECT_EQ(r.code, 1) << args << ": " << r.out;
+    EXPECT_EQ(r.out, "station: " + named + " is also an input; choose another output\n") << args;
+  };
+  refused("consolidate " + a + " -o " + a, a);
+  refused("consolidate " + a + " -o " + (dir / "." / "a.ply").string(), (dir / "." / "a.ply").string());
+  refused("reconstruct " + b + " -o " + b, b);
+  refused("reconstruct " + a + " --scans " + b + " -o " + b, b);
+  refused("fit " + a + " -o " + a, a);
+  EXPECT_TRUE(read_file_bytes(a) == a_bytes) << "replaced: " << a;
+  EXPECT_TRUE(read_file_bytes(b) == b_bytes) << "replaced: " << b;
+  // A run on a cloud in its own run folder, that the run writes (mesh.ply).
+  const std::string g = (dir / "g").string();
+  std::filesystem::create_directory(g);
+  write_ply(g + "/mesh.ply", test::fibonacci_sphere(400, 0.05));
+  { std::ofstream(g + "/run.yaml") << "version: 1\ninput: x\nstages: []\n"; }
+  const std::string mesh_bytes = read_file_bytes(g + "/mesh.ply");
+  CmdResult r = run("run --quiet " + g + "/mesh.ply -o " + g + " --resume --no-report");
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_EQ(r.out, "station: " + g + "/mesh.ply is also an input; choose another output folder\n");
+  EXPECT_TRUE(read_file_bytes(g + "/mesh.ply") == mesh_bytes) << "replaced: " << g + "/mesh.ply";
+  // An import into the folder of the file it imports (view_000.ply).
+  const std::string d = (dir / "d").string();
+  std::filesystem::create_directory(d);
+  write_ply(d + "/view_000.ply", test::fibonacci_sphere(400, 0.05));
+  const std::string view_bytes = read_file_bytes(d + "/view_000.ply");
+  r = run("import " + d + "/view_000.ply --every 2 -o " + d);
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_NE(r.out.find("is also an input"), std::string::npos) << r.out;
+  EXPECT_TRUE(read_file_bytes(d + "/view_000.ply") == view_bytes) << "replaced: " << d + "/view_000.ply";
+  EXPECT_FALSE(std::filesystem::exists(d + "/session.yaml"));
+}
+
 }  // namespace
 }  // namespace station
