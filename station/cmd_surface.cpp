@@ -333,6 +333,9 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
   const std::size_t points = input.size();
   const double t_read = seconds_since(t0);
   const SurfaceResult r = reconstruct_surface(std::move(input), sp);
+  // The cleanup after the extraction (rims trimmed back to the data, small pieces
+  // removed) can leave nothing: an error, not an empty mesh file.
+  if (r.mesh.faces.empty()) throw InvalidInput(a.in + ": the reconstructed surface is empty");
   write_mesh(a.out, r.mesh);
   const MpuDiagnostics& d = r.mpu;
   if (c.json) {

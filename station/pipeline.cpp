@@ -730,6 +730,8 @@ class Runner {
         write_file_atomic(req_.out_dir / "colour_boundary.bin",
                           std::string(sr.colour_boundary.begin(), sr.colour_boundary.end()));
     }
+    // The cleanup after the extraction can leave nothing: an error, not an empty mesh.
+    if (sr.mesh.faces.empty()) throw InvalidInput("the reconstructed surface is empty");
     write_ply(req_.out_dir / "mesh.ply", sr.mesh);
     r.figures["leaves"] = double(sr.mpu.leaves);
     r.figures["epsilon0"] = sr.epsilon0;

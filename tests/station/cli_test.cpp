@@ -660,5 +660,27 @@ TEST(Cli, OutputThatIsAnInputIsRefused) {
   EXPECT_FALSE(std::filesystem::exists(d + "/session.yaml"));
 }
 
+// Points on one line outline no surface: the cleanup after the extraction leaves no
+// face, and that is an error naming the file with no mesh written (it used to write a
+// 0-vertex mesh and exit 0), for `reconstruct` and for `run`'s surface stage.
+TEST(Cli, EmptyReconstructedSurfaceIsAnError) {
+  test::TempDir dir;
+  Cloud line;
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<float> u(0.f, 1.f);
+  for (int i = 0; i < 3000; ++i) line.points.emplace_back(u(rng), 0.f, 0.f);
+  const std::string in = (dir / "line.ply").string(), out = (dir / "line_mesh.ply").string();
+  write_ply(in, line, PlyFormat::kAscii);
+  CmdResult r = run("reconstruct --json " + in + " -o " + out);
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_EQ(r.out, "station: " + in + ": the reconstructed surface is empty\n");
+  EXPECT_FALSE(std::filesystem::exists(out));
+  const std::string run_dir = (dir / "run").string();
+  r = run("run --quiet --no-report " + in + " -o " + run_dir);
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_NE(r.out.find("surface: the reconstructed surface is empty"), std::string::npos) << r.out;
+  EXPECT_FALSE(std::filesystem::exists(run_dir + "/mesh.ply"));
+}
+
 }  // namespace
 }  // namespace station
