@@ -146,4 +146,28 @@ void write_file_atomic(const fs::path& path, std::string_view bytes) {
   });
 }
 
+CreatedOutputs::CreatedOutputs(const fs::path& dir, const std::vector<fs::path>& files) {
+  std::error_code ec;
+  for (const fs::path& f : files)
+    if (fs::symlink_status(f, ec).type() == fs::file_type::not_found) files_.push_back(f);
+  if (dir.empty()) return;
+  fs::path p = fs::absolute(dir, ec).lexically_normal();
+  if (ec) return;
+  if (p.filename().empty()) p = p.parent_path();
+  while (!p.empty() && fs::symlink_status(p, ec).type() == fs::file_type::not_found) {
+    folders_.push_back(p);
+    if (p == p.parent_path()) break;
+    p = p.parent_path();
+  }
+}
+
+CreatedOutputs::~CreatedOutputs() {
+  std::error_code ec;
+  for (const fs::path& f : files_) fs::remove(f, ec);
+  for (const fs::path& d : folders_) {
+    if (!fs::is_directory(d, ec) || !fs::is_empty(d, ec) || ec) break;
+    fs::remove(d, ec);
+  }
+}
+
 }  // namespace station

@@ -7,6 +7,7 @@
 #include <functional>
 #include <ostream>
 #include <string_view>
+#include <vector>
 
 namespace station {
 
@@ -16,5 +17,25 @@ void write_file_atomic(const std::filesystem::path& path,
 
 /// Convenience: atomically writes `bytes` to `path`.
 void write_file_atomic(const std::filesystem::path& path, std::string_view bytes);
+
+/// What a command is about to create for its output: the folders of `dir` (and its
+/// parents) that do not exist yet, and the files of `files` that do not. Unless
+/// kept, the destructor (a failed command) removes those files, then those folders
+/// that are still empty, deepest first; what existed before is never touched.
+class CreatedOutputs {
+ public:
+  explicit CreatedOutputs(const std::filesystem::path& dir, const std::vector<std::filesystem::path>& files = {});
+  ~CreatedOutputs();
+  CreatedOutputs(const CreatedOutputs&) = delete;
+  CreatedOutputs& operator=(const CreatedOutputs&) = delete;
+  /// The command succeeded: everything stays.
+  void keep() {
+    folders_.clear();
+    files_.clear();
+  }
+
+ private:
+  std::vector<std::filesystem::path> folders_, files_;
+};
 
 }  // namespace station

@@ -9,6 +9,7 @@
 #include <atomic>
 #include <cctype>
 #include <chrono>
+#include <cmath>
 #include <csignal>
 #include <unistd.h>
 #include <cstdio>
@@ -483,6 +484,8 @@ int cmd_import(const Common& c, const ImportArgs& a) {
   const auto t0 = std::chrono::steady_clock::now();
   load_common(c);
   if (a.every < 1) throw InvalidInput("--every must be at least 1");
+  if (!std::isfinite(a.start)) throw UsageError("--start: must be a finite angle in degrees");
+  if (!std::isfinite(a.step)) throw UsageError("--step: must be a finite angle in degrees");
   {
     // The session's files (its manifest, view_NNN.ply) never replace a file being imported.
     std::vector<std::string> outputs{(fs::path(a.out) / kManifestName).string()};
@@ -529,6 +532,15 @@ int cmd_import(const Common& c, const ImportArgs& a) {
     m.start_deg = a.start;
     m.step_deg = a.step;
   }
+  // A failed import leaves nothing of its own behind (no stub session.yaml that would
+  // block a retry, no empty folder): the files and folders it creates go again.
+  std::vector<fs::path> files{fs::path(a.out) / kManifestName};
+  for (std::size_t i = 0; i < a.files.size(); ++i) {
+    char name[64];
+    std::snprintf(name, sizeof name, "view_%03zu.ply", i);
+    files.push_back(fs::path(a.out) / name);
+  }
+  CreatedOutputs created(a.out, files);
   Session s = Session::create(a.out, m);
   Progress bar("import", int(a.files.size()), c.json);
   std::size_t total = 0;
@@ -544,6 +556,7 @@ int cmd_import(const Common& c, const ImportArgs& a) {
     bar.update(int(i) + 1, name);
   }
   bar.finish();
+  created.keep();
   if (c.json)
     print_summary(JsonObject().add("command", "import").add("session", a.out).add("views", a.files.size())
                       .add("points", total).add("timings_s", JsonObject().add("import", seconds_since(t0))));

@@ -788,7 +788,11 @@ class Runner {
 }  // namespace
 
 RunResult run_pipeline(const StationConfig& config, const RunRequest& request) {
-  return Runner(config, request).run();
+  // A run that fails before its first stage is recorded leaves no empty folder behind.
+  CreatedOutputs created(request.out_dir);
+  RunResult r = Runner(config, request).run();
+  created.keep();
+  return r;
 }
 
 std::vector<StageRecord> read_run_stages(const fs::path& run_yaml) { return read_state(run_yaml).stages; }

@@ -682,5 +682,46 @@ TEST(Cli, EmptyReconstructedSurfaceIsAnError) {
   EXPECT_FALSE(std::filesystem::exists(run_dir + "/mesh.ply"));
 }
 
+// A failed run or import removes what it created and left empty (its output folder),
+// and an import that fails part way leaves no stub session.yaml that would block a
+// retry ("already holds a session"); folders that existed before are kept.
+TEST(Cli, FailedRunOrImportLeavesNothingBehind) {
+  test::TempDir dir;
+  namespace fs = std::filesystem;
+  const std::string bad = (dir / "bad").string();
+  fs::create_directory(bad);
+  { std::ofstream(bad + "/session.yaml") << "version: 1\nviews: [\n"; }
+  CmdResult r = run("run --quiet " + bad + " -o " + (dir / "new" / "run").string());
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_FALSE(fs::exists(dir / "new")) << r.out;
+  fs::create_directory(dir / "kept");
+  r = run("run --quiet " + bad + " -o " + (dir / "kept").string());
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_TRUE(fs::is_directory(dir / "kept"));
+  // A batch keeps its table, not a folder per failed session.
+  { std::ofstream(dir / "list.txt") << "bad\n"; }
+  r = run("run --quiet --batch " + (dir / "list.txt").string() + " -o " + (dir / "batch").string());
+  EXPECT_EQ(r.code, 3) << r.out;
+  EXPECT_TRUE(fs::exists(dir / "batch" / "batch.tsv"));
+  EXPECT_FALSE(fs::exists(dir / "batch" / "bad"));
+
+  const std::string cloud = (dir / "cloud.ply").string();
+  write_ply(cloud, test::fibonacci_sphere(200, 0.05));
+  r = run("import " + cloud + " --step nan -o " + (dir / "imp").string());
+  EXPECT_EQ(r.code, 2) << r.out;
+  EXPECT_NE(r.out.find("--step"), std::string::npos) << r.out;
+  EXPECT_FALSE(fs::exists(dir / "imp"));
+  // The view file cannot be written (a folder holds its name): no stub manifest.
+  fs::create_directories(dir / "imp2" / "view_000.ply");
+  r = run("import " + cloud + " -o " + (dir / "imp2").string());
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_FALSE(fs::exists(dir / "imp2" / "session.yaml")) << r.out;
+  EXPECT_TRUE(fs::is_directory(dir / "imp2" / "view_000.ply"));
+  fs::remove(dir / "imp2" / "view_000.ply");
+  r = run("import " + cloud + " -o " + (dir / "imp2").string());
+  EXPECT_EQ(r.code, 0) << r.out;
+  EXPECT_EQ(read_manifest((dir / "imp2").string()).views.size(), 1u);
+}
+
 }  // namespace
 }  // namespace station
