@@ -149,7 +149,7 @@ void write_file_atomic(const fs::path& path, std::string_view bytes) {
 CreatedOutputs::CreatedOutputs(const fs::path& dir, const std::vector<fs::path>& files) {
   std::error_code ec;
   for (const fs::path& f : files)
-    if (fs::symlink_status(f, ec).type() == fs::file_type::not_found) files_.push_back(f);
+    if (!f.empty() && fs::symlink_status(f, ec).type() == fs::file_type::not_found) files_.push_back(f);
   if (dir.empty()) return;
   fs::path p = fs::absolute(dir, ec).lexically_normal();
   if (ec) return;

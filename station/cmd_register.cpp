@@ -197,8 +197,12 @@ int cmd_register(const Common& c, const RegisterArgs& a) {
   const Session session = Session::open(session_dir);
   const RegistrationResult r = register_with_progress(session, registration_params(cfg.pipeline), c.json);
   if (r.merged.empty()) throw InvalidInput(session_dir + ": no view could be registered");
+  // Both outputs or neither: when one cannot be written, the other one this command
+  // created goes again.
+  CreatedOutputs created({}, {out, poses_out});
   write_ply(out, r.merged);
   if (!poses_out.empty()) write_poses_yaml(poses_out, r, session.manifest());
+  created.keep();
   if (c.json) {
     JsonObject j = registration_json(r);
     j.add("command", "register").add("session", session_dir).add("output", out)

@@ -20,6 +20,7 @@
 #include <optional>
 #include <sstream>
 
+#include "core/atomic_file.h"
 #include "core/error.h"
 #include "station/blocks_run.h"
 #include "core/io.h"
@@ -158,9 +159,12 @@ int cmd_parameterise(const Common& c, const ParameteriseArgs& a) {
   Mesh textured = mesh;
   textured.normals.clear();
   const auto uv = corner_uvs(mesh, r.uv, surface != SimpleSurface::kPlane);
-  // Each write is atomic: a failure leaves no half-written file.
+  // Each write is atomic: a failure leaves no half-written file; and both outputs or
+  // neither: when one cannot be written, the other one this command created goes again.
+  CreatedOutputs created({}, {a.out, a.mapped});
   if (!a.mapped.empty()) write_mesh(a.mapped, r.mesh);
   write_obj(a.out, textured, uv);
+  created.keep();
   const SdmDiagnostics& d = r.diagnostics;
   if (c.json) {
     print_summary(JsonObject()

@@ -723,5 +723,22 @@ TEST(Cli, FailedRunOrImportLeavesNothingBehind) {
   EXPECT_EQ(read_manifest((dir / "imp2").string()).views.size(), 1u);
 }
 
+// When one of `register`'s outputs cannot be written, the other one it created goes
+// again (it used to stay, with exit 1).
+TEST(Cli, RegisterWritesBothOutputsOrNeither) {
+  test::TempDir dir;
+  const std::string sess = (dir / "s").string();
+  ASSERT_EQ(run("scan -o " + sess + " --views 8 --set width=160 --set height=120").code, 0);
+  const std::string merged = (dir / "r.ply").string();
+  CmdResult r = run("register " + sess + " -o " + merged + " --poses-out " + (dir / "none" / "p.yaml").string());
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_NE(r.out.find((dir / "none").string()), std::string::npos) << r.out;
+  EXPECT_FALSE(std::filesystem::exists(merged));
+  r = run("register " + sess + " -o " + merged + " --poses-out " + (dir / "p.yaml").string());
+  EXPECT_TRUE(r.code == 0 || r.code == 3) << r.out;  // (3: a partial result, written all the same)
+  EXPECT_TRUE(std::filesystem::exists(merged));
+  EXPECT_TRUE(std::filesystem::exists(dir / "p.yaml"));
+}
+
 }  // namespace
 }  // namespace station
