@@ -29,7 +29,9 @@ int run_cli(int argc, char** argv) {
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
-    return app.exit(e) == 0 ? 0 : 2;
+    if (e.get_exit_code() == 0) return app.exit(e);  // --help, --version
+    std::fprintf(stderr, "station: %s\n", parse_error_line(app, e).c_str());
+    return 2;
   }
   try {
     for (const Command& c : commands)

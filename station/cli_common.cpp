@@ -6,6 +6,11 @@
 #include <CLI/CLI.hpp>
 #include <Eigen/Geometry>
 #include <algorithm>
+#include <cstdlib>
+#include <cerrno>
+#include <cmath>
+#include <limits>
+#include <regex>
 #include <atomic>
 #include <cctype>
 #include <chrono>
@@ -34,9 +39,117 @@
 
 namespace station::cli {
 
+namespace {
+
+bool parse_whole(const std::string& text, long long& v) {
+  if (text.empty() || std::isspace(static_cast<unsigned char>(text[0]))) return false;
+  char* end = nullptr;
+  errno = 0;
+  v = std::strtoll(text.c_str(), &end, 10);
+  return errno == 0 && end && *end == 0;
+}
+
+bool parse_finite(const std::string& text, double& v) {
+  if (text.empty() || std::isspace(static_cast<unsigned char>(text[0]))) return false;
+  char* end = nullptr;
+  v = std::strtod(text.c_str(), &end);
+  return end && *end == 0 && std::isfinite(v);
+}
+
+std::string number_text(double v) {
+  char buf[32];
+  std::snprintf(buf, sizeof buf, "%g", v);
+  return buf;
+}
+
+}  // namespace
+
+CLI::Validator whole_number(long long lo, long long hi) {
+  const std::string want = hi >= std::numeric_limits<int>::max()
+                               ? "must be a whole number, " + std::to_string(lo) + " or more"
+                               : "must be a whole number in " + std::to_string(lo) + ".." + std::to_string(hi);
+  return CLI::Validator(
+      [lo, hi, want](std::string& text) -> std::string {
+        long long v = 0;
+        if (!parse_whole(text, v) || v < lo || v > hi) return want + " (got " + text + ")";
+        return {};
+      },
+      "INT");
+}
+
+CLI::Validator number_above(double lo) {
+  return CLI::Validator(
+      [lo](std::string& text) -> std::string {
+        double v = 0;
+        if (!parse_finite(text, v) || !(v > lo)) return "must be a number above " + number_text(lo) + " (got " + text + ")";
+        return {};
+      },
+      "NUMBER");
+}
+
+CLI::Validator number_in(double lo, double hi) {
+  return CLI::Validator(
+      [lo, hi](std::string& text) -> std::string {
+        double v = 0;
+        if (!parse_finite(text, v) || v < lo || v > hi)
+          return "must be a number in " + number_text(lo) + ".." + number_text(hi) + " (got " + text + ")";
+        return {};
+      },
+      "NUMBER");
+}
+
+CLI::Validator finite_number() {
+  return CLI::Validator(
+      [](std::string& text) -> std::string {
+        double v = 0;
+        if (!parse_finite(text, v)) return "must be a finite number (got " + text + ")";
+        return {};
+      },
+      "NUMBER");
+}
+
+std::string parse_error_line(const CLI::App& app, const std::exception& e) {
+  // The command as far as it was recognised: "station", "station calibrate"...
+  std::string command = "station";
+  const CLI::App* at = &app;
+  for (bool deeper = true; deeper;) {
+    deeper = false;
+    for (const CLI::App* sub : at->get_subcommands())
+      if (sub->parsed()) {
+        command += " " + sub->get_name();
+        at = sub;
+        deeper = true;
+        break;
+      }
+  }
+  const std::string help = " (" + command + " --help lists them)";
+  // main() puts "station: " first; the subcommand, if any, follows it.
+  const std::string where = command == "station" ? "" : command.substr(8) + ": ";
+  std::string what = e.what();
+  std::smatch m;
+  if (dynamic_cast<const CLI::ValidationError*>(&e)) return what;
+  if (std::regex_match(what, m, std::regex("Could not convert: (\\S+) = (.*)")))
+    return m[1].str() + ": not a valid value (got " + m[2].str() + ")";
+  if (std::regex_match(what, m, std::regex("(\\S+): \\d+ required \\S+ missing")))
+    return m[1].str() + ": needs a value";
+  if (what == "A subcommand is required") {
+    const std::vector<std::string> rest = at->remaining();
+    if (!rest.empty() && !rest.front().empty() && rest.front()[0] != '-')
+      return "unknown command '" + rest.front() + "'" + help;
+    return where + "give a command" + help;
+  }
+  if (std::regex_match(what, m, std::regex("The following arguments? (?:was|were) not expected: (.*)")))
+    return where + "unknown option or extra argument: " + m[1].str() + help;
+  if (std::regex_match(what, m, std::regex("(.*) is required")))
+    return where + m[1].str() + " is missing (" + command + " --help)";
+  for (char& ch : what)
+    if (ch == '\n') ch = ' ';
+  return where + what;
+}
+
 void add_common(CLI::App* cmd, Common& c) {
   cmd->add_option("--config", c.config, "YAML profile (default: config/default.yaml)");
-  cmd->add_option("--threads", c.threads, "worker threads (0 = all cores)")->check(CLI::NonNegativeNumber);
+  cmd->add_option("--threads", c.threads, "worker threads (0 = all cores)")->check(whole_number(0, std::numeric_limits<int>::max()));
   cmd->add_flag("--json", c.json, "print a one-line JSON summary on stdout");
 }
 

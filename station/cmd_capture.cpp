@@ -624,9 +624,9 @@ void add_capture_commands(CLI::App& app, std::vector<Command>& out) {
   import->add_option("files", import_args.files, "view files (.ply .pcd), in turntable order")->required();
   import->add_option("-o,--out", import_args.out, "session folder to create")->required();
   import->add_option("--stanford-conf", import_args.stanford_conf, "Stanford .conf with reference poses (bmesh lines)");
-  import->add_option("--start", import_args.start, "turntable angle of the first view, degrees");
-  s->step_opt = import->add_option("--step", import_args.step, "turntable step between views, degrees (no angles without it)");
-  import->add_option("--every", import_args.every, "keep every N-th point (downsample)")->capture_default_str();
+  import->add_option("--start", import_args.start, "turntable angle of the first view, degrees")->check(finite_number());
+  s->step_opt = import->add_option("--step", import_args.step, "turntable step between views, degrees (no angles without it)")->check(finite_number());
+  import->add_option("--every", import_args.every, "keep every N-th point (downsample)")->capture_default_str()->check(whole_number(1, 2147483647));
   import->add_option("--units", import_args.units, "units of the files (recorded, not converted)")->check(CLI::IsMember({"m", "mm"}));
 
 

@@ -186,8 +186,8 @@ void add_eval_commands(CLI::App& app, std::vector<Command>& out) {
   add_common(eval, c_eval);
   eval->add_option("a", eval_a, "result (cloud or mesh: .ply .pcd .obj .off)")->required();
   eval->add_option("b", eval_b, "reference (cloud or mesh)")->required();
-  eval->add_option("--samples", eval_samples, "points sampled on each mesh")->capture_default_str()->check(CLI::Range(1, 100000000));
-  eval->add_option("--seed", eval_seed, "sampling seed")->capture_default_str();
+  eval->add_option("--samples", eval_samples, "points sampled on each mesh")->capture_default_str()->check(whole_number(1, 100000000));
+  eval->add_option("--seed", eval_seed, "sampling seed")->capture_default_str()->check(whole_number(0, 2147483647));  // as consolidate's --seed
   eval->add_flag("--points-metrics", eval_pm.enabled,
                  "also the consolidation metrics of A's points (a cloud's points, a mesh's vertices) "
                  "against mesh B: accuracy (mean distance to B), uniformity (Schloemer's normalised "
@@ -196,10 +196,10 @@ void add_eval_commands(CLI::App& app, std::vector<Command>& out) {
   eval->add_option("--edge-radius", eval_pm.edge_radius,
                    "edge error: mean distance to B of A's points within this distance of a sharp edge "
                    "of B (e.g. 2h of the consolidation; implies --points-metrics)")
-      ->check(CLI::PositiveNumber);
+      ->check(number_above(0));
   eval->add_option("--edge-angle", eval_pm.edge_angle,
                    "an edge of B is sharp when its faces' normals differ by more than this (degrees)")
-      ->capture_default_str()->check(CLI::Range(0.0, 180.0));
+      ->capture_default_str()->check(number_in(0.0, 180.0));
 
 
   out.push_back({eval, [s] {

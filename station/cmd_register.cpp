@@ -350,7 +350,7 @@ void add_register_commands(CLI::App& app, std::vector<Command>& out) {
   add_common(cal_cam, c_cam);
   cal_cam->add_option("images", cam_images, "PNG/JPEG images of a chessboard, 3 or more")->required();
   cal_cam->add_option("--board", cam_board, "inner corners COLSxROWS")->capture_default_str();
-  cal_cam->add_option("--square", cam_square, "square side, metres")->capture_default_str()->check(CLI::PositiveNumber);
+  cal_cam->add_option("--square", cam_square, "square side, metres")->capture_default_str()->check(number_above(0));
   cal_cam->add_option("-o,--out", cam_out, "write the result as a profile fragment (scanner.options)");
 
 

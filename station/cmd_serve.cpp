@@ -91,7 +91,7 @@ void add_serve_commands(CLI::App& app, std::vector<Command>& out) {
   auto s = std::make_shared<State>();
   auto* serve = app.add_subcommand("serve", "The station page: scan, watch and download from a browser");
   add_common(serve, s->c);
-  serve->add_option("--port", s->a.options.port, "port to listen on (0: any free one)")->capture_default_str();
+  serve->add_option("--port", s->a.options.port, "port to listen on (0: any free one)")->capture_default_str()->check(whole_number(0, 65535));
   serve->add_option("--bind", s->a.options.bind,
                     "address to listen on; beyond loopback only with --token-file")->capture_default_str();
   serve->add_option("--token-file", s->a.token_file,

@@ -456,7 +456,7 @@ void add_surface_commands(CLI::App& app, std::vector<Command>& out) {
   parc->add_option("--mapped", par_args.mapped, "also write the mesh as mapped onto the surface (.ply or .obj)");
   parc->add_option("--control-points", par_args.control_points,
                    "control points sampled on the surface (0 = 4 x the mesh's vertices)")
-      ->check(CLI::NonNegativeNumber)
+      ->check(whole_number(0, 2147483647))
       ->capture_default_str();
 
 

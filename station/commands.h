@@ -20,6 +20,7 @@
 
 namespace CLI {
 class App;
+class Validator;
 }
 
 namespace station::cli {
@@ -108,6 +109,18 @@ struct ReconstructArgs {
 };
 
 void add_common(CLI::App* cmd, Common& c);
+
+// Checks of numeric options with plain one-line messages ("must be a whole number, 0
+// or more (got -1)"), run on the text before it is converted (CLI11's own say
+// "Value -1 not in range 0.000000 to 1797...").
+CLI::Validator whole_number(long long lo, long long hi);
+CLI::Validator number_above(double lo);           ///< finite, above lo
+CLI::Validator number_in(double lo, double hi);   ///< finite, in [lo, hi]
+CLI::Validator finite_number();
+
+/// A command-line parse error as one plain line ("station: --threads: must be ...",
+/// "station: unknown command 'bogus' (station --help lists them)").
+std::string parse_error_line(const CLI::App& app, const std::exception& e);
 
 /// The command's options that stand for profile keys (station/params.h): each
 /// becomes an override of its key, checked by the profile's rules.

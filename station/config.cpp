@@ -201,7 +201,12 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
     if (!(c.ratio > 0 && c.ratio <= 1)) r.fail("consolidate.ratio", "must be in (0, 1]");
     if (n["iterations"]) c.iterations = r.integer(n["iterations"], "consolidate.iterations");
     if (c.iterations < 1 || c.iterations > 1000) r.fail("consolidate.iterations", "must be 1..1000");
-    if (n["seed"]) c.seed = unsigned(r.integer(n["seed"], "consolidate.seed"));
+    if (n["seed"]) {
+      // As eval's --seed: a whole number, 0 or more (a negative one was taken modulo 2^32).
+      const int v = r.integer(n["seed"], "consolidate.seed");
+      if (v < 0) r.fail("consolidate.seed", "must be a whole number, 0 or more");
+      c.seed = unsigned(v);
+    }
     if (n["radius"]) c.radius = r.number(n["radius"], "consolidate.radius");
     if (c.radius < 0) r.fail("consolidate.radius", "must not be negative (0: 4 d_bb / sqrt(|J|))");
     if (n["blocks"]) c.blocks = r.auto_or_integer(n["blocks"], "consolidate.blocks", 1, 4096);

@@ -740,5 +740,37 @@ TEST(Cli, RegisterWritesBothOutputsOrNeither) {
   EXPECT_TRUE(std::filesystem::exists(dir / "p.yaml"));
 }
 
+// Command-line parse errors are one plain line (no "Run with --help" second line, no
+// 300-digit range, no "A subcommand is required" for a misspelt command), exit 2; and
+// a seed is a whole number, 0 or more, for consolidate as for eval.
+TEST(Cli, ParseErrorsAreOnePlainLine) {
+  test::TempDir dir;
+  const std::string cloud = (dir / "c.ply").string();
+  write_ply(cloud, test::fibonacci_sphere(200, 0.05));
+  const std::string out = (dir / "o.ply").string();
+  const std::pair<std::string, std::string> cases[] = {
+      {"run " + cloud + " -o " + (dir / "r").string() + " --threads -1",
+       "station: --threads: must be a whole number, 0 or more (got -1)"},
+      {"run " + cloud + " -o " + (dir / "r").string() + " --threads abc",
+       "station: --threads: must be a whole number, 0 or more (got abc)"},
+      {"bogus", "station: unknown command 'bogus' (station --help lists them)"},
+      {"", "station: give a command (station --help lists them)"},
+      {"consolidate " + cloud + " -o " + out + " --bogus",
+       "station: consolidate: unknown option or extra argument: --bogus (station consolidate --help lists them)"},
+      {"consolidate -o " + out, "station: consolidate: input is missing (station consolidate --help)"},
+      {"eval " + cloud + " " + cloud + " --seed -1", "station: --seed: must be a whole number, 0 or more (got -1)"},
+      {"consolidate " + cloud + " -o " + out + " --seed -1", "station: --seed -1: must be a whole number, 0 or more"},
+      {"import " + cloud + " -o " + (dir / "i").string() + " --step nan",
+       "station: --step: must be a finite number (got nan)"},
+  };
+  for (const auto& [args, line] : cases) {
+    const CmdResult r = run(args);
+    EXPECT_EQ(r.code, 2) << args << ": " << r.out;
+    EXPECT_EQ(r.out, line + "\n") << args;
+  }
+  EXPECT_FALSE(std::filesystem::exists(out));
+  EXPECT_EQ(run("consolidate --help").code, 0);
+}
+
 }  // namespace
 }  // namespace station
