@@ -227,6 +227,14 @@ class BinarySource {
   /// Upper bound on how many more items of `size` bytes can follow.
   std::uint64_t max_items(int size) const { return remaining() / static_cast<std::uint64_t>(size); }
 
+  /// After the last element: no data may follow (a header whose counts fall short of
+  /// the data would drop the rest silently). No real file we have ends in extra bytes.
+  void check_end() const {
+    if (remaining() > 0)
+      format_error(name_, std::to_string(remaining()) +
+                              " bytes after the last element the header declares (its counts are short of the data)");
+  }
+
  private:
   std::uint64_t remaining() const { return static_cast<std::uint64_t>(end_ - p_); }
 
@@ -282,6 +290,15 @@ class AsciiSource {
 
   /// Upper bound on how many more tokens can follow (each takes a byte and a separator).
   std::uint64_t max_items(int) const { return (tok_.remaining() + 1) / 2; }
+
+  /// After the last element: only whitespace may follow (blank lines, a final CRLF,
+  /// as the Stanford scans end); a value means the header's counts fall short of the data.
+  void check_end() {
+    std::string_view t;
+    if (tok_.next(t))
+      format_error(name_, "line " + std::to_string(tok_.line()) +
+                              ": data after the last element the header declares (its counts are short of the data)");
+  }
 
  private:
   std::string_view next() {
@@ -442,7 +459,13 @@ Mesh read_body(Source& src, const Header& h, const std::string& name, std::uint6
     if (e.props.empty() || e.count == 0) continue;
     if (&e == vertex) {
       read_vertices(src, e, L, mesh, chunk, emit);
-      if (chunk > 0) return mesh;  // streamed: the points only
+      if (chunk > 0) {
+        // Streamed: the points only; when nothing is declared after them, nothing may follow.
+        bool last = true;
+        for (const Element* f = &e + 1; f != h.elements.data() + h.elements.size(); ++f) last = last && f->count == 0;
+        if (last) src.check_end();
+        return mesh;
+      }
       continue;
     }
     int list_prop = -1;
@@ -464,6 +487,7 @@ Mesh read_body(Source& src, const Header& h, const std::string& name, std::uint6
       }
     }
   }
+  src.check_end();
   return mesh;
 }
 

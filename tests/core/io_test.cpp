@@ -12,6 +12,8 @@
 #include <sstream>
 #include <unordered_map>
 
+#include <unistd.h>
+
 #include "core/error.h"
 #include "core/texture.h"
 #include "test_util.h"
@@ -335,6 +337,29 @@ TEST(IoPly, BinaryTruncationAndHostileCounts) {
   put<std::int32_t>(f, 1 << 30);
   put<std::int32_t>(f, 0);
   expect_format_error(ply, f, "face 0: list length 1073741824 exceeds");
+}
+
+// A body with more data than the header declares used to load with the rest dropped
+// silently; now it is an error naming the file. Trailing whitespace (blank lines, a
+// final CRLF, as the Stanford scans end) is not data.
+TEST(IoPly, DataBeyondTheDeclaredCountsIsAnError) {
+  const std::string ascii = "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+                            "property float z\nend_header\n0 0 0\n1 0 0\n";
+  EXPECT_EQ(parse_ply(ascii, "ok.ply").vertices.size(), 2u);
+  EXPECT_EQ(parse_ply(ascii + "\r\n\n  \n", "ok.ply").vertices.size(), 2u);
+  expect_format_error(ply, ascii + "0 1 0\n", "line 10: data after the last element the header declares");
+  const std::string head = "ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty float x\n"
+                           "property float y\nproperty float z\nend_header\n";
+  std::string b = head;
+  for (int i = 0; i < 9; ++i) put(b, float(i));  // 3 vertices' bytes, 2 declared
+  expect_format_error(ply, b, "12 bytes after the last element the header declares");
+  // Streamed (consolidate's and the blocks' reader) alike.
+  const auto dir = std::filesystem::temp_directory_path() / ("station-ply-trailing-" + std::to_string(::getpid()));
+  std::filesystem::create_directories(dir);
+  { std::ofstream(dir / "more.ply", std::ios::binary) << b; }
+  const std::string msg = error_of<FormatError>([&] { stream_ply_points(dir / "more.ply", 1, [](const Cloud&) {}); });
+  EXPECT_NE(msg.find("more.ply: 12 bytes after"), std::string::npos) << msg;
+  std::filesystem::remove_all(dir);
 }
 
 TEST(IoPly, AsciiReadIsFast) {
