@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <cerrno>
 #include <cstdint>
+#include <cstdio>
 #include <cstring>
 #include <functional>
 #include <limits>
@@ -270,11 +271,33 @@ class AsciiSource {
                             std::to_string(index_) + ": " + what);
   }
 
-  double scalar(Scalar) {
+  double scalar(Scalar type) {
     const std::string_view t = next();
     double v;
     if (!io_detail::parse_double(t, v)) fail("bad number " + quote(t));
+    // A binary value always fits its type; a written one must too (a uchar colour of
+    // 300 or -5 was clamped silently).
+    double lo = 0, hi = 0;
+    const char* type_name = nullptr;
+    switch (type) {
+      case Scalar::kI8: lo = -128, hi = 127, type_name = "char"; break;
+      case Scalar::kU8: lo = 0, hi = 255, type_name = "uchar"; break;
+      case Scalar::kI16: lo = -32768, hi = 32767, type_name = "short"; break;
+      case Scalar::kU16: lo = 0, hi = 65535, type_name = "ushort"; break;
+      case Scalar::kI32: lo = -2147483648.0, hi = 2147483647.0, type_name = "int"; break;
+      case Scalar::kU32: lo = 0, hi = 4294967295.0, type_name = "uint"; break;
+      case Scalar::kF32:
+      case Scalar::kF64: break;
+    }
+    if (type_name && !(v >= lo && v <= hi))
+      fail("value " + std::string(t) + " out of range for " + type_name + " (" + number(lo) + ".." + number(hi) + ")");
     return v;
+  }
+
+  static std::string number(double v) {
+    char buf[32];
+    std::snprintf(buf, sizeof buf, "%.0f", v);
+    return buf;
   }
 
   long long integer(Scalar) {

@@ -275,13 +275,13 @@ TEST(IoPly, ReadsCrlfAsciiAndAliases) {
   const std::string b =
       "ply\r\nformat ascii 1.0\r\nelement vertex 2\r\nproperty float32 x\r\nproperty float64 y\r\n"
       "property int8 z\r\nproperty uint8 r\r\nproperty uint8 g\r\nproperty uint8 b\r\nend_header\r\n"
-      "1 2 3 4 5 6\r\n+7 -8e0 -9 300 -1 0\r\n";
+      "1 2 3 4 5 6\r\n+7 -8e0 -9 255 0 0\r\n";
   const Mesh m = parse_ply(b, "crlf.ply");
   ASSERT_EQ(m.vertices.size(), 2u);
   EXPECT_EQ(m.vertices[1], Vec3f(7, -8, -9));
   ASSERT_EQ(m.colours.size(), 2u);
   EXPECT_EQ(m.colours[0], (Rgb{4, 5, 6}));
-  EXPECT_EQ(m.colours[1], (Rgb{255, 0, 0}));  // clamped
+  EXPECT_EQ(m.colours[1], (Rgb{255, 0, 0}));  // (out of range is refused: AsciiValuesMustFitTheirType)
 }
 
 const std::string kAsciiHead =
@@ -360,6 +360,18 @@ TEST(IoPly, DataBeyondTheDeclaredCountsIsAnError) {
   const std::string msg = error_of<FormatError>([&] { stream_ply_points(dir / "more.ply", 1, [](const Cloud&) {}); });
   EXPECT_NE(msg.find("more.ply: 12 bytes after"), std::string::npos) << msg;
   std::filesystem::remove_all(dir);
+}
+
+// An ASCII value must fit its declared type: a uchar colour of 300 or -5 used to be
+// clamped silently; now the error names the file, the line and the value.
+TEST(IoPly, AsciiValuesMustFitTheirType) {
+  const std::string head = "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+                           "property float z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\n"
+                           "end_header\n";
+  EXPECT_EQ(parse_ply(head + "0.01 0.02 0.03 0 128 255\n1 2 3 4 5 6\n", "ok.ply").colours.size(), 2u);
+  expect_format_error(ply, head + "0 0 0 1 2 3\n0.01 0.02 0.03 300 -5 50\n",
+                      "line 12: vertex 1: value 300 out of range for uchar (0..255)");
+  expect_format_error(ply, head + "0.01 0.02 0.03 30 -5 50\n0 0 0 1 2 3\n", "line 11: vertex 0: value -5 out of range");
 }
 
 TEST(IoPly, AsciiReadIsFast) {
