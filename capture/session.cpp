@@ -581,9 +581,12 @@ SessionManifest read_manifest(const fs::path& path) {
   SessionManifest m = manifest_from_yaml(read_file_bytes(file), file.string());
   for (std::size_t i = 0; i < m.views.size(); ++i) {
     const fs::path view = dir / m.views[i].file;
-    if (!fs::is_regular_file(view, ec))
-      throw IoError(view.string() + ": view file missing (views[" + std::to_string(i) + "] of " +
-                    file.string() + ")");
+    if (!fs::is_regular_file(view, ec)) {
+      const char* problem = fs::is_directory(view, ec) ? "view file is a folder"
+                            : fs::exists(view, ec)     ? "view file is not a regular file"
+                                                       : "view file missing";
+      throw IoError(view.string() + ": " + problem + " (views[" + std::to_string(i) + "] of " + file.string() + ")");
+    }
   }
   return m;
 }

@@ -104,8 +104,11 @@ void write_file_atomic(const fs::path& path, const std::function<void(std::ostre
   if (path.empty()) throw IoError("(empty path): cannot write");
   const fs::path dir = path.has_parent_path() ? path.parent_path() : fs::path(".");
   std::error_code ec;
-  if (!fs::is_directory(dir, ec))
+  if (!fs::is_directory(dir, ec)) {
+    if (fs::exists(dir, ec))
+      throw IoError(path.string() + ": cannot write: " + dir.string() + " is a file, not a folder");
     throw IoError(path.string() + ": cannot write: folder " + dir.string() + " does not exist");
+  }
 
   static std::atomic<unsigned> counter{0};
   const std::string tmp = path.string() + ".tmp-" + std::to_string(::getpid()) + "-" +

@@ -537,6 +537,10 @@ void stream_ply_points(const fs::path& path, std::size_t chunk, const std::funct
   const int fd = ::open(name.c_str(), O_RDONLY | O_CLOEXEC);
   if (fd < 0) throw IoError(name + ": cannot open: " + std::strerror(errno));
   struct stat st {};
+  if (::fstat(fd, &st) == 0 && S_ISDIR(st.st_mode)) {
+    ::close(fd);
+    throw IoError(name + ": cannot read: " + std::strerror(EISDIR));
+  }
   if (::fstat(fd, &st) != 0 || st.st_size <= 0) {
     ::close(fd);
     throw IoError(name + ": cannot read (empty or unreadable)");

@@ -195,6 +195,7 @@ int cmd_register(const Common& c, const RegisterArgs& a) {
   const std::string& out = a.out;
   const std::string& poses_out = a.poses_out;
   const Session session = Session::open(session_dir);
+  if (session.manifest().views.empty()) throw InvalidInput(session_dir + ": the session has no views");
   const RegistrationResult r = register_with_progress(session, registration_params(cfg.pipeline), c.json);
   if (r.merged.empty()) throw InvalidInput(session_dir + ": no view could be registered");
   // Both outputs or neither: when one cannot be written, the other one this command
@@ -226,6 +227,7 @@ int cmd_calibrate_turntable(const Common& c, const std::string& session_dir, con
   auto threads = limit_threads(cfg.threads);
   const Session session = Session::open(session_dir);
   const SessionManifest& m = session.manifest();
+  if (m.views.empty()) throw InvalidInput(session_dir + ": the session has no views");
   // The axis is fitted to free poses: on poses held on one rigid turntable the
   // tilt and translation residuals would be zero by construction, and they are
   // what tells a wobbling table or a shifting object.

@@ -386,6 +386,8 @@ class Runner {
   RunResult run() {
     if (req_.input.empty() || !fs::exists(req_.input))
       throw IoError(req_.input.string() + ": no such session or cloud");
+    if (fs::is_directory(req_.input) && !is_session(req_.input))
+      throw IoError(req_.input.string() + ": not a session folder (no session.yaml)");
     session_ = is_session(req_.input);
     result_.session = session_;
     std::error_code ec;
@@ -512,8 +514,8 @@ class Runner {
     } catch (const InvalidInput& e) {
       // The library names its data by role ("fit_mpu: 0 points..."); the run names the
       // stage's input file, and the stage unless the message starts with it.
-      const std::string what = e.what();
-      if (what.find(input.string()) != std::string::npos) throw;
+      const std::string what = plain_message(e.what());
+      if (what.find(input.string()) != std::string::npos) throw InvalidInput(what);
       throw InvalidInput(input.string() + ": " + (what.rfind(name + ":", 0) == 0 ? "" : name + ": ") + what);
     }
     r.seconds = seconds_since(t0);
@@ -538,6 +540,7 @@ class Runner {
   void do_register(StageRecord& r) {
     const fs::path dir = fs::is_directory(req_.input) ? req_.input : req_.input.parent_path();
     const Session session = Session::open(dir);
+    if (session.manifest().views.empty()) throw InvalidInput(dir.string() + ": the session has no views");
     const RegistrationParams p = registration_params(cfg_.pipeline);
     std::unique_ptr<Progress> bar;
     std::string sub;

@@ -772,5 +772,58 @@ TEST(Cli, ParseErrorsAreOnePlainLine) {
   EXPECT_EQ(run("consolidate --help").code, 0);
 }
 
+// Messages that misled: each now names the file or folder and says what is wrong with it
+// in the user's terms (not "cannot map: No such device", not an internal function).
+TEST(Cli, MessagesNameTheCulpritInPlainWords) {
+  test::TempDir dir;
+  namespace fs = std::filesystem;
+  const auto first_line = [](const CmdResult& r) { return r.out.substr(0, r.out.find('\n')); };
+  // A directory given as the cloud (consolidate streams it).
+  fs::create_directory(dir / "adir.ply");
+  CmdResult r = run("consolidate " + (dir / "adir.ply").string() + " -o " + (dir / "c.ply").string());
+  EXPECT_EQ(r.code, 1);
+  EXPECT_EQ(r.out, "station: " + (dir / "adir.ply").string() + ": cannot read: Is a directory\n");
+  // A session whose manifest lists no views: the session named.
+  const std::string empty = (dir / "empty").string();
+  fs::create_directory(empty);
+  {
+    std::ofstream(empty + "/session.yaml") << "format: station-session\nversion: 1\nunits: m\nviews: []\n";
+  }
+  r = run("register " + empty + " -o " + (dir / "r.ply").string());
+  EXPECT_EQ(r.code, 1);
+  EXPECT_EQ(r.out, "station: " + empty + ": the session has no views\n");
+  r = run("run --quiet " + empty + " -o " + (dir / "run_empty").string());
+  EXPECT_EQ(r.code, 1);
+  EXPECT_EQ(r.out, "station: " + empty + ": the session has no views\n");
+  // A folder without session.yaml given to run, as register says it.
+  fs::create_directory(dir / "noyaml");
+  r = run("run --quiet " + (dir / "noyaml").string() + " -o " + (dir / "x").string());
+  EXPECT_EQ(r.code, 1);
+  EXPECT_EQ(r.out, "station: " + (dir / "noyaml").string() + ": not a session folder (no session.yaml)\n");
+  // An output inside a regular file.
+  const std::string cloud = (dir / "cloud.ply").string();
+  write_ply(cloud, test::fibonacci_sphere(300, 0.05));
+  { std::ofstream(dir / "somefile") << "x"; }
+  r = run("consolidate --json " + cloud + " -o " + (dir / "somefile" / "out.ply").string());
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(first_line(r).find((dir / "somefile").string() + " is a file, not a folder"), std::string::npos) << r.out;
+  // A view file that is a folder.
+  const std::string sess = (dir / "s").string();
+  ASSERT_EQ(run("import " + cloud + " " + cloud + " -o " + sess).code, 0);
+  fs::remove(sess + "/view_001.ply");
+  fs::create_directory(sess + "/view_001.ply");
+  r = run("register " + sess + " -o " + (dir / "r2.ply").string());
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.out.find(sess + "/view_001.ply: view file is a folder"), std::string::npos) << r.out;
+  // Too few points for a surface, in user terms and naming the file.
+  Cloud one;
+  one.points.emplace_back(0.f, 0.f, 0.f);
+  write_ply(dir / "one.ply", one);
+  r = run("reconstruct --json " + (dir / "one.ply").string() + " -o " + (dir / "o.ply").string());
+  EXPECT_EQ(r.code, 1);
+  EXPECT_EQ(r.out, "station: " + (dir / "one.ply").string() +
+                       ": 1 point: too few to reconstruct a surface from (at least 50 are needed)\n");
+}
+
 }  // namespace
 }  // namespace station
