@@ -229,11 +229,14 @@ class BinarySource {
   std::uint64_t max_items(int size) const { return remaining() / static_cast<std::uint64_t>(size); }
 
   /// After the last element: no data may follow (a header whose counts fall short of
-  /// the data would drop the rest silently). No real file we have ends in extra bytes.
+  /// the data would drop the rest silently). Trailing whitespace or NUL bytes (a
+  /// writer's final newline, padding to a block) are not data: other readers (rply,
+  /// plyfile, Open3D) accept them, and no real file we have ends in anything else.
   void check_end() const {
-    if (remaining() > 0)
-      format_error(name_, std::to_string(remaining()) +
-                              " bytes after the last element the header declares (its counts are short of the data)");
+    for (const unsigned char* q = p_; q != end_; ++q)
+      if (!(*q == 0 || *q == '\n' || *q == '\r' || *q == ' ' || *q == '\t'))
+        format_error(name_, std::to_string(remaining()) + (remaining() == 1 ? " byte" : " bytes") +
+                                " after the last element the header declares (its counts are short of the data)");
   }
 
  private:
@@ -276,15 +279,17 @@ class AsciiSource {
     double v;
     if (!io_detail::parse_double(t, v)) fail("bad number " + quote(t));
     // A binary value always fits its type; a written one must too (a uchar colour of
-    // 300 or -5 was clamped silently).
+    // 300 or -5 was clamped silently). A signed type takes its unsigned twin's range as
+    // well: writers that declare `char red` and write 0..255 are common, and such files
+    // loaded before.
     double lo = 0, hi = 0;
     const char* type_name = nullptr;
     switch (type) {
-      case Scalar::kI8: lo = -128, hi = 127, type_name = "char"; break;
+      case Scalar::kI8: lo = -128, hi = 255, type_name = "char"; break;
       case Scalar::kU8: lo = 0, hi = 255, type_name = "uchar"; break;
-      case Scalar::kI16: lo = -32768, hi = 32767, type_name = "short"; break;
+      case Scalar::kI16: lo = -32768, hi = 65535, type_name = "short"; break;
       case Scalar::kU16: lo = 0, hi = 65535, type_name = "ushort"; break;
-      case Scalar::kI32: lo = -2147483648.0, hi = 2147483647.0, type_name = "int"; break;
+      case Scalar::kI32: lo = -2147483648.0, hi = 4294967295.0, type_name = "int"; break;
       case Scalar::kU32: lo = 0, hi = 4294967295.0, type_name = "uint"; break;
       case Scalar::kF32:
       case Scalar::kF64: break;

@@ -65,13 +65,18 @@ std::string number_text(double v) {
 }  // namespace
 
 CLI::Validator whole_number(long long lo, long long hi) {
-  const std::string want = hi >= std::numeric_limits<int>::max()
-                               ? "must be a whole number, " + std::to_string(lo) + " or more"
-                               : "must be a whole number in " + std::to_string(lo) + ".." + std::to_string(hi);
+  // A bound that is only the type's (an int's 2147483647) is named only to a value
+  // beyond it, so that the message never contradicts the value.
+  const bool open_above = hi >= std::numeric_limits<int>::max();
+  const std::string want = open_above ? "must be a whole number, " + std::to_string(lo) + " or more"
+                                      : "must be a whole number in " + std::to_string(lo) + ".." + std::to_string(hi);
   return CLI::Validator(
-      [lo, hi, want](std::string& text) -> std::string {
+      [lo, hi, want, open_above](std::string& text) -> std::string {
         long long v = 0;
-        if (!parse_whole(text, v) || v < lo || v > hi) return want + " (got " + text + ")";
+        const bool whole = parse_whole(text, v);
+        if (whole && open_above && v > hi)
+          return "must be a whole number, at most " + std::to_string(hi) + " (got " + text + ")";
+        if (!whole || v < lo || v > hi) return want + " (got " + text + ")";
         return {};
       },
       "INT");

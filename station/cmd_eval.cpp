@@ -187,7 +187,7 @@ void add_eval_commands(CLI::App& app, std::vector<Command>& out) {
   eval->add_option("a", eval_a, "result (cloud or mesh: .ply .pcd .obj .off)")->required();
   eval->add_option("b", eval_b, "reference (cloud or mesh)")->required();
   eval->add_option("--samples", eval_samples, "points sampled on each mesh")->capture_default_str()->check(whole_number(1, 100000000));
-  eval->add_option("--seed", eval_seed, "sampling seed")->capture_default_str()->check(whole_number(0, 2147483647));  // as consolidate's --seed
+  eval->add_option("--seed", eval_seed, "sampling seed")->capture_default_str()->check(whole_number(0, 4294967295LL));  // an unsigned seed, as before
   eval->add_flag("--points-metrics", eval_pm.enabled,
                  "also the consolidation metrics of A's points (a cloud's points, a mesh's vertices) "
                  "against mesh B: accuracy (mean distance to B), uniformity (Schloemer's normalised "

@@ -464,8 +464,14 @@ class Runner {
         // An unreadable manifest is reported by the register stage; it lists nothing here.
       }
     }
-    for (const char* name : {kStateFile, "merged.ply", "consolidated.ply", "mesh.ply", "report.html",
-                             "colour_boundary.bin"})
+    // What this run writes: a cloud given as input is not registered (no merged.ply),
+    // and consolidation or the report may be off (a rerun on the folder's own
+    // merged.ply or consolidated.ply is then legitimate).
+    std::vector<const char*> written{kStateFile, "mesh.ply", "colour_boundary.bin"};
+    if (session_) written.push_back("merged.ply");
+    if (cfg_.pipeline.consolidate.enabled) written.push_back("consolidated.ply");
+    if (req_.report) written.push_back("report.html");
+    for (const char* name : written)
       for (const fs::path& in : inputs)
         if (const fs::path out = req_.out_dir / name; same_file(out, in))
           throw InvalidInput(out.string() + " is also an input" +
@@ -515,7 +521,10 @@ class Runner {
       // The library names its data by role ("fit_mpu: 0 points..."); the run names the
       // stage's input file, and the stage unless the message starts with it.
       const std::string what = plain_message(e.what());
-      if (what.find(input.string()) != std::string::npos) throw InvalidInput(what);
+      if (what.find(input.string()) != std::string::npos) {
+        if (what == e.what()) throw;  // keeps the error's kind (a usage error's exit code)
+        throw InvalidInput(what);
+      }
       throw InvalidInput(input.string() + ": " + (what.rfind(name + ":", 0) == 0 ? "" : name + ": ") + what);
     }
     r.seconds = seconds_since(t0);

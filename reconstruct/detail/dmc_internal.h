@@ -294,13 +294,6 @@ class Lattice {
     const std::int32_t b = block_of(c);
     return b >= 0 && (blk(b).surface >> local(c) & 1);
   }
-  void set_surface(Key c, bool on) {
-    const std::int32_t b = on ? block(ki(c) >> 2, kj(c) >> 2, kk(c) >> 2) : block_of(c);
-    if (b < 0) return;
-    const std::uint64_t m = std::uint64_t(1) << local(c);
-    if (on) blk(b).surface |= m;
-    else blk(b).surface &= ~m;
-  }
   std::vector<Key> surface_list() const {
     std::vector<Key> out;
     for (std::size_t b = 0; b < blocks_.size(); ++b)

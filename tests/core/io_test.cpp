@@ -353,6 +353,12 @@ TEST(IoPly, DataBeyondTheDeclaredCountsIsAnError) {
   std::string b = head;
   for (int i = 0; i < 9; ++i) put(b, float(i));  // 3 vertices' bytes, 2 declared
   expect_format_error(ply, b, "12 bytes after the last element the header declares");
+  // A final newline or NUL padding after binary data is not data (other readers accept it).
+  std::string b2 = head;
+  for (int i = 0; i < 6; ++i) put(b2, float(i));
+  EXPECT_EQ(parse_ply(b2 + "\n", "nl.ply").vertices.size(), 2u);
+  EXPECT_EQ(parse_ply(b2 + std::string(3, '\0') + "\r\n", "pad.ply").vertices.size(), 2u);
+  expect_format_error(ply, b2 + "\nx", "2 bytes after the last element");
   // Streamed (consolidate's and the blocks' reader) alike.
   const auto dir = std::filesystem::temp_directory_path() / ("station-ply-trailing-" + std::to_string(::getpid()));
   std::filesystem::create_directories(dir);
@@ -372,6 +378,14 @@ TEST(IoPly, AsciiValuesMustFitTheirType) {
   expect_format_error(ply, head + "0 0 0 1 2 3\n0.01 0.02 0.03 300 -5 50\n",
                       "line 12: vertex 1: value 300 out of range for uchar (0..255)");
   expect_format_error(ply, head + "0.01 0.02 0.03 30 -5 50\n0 0 0 1 2 3\n", "line 11: vertex 0: value -5 out of range");
+  // A signed colour type written 0..255 (a common writer's mix-up) loads, as it did.
+  std::string signed_head = head;
+  for (const char* c : {"red", "green", "blue"})
+    signed_head.replace(signed_head.find(std::string("uchar ") + c), 5, "char");
+  const Mesh m = parse_ply(signed_head + "0 0 0 200 0 255\n1 1 1 1 2 3\n", "char.ply");
+  ASSERT_EQ(m.colours.size(), 2u);
+  EXPECT_EQ(m.colours[0], (Rgb{200, 0, 255}));
+  expect_format_error(ply, signed_head + "0 0 0 256 0 0\n1 1 1 1 2 3\n", "value 256 out of range for char (-128..255)");
 }
 
 TEST(IoPly, AsciiReadIsFast) {

@@ -648,6 +648,13 @@ TEST(Cli, OutputThatIsAnInputIsRefused) {
   EXPECT_EQ(r.code, 1) << r.out;
   EXPECT_EQ(r.out, "station: " + g + "/mesh.ply is also an input; choose another output folder\n");
   EXPECT_TRUE(read_file_bytes(g + "/mesh.ply") == mesh_bytes) << "replaced: " << g + "/mesh.ply";
+  // A file the run does not write is a legitimate input in its folder: a cloud given as
+  // input is not registered, so the folder's merged.ply stays (a review found it refused).
+  write_ply(g + "/merged.ply", test::fibonacci_sphere(400, 0.05));
+  const std::string merged_bytes = read_file_bytes(g + "/merged.ply");
+  r = run("run --quiet " + g + "/merged.ply -o " + g + " --resume --no-report");
+  EXPECT_EQ(r.out.find("is also an input"), std::string::npos) << r.out;
+  EXPECT_TRUE(read_file_bytes(g + "/merged.ply") == merged_bytes) << "replaced: " << g + "/merged.ply";
   // An import into the folder of the file it imports (view_000.ply).
   const std::string d = (dir / "d").string();
   std::filesystem::create_directory(d);
@@ -759,6 +766,8 @@ TEST(Cli, ParseErrorsAreOnePlainLine) {
        "station: consolidate: unknown option or extra argument: --bogus (station consolidate --help lists them)"},
       {"consolidate -o " + out, "station: consolidate: input is missing (station consolidate --help)"},
       {"eval " + cloud + " " + cloud + " --seed -1", "station: --seed: must be a whole number, 0 or more (got -1)"},
+      {"run " + cloud + " -o " + (dir / "r").string() + " --threads 3000000000",
+       "station: --threads: must be a whole number, at most 2147483647 (got 3000000000)"},
       {"consolidate " + cloud + " -o " + out + " --seed -1", "station: --seed -1: must be a whole number, 0 or more"},
       {"import " + cloud + " -o " + (dir / "i").string() + " --step nan",
        "station: --step: must be a finite number (got nan)"},
