@@ -682,6 +682,14 @@ TEST(Cli, EmptyReconstructedSurfaceIsAnError) {
   EXPECT_EQ(r.code, 1) << r.out;
   EXPECT_EQ(r.out, "station: " + in + ": the reconstructed surface is empty\n");
   EXPECT_FALSE(std::filesystem::exists(out));
+  // In blocks alike (blocks need oriented normals): the blocks' own check, no mesh left.
+  line.normals.assign(line.points.size(), Vec3f::UnitZ());
+  const std::string oriented = (dir / "line_n.ply").string();
+  write_ply(oriented, line, PlyFormat::kAscii);
+  r = run("reconstruct " + oriented + " -o " + out + " --blocks 2");
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_NE(r.out.find(oriented + ": the reconstructed surface is empty"), std::string::npos) << r.out;
+  EXPECT_FALSE(std::filesystem::exists(out));
   const std::string run_dir = (dir / "run").string();
   r = run("run --quiet --no-report " + in + " -o " + run_dir);
   EXPECT_EQ(r.code, 1) << r.out;
