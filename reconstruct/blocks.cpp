@@ -340,7 +340,7 @@ BlockSummary summarise_cloud(const CloudSource& source, const SurfaceParams& p) 
     }
     s.hole = *s.enclosure >= kEnclosedAbove ? HoleMode::kClose : HoleMode::kKeep;
   }
-  s.epsilon0 = p.epsilon0 > 0 ? p.epsilon0 : std::max(MpuParams().epsilon0, suggest_epsilon0(s.far_field));
+  s.epsilon0 = p.epsilon0 > 0 ? p.epsilon0 : std::max(MpuParams().epsilon0, surface_epsilon0(s.far_field));
   s.box = s.bounds;
   const float pad = 0.05f * (s.box.max - s.box.min).maxCoeff();
   s.box.min.array() -= pad;

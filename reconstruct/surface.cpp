@@ -66,6 +66,19 @@ ColourParams colour_params(const SurfaceParams& p) {
   return cp;
 }
 
+double surface_epsilon0(const Cloud& cloud) {
+  constexpr std::size_t kNeeded = 50;  // suggest_epsilon0's default k
+  const std::size_t n = cloud.size();
+  if (n < kNeeded)
+    throw InvalidInput(std::to_string(n) + (n == 1 ? " point" : " points") +
+                       ": too few to reconstruct a surface from (at least " + std::to_string(kNeeded) + " are needed)");
+  if (all_finite(cloud.points)) {
+    const Aabb box = bounding_box(cloud.points);
+    if (!((box.max - box.min).maxCoeff() > 0)) throw InvalidInput("all points are the same point: no surface to reconstruct");
+  }
+  return suggest_epsilon0(cloud, int(kNeeded));
+}
+
 SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
   const auto t0 = Clock::now();
   const auto note = [&](const std::string& line) {
@@ -115,7 +128,7 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
 
   MpuParams mp;
   // The paper's 1e-4 suits clean data only; noisy scans get a tolerance from their noise.
-  mp.epsilon0 = p.epsilon0 > 0 ? p.epsilon0 : std::max(mp.epsilon0, suggest_epsilon0(input));
+  mp.epsilon0 = p.epsilon0 > 0 ? p.epsilon0 : std::max(mp.epsilon0, surface_epsilon0(input));
   mp.threads = p.threads;
   // Holes kept: the mesh stops within kKeepTrustFactor spacings of the points.
   if (out.hole == HoleMode::kKeep) mp.trust_factor = kKeepTrustFactor, mp.sparse_trust = true;

@@ -170,6 +170,11 @@ inline constexpr std::size_t kEColPoints = 50000;
 /// The colour function's parameters of the surface stage (also the SDM surface's).
 ColourParams colour_params(const SurfaceParams& params);
 
+/// suggest_epsilon0 with the defaults, for a surface to be reconstructed from `cloud`:
+/// too few points or all at one point are said in a user's terms ("1 point: too few to
+/// reconstruct a surface from (at least 50 are needed)"), not in suggest_epsilon0's.
+double surface_epsilon0(const Cloud& cloud);
+
 /// The whole surface stage on `cloud` (normals estimated when missing). InvalidInput
 /// for an empty cloud, an empty surface, or a resolution whose mesh would not fit in
 /// the memory available (check_extraction_fits).

@@ -486,19 +486,18 @@ int cmd_import(const Common& c, const ImportArgs& a) {
   if (a.every < 1) throw InvalidInput("--every must be at least 1");
   if (!std::isfinite(a.start)) throw UsageError("--start: must be a finite angle in degrees");
   if (!std::isfinite(a.step)) throw UsageError("--step: must be a finite angle in degrees");
+  // The files the import writes (its manifest, view_NNN.ply): they never replace a file
+  // being imported, and a failed import removes those it created (below).
+  std::vector<std::string> files{(fs::path(a.out) / kManifestName).string()};
+  for (std::size_t i = 0; i < a.files.size(); ++i) {
+    char name[64];
+    std::snprintf(name, sizeof name, "view_%03zu.ply", i);
+    files.push_back((fs::path(a.out) / name).string());
+  }
   {
-    // The session's files (its manifest, view_NNN.ply) never replace a file being imported.
-    std::vector<std::string> outputs{(fs::path(a.out) / kManifestName).string()};
-    for (std::size_t i = 0; i < a.files.size(); ++i) {
-      char name[64];
-      std::snprintf(name, sizeof name, "view_%03zu.ply", i);
-      outputs.push_back((fs::path(a.out) / name).string());
-    }
     std::vector<std::string> inputs = a.files;
     inputs.push_back(a.stanford_conf);
-    for (const std::string& out : outputs)
-      for (const std::string& in : inputs)
-        if (same_file(out, in)) throw InvalidInput(in + " is also an input; choose another output folder");
+    check_not_an_input(files, inputs);
   }
   std::map<std::string, Eigen::Matrix4d> poses;
   if (!a.stanford_conf.empty())
@@ -534,13 +533,7 @@ int cmd_import(const Common& c, const ImportArgs& a) {
   }
   // A failed import leaves nothing of its own behind (no stub session.yaml that would
   // block a retry, no empty folder): the files and folders it creates go again.
-  std::vector<fs::path> files{fs::path(a.out) / kManifestName};
-  for (std::size_t i = 0; i < a.files.size(); ++i) {
-    char name[64];
-    std::snprintf(name, sizeof name, "view_%03zu.ply", i);
-    files.push_back(fs::path(a.out) / name);
-  }
-  CreatedOutputs created(a.out, files);
+  CreatedOutputs created(a.out, std::vector<fs::path>(files.begin(), files.end()));
   Session s = Session::create(a.out, m);
   Progress bar("import", int(a.files.size()), c.json);
   std::size_t total = 0;

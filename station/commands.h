@@ -17,7 +17,6 @@
 #include "drivers/registry.h"
 #include "station/config.h"
 #include "station/json.h"
-#include "station/params.h"
 
 namespace CLI {
 class App;
@@ -193,19 +192,13 @@ int naming_the_file(const std::string& in, const std::string& out, Fn&& fn,
   try {
     return fn();
   } catch (const InvalidInput& e) {
-    const std::string what = plain_message(e.what());
+    const std::string what = e.what();
     const auto names = [&](const std::string& path) { return !path.empty() && what.find(path) != std::string::npos; };
-    if (what.rfind("--", 0) == 0 || names(in) || names(out)) {
-      if (what == e.what()) throw;
-      throw InvalidInput(what);
-    }
+    if (what.rfind("--", 0) == 0 || names(in) || names(out)) throw;
     std::string file = in;
     for (const auto& [role, path] : roles)
       if (what.rfind(role, 0) == 0) file = path;
-    if (file.empty() || names(file)) {
-      if (what == e.what()) throw;
-      throw InvalidInput(what);
-    }
+    if (file.empty() || names(file)) throw;
     throw InvalidInput(file + ": " + what);
   }
 }

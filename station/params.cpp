@@ -1,7 +1,5 @@
 #include "station/params.h"
 
-#include <regex>
-
 #include "registration/registration.h"
 #include "core/error.h"
 #include "reconstruct/surface.h"
@@ -221,14 +219,5 @@ RegistrationParams registration_params(const PipelineConfig& p) {
 
 const char* wlop_label(const std::string& method) { return method == "edge-wlop" ? "edge-WLOP" : "WLOP"; }
 
-std::string plain_message(const std::string& what) {
-  std::smatch m;
-  if (std::regex_match(what, m, std::regex("suggest_epsilon0: (\\d+) points, fewer than the (\\d+) needed .*")))
-    return m[1].str() + (m[1].str() == "1" ? " point" : " points") +
-           ": too few to reconstruct a surface from (at least " + m[2].str() + " are needed)";
-  if (what == "suggest_epsilon0: all points are equal")
-    return "all points are the same point: no surface to reconstruct";
-  return what;
-}
 
 }  // namespace station

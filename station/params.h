@@ -52,9 +52,5 @@ RegistrationParams registration_params(const PipelineConfig& pipeline);
 /// How progress lines name a consolidation method ("edge-wlop" | "wlop").
 const char* wlop_label(const std::string& method);
 
-/// A library complaint that names an internal function ("suggest_epsilon0: 1 points,
-/// fewer than the 50 needed...") in the user's terms ("1 points: too few to reconstruct
-/// a surface from (at least 50 are needed)"); any other message as it is.
-std::string plain_message(const std::string& what);
 
 }  // namespace station

@@ -386,9 +386,9 @@ class Runner {
   RunResult run() {
     if (req_.input.empty() || !fs::exists(req_.input))
       throw IoError(req_.input.string() + ": no such session or cloud");
-    if (fs::is_directory(req_.input) && !is_session(req_.input))
-      throw IoError(req_.input.string() + ": not a session folder (no session.yaml)");
     session_ = is_session(req_.input);
+    if (!session_ && fs::is_directory(req_.input))
+      throw IoError(req_.input.string() + ": not a session folder (no session.yaml)");
     result_.session = session_;
     std::error_code ec;
     const fs::path state_file = req_.out_dir / kStateFile;
@@ -520,11 +520,8 @@ class Runner {
     } catch (const InvalidInput& e) {
       // The library names its data by role ("fit_mpu: 0 points..."); the run names the
       // stage's input file, and the stage unless the message starts with it.
-      const std::string what = plain_message(e.what());
-      if (what.find(input.string()) != std::string::npos) {
-        if (what == e.what()) throw;  // keeps the error's kind (a usage error's exit code)
-        throw InvalidInput(what);
-      }
+      const std::string what = e.what();
+      if (what.find(input.string()) != std::string::npos) throw;
       throw InvalidInput(input.string() + ": " + (what.rfind(name + ":", 0) == 0 ? "" : name + ": ") + what);
     }
     r.seconds = seconds_since(t0);
