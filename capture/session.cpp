@@ -18,6 +18,7 @@
 #include <utility>
 
 #include "core/atomic_file.h"
+#include "core/yaml_keys.h"
 #include "core/error.h"
 #include "core/io.h"
 
@@ -559,6 +560,8 @@ SessionManifest manifest_from_yaml(const std::string& text, const std::string& n
   } catch (const std::exception& e) {
     throw FormatError(name + ": cannot parse YAML: " + e.what());
   }
+  if (const std::string dup = duplicate_yaml_key_message(duplicate_yaml_key(root), name); !dup.empty())
+    throw FormatError(dup);
   try {
     return ManifestReader(name).read(root);
   } catch (const Error&) {

@@ -1,9 +1,11 @@
 #pragma once
 // Private helpers shared by the format readers in core/*_io.cpp. Not part of the
 // public interface: include core/io.h instead.
+#include <algorithm>
 #include <charconv>
 #include <cmath>
 #include <cstdint>
+#include <cstdio>
 #include <cstdlib>
 #include <cstring>
 #include <string>
@@ -16,6 +18,24 @@ namespace station::io_detail {
 /// Throws FormatError("NAME: problem").
 [[noreturn]] inline void format_error(const std::string& name, const std::string& problem) {
   throw FormatError(name + ": " + problem);
+}
+
+/// The largest coordinate magnitude a reader accepts. Scans are in metres or
+/// millimetres; past 1e9 (a million kilometres in millimetres) a value is a corrupt
+/// file or wrong units, and squared distances near float's range overflow later
+/// stages (a 1e38 coordinate made h = 1.4e38 and an internal winding-number error).
+inline constexpr double kMaxCoordinate = 1e9;
+
+/// Empty when (x, y, z) is a usable coordinate, else the problem in a few words.
+inline std::string coordinate_problem(float x, float y, float z) {
+  if (!std::isfinite(x) || !std::isfinite(y) || !std::isfinite(z)) return "non-finite coordinate";
+  const double m = std::max({std::fabs(double(x)), std::fabs(double(y)), std::fabs(double(z))});
+  if (m > kMaxCoordinate) {
+    char buf[128];
+    std::snprintf(buf, sizeof buf, "coordinate %.3g is beyond +-1e9 (wrong units or a corrupt file?)", m);
+    return buf;
+  }
+  return {};
 }
 
 inline bool is_space(char c) { return c == ' ' || c == '\t' || c == '\r' || c == '\v' || c == '\f'; }

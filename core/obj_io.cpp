@@ -113,8 +113,8 @@ TexturedMesh parse_obj(std::string_view bytes, const std::string& name, const fs
       if (n < 4) bad("vertex needs x y z");
       const Vec3f p(static_cast<float>(number(1)), static_cast<float>(number(2)),
                     static_cast<float>(number(3)));
-      if (!std::isfinite(p.x()) || !std::isfinite(p.y()) || !std::isfinite(p.z()))
-        bad("coordinate out of range");
+      if (const std::string why = io_detail::coordinate_problem(p.x(), p.y(), p.z()); !why.empty())
+        bad(why);
       mesh.vertices.push_back(p);
       if (n >= 7) {
         colours.push_back(Rgb{io_detail::to_channel(number(4), true),

@@ -95,8 +95,8 @@ Mesh parse_off(std::string_view bytes, const std::string& name) {
     for (std::size_t k = 0; k < base; ++k)
       if (!io_detail::parse_double(tok[k], v[k])) bad("bad number " + quote(tok[k]));
     const Vec3f p(static_cast<float>(v[0]), static_cast<float>(v[1]), static_cast<float>(v[2]));
-    if (!std::isfinite(p.x()) || !std::isfinite(p.y()) || !std::isfinite(p.z()))
-      bad("vertex " + std::to_string(i) + ": non-finite coordinate");
+    if (const std::string why = io_detail::coordinate_problem(p.x(), p.y(), p.z()); !why.empty())
+      bad("vertex " + std::to_string(i) + ": " + why);
     mesh.vertices.push_back(p);
     if (has_normal)
       mesh.normals.emplace_back(static_cast<float>(v[3]), static_cast<float>(v[4]), static_cast<float>(v[5]));

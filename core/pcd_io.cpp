@@ -250,8 +250,8 @@ void add_point(Cloud& c, const Layout& L, double x, double y, double z, const Ve
                std::uint32_t rgb, std::uint64_t index, const std::string& name) {
   const Vec3f p(static_cast<float>(x), static_cast<float>(y), static_cast<float>(z));
   if (std::isnan(p.x()) || std::isnan(p.y()) || std::isnan(p.z())) return;
-  if (std::isinf(p.x()) || std::isinf(p.y()) || std::isinf(p.z()))
-    format_error(name, "point " + std::to_string(index) + ": infinite coordinate");
+  if (const std::string why = io_detail::coordinate_problem(p.x(), p.y(), p.z()); !why.empty())
+    format_error(name, "point " + std::to_string(index) + ": " + why);
   c.points.push_back(p);
   if (L.nx >= 0) c.normals.push_back(n);
   if (L.rgb >= 0) c.colours.push_back(unpack_rgb(rgb));

@@ -404,8 +404,8 @@ void read_vertices(Source& src, const Element& e, const VertexLayout& L, Mesh& m
       else v[k] = src.scalar(p.type);
     }
     const Vec3f pt(static_cast<float>(v[L.x]), static_cast<float>(v[L.y]), static_cast<float>(v[L.z]));
-    if (!std::isfinite(pt.x()) || !std::isfinite(pt.y()) || !std::isfinite(pt.z()))
-      src.fail("non-finite coordinate");
+    if (const std::string why = io_detail::coordinate_problem(pt.x(), pt.y(), pt.z()); !why.empty())
+      src.fail(why);
     mesh.vertices.push_back(pt);
     if (normals)
       mesh.normals.emplace_back(static_cast<float>(v[L.nx]), static_cast<float>(v[L.ny]),

@@ -500,12 +500,27 @@ int cmd_import(const Common& c, const ImportArgs& a) {
     check_not_an_input(files, inputs);
   }
   std::map<std::string, Eigen::Matrix4d> poses;
-  if (!a.stanford_conf.empty())
+  if (!a.stanford_conf.empty()) {
     for (const StanfordScan& scan : read_stanford_conf(a.stanford_conf)) poses[scan.file] = scan.pose;
+    if (poses.empty())
+      throw FormatError(a.stanford_conf + ": no 'bmesh FILE tx ty tz qx qy qz qw' line: not a Stanford .conf");
+    const bool any = std::any_of(a.files.begin(), a.files.end(), [&](const std::string& f) {
+      return poses.count(fs::path(f).filename().string()) > 0;
+    });
+    if (!any)
+      throw InvalidInput(a.stanford_conf + ": names none of the imported files (its first is " +
+                         poses.begin()->first + ")");
+  }
+  for (std::size_t i = 0; i < a.files.size(); ++i)
+    for (std::size_t j = 0; j < i; ++j)
+      if (a.files[i] == a.files[j] || same_file(a.files[i], a.files[j]))
+        throw InvalidInput(a.files[i] + ": given twice (views " + std::to_string(j) + " and " + std::to_string(i) +
+                           "); a view is imported once");
   // Read everything first: a bad file aborts before anything is written.
   std::vector<Cloud> clouds;
   for (const std::string& f : a.files) {
     Cloud cl = read_cloud(f);
+    if (cl.empty()) throw InvalidInput(f + ": no points; an empty view cannot be imported");
     if (a.every > 1) {
       Cloud s;
       for (std::size_t i = 0; i < cl.size(); i += a.every) {
@@ -517,6 +532,15 @@ int cmd_import(const Common& c, const ImportArgs& a) {
     }
     clouds.push_back(std::move(cl));
   }
+  // The same scan under two names (a copy made by mistake): registered, it pins two
+  // views together; said, not refused, since the user may mean it.
+  for (std::size_t i = 0; i < clouds.size(); ++i)
+    for (std::size_t j = 0; j < i; ++j)
+      if (clouds[i].points == clouds[j].points) {
+        std::fprintf(stderr, "warning: %s has the same points as %s: the same scan imported twice?\n",
+                     a.files[i].c_str(), a.files[j].c_str());
+        break;
+      }
   if (const auto pair = text_ordered_numbers(a.files))
     std::fprintf(stderr,
                  "warning: the files are not in the order of the numbers in their names (%s before %s), as a "

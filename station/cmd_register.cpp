@@ -236,10 +236,12 @@ int cmd_calibrate_turntable(const Common& c, const std::string& session_dir, con
   const RegistrationResult r = register_with_progress(session, rp, c.json);
   std::vector<Eigen::Matrix4d> poses;
   std::vector<double> angles;
+  std::vector<std::size_t> used;  // the session's view index of each fitted pose
   for (std::size_t i = 0; i < m.views.size(); ++i) {
     if (!m.views[i].angle_deg || !r.views[i].registered) continue;
     poses.push_back(r.poses[i]);
     angles.push_back(*m.views[i].angle_deg);
+    used.push_back(i);
   }
   if (poses.size() < 2)
     throw InvalidInput(session_dir + ": fewer than two registered views with turntable angles");
@@ -271,9 +273,18 @@ int cmd_calibrate_turntable(const Common& c, const std::string& session_dir, con
     std::printf("%s", buf);
     std::printf("%-5s %12s %10s %14s\n", "view", "angle deg", "tilt deg", "trans mm");
     for (std::size_t i = 0; i < fit.residuals.size(); ++i)
-      std::printf("%-5zu %12.4f %10.4f %14.4f\n", i, fit.residuals[i].angle_deg, fit.residuals[i].tilt_deg,
+      std::printf("%-5zu %12.4f %10.4f %14.4f\n", used[i], fit.residuals[i].angle_deg, fit.residuals[i].tilt_deg,
                   fit.residuals[i].translation * 1000);
     if (!out.empty()) std::printf("written: %s\n", out.c_str());
+  }
+  // A view that could not be read or registered leaves the axis to the others: a
+  // partial result, exit 3 as register's, with the views named.
+  if (!r.failed_views.empty()) {
+    std::string names;
+    for (int v : r.failed_views) names += (names.empty() ? "" : ", ") + std::string("views[") + std::to_string(v) + "]";
+    std::fprintf(stderr, "calibrate turntable: the axis is fitted to %zu of %zu views; not registered: %s\n",
+                 poses.size(), m.views.size(), names.c_str());
+    return 3;
   }
   return 0;
 }

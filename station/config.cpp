@@ -7,6 +7,7 @@
 #include <map>
 
 #include "core/error.h"
+#include "core/yaml_keys.h"
 #include "drivers/registry.h"
 
 #ifndef STATION_SOURCE_DIR
@@ -317,6 +318,8 @@ StationConfig load_config(const fs::path& path, const std::vector<std::string>& 
     } catch (const YAML::BadFile&) {
       throw IoError(path.string() + ": cannot read");
     }
+    if (const std::string dup = duplicate_yaml_key_message(duplicate_yaml_key(root), path.string()); !dup.empty())
+      throw FormatError(dup);
   }
   for (const std::string& kv : overrides) {
     apply_override(root, kv);

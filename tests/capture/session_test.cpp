@@ -275,9 +275,9 @@ TEST(ManifestRoundTrip, AxisDirectionNormalised) {
 }
 
 TEST(ManifestRoundTrip, UnknownKeysAndNullsIgnored) {
-  std::string text = replaced(kValid, "units: m", "units: m\nfuture_field: {a: [1, 2]}\nturntable: ~");
+  std::string text = replaced(kValid, "units: m", "units: m\nfuture_field: {a: [1, 2]}\noperator: ~");
   text = replaced(text, "    angle_deg: 30", "    angle_deg: 30\n    exposure_us: 1200\n    timestamp:");
-  // "turntable" now appears twice; yaml-cpp keeps the first, which is fine either way.
+  // (A key given twice is an error: ManifestValidation.HeaderFields.)
   const SessionManifest m = manifest_from_yaml(text, "test.yaml");
   EXPECT_EQ(m.views.size(), 2u);
   EXPECT_FALSE(m.views[1].timestamp);  // explicit null = absent
@@ -308,6 +308,10 @@ TEST(ManifestValidation, HeaderFields) {
                       "scanner: not a string");
   expect_format_error(replaced(kValid, "views:\n", "viewz:\n"), "views: missing");
   expect_format_error("format: station-session\nversion: 1\nviews: {a: 1}\n", "views: not a list");
+  // A key given twice would have one of its values ignored without a word.
+  expect_format_error(std::string(kValid) + "units: mm\n", "test.yaml: line 20: units: given twice");
+  expect_format_error(replaced(kValid, "    angle_deg: 30\n", "    angle_deg: 30\n    angle_deg: 60\n"),
+                      "views[1].angle_deg: given twice");
 }
 
 TEST(ManifestValidation, Intrinsics) {

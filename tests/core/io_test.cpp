@@ -304,6 +304,10 @@ TEST(IoPly, MalformedInputsAreFormatErrors) {
   expect_format_error(ply, kAsciiHead + "0 0 0\n1 0 0\n0 1 0\n3 0 1\n", "line 13: face 0: unexpected end of file");
   expect_format_error(ply, kAsciiHead + "0 0 0\n1 nan 0\n0 1 0\n3 0 1 2\n", "line 11: vertex 1: non-finite");
   expect_format_error(ply, kAsciiHead + "0 0 0\n1 0 inf\n0 1 0\n3 0 1 2\n", "non-finite");
+  // Finite but absurd: a corrupt file or wrong units, refused before it overflows a later stage.
+  expect_format_error(ply, kAsciiHead + "0 0 0\n1 0 -1e38\n0 1 0\n3 0 1 2\n",
+                      "line 11: vertex 1: coordinate 1e+38 is beyond +-1e9");
+  EXPECT_EQ(parse_ply(kAsciiHead + "0 0 0\n1 0 -9e8\n0 1 0\n3 0 1 2\n", "big.ply").vertices[1].z(), -9e8f);
   expect_format_error(ply, kAsciiHead + "0 0 0\n1 zero 0\n0 1 0\n3 0 1 2\n", "bad number 'zero'");
   expect_format_error(ply, kAsciiHead + "0 0 0\n1 0 0\n0 1 0\n200 0 1 2\n", "exceeds");
 }
@@ -324,6 +328,9 @@ TEST(IoPly, BinaryTruncationAndHostileCounts) {
   expect_format_error(ply, bad, "vertex 1: non-finite");
   std::memcpy(&bad[head.size() + 16], &kNan, 4);
   expect_format_error(ply, bad, "vertex 1: non-finite");
+  const float far = 3e38f;
+  std::memcpy(&bad[head.size() + 16], &far, 4);
+  expect_format_error(ply, bad, "vertex 1: coordinate 3e+38 is beyond");
 
   // 2^31 vertices in a tiny file: refused before allocating.
   std::string huge = "ply\nformat binary_little_endian 1.0\nelement vertex 2147483648\nproperty float x\n"
@@ -551,7 +558,9 @@ TEST(IoPcd, MalformedInputsAreFormatErrors) {
   expect_format_error(pcd, pcd_header("x y z", "4 4", "F F F", "1 1 1", 1, 1, "ascii"), "SIZE has 2");
   expect_format_error(pcd, pcd_header("x y z", "4 4 3", "F F F", "1 1 1", 1, 1, "ascii"), "size 3");
   expect_format_error(pcd, pcd_header("x y z", "4 4 4", "F F F", "1 1 1", 2, 1, "ascii") + "1 2 3\n1 2 inf\n",
-                      "point 1: infinite");
+                      "point 1: non-finite");
+  expect_format_error(pcd, pcd_header("x y z", "4 4 4", "F F F", "1 1 1", 2, 1, "ascii") + "1 2 3\n1 2 1e38\n",
+                      "point 1: coordinate 1e+38 is beyond");
   expect_format_error(pcd, pcd_header("x y z", "4 4 4", "F F F", "1 1 1", 1, 1, "ascii") + "1 2        \n",
                       "line 12: expected 3 values");
   expect_format_error(pcd, pcd_header("x y z", "4 4 4", "F F F", "1 1 1", 1, 1, "ascii") + "1 2 q\n",
@@ -660,6 +669,7 @@ TEST(IoObj, MalformedInputsAreFormatErrors) {
   expect_format_error(obj, "v 0 0\n", "line 1: vertex needs x y z");
   expect_format_error(obj, "v 0 nan 0\n", "non-finite");
   expect_format_error(obj, "v 0 1e999 0\n", "non-finite");
+  expect_format_error(obj, "v 0 2e10 0\n", "line 1: coordinate 2e+10 is beyond +-1e9");
   expect_format_error(obj, "v 0 0 0\nvn 1 2 y\n", "line 2: bad number 'y'");
   // Empty input is an empty mesh, not an error (OBJ has no magic).
   EXPECT_TRUE(parse_obj("", "e.obj").mesh.vertices.empty());
@@ -695,6 +705,7 @@ TEST(IoOff, VariantsAndErrors) {
   expect_format_error(off, "OFF\n3 1 0\n0 0 0\n1 0 0\n", "exceed");
   expect_format_error(off, "OFF\n2 0 0\n0 0 0\n1 0\n\n\n\n\n\n\n", "line 4: vertex 1: expected 3");
   expect_format_error(off, "OFF\n1 0 0\n0 nan 0\n", "non-finite");
+  expect_format_error(off, "OFF\n1 0 0\n0 3e20 0\n", "vertex 0: coordinate 3e+20 is beyond");
   expect_format_error(off, "OFF\n99999999 0 0\n0 0 0\n", "exceed the file size");
 }
 

@@ -275,6 +275,68 @@ TEST(Cli, ImportWarnsOfFilesInAShellGlobsOrder) {
   EXPECT_DOUBLE_EQ(*read_manifest(dir / "glob").views.at(1).angle_deg, 24.0);  // the order given
 }
 
+// Bad views to import: an empty cloud, a file given twice, a copy of another view,
+// a --stanford-conf that is not one or names none of the files. Each is one line naming
+// the file, before anything is written; a copy is imported with a warning.
+TEST(Cli, ImportRefusesEmptyOrRepeatedViewsAndAConfThatIsNotOne) {
+  namespace fs = std::filesystem;
+  test::TempDir dir;
+  const std::string a = repo("data/dragon_stand/dragonStandRight_0.ply");
+  const std::string b = repo("data/dragon_stand/dragonStandRight_24.ply");
+  const std::string empty = (dir / "empty.ply").string();
+  write_ply(empty, Cloud{});
+  const std::string session = (dir / "s").string();
+  CmdResult r = run("import " + a + " " + empty + " --step 24 -o " + session);
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_NE(r.out.find("empty.ply: no points; an empty view cannot be imported"), std::string::npos) << r.out;
+  EXPECT_FALSE(fs::exists(session));
+  r = run("import " + a + " " + b + " " + a + " --step 24 -o " + session);
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_NE(r.out.find("dragonStandRight_0.ply: given twice (views 0 and 2)"), std::string::npos) << r.out;
+  EXPECT_FALSE(fs::exists(session));
+  const std::string garbage = (dir / "garbage.conf").string();
+  std::ofstream(garbage) << "this is not\na conf file\n";
+  r = run("import " + a + " " + b + " --step 24 --stanford-conf " + garbage + " -o " + session);
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_NE(r.out.find("garbage.conf: no 'bmesh FILE"), std::string::npos) << r.out;
+  const std::string other = (dir / "other.conf").string();
+  std::ofstream(other) << "bmesh elsewhere.ply 0 0 0 0 0 0 1\n";
+  r = run("import " + a + " " + b + " --step 24 --stanford-conf " + other + " -o " + session);
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_NE(r.out.find("other.conf: names none of the imported files (its first is elsewhere.ply)"),
+            std::string::npos)
+      << r.out;
+  EXPECT_FALSE(fs::exists(session));
+  const std::string copy = (dir / "copy.ply").string();
+  fs::copy_file(b, copy);
+  r = run("import " + a + " " + b + " " + copy + " --step 24 -o " + session);
+  EXPECT_EQ(r.code, 0) << r.out;
+  EXPECT_NE(r.out.find("warning: " + copy + " has the same points as " + b), std::string::npos) << r.out;
+}
+
+// A view of the session that cannot be read: the axis comes from the others, the
+// view is named, and the exit is 3 (a partial result, as register's), not 0.
+TEST(Cli, CalibrateTurntableWithAnUnreadableViewExitsThree) {
+  namespace fs = std::filesystem;
+  test::TempDir dir;
+  std::string files;
+  for (int a = 0; a < 120; a += 24) files += " " + repo("data/dragon_stand/dragonStandRight_" + std::to_string(a) + ".ply");
+  const std::string session = (dir / "s").string();
+  CmdResult r = run("import" + files + " --step 24 -o " + session);
+  ASSERT_EQ(r.code, 0) << r.out;
+  const fs::path view = fs::path(session) / "view_002.ply";
+  const std::string bytes = read_file_bytes(view);
+  std::ofstream(view, std::ios::binary | std::ios::trunc) << bytes.substr(0, bytes.size() / 2);
+  const std::string axis = (dir / "axis.yaml").string();
+  r = run("calibrate turntable " + session + " -o " + axis);
+  EXPECT_EQ(r.code, 3) << r.out;
+  EXPECT_NE(r.out.find("view_002.ply"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("calibrate turntable: the axis is fitted to 4 of 5 views; not registered: views[2]"),
+            std::string::npos)
+      << r.out;
+  EXPECT_TRUE(fs::exists(axis));
+}
+
 TEST(Cli, DragonImportsAndReplaysLikeALiveScanner) {
   test::TempDir dir;
   std::string files;
@@ -826,7 +888,9 @@ TEST(Cli, MessagesNameTheCulpritInPlainWords) {
   EXPECT_NE(first_line(r).find((dir / "somefile").string() + " is a file, not a folder"), std::string::npos) << r.out;
   // A view file that is a folder.
   const std::string sess = (dir / "s").string();
-  ASSERT_EQ(run("import " + cloud + " " + cloud + " -o " + sess).code, 0);
+  const std::string cloud2 = (dir / "cloud2.ply").string();
+  write_ply(cloud2, test::fibonacci_sphere(300, 0.06));
+  ASSERT_EQ(run("import " + cloud + " " + cloud2 + " -o " + sess).code, 0);
   fs::remove(sess + "/view_001.ply");
   fs::create_directory(sess + "/view_001.ply");
   r = run("register " + sess + " -o " + (dir / "r2.ply").string());

@@ -417,6 +417,19 @@ TEST(Pipeline, MissingInputAndBadStateAreClearErrors) {
   EXPECT_EQ(read_file_bytes(out.path() / "run" / "run.yaml"), "version: [1\n");
 }
 
+TEST(Profile, AKeyGivenTwiceIsAnError) {
+  test::TempDir dir("station-profile-dup");
+  const fs::path profile = dir / "p.yaml";
+  std::ofstream(profile) << "reconstruct:\n  resolution: 64\n  hole: keep\n  resolution: 128\n";
+  try {
+    load_config(profile, {});
+    ADD_FAILURE() << "a key given twice was accepted";
+  } catch (const FormatError& e) {
+    EXPECT_NE(std::string(e.what()).find("p.yaml: line 4: reconstruct.resolution: given twice"), std::string::npos)
+        << e.what();
+  }
+}
+
 TEST(Profile, OverridesAreValidatedLikeTheFileAndNameTheKey) {
   const fs::path profile = test::source_dir() / "config/default.yaml";
   // The run consolidates with edge-WLOP unless told otherwise (profile and built-in default).
