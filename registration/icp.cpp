@@ -149,6 +149,13 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
                        source.intensity.size() == source.points.size() &&
                        target.intensity.size() == tp.size() && target.intensity_gradient.size() == tp.size();
   const double lambda = std::clamp(params.coloured_lambda, 0.0, 1.0);
+  // The colour term's weight, scaled to the final distance: its Jacobian grows as
+  // 1 / length (an intensity gradient) where the geometric one does not, so the
+  // paper's lambda, set for scenes matched at centimetres, would let colour noise
+  // outweigh the geometry by (d_ref / d_end)^2 on an object matched at a millimetre.
+  const double ref = params.coloured_reference_distance;
+  const double colour_weight =
+      (1 - lambda) * (ref > 0 ? std::pow(std::max(params.max_distance_end, 1e-9) / ref, 2) : 1.0);
   const bool generalized = params.objective == IcpObjective::kGeneralized;
   const double eps = std::clamp(params.gicp_epsilon, 1e-6, 1.0);
   const double shrink = std::clamp(params.shrink, 0.05, 1.0);
@@ -244,8 +251,8 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
                 Vector6d Jc;
                 Jc.head<3>() = pd.cross(g);
                 Jc.tail<3>() = g;
-                acc.A.noalias() += (1 - lambda) * Jc * Jc.transpose();
-                acc.b.noalias() += (1 - lambda) * Jc * rc;
+                acc.A.noalias() += colour_weight * Jc * Jc.transpose();
+                acc.b.noalias() += colour_weight * Jc * rc;
               }
             }
             acc.sq_euclid += double(dist) * double(dist);

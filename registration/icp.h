@@ -116,6 +116,14 @@ struct IcpParams {
   /// kColored: weight lambda of the geometric term, (1 - lambda) on the colour
   /// term (the paper's and Open3D's 0.968; residuals in metres and in [0, 1] intensity).
   double coloured_lambda = 0.968;
+  /// kColored: the final distance at which lambda keeps the paper's balance. The
+  /// colour term is weighted (1 - lambda) (max_distance_end / this)^2, so the balance
+  /// does not depend on the object's size (an intensity gradient is per metre).
+  /// 0.04 m: the first (coarsest) of Park et al.'s (and Open3D's) 4 / 2 / 1 cm
+  /// schedule, where lambda is first applied; of the three, the one that registered
+  /// the simulated bottle best (docs/registration.md). 0 keeps the weight 1 - lambda
+  /// at every scale.
+  double coloured_reference_distance = 0.04;
   /// kGeneralized: covariance eigenvalue along the normal (the others are 1),
   /// Segal's epsilon (0.001, as in the paper and PCL).
   double gicp_epsilon = 1e-3;

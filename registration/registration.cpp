@@ -315,6 +315,25 @@ class Registrar {
     if (std::none_of(usable_.begin(), usable_.end(), [](bool b) { return b; }))
       throw InvalidInput("registration: no usable view (all empty or non-finite)");
     warn_estimated_viewpoints();
+    if (pp.intensity) warn_missing_colours();
+  }
+
+  // Coloured ICP asked for, views without colours: their pairs are matched on the
+  // geometry alone (the objective falls back pair by pair), said once.
+  void warn_missing_colours() {
+    std::vector<std::size_t> bare;
+    for (std::size_t i = 0; i < views_.size(); ++i)
+      if (usable_[i] && !views_[i].full.has_colours()) bare.push_back(i);
+    if (bare.empty()) return;
+    std::string w = "the coloured ICP objective needs colours, and ";
+    if (bare.size() == views_.size()) {
+      w += "no view has any: every pair is matched on its geometry alone (point-to-plane)";
+    } else {
+      w += std::to_string(bare.size()) + (bare.size() == 1 ? " view has" : " views have") + " none (" +
+           view_name(m_, bare[0]) + (bare.size() > 1 ? ", ..." : "") +
+           "): the pairs with them are matched on their geometry alone (point-to-plane)";
+    }
+    res_.warnings.push_back(w);
   }
 
   // One note for the views whose normals cannot face the scanner-frame origin.
