@@ -289,6 +289,7 @@ class Registrar {
     }
     diag_ = median_of(diags);
     res_.diagonal = diag_;
+    warn_units();
     PrepareParams pp;
     pp.voxel_size = p_.voxel_rel * diag_;
     pp.outlier_neighbors = p_.outlier_neighbors;
@@ -316,6 +317,28 @@ class Registrar {
       throw InvalidInput("registration: no usable view (all empty or non-finite)");
     warn_estimated_viewpoints();
     if (pp.intensity) warn_missing_colours();
+  }
+
+  // Units the views' size contradicts: a turntable object spans centimetres to a
+  // metre or two; a median view 20 "m" across is millimetres, one under a
+  // "millimetre" is metres. Said, not changed (the axis and poses are in the same
+  // units as the manifest says, and only the user knows which is wrong).
+  void warn_units() {
+    if (!(diag_ > 0)) return;
+    char buf[320];
+    if (m_.units == "m" && diag_ > 20)
+      std::snprintf(buf, sizeof buf,
+                    "the views are %.4g m across (median view diagonal) while the session says units: m: are "
+                    "they in millimetres? (the turntable axis and poses must be in the same units as the views)",
+                    diag_);
+    else if (m_.units == "mm" && diag_ < 1)
+      std::snprintf(buf, sizeof buf,
+                    "the views are %.3g mm across (median view diagonal) while the session says units: mm: are "
+                    "they in metres? (the turntable axis and poses must be in the same units as the views)",
+                    diag_);
+    else
+      return;
+    res_.warnings.push_back(buf);
   }
 
   // Coloured ICP asked for, views without colours: their pairs are matched on the

@@ -312,6 +312,15 @@ TEST(Cli, ImportRefusesEmptyOrRepeatedViewsAndAConfThatIsNotOne) {
   r = run("import " + a + " " + b + " " + copy + " --step 24 -o " + session);
   EXPECT_EQ(r.code, 0) << r.out;
   EXPECT_NE(r.out.find("warning: " + copy + " has the same points as " + b), std::string::npos) << r.out;
+  // The dragon's scans are in metres: imported as millimetres, the registration says so.
+  const std::string mm = (dir / "mm").string();
+  ASSERT_EQ(run("import " + a + " " + b + " --step 24 --units mm -o " + mm).code, 0);
+  r = run("register " + mm + " -o " + (dir / "mm.ply").string());
+  EXPECT_NE(r.out.find("mm across (median view diagonal) while the session says units: mm: are they in metres?"),
+            std::string::npos)
+      << r.out;
+  r = run("register " + session + " -o " + (dir / "m.ply").string());
+  EXPECT_EQ(r.out.find("are they in"), std::string::npos) << r.out;
 }
 
 // A view of the session that cannot be read: the axis comes from the others, the
