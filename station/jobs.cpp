@@ -106,10 +106,14 @@ struct JobManager::Job {
 
 JobManager::JobManager(fs::path data_dir, fs::path profile_dir, int threads)
     : data_dir_(std::move(data_dir)), profile_dir_(std::move(profile_dir)), threads_(threads) {
-  std::error_code ec;
-  fs::create_directories(data_dir_, ec);
-  if (!fs::is_directory(data_dir_, ec))
-    throw IoError(data_dir_.string() + ": cannot create the data folder" + (ec ? ": " + ec.message() : ""));
+  // The reason is create_directories' (read-only file system, permission denied),
+  // not is_directory's "no such file" that follows from it.
+  std::error_code made, ec;
+  fs::create_directories(data_dir_, made);
+  if (!fs::is_directory(data_dir_, ec)) {
+    const std::error_code& why = made ? made : ec;
+    throw IoError(data_dir_.string() + ": cannot create the data folder" + (why ? ": " + why.message() : ""));
+  }
   data_dir_ = fs::canonical(data_dir_);
 }
 

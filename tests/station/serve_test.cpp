@@ -321,6 +321,21 @@ TEST_F(ServeTest, ClientDroppingMidRunDoesNotStopIt) {
   EXPECT_EQ(kept, 3);
 }
 
+// A data folder that cannot be made: the reason is the file system's, not the "no such
+// file" that follows from it (a read-only mount said "No such file or directory").
+TEST(ServeData, AFolderThatCannotBeMadeSaysWhy) {
+  try {
+    JobManager jobs("/sys/station-serve-test/data", "", 1);
+    ADD_FAILURE() << "a data folder under /sys was made";
+  } catch (const IoError& e) {
+    // EPERM for root, EACCES for anyone else.
+    const std::string msg = e.what();
+    EXPECT_TRUE(msg == "/sys/station-serve-test/data: cannot create the data folder: Operation not permitted" ||
+                msg == "/sys/station-serve-test/data: cannot create the data folder: Permission denied")
+        << msg;
+  }
+}
+
 TEST(ServeTokens, LoopbackAddresses) {
   EXPECT_TRUE(is_loopback_address("127.0.0.1"));
   EXPECT_TRUE(is_loopback_address("127.1.2.3"));
