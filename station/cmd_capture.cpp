@@ -497,6 +497,7 @@ int cmd_import(const Common& c, const ImportArgs& a) {
   {
     std::vector<std::string> inputs = a.files;
     inputs.push_back(a.stanford_conf);
+    inputs.push_back(c.config);
     check_not_an_input(files, inputs);
   }
   std::map<std::string, Eigen::Matrix4d> poses;

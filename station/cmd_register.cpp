@@ -188,7 +188,7 @@ std::string fmt_double(double v) {
 int cmd_register(const Common& c, const RegisterArgs& a) {
   check_output_name(a.out, "a cloud", {".ply"});
   check_not_a_recording(a.poses_out);
-  check_not_an_input({a.out, a.poses_out}, {});
+  check_not_an_input({a.out, a.poses_out}, {c.config});
   StationConfig cfg = load_common(c);
   auto threads = limit_threads(cfg.threads);
   const std::string& session_dir = a.session;
@@ -223,6 +223,7 @@ int cmd_register(const Common& c, const RegisterArgs& a) {
 
 int cmd_calibrate_turntable(const Common& c, const std::string& session_dir, const std::string& out) {
   check_not_a_recording(out);
+  check_not_an_input({out}, {c.config});
   StationConfig cfg = load_common(c);
   auto threads = limit_threads(cfg.threads);
   const Session session = Session::open(session_dir);
@@ -292,7 +293,11 @@ int cmd_calibrate_turntable(const Common& c, const std::string& session_dir, con
 int cmd_calibrate_camera(const Common& c, const std::vector<std::string>& images, const std::string& board,
                          double square, const std::string& out) {
   check_not_a_recording(out);
-  check_not_an_input({out}, images);
+  {
+    std::vector<std::string> inputs = images;
+    inputs.push_back(c.config);
+    check_not_an_input({out}, inputs);
+  }
   ChessboardSpec spec;
   spec.square = square;
   if (std::sscanf(board.c_str(), "%dx%d", &spec.inner_cols, &spec.inner_rows) != 2)

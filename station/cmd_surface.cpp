@@ -74,7 +74,7 @@ std::optional<Vec3d> parse_up(const std::string& text) {
 int cmd_fit(const Common& c, const FitArgs& a) {
   const auto t0 = std::chrono::steady_clock::now();
   check_output_name(a.out, "a mesh", {".ply", ".obj"});
-  check_not_an_input({a.out}, {a.in, a.landmarks, a.templ.rfind("icosphere:", 0) == 0 ? std::string() : a.templ});
+  check_not_an_input({a.out}, {a.in, a.landmarks, a.templ.rfind("icosphere:", 0) == 0 ? std::string() : a.templ, c.config});
   StationConfig cfg = load_common(c);
   auto threads = limit_threads(cfg.threads);
   const Cloud target = read_cloud(a.in);
@@ -143,7 +143,7 @@ int cmd_parameterise(const Common& c, const ParameteriseArgs& a) {
   auto threads = limit_threads(cfg.threads);
   check_output_name(a.out, "a mesh with UVs", {".obj"});
   check_not_a_recording(a.mapped);
-  check_not_an_input({a.out, a.mapped}, {a.in});
+  check_not_an_input({a.out, a.mapped}, {a.in, c.config});
   const SimpleSurface surface = a.onto == "plane" ? SimpleSurface::kPlane
                                 : a.onto == "cylinder" ? SimpleSurface::kCylinder
                                                        : SimpleSurface::kSphere;
@@ -189,7 +189,7 @@ int cmd_parameterise(const Common& c, const ParameteriseArgs& a) {
 int cmd_consolidate(const Common& c, const ConsolidateArgs& a) {
   const auto t0 = std::chrono::steady_clock::now();
   check_output_name(a.out, "a cloud", {".ply"});
-  check_not_an_input({a.out}, {a.in});
+  check_not_an_input({a.out}, {a.in, c.config});
   StationConfig cfg = load_common(c);
   const auto& pc = cfg.pipeline.consolidate;
   WlopParams p = wlop_params(cfg.pipeline, cfg.threads);
@@ -206,6 +206,7 @@ int cmd_consolidate(const Common& c, const ConsolidateArgs& a) {
       const auto note = [&](const std::string& line) {
         if (!c.json) std::fprintf(stderr, "consolidate: %s\n", line.c_str());
       };
+      check_blocks_work_folder(a.out + ".blocks", {a.in, c.config});
       const WlopBlocksRun run = run_consolidate_blocks(a.in, p, pc.blocks, a.out + ".blocks", note);
       if (!run.root) return 0;
       write_ply(a.out, run.cloud);
@@ -262,7 +263,7 @@ int cmd_consolidate(const Common& c, const ConsolidateArgs& a) {
 int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
   const auto t0 = std::chrono::steady_clock::now();
   check_output_name(a.out, "a mesh", {".ply", ".obj"});
-  check_not_an_input({a.out}, {a.in, a.scans});
+  check_not_an_input({a.out}, {a.in, a.scans, c.config});
   StationConfig cfg = load_common(c);
   const auto& rc = cfg.pipeline.reconstruct;
   SurfaceParams sp = surface_params(cfg.pipeline, cfg.threads);
@@ -280,6 +281,7 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
     if (rc.blocks == 1 && rc.max_memory_gb == 0)
       throw InvalidInput("--resume goes with --blocks (auto or a count) or --max-memory");
     const std::string work = a.out + ".blocks";
+    check_blocks_work_folder(work, {a.in, c.config});
     // A PLY is written streamed from the blocks' files (never the whole mesh in memory).
     std::string ext = std::filesystem::path(a.out).extension().string();
     std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char ch) { return char(std::tolower(ch)); });

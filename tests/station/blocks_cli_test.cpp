@@ -157,6 +157,40 @@ TEST_F(BlocksCli, ResumeWithoutBlocksAndBlocksWithoutNormalsAreClearErrors) {
   EXPECT_FALSE(fs::exists(path("y.ply")));
 }
 
+// The blocks' work folder (OUT.blocks) is cleared: a folder of that name that holds
+// anything else, or an input inside it, is refused before anything is touched; and
+// the profile given with --config is an input like the cloud.
+TEST_F(BlocksCli, AWorkFolderThatIsNotTheBlocksIsNeverCleared) {
+  const std::string out = path("w.ply"), work = out + ".blocks";
+  fs::create_directories(work);
+  { std::ofstream(work + "/notes.txt") << "mine"; }
+  auto r = test::run_command(station_cmd() + " " + reconstruct(out, "--blocks 2"));
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_NE(r.out.find(work + ": the blocks' work folder for this output holds notes.txt, which the blocks did not "
+                              "write"),
+            std::string::npos)
+      << r.out;
+  EXPECT_TRUE(fs::exists(work + "/notes.txt"));
+  r = test::run_command(station_cmd() + " consolidate " + path("bottle.ply") + " -o " + out + " --blocks 2 --points 2000");
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_TRUE(fs::exists(work + "/notes.txt"));
+  fs::remove(work + "/notes.txt");
+  fs::copy_file(path("bottle.ply"), work + "/cloud.ply");
+  r = test::run_command(station_cmd() + " reconstruct " + work + "/cloud.ply -o " + out +
+                        " --resolution 160 --no-colour --blocks 2");
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_NE(r.out.find(work + "/cloud.ply: inside " + work + ", the blocks' work folder for this output"),
+            std::string::npos)
+      << r.out;
+  EXPECT_TRUE(fs::exists(work + "/cloud.ply"));
+  EXPECT_FALSE(fs::exists(out));
+  const std::string profile = path("profile.ply");  // (a YAML profile, named as an output could be)
+  { std::ofstream(profile) << "reconstruct:\n  resolution: 64\n"; }
+  r = test::run_command(station_cmd() + " reconstruct " + path("bottle.ply") + " -o " + profile + " --config " + profile);
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_NE(r.out.find(profile + " is also an input"), std::string::npos) << r.out;
+}
+
 // --max-memory picks the block count (and says what it expects); a bound no run can
 // keep, or a --blocks count over it, is refused before any block runs.
 TEST_F(BlocksCli, MaxMemoryPicksTheBlocksOrRefusesBeforeStarting) {
