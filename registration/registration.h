@@ -166,6 +166,11 @@ struct RegistrationParams {
   /// mean pair residual (a prior-based one only when within 5 % of the
   /// prior-free one's).
   bool prior_check = true;
+  /// Groups of two or more views that the turntable angles placed where no pair
+  /// joins them to the others (the object moved on the table between two views)
+  /// are registered to the others as a whole when that is a move on the table that
+  /// overlaps clearly better, and kept when their pairs then join (issue 26).
+  bool place_unlinked = true;
 };
 
 struct RegistrationProgress {
@@ -259,6 +264,10 @@ struct RegistrationResult {
   /// each on the one axis with its own base pose), 0 (free poses).
   int turntable_groups = 0;
   int moved_after_view = -1;  ///< turntable_groups 2: the first view of the second run
+  /// Views that the angles had placed where no pair joined them and that were
+  /// registered to the others as a group (the object moved on the table:
+  /// RegistrationParams::place_unlinked); their angles are off by the move.
+  std::vector<int> moved_with_object;
   /// Largest difference between the rigid and the free solution over the
   /// turntable views, last round (when both were solved): degrees, and metres
   /// at the view's centroid.
