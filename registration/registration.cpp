@@ -1149,10 +1149,12 @@ class Registrar {
     return true;
   }
 
-  // The groups of usable views that the last round's converged pairs join, the
-  // largest first (ties: the one with the lowest view).
-  std::vector<std::vector<int>> linked_groups() const {
+  // The groups of usable views that the last round's converged pairs join (in the
+  // order of their union-find roots), and which of them is the largest (ties: the
+  // first).
+  std::vector<std::vector<int>> linked_groups(std::size_t* largest = nullptr) const {
     std::vector<std::vector<int>> out;
+    if (largest) *largest = 0;
     if (res_.pairs.empty()) return out;
     const int last = res_.pairs.back().round;
     UnionFind uf(m_.views.size());
@@ -1163,9 +1165,9 @@ class Registrar {
     for (std::size_t i = 0; i < m_.views.size(); ++i)
       if (usable_[i]) groups[uf.find(int(i))].push_back(int(i));
     for (auto& [root, g] : groups) out.push_back(std::move(g));
-    std::stable_sort(out.begin(), out.end(), [](const std::vector<int>& a, const std::vector<int>& b) {
-      return a.size() > b.size();
-    });
+    if (largest)
+      for (std::size_t k = 1; k < out.size(); ++k)
+        if (out[k].size() > out[*largest].size()) *largest = k;
     return out;
   }
 
@@ -1180,14 +1182,16 @@ class Registrar {
   // only if every moved group is joined by converged pairs; the warnings of the
   // refinement before (from `first_refine_words`) are then dropped. True when kept.
   bool place_unlinked_groups(std::size_t first_refine_words) {
-    const std::vector<std::vector<int>> groups = linked_groups();
-    if (groups.size() < 2 || groups.front().size() < 2) return false;
-    const std::vector<int>& base = groups.front();
+    std::size_t largest = 0;
+    const std::vector<std::vector<int>> groups = linked_groups(&largest);
+    if (groups.size() < 2 || groups[largest].size() < 2) return false;
+    const std::vector<int>& base = groups[largest];
     const std::optional<std::pair<Vec3d, Vec3d>> axis = object_axis(base);
     std::vector<std::vector<int>> moved;
     std::vector<std::string> words;
     std::vector<Eigen::Matrix4d> before_poses = res_.poses;
-    for (std::size_t k = 1; k < groups.size(); ++k) {
+    for (std::size_t k = 0; k < groups.size(); ++k) {
+      if (k == largest) continue;
       const std::vector<int>& g = groups[k];
       const bool by_angles = std::any_of(g.begin(), g.end(), [&](int i) {
         return has_angle(i) && !res_.views[std::size_t(i)].angle_rejected &&
@@ -1226,11 +1230,13 @@ class Registrar {
     res_.warnings.resize(std::min(first_refine_words, res_.warnings.size()));
     res_.pairs.clear();
     refine();
-    const std::vector<std::vector<int>> after = linked_groups();
+    std::size_t main_group = 0;
+    const std::vector<std::vector<int>> after = linked_groups(&main_group);
     const bool joined =
         !after.empty() && std::all_of(moved.begin(), moved.end(), [&](const std::vector<int>& g) {
+          const std::vector<int>& joint = after[main_group];
           return std::any_of(g.begin(), g.end(), [&](int i) {
-            return std::find(after.front().begin(), after.front().end(), i) != after.front().end();
+            return std::find(joint.begin(), joint.end(), i) != joint.end();
           });
         });
     if (!joined) {
@@ -1692,21 +1698,12 @@ class Registrar {
   // alone (or, without angles, on nothing measured between them). Said, per
   // group, so that a coverage gap is not mistaken for a measured fit.
   void warn_unlinked() {
-    if (res_.pairs.empty()) return;
-    const int last = res_.pairs.back().round;
-    UnionFind uf(m_.views.size());
-    for (const PairDiagnostics& pd : res_.pairs)
-      if (pd.round == last && pd.converged && usable_[std::size_t(pd.from)] && usable_[std::size_t(pd.to)])
-        uf.unite(pd.from, pd.to);
-    std::map<int, std::vector<int>> groups;
-    for (std::size_t i = 0; i < m_.views.size(); ++i)
-      if (usable_[i]) groups[uf.find(int(i))].push_back(int(i));
+    std::size_t largest = 0;
+    const std::vector<std::vector<int>> groups = linked_groups(&largest);
     if (groups.size() < 2) return;
-    const auto largest = std::max_element(groups.begin(), groups.end(), [](const auto& a, const auto& b) {
-      return a.second.size() < b.second.size();  // ties: the first (lowest view) stays
-    });
-    for (const auto& [root, g] : groups) {
-      if (root == largest->first) continue;
+    for (std::size_t k = 0; k < groups.size(); ++k) {
+      if (k == largest) continue;
+      const std::vector<int>& g = groups[k];
       const bool angles = std::all_of(g.begin(), g.end(), [&](int i) {
         return has_angle(i) && !res_.views[std::size_t(i)].angle_rejected;
       });
