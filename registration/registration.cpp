@@ -247,17 +247,19 @@ class Registrar {
           break;
         }
     }
+    std::size_t last_refine_words = warned;  // where the last refinement's warnings start
     if (split_.found) {
       const std::vector<std::string> first_words(res_.warnings.begin() + std::ptrdiff_t(warned), res_.warnings.end());
       res_.warnings.resize(warned);
       if (regroup()) {
         res_.pairs.clear();
+        last_refine_words = res_.warnings.size();  // (after regroup's own warning)
         refine();
       } else {
         res_.warnings.insert(res_.warnings.end(), first_words.begin(), first_words.end());
       }
     }
-    if (p_.place_unlinked) place_unlinked_groups(warned);
+    if (p_.place_unlinked && p_.global_registration) place_unlinked_groups(last_refine_words);
     res_.seconds_refine = seconds_since(t0);
     t0 = Clock::now();
     finish();
@@ -346,11 +348,15 @@ class Registrar {
   // geometry alone (the objective falls back pair by pair), said once.
   void warn_missing_colours() {
     std::vector<std::size_t> bare;
-    for (std::size_t i = 0; i < views_.size(); ++i)
-      if (usable_[i] && !views_[i].full.has_colours()) bare.push_back(i);
+    std::size_t usable = 0;
+    for (std::size_t i = 0; i < views_.size(); ++i) {
+      if (!usable_[i]) continue;
+      ++usable;
+      if (!views_[i].full.has_colours()) bare.push_back(i);
+    }
     if (bare.empty()) return;
     std::string w = "the coloured ICP objective needs colours, and ";
-    if (bare.size() == views_.size()) {
+    if (bare.size() == usable) {
       w += "no view has any: every pair is matched on its geometry alone (point-to-plane)";
     } else {
       w += std::to_string(bare.size()) + (bare.size() == 1 ? " view has" : " views have") + " none (" +
@@ -1149,6 +1155,25 @@ class Registrar {
     return true;
   }
 
+  // What refine() and global_poses() change, to be put back when a try is not kept.
+  struct State {
+    RegistrationResult res;
+    std::vector<bool> usable;
+    TurntableSplit split;
+    bool rigid_rejected = false, rigid_used = false;
+    std::vector<int> off_table, unplaced;
+  };
+  State state() const { return {res_, usable_, split_, rigid_rejected_, rigid_used_, off_table_, unplaced_}; }
+  void restore(State&& s) {
+    res_ = std::move(s.res);
+    usable_ = std::move(s.usable);
+    split_ = s.split;
+    rigid_rejected_ = s.rigid_rejected;
+    rigid_used_ = s.rigid_used;
+    off_table_ = std::move(s.off_table);
+    unplaced_ = std::move(s.unplaced);
+  }
+
   // The groups of usable views that the last round's converged pairs join (in the
   // order of their union-find roots), and which of them is the largest (ties: the
   // first).
@@ -1214,55 +1239,70 @@ class Registrar {
       moved.push_back(g);
       std::ostringstream w;
       w.precision(3);
+      // The slide at the group (its points' centroid), in the session's units.
+      Vec3d c = Vec3d::Zero();
+      std::size_t count = 0;
+      for (int j : g)
+        for (const Vec3f& q : views_[std::size_t(j)].points) {
+          c += (res_.poses[j] * q.cast<double>().homogeneous()).head<3>();  // (already moved)
+          ++count;
+        }
+      c /= double(std::max<std::size_t>(count, 1));
+      const double slide = (c - (rigid_inverse(*G) * c.homogeneous()).head<3>()).norm();
+      const bool mm = m_.units == "mm";
       w << view_name(m_, std::size_t(g.front())) << " to " << view_name(m_, std::size_t(g.back())) << " ("
         << g.size() << " views), which the angles placed where they overlap nothing, were registered to the "
         << "others as a whole: the object moved on the table (" << rotation_angle_deg(*G) << " deg, "
-        << 1000 * G->block<3, 1>(0, 3).norm() << " mm; overlap " << now << " -> " << then << ")";
+        << (mm ? slide : 1000 * slide) << " mm; overlap " << now << " -> " << then << ")";
       words.push_back(w.str());
     }
     if (moved.empty()) return false;
     // Refined again from the moved poses; kept when every moved group is joined.
-    RegistrationResult saved = res_;
-    saved.poses = before_poses;
-    const std::vector<bool> saved_usable = usable_;
-    const TurntableSplit saved_split = split_;
-    const bool saved_rejected = rigid_rejected_, saved_used = rigid_used_;
+    State before = state();
+    before.res.poses = before_poses;
+    const auto all_joined = [&] {
+      std::size_t main_group = 0;
+      const std::vector<std::vector<int>> after = linked_groups(&main_group);
+      return !after.empty() && std::all_of(moved.begin(), moved.end(), [&](const std::vector<int>& g) {
+        const std::vector<int>& joint = after[main_group];
+        return std::any_of(g.begin(), g.end(), [&](int i) {
+          return std::find(joint.begin(), joint.end(), i) != joint.end();
+        });
+      });
+    };
     res_.warnings.resize(std::min(first_refine_words, res_.warnings.size()));
+    const std::size_t kept_words = res_.warnings.size();
     res_.pairs.clear();
     refine();
-    std::size_t main_group = 0;
-    const std::vector<std::vector<int>> after = linked_groups(&main_group);
-    const bool joined =
-        !after.empty() && std::all_of(moved.begin(), moved.end(), [&](const std::vector<int>& g) {
-          const std::vector<int>& joint = after[main_group];
-          return std::any_of(g.begin(), g.end(), [&](int i) {
-            return std::find(joint.begin(), joint.end(), i) != joint.end();
-          });
-        });
-    if (!joined) {
-      res_ = std::move(saved);
-      usable_ = saved_usable;
-      split_ = saved_split;
-      rigid_rejected_ = saved_rejected;
-      rigid_used_ = saved_used;
+    if (!all_joined()) {
+      restore(std::move(before));
       return false;
     }
     // Views without an angle that global registration could not place against the
-    // model of the misplaced poses: tried again against the corrected one.
+    // model of the misplaced poses: tried again against the corrected one, and kept
+    // when the groups stay joined and no more views fail.
     std::vector<int> retry;
     for (int i : unplaced_)
       if (!usable_[std::size_t(i)]) retry.push_back(i);
-    unplaced_.clear();
     if (!retry.empty()) {
+      State placed_state = state();
       for (int i : retry) {
         usable_[std::size_t(i)] = true;
         res_.views[std::size_t(i)].message.clear();
       }
+      unplaced_.clear();
       global_poses();
       const bool placed = std::any_of(retry.begin(), retry.end(), [&](int i) { return usable_[std::size_t(i)]; });
-      if (placed) {
+      if (!placed) {
+        restore(std::move(placed_state));
+      } else {
+        const std::size_t usable_before =
+            std::size_t(std::count(placed_state.usable.begin(), placed_state.usable.end(), true));
+        res_.warnings.resize(std::min(kept_words, res_.warnings.size()));
         res_.pairs.clear();
         refine();
+        if (!all_joined() || std::size_t(std::count(usable_.begin(), usable_.end(), true)) <= usable_before)
+          restore(std::move(placed_state));
       }
     }
     res_.warnings.insert(res_.warnings.end(), words.begin(), words.end());

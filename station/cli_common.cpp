@@ -276,9 +276,11 @@ void check_blocks_work_folder(const std::string& work, const std::vector<std::st
   if (!fs::exists(folder, ec)) return;
   if (!fs::is_directory(folder, ec))
     throw InvalidInput(work + ": the blocks' work folder for this output is a file; move it or choose another output");
-  // The files the blocks write (station/blocks_run.cpp), and write_file_atomic's temporaries.
+  // The files the blocks write (station/blocks_run.cpp, reconstruct/blocks.cpp), the
+  // .part files they rename into place, and write_file_atomic's temporaries (a run
+  // killed mid-way leaves those for --resume).
   static const std::regex ours(
-      R"((summary\.bin|grid\.txt|faces\.tmp|(faces|piece|points|wlop_points)_[0-9]+\.bin|wlop_[0-9]+\.(ply|empty))(\.tmp-.*)?)");
+      R"((summary\.bin|grid\.txt|faces\.tmp|(faces|piece|points|wlop_points)_[0-9]+\.bin|wlop_[0-9]+\.(ply|empty))(\.part)?(\.tmp-.*)?)");
   for (const fs::directory_entry& e : fs::directory_iterator(folder, ec))
     if (!e.is_regular_file(ec) || !std::regex_match(e.path().filename().string(), ours))
       throw InvalidInput(work + ": the blocks' work folder for this output holds " + e.path().filename().string() +

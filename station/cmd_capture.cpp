@@ -502,7 +502,8 @@ int cmd_import(const Common& c, const ImportArgs& a) {
   }
   std::map<std::string, Eigen::Matrix4d> poses;
   if (!a.stanford_conf.empty()) {
-    for (const StanfordScan& scan : read_stanford_conf(a.stanford_conf)) poses[scan.file] = scan.pose;
+    const std::vector<StanfordScan> scans = read_stanford_conf(a.stanford_conf);
+    for (const StanfordScan& scan : scans) poses[scan.file] = scan.pose;
     if (poses.empty())
       throw FormatError(a.stanford_conf + ": no 'bmesh FILE tx ty tz qx qy qz qw' line: not a Stanford .conf");
     const bool any = std::any_of(a.files.begin(), a.files.end(), [&](const std::string& f) {
@@ -510,7 +511,7 @@ int cmd_import(const Common& c, const ImportArgs& a) {
     });
     if (!any)
       throw InvalidInput(a.stanford_conf + ": names none of the imported files (its first is " +
-                         poses.begin()->first + ")");
+                         scans.front().file + ")");
   }
   for (std::size_t i = 0; i < a.files.size(); ++i)
     for (std::size_t j = 0; j < i; ++j)

@@ -282,7 +282,9 @@ int cmd_calibrate_turntable(const Common& c, const std::string& session_dir, con
   // partial result, exit 3 as register's, with the views named.
   if (!r.failed_views.empty()) {
     std::string names;
-    for (int v : r.failed_views) names += (names.empty() ? "" : ", ") + std::string("views[") + std::to_string(v) + "]";
+    for (int v : r.failed_views)
+      names += (names.empty() ? "" : ", ") + std::string("views[") + std::to_string(v) + "] (" +
+               m.views[std::size_t(v)].file + ")";
     std::fprintf(stderr, "calibrate turntable: the axis is fitted to %zu of %zu views; not registered: %s\n",
                  poses.size(), m.views.size(), names.c_str());
     return 3;

@@ -173,8 +173,17 @@ TEST_F(BlocksCli, AWorkFolderThatIsNotTheBlocksIsNeverCleared) {
   EXPECT_TRUE(fs::exists(work + "/notes.txt"));
   r = test::run_command(station_cmd() + " consolidate " + path("bottle.ply") + " -o " + out + " --blocks 2 --points 2000");
   EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_NE(r.out.find("holds notes.txt, which the blocks did not write"), std::string::npos) << r.out;
   EXPECT_TRUE(fs::exists(work + "/notes.txt"));
   fs::remove(work + "/notes.txt");
+  // What a killed run leaves (the blocks' .part files and temporaries) is theirs.
+  for (const char* leftover : {"points_0.bin.part", "wlop_points_1.bin.part", "wlop_3.ply.part.tmp-12-0", "summary.bin"})
+    std::ofstream(work + "/" + leftover) << "x";
+  r = test::run_command(station_cmd() + " " + reconstruct(out, "--blocks 2"));
+  EXPECT_EQ(r.code, 0) << r.out;
+  EXPECT_FALSE(fs::exists(work));
+  fs::remove(out);
+  fs::create_directories(work);
   fs::copy_file(path("bottle.ply"), work + "/cloud.ply");
   r = test::run_command(station_cmd() + " reconstruct " + work + "/cloud.ply -o " + out +
                         " --resolution 160 --no-colour --blocks 2");

@@ -340,7 +340,7 @@ TEST(Cli, CalibrateTurntableWithAnUnreadableViewExitsThree) {
   r = run("calibrate turntable " + session + " -o " + axis);
   EXPECT_EQ(r.code, 3) << r.out;
   EXPECT_NE(r.out.find("view_002.ply"), std::string::npos) << r.out;
-  EXPECT_NE(r.out.find("calibrate turntable: the axis is fitted to 4 of 5 views; not registered: views[2]"),
+  EXPECT_NE(r.out.find("calibrate turntable: the axis is fitted to 4 of 5 views; not registered: views[2] (view_002.ply)"),
             std::string::npos)
       << r.out;
   EXPECT_TRUE(fs::exists(axis));
