@@ -1102,8 +1102,13 @@ class Registrar {
   // group (object frame) when it overlaps `base` by at least 0.05 more than where
   // it is; `now` and `then` are those overlaps.
   std::optional<Eigen::Matrix4d> place_group(const std::vector<int>& base, const std::vector<int>& group,
-                                             double& now, double& then) {
+                                             double& now, double& then,
+                                             double max_now = std::numeric_limits<double>::infinity()) {
     const PreparedView first = model_of(base), second = model_of(group);
+    const double d = 2 * p_.icp_end_rel * diag_;
+    now = overlap(second, first, Eigen::Matrix4d::Identity(), d);
+    then = now;
+    if (now > max_now) return std::nullopt;  // (before the costly global registration)
     const std::vector<FeatureView> first_feat = {make_feature_view(first.points, first.normals, global_params())};
     const std::vector<FeatureView> second_feat = {make_feature_view(second.points, second.normals, global_params())};
     const std::unique_ptr<ColourModel> colours = colour_model_of(base);
@@ -1121,8 +1126,6 @@ class Registrar {
     const GlobalAlign g = global_align(second, pointers(second_feat), coloured, first, pointers(first_feat),
                                        colours.get(), object_axis(base), true);
     if (!g.ok) return std::nullopt;
-    const double d = 2 * p_.icp_end_rel * diag_;
-    now = overlap(second, first, Eigen::Matrix4d::Identity(), d);
     then = overlap(second, first, g.transform, d);
     if (then < now + 0.05) return std::nullopt;
     return g.transform;
@@ -1223,15 +1226,14 @@ class Registrar {
                std::find(off_table_.begin(), off_table_.end(), i) == off_table_.end();
       });
       if (g.size() < 2 || !by_angles) continue;
-      double now = 0, then = 0;
-      const std::optional<Eigen::Matrix4d> G = place_group(base, g, now, then);
-      if (!G) continue;
-      const Eigen::AngleAxisd turn(Eigen::Matrix3d(G->block<3, 3>(0, 0)));
       // Where the angles put it the group must overlap the others hardly at all (the
       // moved dragon: 0.015). A group that overlaps them there and still joins no
       // pair is a sparse or near-symmetric session (the pipeline tests' 6-view
       // bottle: 0.31, and its global fit is the bottle turned half way).
-      if (now > 0.1) continue;
+      double now = 0, then = 0;
+      const std::optional<Eigen::Matrix4d> G = place_group(base, g, now, then, 0.1);
+      if (!G) continue;
+      const Eigen::AngleAxisd turn(Eigen::Matrix3d(G->block<3, 3>(0, 0)));
       constexpr double kDegree = M_PI / 180;
       if (axis && turn.angle() > 2 * kDegree && std::abs(turn.axis().dot(axis->second)) < std::cos(10 * kDegree))
         continue;
