@@ -1731,8 +1731,16 @@ class Registrar {
                                                       : "no turntable prior: rotation about it is arbitrary") +
           ")";
     }
+    // No pair converged at all: the views overlap nowhere. The first stays, alone,
+    // as the partial result (issue 26's bad input: every other view named, exit 3),
+    // rather than nothing.
+    const bool none = std::none_of(r.begin(), r.end(), [&](int i) { return bool(has_edge[i]); });
     for (int i : r)
-      if (!has_edge[i]) fail(i, "no overlap with its neighbouring views (every ICP pair failed)");
+      if (!has_edge[i] && !(none && i == r.front()))
+        fail(i, "no overlap with its neighbouring views (every ICP pair failed)");
+    if (none && r.size() > 1)
+      res_.warnings.push_back("no two views overlap: the result is " + view_name(m_, std::size_t(r.front())) +
+                              " alone");
   }
 
   // Registered views that no converged pair of the last round joins to the
