@@ -1217,7 +1217,7 @@ class Registrar {
     const std::optional<std::pair<Vec3d, Vec3d>> axis = object_axis(base);
     std::vector<std::vector<int>> moved;
     std::vector<std::string> words;
-    std::vector<Eigen::Matrix4d> before_poses = res_.poses;
+    State before = state();  // put back whole when the placement is not kept
     for (std::size_t k = 0; k < groups.size(); ++k) {
       if (k == largest) continue;
       const std::vector<int>& g = groups[k];
@@ -1260,8 +1260,6 @@ class Registrar {
     }
     if (moved.empty()) return false;
     // Refined again from the moved poses; kept when every moved group is joined.
-    State before = state();
-    before.res.poses = before_poses;
     const auto all_joined = [&] {
       std::size_t main_group = 0;
       const std::vector<std::vector<int>> after = linked_groups(&main_group);

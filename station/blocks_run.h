@@ -73,6 +73,11 @@ WlopBlocksRun run_consolidate_blocks(const std::string& input, const WlopParams&
                                      const std::string& work_dir,
                                      const std::function<void(const std::string&)>& note = {}, double max_bytes = 0);
 
+/// The blocks' work folder (OUT.blocks) is cleared, then removed once the output is
+/// written: refused (InvalidInput) when an input lies in it, or when it exists holding
+/// anything the blocks do not write (a user's folder of that name is never cleared).
+void check_blocks_work_folder(const std::string& work, const std::vector<std::string>& inputs);
+
 /// `blocks` and `max_bytes` as resolve_block_count's (0: auto, a block per
 /// kAutoBlockPoints points; with max_bytes, the count that fits). The work
 /// folder is made when missing and removed after a run that finished. InvalidInput /

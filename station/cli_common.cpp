@@ -262,31 +262,6 @@ void check_not_an_input(const std::vector<std::string>& outputs, const std::vect
   }
 }
 
-void check_blocks_work_folder(const std::string& work, const std::vector<std::string>& inputs) {
-  std::error_code ec;
-  const fs::path folder = fs::weakly_canonical(fs::absolute(work), ec);
-  for (const std::string& in : inputs) {
-    if (in.empty()) continue;
-    const fs::path p = fs::weakly_canonical(fs::absolute(in), ec);
-    const fs::path rel = p.lexically_relative(folder);
-    if (!rel.empty() && *rel.begin() != "..")
-      throw InvalidInput(in + ": inside " + work + ", the blocks' work folder for this output, which is cleared; "
-                         "move it or choose another output");
-  }
-  if (!fs::exists(folder, ec)) return;
-  if (!fs::is_directory(folder, ec))
-    throw InvalidInput(work + ": the blocks' work folder for this output is a file; move it or choose another output");
-  // The files the blocks write (station/blocks_run.cpp, reconstruct/blocks.cpp), the
-  // .part files they rename into place, and write_file_atomic's temporaries (a run
-  // killed mid-way leaves those for --resume).
-  static const std::regex ours(
-      R"((summary\.bin|grid\.txt|faces\.tmp|(faces|piece|points|wlop_points)_[0-9]+\.bin|wlop_[0-9]+\.(ply|empty))(\.part)?(\.tmp-.*)?)");
-  for (const fs::directory_entry& e : fs::directory_iterator(folder, ec))
-    if (!e.is_regular_file(ec) || !std::regex_match(e.path().filename().string(), ours))
-      throw InvalidInput(work + ": the blocks' work folder for this output holds " + e.path().filename().string() +
-                         ", which the blocks did not write; it would be cleared: move it or choose another output");
-}
-
 DeviceRegistry make_registry() {
   DeviceRegistry reg;
   register_sim_devices(reg);

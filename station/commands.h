@@ -147,10 +147,6 @@ void check_output_name(const std::string& out, const char* kind, std::initialize
 // An output never replaces an input of the same command: each output (empty: none) is
 // compared with each input (same_file), before the work; the error names the file.
 void check_not_an_input(const std::vector<std::string>& outputs, const std::vector<std::string>& inputs);
-/// The blocks' work folder (OUT.blocks) is cleared, then removed once the output is
-/// written: refused when an input lies in it, or when it exists holding anything the
-/// blocks do not write (a user's folder of that name is never cleared).
-void check_blocks_work_folder(const std::string& work, const std::vector<std::string>& inputs);
 
 DeviceRegistry make_registry();
 
