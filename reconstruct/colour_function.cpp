@@ -1,5 +1,6 @@
 #include "reconstruct/colour_function.h"
 #include "reconstruct/colour_transfer.h"
+#include "reconstruct/detail/envelope_llt.h"
 #include "reconstruct/detail/octree_split.h"
 
 #include <tbb/blocked_range.h>
@@ -48,8 +49,9 @@ double delta_e2(const Lab& a, const Lab& b) {
   return (a[0] - b[0]) * (a[0] - b[0]) + (a[1] - b[1]) * (a[1] - b[1]) + (a[2] - b[2]) * (a[2] - b[2]);
 }
 
-double psi(double r, double support) {
-  const double t = 1 - r / support;
+// psi(r) = (1 - r / support)^2 inside the support, with inv_support = 1 / support.
+double psi(double r, double inv_support) {
+  const double t = 1 - r * inv_support;
   return t > 0 ? t * t : 0;
 }
 
@@ -69,6 +71,7 @@ struct TypeBData {
   double rbf_support = 0.4;          // in local units
   std::vector<Vec3d> nodes;          // local coordinates of the ball's points, by u
   std::vector<double> node_u;        // their u coordinates, ascending
+  std::vector<std::uint8_t> node_cluster;  // each node's cluster (clusters[j] holds it)
   std::vector<RbfPart> clusters;     // colour per cluster (cols = 3)
   RbfPart boundary;                  // cols = 1 (two clusters: b >= 0 -> cluster 0) or k
 };
@@ -111,55 +114,61 @@ struct Leaf {
       return out;
     }
     const TypeBData& t = *rbf;
-    const std::vector<Vec3d>& nodes = t.nodes;
     const std::vector<double>& node_u = t.node_u;
-    const std::vector<RbfPart>& clusters = t.clusters;
     const RbfPart& boundary = t.boundary;
+    const int k = int(t.clusters.size());
     const double rbf_support = t.rbf_support;
     // Nodes are sorted by their u coordinate: only those with |node_u - a| < support
     // can be within the RBF support.
     const std::size_t lo = std::lower_bound(node_u.begin(), node_u.end(), a - rbf_support) - node_u.begin();
     const std::size_t hi = std::upper_bound(node_u.begin(), node_u.end(), a + rbf_support) - node_u.begin();
-    thread_local std::vector<double> ps;
-    ps.resize(nodes.size());
-    const double s2 = rbf_support * rbf_support;
-    for (std::size_t i = lo; i < hi; ++i) {
-      const double r2 = (d - nodes[i]).squaredNorm();
-      ps[i] = r2 < s2 ? psi(std::sqrt(r2), rbf_support) : 0.0;
-    }
-    // sum over the part's nodes in [lo, hi) (ids ascending) of lambda psi, plus the
-    // polynomial, for columns [c0, c0 + n).
-    auto value = [&](const RbfPart& part, int c0, int n, double* out_v) {
-      for (int c = 0; c < n; ++c)
-        out_v[c] = part.poly[c0 + c] + part.poly[part.cols + c0 + c] * a + part.poly[2 * part.cols + c0 + c] * b;
-      const std::size_t first = std::lower_bound(part.ids.begin(), part.ids.end(), int(lo)) - part.ids.begin();
-      for (std::size_t i = first; i < part.ids.size() && std::size_t(part.ids[i]) < hi; ++i) {
-        const double p = ps[part.ids[i]];
-        if (p > 0)
-          for (int c = 0; c < n; ++c) out_v[c] += part.lambda[i * part.cols + c0 + c] * p;
-      }
-    };
-    int chosen = 0;
+    // One pass over [lo, hi) sums every part: each part's value is its polynomial, then
+    // lambda psi over its nodes in ascending order where psi > 0 (a node's slot in its
+    // cluster counted on the way; the boundary's RBF, when it has one, is on all nodes).
     double bv[16];
-    value(boundary, 0, boundary.cols, bv);
+    Lab cv[16];
+    int slot[16];
+    for (int c = 0; c < boundary.cols; ++c)
+      bv[c] = boundary.poly[c] + boundary.poly[boundary.cols + c] * a + boundary.poly[2 * boundary.cols + c] * b;
+    for (int j = 0; j < k; ++j) {
+      const RbfPart& part = t.clusters[j];
+      for (int c = 0; c < kChannels; ++c)
+        cv[j][c] = part.poly[c] + part.poly[kChannels + c] * a + part.poly[2 * kChannels + c] * b;
+      slot[j] = int(std::lower_bound(part.ids.begin(), part.ids.end(), int(lo)) - part.ids.begin());
+    }
+    const bool boundary_rbf = !boundary.ids.empty();
+    const double s2 = rbf_support * rbf_support, inv_support = 1 / rbf_support;
+    for (std::size_t i = lo; i < hi; ++i) {
+      const int j = t.node_cluster[i];
+      const RbfPart& part = t.clusters[j];
+      const int si = part.ids.empty() ? -1 : slot[j]++;
+      const double r2 = (d - t.nodes[i]).squaredNorm();
+      if (!(r2 < s2)) continue;
+      const double p = psi(std::sqrt(r2), inv_support);
+      if (!(p > 0)) continue;
+      if (boundary_rbf)
+        for (int c = 0; c < boundary.cols; ++c) bv[c] += boundary.lambda[i * boundary.cols + c] * p;
+      if (si >= 0)
+        for (int c = 0; c < kChannels; ++c) cv[j][c] += part.lambda[std::size_t(si) * kChannels + c] * p;
+    }
+    int chosen = 0;
     if (boundary.cols == 1) {
       chosen = bv[0] >= 0 ? 0 : 1;
     } else {
-      for (int k = 1; k < boundary.cols; ++k)
-        if (bv[k] > bv[chosen]) chosen = k;
+      for (int c = 1; c < boundary.cols; ++c)
+        if (bv[c] > bv[chosen]) chosen = c;
     }
     if (score_out) {
       if (boundary.cols == 1) {
         score_out[0] = bv[0];
         score_out[1] = -bv[0];
       } else {
-        for (int k = 0; k < boundary.cols; ++k) score_out[k] = bv[k];
+        for (int c = 0; c < boundary.cols; ++c) score_out[c] = bv[c];
       }
-      for (int k = 0; k < int(clusters.size()); ++k) value(clusters[k], 0, kChannels, colour_out[k].data());
+      for (int j = 0; j < k; ++j) colour_out[j] = cv[j];
       return colour_out[chosen];
     }
-    value(clusters[chosen], 0, kChannels, out.data());
-    return out;
+    return cv[chosen];
   }
 };
 
@@ -510,21 +519,36 @@ bool solve_rbf(const Leaf& leaf, const std::vector<int>& ids, const Eigen::Matri
   }
   Eigen::MatrixXd Xp, Xh;  // B^-1 P, B^-1 h
   if (n <= kDenseMax) {
-    Eigen::MatrixXd B(n, n);
+    // ids ascend, so their nodes ascend in u, and psi(r) = 0 for r >= support with
+    // r >= |u_i - u_j|: row i of B is zero left of the first node within `support` in u
+    // (envelope Cholesky, about 5x fewer operations than a dense one here).
+    const TypeBData& tb = *leaf.rbf;
+    const double support = tb.rbf_support, s2 = support * support, inv_support = 1 / support;
+    thread_local detail::EnvelopeLlt llt;
+    llt.reset(n);
+    int first = 0;
     for (int i = 0; i < n; ++i) {
-      B(i, i) = 1 + kRbfRidge;
-      for (int j = 0; j < i; ++j) B(i, j) = B(j, i) = psi((leaf.rbf->nodes[ids[i]] - leaf.rbf->nodes[ids[j]]).norm(), leaf.rbf->rbf_support);
+      const double ui = tb.node_u[ids[i]];
+      while (first < i && !(tb.node_u[ids[first]] > ui - support)) ++first;
+      double* row = llt.begin_row(i, first);
+      const Vec3d& ni = tb.nodes[ids[i]];
+      for (int j = first; j < i; ++j) {
+        const double r2 = (ni - tb.nodes[ids[j]]).squaredNorm();
+        if (r2 < s2) row[j - first] = psi(std::sqrt(r2), inv_support);
+      }
+      row[i - first] = 1 + kRbfRidge;
     }
-    Eigen::LLT<Eigen::MatrixXd> llt(B);
-    if (llt.info() != Eigen::Success) return false;
-    Xp = llt.solve(P);
-    Xh = llt.solve(rhs);
+    if (!llt.factor()) return false;
+    Xp = P;
+    Xh = rhs;
+    llt.solve(Xp.data(), int(Xp.cols()), Xp.rows());
+    llt.solve(Xh.data(), int(Xh.cols()), Xh.rows());
   } else {
     std::vector<Eigen::Triplet<double>> trip;
     for (int i = 0; i < n; ++i) {
       trip.emplace_back(i, i, 1 + kRbfRidge);
       for (int j = 0; j < i; ++j) {
-        const double v = psi((leaf.rbf->nodes[ids[i]] - leaf.rbf->nodes[ids[j]]).norm(), leaf.rbf->rbf_support);
+        const double v = psi((leaf.rbf->nodes[ids[i]] - leaf.rbf->nodes[ids[j]]).norm(), 1 / leaf.rbf->rbf_support);
         if (v > 0) trip.emplace_back(i, j, v), trip.emplace_back(j, i, v);
       }
     }
@@ -716,6 +740,7 @@ bool fit_type_b(const Impl& s, std::vector<int> ids, const std::vector<int>& lab
     tb.nodes[i] = (s.points[ids[i]].cast<double>() - leaf.o) * leaf.inv_r;
     tb.node_u[i] = us[order[i]];
   }
+  tb.node_cluster.assign(label.begin(), label.end());
   tb.clusters.assign(k, RbfPart{});
   for (int j = 0; j < k; ++j) {
     std::vector<int> sel;
@@ -848,11 +873,31 @@ CellResult fit_cell(const Impl& s, const Vec3d& o, double half, int depth) {
     double dmax = -1;
     int fi = 0, fj = 0;
     if (dfirst > 0.25 * p.gamma * p.gamma) {
-      for (std::size_t i = 0; i < ids.size(); ++i) {
-        const Lab& ci = s.labs[ids[i]];
-        for (std::size_t j = i + 1; j < ids.size(); ++j) {
-          const double d = delta_e2(ci, s.labs[ids[j]]);
-          if (d > dmax) dmax = d, fi = int(i), fj = int(j);
+      // The ball's colours side by side, channel by channel (the same sums, in the
+      // same order, as delta_e2 on the points' labs).
+      thread_local std::vector<double> ch;
+      const std::size_t m = ids.size();
+      ch.resize(3 * m);
+      for (std::size_t i = 0; i < m; ++i)
+        for (int c = 0; c < kChannels; ++c) ch[c * m + i] = s.labs[ids[i]][c];
+      const double* L = ch.data();
+      const double* A = L + m;
+      const double* B = A + m;
+      thread_local std::vector<double> row;
+      row.resize(m);
+      for (std::size_t i = 0; i + 1 < m; ++i) {
+        const double li = L[i], ai = A[i], bi = B[i];
+        double best = -1;
+        for (std::size_t j = i + 1; j < m; ++j) {
+          const double d = (li - L[j]) * (li - L[j]) + (ai - A[j]) * (ai - A[j]) + (bi - B[j]) * (bi - B[j]);
+          row[j] = d;
+          best = std::max(best, d);
+        }
+        if (best > dmax) {
+          // The first j reaching the row's maximum: the pair the scan in order picks.
+          std::size_t j = i + 1;
+          while (row[j] != best) ++j;
+          dmax = best, fi = int(i), fj = int(j);
         }
       }
     }
