@@ -661,7 +661,7 @@ bool fit_sharp(const MpuSurface::Impl& s, const std::vector<int>& ids, const std
   return true;
 }
 
-CellFit fit_cell(const MpuSurface::Impl& s, const Vec3d& o, double half) {
+CellFit fit_cell(const MpuSurface::Impl& s, const Vec3d& o, double half, bool ball_first) {
   const MpuParams& p = s.params;
   CellFit cf;
   double R = p.alpha * 2 * half * std::sqrt(3.0);
@@ -672,15 +672,24 @@ CellFit fit_cell(const MpuSurface::Impl& s, const Vec3d& o, double half) {
   // inside that point's distance (the same sequence of R, so the same final R);
   // the loop below then decides exactly. The ball's points come in the index's
   // order: the fit does not need them sorted.
+  // With ball_first (the parent's ball was dense, so this one likely holds n_min
+  // points) the ball is searched first and the nearest points only when it holds
+  // fewer: the same lists and radius either way.
   // fit_mpu needs at least n_min points, so there are n_min nearest.
-  const auto nearest = s.index->knn(o.cast<float>(), p.n_min);
-  std::vector<std::pair<int, float>> nn;
-  if (double(nearest.back().second) > R * (1 + 1e-5)) {
-    cf.grew = true;
-    for (const auto& [id, d] : nearest) cf.points += double(d) <= R ? 1 : 0;
-  } else {
-    nn = s.index->radius_unsorted(o.cast<float>(), float(R));
+  std::vector<std::pair<int, float>> nn, nearest;
+  if (ball_first) nn = s.index->radius_unsorted(o.cast<float>(), float(R));
+  if (ball_first && int(nn.size()) >= p.n_min) {
     cf.points = int(nn.size());
+  } else {
+    nearest = s.index->knn(o.cast<float>(), p.n_min);
+    if (double(nearest.back().second) > R * (1 + 1e-5)) {
+      cf.grew = true;
+      nn.clear();
+      for (const auto& [id, d] : nearest) cf.points += double(d) <= R ? 1 : 0;
+    } else {
+      if (!ball_first) nn = s.index->radius_unsorted(o.cast<float>(), float(R));
+      cf.points = int(nn.size());
+    }
   }
   if (int(nn.size()) < p.n_min) {
     const double inside = double(nearest.back().second) * (1 - 1e-5);
@@ -842,14 +851,20 @@ MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
     // each store into fresh memory several times over (room never used is never touched).
     s.singles.reserve(s.points.size());
     s.nodes.reserve(2 * s.points.size());
+    // Per frontier cell, its parent's ball's point count: a child's ball is an eighth
+    // of its parent's in volume, so past kBallFirst * n_min points in the parent's
+    // most children crossed by the surface hold n_min (fit_cell's ball_first).
+    constexpr int kBallFirst = 8;
+    std::vector<int> parent_points{0}, next_parent_points;
     for (int depth = 0; !frontier.empty(); ++depth) {
       std::vector<int> next;
+      next_parent_points.clear();
       for (std::size_t begin = 0; begin < frontier.size(); begin += kChunk) {
         const std::size_t end = std::min(frontier.size(), begin + kChunk);
         fits.resize(end - begin);
         tbb::parallel_for(begin, end, [&](std::size_t i) {
           const Node& nd = s.nodes[frontier[i]];
-          fits[i - begin] = fit_cell(s, nd.center, nd.half);
+          fits[i - begin] = fit_cell(s, nd.center, nd.half, parent_points[i] >= kBallFirst * params.n_min);
         });
         for (std::size_t i = begin; i < end; ++i) {
           const int id = frontier[i];
@@ -860,6 +875,7 @@ MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
                              cf.points >= params.split_min_points && depth < params.max_depth;
           if (split) {
             detail::split_cell(s.nodes, id, depth, next);
+            next_parent_points.insert(next_parent_points.end(), 8, cf.points);
           } else {
             Node& nd = s.nodes[id];
             nd.radius = cf.radius;
@@ -881,6 +897,7 @@ MpuSurface fit_mpu(const Cloud& cloud, const MpuParams& params) {
         }
       }
       frontier.swap(next);
+      parent_points.swap(next_parent_points);
     }
   });
   // Reach, bottom-up (children always follow their parent in `nodes`).
