@@ -338,7 +338,7 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
     // the fine distance, judged by the current system.
     const double ridge = 1e-9 * fin.A.trace() / 6.0;
     const Vector6d x = (fin.A + ridge * Matrix6d::Identity()).ldlt().solve(-fin.b);
-    if (x.allFinite() && x.head<3>().norm() < 1e-4 && x.tail<3>().norm() < 1e-5) {
+    if (x.allFinite() && x.head<3>().norm() < 1e-4 && x.tail<3>().norm() < 1e-5 * params.units_per_metre) {
       res.converged = true;
     } else {
       res.message = "did not converge in " + std::to_string(params.max_iterations) + " iterations";

@@ -108,6 +108,10 @@ struct IcpParams {
   /// Stop (at the final distance) when an update is smaller than this (radians, metres).
   double convergence_rotation = 1e-6;
   double convergence_translation = 1e-6;
+  /// Units of the clouds in a metre (1 for metres, 1000 for millimetres): the fixed
+  /// thresholds inside (an exhausted budget still counts as converged below 1e-5 m of
+  /// step) are in metres. The lengths above are in the clouds' units as given.
+  double units_per_metre = 1;
   /// Correspondences whose normals differ by more than this are dropped, degrees.
   double max_normal_angle_deg = 60.0;
   /// Huber threshold on point-to-plane residuals, as a fraction of the current

@@ -213,6 +213,7 @@ class Registrar {
   RegistrationResult run() {
     const auto t_total = Clock::now();
     const std::size_t n = m_.views.size();
+    res_.mm_per_unit = mm_per_unit(m_);
     res_.poses.assign(n, Eigen::Matrix4d::Identity());
     res_.views.resize(n);
     auto t0 = Clock::now();
@@ -1251,11 +1252,10 @@ class Registrar {
         }
       c /= double(std::max<std::size_t>(count, 1));
       const double slide = (c - (rigid_inverse(*G) * c.homogeneous()).head<3>()).norm();
-      const bool mm = m_.units == "mm";
       w << view_name(m_, std::size_t(g.front())) << " to " << view_name(m_, std::size_t(g.back())) << " ("
         << g.size() << " views), which the angles placed where they overlap nothing, were registered to the "
         << "others as a whole: the object moved on the table (" << rotation_angle_deg(*G) << " deg, "
-        << (mm ? slide : 1000 * slide) << " mm; overlap " << now << " -> " << then << ")";
+        << res_.mm_per_unit * slide << " mm; overlap " << now << " -> " << then << ")";
       words.push_back(w.str());
     }
     if (moved.empty()) return false;
@@ -1705,7 +1705,7 @@ class Registrar {
       std::ostringstream w;
       w.precision(3);
       w << "the views do not fit one rigid turntable (the rigid solution moves a view " << res_.rigid_deviation_deg
-        << " deg / " << 1000 * res_.rigid_deviation << " mm from the free one: did the object shift on the table?); ";
+        << " deg / " << res_.mm_per_unit * res_.rigid_deviation << " mm from the free one: did the object shift on the table?); ";
       const std::string before = split_.found ? view_name(m_, std::size_t(split_.last_before)) : "";
       const std::string after = split_.found ? view_name(m_, std::size_t(split_.first_after)) : "";
       if (res_.turntable_groups == 2)
@@ -1714,7 +1714,7 @@ class Registrar {
       else if (split_.found)
         w << "the object moved on the table between " << before << " and " << after
           << ": the views before and after each turn about one axis (unexplained motion "
-          << 1000 * split_.parts_misfit << " mm RMS) but not together (" << 1000 * split_.whole_misfit
+          << res_.mm_per_unit * split_.parts_misfit << " mm RMS) but not together (" << res_.mm_per_unit * split_.whole_misfit
           << " mm), and not as two runs on one axis either; the free poses are used";
       else
         w << "the free poses are used";
@@ -1997,7 +1997,7 @@ std::string run_summary(const char* name, const RegistrationResult& r, const std
   const int reg = registered_count(r, at_table), linked = linked_count(r, at_table);
   o << name << ": " << reg << " of " << r.views.size() << " views";
   if (linked < reg) o << " (" << linked << " joined by pairs)";
-  o << ", pair residual " << 1000 * r.mean_pair_rmse << " mm";
+  o << ", pair residual " << r.mm_per_unit * r.mean_pair_rmse << " mm";
   return o.str();
 }
 
@@ -2039,9 +2039,22 @@ MovedRun moved_run(const AnglePriorFit& fit, const SessionManifest& manifest, do
 
 }  // namespace
 
+double mm_per_unit(const SessionManifest& manifest) { return manifest.units == "mm" ? 1.0 : 1000.0; }
+
+RegistrationParams in_session_units(const RegistrationParams& params, const SessionManifest& manifest) {
+  RegistrationParams p = params;
+  const double per_metre = 1000 / mm_per_unit(manifest);  // session units in a metre
+  p.fuse_distance *= per_metre;
+  p.icp.coloured_reference_distance *= per_metre;
+  p.icp.convergence_translation *= per_metre;
+  p.icp.units_per_metre *= per_metre;
+  return p;
+}
+
 RegistrationResult register_views(const std::vector<Cloud>& clouds, const SessionManifest& manifest,
-                                  const RegistrationParams& params,
-                                  const RegistrationCallback& progress) {
+                                  const RegistrationParams& given, const RegistrationCallback& progress) {
+  // The profile's absolute lengths are in metres; the views in the session's units.
+  const RegistrationParams params = in_session_units(given, manifest);
   if (clouds.size() != manifest.views.size())
     throw InvalidInput("registration: " + std::to_string(clouds.size()) + " clouds for " +
                        std::to_string(manifest.views.size()) + " views");

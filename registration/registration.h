@@ -191,13 +191,13 @@ struct PairDiagnostics {
   bool loop_closure = false;
   bool converged = false;
   double fitness = 0;
-  double inlier_rmse = 0;    ///< metres
+  double inlier_rmse = 0;    ///< session units (metres or millimetres: RegistrationResult::mm_per_unit)
   std::size_t correspondences = 0;
   int iterations = 0;
   bool degenerate = false;   ///< rotation about the turntable axis unconstrained
   double eigen_ratio = 0;    ///< smallest / largest eigenvalue of the normalised Hessian
   double graph_rotation_deg = 0;  ///< disagreement with the optimised poses
-  double graph_translation = 0;   ///< metres
+  double graph_translation = 0;   ///< session units
   std::string message;       ///< why it failed
 };
 
@@ -228,11 +228,11 @@ struct ViewDiagnostics {
   std::optional<double> angle_error_deg;
   std::string message;                  ///< why it failed ("views[3] (view_003.ply): ...")
   /// Against reference_pose, both relative to the first registered view with a
-  /// reference (view 0 normally): angle of R_est^T R_ref, degrees, and |t_est - t_ref|, metres.
+  /// reference (view 0 normally): angle of R_est^T R_ref, degrees, and |t_est - t_ref|, session units.
   std::optional<double> rotation_error_deg;
   std::optional<double> translation_error;
   /// The same error measured where the object is: how far the view's
-  /// centroid lands from where the reference puts it, metres. The scanner-frame
+  /// centroid lands from where the reference puts it, session units. The scanner-frame
   /// translation above also carries the rotation error times the lever arm from
   /// the scanner origin (0.45 m on the simulated bench: 0.08 mm per 0.01 deg).
   std::optional<double> object_translation_error;
@@ -241,7 +241,7 @@ struct ViewDiagnostics {
 /// How well one refined pair's views agree under a set of poses: the RMS
 /// point-to-plane distance of the later view's registration points to the
 /// earlier view's (nearest neighbour within the final ICP distance, normals
-/// within IcpParams::max_normal_angle_deg), in metres.
+/// within IcpParams::max_normal_angle_deg), in session units.
 struct PairResidual {
   int from = 0, to = 0;
   std::size_t matches = 0;            ///< under the refined poses
@@ -269,7 +269,7 @@ struct RegistrationResult {
   /// RegistrationParams::place_unlinked); their angles are off by the move.
   std::vector<int> moved_with_object;
   /// Largest difference between the rigid and the free solution over the
-  /// turntable views, last round (when both were solved): degrees, and metres
+  /// turntable views, last round (when both were solved): degrees, and session units
   /// at the view's centroid.
   double rigid_deviation_deg = 0;
   double rigid_deviation = 0;
@@ -287,7 +287,7 @@ struct RegistrationResult {
   std::vector<std::string> notes;
   Cloud merged;
   FuseStats fuse;              ///< when RegistrationParams::fuse (else zeros)
-  double fuse_distance = 0;    ///< metres, the distance used (0: not fused)
+  double fuse_distance = 0;    ///< session units, the distance used (0: not fused)
   /// Over views with errors (see ViewDiagnostics); 0 when no reference.
   int views_with_reference = 0;
   /// Registered views outside the largest group that the last round's
@@ -302,7 +302,11 @@ struct RegistrationResult {
   std::vector<PairResidual> pair_residuals;
   double mean_pair_rmse = 0;
   std::optional<double> mean_reference_pair_rmse;  ///< over the same pairs, when all have one
-  double diagonal = 0;  ///< session size used for the relative lengths, metres
+  double diagonal = 0;  ///< session size used for the relative lengths (session units)
+  /// Millimetres in one unit of the session (its manifest's `units`: 1000 for m, 1 for
+  /// mm). Every length here (poses, errors, residuals, deviations, fuse_distance) is in
+  /// the session's units; multiply by this to show millimetres.
+  double mm_per_unit = 1000;
   double seconds_prepare = 0, seconds_initial = 0, seconds_refine = 0, seconds_merge = 0,
          seconds_total = 0;
 };
@@ -317,9 +321,16 @@ RegistrationResult register_session(const Session& session, const RegistrationPa
                                     const RegistrationCallback& progress = {});
 
 /// The same on clouds in memory: `clouds[i]` is `manifest.views[i]`'s cloud.
+/// RegistrationParams' absolute lengths (fuse_distance, the ICP's coloured reference
+/// distance and convergence step) are in metres and are taken into the session's units.
 RegistrationResult register_views(const std::vector<Cloud>& clouds, const SessionManifest& manifest,
                                   const RegistrationParams& params = {},
                                   const RegistrationCallback& progress = {});
+
+/// Millimetres in one unit of the session: 1000 for `units: m`, 1 for `units: mm`.
+double mm_per_unit(const SessionManifest& manifest);
+/// `params` with its absolute lengths (metres) in the session's units.
+RegistrationParams in_session_units(const RegistrationParams& params, const SessionManifest& manifest);
 
 /// YAML of the result: per view file, pose (the session's `matrix` form),
 /// registered or failed with its message, errors when known; the axis used.

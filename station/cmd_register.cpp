@@ -60,21 +60,23 @@ RegistrationResult register_with_progress(const Session& session, const Registra
 }
 
 JsonObject registration_json(const RegistrationResult& r) {
+  // Lengths in metres whatever the session's units (the keys say _m).
+  const double m = r.mm_per_unit / 1000;
   JsonObject j;
   j.add("views", r.views.size()).add("failed_views", r.failed_views.size()).add("degenerate", r.degenerate);
   j.add("warnings", r.warnings);
   j.add("notes", r.notes);
-  j.add("pair_rmse_m", r.mean_pair_rmse);
+  j.add("pair_rmse_m", m * r.mean_pair_rmse);
   j.add("prior_kept", r.prior_kept);
   if (!r.prior_comparison.empty()) j.add("prior_comparison", r.prior_comparison);
   j.add("rigid_turntable", JsonObject()
                                .add("used", r.rigid_turntable)
                                .add("runs", r.turntable_groups)
                                .add("deviation_deg", r.rigid_deviation_deg)
-                               .add("deviation_m", r.rigid_deviation));
+                               .add("deviation_m", m * r.rigid_deviation));
   if (r.fuse_distance > 0)
     j.add("fuse", JsonObject()
-                      .add("distance_m", r.fuse_distance)
+                      .add("distance_m", m * r.fuse_distance)
                       .add("input_points", r.fuse.input)
                       .add("fused_points", r.fuse.fused)
                       .add("output_points", r.fuse.output));
@@ -83,12 +85,12 @@ JsonObject registration_json(const RegistrationResult& r) {
     ref.add("views", r.views_with_reference)
         .add("max_rotation_deg", r.max_rotation_error_deg)
         .add("median_rotation_deg", r.median_rotation_error_deg)
-        .add("max_translation_m", r.max_translation_error)
-        .add("median_translation_m", r.median_translation_error)
-        .add("max_object_translation_m", r.max_object_translation_error)
-        .add("median_object_translation_m", r.median_object_translation_error);
+        .add("max_translation_m", m * r.max_translation_error)
+        .add("median_translation_m", m * r.median_translation_error)
+        .add("max_object_translation_m", m * r.max_object_translation_error)
+        .add("median_object_translation_m", m * r.median_object_translation_error);
     // The same pairs' residual under the reference poses: which poses fit the scans better.
-    if (r.mean_reference_pair_rmse) ref.add("pair_rmse_m", *r.mean_reference_pair_rmse);
+    if (r.mean_reference_pair_rmse) ref.add("pair_rmse_m", m * *r.mean_reference_pair_rmse);
     j.add("reference", ref);
   }
   JsonObject per_view;
@@ -99,8 +101,8 @@ JsonObject registration_json(const RegistrationResult& r) {
         .add("angle_rejected", v.angle_rejected).add("prior", to_string(v.prior));
     if (v.angle_error_deg) o.add("angle_error_deg", *v.angle_error_deg);
     if (v.rotation_error_deg) o.add("rotation_error_deg", *v.rotation_error_deg);
-    if (v.translation_error) o.add("translation_error_m", *v.translation_error);
-    if (v.object_translation_error) o.add("object_translation_error_m", *v.object_translation_error);
+    if (v.translation_error) o.add("translation_error_m", m * *v.translation_error);
+    if (v.object_translation_error) o.add("object_translation_error_m", m * *v.object_translation_error);
     if (!v.message.empty()) o.add("message", v.message);
     per_view.add(std::to_string(i), o);
   }
@@ -111,13 +113,13 @@ JsonObject registration_json(const RegistrationResult& r) {
   for (const PairDiagnostics& p : r.pairs) {
     if (p.round != last_round) continue;
     JsonObject o;
-    o.add("converged", p.converged).add("fitness", p.fitness).add("inlier_rmse_m", p.inlier_rmse)
+    o.add("converged", p.converged).add("fitness", p.fitness).add("inlier_rmse_m", m * p.inlier_rmse)
         .add("correspondences", p.correspondences).add("iterations", p.iterations)
         .add("loop_closure", p.loop_closure).add("degenerate", p.degenerate);
     for (const PairResidual& pr : r.pair_residuals)
       if (pr.from == p.from && pr.to == p.to) {
-        o.add("residual_rmse_m", pr.rmse);
-        if (pr.reference_rmse) o.add("reference_residual_rmse_m", *pr.reference_rmse);
+        o.add("residual_rmse_m", m * pr.rmse);
+        if (pr.reference_rmse) o.add("reference_residual_rmse_m", m * *pr.reference_rmse);
       }
     if (!p.message.empty()) o.add("message", p.message);
     per_pair.add(std::to_string(p.from) + "-" + std::to_string(p.to), o);
@@ -139,7 +141,7 @@ void print_registration(const RegistrationResult& r) {
     const ViewDiagnostics& v = r.views[i];
     char rot[32] = "-", tr[32] = "-", ae[32] = "-";
     if (v.rotation_error_deg) std::snprintf(rot, sizeof rot, "%.3f", *v.rotation_error_deg);
-    if (v.translation_error) std::snprintf(tr, sizeof tr, "%.3f", *v.translation_error * 1000);
+    if (v.translation_error) std::snprintf(tr, sizeof tr, "%.3f", *v.translation_error * r.mm_per_unit);
     if (v.angle_error_deg) std::snprintf(ae, sizeof ae, "%.2f", *v.angle_error_deg);
     std::printf("%-5zu %-10s %-16s %-10s %9s %9zu %12s %14s\n", i,
                 v.registered ? (v.angle_rejected ? "ok*" : "ok") : "FAILED", to_string(v.initial),
@@ -153,21 +155,21 @@ void print_registration(const RegistrationResult& r) {
     std::printf("against reference poses (%d views, relative to view 0): rotation max %.3f deg, "
                 "median %.3f deg; translation max %.3f mm, median %.3f mm\n",
                 r.views_with_reference, r.max_rotation_error_deg, r.median_rotation_error_deg,
-                r.max_translation_error * 1000, r.median_translation_error * 1000);
+                r.max_translation_error * r.mm_per_unit, r.median_translation_error * r.mm_per_unit);
   if (r.views_with_reference > 0)
     std::printf("  translation at the object (each view's centroid): max %.3f mm, median %.3f mm\n",
-                r.max_object_translation_error * 1000, r.median_object_translation_error * 1000);
+                r.max_object_translation_error * r.mm_per_unit, r.median_object_translation_error * r.mm_per_unit);
   if (r.rigid_turntable)
     std::printf("rigid turntable: the views lie on one axis (at most %.3f deg / %.3f mm from the free poses)\n",
-                r.rigid_deviation_deg, r.rigid_deviation * 1000);
+                r.rigid_deviation_deg, r.rigid_deviation * r.mm_per_unit);
   else if (r.turntable_groups == 2)
     std::printf("rigid turntable: two runs of views on one axis (the object moved before view %d)\n",
                 r.moved_after_view);
   if (!r.pair_residuals.empty()) {
     std::printf("pair residual (RMS point-to-plane over %zu refined pairs): %.4f mm",
-                r.pair_residuals.size(), r.mean_pair_rmse * 1000);
+                r.pair_residuals.size(), r.mean_pair_rmse * r.mm_per_unit);
     if (r.mean_reference_pair_rmse)
-      std::printf("; under the reference poses %.4f mm", *r.mean_reference_pair_rmse * 1000);
+      std::printf("; under the reference poses %.4f mm", *r.mean_reference_pair_rmse * r.mm_per_unit);
     std::printf("\n");
   }
   for (const ViewDiagnostics& v : r.views)
@@ -214,7 +216,7 @@ int cmd_register(const Common& c, const RegisterArgs& a) {
     print_registration(r);
     if (r.fuse_distance > 0)
       std::printf("fused %zu of %zu points into earlier views' points (within %.3f mm)\n", r.fuse.fused,
-                  r.fuse.input, r.fuse_distance * 1000);
+                  r.fuse.input, r.fuse_distance * r.mm_per_unit);
     std::printf("register: %zu of %zu views, %zu points -> %s\n", r.views.size() - r.failed_views.size(),
                 r.views.size(), r.merged.size(), out.c_str());
   }
@@ -253,10 +255,11 @@ int cmd_calibrate_turntable(const Common& c, const std::string& session_dir, con
   // A profile fragment: copy its `capture.axis` into a bench profile.
   char buf[512];
   std::snprintf(buf, sizeof buf,
-                "# Turntable axis calibrated from %s (scanner frame, metres)\n"
+                "# Turntable axis calibrated from %s (scanner frame, %s)\n"
                 "# rms residuals: angle %.4f deg, tilt %.4f deg, translation %.4f mm\n"
                 "capture:\n  axis:\n    point: [%.9g, %.9g, %.9g]\n    direction: [%.9g, %.9g, %.9g]\n",
-                session_dir.c_str(), fit.rms_angle_deg, fit.rms_tilt_deg, fit.rms_translation * 1000,
+                session_dir.c_str(), m.units == "mm" ? "millimetres" : "metres", fit.rms_angle_deg, fit.rms_tilt_deg,
+                fit.rms_translation * r.mm_per_unit,
                 fit.axis.point.x(), fit.axis.point.y(), fit.axis.point.z(), fit.axis.direction.x(),
                 fit.axis.direction.y(), fit.axis.direction.z());
   if (!out.empty()) write_file_atomic(out, std::string(buf));
@@ -268,14 +271,14 @@ int cmd_calibrate_turntable(const Common& c, const std::string& session_dir, con
                       .add("direction", std::vector<double>{fit.axis.direction.x(), fit.axis.direction.y(), fit.axis.direction.z()})
                       .add("rms_angle_deg", fit.rms_angle_deg)
                       .add("rms_tilt_deg", fit.rms_tilt_deg)
-                      .add("rms_translation_m", fit.rms_translation)
+                      .add("rms_translation_m", fit.rms_translation * r.mm_per_unit / 1000)
                       .add("views", poses.size()));
   } else {
     std::printf("%s", buf);
     std::printf("%-5s %12s %10s %14s\n", "view", "angle deg", "tilt deg", "trans mm");
     for (std::size_t i = 0; i < fit.residuals.size(); ++i)
       std::printf("%-5zu %12.4f %10.4f %14.4f\n", used[i], fit.residuals[i].angle_deg, fit.residuals[i].tilt_deg,
-                  fit.residuals[i].translation * 1000);
+                  fit.residuals[i].translation * r.mm_per_unit);
     if (!out.empty()) std::printf("written: %s\n", out.c_str());
   }
   // A view that could not be read or registered leaves the axis to the others: a

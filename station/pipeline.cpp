@@ -575,11 +575,11 @@ class Runner {
     r.figures["rigid_turntable"] = reg.rigid_turntable ? 1 : 0;
     if (reg.rigid_deviation_deg > 0 || reg.rigid_deviation > 0) {
       r.figures["rigid_deviation_deg"] = reg.rigid_deviation_deg;
-      r.figures["rigid_deviation_mm"] = reg.rigid_deviation * 1000;
+      r.figures["rigid_deviation_mm"] = reg.rigid_deviation * reg.mm_per_unit;
     }
     if (reg.views_with_reference > 0) {
       r.figures["max_rotation_error_deg"] = reg.max_rotation_error_deg;
-      r.figures["max_translation_error_mm"] = reg.max_translation_error * 1000;
+      r.figures["max_translation_error_mm"] = reg.max_translation_error * reg.mm_per_unit;
     }
     // Residual per view: mean inlier RMS of the final round's pairs that involve it.
     int last_round = 0;
@@ -590,7 +590,7 @@ class Runner {
       if (pd.round != last_round || !pd.converged) continue;
       for (int v : {pd.from, pd.to})
         if (v >= 0 && v < int(sum.size())) {
-          sum[v] += pd.inlier_rmse * 1000;
+          sum[v] += pd.inlier_rmse * reg.mm_per_unit;
           ++count[v];
         }
     }

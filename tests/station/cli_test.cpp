@@ -666,6 +666,54 @@ TEST(Cli, ColouredRegistrationOfTheSimulatedBottle) {
       << r.out;
 }
 
+// The same session in millimetres (`units: mm`, every coordinate x 1000) registers as
+// well, coloured ICP included, and says the same millimetres and metres: the profile's
+// absolute lengths are taken into the session's units and the figures out of them.
+TEST(Cli, RegistrationOfASessionInMillimetres) {
+  test::TempDir dir;
+  const std::string sess = (dir / "s").string(), mm = (dir / "mm").string();
+  ASSERT_EQ(run("scan -o " + sess + " --views 12 --set width=320 --set height=240").code, 0);
+  std::filesystem::create_directories(mm);
+  SessionManifest m = read_manifest(sess);
+  for (ViewRecord& v : m.views) {
+    Cloud c = read_cloud(sess + "/" + v.file);
+    for (Vec3f& p : c.points) p *= 1000.0f;
+    write_ply(mm + "/" + v.file, c);
+    if (!v.colour_image.empty()) std::filesystem::copy_file(sess + "/" + v.colour_image, mm + "/" + v.colour_image);
+    for (std::optional<Eigen::Matrix4d>* pose : {&v.initial_pose, &v.reference_pose})
+      if (*pose) (**pose).block<3, 1>(0, 3) *= 1000.0;
+  }
+  if (m.axis) m.axis->point *= 1000.0;
+  m.units = "mm";
+  write_manifest(mm, m);
+  for (const std::string objective : {"point-to-plane", "colored"}) {
+    const CmdResult a = run("register " + sess + " -o " + (dir / "a.ply").string() + " --json --objective " + objective);
+    const CmdResult b = run("register " + mm + " -o " + (dir / "b.ply").string() + " --json --objective " + objective);
+    ASSERT_EQ(a.code, 0) << a.out;
+    ASSERT_EQ(b.code, 0) << b.out;
+    EXPECT_NE(b.out.find("\"failed_views\":0,"), std::string::npos) << b.out;
+    // The same figures in metres. The poses agree to float rounding's chaos: the
+    // point-to-plane runs within 10 %; the coloured ones land 60-90 um from the truth
+    // either way (both well inside the bound below).
+    for (const std::string key : {"pair_rmse_m", "max_object_translation_m"}) {
+      if (objective == "colored" && key == "max_object_translation_m") continue;
+      const double va = json_number(a.out, key), vb = json_number(b.out, key);
+      EXPECT_GT(va, 0) << key << " " << a.out;
+      EXPECT_NEAR(vb, va, 0.1 * va + 2e-6) << objective << " " << key;
+    }
+    EXPECT_LT(json_number(b.out, "max_rotation_deg"), 0.2) << b.out;
+    EXPECT_LT(json_number(b.out, "max_object_translation_m"), 2e-4) << b.out;
+  }
+  // The table and the pair residual in millimetres, not thousands of them.
+  const CmdResult t = run("register " + mm + " -o " + (dir / "b.ply").string());
+  ASSERT_EQ(t.code, 0) << t.out;
+  std::smatch at;
+  ASSERT_TRUE(std::regex_search(t.out, at, std::regex("pair residual \\(RMS point-to-plane over \\d+ refined pairs\\): ([0-9.]+) mm")))
+      << t.out;
+  EXPECT_GT(std::stod(at[1]), 0.01) << t.out;
+  EXPECT_LT(std::stod(at[1]), 2.0) << t.out;
+}
+
 // A view that cannot be read fails alone: `run` makes the mesh from the others and
 // exits 3 (a partial result, as `register` does), also when the register stage is reused.
 TEST(Cli, RunWithABrokenViewIsAPartialResult) {
