@@ -47,7 +47,7 @@ struct AxisFitParams {
 struct AxisResidual {
   double angle_deg = 0;    ///< measured rotation about the axis minus the commanded angle
   double tilt_deg = 0;     ///< rotation component off the axis
-  double translation = 0;  ///< metres, |(I - R) p - t| (0 for a pure rotation about the axis)
+  double translation = 0;  ///< the poses' units, |(I - R) p - t| (0 for a pure rotation about the axis)
   bool used = false;       ///< entered the fit
 };
 
@@ -58,7 +58,7 @@ struct AxisFitResult {
   std::vector<AxisResidual> residuals;  ///< one per input motion
   double rms_angle_deg = 0;
   double rms_tilt_deg = 0;
-  double rms_translation = 0;  ///< metres
+  double rms_translation = 0;  ///< the poses' units
 };
 
 /// Fits the axis to measured motions (see the file comment).

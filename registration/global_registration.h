@@ -32,7 +32,7 @@ struct FeatureView {
 };
 
 struct GlobalRegistrationParams {
-  /// Voxel edge of the feature cloud, metres (> 0).
+  /// Voxel edge of the feature cloud, the clouds' units (> 0).
   double voxel_size = 0.005;
   /// Neighbours for the PCA normals (make_feature_view from bare points).
   int normal_neighbors = 16;
@@ -60,7 +60,7 @@ struct GlobalRegistrationParams {
 struct GlobalHypothesis {
   Eigen::Matrix4d transform = Eigen::Matrix4d::Identity();  ///< target <- source
   int inliers = 0;
-  double inlier_rmse = 0;  ///< metres, over the inlier matches
+  double inlier_rmse = 0;  ///< the clouds' units, over the inlier matches
 };
 
 struct GlobalRegistrationResult {

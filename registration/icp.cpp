@@ -153,9 +153,12 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
   // 1 / length (an intensity gradient) where the geometric one does not, so the
   // paper's lambda, set for scenes matched at centimetres, would let colour noise
   // outweigh the geometry by (d_ref / d_end)^2 on an object matched at a millimetre.
+  // The paper's lambda balances residuals in metres: r_G^2 grows by units_per_metre^2
+  // in other units and r_C not, so the colour term's weight grows with it.
   const double ref = params.coloured_reference_distance;
   const double colour_weight =
-      (1 - lambda) * (ref > 0 ? std::pow(std::max(params.max_distance_end, 1e-9) / ref, 2) : 1.0);
+      (1 - lambda) * params.units_per_metre * params.units_per_metre *
+      (ref > 0 ? std::pow(std::max(params.max_distance_end, 1e-9 * params.units_per_metre) / ref, 2) : 1.0);
   const bool generalized = params.objective == IcpObjective::kGeneralized;
   const double eps = std::clamp(params.gicp_epsilon, 1e-6, 1.0);
   const double shrink = std::clamp(params.shrink, 0.05, 1.0);
@@ -282,7 +285,7 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
     res.iterations = it + 1;
     if (sys.n < std::size_t(std::max(params.min_correspondences, 6))) {
       res.message = "too few correspondences (" + std::to_string(sys.n) + " within " +
-                    std::to_string(d_max) + " m)";
+                    std::to_string(1000 * d_max / params.units_per_metre) + " mm)";
       res.correspondences = sys.n;
       return res;
     }

@@ -36,7 +36,7 @@ using Matrix6d = Eigen::Matrix<double, 6, 6>;
 using Vector6d = Eigen::Matrix<double, 6, 1>;
 
 struct PrepareParams {
-  /// Voxel edge for the registration copy, metres; 0: no downsampling.
+  /// Voxel edge for the registration copy, the clouds' units; 0: no downsampling.
   double voxel_size = 0.0;
   /// Statistical outlier removal: neighbours per point (k), 0 disables it.
   int outlier_neighbors = 16;
@@ -98,19 +98,21 @@ enum class IcpObjective {
 
 struct IcpParams {
   IcpObjective objective = IcpObjective::kPointToPlane;
-  /// Maximum correspondence distance of the first iteration, metres.
+  /// Maximum correspondence distance of the first iteration, the clouds' units.
   double max_distance_start = 0.01;
-  /// Final maximum correspondence distance, metres (reached by shrinking).
+  /// Final maximum correspondence distance, the clouds' units (reached by shrinking).
   double max_distance_end = 0.002;
   /// Factor applied to the maximum distance after each iteration (in (0, 1]).
   double shrink = 0.85;
   int max_iterations = 60;
-  /// Stop (at the final distance) when an update is smaller than this (radians, metres).
+  /// Stop (at the final distance) when an update is smaller than this (radians, the clouds' units).
   double convergence_rotation = 1e-6;
   double convergence_translation = 1e-6;
-  /// Units of the clouds in a metre (1 for metres, 1000 for millimetres): the fixed
-  /// thresholds inside (an exhausted budget still counts as converged below 1e-5 m of
-  /// step) are in metres. The lengths above are in the clouds' units as given.
+  /// Units of the clouds in a metre (1 for metres, 1000 for millimetres): the paper's
+  /// coloured_lambda balances residuals in metres (the colour term's weight is scaled
+  /// by its square), and the fixed thresholds inside (an exhausted budget still counts
+  /// as converged below 1e-5 m of step) are in metres. Every length here
+  /// (coloured_reference_distance included) is in the clouds' units as given.
   double units_per_metre = 1;
   /// Correspondences whose normals differ by more than this are dropped, degrees.
   double max_normal_angle_deg = 60.0;
@@ -149,8 +151,8 @@ struct IcpResult {
   int iterations = 0;
   std::size_t correspondences = 0;  ///< inliers at max_distance_end
   double fitness = 0;           ///< correspondences / source points
-  double inlier_rmse = 0;       ///< Euclidean distance of inlier pairs, metres
-  double plane_rmse = 0;        ///< point-to-plane distance of inlier pairs, metres
+  double inlier_rmse = 0;       ///< Euclidean distance of inlier pairs, the clouds' units
+  double plane_rmse = 0;        ///< point-to-plane distance of inlier pairs, the clouds' units
   /// J^T J of the final point-to-plane system (rotation about the target-frame
   /// origin, then translation); the information of the estimate for a pose graph.
   /// kColored: the joint system divided by lambda (geometric part + the colour

@@ -1683,7 +1683,7 @@ class Registrar {
           PairDiagnostics& pd = res_.pairs[first_diag + edge_pair[e]];
           pd.converged = false;
           pd.message = "inconsistent with the other pairs (" + std::to_string(g.edge_rotation_deg[e]) +
-                       " deg, " + std::to_string(g.edge_translation[e]) + " m)";
+                       " deg, " + std::to_string(res_.mm_per_unit * g.edge_translation[e]) + " mm)";
           continue;
         }
         kept.push_back(edges[e]);

@@ -75,6 +75,45 @@ TEST(ColouredIcp, TexturedPlaneSlidAlongItselfIsRecoveredOnlyWithColour) {
   EXPECT_GT(rotation_angle_deg(eg), 1.5);
 }
 
+// In other units the coloured system is the same system: lambda is set for residuals
+// in metres, so with every length x 1000 (IcpParams::units_per_metre 1000, the lengths
+// given in millimetres) the rotation rows grow by 1000^2 and the translation rows stay,
+// colour term included (H_mm = D H_m D, D = diag(1000 x 3, 1 x 3)). Where geometry
+// leaves the turn about the plane's normal free, that entry is colour's alone.
+TEST(ColouredIcp, TheSameSystemInMillimetres) {
+  Eigen::Matrix4d X = Eigen::Matrix4d::Identity();
+  X.block<3, 1>(0, 3) = Vec3d(0.0005, -0.0003, 0);
+  const Cloud target = plane_view(Eigen::Matrix4d::Identity(), 0.0);
+  const Cloud source = plane_view(X, 0.001);
+  Cloud target_mm = target, source_mm = source;
+  for (Cloud* c : {&target_mm, &source_mm})
+    for (Vec3f& p : c->points) p *= 1000.0f;
+  PrepareParams pp;
+  pp.voxel_size = 0;
+  pp.intensity = true;
+  IcpParams ip;
+  ip.objective = IcpObjective::kColoured;
+  ip.max_distance_start = 0.01;
+  ip.max_distance_end = 0.003;
+  ip.max_iterations = 200;
+  IcpParams mm = ip;
+  mm.units_per_metre = 1000;
+  mm.max_distance_start *= 1000;
+  mm.max_distance_end *= 1000;
+  mm.convergence_translation *= 1000;
+  mm.coloured_reference_distance *= 1000;
+  const IcpResult a = icp_point_to_plane(prepare_view(source, pp), prepare_view(target, pp), Eigen::Matrix4d::Identity(), ip);
+  const IcpResult b =
+      icp_point_to_plane(prepare_view(source_mm, pp), prepare_view(target_mm, pp), Eigen::Matrix4d::Identity(), mm);
+  ASSERT_TRUE(a.converged) << a.message;
+  ASSERT_TRUE(b.converged) << b.message;
+  std::printf("rotation about the normal: H %.6g (m), %.6g (mm, / 1e6); translation x: %.6g, %.6g\n", a.hessian(2, 2),
+              b.hessian(2, 2) / 1e6, a.hessian(3, 3), b.hessian(3, 3));
+  EXPECT_NEAR(b.hessian(2, 2) / 1e6, a.hessian(2, 2), 0.01 * a.hessian(2, 2));
+  EXPECT_NEAR(b.hessian(3, 3), a.hessian(3, 3), 0.01 * a.hessian(3, 3));
+  EXPECT_NEAR(b.transform(0, 3) / 1000, a.transform(0, 3), 2e-6);
+}
+
 // The same through register_views: the objective chosen in RegistrationParams
 // reaches every round, colours are kept in the merge.
 TEST(ColouredIcp, SessionOfTwoTexturedPlaneViews) {
@@ -112,6 +151,24 @@ TEST(ColouredIcp, SessionOfTwoTexturedPlaneViews) {
   ASSERT_EQ(a.views_with_reference, 2);
   EXPECT_GT(a.max_translation_error, 4e-3);
   EXPECT_TRUE(b.merged.has_colours());
+
+  // The same session in millimetres (`units: mm`, every length x 1000): the colour
+  // term keeps the paper's balance (lambda is set for residuals in metres), so colour
+  // still finds the slide. Weighted in the session's units as given, it was a millionth
+  // of that and the run was point-to-plane's (the slide left, over 4 mm).
+  std::vector<Cloud> mm_clouds = clouds;
+  for (Cloud& c : mm_clouds)
+    for (Vec3f& p : c.points) p *= 1000.0f;
+  SessionManifest mm = m;
+  mm.units = "mm";
+  for (ViewRecord& v : mm.views) v.reference_pose->block<3, 1>(0, 3) *= 1000.0;
+  const RegistrationResult c = register_views(mm_clouds, mm, col);
+  std::printf("session in mm: coloured %.4f deg %.4f mm\n", c.max_rotation_error_deg, c.max_translation_error);
+  ASSERT_EQ(c.views_with_reference, 2);
+  EXPECT_TRUE(c.failed_views.empty());
+  EXPECT_EQ(c.mm_per_unit, 1.0);
+  EXPECT_LT(c.max_rotation_error_deg, 0.1);
+  EXPECT_LT(c.max_translation_error, 0.5);
 }
 
 TEST(ColouredIcp, WithoutColoursItIsPointToPlane) {
