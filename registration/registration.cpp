@@ -2237,8 +2237,15 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
     }
   }
   out.prior_comparison = comparison;
+  // The angle error column is the kept poses' turn against the commanded angles: the
+  // run without angles is what judged the angles, but where another run is kept it
+  // may have placed views elsewhere (a group it could not join, 100 deg off).
+  std::vector<bool> kept_registered(n);
+  for (std::size_t i = 0; i < n; ++i) kept_registered[i] = out.views[i].registered;
+  const AnglePriorFit shown =
+      keep_free ? fit : fit_angle_prior(out.poses, kept_registered, manifest, params.wrong_angle_deg, known);
   for (std::size_t i = 0; i < n; ++i) {
-    if (fit.residual_deg[i]) out.views[i].angle_error_deg = fit.residual_deg[i];
+    out.views[i].angle_error_deg = shown.residual_deg[i];
     if (keep_free && manifest.views[i].angle_deg) out.views[i].prior = PriorUse::kIgnored;
   }
   for (int i : filled) {
