@@ -2289,8 +2289,9 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
     notes.push_back(w.str());
     w.str("");
   }
-  for (int i : fit.wrong) {
-    if (!fit.ok) break;  // no consensus to be wrong against
+  // Wrong angles as the kept poses show them (the column above).
+  for (int i : shown.wrong) {
+    if (!shown.ok) break;  // no consensus to be wrong against
     if (kept_given && rejected_before[i]) continue;  // warned about already
     // The object turned when it moved: the second run's angles are off together,
     // which the refinement's warning about the move explains.
@@ -2299,7 +2300,7 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
     if (std::find(out.moved_with_object.begin(), out.moved_with_object.end(), i) != out.moved_with_object.end())
       continue;
     w << view_name(manifest, std::size_t(i)) << ": commanded angle " << *manifest.views[i].angle_deg << " deg is "
-      << std::abs(*fit.residual_deg[i]) << " deg off what the other views and the scans say; "
+      << std::abs(*shown.residual_deg[i]) << " deg off what the other views and the scans say; "
       << (out.views[i].prior == PriorUse::kUsed || out.views[i].prior == PriorUse::kCorrected
               ? "the refinement moved the view off it"
               : "registered without it");
