@@ -5,6 +5,7 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 
@@ -15,9 +16,19 @@ namespace station {
 
 namespace fs = std::filesystem;
 
+namespace {
+// A calibration whose corners miss their model by more than this is no calibration
+// (a good one is well under 1 px; blurred or badly printed boards 1-2 px).
+constexpr double kMaxCalibrationRmsPx = 5;
+}  // namespace
+
 CameraCalibration calibrate_camera(const std::vector<fs::path>& images, const ChessboardSpec& board) {
-  if (board.inner_cols < 2 || board.inner_rows < 2 || !(board.square > 0))
-    throw InvalidInput("chessboard: needs at least 2x2 inner corners and a positive square size");
+  // OpenCV's chessboard detector needs 3x3 inner corners at least (2x2 failed inside it).
+  if (board.inner_cols < 3 || board.inner_rows < 3 || board.inner_cols > 1000 || board.inner_rows > 1000)
+    throw InvalidInput("chessboard: needs 3x3 to 1000x1000 inner corners, got " + std::to_string(board.inner_cols) + "x" +
+                       std::to_string(board.inner_rows));
+  if (!(board.square >= 1e-6 && board.square <= 100))
+    throw InvalidInput("chessboard: the square size must be between 1e-6 and 100 (metres)");
   CameraCalibration out;
   std::vector<std::vector<cv::Point3f>> object_points;
   std::vector<std::vector<cv::Point2f>> image_points;
@@ -40,14 +51,37 @@ CameraCalibration calibrate_camera(const std::vector<fs::path>& images, const Ch
       throw InvalidInput(file.string() + ": image size " + std::to_string(img.cols) + "x" +
                          std::to_string(img.rows) + " differs from the first image's");
     std::vector<cv::Point2f> corners;
-    const bool found = cv::findChessboardCorners(
-        img, cv::Size(board.inner_cols, board.inner_rows), corners,
-        cv::CALIB_CB_ADAPTIVE_THRESH | cv::CALIB_CB_NORMALIZE_IMAGE);
-    if (!found) {
-      res.message = "chessboard not found";
+    bool found = false;
+    if (img.cols < 16 || img.rows < 16) {
+      res.message = "too small for a chessboard (" + std::to_string(img.cols) + "x" + std::to_string(img.rows) + ")";
     } else {
-      cv::cornerSubPix(img, corners, cv::Size(5, 5), cv::Size(-1, -1),
-                       cv::TermCriteria(cv::TermCriteria::EPS + cv::TermCriteria::COUNT, 50, 1e-4));
+      try {
+        found = cv::findChessboardCorners(img, cv::Size(board.inner_cols, board.inner_rows), corners,
+                                          cv::CALIB_CB_ADAPTIVE_THRESH | cv::CALIB_CB_NORMALIZE_IMAGE);
+        if (found)
+          cv::cornerSubPix(img, corners, cv::Size(5, 5), cv::Size(-1, -1),
+                           cv::TermCriteria(cv::TermCriteria::EPS + cv::TermCriteria::COUNT, 50, 1e-4));
+      } catch (const cv::Exception& e) {
+        throw InvalidInput(file.string() + ": the chessboard search failed (" + e.err + ")");
+      }
+      if (!found) res.message = "chessboard not found";
+    }
+    // The same view twice (a copy of an image, or a board that did not move) adds
+    // nothing: the intrinsics need the board at different tilts.
+    if (found)
+      for (std::size_t k = 0; k < image_points.size(); ++k) {
+        double sum = 0;
+        for (std::size_t j = 0; j < corners.size(); ++j) {
+          const cv::Point2f d = corners[j] - image_points[k][j];
+          sum += std::sqrt(double(d.dot(d)));
+        }
+        if (sum / double(corners.size()) < 0.5) {
+          found = false;
+          res.message = "the same view as " + out.images[std::size_t(index_of[k])].file + " (the board did not move)";
+          break;
+        }
+      }
+    if (found) {
       res.used = true;
       object_points.push_back(grid);
       image_points.push_back(corners);
@@ -56,14 +90,22 @@ CameraCalibration calibrate_camera(const std::vector<fs::path>& images, const Ch
     out.images.push_back(res);
   }
   out.used_images = int(image_points.size());
+  int repeated = 0;
+  for (const CameraImageResult& r : out.images) repeated += r.message.rfind("the same view as ", 0) == 0 ? 1 : 0;
   if (out.used_images < 3)
     throw InvalidInput("calibrate camera: the chessboard (" + std::to_string(board.inner_cols) + "x" +
                        std::to_string(board.inner_rows) + " inner corners) was found in " +
-                       std::to_string(out.used_images) + " of " + std::to_string(images.size()) +
-                       " images; at least 3 are needed");
+                       std::to_string(out.used_images + repeated) + " of " + std::to_string(images.size()) +
+                       " images" +
+                       (repeated ? " (" + std::to_string(repeated) + " of them the same view as another)" : "") +
+                       "; at least 3 different views are needed");
   cv::Mat K, dist;
   std::vector<cv::Mat> rvecs, tvecs;
-  out.rms_px = cv::calibrateCamera(object_points, image_points, size, K, dist, rvecs, tvecs);
+  try {
+    out.rms_px = cv::calibrateCamera(object_points, image_points, size, K, dist, rvecs, tvecs);
+  } catch (const cv::Exception& e) {
+    throw InvalidInput("calibrate camera: the calibration failed (" + e.err + ")");
+  }
   if (!std::isfinite(out.rms_px)) throw InvalidInput("calibrate camera: the calibration did not converge");
   Intrinsics& in = out.intrinsics;
   in.width = size.width;
@@ -73,6 +115,17 @@ CameraCalibration calibrate_camera(const std::vector<fs::path>& images, const Ch
   in.cx = K.at<double>(0, 2);
   in.cy = K.at<double>(1, 2);
   for (int i = 0; i < 5 && i < int(dist.total()); ++i) in.distortion[i] = dist.at<double>(i);
+  // Views that do not determine the camera (all nearly the same, the board never
+  // tilted) give a solution far from any lens: refused, not written.
+  const double side = std::max(size.width, size.height);
+  char why[200];
+  std::snprintf(why, sizeof why, "reprojection RMS %.3g px, fx %.4g, fy %.4g for a %dx%d image", out.rms_px, in.fx,
+                in.fy, size.width, size.height);
+  if (!(out.rms_px <= kMaxCalibrationRmsPx) || !(in.fx >= 0.05 * side && in.fx <= 100 * side) ||
+      !(in.fy >= 0.05 * side && in.fy <= 100 * side) || !std::isfinite(in.cx) || !std::isfinite(in.cy))
+    throw InvalidInput("calibrate camera: the " + std::to_string(out.used_images) +
+                       " views do not determine the camera (" + why +
+                       "): take the board at several tilts and places in the image");
   for (std::size_t k = 0; k < image_points.size(); ++k) {
     std::vector<cv::Point2f> projected;
     cv::projectPoints(object_points[k], rvecs[k], tvecs[k], K, dist, projected);

@@ -94,7 +94,10 @@ ParameterisationResult sdm_parameterise(const Mesh& mesh, SimpleSurface surface,
                                         const SdmProgress& progress) {
   if (mesh.vertices.empty() || mesh.faces.empty()) throw InvalidInput("mesh: empty");
   if (!all_finite(mesh.vertices)) throw InvalidInput("mesh: non-finite coordinates");
-  if (control_points < 0) throw InvalidInput("sdm_parameterise: control_points < 0");
+  // Each control point holds a few hundred bytes of search and blend state: 1e9 ran the
+  // machine out of memory without a word.
+  if (control_points < 0 || control_points > 10000000)
+    throw InvalidInput("sdm_parameterise: control_points must be 0..10000000, got " + std::to_string(control_points));
   const int nv = int(mesh.vertices.size());
   const int n = control_points > 0 ? control_points : std::max(1000, 4 * nv);
   ParameterisationResult out;

@@ -28,6 +28,7 @@
 #include "capture/session.h"
 #include "core/error.h"
 #include "core/io.h"
+#include "core/threads.h"
 #include "drivers/real_devices.h"
 #include "drivers/registry.h"
 #include "reconstruct/sdm.h"
@@ -154,7 +155,7 @@ std::string parse_error_line(const CLI::App& app, const std::exception& e) {
 
 void add_common(CLI::App* cmd, Common& c) {
   cmd->add_option("--config", c.config, "YAML profile (default: config/default.yaml)");
-  cmd->add_option("--threads", c.threads, "worker threads (0 = all cores)")->check(whole_number(0, std::numeric_limits<int>::max()));
+  cmd->add_option("--threads", c.threads, "worker threads (0 = all cores)")->check(whole_number(0, kMaxThreads));
   cmd->add_flag("--json", c.json, "print a one-line JSON summary on stdout");
 }
 

@@ -129,8 +129,11 @@ int cmd_eval(const Common& c, const std::string& a, const std::string& b, int sa
           .add("uniformity_3d", pm->uniformity).add("reference_area", pm->area)
           .add("sharp_edges", pm->sharp_edges).add("edge_angle_deg", pm_args.edge_angle);
       if (pm->edge) {
-        p.add("edge_radius", pm_args.edge_radius).add("edge_error", pm->edge->mean)
-            .add("edge_points", pm->edge->count);
+        // No point near a sharp edge (or no sharp edge): nothing was measured, not 0.
+        p.add("edge_radius", pm_args.edge_radius);
+        if (pm->edge->count > 0) p.add("edge_error", pm->edge->mean);
+        else p.add_null("edge_error");
+        p.add("edge_points", pm->edge->count);
       } else {
         p.add_null("edge_radius").add_null("edge_error").add_null("edge_points");
       }
@@ -156,7 +159,10 @@ int cmd_eval(const Common& c, const std::string& a, const std::string& b, int sa
       std::printf("  accuracy (mean distance to B) %.6g\n", pm->accuracy);
       std::printf("  uniformity (on B's surface) %.4f, in 3-D %.4f (B's area %.6g)\n",
                   pm->surface_uniformity, pm->uniformity, pm->area);
-      if (pm->edge)
+      if (pm->edge && pm->edge->count == 0)
+        std::printf("  edge error: n/a (no point of A within %.6g of %zu sharp edges > %g deg)\n", pm_args.edge_radius,
+                    pm->sharp_edges, pm_args.edge_angle);
+      else if (pm->edge)
         std::printf("  edge error (within %.6g of %zu sharp edges > %g deg) %.6g over %zu points\n",
                     pm_args.edge_radius, pm->sharp_edges, pm_args.edge_angle, pm->edge->mean, pm->edge->count);
       else

@@ -12,6 +12,7 @@
 #include <csignal>
 #include <unistd.h>
 #include <cstdio>
+#include <regex>
 #include <fstream>
 #include <iostream>
 #include <map>
@@ -305,8 +306,22 @@ int cmd_calibrate_camera(const Common& c, const std::vector<std::string>& images
   }
   ChessboardSpec spec;
   spec.square = square;
-  if (std::sscanf(board.c_str(), "%dx%d", &spec.inner_cols, &spec.inner_rows) != 2)
-    throw InvalidInput("--board " + board + ": expected COLSxROWS, e.g. 9x6");
+  {
+    // Two whole numbers and nothing else ("9x6x2" was read as 9x6, 2147483648 overflowed).
+    const std::regex form("([0-9]{1,4})x([0-9]{1,4})");
+    std::smatch m;
+    if (!std::regex_match(board, m, form))
+      throw InvalidInput("--board " + board + ": expected COLSxROWS inner corners, e.g. 9x6");
+    spec.inner_cols = std::stoi(m[1]);
+    spec.inner_rows = std::stoi(m[2]);
+    if (spec.inner_cols < 3 || spec.inner_rows < 3)
+      throw InvalidInput("--board " + board + ": the chessboard needs at least 3x3 inner corners");
+  }
+  if (!(square >= 1e-6 && square <= 100)) {
+    char given[32];
+    std::snprintf(given, sizeof given, "%g", square);
+    throw InvalidInput(std::string("--square ") + given + ": the square's side in metres, 1e-6 to 100");
+  }
   std::vector<fs::path> files(images.begin(), images.end());
   if (!c.json) std::fprintf(stderr, "calibrate camera: finding the chessboard in %zu images...\n", files.size());
   const CameraCalibration cal = calibrate_camera(files, spec);

@@ -88,11 +88,9 @@ int cmd_fit(const Common& c, const FitArgs& a) {
   };
   SdmResult fit;
   if (a.templ.rfind("icosphere:", 0) == 0) {
-    int level = -1;
-    try {
-      level = std::stoi(a.templ.substr(10));
-    } catch (const std::exception&) {
-    }
+    // One digit and nothing after it ("1e9" was read as 1, "2.5" as 2).
+    const std::string l = a.templ.substr(10);
+    const int level = l.size() == 1 && l[0] >= '0' && l[0] <= '9' ? l[0] - '0' : -1;
     if (level < 0 || level > 7) throw InvalidInput("--template " + a.templ + ": expected icosphere:L with L in 0..7");
     fit = fit_sdm_icosphere(level, target, sp, landmarks, progress);
   } else {
@@ -457,8 +455,8 @@ void add_surface_commands(CLI::App& app, std::vector<Command>& out) {
       ->capture_default_str();
   parc->add_option("--mapped", par_args.mapped, "also write the mesh as mapped onto the surface (.ply or .obj)");
   parc->add_option("--control-points", par_args.control_points,
-                   "control points sampled on the surface (0 = 4 x the mesh's vertices)")
-      ->check(whole_number(0, 2147483647))
+                   "control points sampled on the surface (0 = 4 x the mesh's vertices; at most 10,000,000)")
+      ->check(whole_number(0, 10000000))
       ->capture_default_str();
 
 

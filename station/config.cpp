@@ -7,6 +7,7 @@
 #include <map>
 
 #include "core/error.h"
+#include "core/threads.h"
 #include "core/yaml_keys.h"
 #include "drivers/registry.h"
 
@@ -333,7 +334,11 @@ StationConfig load_config(const fs::path& path, const std::vector<std::string>& 
   if (root["scanner"]) read_device(r, root["scanner"], "scanner", base, cfg.scanner_uri, cfg.scanner_options);
   if (root["turntable"])
     read_device(r, root["turntable"], "turntable", base, cfg.turntable_uri, cfg.turntable_options);
-  if (root["threads"]) cfg.threads = r.integer(root["threads"], "threads");
+  if (root["threads"]) {
+    cfg.threads = r.integer(root["threads"], "threads");
+    if (cfg.threads < 0 || cfg.threads > kMaxThreads)
+      r.fail("threads", "must be 0.." + std::to_string(kMaxThreads) + " (0: all cores)");
+  }
   if (const YAML::Node c = root["capture"]) {
     r.check_keys(c, "capture",
                  {"views", "start_deg", "step_deg", "settle_s", "crop", "volume", "axis"});

@@ -162,6 +162,40 @@ TEST(CameraCalibration, RecoversKnownIntrinsicsAndDistortionFromRenderedBoards) 
   EXPECT_NE(yaml.find("fx:"), std::string::npos);
 }
 
+// One view of the board given three times (copies, or a board that never moved) does
+// not determine the camera: refused by name, not calibrated into fx = 2.6e10 (before).
+// Boards OpenCV cannot search (2x2 inner corners) and absurd square sizes are refused
+// before any image is read.
+TEST(CameraCalibration, TheSameViewThriceIsRefused) {
+  test::TempDir dir("station-calib");
+  const Intrinsics truth = true_camera();
+  ChessboardSpec board;
+  board.inner_cols = 8;
+  board.inner_rows = 6;
+  board.square = 0.03;
+  const Eigen::Matrix3d R = Eigen::AngleAxisd(20 * M_PI / 180, Eigen::Vector3d::UnitX()).toRotationMatrix();
+  const Eigen::Vector3d t = Eigen::Vector3d(0, 0, 0.4) - R * Eigen::Vector3d(3.5 * board.square, 2.5 * board.square, 0);
+  const cv::Mat img = render_board(truth, board, R, t);
+  std::vector<fs::path> files;
+  for (int i = 0; i < 3; ++i) {
+    files.push_back(dir / ("copy" + std::to_string(i) + ".png"));
+    ASSERT_TRUE(cv::imwrite(files.back().string(), img));
+  }
+  try {
+    calibrate_camera(files, board);
+    FAIL() << "calibrated from one view";
+  } catch (const InvalidInput& e) {
+    const std::string what = e.what();
+    EXPECT_NE(what.find("found in 3 of 3 images (2 of them the same view as another)"), std::string::npos) << what;
+  }
+  ChessboardSpec tiny = board;
+  tiny.inner_cols = tiny.inner_rows = 2;
+  EXPECT_THROW(calibrate_camera(files, tiny), InvalidInput);
+  ChessboardSpec huge = board;
+  huge.square = 1e308;
+  EXPECT_THROW(calibrate_camera(files, huge), InvalidInput);
+}
+
 TEST(CameraCalibration, TooFewBoardsAndBadFilesAreClearErrors) {
   test::TempDir dir("station-calib");
   const fs::path blank = dir / "blank.png";

@@ -453,6 +453,13 @@ TEST(Cli, EvalPointsMetrics) {
   r = run("eval " + shell_ply + " " + shell_ply + " --samples 1000 --points-metrics");
   EXPECT_EQ(r.code, 1) << r.out;
   EXPECT_NE(r.out.find("B must be a mesh"), std::string::npos) << r.out;
+  // A sphere has no sharp edge: nothing measured is null, not a perfect 0.
+  const Mesh ball = test::icosphere(3);
+  const std::string ball_ply = (dir / "ball.ply").string();
+  write_ply(ball_ply, ball);
+  r = run("eval " + shell_ply + " " + ball_ply + " --samples 1000 --edge-radius 0.2 --json");
+  ASSERT_EQ(r.code, 0) << r.out;
+  EXPECT_NE(r.out.find("\"edge_error\":null,\"edge_points\":0"), std::string::npos) << r.out;
   r = run("eval " + shell_ply + " " + cube_ply + " --edge-radius -1");
   EXPECT_EQ(r.code, 2) << r.out;
   EXPECT_EQ(r.out.find("different units"), std::string::npos) << r.out;
@@ -664,6 +671,35 @@ TEST(Cli, ColouredRegistrationOfTheSimulatedBottle) {
   EXPECT_NE(r.out.find("the coloured ICP objective needs colours, and 1 view has none (views[5] (view_005.ply))"),
             std::string::npos)
       << r.out;
+}
+
+// Values no run can mean are refused by name before any work (a bad-input campaign's
+// findings): thousands of threads (fit stalled), a consolidation radius larger than the
+// cloud (points thrown off the object; 1e308 hung `run`), an icosphere level with
+// trailing characters (read as its first digit), a profile's negative threads (blamed
+// on the input file, after registration had run).
+TEST(Cli, OddValuesAreRefusedByName) {
+  test::TempDir dir;
+  const Mesh ball = test::icosphere(4, 0.05);
+  Cloud c = sample_mesh(ball, 3000, 5);
+  const std::string in = (dir / "ball.ply").string(), out = (dir / "out.ply").string();
+  write_ply(in, c);
+  CmdResult r = run("fit " + in + " -o " + out + " --threads 10000");
+  EXPECT_EQ(r.code, 2) << r.out;
+  EXPECT_NE(r.out.find("--threads"), std::string::npos) << r.out;
+  r = run("consolidate " + in + " -o " + out + " --points 600 --radius 10");
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_NE(r.out.find("radius 10 is larger than the cloud itself"), std::string::npos) << r.out;
+  r = run("fit " + in + " -o " + out + " --template icosphere:1e9");
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_NE(r.out.find("expected icosphere:L with L in 0..7"), std::string::npos) << r.out;
+  const std::string profile = (dir / "p.yaml").string();
+  { std::ofstream(profile) << "threads: -1\n"; }
+  r = run("fit " + in + " -o " + out + " --config " + profile);
+  EXPECT_NE(r.code, 0) << r.out;
+  EXPECT_NE(r.out.find("threads: must be 0..1024"), std::string::npos) << r.out;
+  EXPECT_EQ(r.out.find("ball.ply"), std::string::npos) << r.out;
+  EXPECT_FALSE(std::filesystem::exists(out));
 }
 
 // The same session in millimetres (`units: mm`, every coordinate x 1000) registers as
