@@ -26,6 +26,14 @@ namespace fs = std::filesystem;
 
 namespace {
 
+// The blocks' work folder, with the file system's reason when it cannot be made
+// (not the library's "filesystem error: cannot create directories: ..." text).
+void make_work_folder(const fs::path& work) {
+  std::error_code ec;
+  fs::create_directories(work, ec);
+  if (ec) throw IoError(work.string() + ": cannot make the blocks' work folder: " + ec.message());
+}
+
 std::string fmt(const char* f, double v) {
   char buf[64];
   std::snprintf(buf, sizeof buf, f, v);
@@ -235,7 +243,7 @@ WlopBlocksRun run_consolidate_blocks(const std::string& input, const WlopParams&
     for (int id : ids)
       if (owner[std::size_t(id)] == ranks.rank() && plan.box_points[std::size_t(id)] > 0) mine.push_back(id);
     if (mine.empty()) return;
-    fs::create_directories(work);
+    make_work_folder(work);
     note("sorting " + input + " into " + std::to_string(mine.size()) + " block" + (mine.size() > 1 ? "s" : "") +
          " (one streamed pass)");
     bucket_points(source, grid, mine, [&](int id) { return points_file(id).string(); });
@@ -323,7 +331,7 @@ BlockRun run_blocks(const std::string& input, const SurfaceParams& p, int blocks
   blocks = resolve_block_count(s, blocks, max_bytes, ranks.size());
   if (run.root && fresh) {
     error = attempt([&] {
-      fs::create_directories(work);
+      make_work_folder(work);
       write_file_atomic(work / "summary.bin", bytes);
     });
   }
@@ -390,7 +398,7 @@ BlockRun run_blocks(const std::string& input, const SurfaceParams& p, int blocks
     if (unsorted.empty()) return;
     note("sorting " + input + " into " + std::to_string(unsorted.size()) + " block" +
          (unsorted.size() > 1 ? "s" : "") + " (one streamed pass)");
-    fs::create_directories(work);
+    make_work_folder(work);
     bucket_points(source, grid, unsorted, [&](int id) { return points_file(id).string(); });
   });
   if (ranks.any_failed(!error.empty(), error)) fail_with(error);

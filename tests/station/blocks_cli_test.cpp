@@ -157,6 +157,18 @@ TEST_F(BlocksCli, ResumeWithoutBlocksAndBlocksWithoutNormalsAreClearErrors) {
   EXPECT_FALSE(fs::exists(path("y.ply")));
 }
 
+// A work folder that cannot be made (its parent a file here; a read-only disk alike)
+// is said by its path and the file system's reason, not the library's text.
+TEST_F(BlocksCli, AWorkFolderThatCannotBeMadeIsNamed) {
+  const std::string parent = path("a_file");
+  { std::ofstream(parent) << "x"; }
+  const auto r = test::run_command(station_cmd() + " " + reconstruct(parent + "/w.ply", "--blocks 2"));
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_NE(r.out.find(parent + "/w.ply.blocks: cannot make the blocks' work folder: Not a directory"), std::string::npos)
+      << r.out;
+  EXPECT_EQ(r.out.find("filesystem error"), std::string::npos) << r.out;
+}
+
 // The blocks' work folder (OUT.blocks) is cleared: a folder of that name that holds
 // anything else, or an input inside it, is refused before anything is touched; and
 // the profile given with --config is an input like the cloud.
