@@ -2240,12 +2240,19 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
   // The angle error column is the kept poses' turn against the commanded angles: the
   // run without angles is what judged the angles, but where another run is kept it
   // may have placed views elsewhere (a group it could not join, 100 deg off).
+  // (The kept run without angles may also hold views filled in from their neighbours'
+  // angles since `fit` was taken: measured again on the poses kept.) Where a run with
+  // the angles is kept, a view no converged pair joins to the rest was placed by its
+  // angle alone: its error would be 0 by construction, so none is shown.
   std::vector<bool> kept_registered(n);
   for (std::size_t i = 0; i < n; ++i) kept_registered[i] = out.views[i].registered;
-  const AnglePriorFit shown =
-      keep_free ? fit : fit_angle_prior(out.poses, kept_registered, manifest, params.wrong_angle_deg, known);
+  const AnglePriorFit shown = fit_angle_prior(out.poses, kept_registered, manifest, params.wrong_angle_deg, known);
+  const std::vector<int> joined = linked_group(out, at_table);
+  const auto measured = [&](std::size_t i) {
+    return keep_free || std::find(joined.begin(), joined.end(), int(i)) != joined.end();
+  };
   for (std::size_t i = 0; i < n; ++i) {
-    out.views[i].angle_error_deg = shown.residual_deg[i];
+    out.views[i].angle_error_deg = measured(i) ? shown.residual_deg[i] : std::nullopt;
     if (keep_free && manifest.views[i].angle_deg) out.views[i].prior = PriorUse::kIgnored;
   }
   for (int i : filled) {
@@ -2282,16 +2289,27 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
          "between them";
     notes.push_back(w.str());
     w.str("");
-  } else if (!fit.ok && fit.views >= 3 && 2 * fit.agreeing < fit.views) {
+  } else if (!fit.ok && !shown.ok && fit.views >= 3 && 2 * fit.agreeing < fit.views) {
     w << "the commanded angles fit the registered poses nowhere (" << fit.agreeing << " of " << fit.views
       << " views agree within " << params.wrong_angle_deg << " deg of any one turning): did the turntable turn, "
       << "and are the views of one object?";
     notes.push_back(w.str());
     w.str("");
   }
-  // Wrong angles as the kept poses show them (the column above).
-  for (int i : shown.wrong) {
-    if (!shown.ok) break;  // no consensus to be wrong against
+  // Wrong angles: as the kept poses show them (the column above), and as the run
+  // without angles found them (the kept run's angle prior may have pulled such a view
+  // back towards its angle, or the corrected run registered it without).
+  std::vector<int> wrong;
+  if (shown.ok)
+    for (int i : shown.wrong)
+      if (measured(std::size_t(i))) wrong.push_back(i);
+  if (fit.ok) wrong.insert(wrong.end(), fit.wrong.begin(), fit.wrong.end());
+  std::sort(wrong.begin(), wrong.end());
+  wrong.erase(std::unique(wrong.begin(), wrong.end()), wrong.end());
+  for (int i : wrong) {
+    const bool seen_kept = shown.ok && measured(std::size_t(i)) &&
+                           std::find(shown.wrong.begin(), shown.wrong.end(), i) != shown.wrong.end();
+    const double off = std::abs(*(seen_kept ? shown : fit).residual_deg[i]);
     if (kept_given && rejected_before[i]) continue;  // warned about already
     // The object turned when it moved: the second run's angles are off together,
     // which the refinement's warning about the move explains.
@@ -2300,7 +2318,7 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
     if (std::find(out.moved_with_object.begin(), out.moved_with_object.end(), i) != out.moved_with_object.end())
       continue;
     w << view_name(manifest, std::size_t(i)) << ": commanded angle " << *manifest.views[i].angle_deg << " deg is "
-      << std::abs(*shown.residual_deg[i]) << " deg off what the other views and the scans say; "
+      << off << " deg off what the other views and the scans say; "
       << (out.views[i].prior == PriorUse::kUsed || out.views[i].prior == PriorUse::kCorrected
               ? "the refinement moved the view off it"
               : "registered without it");

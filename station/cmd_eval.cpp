@@ -159,7 +159,9 @@ int cmd_eval(const Common& c, const std::string& a, const std::string& b, int sa
       std::printf("  accuracy (mean distance to B) %.6g\n", pm->accuracy);
       std::printf("  uniformity (on B's surface) %.4f, in 3-D %.4f (B's area %.6g)\n",
                   pm->surface_uniformity, pm->uniformity, pm->area);
-      if (pm->edge && pm->edge->count == 0)
+      if (pm->edge && pm->edge->count == 0 && pm->sharp_edges == 0)
+        std::printf("  edge error: n/a (B has no sharp edge > %g deg)\n", pm_args.edge_angle);
+      else if (pm->edge && pm->edge->count == 0)
         std::printf("  edge error: n/a (no point of A within %.6g of %zu sharp edges > %g deg)\n", pm_args.edge_radius,
                     pm->sharp_edges, pm_args.edge_angle);
       else if (pm->edge)

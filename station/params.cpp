@@ -144,7 +144,7 @@ const std::vector<ProfileOnlyKey>& profile_only_keys() {
       {"register.fuse_distance", "goes with --fuse; the default (the views' spacing) suits most scans"},
       {"consolidate.enabled", "a stage switch of station run (station consolidate always consolidates)"},
       {"sdm.level", "station run's SDM surface; station fit takes --template icosphere:L"},
-      {"threads", "every command takes --threads"},
+      {"threads", "every command takes --threads (0..1024)"},
       {"scanner.uri", "station scan --scanner URI replaces the device with its options"},
       {"turntable.uri", "station scan --turntable URI replaces the device with its options"},
       {"scanner.options.*", "device options: station scan --set key=value"},

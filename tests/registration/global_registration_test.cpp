@@ -408,10 +408,14 @@ TEST(GlobalRegistration, DragonWithNominalAnglesMovedOnTheTableLandsWhereTheClea
     EXPECT_LT(std::abs(*r.views[i].angle_error_deg), 25.0) << "view " << i;
   }
   // The scan at 168 deg recorded as 180 is named, by how much the kept poses say.
-  bool wrong = false;
-  for (const std::string& w : r.warnings)
-    wrong = wrong || w.find("(dragonStandRight_168.ply): commanded angle 180 deg is 1") != std::string::npos;
-  EXPECT_TRUE(wrong);
+  double named_off = -1;
+  for (const std::string& w : r.warnings) {
+    const std::string say = "(dragonStandRight_168.ply): commanded angle 180 deg is ";
+    const std::size_t at = w.find(say);
+    if (at != std::string::npos) named_off = std::stod(w.substr(at + say.size()));
+  }
+  EXPECT_GT(named_off, 8.0);   // 12 deg off, as the nominal angles' consensus puts it
+  EXPECT_LT(named_off, 20.0);
   // Without the placement, the session as before: the moved views far off.
   RegistrationParams off;
   off.place_unlinked = false;

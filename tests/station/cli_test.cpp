@@ -959,9 +959,9 @@ TEST(Cli, ParseErrorsAreOnePlainLine) {
   const std::string out = (dir / "o.ply").string();
   const std::pair<std::string, std::string> cases[] = {
       {"run " + cloud + " -o " + (dir / "r").string() + " --threads -1",
-       "station: --threads: must be a whole number, 0 or more (got -1)"},
+       "station: --threads: must be a whole number in 0..1024 (got -1)"},
       {"run " + cloud + " -o " + (dir / "r").string() + " --threads abc",
-       "station: --threads: must be a whole number, 0 or more (got abc)"},
+       "station: --threads: must be a whole number in 0..1024 (got abc)"},
       {"bogus", "station: unknown command 'bogus' (station --help lists them)"},
       {"", "station: give a command (station --help lists them)"},
       {"consolidate " + cloud + " -o " + out + " --bogus",
@@ -969,7 +969,7 @@ TEST(Cli, ParseErrorsAreOnePlainLine) {
       {"consolidate -o " + out, "station: consolidate: input is missing (station consolidate --help)"},
       {"eval " + cloud + " " + cloud + " --seed -1", "station: --seed: must be a whole number, 0 or more (got -1)"},
       {"run " + cloud + " -o " + (dir / "r").string() + " --threads 3000000000",
-       "station: --threads: must be a whole number, at most 2147483647 (got 3000000000)"},
+       "station: --threads: must be a whole number in 0..1024 (got 3000000000)"},
       {"consolidate " + cloud + " -o " + out + " --seed -1", "station: --seed -1: must be a whole number, 0 or more"},
       {"import " + cloud + " -o " + (dir / "i").string() + " --step nan",
        "station: --step: must be a finite number (got nan)"},
