@@ -880,6 +880,18 @@ void prepare(const Mesh& template_mesh, const Cloud& target_in, const SdmParams&
                std::to_string(topo.euler) + ")";
     throw InvalidInput("template: must be a closed, connected, oriented genus-0 mesh: " + why);
   }
+  // Oriented, but which way: faces wound inwards gave a fitted mesh whose normals face
+  // into the object, written without a word.
+  double volume = 0;
+  for (const Face& f : template_mesh.faces) {
+    const Vec3d a = template_mesh.vertices[std::size_t(f[0])].cast<double>(),
+                b = template_mesh.vertices[std::size_t(f[1])].cast<double>(),
+                c = template_mesh.vertices[std::size_t(f[2])].cast<double>();
+    volume += a.dot(b.cross(c)) / 6;
+  }
+  if (!(volume > 0))
+    throw InvalidInput("template: its faces wind inwards (signed volume " + std::to_string(volume) +
+                       "): the fitted normals would face into the object; reverse each face's vertex order");
   target_in.check_consistent("target");
   const int nv = int(template_mesh.vertices.size());
   const int need = std::max(params.min_control_points, nv / 4);

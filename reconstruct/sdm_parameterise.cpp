@@ -94,6 +94,13 @@ ParameterisationResult sdm_parameterise(const Mesh& mesh, SimpleSurface surface,
                                         const SdmProgress& progress) {
   if (mesh.vertices.empty() || mesh.faces.empty()) throw InvalidInput("mesh: empty");
   if (!all_finite(mesh.vertices)) throw InvalidInput("mesh: non-finite coordinates");
+  double mesh_area = 0;
+  for (const Face& f : mesh.faces) {
+    const Vec3d a = mesh.vertices[std::size_t(f[0])].cast<double>(), b = mesh.vertices[std::size_t(f[1])].cast<double>(),
+                c = mesh.vertices[std::size_t(f[2])].cast<double>();
+    mesh_area += 0.5 * (b - a).cross(c - a).norm();
+  }
+  if (!(mesh_area > 0)) throw InvalidInput("mesh: every face has zero area");
   // Each control point holds a few hundred bytes of search and blend state: 1e9 ran the
   // machine out of memory without a word.
   if (control_points < 0 || control_points > 10000000)

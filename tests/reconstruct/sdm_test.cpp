@@ -322,6 +322,19 @@ TEST(Sdm, BadInputIsRefusedClearly) {
   EXPECT_NE(message(sphere, target, {{1, Vec3f::Zero()}, {1, Vec3f::Ones()}}).find("landmark 1"),
             std::string::npos);
   EXPECT_THROW(fit_sdm(Mesh{}, target), InvalidInput);
+  // A template whose faces wind inwards (was fitted, its normals facing in).
+  Mesh inside_out = sphere;
+  for (Face& f : inside_out.faces) std::swap(f[1], f[2]);
+  EXPECT_NE(message(inside_out, target).find("faces wind inwards"), std::string::npos);
+  // A mesh to parameterise with no area at all (every face on one point).
+  Mesh flat = sphere;
+  for (Vec3f& v : flat.vertices) v = Vec3f(1, 2, 3);
+  try {
+    sdm_parameterise(flat, SimpleSurface::kSphere, SdmParams{}, 0);
+    ADD_FAILURE() << "a mesh without area was parameterised";
+  } catch (const InvalidInput& e) {
+    EXPECT_NE(std::string(e.what()).find("every face has zero area"), std::string::npos) << e.what();
+  }
 }
 
 TEST(Sdm, ReadLandmarks) {
