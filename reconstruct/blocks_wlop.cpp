@@ -93,14 +93,7 @@ ConsolidationPlan plan_consolidation(const CloudSource& source, const WlopParams
   if (!(plan.diagonal > 0)) throw InvalidInput("consolidate: all input points coincide (zero bounding box)");
   if (!(params.radius >= 0) || !std::isfinite(params.radius))
     throw InvalidInput("consolidate: radius must be >= 0 and finite");
-  // As the single run refuses it, before the blocks' margins are planned from it.
-  for (const auto& [name, r] : {std::pair<const char*, double>{"radius", params.radius}, {"fit_radius", params.fit_radius}})
-    if (r > plan.diagonal) {
-      char buf[160];
-      std::snprintf(buf, sizeof buf, "consolidate: %s %.4g is larger than the cloud itself (bounding box diagonal %.4g)",
-                    name, r, plan.diagonal);
-      throw InvalidInput(std::string(buf) + "; 0 takes it from the points' spacing");
-    }
+  check_radii_within(params, plan.diagonal);  // before the blocks' margins are planned from them
   plan.radius = params.radius > 0 ? params.radius : 4.0 * plan.diagonal / std::sqrt(double(plan.points));
   plan.output_points = std::min(wlop_requested_points(plan.points, params), plan.points);
   blocks = wlop_block_count(plan.points, blocks, max_bytes);

@@ -1208,12 +1208,6 @@ void Consolidator::normals() {
     orient_normals_mst(result_.cloud.points, n, k);
 }
 
-std::string fmt_length(double v) {
-  char buf[32];
-  std::snprintf(buf, sizeof buf, "%.4g", v);
-  return buf;
-}
-
 void validate(const Cloud& input, const WlopParams& p) {
   auto fail = [](const std::string& what) { throw InvalidInput("consolidate: " + what); };
   if (input.empty()) fail("empty input");
@@ -1245,6 +1239,18 @@ std::vector<int> initial_subset(std::size_t n, std::size_t count, unsigned seed)
   return pool;
 }
 
+void check_radii_within(const WlopParams& params, double diagonal) {
+  // A neighbourhood as large as the cloud itself is no neighbourhood: every point
+  // repels every other (points thrown off the object) and the work is n^2 (1e308 hung).
+  for (const auto& [name, r] : {std::pair<const char*, double>{"radius", params.radius}, {"fit_radius", params.fit_radius}})
+    if (r > diagonal) {
+      char buf[160];
+      std::snprintf(buf, sizeof buf, "consolidate: %s %.4g is larger than the cloud itself (bounding box diagonal %.4g)",
+                    name, r, diagonal);
+      throw InvalidInput(std::string(buf) + "; 0 takes it from the points' spacing");
+    }
+}
+
 std::size_t wlop_requested_points(std::size_t n, const WlopParams& params) {
   if (params.target_points > 0) return params.target_points;
   std::size_t want = std::max<std::size_t>(1, std::size_t(std::llround(params.ratio * double(n))));
@@ -1260,14 +1266,7 @@ WlopResult consolidate(const Cloud& input, const WlopParams& params) {
   result.bbox_diagonal = (box.max.cast<double>() - box.min.cast<double>()).norm();
   if (!(result.bbox_diagonal > 0))
     throw InvalidInput("consolidate: all input points coincide (zero bounding box)");
-  // A neighbourhood as large as the cloud itself is no neighbourhood: every point
-  // repels every other (points thrown off the object) and the work is n^2 (1e308 hung).
-  const double whole = std::max(result.bbox_diagonal, params.frame_diagonal);
-  for (const auto& [name, r] : {std::pair<const char*, double>{"radius", params.radius}, {"fit_radius", params.fit_radius}})
-    if (r > whole)
-      throw InvalidInput(std::string("consolidate: ") + name + " " + fmt_length(r) +
-                         " is larger than the cloud itself (bounding box diagonal " + fmt_length(whole) +
-                         "); 0 takes it from the points' spacing");
+  check_radii_within(params, std::max(result.bbox_diagonal, params.frame_diagonal));
   if (params.max_points > 0 && params.min_points > params.max_points)
     throw InvalidInput("consolidate: min_points (" + std::to_string(params.min_points) + ") above max_points (" +
                        std::to_string(params.max_points) + ")");

@@ -328,6 +328,11 @@ WlopResult consolidate(const Cloud& input, const WlopParams& params = {});
 /// output holds min(this, n).
 std::size_t wlop_requested_points(std::size_t n, const WlopParams& params);
 
+/// InvalidInput ("consolidate: radius 10 is larger than the cloud itself ...") when
+/// params.radius or params.fit_radius exceeds `diagonal`, the cloud's bounding box
+/// diagonal: consolidate() and the blocked run refuse such a radius alike.
+void check_radii_within(const WlopParams& params, double diagonal);
+
 /// The initial projected set: `count` distinct indices into an n-point input,
 /// drawn by a partial Fisher-Yates shuffle driven by std::mt19937_64(seed) and
 /// returned sorted. Same n, count and seed, same subset, on any platform.
