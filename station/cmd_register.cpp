@@ -304,6 +304,11 @@ int cmd_calibrate_camera(const Common& c, const std::vector<std::string>& images
     inputs.push_back(c.config);
     check_not_an_input({out}, inputs);
   }
+  // The profile is read and checked as by every command (a missing or bad --config is
+  // refused before any image is read; it used to be ignored), though no key of it
+  // changes the calibration; its threads bound the worker threads.
+  const StationConfig cfg = load_common(c);
+  auto threads = limit_threads(cfg.threads);
   ChessboardSpec spec;
   spec.square = square;
   {

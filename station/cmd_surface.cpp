@@ -9,6 +9,7 @@
 #include <atomic>
 #include <cctype>
 #include <chrono>
+#include <cmath>
 #include <csignal>
 #include <unistd.h>
 #include <cstdio>
@@ -59,14 +60,34 @@ std::vector<Vec2f> corner_uvs(const Mesh& mesh, const std::vector<Vec2f>& uv, bo
   return out;
 }
 
+// --up's form: three finite numbers x,y,z whose length is finite and not zero. 1e308,0,0
+// overflows the length and 1e-200,0,0 underflows it: neither normalises, and they failed
+// late, in the table plane's clip.
+const char* const kUpForm = "expected a direction x,y,z (finite numbers, a finite and non-zero length)";
+
+bool read_up(const std::string& text, Vec3d& v) {
+  char comma1 = 0, comma2 = 0, rest = 0;
+  return std::sscanf(text.c_str(), "%lf %c %lf %c %lf %c", &v.x(), &comma1, &v.y(), &comma2, &v.z(), &rest) == 5 &&
+         comma1 == ',' && comma2 == ',' && v.allFinite() && std::isfinite(v.norm()) && v.norm() > 0;
+}
+
 std::optional<Vec3d> parse_up(const std::string& text) {
   if (text.empty()) return std::nullopt;
   Vec3d v;
-  char comma1 = 0, comma2 = 0, rest = 0;
-  if (std::sscanf(text.c_str(), "%lf %c %lf %c %lf %c", &v.x(), &comma1, &v.y(), &comma2, &v.z(), &rest) != 5 ||
-      comma1 != ',' || comma2 != ',' || !v.allFinite() || !(v.norm() > 0))
-    throw InvalidInput("--up " + text + ": expected a non-zero direction x,y,z");
+  if (!read_up(text, v)) throw InvalidInput("--up " + text + ": " + kUpForm);
   return v;
+}
+
+/// --up checked as the command line is parsed: a usage error naming --up, whether or
+/// not the table plane is on.
+CLI::Validator up_direction() {
+  return CLI::Validator(
+      [](std::string& text) -> std::string {
+        Vec3d v;
+        if (text.empty() || read_up(text, v)) return {};
+        return std::string(kUpForm) + " (got " + text + ")";
+      },
+      "X,Y,Z");
 }
 
 }  // namespace
@@ -474,7 +495,8 @@ void add_surface_commands(CLI::App& app, std::vector<Command>& out) {
   rec->add_option("--up", rec_args.up,
                   "the turntable axis in the cloud's frame, x,y,z (a run's register stage `up` in run.yaml): "
                   "when the surface is closed (--hole close, or auto closing) the underside closes flat at the table plane (profile "
-                  "reconstruct.table_plane)");
+                  "reconstruct.table_plane)")
+      ->check(up_direction());
 
 
   out.push_back({cons, [s] {

@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <map>
 
 #include "core/error.h"
@@ -19,6 +20,11 @@ namespace station {
 namespace {
 
 namespace fs = std::filesystem;
+
+// The largest bounding box diagonal a cloud of float coordinates can have (2 sqrt(3)
+// FLT_MAX, about 1.2e39). A consolidation radius above it is larger than any cloud:
+// refused with the profile, before `run` registers a session only to find it so.
+const double kMaxCloudDiagonal = 2 * std::sqrt(3.0) * double(std::numeric_limits<float>::max());
 
 struct Reader {
   std::string file;
@@ -182,6 +188,8 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
     if (n["fit_radius"]) c.fit_radius = r.number(n["fit_radius"], "consolidate.fit_radius");
     if (!(c.fit_radius >= 0) || !std::isfinite(c.fit_radius))
       r.fail("consolidate.fit_radius", "must be >= 0 (input units; 0: from the spacing and noise)");
+    if (c.fit_radius > kMaxCloudDiagonal)
+      r.fail("consolidate.fit_radius", "larger than any cloud can be (input units; 0: from the spacing and noise)");
     if (n["repulsion"]) c.repulsion = r.text(n["repulsion"], "consolidate.repulsion");
     if (c.repulsion != "full" && c.repulsion != "tangential")
       r.fail("consolidate.repulsion", "must be full or tangential");
@@ -211,6 +219,8 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
     }
     if (n["radius"]) c.radius = r.number(n["radius"], "consolidate.radius");
     if (c.radius < 0) r.fail("consolidate.radius", "must not be negative (0: 4 d_bb / sqrt(|J|))");
+    if (c.radius > kMaxCloudDiagonal)
+      r.fail("consolidate.radius", "larger than any cloud can be (input units; 0: 4 d_bb / sqrt(|J|))");
     if (n["blocks"]) c.blocks = r.auto_or_integer(n["blocks"], "consolidate.blocks", 1, 4096);
   }
   if (const YAML::Node n = root["reconstruct"]) {
@@ -231,6 +241,10 @@ void read_pipeline(const Reader& r, const YAML::Node& root, PipelineConfig& p) {
     if (n["max_memory_gb"]) c.max_memory_gb = r.number(n["max_memory_gb"], "reconstruct.max_memory_gb");
     if (!(c.max_memory_gb == 0 || (c.max_memory_gb >= 0.25 && c.max_memory_gb <= 1e6)))
       r.fail("reconstruct.max_memory_gb", "must be 0 (no bound) or at least 0.25 (GB per rank)");
+    if (c.resolution > kMaxOnePieceResolution && !c.in_blocks())
+      r.fail("reconstruct.resolution", "must be auto or 8.." + std::to_string(kMaxOnePieceResolution) +
+                                           " in one piece (up to 4096 in blocks: reconstruct.blocks or "
+                                           "max_memory_gb, docs/blocks.md)");
     if (n["epsilon0"]) c.epsilon0 = r.number(n["epsilon0"], "reconstruct.epsilon0");
     if (c.epsilon0 < 0 || c.epsilon0 > 0.1) r.fail("reconstruct.epsilon0", "must be 0 (automatic) .. 0.1");
     if (n["extractor"]) c.extractor = r.text(n["extractor"], "reconstruct.extractor");
@@ -357,6 +371,16 @@ StationConfig load_config(const fs::path& path, const std::vector<std::string>& 
       if (v["table_clearance"])
         p.volume.table_clearance = r.number(v["table_clearance"], "capture.volume.table_clearance");
     }
+    // The crop compares squared radii, so a negative radius cropped as its absolute value;
+    // a height at or below the clearance kept nothing (every view empty).
+    if (!(p.volume.radius > 0))
+      r.fail("capture.volume.radius", "must be above 0 (metres, the working cylinder's radius about the axis)");
+    if (!(p.volume.max_height > 0))
+      r.fail("capture.volume.max_height", "must be above 0 (metres above the table top)");
+    if (!(p.volume.table_clearance < p.volume.max_height))
+      r.fail(r.overridden.count("capture.volume.table_clearance") ? "capture.volume.table_clearance"
+                                                                   : "capture.volume.max_height",
+             "the working volume's max_height must be above its table_clearance (metres above the table top)");
     if (const YAML::Node a = c["axis"]) {
       r.check_keys(a, "capture.axis", {"point", "direction"});
       if (!a["point"] || !a["direction"]) r.fail("capture.axis", "needs point and direction");

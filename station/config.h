@@ -21,6 +21,14 @@ namespace station {
 inline constexpr std::size_t kAutoPointsMin = 20000;
 inline constexpr std::size_t kAutoPointsMax = 100000;
 
+/// reconstruct.resolution in one piece (no blocks): at most this many cells. One piece
+/// holds the whole mesh, whose faces grow with the square of the resolution: at 2048
+/// cells an object that fills its box makes about 33 M faces and needs 4-5 GB, a quarter
+/// of the 131 M faces and 16.7 GB measured at 4096 (reconstruct/surface.h,
+/// kExtractionBytesPerFace), which ran machines out of memory with no word of the option.
+/// Finer, up to 4096, in blocks (reconstruct.blocks or max_memory_gb; docs/blocks.md).
+inline constexpr int kMaxOnePieceResolution = 2048;
+
 struct PipelineConfig {
   struct Register {
     int neighbors = 2;          ///< pair each view with the next N views

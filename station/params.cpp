@@ -21,7 +21,9 @@ const std::vector<ProfileOption>& profile_options() {
       o.push_back({key, cmd, opt, to, help, {}, {}});
     };
     // station reconstruct: the surface stage on a cloud.
-    value("reconstruct.resolution", "reconstruct", "--resolution", "grid cells along the longest side: auto (from the points' spacing) or 8..4096");
+    value("reconstruct.resolution", "reconstruct", "--resolution",
+          "grid cells along the longest side: auto (from the points' spacing) or 8..2048 (up to 4096 with --blocks "
+          "or --max-memory)");
     value("reconstruct.extractor", "reconstruct", "--extractor",
           "dmc: Deformed Marching Cubes (thin parts, sharp edges; docs/dmc.md) or mc: plain marching cubes",
           {"dmc", "mc"});
@@ -78,7 +80,9 @@ const std::vector<ProfileOption>& profile_options() {
           "keep (left open where there is no data)",
           {"auto", "close", "keep"});
     value("reconstruct.extractor", "run", "--extractor", "mesh extraction", {"dmc", "mc"});
-    value("reconstruct.resolution", "run", "--resolution", "grid cells along the longest side: auto (from the points' spacing) or 8..4096");
+    value("reconstruct.resolution", "run", "--resolution",
+          "grid cells along the longest side: auto (from the points' spacing) or 8..2048 (up to 4096 with --blocks "
+          "or --max-memory)");
     // station consolidate.
     value("consolidate.points", "consolidate", "--points",
           "output point count |I|: auto (ratio x input, 20000..100000) or a count (0: ratio x input)");

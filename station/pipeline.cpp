@@ -519,9 +519,11 @@ class Runner {
       work(r);
     } catch (const InvalidInput& e) {
       // The library names its data by role ("fit_mpu: 0 points..."); the run names the
-      // stage's input file, and the stage unless the message starts with it.
+      // stage's input file, and the stage unless the message starts with it. A message
+      // that names one of the stage's profile keys ("consolidate.radius ...") is about
+      // the parameter, not the input: it stays as it is.
       const std::string what = e.what();
-      if (what.find(input.string()) != std::string::npos) throw;
+      if (what.find(input.string()) != std::string::npos || what.rfind(name + ".", 0) == 0) throw;
       throw InvalidInput(input.string() + ": " + (what.rfind(name + ":", 0) == 0 ? "" : name + ": ") + what);
     }
     r.seconds = seconds_since(t0);
@@ -615,6 +617,21 @@ class Runner {
   }
 
   void do_consolidate(StageRecord& r, const fs::path& in) {
+    try {
+      consolidate_stage(r, in);
+    } catch (const InvalidInput& e) {
+      // check_radii_within names the library's parameter ("consolidate: radius 10 is
+      // larger than the cloud itself ..."), known only once the cloud is merged; the
+      // run names the profile key that set it.
+      const std::string what = e.what();
+      for (const std::string key : {"radius", "fit_radius"})
+        if (const std::string said = "consolidate: " + key + " "; what.rfind(said, 0) == 0)
+          throw InvalidInput("consolidate." + key + " " + what.substr(said.size()));
+      throw;
+    }
+  }
+
+  void consolidate_stage(StageRecord& r, const fs::path& in) {
     const auto& c = cfg_.pipeline.consolidate;
     WlopParams p = wlop_params(cfg_.pipeline, cfg_.threads);
     const double max_bytes = cfg_.pipeline.reconstruct.max_memory_gb * 1e9;

@@ -453,6 +453,18 @@ TEST(Cli, EvalPointsMetrics) {
   r = run("eval " + shell_ply + " " + shell_ply + " --samples 1000 --points-metrics");
   EXPECT_EQ(r.code, 1) << r.out;
   EXPECT_NE(r.out.find("B must be a mesh"), std::string::npos) << r.out;
+  // ... with an area: a reference whose faces are all degenerate is named by its own
+  // file (it was blamed on A).
+  Mesh flat;
+  flat.vertices = {Vec3f(-1, -1, -1), Vec3f(0, 0, 0), Vec3f(1, 1, 1)};
+  flat.faces.push_back(Face(0, 1, 2));
+  const std::string flat_ply = (dir / "flat.ply").string();
+  write_ply(flat_ply, flat);
+  r = run("eval " + shell_ply + " " + flat_ply + " --samples 1000 --points-metrics");
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_EQ(r.out.rfind("station: " + flat_ply + ": B: the reference mesh has zero or non-finite area", 0), 0u)
+      << r.out;
+  EXPECT_EQ(std::count(r.out.begin(), r.out.end(), '\n'), 1) << r.out;
   // A sphere has no sharp edge: nothing measured is null, not a perfect 0.
   const Mesh ball = test::icosphere(3);
   const std::string ball_ply = (dir / "ball.ply").string();
@@ -677,7 +689,9 @@ TEST(Cli, ColouredRegistrationOfTheSimulatedBottle) {
 // findings): thousands of threads (fit stalled), a consolidation radius larger than the
 // cloud (points thrown off the object; 1e308 hung `run`), an icosphere level with
 // trailing characters (read as its first digit), a profile's negative threads (blamed
-// on the input file, after registration had run).
+// on the input file, after registration had run); and the campaign's leftovers below
+// (calibrate camera's --config, run's radius named by its key, --up, the working
+// volume, the largest --samples and --resolution).
 TEST(Cli, OddValuesAreRefusedByName) {
   test::TempDir dir;
   const Mesh ball = test::icosphere(4, 0.05);
@@ -700,6 +714,60 @@ TEST(Cli, OddValuesAreRefusedByName) {
   EXPECT_NE(r.out.find("threads: must be 0..1024"), std::string::npos) << r.out;
   EXPECT_EQ(r.out.find("ball.ply"), std::string::npos) << r.out;
   EXPECT_FALSE(std::filesystem::exists(out));
+
+  // The campaign's leftovers. `calibrate camera` reads its --config as every command
+  // does (it was taken and ignored): a bad or missing profile is named before any image.
+  const std::string cam_out = (dir / "cam.yaml").string();
+  std::string images;
+  for (const char* name : {"a.png", "b.png", "c.png"}) images += " " + (dir / name).string();
+  r = run("calibrate camera" + images + " --config " + profile + " -o " + cam_out);
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_NE(r.out.find("threads: must be 0..1024"), std::string::npos) << r.out;
+  r = run("calibrate camera" + images + " --config " + (dir / "none.yaml").string() + " -o " + cam_out);
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_NE(r.out.find("none.yaml"), std::string::npos) << r.out;
+  EXPECT_FALSE(std::filesystem::exists(cam_out));
+  // `run` refuses a radius no cloud can have with the profile, before any work (it
+  // registered the session first); one larger than the cloud, found so only once the
+  // cloud is there (after the merge of a session), names its key, not the cloud.
+  const std::string run_dir = (dir / "run").string();
+  r = run("run --quiet " + in + " -o " + run_dir + " --set consolidate.radius=1e308");
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_EQ(r.out.rfind("station: --set consolidate.radius=1e308: ", 0), 0u) << r.out;
+  EXPECT_FALSE(std::filesystem::exists(run_dir));
+  r = run("run --quiet " + in + " -o " + run_dir + " --set consolidate.radius=10");
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_EQ(r.out.rfind("station: consolidate.radius 10 is larger than the cloud itself", 0), 0u) << r.out;
+  EXPECT_EQ(std::count(r.out.begin(), r.out.end(), '\n'), 1) << r.out;
+  EXPECT_FALSE(std::filesystem::exists(run_dir));
+  // --up is checked as the command line is parsed (1e308,0,0 failed late, in the
+  // table plane's clip; nan,0,1 and 1e-200,0,0 only after the profile was read).
+  const std::string mesh_out = (dir / "mesh.ply").string();
+  for (const std::string up : {"1e308,0,0", "1e-200,0,0", "nan,0,1"}) {
+    r = run("reconstruct " + in + " -o " + mesh_out + " --hole close --up " + up);
+    EXPECT_EQ(r.code, 2) << up << ": " << r.out;
+    EXPECT_EQ(r.out.rfind("station: --up: expected a direction x,y,z", 0), 0u) << up << ": " << r.out;
+    EXPECT_FALSE(std::filesystem::exists(mesh_out)) << up;
+  }
+  // A working volume no bench has is refused by its key before a session is started
+  // (a negative radius cropped as its absolute value).
+  const std::string sess = (dir / "s").string();
+  for (const std::string kv :
+       {"capture.volume.radius=-1", "capture.volume.max_height=0", "capture.volume.table_clearance=0.5"}) {
+    r = run("scan -o " + sess + " --views 1 --set width=160 --set height=120 --set " + kv);
+    EXPECT_EQ(r.code, 1) << kv << ": " << r.out;
+    EXPECT_EQ(r.out.rfind("station: --set " + kv + ": ", 0), 0u) << kv << ": " << r.out;
+    EXPECT_FALSE(std::filesystem::exists(sess)) << kv;
+  }
+  // The largest --samples and --resolution fit in a few GB (100 M samples and 4096
+  // cells in one piece ran out of memory, naming neither option); refused before the
+  // inputs are read.
+  r = run("eval " + in + " " + in + " --samples 20000001");
+  EXPECT_EQ(r.code, 2) << r.out;
+  EXPECT_EQ(r.out, "station: --samples: must be a whole number in 1..20000000 (got 20000001)\n");
+  r = run("reconstruct " + (dir / "missing.ply").string() + " -o " + mesh_out + " --resolution 4096");
+  EXPECT_EQ(r.code, 2) << r.out;
+  EXPECT_EQ(r.out.rfind("station: --resolution 4096: must be auto or 8..2048 in one piece", 0), 0u) << r.out;
 }
 
 // The same session in millimetres (`units: mm`, every coordinate x 1000) registers as

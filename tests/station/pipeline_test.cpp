@@ -449,6 +449,30 @@ TEST(Profile, OverridesAreValidatedLikeTheFileAndNameTheKey) {
   EXPECT_NE(message("reconstruct.resolutoin=5").find("--set reconstruct.resolutoin=5: unknown key"), std::string::npos);
   EXPECT_NE(message("reconstruct.resolution=2").find("--set reconstruct.resolution=2: must be auto or 8..4096"), std::string::npos);
   EXPECT_NE(message("reconstruct.resolution=0").find("--set reconstruct.resolution=0: must be auto or 8..4096"), std::string::npos);
+  // One piece holds its whole mesh: it stops at kMaxOnePieceResolution cells (4096 ran
+  // out of memory); blocks go on to 4096.
+  EXPECT_NE(message("reconstruct.resolution=4096").find("--set reconstruct.resolution=4096: must be auto or 8..2048 in one piece"),
+            std::string::npos);
+  EXPECT_EQ(load_config(profile, {"reconstruct.resolution=2048"}).pipeline.reconstruct.resolution, 2048);
+  EXPECT_EQ(load_config(profile, {"reconstruct.resolution=4096", "reconstruct.blocks=4"}).pipeline.reconstruct.resolution, 4096);
+  EXPECT_EQ(load_config(profile, {"reconstruct.resolution=4096", "reconstruct.max_memory_gb=4"}).pipeline.reconstruct.resolution,
+            4096);
+  // A radius beyond any cloud of float coordinates is refused with the profile (1e308
+  // went through a session's registration first); a large one a cloud may have is kept.
+  EXPECT_NE(message("consolidate.radius=1e308").find("--set consolidate.radius=1e308: larger than any cloud can be"),
+            std::string::npos);
+  EXPECT_NE(message("consolidate.fit_radius=1e300").find("--set consolidate.fit_radius=1e300: larger than any cloud can be"),
+            std::string::npos);
+  EXPECT_EQ(load_config(profile, {"consolidate.radius=1e30"}).pipeline.consolidate.radius, 1e30);
+  // The working volume: a radius and a height above 0, the height above the clearance
+  // (a negative radius cropped as its absolute value, unsaid).
+  EXPECT_NE(message("capture.volume.radius=-1").find("--set capture.volume.radius=-1: must be above 0"), std::string::npos);
+  EXPECT_NE(message("capture.volume.radius=0").find("--set capture.volume.radius=0: must be above 0"), std::string::npos);
+  EXPECT_NE(message("capture.volume.max_height=-0.1").find("--set capture.volume.max_height=-0.1: must be above 0"),
+            std::string::npos);
+  EXPECT_NE(message("capture.volume.table_clearance=0.4").find("--set capture.volume.table_clearance=0.4: the working volume's"),
+            std::string::npos);
+  EXPECT_EQ(load_config(profile, {"capture.volume.radius=0.3"}).capture.volume.radius, 0.3);
   EXPECT_NE(message("reconstruct.hole=maybe").find("reconstruct.hole"), std::string::npos);
   EXPECT_NE(message("consolidate.ratio=abc").find("--set consolidate.ratio=abc: not a number"), std::string::npos);
   EXPECT_NE(message("nosuch.key=1").find("--set nosuch.key=1: nosuch: unknown key"), std::string::npos);
