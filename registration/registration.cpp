@@ -413,6 +413,40 @@ class Registrar {
   }
 
   bool has_angle(int i) const { return m_.views[i].angle_deg.has_value(); }
+  // View i's angle as the refinement uses it: the commanded one, turned by the
+  // move of the object where a run of views was registered to the others as a
+  // whole (the move's turn about the table: the later views' angles are all off by it).
+  double angle_of(int i) const {
+    return *m_.views[std::size_t(i)].angle_deg + (angle_shift_.empty() ? 0.0 : angle_shift_[std::size_t(i)]);
+  }
+  // After `group` was moved by G (world frame): their angles turned by G's turn
+  // about the table, so that the prior between consecutive views and the axis fit
+  // agree with the moved poses. The turn's sign is the one under which the motion
+  // from `anchor` (a view not moved) to the group's first view is what the
+  // angles say (the poses' frame need not be the table's).
+  void shift_angles(const std::vector<int>& group, const Eigen::Matrix4d& G, int anchor) {
+    if (!res_.axis || group.empty() || anchor < 0 || !has_angle(anchor)) return;
+    if (angle_shift_.empty()) angle_shift_.assign(m_.views.size(), 0.0);
+    const Eigen::AngleAxisd turn(Eigen::Matrix3d(G.block<3, 3>(0, 0)));
+    const double theta = turn.angle() * 180.0 / M_PI;
+    int b = -1;
+    for (int j : group)
+      if (has_angle(j)) {
+        b = j;
+        break;
+      }
+    if (b < 0) return;
+    const Eigen::Matrix4d measured = rigid_inverse(res_.poses[std::size_t(anchor)]) * res_.poses[std::size_t(b)];
+    double best = std::numeric_limits<double>::infinity(), shift = 0;
+    for (double s : {-theta, theta}) {
+      const Eigen::Matrix4d said = rigid_inverse(turntable_pose(*res_.axis, angle_of(anchor))) *
+                                   turntable_pose(*res_.axis, angle_of(b) + s);
+      const double off = rotation_angle_deg(rigid_inverse(measured) * said);
+      if (off < best) best = off, shift = s;
+    }
+    for (int j : group)
+      if (has_angle(j)) angle_shift_[std::size_t(j)] += shift;
+  }
 
   // Axis unknown, angles known: pairwise ICP of consecutive views from axis
   // hypotheses, then the axis that best explains the converged pair motions.
@@ -1150,6 +1184,7 @@ class Registrar {
     const std::optional<Eigen::Matrix4d> G = place_group(before, after, now, then);
     if (!G) return false;
     for (int j : after) res_.poses[j] = *G * res_.poses[j];
+    shift_angles(after, *G, before.back());
     std::ostringstream w;
     w.precision(3);
     w << "the views from " << view_name(m_, std::size_t(split_.first_after))
@@ -1166,8 +1201,11 @@ class Registrar {
     TurntableSplit split;
     bool rigid_rejected = false, rigid_used = false;
     std::vector<int> off_table, unplaced;
+    std::vector<double> angle_shift;
   };
-  State state() const { return {res_, usable_, split_, rigid_rejected_, rigid_used_, off_table_, unplaced_}; }
+  State state() const {
+    return {res_, usable_, split_, rigid_rejected_, rigid_used_, off_table_, unplaced_, angle_shift_};
+  }
   void restore(State&& s) {
     res_ = std::move(s.res);
     usable_ = std::move(s.usable);
@@ -1176,6 +1214,7 @@ class Registrar {
     rigid_used_ = s.rigid_used;
     off_table_ = std::move(s.off_table);
     unplaced_ = std::move(s.unplaced);
+    angle_shift_ = std::move(s.angle_shift);
   }
 
   // The groups of usable views that the last round's converged pairs join (in the
@@ -1239,6 +1278,10 @@ class Registrar {
       if (axis && turn.angle() > 2 * kDegree && std::abs(turn.axis().dot(axis->second)) < std::cos(10 * kDegree))
         continue;
       for (int j : g) res_.poses[j] = *G * res_.poses[j];
+      int anchor = -1;
+      for (int j : base)
+        if (has_angle(j) && !res_.views[std::size_t(j)].angle_rejected) anchor = j;
+      shift_angles(g, *G, anchor);
       moved.push_back(g);
       std::ostringstream w;
       w.precision(3);
@@ -1585,8 +1628,8 @@ class Registrar {
           PoseGraphEdge e;
           e.from = a;
           e.to = b;
-          e.measurement = rigid_inverse(turntable_pose(*res_.axis, *m_.views[a].angle_deg)) *
-                          turntable_pose(*res_.axis, *m_.views[b].angle_deg);
+          e.measurement = rigid_inverse(turntable_pose(*res_.axis, angle_of(a))) *
+                          turntable_pose(*res_.axis, angle_of(b));
           e.information = info;
           edges.push_back(e);
           edge_pair.push_back(-1);
@@ -1621,7 +1664,7 @@ class Registrar {
         for (int i : r)
           if (on_table[i]) {
             table_poses.push_back(free_graph.poses[i]);
-            table_angles.push_back(has_angle(i) ? *m_.views[i].angle_deg : 0.0);
+            table_angles.push_back(has_angle(i) ? angle_of(i) : 0.0);
           }
         if (no_angles) table_angles = angles_about_common_axis(table_poses);
         const AxisFitResult fit = calibrate_axis(table_poses, table_angles);
@@ -1887,6 +1930,7 @@ class Registrar {
   std::vector<int> off_table_;  // posed by global registration against the model
   std::vector<int> unplaced_;   // views without an angle that global registration could not place
   int moved_from_ = -1;
+  std::vector<double> angle_shift_;  // per view, degrees (angle_of): empty until a run is moved
   bool rigid_rejected_ = false;  // kAuto kept the free poses in the last solve
   bool rigid_used_ = false;      // the last solve's poses are the rigid ones
   TurntableSplit split_;  // the last solve's split of the table views into two runs (found: a move)
@@ -2246,7 +2290,59 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
   // angle alone: its error would be 0 by construction, so none is shown.
   std::vector<bool> kept_registered(n);
   for (std::size_t i = 0; i < n; ++i) kept_registered[i] = out.views[i].registered;
-  const AnglePriorFit shown = fit_angle_prior(out.poses, kept_registered, manifest, params.wrong_angle_deg, known);
+  // Where the kept poses hold a move of the object (two turntable runs, or groups
+  // registered to the others as a whole), each part turns as its own angles say
+  // and is off from the others by the move: the angles are fitted to each part
+  // alone (one fit over all would call the views of one part wrong by the move's
+  // turn, or those of the other when the parts are as large), and the fit of the
+  // run without angles (one offset for the whole session) names no view.
+  std::vector<int> part(n, 0);
+  for (std::size_t i = 0; i < n; ++i) {
+    if (out.turntable_groups == 2 && out.moved_after_view >= 0 && int(i) >= out.moved_after_view) part[i] = 1;
+    if (std::find(out.moved_with_object.begin(), out.moved_with_object.end(), int(i)) != out.moved_with_object.end())
+      part[i] = 2;
+  }
+  const bool moved_parts = std::any_of(part.begin(), part.end(), [](int k) { return k != 0; });
+  AnglePriorFit shown = fit_angle_prior(out.poses, kept_registered, manifest, params.wrong_angle_deg, known);
+  if (moved_parts) {
+    const AnglePriorFit whole = shown;
+    shown.wrong.clear();
+    shown.ok = false;
+    const auto wrap = [](double a) { return a - 360.0 * std::round(a / 360.0); };
+    for (int k = 0; k < 3; ++k) {
+      SessionManifest only = manifest;
+      std::vector<int> members;
+      for (std::size_t i = 0; i < n; ++i)
+        if (part[i] != k) only.views[i].angle_deg.reset();
+        else if (manifest.views[i].angle_deg) members.push_back(int(i));
+      if (members.empty()) continue;
+      const AnglePriorFit f = fit_angle_prior(out.poses, kept_registered, only, params.wrong_angle_deg, known);
+      if (f.ok) {
+        for (int i : members) shown.residual_deg[std::size_t(i)] = f.residual_deg[std::size_t(i)];
+        shown.wrong.insert(shown.wrong.end(), f.wrong.begin(), f.wrong.end());
+        shown.ok = true;
+        continue;
+      }
+      // Too few views to fit alone (under three): the whole fit's residuals with
+      // the part's own mean turn taken out (the move's), when the whole fit had its
+      // sign and step.
+      std::vector<double> res;
+      for (int i : members)
+        if (whole.residual_deg[std::size_t(i)]) res.push_back(*whole.residual_deg[std::size_t(i)]);
+      for (int i : members) shown.residual_deg[std::size_t(i)].reset();
+      if (res.empty() || !whole.ok) continue;
+      double mean = 0;
+      for (double e : res) mean += wrap(e - res.front());
+      mean = res.front() + mean / double(res.size());
+      for (int i : members) {
+        const std::optional<double>& e = whole.residual_deg[std::size_t(i)];
+        if (!e) continue;
+        shown.residual_deg[std::size_t(i)] = wrap(*e - mean);
+        if (std::abs(wrap(*e - mean)) > params.wrong_angle_deg) shown.wrong.push_back(i);
+      }
+    }
+    std::sort(shown.wrong.begin(), shown.wrong.end());
+  }
   const std::vector<int> joined = linked_group(out, at_table);
   const auto measured = [&](std::size_t i) {
     return keep_free || std::find(joined.begin(), joined.end(), int(i)) != joined.end();
@@ -2303,7 +2399,7 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
   if (shown.ok)
     for (int i : shown.wrong)
       if (measured(std::size_t(i))) wrong.push_back(i);
-  if (fit.ok) wrong.insert(wrong.end(), fit.wrong.begin(), fit.wrong.end());
+  if (fit.ok && !moved_parts) wrong.insert(wrong.end(), fit.wrong.begin(), fit.wrong.end());
   std::sort(wrong.begin(), wrong.end());
   wrong.erase(std::unique(wrong.begin(), wrong.end()), wrong.end());
   for (int i : wrong) {
@@ -2311,12 +2407,9 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
                            std::find(shown.wrong.begin(), shown.wrong.end(), i) != shown.wrong.end();
     const double off = std::abs(*(seen_kept ? shown : fit).residual_deg[i]);
     if (kept_given && rejected_before[i]) continue;  // warned about already
-    // The object turned when it moved: the second run's angles are off together,
-    // which the refinement's warning about the move explains.
-    if (out.turntable_groups == 2 && i >= out.moved_after_view) continue;
-    // The same for a group placed as a whole where the angles left it unjoined.
-    if (std::find(out.moved_with_object.begin(), out.moved_with_object.end(), i) != out.moved_with_object.end())
-      continue;
+    // (The object turned when it moved: a moved part's angles are off together,
+    // which the warning about the move explains; each part's own fit above takes
+    // that turn out, so what is left is a view wrong within its part.)
     w << view_name(manifest, std::size_t(i)) << ": commanded angle " << *manifest.views[i].angle_deg << " deg is "
       << off << " deg off what the other views and the scans say; "
       << (out.views[i].prior == PriorUse::kUsed || out.views[i].prior == PriorUse::kCorrected
