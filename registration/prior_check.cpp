@@ -118,7 +118,7 @@ AnglePriorFit fit_angle_prior(const std::vector<Eigen::Matrix4d>& poses, const s
 }
 
 TurntableSplit find_turntable_split(const std::vector<Eigen::Matrix4d>& poses, const std::vector<int>& order,
-                                    const std::vector<double>& angles_deg, double min_misfit) {
+                                    const std::vector<double>& angles_deg, double min_misfit, int max_runs) {
   TurntableSplit best;
   const int n = int(order.size());
   if (n < 6 || int(angles_deg.size()) != n) return best;
@@ -137,16 +137,40 @@ TurntableSplit find_turntable_split(const std::vector<Eigen::Matrix4d>& poses, c
   };
   const double whole = misfit(0, n);
   if (!std::isfinite(whole) || whole < min_misfit) return best;
+  // Two runs first; three (knocked twice) only where no two explain the motions.
+  // Each run's misfit is computed once per (from, to).
+  std::vector<double> cache(std::size_t(n + 1) * std::size_t(n + 1), -1);
+  const auto part = [&](int from, int to) {
+    double& c = cache[std::size_t(from) * std::size_t(n + 1) + std::size_t(to)];
+    if (c < 0) c = misfit(from, to);
+    return c;
+  };
   double parts = std::numeric_limits<double>::infinity();
-  int split = -1;
+  std::vector<int> splits;
   for (int k = 3; k + 3 <= n; ++k) {
-    const double m = std::max(misfit(0, k), misfit(k, n));
-    if (m < parts) parts = m, split = k;
+    const double m = std::max(part(0, k), part(k, n));
+    if (m < parts) parts = m, splits = {k};
   }
-  if (split < 0 || !(whole >= 3 * parts)) return best;
+  if (!(whole >= 3 * parts)) {
+    if (max_runs < 3) return best;
+    double parts3 = std::numeric_limits<double>::infinity();
+    std::vector<int> splits3;
+    for (int k = 3; k + 6 <= n; ++k)
+      for (int l = k + 3; l + 3 <= n; ++l) {
+        const double m = std::max({part(0, k), part(k, l), part(l, n)});
+        if (m < parts3) parts3 = m, splits3 = {k, l};
+      }
+    if (!(whole >= 3 * parts3)) return best;
+    parts = parts3;
+    splits = splits3;
+  }
   best.found = true;
-  best.last_before = order[split - 1];
-  best.first_after = order[split];
+  best.last_before = order[splits.front() - 1];
+  best.first_after = order[splits.front()];
+  for (int k : splits) {
+    best.run_starts.push_back(order[k]);
+    best.run_ends.push_back(order[k - 1]);
+  }
   best.whole_misfit = whole;
   best.parts_misfit = parts;
   return best;

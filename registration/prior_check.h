@@ -48,19 +48,24 @@ AnglePriorFit fit_angle_prior(const std::vector<Eigen::Matrix4d>& poses, const s
                               const std::optional<Vec3d>& known_direction = {});
 
 /// Where an object moved on the table: the split of the ordered views `order`
-/// (indices into poses, each with its angle in `angles_deg`) into two runs, each
-/// at least three views, that each turn about one axis while all of them do not
+/// (indices into poses, each with its angle in `angles_deg`) into two runs (or,
+/// where no two fit and `max_runs` allows, three), each at least three views, that each turn about one
+/// axis while all of them do not
 /// (the RMS translation a turntable leaves unexplained over the motions between
 /// consecutive views, fit_turntable_axis: the whole's at least 3x the worse
 /// part's, and above `min_misfit` metres).
 struct TurntableSplit {
   bool found = false;
-  int last_before = -1, first_after = -1;  ///< views either side of the move
+  int last_before = -1, first_after = -1;  ///< views either side of the (first) move
+  /// Every move: the first view of each run after the first (first_after first).
+  /// Two runs where two fit; three (the object knocked twice) only where no two do.
+  std::vector<int> run_starts;
+  std::vector<int> run_ends;  ///< the last view of the run before each of run_starts
   double whole_misfit = 0;                  ///< metres, RMS over the whole
   double parts_misfit = 0;                  ///< metres, the worse part's RMS
 };
 TurntableSplit find_turntable_split(const std::vector<Eigen::Matrix4d>& poses, const std::vector<int>& order,
-                                    const std::vector<double>& angles_deg, double min_misfit);
+                                    const std::vector<double>& angles_deg, double min_misfit, int max_runs = 3);
 
 /// Runs of consecutive views (capture order, among those with an angle and a
 /// prior-free pose) whose angles are off by one amount: each within

@@ -1185,6 +1185,7 @@ class Registrar {
     if (!G) return false;
     for (int j : after) res_.poses[j] = *G * res_.poses[j];
     shift_angles(after, *G, before.back());
+    res_.regrouped_from = split_.first_after;
     std::ostringstream w;
     w.precision(3);
     w << "the views from " << view_name(m_, std::size_t(split_.first_after))
@@ -1655,6 +1656,7 @@ class Registrar {
         rigid_rejected_ = rigid_used_ = false;
         res_.turntable_groups = 0;
         res_.moved_after_view = -1;
+        res_.run_starts.clear();
         split_ = {};
         if (table_views < 3) return free_graph;
         // The rigid solve starts from the free solution and the axis that
@@ -1699,20 +1701,25 @@ class Registrar {
         std::vector<int> order;
         for (int i : r)
           if (on_table[i]) order.push_back(i);
-        split_ = find_turntable_split(free_graph.poses, order, table_angles, 1e-3 * diag_);
+        // Three runs (knocked twice) only where the angles say how each run turns: without
+        // them (the turns measured from the free poses themselves) a third base fits the
+        // free poses' own errors (the dragon moved twice, registered without angles:
+        // 0.44 -> 0.76 deg against the clean session).
+        split_ = find_turntable_split(free_graph.poses, order, table_angles, 1e-3 * diag_, no_angles ? 2 : 3);
         if (!split_.found) return free_graph;
         std::vector<int> group(m_.views.size(), 0);
-        bool after = false;
+        int run = 0;
         for (int i : order) {
-          after = after || i == split_.first_after;
-          group[i] = after ? 1 : 0;
+          if (std::find(split_.run_starts.begin(), split_.run_starts.end(), i) != split_.run_starts.end()) ++run;
+          group[i] = run;
         }
-        PoseGraphResult two = optimize_turntable_graph(free_graph.poses, es, on_table, start->point,
-                                                       start->direction, gp, nullptr, group);
-        if (!fits(deviation(two))) return free_graph;
-        res_.turntable_groups = 2;
+        PoseGraphResult runs = optimize_turntable_graph(free_graph.poses, es, on_table, start->point,
+                                                        start->direction, gp, nullptr, group);
+        if (!fits(deviation(runs))) return free_graph;
+        res_.turntable_groups = run + 1;
         res_.moved_after_view = split_.first_after;
-        return two;
+        res_.run_starts = split_.run_starts;
+        return runs;
       };
       PoseGraphResult g = solve(edges);
       // Edges the optimised graph disagrees with strongly are wrong matches
@@ -1749,16 +1756,20 @@ class Registrar {
       w.precision(3);
       w << "the views do not fit one rigid turntable (the rigid solution moves a view " << res_.rigid_deviation_deg
         << " deg / " << res_.mm_per_unit * res_.rigid_deviation << " mm from the free one: did the object shift on the table?); ";
-      const std::string before = split_.found ? view_name(m_, std::size_t(split_.last_before)) : "";
-      const std::string after = split_.found ? view_name(m_, std::size_t(split_.first_after)) : "";
-      if (res_.turntable_groups == 2)
-        w << "the object moved between " << before << " and " << after
-          << ": the views before and after are held on the one axis, each run with its own place on the table";
+      // Where the object moved: "views[5] (...) and views[6] (...)", and each further move.
+      std::string between;
+      for (std::size_t k = 0; split_.found && k < split_.run_starts.size(); ++k)
+        between += std::string(k ? ", and between " : "") + view_name(m_, std::size_t(split_.run_ends[k])) + " and " +
+                   view_name(m_, std::size_t(split_.run_starts[k]));
+      const bool several = split_.run_starts.size() > 1;
+      if (res_.turntable_groups >= 2)
+        w << "the object moved between " << between << ": the views before and after " << (several ? "each move " : "")
+          << "are held on the one axis, each run with its own place on the table";
       else if (split_.found)
-        w << "the object moved on the table between " << before << " and " << after
+        w << "the object moved on the table between " << between
           << ": the views before and after each turn about one axis (unexplained motion "
           << res_.mm_per_unit * split_.parts_misfit << " mm RMS) but not together (" << res_.mm_per_unit * split_.whole_misfit
-          << " mm), and not as two runs on one axis either; the free poses are used";
+          << " mm), and not as " << split_.run_starts.size() + 1 << " runs on one axis either; the free poses are used";
       else
         w << "the free poses are used";
       res_.warnings.push_back(w.str());
@@ -2298,9 +2309,13 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
   // run without angles (one offset for the whole session) names no view.
   std::vector<int> part(n, 0);
   for (std::size_t i = 0; i < n; ++i) {
-    if (out.turntable_groups == 2 && out.moved_after_view >= 0 && int(i) >= out.moved_after_view) part[i] = 1;
+    for (int start : out.run_starts)
+      if (out.turntable_groups >= 2 && int(i) >= start) ++part[i];
+    // A run registered as a whole that the runs' pose graph did not hold (turned over:
+    // it turns about the table's axis the other way in the object's frame).
+    if (out.turntable_groups < 2 && out.regrouped_from >= 0 && int(i) >= out.regrouped_from) part[i] = 1;
     if (std::find(out.moved_with_object.begin(), out.moved_with_object.end(), int(i)) != out.moved_with_object.end())
-      part[i] = 2;
+      part[i] = int(out.run_starts.size()) + 2;
   }
   const bool moved_parts = std::any_of(part.begin(), part.end(), [](int k) { return k != 0; });
   AnglePriorFit shown = fit_angle_prior(out.poses, kept_registered, manifest, params.wrong_angle_deg, known);
@@ -2309,7 +2324,7 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
     shown.wrong.clear();
     shown.ok = false;
     const auto wrap = [](double a) { return a - 360.0 * std::round(a / 360.0); };
-    for (int k = 0; k < 3; ++k) {
+    for (int k = 0; k <= int(out.run_starts.size()) + 2; ++k) {
       SessionManifest only = manifest;
       std::vector<int> members;
       for (std::size_t i = 0; i < n; ++i)

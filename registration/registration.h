@@ -263,7 +263,13 @@ struct RegistrationResult {
   /// turntable, rigid_turntable), 2 (the object moved between two runs of views:
   /// each on the one axis with its own base pose), 0 (free poses).
   int turntable_groups = 0;
-  int moved_after_view = -1;  ///< turntable_groups 2: the first view of the second run
+  int moved_after_view = -1;  ///< turntable_groups >= 2: the first view of the second run
+  /// turntable_groups >= 2: the first view of each run after the first (the object
+  /// moved on the table before each; run_starts[0] == moved_after_view).
+  std::vector<int> run_starts;
+  /// The first view of a run that was registered to the views before it as a whole
+  /// (the object moved, or was turned over, for a second pass), or -1.
+  int regrouped_from = -1;
   /// Views that the angles had placed where no pair joined them and that were
   /// registered to the others as a group (the object moved on the table:
   /// RegistrationParams::place_unlinked); their angles are off by the move.

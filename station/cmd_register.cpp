@@ -163,9 +163,13 @@ void print_registration(const RegistrationResult& r) {
   if (r.rigid_turntable)
     std::printf("rigid turntable: the views lie on one axis (at most %.3f deg / %.3f mm from the free poses)\n",
                 r.rigid_deviation_deg, r.rigid_deviation * r.mm_per_unit);
-  else if (r.turntable_groups == 2)
-    std::printf("rigid turntable: two runs of views on one axis (the object moved before view %d)\n",
-                r.moved_after_view);
+  else if (r.turntable_groups >= 2) {
+    std::string before;
+    for (std::size_t k = 0; k < r.run_starts.size(); ++k)
+      before += (k ? (k + 1 == r.run_starts.size() ? " and " : ", ") : "") + std::to_string(r.run_starts[k]);
+    std::printf("rigid turntable: %d runs of views on one axis (the object moved before view%s %s)\n",
+                r.turntable_groups, r.run_starts.size() > 1 ? "s" : "", before.c_str());
+  }
   if (!r.pair_residuals.empty()) {
     std::printf("pair residual (RMS point-to-plane over %zu refined pairs): %.4f mm",
                 r.pair_residuals.size(), r.mean_pair_rmse * r.mm_per_unit);
