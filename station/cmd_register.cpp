@@ -73,6 +73,7 @@ JsonObject registration_json(const RegistrationResult& r) {
   j.add("rigid_turntable", JsonObject()
                                .add("used", r.rigid_turntable)
                                .add("runs", r.turntable_groups)
+                               .add("moved_before_views", std::vector<double>(r.run_starts.begin(), r.run_starts.end()))
                                .add("deviation_deg", r.rigid_deviation_deg)
                                .add("deviation_m", m * r.rigid_deviation));
   if (r.fuse_distance > 0)

@@ -372,6 +372,7 @@ TEST(Cli, DragonImportsAndReplaysLikeALiveScanner) {
   EXPECT_LT(json_number(r.out, "max_rotation_deg"), 0.5) << r.out;
   EXPECT_LT(json_number(r.out, "median_rotation_deg"), 0.25) << r.out;
   EXPECT_NE(r.out.find("\"rigid_turntable\":{\"used\":true"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("\"runs\":1,\"moved_before_views\":[]"), std::string::npos) << r.out;  // one run: no move
   CmdResult free_poses = run("register " + session + " -o " + merged + " --rigid-turntable off --json");
   ASSERT_EQ(free_poses.code, 0) << free_poses.out;
   EXPECT_NE(free_poses.out.find("\"rigid_turntable\":{\"used\":false"), std::string::npos) << free_poses.out;
