@@ -104,8 +104,15 @@ std::string path_key(const std::string& s) {
   return fs::path(s).lexically_normal().generic_string();
 }
 
+// A pose's translation and the axis point past this are a corrupt file or wrong units
+// (the views' own coordinates are refused past it, core/io_detail.h): 1e300 made the
+// report's errors infinite.
+constexpr double kMaxPosition = 1e9;
+constexpr const char* kPositionRange = "beyond +-1e9 (wrong units or a corrupt file?)";
+
 std::string pose_problem(const Eigen::Matrix4d& m) {
   if (!m.allFinite()) return "not finite";
+  if (m.topRightCorner<3, 1>().cwiseAbs().maxCoeff() > kMaxPosition) return std::string("translation ") + kPositionRange;
   const double last_row_error = std::max({std::abs(m(3, 0)), std::abs(m(3, 1)),
                                           std::abs(m(3, 2)), std::abs(m(3, 3) - 1.0)});
   if (last_row_error > kLastRowTolerance) return "last row is not [0, 0, 0, 1]";
@@ -145,6 +152,7 @@ void check_manifest(const SessionManifest& m, Report&& report) {
   }
   if (m.axis) {
     if (!m.axis->point.allFinite()) report("turntable_axis.point", "not finite");
+    else if (m.axis->point.cwiseAbs().maxCoeff() > kMaxPosition) report("turntable_axis.point", kPositionRange);
     if (!normalized_robust<3>(m.axis->direction))
       report("turntable_axis.direction", "zero length or not finite");
   }
@@ -322,6 +330,7 @@ class ManifestReader {
     require_map(n, path);
     TurntableAxis a;
     a.point = numbers<3>(required(n, "point", path), path + ".point");
+    if (a.point.cwiseAbs().maxCoeff() > kMaxPosition) fail(path + ".point", kPositionRange);
     const Vec3d d = numbers<3>(required(n, "direction", path), path + ".direction");
     auto unit = normalized_robust<3>(d);
     if (!unit) fail(path + ".direction", "zero length");
@@ -363,6 +372,7 @@ class ManifestReader {
     if (absent(t)) fail(path + ".translation", "missing (quaternion given without it)");
     if (absent(q)) fail(path + ".quaternion", "missing (translation given without it)");
     const Vec3d tv = numbers<3>(t, path + ".translation");
+    if (tv.cwiseAbs().maxCoeff() > kMaxPosition) fail(path + ".translation", kPositionRange);
     const Eigen::Vector4d qv = numbers<4>(q, path + ".quaternion");
     if (!normalized_robust<4>(qv)) fail(path + ".quaternion", "zero length");
     return pose_from_tq(tv, qv);

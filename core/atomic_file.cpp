@@ -100,15 +100,48 @@ struct TempGuard {
 
 }  // namespace
 
-void write_file_atomic(const fs::path& path, const std::function<void(std::ostream&)>& fill) {
+namespace {
+
+/// Where an output named `path` goes: `path`, or where its symbolic link points (a
+/// rename over the link would replace the link, not the file). Refuses a target that
+/// exists and is not a regular file, and a folder that is missing or a file.
+fs::path output_target(const fs::path& path) {
   if (path.empty()) throw IoError("(empty path): cannot write");
-  const fs::path dir = path.has_parent_path() ? path.parent_path() : fs::path(".");
   std::error_code ec;
+  fs::path target = path;
+  if (fs::is_symlink(fs::symlink_status(path, ec))) {
+    const fs::path to = fs::read_symlink(path, ec);
+    if (ec) throw IoError(path.string() + ": cannot write: cannot read the link: " + ec.message());
+    target = to.is_absolute() ? to : (path.has_parent_path() ? path.parent_path() : fs::path(".")) / to;
+    if (fs::is_symlink(fs::symlink_status(target, ec)))  // a chain: resolved whole (it must exist)
+      target = fs::canonical(target, ec);
+    if (ec) throw IoError(path.string() + ": cannot write: the link's target cannot be resolved: " + ec.message());
+  }
+  const fs::file_status st = fs::status(target, ec);
+  if (fs::exists(st) && !fs::is_regular_file(st))
+    throw IoError(path.string() + ": cannot write: " +
+                  (fs::is_directory(st) ? std::string("it is a folder") : std::string("not a regular file (a device, FIFO or socket)")) +
+                  "; name a file");
+  const fs::path dir = target.has_parent_path() ? target.parent_path() : fs::path(".");
   if (!fs::is_directory(dir, ec)) {
     if (fs::exists(dir, ec))
       throw IoError(path.string() + ": cannot write: " + dir.string() + " is a file, not a folder");
     throw IoError(path.string() + ": cannot write: folder " + dir.string() + " does not exist");
   }
+  return target;
+}
+
+}  // namespace
+
+void check_output_path(const fs::path& path) {
+  const fs::path target = output_target(path);
+  const fs::path dir = target.has_parent_path() ? target.parent_path() : fs::path(".");
+  if (::access(dir.c_str(), W_OK) != 0) fail(path, "cannot write into folder " + dir.string(), errno);
+}
+
+void write_file_atomic(const fs::path& given, const std::function<void(std::ostream&)>& fill) {
+  const fs::path path = output_target(given);
+  const fs::path dir = path.has_parent_path() ? path.parent_path() : fs::path(".");
 
   static std::atomic<unsigned> counter{0};
   const std::string tmp = path.string() + ".tmp-" + std::to_string(::getpid()) + "-" +

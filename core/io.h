@@ -34,12 +34,14 @@ struct TexturedMesh {
 // ---- parsers over in-memory bytes (used by the file readers and fuzzers) ----
 // `name` only labels error messages.
 
-/// PLY: vertices (x y z, optional nx ny nz, red green blue as uchar or float in [0,1]),
+/// PLY: vertices (x y z, optional nx ny nz, red green blue as uchar or float in [0,1];
+/// a non-finite coordinate or normal is an error naming the vertex),
 /// faces (vertex_indices / vertex_index lists; polygons are fan-triangulated).
 Mesh parse_ply(std::string_view bytes, const std::string& name);
 /// PCD v0.5-0.7; fields x y z, optional normal_x/y/z and rgb/rgba (packed uint32).
 /// Points with a NaN coordinate (organised clouds' missing pixels) are dropped;
-/// infinite coordinates are an error.
+/// infinite coordinates are an error. A file with any non-finite normal (PCL's mark
+/// for "not estimated") loses its normals whole: the stages estimate their own.
 Cloud parse_pcd(std::string_view bytes, const std::string& name);
 /// OBJ: v (optionally with r g b after x y z), vt, vn, f (polygons, negative indices).
 /// `base_dir` resolves mtllib; the texture is only named, never loaded here.

@@ -1,4 +1,5 @@
 // PCD reader (v0.5-0.7; DATA ascii, binary, binary_compressed).
+#include <algorithm>
 #include <cstdint>
 #include <cstring>
 #include <limits>
@@ -344,7 +345,21 @@ Cloud read_ascii(std::string_view data, const PcdHeader& h, const Layout& L, con
 
 }  // namespace
 
+namespace {
+Cloud parse_pcd_fields(std::string_view bytes, const std::string& name);
+}  // namespace
+
 Cloud parse_pcd(std::string_view bytes, const std::string& name) {
+  Cloud c = parse_pcd_fields(bytes, name);
+  // PCL writes NaN normals where it could not estimate one: such a file's normals are
+  // dropped whole (the stages estimate their own), never passed on as NaN.
+  if (std::any_of(c.normals.begin(), c.normals.end(), [](const Vec3f& n) { return !n.allFinite(); }))
+    c.normals.clear();
+  return c;
+}
+
+namespace {
+Cloud parse_pcd_fields(std::string_view bytes, const std::string& name) {
   const PcdHeader h = parse_header(bytes, name);
   const Layout L = find_layout(h, name);
   const std::string_view data = bytes.substr(h.data_offset);
@@ -400,5 +415,6 @@ Cloud parse_pcd(std::string_view bytes, const std::string& name) {
       },
       name);
 }
+}  // namespace
 
 }  // namespace station

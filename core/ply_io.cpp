@@ -407,9 +407,12 @@ void read_vertices(Source& src, const Element& e, const VertexLayout& L, Mesh& m
     if (const std::string why = io_detail::coordinate_problem(pt.x(), pt.y(), pt.z()); !why.empty())
       src.fail(why);
     mesh.vertices.push_back(pt);
-    if (normals)
-      mesh.normals.emplace_back(static_cast<float>(v[L.nx]), static_cast<float>(v[L.ny]),
-                                static_cast<float>(v[L.nz]));
+    if (normals) {
+      const Vec3f n(static_cast<float>(v[L.nx]), static_cast<float>(v[L.ny]), static_cast<float>(v[L.nz]));
+      // A NaN normal went through every stage into the merged cloud and the mesh.
+      if (!n.allFinite()) src.fail("non-finite normal");
+      mesh.normals.push_back(n);
+    }
     if (colours)
       mesh.colours.push_back(Rgb{io_detail::to_channel(v[L.r], L.unit_colour),
                                 io_detail::to_channel(v[L.g], L.unit_colour),

@@ -26,6 +26,7 @@
 
 #include "capture/capture.h"
 #include "capture/session.h"
+#include "core/atomic_file.h"
 #include "core/error.h"
 #include "core/io.h"
 #include "core/threads.h"
@@ -244,11 +245,14 @@ void check_output_name(const std::string& out, const char* kind, std::initialize
   std::string ext = fs::path(out).extension().string();
   std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char ch) { return char(std::tolower(ch)); });
   std::string list;
+  bool named_so = false;
   for (const char* e : exts) {
-    if (ext == e) return;
+    named_so = named_so || ext == e;
     list += std::string(list.empty() ? "" : " or ") + e;
   }
-  throw InvalidInput(out + ": " + kind + " is written as " + list + "; name the output that way");
+  if (!named_so) throw InvalidInput(out + ": " + kind + " is written as " + list + "; name the output that way");
+  // Before the work: a missing or unwritable folder, a device or FIFO at the name.
+  check_output_path(out);
 }
 
 void check_not_an_input(const std::vector<std::string>& outputs, const std::vector<std::string>& inputs) {

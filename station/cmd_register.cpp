@@ -195,7 +195,7 @@ std::string fmt_double(double v) {
 
 int cmd_register(const Common& c, const RegisterArgs& a) {
   check_output_name(a.out, "a cloud", {".ply"});
-  check_not_a_recording(a.poses_out);
+  if (!a.poses_out.empty()) check_output_name(a.poses_out, "the poses file", {".yaml", ".yml"});
   check_not_an_input({a.out, a.poses_out}, {c.config});
   StationConfig cfg = load_common(c);
   auto threads = limit_threads(cfg.threads);

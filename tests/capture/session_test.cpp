@@ -54,7 +54,8 @@ SessionManifest full_manifest() {
   a.file = "view_000.ply";
   a.angle_deg = 0.0;
   a.initial_pose = awkward_pose(0.1, Vec3d(1, 2, 3), Vec3d(1e-300, -0.0, 1.0 / 7.0));
-  a.reference_pose = awkward_pose(M_PI / 3, Vec3d(0, 1, 0), Vec3d(5e-324, 1e300, -2.5));
+  // (The largest translation a manifest holds is 1e9: beyond it a corrupt file or wrong units.)
+  a.reference_pose = awkward_pose(M_PI / 3, Vec3d(0, 1, 0), Vec3d(5e-324, 9.876543210987654e8, -2.5));
   a.colour_image = "view_000.png";
   a.timestamp = 1763776800.25;
   a.points = 30512;
@@ -338,6 +339,9 @@ TEST(ManifestValidation, AxisAndPlan) {
   expect_format_error(replaced(kValid, "step_deg: 30", "step_deg: 1e300"),
                       "plan.step_deg: beyond +-1e6 degrees");
   expect_format_error(replaced(kValid, "views: 12", "views: -1"), "plan.views: must be a non-negative");
+  // Finite but absurd (the views' own coordinates stop at 1e9): the report's errors were infinite.
+  expect_format_error(replaced(kValid, "point: [0, 0.1, 0.6]", "point: [1e300, 0.1, 0.6]"),
+                      "turntable_axis.point: beyond +-1e9");
 }
 
 TEST(ManifestValidation, ViewNumbers) {
@@ -413,6 +417,8 @@ TEST(ManifestValidation, Poses) {
                       "views[0].initial_pose.matrix: rotation is a reflection");
   expect_format_error(with_matrix("[1, 0, 0, 0,  0, 1, 0, 0,  0, 0, 1, 0,  0, 0, 0, .nan]"),
                       "views[0].initial_pose.matrix[15]: not finite");
+  expect_format_error(with_matrix("[1, 0, 0, 1e300,  0, 1, 0, 0,  0, 0, 1, 0,  0, 0, 0, 1]"),
+                      "views[0].initial_pose.matrix: translation beyond +-1e9");
   // Rounded to 6 digits by another tool: within the 1e-4 tolerance.
   EXPECT_NO_THROW(manifest_from_yaml(
       with_matrix("[0.707107, -0.707107, 0, 0,  0.707107, 0.707107, 0, 0,  0, 0, 1, 0,  0, 0, 0, 1]"),

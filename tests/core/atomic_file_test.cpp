@@ -2,6 +2,7 @@
 
 #include <gtest/gtest.h>
 #include <sys/resource.h>
+#include <sys/stat.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -80,6 +81,37 @@ TEST(AtomicFile, MissingFolderIsAnIoErrorNamingIt) {
         << e.what();
   }
   EXPECT_EQ(entries(dir.path()), 0u);
+}
+
+// A device or FIFO at the output's name was replaced by a regular file (as root,
+// --poses-out /dev/full replaced the device); a symbolic link was replaced by a file.
+TEST(AtomicFile, SpecialFilesAreRefusedAndLinksWrittenThrough) {
+  test::TempDir dir;
+  const fs::path fifo = dir / "pipe.yaml";
+  ASSERT_EQ(::mkfifo(fifo.c_str(), 0666), 0);
+  try {
+    write_file_atomic(fifo, std::string_view("data"));
+    FAIL() << "expected IoError";
+  } catch (const IoError& e) {
+    EXPECT_NE(std::string(e.what()).find("not a regular file"), std::string::npos) << e.what();
+  }
+  EXPECT_THROW(check_output_path(fifo), IoError);
+  EXPECT_TRUE(fs::is_fifo(fs::symlink_status(fifo)));
+  // A link to a file: the file gets the content, the link stays a link.
+  const fs::path target = dir / "real.yaml", link = dir / "link.yaml";
+  write_file_atomic(target, std::string_view("old"));
+  fs::create_symlink("real.yaml", link);
+  check_output_path(link);
+  write_file_atomic(link, std::string_view("new"));
+  EXPECT_TRUE(fs::is_symlink(fs::symlink_status(link)));
+  std::ifstream in(target);
+  std::string got;
+  std::getline(in, got);
+  EXPECT_EQ(got, "new");
+  // A missing folder is found before any work.
+  EXPECT_THROW(check_output_path(dir / "no_such_folder" / "x.ply"), IoError);
+  check_output_path(dir / "fresh.ply");
+  EXPECT_FALSE(fs::exists(dir / "fresh.ply"));
 }
 
 TEST(AtomicFile, RenameOntoFolderFailsCleanly) {

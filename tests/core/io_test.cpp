@@ -308,6 +308,12 @@ TEST(IoPly, MalformedInputsAreFormatErrors) {
   expect_format_error(ply, kAsciiHead + "0 0 0\n1 0 -1e38\n0 1 0\n3 0 1 2\n",
                       "line 11: vertex 1: coordinate 1e+38 is beyond +-1e9");
   EXPECT_EQ(parse_ply(kAsciiHead + "0 0 0\n1 0 -9e8\n0 1 0\n3 0 1 2\n", "big.ply").vertices[1].z(), -9e8f);
+  // A NaN normal went through registration into the merged cloud: refused by name.
+  const std::string with_normals =
+      "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n"
+      "property float nx\nproperty float ny\nproperty float nz\nend_header\n";
+  expect_format_error(ply, with_normals + "0 0 0 0 0 1\n1 0 0 0 nan 1\n", "vertex 1: non-finite normal");
+  EXPECT_EQ(parse_ply(with_normals + "0 0 0 0 0 1\n1 0 0 0 1 0\n", "n.ply").normals.size(), 2u);
   expect_format_error(ply, kAsciiHead + "0 0 0\n1 zero 0\n0 1 0\n3 0 1 2\n", "bad number 'zero'");
   expect_format_error(ply, kAsciiHead + "0 0 0\n1 0 0\n0 1 0\n200 0 1 2\n", "exceeds");
 }
@@ -559,6 +565,15 @@ TEST(IoPcd, MalformedInputsAreFormatErrors) {
   expect_format_error(pcd, pcd_header("x y z", "4 4 3", "F F F", "1 1 1", 1, 1, "ascii"), "size 3");
   expect_format_error(pcd, pcd_header("x y z", "4 4 4", "F F F", "1 1 1", 2, 1, "ascii") + "1 2 3\n1 2 inf\n",
                       "point 1: non-finite");
+  {
+    // PCL's "not estimated" normals (NaN): the file's normals are dropped whole.
+    const std::string head = pcd_header("x y z normal_x normal_y normal_z", "4 4 4 4 4 4", "F F F F F F",
+                                        "1 1 1 1 1 1", 2, 1, "ascii");
+    const Cloud some = parse_pcd(head + "1 2 3 0 0 1\n1 2 4 nan nan nan\n", "n.pcd");
+    EXPECT_EQ(some.size(), 2u);
+    EXPECT_TRUE(some.normals.empty());
+    EXPECT_EQ(parse_pcd(head + "1 2 3 0 0 1\n1 2 4 0 1 0\n", "n.pcd").normals.size(), 2u);
+  }
   expect_format_error(pcd, pcd_header("x y z", "4 4 4", "F F F", "1 1 1", 2, 1, "ascii") + "1 2 3\n1 2 1e38\n",
                       "point 1: coordinate 1e+38 is beyond");
   expect_format_error(pcd, pcd_header("x y z", "4 4 4", "F F F", "1 1 1", 1, 1, "ascii") + "1 2        \n",

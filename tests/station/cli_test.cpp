@@ -1,6 +1,7 @@
 // End-to-end tests of the `station` binary: the README's main job on the
 // bundled sample, the dragon import/replay, and bad input at the boundary.
 #include <gtest/gtest.h>
+#include <sys/stat.h>
 #include <sys/wait.h>
 
 #include <algorithm>
@@ -715,6 +716,21 @@ TEST(Cli, OddValuesAreRefusedByName) {
   EXPECT_NE(r.out.find("threads: must be 0..1024"), std::string::npos) << r.out;
   EXPECT_EQ(r.out.find("ball.ply"), std::string::npos) << r.out;
   EXPECT_FALSE(std::filesystem::exists(out));
+  // Outputs checked before the work (the second campaign): a folder that does not
+  // exist, a poses file not named .yaml (YAML was written into a .ply), a FIFO at
+  // the name (it was replaced by a regular file).
+  r = run("consolidate " + in + " -o " + (dir / "nope" / "c.ply").string() + " --points 600");
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_NE(r.out.find("folder " + (dir / "nope").string() + " does not exist"), std::string::npos) << r.out;
+  r = run("register " + (dir / "no_session").string() + " -o " + out + " --poses-out " + (dir / "p.ply").string());
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_NE(r.out.find("the poses file is written as .yaml or .yml"), std::string::npos) << r.out;
+  const std::string fifo = (dir / "pipe.ply").string();
+  ASSERT_EQ(::mkfifo(fifo.c_str(), 0666), 0);
+  r = run("consolidate " + in + " -o " + fifo + " --points 600");
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_NE(r.out.find("not a regular file"), std::string::npos) << r.out;
+  EXPECT_TRUE(std::filesystem::is_fifo(std::filesystem::symlink_status(fifo)));
 
   // The campaign's leftovers. `calibrate camera` reads its --config as every command
   // does (it was taken and ignored): a bad or missing profile is named before any image.
