@@ -1786,9 +1786,36 @@ class Registrar {
     // No pair converged at all: the views overlap nowhere. The first stays, alone,
     // as the partial result (issue 26's bad input: every other view named, exit 3),
     // rather than nothing.
-    const bool none = std::none_of(r.begin(), r.end(), [&](int i) { return bool(has_edge[i]); });
+    // A view no converged pair joins but that the turntable placed (the session's or
+    // the estimated axis, its commanded angle) stays there, held by its angle alone,
+    // when its points land among the others' (within the session size of their
+    // median centre): a sparse session (four views 90 degrees apart) overlaps too
+    // little for ICP, and failing every view there made the run without angles the
+    // one kept, which had put two of the four views half a turn off by their features.
+    std::vector<bool> held(m_.views.size(), false);
+    {
+      std::vector<Vec3d> placed;
+      std::vector<double> xs[3];
+      for (int i : r) {
+        const Vec3d c = (res_.poses[std::size_t(i)] * centroid(views_[std::size_t(i)].points).homogeneous()).head<3>();
+        placed.push_back(c);
+        if (c.allFinite())
+          for (int k = 0; k < 3; ++k) xs[k].push_back(c[k]);
+      }
+      if (!xs[0].empty()) {
+        const Vec3d mid(median_of(xs[0]), median_of(xs[1]), median_of(xs[2]));
+        for (std::size_t k = 0; k < r.size(); ++k)
+          held[std::size_t(r[k])] = !has_edge[std::size_t(r[k])] && prior_usable(r[k]) && placed[k].allFinite() &&
+                                    (placed[k] - mid).norm() <= diag_;
+      }
+    }
+    // With no pair converged at all, views are held so only where two or more are (a
+    // sparse session); one view among views 1 m apart is no turntable session.
+    const bool converged_any = std::any_of(r.begin(), r.end(), [&](int i) { return bool(has_edge[i]); });
+    if (!converged_any && std::count(held.begin(), held.end(), true) < 2) std::fill(held.begin(), held.end(), false);
+    const bool none = !converged_any && std::none_of(held.begin(), held.end(), [](bool h) { return h; });
     for (int i : r)
-      if (!has_edge[i] && !(none && i == r.front()))
+      if (!has_edge[i] && !held[std::size_t(i)] && !(none && i == r.front()))
         fail(i, "no overlap with its neighbouring views (every ICP pair failed)");
     if (none && r.size() > 1)
       res_.warnings.push_back("no two views overlap: the result is " + view_name(m_, std::size_t(r.front())) +
@@ -2220,7 +2247,9 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
   const std::vector<int> prior_linked = linked_group(*prior_best, at_table);
   const std::vector<int> free_linked = linked_group(free, at_table);
   const bool holds = std::includes(free_linked.begin(), free_linked.end(), prior_linked.begin(), prior_linked.end());
-  const bool free_links_more = free_linked.size() > prior_linked.size() && holds &&
+  // (Two views joined by one pair are no measure against the turntable: on a sparse
+  // session of a near-symmetric object that pair converges half a turn off.)
+  const bool free_links_more = free_linked.size() > prior_linked.size() && free_linked.size() >= 3 && holds &&
                                runs_agree(*prior_best, free, prior_linked, centres);
   // Views with an angle that the run without angles could not place (too little
   // overlap to find from scratch), where it is kept for joining more views, are

@@ -26,7 +26,6 @@
 
 #include "capture/capture.h"
 #include "capture/session.h"
-#include "core/atomic_file.h"
 #include "core/error.h"
 #include "core/io.h"
 #include "core/threads.h"
@@ -251,8 +250,6 @@ void check_output_name(const std::string& out, const char* kind, std::initialize
     list += std::string(list.empty() ? "" : " or ") + e;
   }
   if (!named_so) throw InvalidInput(out + ": " + kind + " is written as " + list + "; name the output that way");
-  // Before the work: a missing or unwritable folder, a device or FIFO at the name.
-  check_output_path(out);
 }
 
 void check_not_an_input(const std::vector<std::string>& outputs, const std::vector<std::string>& inputs) {

@@ -196,6 +196,10 @@ std::string fmt_double(double v) {
 int cmd_register(const Common& c, const RegisterArgs& a) {
   check_output_name(a.out, "a cloud", {".ply"});
   if (!a.poses_out.empty()) check_output_name(a.poses_out, "the poses file", {".yaml", ".yml"});
+  // Before the registration (minutes on a large session): a missing or unwritable
+  // folder, a device, FIFO or folder at either name.
+  check_output_path(a.out);
+  if (!a.poses_out.empty()) check_output_path(a.poses_out);
   check_not_an_input({a.out, a.poses_out}, {c.config});
   StationConfig cfg = load_common(c);
   auto threads = limit_threads(cfg.threads);

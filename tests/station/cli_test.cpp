@@ -716,9 +716,9 @@ TEST(Cli, OddValuesAreRefusedByName) {
   EXPECT_NE(r.out.find("threads: must be 0..1024"), std::string::npos) << r.out;
   EXPECT_EQ(r.out.find("ball.ply"), std::string::npos) << r.out;
   EXPECT_FALSE(std::filesystem::exists(out));
-  // Outputs checked before the work (the second campaign): a folder that does not
-  // exist, a poses file not named .yaml (YAML was written into a .ply), a FIFO at
-  // the name (it was replaced by a regular file).
+  // Outputs (the second campaign): a folder that does not exist, a poses file not
+  // named .yaml (YAML was written into a .ply), a FIFO at the name (it was replaced
+  // by a regular file); register checks them before its work.
   r = run("consolidate " + in + " -o " + (dir / "nope" / "c.ply").string() + " --points 600");
   EXPECT_EQ(r.code, 1) << r.out;
   EXPECT_NE(r.out.find("folder " + (dir / "nope").string() + " does not exist"), std::string::npos) << r.out;
@@ -731,6 +731,9 @@ TEST(Cli, OddValuesAreRefusedByName) {
   EXPECT_EQ(r.code, 1) << r.out;
   EXPECT_NE(r.out.find("not a regular file"), std::string::npos) << r.out;
   EXPECT_TRUE(std::filesystem::is_fifo(std::filesystem::symlink_status(fifo)));
+  r = run("register " + (dir / "no_session").string() + " -o " + (dir / "nope" / "m.ply").string());
+  EXPECT_EQ(r.code, 1) << r.out;  // the missing folder, not the missing session
+  EXPECT_NE(r.out.find("folder " + (dir / "nope").string() + " does not exist"), std::string::npos) << r.out;
 
   // The campaign's leftovers. `calibrate camera` reads its --config as every command
   // does (it was taken and ignored): a bad or missing profile is named before any image.
