@@ -102,45 +102,37 @@ struct TempGuard {
 
 namespace {
 
-/// Where an output named `path` goes: `path`, or where its symbolic link points (a
-/// rename over the link would replace the link, not the file). Refuses a target that
-/// exists and is not a regular file, and a folder that is missing or a file.
-fs::path output_target(const fs::path& path) {
+/// Refuses an output name that is taken by something other than a regular file or a
+/// symbolic link (a device, FIFO, socket, folder: the rename would replace it), and a
+/// folder that is missing or a file. A link is replaced by the file, as a regular file
+/// is; what it pointed to stays untouched (a link into a recorded session must not
+/// become a way to overwrite it).
+void check_target(const fs::path& path) {
   if (path.empty()) throw IoError("(empty path): cannot write");
   std::error_code ec;
-  fs::path target = path;
-  if (fs::is_symlink(fs::symlink_status(path, ec))) {
-    const fs::path to = fs::read_symlink(path, ec);
-    if (ec) throw IoError(path.string() + ": cannot write: cannot read the link: " + ec.message());
-    target = to.is_absolute() ? to : (path.has_parent_path() ? path.parent_path() : fs::path(".")) / to;
-    if (fs::is_symlink(fs::symlink_status(target, ec)))  // a chain: resolved whole (it must exist)
-      target = fs::canonical(target, ec);
-    if (ec) throw IoError(path.string() + ": cannot write: the link's target cannot be resolved: " + ec.message());
-  }
-  const fs::file_status st = fs::status(target, ec);
-  if (fs::exists(st) && !fs::is_regular_file(st))
+  const fs::file_status st = fs::symlink_status(path, ec);
+  if (fs::exists(st) && !fs::is_regular_file(st) && !fs::is_symlink(st))
     throw IoError(path.string() + ": cannot write: " +
                   (fs::is_directory(st) ? std::string("it is a folder") : std::string("not a regular file (a device, FIFO or socket)")) +
                   "; name a file");
-  const fs::path dir = target.has_parent_path() ? target.parent_path() : fs::path(".");
+  const fs::path dir = path.has_parent_path() ? path.parent_path() : fs::path(".");
   if (!fs::is_directory(dir, ec)) {
     if (fs::exists(dir, ec))
       throw IoError(path.string() + ": cannot write: " + dir.string() + " is a file, not a folder");
     throw IoError(path.string() + ": cannot write: folder " + dir.string() + " does not exist");
   }
-  return target;
 }
 
 }  // namespace
 
 void check_output_path(const fs::path& path) {
-  const fs::path target = output_target(path);
-  const fs::path dir = target.has_parent_path() ? target.parent_path() : fs::path(".");
+  check_target(path);
+  const fs::path dir = path.has_parent_path() ? path.parent_path() : fs::path(".");
   if (::access(dir.c_str(), W_OK) != 0) fail(path, "cannot write into folder " + dir.string(), errno);
 }
 
-void write_file_atomic(const fs::path& given, const std::function<void(std::ostream&)>& fill) {
-  const fs::path path = output_target(given);
+void write_file_atomic(const fs::path& path, const std::function<void(std::ostream&)>& fill) {
+  check_target(path);
   const fs::path dir = path.has_parent_path() ? path.parent_path() : fs::path(".");
 
   static std::atomic<unsigned> counter{0};

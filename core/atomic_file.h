@@ -12,15 +12,15 @@
 namespace station {
 
 /// Calls `fill` with a binary stream into a temporary file, then renames it to `path`.
-/// A `path` that is a symbolic link is written where it points (the link stays); one
-/// that is not a regular file (a device, a FIFO, a socket, a folder) is refused, never
-/// replaced.
+/// A `path` taken by something other than a regular file or a symbolic link (a device,
+/// a FIFO, a socket, a folder) is refused, never replaced; a link is replaced by the
+/// file (what it pointed to stays untouched).
 void write_file_atomic(const std::filesystem::path& path,
                        const std::function<void(std::ostream&)>& fill);
 
 /// What write_file_atomic would refuse, checked before a command does its work: the
-/// folder of `path` missing, a file, or not writable; `path` (or where its link points)
-/// not a regular file. Throws IoError naming `path`.
+/// folder of `path` missing, a file, or not writable; `path` a device, FIFO, socket or
+/// folder. Throws IoError naming `path`.
 void check_output_path(const std::filesystem::path& path);
 
 /// Convenience: atomically writes `bytes` to `path`.

@@ -138,21 +138,24 @@ TurntableSplit find_turntable_split(const std::vector<Eigen::Matrix4d>& poses, c
   const double whole = misfit(0, n);
   if (!std::isfinite(whole) || whole < min_misfit) return best;
   // Two runs first; three (knocked twice) only where no two explain the motions.
-  // Each run's misfit is computed once per (from, to).
-  std::vector<double> cache(std::size_t(n + 1) * std::size_t(n + 1), -1);
-  const auto part = [&](int from, int to) {
-    double& c = cache[std::size_t(from) * std::size_t(n + 1) + std::size_t(to)];
-    if (c < 0) c = misfit(from, to);
-    return c;
-  };
   double parts = std::numeric_limits<double>::infinity();
   std::vector<int> splits;
   for (int k = 3; k + 3 <= n; ++k) {
-    const double m = std::max(part(0, k), part(k, n));
+    const double m = std::max(misfit(0, k), misfit(k, n));
     if (m < parts) parts = m, splits = {k};
   }
   if (!(whole >= 3 * parts)) {
-    if (max_runs < 3) return best;
+    // The three-run search fits O(n^2) runs: only for sessions of a usual size (a
+    // turntable session of 3600 views would take millions of fits).
+    constexpr int kMaxViewsForThreeRuns = 72;
+    if (max_runs < 3 || n > kMaxViewsForThreeRuns) return best;
+    // Each run's misfit computed once per (from, to).
+    std::vector<double> cache(std::size_t(n + 1) * std::size_t(n + 1), -1);
+    const auto part = [&](int from, int to) {
+      double& c = cache[std::size_t(from) * std::size_t(n + 1) + std::size_t(to)];
+      if (c < 0) c = misfit(from, to);
+      return c;
+    };
     double parts3 = std::numeric_limits<double>::infinity();
     std::vector<int> splits3;
     for (int k = 3; k + 6 <= n; ++k)

@@ -424,10 +424,16 @@ class Registrar {
   // agree with the moved poses. The turn's sign is the one under which the motion
   // from `anchor` (a view not moved) to the group's first view is what the
   // angles say (the poses' frame need not be the table's).
-  void shift_angles(const std::vector<int>& group, const Eigen::Matrix4d& G, int anchor) {
-    if (!res_.axis || group.empty() || anchor < 0 || !has_angle(anchor)) return;
-    if (angle_shift_.empty()) angle_shift_.assign(m_.views.size(), 0.0);
+  // A move that is no turn about the table (turned over: half a turn about a level
+  // axis) leaves the angles as they are: no shift of them describes it.
+  void shift_angles(const std::vector<int>& group, const Eigen::Matrix4d& G, int anchor,
+                    const std::optional<std::pair<Vec3d, Vec3d>>& table) {
+    if (!res_.axis || !table || group.empty() || anchor < 0 || !has_angle(anchor)) return;
     const Eigen::AngleAxisd turn(Eigen::Matrix3d(G.block<3, 3>(0, 0)));
+    constexpr double kDegree = M_PI / 180;
+    if (turn.angle() > 2 * kDegree && std::abs(turn.axis().dot(table->second.normalized())) < std::cos(10 * kDegree))
+      return;
+    if (angle_shift_.empty()) angle_shift_.assign(m_.views.size(), 0.0);
     const double theta = turn.angle() * 180.0 / M_PI;
     int b = -1;
     for (int j : group)
@@ -1184,7 +1190,7 @@ class Registrar {
     const std::optional<Eigen::Matrix4d> G = place_group(before, after, now, then);
     if (!G) return false;
     for (int j : after) res_.poses[j] = *G * res_.poses[j];
-    shift_angles(after, *G, before.back());
+    shift_angles(after, *G, before.back(), object_axis(before));
     res_.regrouped_from = split_.first_after;
     std::ostringstream w;
     w.precision(3);
@@ -1282,7 +1288,7 @@ class Registrar {
       int anchor = -1;
       for (int j : base)
         if (has_angle(j) && !res_.views[std::size_t(j)].angle_rejected) anchor = j;
-      shift_angles(g, *G, anchor);
+      shift_angles(g, *G, anchor, axis);
       moved.push_back(g);
       std::ostringstream w;
       w.precision(3);
@@ -1811,8 +1817,11 @@ class Registrar {
     }
     // With no pair converged at all, views are held so only where two or more are (a
     // sparse session); one view among views 1 m apart is no turntable session.
+    // Only in a sparse session, where no pair converged anywhere: where some did, a view
+    // none joins may be a wrong angle or junk that the angle would hide (it fails, and
+    // the prior check's runs take over, as before).
     const bool converged_any = std::any_of(r.begin(), r.end(), [&](int i) { return bool(has_edge[i]); });
-    if (!converged_any && std::count(held.begin(), held.end(), true) < 2) std::fill(held.begin(), held.end(), false);
+    if (converged_any || std::count(held.begin(), held.end(), true) < 2) std::fill(held.begin(), held.end(), false);
     const bool none = !converged_any && std::none_of(held.begin(), held.end(), [](bool h) { return h; });
     for (int i : r)
       if (!has_edge[i] && !held[std::size_t(i)] && !(none && i == r.front()))
@@ -2369,11 +2378,12 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
       }
       // Too few views to fit alone (under three): the whole fit's residuals with
       // the part's own mean turn taken out (the move's), when the whole fit had its
-      // sign and step.
+      // sign and step. (A larger part whose angles fit nowhere shows none.)
+      for (int i : members) shown.residual_deg[std::size_t(i)].reset();
+      if (members.size() >= 3) continue;
       std::vector<double> res;
       for (int i : members)
         if (whole.residual_deg[std::size_t(i)]) res.push_back(*whole.residual_deg[std::size_t(i)]);
-      for (int i : members) shown.residual_deg[std::size_t(i)].reset();
       if (res.empty() || !whole.ok) continue;
       double mean = 0;
       for (double e : res) mean += wrap(e - res.front());
@@ -2382,6 +2392,7 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
         const std::optional<double>& e = whole.residual_deg[std::size_t(i)];
         if (!e) continue;
         shown.residual_deg[std::size_t(i)] = wrap(*e - mean);
+        shown.ok = true;
         if (std::abs(wrap(*e - mean)) > params.wrong_angle_deg) shown.wrong.push_back(i);
       }
     }

@@ -260,8 +260,8 @@ struct RegistrationResult {
   /// (RegistrationParams::rigid_turntable).
   bool rigid_turntable = false;
   /// Rigid turntable runs the table views were held on, last round: 1 (one
-  /// turntable, rigid_turntable), 2 (the object moved between two runs of views:
-  /// each on the one axis with its own base pose), 0 (free poses).
+  /// turntable, rigid_turntable), 2 or 3 (the object moved between runs of views,
+  /// once or twice: each run on the one axis with its own base pose), 0 (free poses).
   int turntable_groups = 0;
   int moved_after_view = -1;  ///< turntable_groups >= 2: the first view of the second run
   /// turntable_groups >= 2: the first view of each run after the first (the object

@@ -84,8 +84,9 @@ TEST(AtomicFile, MissingFolderIsAnIoErrorNamingIt) {
 }
 
 // A device or FIFO at the output's name was replaced by a regular file (as root,
-// --poses-out /dev/full replaced the device); a symbolic link was replaced by a file.
-TEST(AtomicFile, SpecialFilesAreRefusedAndLinksWrittenThrough) {
+// --poses-out /dev/full replaced the device): refused now. A symbolic link is replaced
+// by the file, never written through (it may point into a recorded session).
+TEST(AtomicFile, SpecialFilesAreRefusedAndLinksReplaced) {
   test::TempDir dir;
   const fs::path fifo = dir / "pipe.yaml";
   ASSERT_EQ(::mkfifo(fifo.c_str(), 0666), 0);
@@ -97,17 +98,25 @@ TEST(AtomicFile, SpecialFilesAreRefusedAndLinksWrittenThrough) {
   }
   EXPECT_THROW(check_output_path(fifo), IoError);
   EXPECT_TRUE(fs::is_fifo(fs::symlink_status(fifo)));
-  // A link to a file: the file gets the content, the link stays a link.
+  // A link to a file: the link becomes the file; the file it pointed to keeps its content.
   const fs::path target = dir / "real.yaml", link = dir / "link.yaml";
   write_file_atomic(target, std::string_view("old"));
   fs::create_symlink("real.yaml", link);
   check_output_path(link);
   write_file_atomic(link, std::string_view("new"));
-  EXPECT_TRUE(fs::is_symlink(fs::symlink_status(link)));
-  std::ifstream in(target);
-  std::string got;
-  std::getline(in, got);
-  EXPECT_EQ(got, "new");
+  EXPECT_FALSE(fs::is_symlink(fs::symlink_status(link)));
+  const auto first_line = [](const fs::path& p) {
+    std::ifstream in(p);
+    std::string got;
+    std::getline(in, got);
+    return got;
+  };
+  EXPECT_EQ(first_line(target), "old");
+  EXPECT_EQ(first_line(link), "new");
+  // A link to a FIFO is replaced too (the FIFO stays).
+  fs::create_symlink("pipe.yaml", dir / "to_pipe.yaml");
+  write_file_atomic(dir / "to_pipe.yaml", std::string_view("x"));
+  EXPECT_TRUE(fs::is_fifo(fs::symlink_status(fifo)));
   // A missing folder is found before any work.
   EXPECT_THROW(check_output_path(dir / "no_such_folder" / "x.ply"), IoError);
   check_output_path(dir / "fresh.ply");
