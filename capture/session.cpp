@@ -5,6 +5,7 @@
 #include <Eigen/Geometry>
 #include <Eigen/LU>
 #include <algorithm>
+#include <cctype>
 #include <charconv>
 #include <cmath>
 #include <cstdio>
@@ -591,6 +592,14 @@ SessionManifest read_manifest(const fs::path& path) {
       throw IoError(dir.string() + ": not a session folder (no " + kManifestName + ")");
     throw IoError(file.string() + ": no such file or folder");
   }
+  // A view or mesh given for the session (`register s/view_000.ply`): said so, not
+  // as the YAML parser's "syntax error at line 16" in the PLY's binary part.
+  std::string ext = file.extension().string();
+  std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char ch) { return char(std::tolower(ch)); });
+  for (const char* cloud : {".ply", ".pcd", ".obj", ".off", ".stl", ".png", ".jpg", ".jpeg"})
+    if (ext == cloud)
+      throw IoError(file.string() + ": a " + ext.substr(1) + " file, not a session: give the session's folder (or its " +
+                    kManifestName + ")");
   SessionManifest m = manifest_from_yaml(read_file_bytes(file), file.string());
   for (std::size_t i = 0; i < m.views.size(); ++i) {
     const fs::path view = dir / m.views[i].file;

@@ -575,6 +575,14 @@ TEST(ManifestRead, NotASessionFolder) {
   EXPECT_THROW(Session::open(dir.path()), IoError);
   write_text(dir.path() / kManifestName, "format: [");
   EXPECT_THROW(read_manifest(dir.path()), FormatError);
+  // A view given for the session: said so (was the YAML parser's syntax error).
+  write_text(dir.path() / "view_000.PLY", "ply\nformat binary_little_endian 1.0\n");
+  try {
+    read_manifest(dir.path() / "view_000.PLY");
+    FAIL() << "expected IoError";
+  } catch (const IoError& e) {
+    EXPECT_NE(std::string(e.what()).find("view_000.PLY: a ply file, not a session"), std::string::npos) << e.what();
+  }
 }
 
 TEST(Session, CreateWritesEmptyManifest) {
