@@ -132,6 +132,20 @@ double median_of(std::vector<double> v) {
   return n % 2 ? v[n / 2] : 0.5 * (v[n / 2 - 1] + v[n / 2]);
 }
 
+// Per centre: finite and within `diagonal` of the median of the finite centres (the
+// views of one object on the table, against views lying elsewhere).
+std::vector<bool> views_at_table(const std::vector<Vec3d>& c, double diagonal) {
+  std::vector<double> xs[3];
+  for (const Vec3d& x : c)
+    if (x.allFinite())
+      for (int a = 0; a < 3; ++a) xs[a].push_back(x[a]);
+  std::vector<bool> out(c.size(), false);
+  if (xs[0].empty()) return out;
+  const Vec3d median(median_of(xs[0]), median_of(xs[1]), median_of(xs[2]));
+  for (std::size_t i = 0; i < c.size(); ++i) out[i] = c[i].allFinite() && (c[i] - median).norm() <= diagonal;
+  return out;
+}
+
 Eigen::Matrix3d skew(const Vec3d& a) {
   Eigen::Matrix3d m;
   m << 0, -a.z(), a.y(), a.z(), 0, -a.x(), -a.y(), a.x(), 0;
@@ -1789,39 +1803,26 @@ class Registrar {
                                                       : "no turntable prior: rotation about it is arbitrary") +
           ")";
     }
-    // No pair converged at all: the views overlap nowhere. The first stays, alone,
-    // as the partial result (issue 26's bad input: every other view named, exit 3),
-    // rather than nothing.
-    // A view no converged pair joins but that the turntable placed (the session's or
-    // the estimated axis, its commanded angle) stays there, held by its angle alone,
-    // when its points land among the others' (within the session size of their
-    // median centre): a sparse session (four views 90 degrees apart) overlaps too
-    // little for ICP, and failing every view there made the run without angles the
-    // one kept, which had put two of the four views half a turn off by their features.
-    std::vector<bool> held(m_.views.size(), false);
-    {
-      std::vector<Vec3d> placed;
-      std::vector<double> xs[3];
-      for (int i : r) {
-        const Vec3d c = (res_.poses[std::size_t(i)] * centroid(views_[std::size_t(i)].points).homogeneous()).head<3>();
-        placed.push_back(c);
-        if (c.allFinite())
-          for (int k = 0; k < 3; ++k) xs[k].push_back(c[k]);
-      }
-      if (!xs[0].empty()) {
-        const Vec3d mid(median_of(xs[0]), median_of(xs[1]), median_of(xs[2]));
-        for (std::size_t k = 0; k < r.size(); ++k)
-          held[std::size_t(r[k])] = !has_edge[std::size_t(r[k])] && prior_usable(r[k]) && placed[k].allFinite() &&
-                                    (placed[k] - mid).norm() <= diag_;
-      }
-    }
-    // With no pair converged at all, views are held so only where two or more are (a
-    // sparse session); one view among views 1 m apart is no turntable session.
-    // Only in a sparse session, where no pair converged anywhere: where some did, a view
-    // none joins may be a wrong angle or junk that the angle would hide (it fails, and
-    // the prior check's runs take over, as before).
+    // No pair converged at all: the views overlap nowhere, or too little for ICP. A
+    // sparse session (four views 90 degrees apart): each view the turntable placed
+    // (the session's or the estimated axis, its commanded angle) stays there, held by
+    // its angle alone, where two or more such views land among the others' (within
+    // the session size of their median centre); failing them made the run without
+    // angles the one kept, which had put two of four views half a turn off by their
+    // features. Otherwise the first stays, alone, as the partial result (issue 26's
+    // bad input, views 1 m apart: every other view named, exit 3), rather than
+    // nothing. Where some pair converged, a view none joins fails (held, a wrong
+    // angle or junk would be hidden from the prior check's runs).
     const bool converged_any = std::any_of(r.begin(), r.end(), [&](int i) { return bool(has_edge[i]); });
-    if (converged_any || std::count(held.begin(), held.end(), true) < 2) std::fill(held.begin(), held.end(), false);
+    std::vector<bool> held(m_.views.size(), false);
+    if (!converged_any) {
+      std::vector<Vec3d> placed;
+      for (int i : r)
+        placed.push_back((res_.poses[std::size_t(i)] * centroid(views_[std::size_t(i)].points).homogeneous()).head<3>());
+      const std::vector<bool> among = views_at_table(placed, diag_);
+      for (std::size_t k = 0; k < r.size(); ++k) held[std::size_t(r[k])] = among[k] && prior_usable(r[k]);
+      if (std::count(held.begin(), held.end(), true) < 2) std::fill(held.begin(), held.end(), false);
+    }
     const bool none = !converged_any && std::none_of(held.begin(), held.end(), [](bool h) { return h; });
     for (int i : r)
       if (!has_edge[i] && !held[std::size_t(i)] && !(none && i == r.front()))
@@ -2059,17 +2060,6 @@ std::vector<Vec3d> view_centres(const std::vector<Cloud>& clouds) {
   return c;
 }
 
-std::vector<bool> views_at_table(const std::vector<Vec3d>& c, double diagonal) {
-  std::vector<double> xs[3];
-  for (const Vec3d& x : c)
-    if (x.allFinite())
-      for (int a = 0; a < 3; ++a) xs[a].push_back(x[a]);
-  std::vector<bool> out(c.size(), false);
-  if (xs[0].empty()) return out;
-  const Vec3d median(median_of(xs[0]), median_of(xs[1]), median_of(xs[2]));
-  for (std::size_t i = 0; i < c.size(); ++i) out[i] = c[i].allFinite() && (c[i] - median).norm() <= diagonal;
-  return out;
-}
 
 // Signs that the prior misled the run: the views refused one rigid turntable, a
 // view with points failed, or a commanded angle was rejected.

@@ -207,6 +207,15 @@ void print_prior(const char* what, const RegistrationResult& r) {
                 r.views[i].rotation_error_deg.value_or(-1), 1000 * r.views[i].object_translation_error.value_or(-1));
 }
 
+// The object moved on the table (object frame: z up): turned by `deg` about its up,
+// then shifted by `shift`.
+Eigen::Matrix4d table_move(double deg, const Vec3d& shift) {
+  Eigen::Matrix4d D = Eigen::Matrix4d::Identity();
+  D.block<3, 3>(0, 0) = Eigen::AngleAxisd(deg * M_PI / 180, Vec3d::UnitZ()).toRotationMatrix();
+  D.block<3, 1>(0, 3) = shift;
+  return D;
+}
+
 // Every view's angle error within `limit` degrees (the prior's own 3 degrees, plus
 // the registration's) and no view named as a wrong angle: where the object moved, its
 // runs' angles are off together by the move, which the warnings about it explain.
@@ -373,9 +382,7 @@ TEST(SimRegistration, AKnockedObjectIsRegisteredAsTwoTurntableRuns) {
   PriorCase c;
   ASSERT_EQ(c.clouds.size(), 12u);
   ASSERT_TRUE(c.m.axis.has_value());
-  Eigen::Matrix4d D = Eigen::Matrix4d::Identity();
-  D.block<3, 3>(0, 0) = Eigen::AngleAxisd(20 * M_PI / 180, Vec3d::UnitZ()).toRotationMatrix();  // object frame: z up
-  D.block<3, 1>(0, 3) = Vec3d(0.02, 0.01, 0);
+  const Eigen::Matrix4d D = table_move(20, Vec3d(0.02, 0.01, 0));
   c.move_object(D, 6, 11);
   const RegistrationResult r = register_views(c.clouds, c.m);
   print_prior("object knocked after view 5", r);
@@ -403,9 +410,7 @@ TEST(SimRegistration, AKnockedObjectIsRegisteredAsTwoTurntableRuns) {
 TEST(SimRegistration, AnObjectTurnedAQuarterOnTheTableIsRegisteredAsTwoRuns) {
   PriorCase c;
   ASSERT_EQ(c.clouds.size(), 12u);
-  Eigen::Matrix4d D = Eigen::Matrix4d::Identity();
-  D.block<3, 3>(0, 0) = Eigen::AngleAxisd(M_PI / 2, Vec3d::UnitZ()).toRotationMatrix();  // object frame: z up
-  D.block<3, 1>(0, 3) = Vec3d(0.03, 0.01, 0);
+  const Eigen::Matrix4d D = table_move(90, Vec3d(0.03, 0.01, 0));
   c.rescan_moved(D, 6, 11);
   const RegistrationResult r = register_views(c.clouds, c.m);
   print_prior("object turned 90 deg after view 5", r);
@@ -426,12 +431,8 @@ TEST(SimRegistration, AnObjectTurnedAQuarterOnTheTableIsRegisteredAsTwoRuns) {
 TEST(SimRegistration, AnObjectKnockedTwiceIsRegisteredAsThreeTurntableRuns) {
   PriorCase c;
   ASSERT_EQ(c.clouds.size(), 12u);
-  Eigen::Matrix4d D = Eigen::Matrix4d::Identity();
-  D.block<3, 3>(0, 0) = Eigen::AngleAxisd(20 * M_PI / 180, Vec3d::UnitZ()).toRotationMatrix();
-  D.block<3, 1>(0, 3) = Vec3d(0.02, 0.01, 0);
-  Eigen::Matrix4d E = Eigen::Matrix4d::Identity();
-  E.block<3, 3>(0, 0) = Eigen::AngleAxisd(-30 * M_PI / 180, Vec3d::UnitZ()).toRotationMatrix();
-  E.block<3, 1>(0, 3) = Vec3d(-0.01, 0.02, 0);
+  const Eigen::Matrix4d D = table_move(20, Vec3d(0.02, 0.01, 0));
+  const Eigen::Matrix4d E = table_move(-30, Vec3d(-0.01, 0.02, 0));
   c.rescan_moved(D, 4, 7);
   c.rescan_moved(E * D, 8, 11);
   const RegistrationResult r = register_views(c.clouds, c.m);
@@ -530,9 +531,7 @@ TEST(SimRegistration, OneViewWithTheObjectShiftedIsRegisteredWithoutItsPrior) {
 TEST(SimRegistration, TheIssuesSessionNominalAnglesAMoveAndViewsWithoutAngle) {
   PriorCase c;
   ASSERT_EQ(c.clouds.size(), 12u);
-  Eigen::Matrix4d D = Eigen::Matrix4d::Identity();
-  D.block<3, 3>(0, 0) = Eigen::AngleAxisd(10 * M_PI / 180, Vec3d::UnitZ()).toRotationMatrix();
-  D.block<3, 1>(0, 3) = Vec3d(0.04, 0.03, 0);
+  const Eigen::Matrix4d D = table_move(10, Vec3d(0.04, 0.03, 0));
   c.move_object(D, 5, 11);  // moved after view 4
   std::vector<Cloud> clouds;
   SessionManifest m = c.m;
