@@ -388,7 +388,7 @@ void add_register_commands(CLI::App& app, std::vector<Command>& out) {
   add_common(reg, c_reg);
   reg->add_option("session", reg_args.session, "session folder")->required();
   reg->add_option("-o,--out", reg_args.out, "merged cloud (.ply)")->required();
-  reg->add_option("--poses-out", reg_args.poses_out, "write the refined poses and diagnostics (YAML)");
+  reg->add_option("--poses-out", reg_args.poses_out, "write the refined poses and diagnostics (YAML: named .yaml or .yml)");
   add_profile_options(reg, "register", c_reg);
 
 
