@@ -87,12 +87,35 @@ class FdStreambuf : public std::streambuf {
   throw IoError(msg);
 }
 
+// The paths an interrupt handler removes (remove_unfinished_outputs): per kind, fixed
+// slots of lock-free pointers to strings their owners keep alive while registered.
+enum class Kind : int { kTemporary = 0, kFile = 1, kFolder = 2 };
+constexpr int kSlots = 128;
+std::atomic<const char*> g_paths[3][kSlots];
+static_assert(std::atomic<const char*>::is_always_lock_free, "the interrupt handler needs lock-free pointers");
+
+/// The slot (kind * kSlots + index), or -1 when all are taken (that path is then left
+/// to the normal exit paths).
+int register_path(const char* p, Kind kind) {
+  for (int k = 0; k < kSlots; ++k) {
+    const char* expected = nullptr;
+    if (g_paths[int(kind)][k].compare_exchange_strong(expected, p)) return int(kind) * kSlots + k;
+  }
+  return -1;
+}
+void unregister_path(int slot) {
+  if (slot >= 0) g_paths[slot / kSlots][slot % kSlots].store(nullptr);
+}
+
 /// Removes the temporary on every exit path unless released.
 struct TempGuard {
   std::string path;
   int fd = -1;
   bool armed = true;
+  int slot = -1;
+  TempGuard(std::string p, int f) : path(std::move(p)), fd(f) { slot = register_path(path.c_str(), Kind::kTemporary); }
   ~TempGuard() {
+    unregister_path(slot);
     if (fd >= 0) ::close(fd);
     if (armed) ::unlink(path.c_str());
   }
@@ -157,6 +180,8 @@ void write_file_atomic(const fs::path& path, const std::function<void(std::ostre
   const int fd_to_close = guard.fd;
   guard.fd = -1;
   if (::close(fd_to_close) != 0) fail(path, "close failed", errno);
+  // (An interrupt between the rename and the release would remove the new name's
+  // temporary, which no longer exists: harmless.)
   if (::rename(tmp.c_str(), path.c_str()) != 0) fail(path, "cannot rename temporary into place", errno);
   guard.armed = false;
 
@@ -187,9 +212,30 @@ CreatedOutputs::CreatedOutputs(const fs::path& dir, const std::vector<fs::path>&
     if (p == p.parent_path()) break;
     p = p.parent_path();
   }
+  for (const fs::path& f : files_) slots_.push_back(register_path(f.c_str(), Kind::kFile));
+  for (const fs::path& d : folders_) slots_.push_back(register_path(d.c_str(), Kind::kFolder));
+}
+
+void remove_unfinished_outputs() noexcept {
+  for (const Kind kind : {Kind::kTemporary, Kind::kFile})
+    for (std::atomic<const char*>& slot : g_paths[int(kind)])
+      if (const char* p = slot.exchange(nullptr)) ::unlink(p);
+  // Folders only when empty; a few passes, so a parent emptied by removing its child
+  // goes too, whatever order their slots are in.
+  for (int pass = 0; pass < 8; ++pass)
+    for (std::atomic<const char*>& slot : g_paths[int(Kind::kFolder)])
+      if (const char* p = slot.load()) ::rmdir(p);
+}
+
+void CreatedOutputs::keep() {
+  for (int s : slots_) unregister_path(s);
+  slots_.clear();
+  folders_.clear();
+  files_.clear();
 }
 
 CreatedOutputs::~CreatedOutputs() {
+  for (int s : slots_) unregister_path(s);
   std::error_code ec;
   for (const fs::path& f : files_) fs::remove(f, ec);
   for (const fs::path& d : folders_) {

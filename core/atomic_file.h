@@ -26,6 +26,12 @@ void check_output_path(const std::filesystem::path& path);
 /// Convenience: atomically writes `bytes` to `path`.
 void write_file_atomic(const std::filesystem::path& path, std::string_view bytes);
 
+/// For an interrupt handler (SIGINT, SIGTERM), async-signal-safe: removes the
+/// temporaries of the writes in progress and what the live CreatedOutputs would
+/// remove on failure (their new files, then their folders still empty). The
+/// process must end right after it (_Exit): the writes in progress are cut off.
+void remove_unfinished_outputs() noexcept;
+
 /// What a command is about to create for its output: the folders of `dir` (and its
 /// parents) that do not exist yet, and the files of `files` that do not. Unless
 /// kept, the destructor (a failed command) removes those files, then those folders
@@ -37,13 +43,11 @@ class CreatedOutputs {
   CreatedOutputs(const CreatedOutputs&) = delete;
   CreatedOutputs& operator=(const CreatedOutputs&) = delete;
   /// The command succeeded: everything stays.
-  void keep() {
-    folders_.clear();
-    files_.clear();
-  }
+  void keep();
 
  private:
   std::vector<std::filesystem::path> folders_, files_;
+  std::vector<int> slots_;  ///< their places in the interrupt handler's list
 };
 
 }  // namespace station

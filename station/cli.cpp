@@ -1,10 +1,15 @@
 #include "station/cli.h"
 
 #include <CLI/CLI.hpp>
+#include <unistd.h>
+
+#include <csignal>
 #include <cstdio>
+#include <cstdlib>
 #include <new>
 #include <vector>
 
+#include "core/atomic_file.h"
 #include "core/error.h"
 #include "station/commands.h"
 
@@ -15,6 +20,22 @@
 namespace station {
 
 using namespace cli;
+
+namespace cli {
+
+extern "C" void on_interrupt(int) {
+  remove_unfinished_outputs();
+  static const char msg[] = "\nstation: interrupted; files being written were removed\n";
+  [[maybe_unused]] auto n = ::write(2, msg, sizeof msg - 1);
+  std::_Exit(130);
+}
+
+void default_interrupt_handling() {
+  std::signal(SIGINT, on_interrupt);
+  std::signal(SIGTERM, on_interrupt);
+}
+
+}  // namespace cli
 
 int run_cli(int argc, char** argv) {
   CLI::App app{"station: capture-to-mesh station for turntable 3D-scanning benches"};
@@ -33,6 +54,9 @@ int run_cli(int argc, char** argv) {
     std::fprintf(stderr, "station: %s\n", parse_error_line(app, e).c_str());
     return 2;
   }
+  // Ctrl-C or a kill: one line, exit 130, no temporary or half-made output left
+  // (`run` and `scan` stop after the step in progress first: cmd_capture.cpp).
+  default_interrupt_handling();
   try {
     for (const Command& c : commands)
       if (*c.app) return c.run();

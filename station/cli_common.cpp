@@ -198,6 +198,8 @@ StationConfig load_common(const Common& c, const std::vector<std::string>& extra
     const std::string what = e.what();
     for (const auto& [kv, option] : c.spelled)
       if (what.rfind("--set " + kv + ":", 0) == 0) throw UsageError(option + what.substr(6 + kv.size()));
+    // A bad --set value is an option's fault: a usage error (exit 2), as README says.
+    if (what.rfind("--set ", 0) == 0) throw UsageError(what);
     throw;
   }
   if (c.threads >= 0) cfg.threads = c.threads;

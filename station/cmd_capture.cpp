@@ -46,8 +46,7 @@ std::atomic<bool> g_stop{false};
 /// First Ctrl-C: stop after the step in progress (a view, a stage); second: abort now.
 extern "C" void on_sigint(int) {
   if (g_stop) {
-    std::signal(SIGINT, SIG_DFL);
-    std::raise(SIGINT);
+    on_interrupt(0);  // abort now: what is half-written goes
     return;
   }
   g_stop = true;
@@ -70,7 +69,7 @@ int run_job(const StationConfig& cfg, const Common& c, const RunArgs& a, bool bl
   try {
     r = run_pipeline(cfg, req);
   } catch (const IoError& e) {
-    std::signal(SIGINT, SIG_DFL);
+    default_interrupt_handling();
     // A failed write (full disk...) leaves every finished stage's output in place;
     // say so only where some stage did finish (not for a missing input).
     std::error_code ec;
@@ -78,7 +77,7 @@ int run_job(const StationConfig& cfg, const Common& c, const RunArgs& a, bool bl
     throw IoError(std::string(e.what()) + "; finished stages in " + a.out +
                   " are intact: fix the cause (a full disk: free space) and rerun with --resume");
   }
-  std::signal(SIGINT, SIG_DFL);
+  default_interrupt_handling();
   if (r.interrupted) {
     std::fprintf(stderr, "run: interrupted after %zu stages; continue with: station run %s -o %s --resume\n",
                  r.stages.size(), a.in.c_str(), a.out.c_str());
@@ -140,7 +139,7 @@ int capture_into(Session& session, Scanner& scanner, Turntable& turntable,
         },
         &g_stop);
   } catch (const Error& e) {
-    std::signal(SIGINT, SIG_DFL);
+    default_interrupt_handling();
     // The views recorded before the failure are in the session (each one committed to
     // its manifest as it came): say so, and how to go on.
     const std::size_t kept = session.manifest().views.size();
@@ -154,7 +153,7 @@ int capture_into(Session& session, Scanner& scanner, Turntable& turntable,
     if (dynamic_cast<const FormatError*>(&e)) throw FormatError(e.what() + next);
     throw InvalidInput(e.what() + next);
   }
-  std::signal(SIGINT, SIG_DFL);
+  default_interrupt_handling();
   scanner.close();
   turntable.close();
   if (res.interrupted) {
@@ -384,7 +383,7 @@ int cmd_scan(const Common& c, const ScanArgs& a) {
   std::vector<std::string> profile_set, scanner_set;
   for (const std::string& kv : a.set) {
     const auto eq = kv.find('=');
-    if (eq == std::string::npos || eq == 0) throw InvalidInput("--set " + kv + ": expected key=value");
+    if (eq == std::string::npos || eq == 0) throw UsageError("--set " + kv + ": expected key=value");
     (kv.substr(0, eq).find('.') != std::string::npos ? profile_set : scanner_set).push_back(kv);
   }
   StationConfig cfg = load_common(c, profile_set);

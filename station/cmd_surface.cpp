@@ -96,6 +96,7 @@ int cmd_fit(const Common& c, const FitArgs& a) {
   const auto t0 = std::chrono::steady_clock::now();
   check_output_name(a.out, "a mesh", {".ply", ".obj"});
   check_not_an_input({a.out}, {a.in, a.landmarks, a.templ.rfind("icosphere:", 0) == 0 ? std::string() : a.templ, c.config});
+  check_output_path(a.out);  // (a missing folder, a device: before the fit, not after it)
   StationConfig cfg = load_common(c);
   auto threads = limit_threads(cfg.threads);
   const Cloud target = read_cloud(a.in);
@@ -163,6 +164,8 @@ int cmd_parameterise(const Common& c, const ParameteriseArgs& a) {
   check_output_name(a.out, "a mesh with UVs", {".obj"});
   check_not_a_recording(a.mapped);
   check_not_an_input({a.out, a.mapped}, {a.in, c.config});
+  check_output_path(a.out);
+  if (!a.mapped.empty()) check_output_path(a.mapped);
   const SimpleSurface surface = a.onto == "plane" ? SimpleSurface::kPlane
                                 : a.onto == "cylinder" ? SimpleSurface::kCylinder
                                                        : SimpleSurface::kSphere;
@@ -209,6 +212,7 @@ int cmd_consolidate(const Common& c, const ConsolidateArgs& a) {
   const auto t0 = std::chrono::steady_clock::now();
   check_output_name(a.out, "a cloud", {".ply"});
   check_not_an_input({a.out}, {a.in, c.config});
+  check_output_path(a.out);
   StationConfig cfg = load_common(c);
   const auto& pc = cfg.pipeline.consolidate;
   WlopParams p = wlop_params(cfg.pipeline, cfg.threads);
@@ -292,6 +296,9 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
     if (!c.json) std::fprintf(stderr, "%s\n", surface_note(a.in, line, "reconstruct: ", "note: ").c_str());
   };
   const bool in_blocks = rc.in_blocks() || a.resume;
+  // In one piece the output is checked before the work; a run in blocks keeps its
+  // blocks' files when the output cannot be written at the end, for --resume.
+  if (!in_blocks) check_output_path(a.out);
   if (!a.scans.empty() && in_blocks)
     throw InvalidInput("--scans does not go with --blocks, --max-memory or --resume (the blocks are not snapped)");
   if (in_blocks) {

@@ -33,6 +33,12 @@ class UsageError : public InvalidInput {
   using InvalidInput::InvalidInput;
 };
 
+/// SIGINT / SIGTERM while a command works: its temporaries and the outputs it created
+/// removed (remove_unfinished_outputs), "station: interrupted" on stderr, exit 130.
+extern "C" void on_interrupt(int);
+/// Installs on_interrupt for SIGINT and SIGTERM (again after a command's own handler).
+void default_interrupt_handling();
+
 /// Options every subcommand takes.
 struct Common {
   std::string config;

@@ -78,7 +78,11 @@ struct Reader {
   }
   void check_keys(const YAML::Node& n, const std::string& where,
                   std::initializer_list<const char*> known) const {
-    if (!n.IsMap()) fail(where, "expected a mapping");
+    if (!n.IsMap()) {
+      // The whole file (where is empty): a scalar or a list is no profile.
+      if (where.empty()) throw FormatError(file + ": expected a profile (a mapping of sections such as capture:, register:), got " + (n.IsSequence() ? "a list" : n.IsScalar() ? "a single value" : "nothing"));
+      fail(where, "expected a mapping");
+    }
     for (const auto& kv : n) {
       const std::string k = kv.first.as<std::string>();
       bool ok = false;
@@ -377,10 +381,16 @@ StationConfig load_config(const fs::path& path, const std::vector<std::string>& 
       r.fail("capture.volume.radius", "must be above 0 (metres, the working cylinder's radius about the axis)");
     if (!(p.volume.max_height > 0))
       r.fail("capture.volume.max_height", "must be above 0 (metres above the table top)");
-    if (!(p.volume.table_clearance < p.volume.max_height))
-      r.fail(r.overridden.count("capture.volume.table_clearance") ? "capture.volume.table_clearance"
-                                                                   : "capture.volume.max_height",
+    if (!(p.volume.table_clearance < p.volume.max_height)) {
+      // The key given last: a --set one, else the one the file gives where it leaves
+      // the other at its default.
+      const YAML::Node v = c["volume"];
+      const bool clearance_given = v && v["table_clearance"], height_given = v && v["max_height"];
+      const bool blame_clearance = r.overridden.count("capture.volume.table_clearance") ||
+                                   (!r.overridden.count("capture.volume.max_height") && clearance_given && !height_given);
+      r.fail(blame_clearance ? "capture.volume.table_clearance" : "capture.volume.max_height",
              "the working volume's max_height must be above its table_clearance (metres above the table top)");
+    }
     if (const YAML::Node a = c["axis"]) {
       r.check_keys(a, "capture.axis", {"point", "direction"});
       if (!a["point"] || !a["direction"]) r.fail("capture.axis", "needs point and direction");

@@ -123,6 +123,47 @@ TEST(AtomicFile, SpecialFilesAreRefusedAndLinksReplaced) {
   EXPECT_FALSE(fs::exists(dir / "fresh.ply"));
 }
 
+// What an interrupt handler calls (station's SIGINT/SIGTERM): the write in progress
+// loses its temporary (the write then fails, the old file untouched), and what a live
+// CreatedOutputs made goes, its folders only once empty; before, a Ctrl-C left the
+// temporary "PATH.tmp-<pid>-<n>" next to the output.
+TEST(AtomicFile, AnInterruptRemovesTheTemporaryAndTheCreatedOutputs) {
+  test::TempDir dir;
+  const fs::path out = dir / "mesh.ply";
+  write_file_atomic(out, std::string_view("old"));
+  std::size_t during = 0;
+  EXPECT_THROW(write_file_atomic(out,
+                                 [&](std::ostream& o) {
+                                   o << "new";
+                                   during = entries(dir.path());  // mesh.ply and its temporary
+                                   remove_unfinished_outputs();
+                                 }),
+               IoError);
+  EXPECT_EQ(during, 2u);
+  EXPECT_EQ(entries(dir.path()), 1u);
+  EXPECT_EQ(slurp(out), "old");
+  {
+    const fs::path made = dir / "a" / "b", file = dir / "a" / "b" / "merged.ply", other = dir / "poses.yaml";
+    CreatedOutputs created(made, {file, other});
+    fs::create_directories(made);
+    write_file_atomic(file, std::string_view("x"));
+    write_file_atomic(other, std::string_view("y"));
+    remove_unfinished_outputs();
+    EXPECT_FALSE(fs::exists(dir / "a"));
+    EXPECT_FALSE(fs::exists(other));
+    EXPECT_TRUE(fs::exists(out));
+  }
+  {
+    // Kept outputs are not the handler's any more.
+    CreatedOutputs created(dir / "c", {dir / "c" / "kept.ply"});
+    fs::create_directories(dir / "c");
+    write_file_atomic(dir / "c" / "kept.ply", std::string_view("x"));
+    created.keep();
+    remove_unfinished_outputs();
+    EXPECT_TRUE(fs::exists(dir / "c" / "kept.ply"));
+  }
+}
+
 TEST(AtomicFile, RenameOntoFolderFailsCleanly) {
   test::TempDir dir;
   fs::create_directories(dir / "occupied" / "inner");

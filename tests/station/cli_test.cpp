@@ -752,7 +752,7 @@ TEST(Cli, OddValuesAreRefusedByName) {
   // cloud is there (after the merge of a session), names its key, not the cloud.
   const std::string run_dir = (dir / "run").string();
   r = run("run --quiet " + in + " -o " + run_dir + " --set consolidate.radius=1e308");
-  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_EQ(r.code, 2) << r.out;  // a bad option value: usage (README)
   EXPECT_EQ(r.out.rfind("station: --set consolidate.radius=1e308: ", 0), 0u) << r.out;
   EXPECT_FALSE(std::filesystem::exists(run_dir));
   r = run("run --quiet " + in + " -o " + run_dir + " --set consolidate.radius=10");
@@ -775,7 +775,7 @@ TEST(Cli, OddValuesAreRefusedByName) {
   for (const std::string kv :
        {"capture.volume.radius=-1", "capture.volume.max_height=0", "capture.volume.table_clearance=0.5"}) {
     r = run("scan -o " + sess + " --views 1 --set width=160 --set height=120 --set " + kv);
-    EXPECT_EQ(r.code, 1) << kv << ": " << r.out;
+    EXPECT_EQ(r.code, 2) << kv << ": " << r.out;
     EXPECT_EQ(r.out.rfind("station: --set " + kv + ": ", 0), 0u) << kv << ": " << r.out;
     EXPECT_FALSE(std::filesystem::exists(sess)) << kv;
   }
@@ -1018,6 +1018,51 @@ TEST(Cli, FailedRunOrImportLeavesNothingBehind) {
   r = run("import " + cloud + " -o " + (dir / "imp2").string());
   EXPECT_EQ(r.code, 0) << r.out;
   EXPECT_EQ(read_manifest((dir / "imp2").string()).views.size(), 1u);
+}
+
+// An output that cannot be written (its folder missing, a device) is found before
+// the work, as `register` does: one line, no progress of the work before it (the
+// fit, the consolidation, the surface ran first and failed at the write).
+TEST(Cli, AnUnwritableOutputIsFoundBeforeTheWork) {
+  test::TempDir dir;
+  namespace fs = std::filesystem;
+  const std::string cloud = (dir / "cloud.ply").string();
+  write_ply(cloud, test::fibonacci_sphere(3000, 0.05));
+  const std::string mesh = (dir / "mesh.ply").string();
+  write_ply(mesh, test::icosphere(3, 0.05));
+  const std::string gone = (dir / "no_such_folder").string();
+  for (const std::string& cmd :
+       {"consolidate " + cloud + " -o " + gone + "/c.ply", "reconstruct " + cloud + " -o " + gone + "/m.ply",
+        "fit " + cloud + " -o " + gone + "/f.ply --template icosphere:3",
+        "parameterise " + mesh + " -o " + gone + "/u.obj", "reconstruct " + cloud + " -o " + cloud + "/m.ply",
+        "parameterise " + mesh + " -o " + (dir / "u.obj").string() + " --mapped " + gone + "/m.ply"}) {
+    const CmdResult r = run(cmd);
+    EXPECT_EQ(r.code, 1) << cmd << ": " << r.out;
+    EXPECT_EQ(r.out.rfind("station: ", 0), 0u) << cmd << ": " << r.out;
+    EXPECT_NE(r.out.find("cannot write"), std::string::npos) << cmd << ": " << r.out;
+    EXPECT_EQ(std::count(r.out.begin(), r.out.end(), '\n'), 1) << cmd << ": " << r.out;
+  }
+  EXPECT_FALSE(fs::exists(gone));
+  EXPECT_FALSE(fs::exists(dir / "u.obj"));
+}
+
+// Ctrl-C during a long command: one line, exit 130, and nothing of the output
+// (before: killed silently by the default action, a temporary left when it came
+// during the write; the temporary's removal itself is AtomicFile's test).
+TEST(Cli, AnInterruptedCommandSaysSoAndLeavesNothing) {
+  test::TempDir dir;
+  namespace fs = std::filesystem;
+  const fs::path view = dir / "view.ply";
+  fs::copy_file(repo("data/dragon_stand/dragonStandRight_0.ply"), view);
+  // About 4 s of work here: interrupted after 1 s.
+  const CmdResult r = test::run_command("timeout --preserve-status -s INT 1 " + std::string(STATION_BINARY) +
+                                        " reconstruct " + view.string() + " -o " +
+                                        (dir / "mesh.ply").string() + " --resolution 1024");
+  EXPECT_EQ(r.code, 130) << r.out;
+  EXPECT_NE(r.out.find("station: interrupted"), std::string::npos) << r.out;
+  std::vector<std::string> left;
+  for (const auto& e : fs::directory_iterator(dir.path())) left.push_back(e.path().filename().string());
+  EXPECT_EQ(left, std::vector<std::string>{"view.ply"});
 }
 
 // When one of `register`'s outputs cannot be written, the other one it created goes

@@ -430,6 +430,37 @@ TEST(Profile, AKeyGivenTwiceIsAnError) {
   }
 }
 
+// A file that is one value or a list is no profile (said "p.yaml: : expected a mapping").
+TEST(Profile, AFileThatIsNoMappingIsSaidSo) {
+  test::TempDir dir("station-profile-scalar");
+  const fs::path profile = dir / "p.yaml";
+  for (const auto& [text, got] : {std::pair<std::string, std::string>{"hello\n", "got a single value"},
+                                  {"- a\n- b\n", "got a list"}}) {
+    std::ofstream(profile) << text;
+    try {
+      load_config(profile, {});
+      ADD_FAILURE() << text << " was accepted";
+    } catch (const FormatError& e) {
+      EXPECT_EQ(std::string(e.what()), profile.string() + ": expected a profile (a mapping of sections such as "
+                                                          "capture:, register:), " + got);
+    }
+  }
+}
+
+// A table clearance at or above the default height, given alone in the file, is named
+// (the message named max_height, which the file does not set).
+TEST(Profile, TheVolumeKeyTheFileGivesIsNamed) {
+  test::TempDir dir("station-profile-volume");
+  const fs::path profile = dir / "p.yaml";
+  std::ofstream(profile) << "capture:\n  volume:\n    table_clearance: 5\n";
+  try {
+    load_config(profile, {});
+    ADD_FAILURE() << "a clearance above the volume was accepted";
+  } catch (const FormatError& e) {
+    EXPECT_EQ(std::string(e.what()).rfind(profile.string() + ": capture.volume.table_clearance: ", 0), 0u) << e.what();
+  }
+}
+
 TEST(Profile, OverridesAreValidatedLikeTheFileAndNameTheKey) {
   const fs::path profile = test::source_dir() / "config/default.yaml";
   // The run consolidates with edge-WLOP unless told otherwise (profile and built-in default).
