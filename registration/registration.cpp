@@ -2132,8 +2132,39 @@ RegistrationParams in_session_units(const RegistrationParams& params, const Sess
   return p;
 }
 
-RegistrationResult register_views(const std::vector<Cloud>& clouds, const SessionManifest& manifest,
-                                  const RegistrationParams& given, const RegistrationCallback& progress) {
+namespace {
+
+// Views whose points are the same as an earlier view's (a scan copied under another
+// name, recorded twice): one warning per earlier view that has copies. Said, not
+// refused (import does the same): the user may mean it.
+std::vector<std::string> same_scans(const std::vector<Cloud>& clouds, const SessionManifest& manifest) {
+  std::vector<std::string> out;
+  std::vector<bool> copy(clouds.size(), false);
+  for (std::size_t j = 0; j < clouds.size(); ++j) {
+    if (copy[j] || clouds[j].empty()) continue;
+    std::vector<std::size_t> same;
+    for (std::size_t i = j + 1; i < clouds.size(); ++i)
+      if (!copy[i] && clouds[i].points.size() == clouds[j].points.size() && clouds[i].points == clouds[j].points) {
+        copy[i] = true;
+        same.push_back(i);
+      }
+    if (same.empty()) continue;
+    std::string w;
+    for (std::size_t k = 0; k < same.size(); ++k)
+      w += (k == 0 ? "" : k + 1 == same.size() ? " and " : ", ") + view_name(manifest, same[k]);
+    w += (same.size() == 1 ? " has" : " have") + std::string(" the same points as ") + view_name(manifest, j) +
+         ": the same scan recorded twice?";
+    out.push_back(std::move(w));
+  }
+  return out;
+}
+
+}  // namespace
+
+// register_views without the same-scan warnings.
+static RegistrationResult register_views_checked(const std::vector<Cloud>& clouds, const SessionManifest& manifest,
+                                                 const RegistrationParams& given,
+                                                 const RegistrationCallback& progress) {
   // The profile's absolute lengths are in metres; the views in the session's units.
   const RegistrationParams params = in_session_units(given, manifest);
   if (clouds.size() != manifest.views.size())
@@ -2473,6 +2504,14 @@ RegistrationResult register_views(const std::vector<Cloud>& clouds, const Sessio
   }
   out.warnings.insert(out.warnings.begin(), notes.begin(), notes.end());
   return out;
+}
+
+RegistrationResult register_views(const std::vector<Cloud>& clouds, const SessionManifest& manifest,
+                                  const RegistrationParams& given, const RegistrationCallback& progress) {
+  RegistrationResult r = register_views_checked(clouds, manifest, given, progress);
+  const std::vector<std::string> same = same_scans(clouds, manifest);
+  r.warnings.insert(r.warnings.begin(), same.begin(), same.end());
+  return r;
 }
 
 RegistrationResult register_session(const Session& session, const RegistrationParams& params,

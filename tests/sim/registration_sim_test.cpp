@@ -349,6 +349,14 @@ TEST(SimRegistration, IdenticalViewsAndATinyViewAreToldApart) {
   bool told = false;
   for (const std::string& w : r.warnings) told = told || w.find("did the turntable turn") != std::string::npos;
   EXPECT_TRUE(told);
+  // The copies are named, once (import warned of them; register did not).
+  ASSERT_FALSE(r.warnings.empty());
+  EXPECT_EQ(r.warnings.front().rfind("views[1] (view_001.ply), views[2] (view_002.ply), ", 0), 0u) << r.warnings.front();
+  EXPECT_NE(r.warnings.front().find(" and views[11] (view_011.ply) have the same points as views[0] (view_000.ply): "
+                                    "the same scan recorded twice?"),
+            std::string::npos)
+      << r.warnings.front();
+  EXPECT_EQ(r.warnings.front().find("views[5]"), std::string::npos) << r.warnings.front();
 }
 
 // The object moved on the table (issue 26): 2 cm across the table before the

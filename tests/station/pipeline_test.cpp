@@ -461,6 +461,19 @@ TEST(Profile, TheVolumeKeyTheFileGivesIsNamed) {
   }
 }
 
+// A registration copy so coarse that ICP finds too few points to match is refused
+// (0.02-0.1 were allowed: every pair failed as "overlap none of the other views").
+TEST(Profile, ACoarseRegistrationCopyIsRefused) {
+  const fs::path profile = test::source_dir() / "config/default.yaml";
+  EXPECT_EQ(load_config(profile, {"register.voxel_rel=0.01"}).pipeline.reg.voxel_rel, 0.01);
+  try {
+    load_config(profile, {"register.voxel_rel=0.05"});
+    ADD_FAILURE() << "voxel_rel 0.05 was accepted";
+  } catch (const InvalidInput& e) {
+    EXPECT_NE(std::string(e.what()).find("must be 0..0.01"), std::string::npos) << e.what();
+  }
+}
+
 TEST(Profile, OverridesAreValidatedLikeTheFileAndNameTheKey) {
   const fs::path profile = test::source_dir() / "config/default.yaml";
   // The run consolidates with edge-WLOP unless told otherwise (profile and built-in default).
