@@ -137,9 +137,10 @@ TEST(ConsolidationQuality, FandiskEdgesSharper) {
 TEST(ConsolidationQuality, BladeWithScannerNormals) {
   // A flat strip 10 x 129 x 0.65 (thinning to its rims) and sigma = 0.39: the faces
   // overlap in the input and only the oriented normals (which a scan carries) tell them
-  // apart. Measured: accuracy 1.82 -> 0.71 / 0.71 (0.39 x the input's; 1.20 while the
-  // fits' density weights counted both faces, which put each face 0.18 of the
-  // thickness outwards); uniformity 0.864 / 0.864 (0.820 while the area behind E2's
+  // apart. Measured: accuracy 1.82 -> 0.557 / 0.557 (0.31 x the input's; 0.71 while the
+  // fits' subset was sized over both faces, 1.20 while the fits' density weights
+  // counted both faces, which put each face 0.18 of the thickness outwards);
+  // uniformity 0.875 / 0.875 (0.864 before the subset's size; 0.820 while the area behind E2's
   // radius counted both faces, 0.84 x the strip's, and the centroid's dead zone was
   // 0.3: within 0.5 of the rims there were half the points an even sample puts there,
   // 0.65 now); near-edge errors equal to the
