@@ -12,6 +12,7 @@
 #include <thread>
 #include <unistd.h>
 
+#include "core/atomic_file.h"
 #include "station/commands.h"
 #include "station/serve.h"
 
@@ -51,6 +52,7 @@ int cmd_serve(const Common& c, ServeArgs a) {
       sigwait(&set, &sig);
       if (done) return;
       if (asked) {
+        remove_unfinished_outputs();  // the files the jobs were writing (temporaries)
         std::fprintf(stderr, "serve: aborted\n");
         std::_Exit(130);
       }
