@@ -42,9 +42,13 @@ CameraCalibration calibrate_camera(const std::vector<fs::path>& images, const Ch
     CameraImageResult res;
     res.file = file.string();
     const std::string bytes = read_image_file(file);
-    const cv::Mat img = bytes.empty() ? cv::Mat()
-                                      : cv::imdecode(cv::Mat(1, int(bytes.size()), CV_8U, const_cast<char*>(bytes.data())),
-                                                     cv::IMREAD_GRAYSCALE);
+    cv::Mat img;
+    try {
+      if (!bytes.empty())
+        img = cv::imdecode(cv::Mat(1, int(bytes.size()), CV_8U, const_cast<char*>(bytes.data())), cv::IMREAD_GRAYSCALE);
+    } catch (const cv::Exception& e) {
+      throw FormatError(file.string() + ": not a readable image (the decoder refused it: " + e.err + ")");
+    }
     if (img.empty()) throw FormatError(file.string() + ": not a readable image");
     if (size.width == 0) size = img.size();
     if (img.size() != size)

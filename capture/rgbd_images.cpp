@@ -6,15 +6,28 @@
 
 namespace station {
 
+namespace {
+
+// cv::imread, with what OpenCV throws (an image bomb's header) said as the file's fault.
+cv::Mat read_image(const std::string& file, int flags) {
+  try {
+    return cv::imread(file, flags);
+  } catch (const cv::Exception& e) {
+    throw InvalidInput(file + ": not a readable image (the decoder refused it: " + e.err + ")");
+  }
+}
+
+}  // namespace
+
 Frame read_rgbd_frame(const std::string& depth_file, const std::string& colour_file, Intrinsics intrinsics,
                       double depth_unit) {
-  const cv::Mat depth = cv::imread(depth_file, cv::IMREAD_UNCHANGED);
+  const cv::Mat depth = read_image(depth_file, cv::IMREAD_UNCHANGED);
   if (depth.empty()) throw InvalidInput(depth_file + ": cannot read the depth image");
   if (depth.type() != CV_16UC1) throw InvalidInput(depth_file + ": the depth image is not 16-bit, one channel");
   if (!(depth_unit > 0)) throw InvalidInput(depth_file + ": the depth unit must be positive");
   cv::Mat bgr;
   if (!colour_file.empty()) {
-    bgr = cv::imread(colour_file, cv::IMREAD_COLOR);
+    bgr = read_image(colour_file, cv::IMREAD_COLOR);
     if (bgr.empty()) throw InvalidInput(colour_file + ": cannot read the colour image");
     if (bgr.size() != depth.size()) throw InvalidInput(colour_file + ": not the depth image's size");
   }

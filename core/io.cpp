@@ -184,7 +184,8 @@ void put_ply_face(std::string& out, const Face& f) {
 }
 
 std::string read_file_bytes(const fs::path& path) {
-  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+  // O_NONBLOCK: a FIFO would block the open until a writer came; it is refused below.
+  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC | O_NONBLOCK);
   if (fd < 0) io_fail(path, "cannot open", errno);
   struct Closer {
     int fd;
@@ -193,6 +194,8 @@ std::string read_file_bytes(const fs::path& path) {
   struct stat st {};
   if (::fstat(fd, &st) != 0) io_fail(path, "cannot stat", errno);
   if (S_ISDIR(st.st_mode)) io_fail(path, "cannot read", EISDIR);
+  // A device (/dev/zero: read until memory ran out), FIFO or socket is no file to read.
+  if (!S_ISREG(st.st_mode)) throw IoError(path.string() + ": cannot read: not a regular file (a device, FIFO or socket)");
   std::string out;
   if (S_ISREG(st.st_mode) && st.st_size > 0) out.reserve(static_cast<std::size_t>(st.st_size));
   char buf[1 << 16];

@@ -542,12 +542,16 @@ namespace station {
 void stream_ply_points(const fs::path& path, std::size_t chunk, const std::function<void(const Cloud&)>& fn) {
   if (chunk == 0) chunk = 1;
   const std::string name = path.string();
-  const int fd = ::open(name.c_str(), O_RDONLY | O_CLOEXEC);
+  const int fd = ::open(name.c_str(), O_RDONLY | O_CLOEXEC | O_NONBLOCK);  // (a FIFO: refused, not waited on)
   if (fd < 0) throw IoError(name + ": cannot open: " + std::strerror(errno));
   struct stat st {};
   if (::fstat(fd, &st) == 0 && S_ISDIR(st.st_mode)) {
     ::close(fd);
     throw IoError(name + ": cannot read: " + std::strerror(EISDIR));
+  }
+  if (::fstat(fd, &st) == 0 && !S_ISREG(st.st_mode)) {
+    ::close(fd);
+    throw IoError(name + ": cannot read: not a regular file (a device, FIFO or socket)");
   }
   if (::fstat(fd, &st) != 0 || st.st_size <= 0) {
     ::close(fd);

@@ -28,7 +28,13 @@ std::string read_image_file(const fs::path& path) {
 Texture load_texture(const fs::path& path) {
   const std::string bytes = read_image_file(path);
   const cv::Mat encoded(1, int(bytes.size()), CV_8U, const_cast<char*>(bytes.data()));
-  cv::Mat bgr = bytes.empty() ? cv::Mat() : cv::imdecode(encoded, cv::IMREAD_COLOR);
+  cv::Mat bgr;
+  try {
+    if (!bytes.empty()) bgr = cv::imdecode(encoded, cv::IMREAD_COLOR);
+  } catch (const cv::Exception& e) {
+    // OpenCV refuses e.g. a header that claims more than 2^30 pixels (an image bomb).
+    throw FormatError(path.string() + ": not a readable image (the decoder refused it: " + e.err + ")");
+  }
   if (bgr.empty()) throw FormatError(path.string() + ": not a readable image");
   cv::Mat rgb;
   cv::cvtColor(bgr, rgb, cv::COLOR_BGR2RGB);

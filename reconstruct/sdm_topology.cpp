@@ -13,6 +13,7 @@
 #include <Eigen/Geometry>
 
 #include "core/error.h"
+#include "core/io.h"
 #include "reconstruct/sdm.h"
 #include "reconstruct/detail/sdm_internal.h"
 
@@ -105,8 +106,8 @@ Mesh make_icosphere_template(int level) {
 }
 
 std::vector<Landmark> read_landmarks(const std::string& path) {
-  std::ifstream in(path);
-  if (!in) throw IoError(path + ": cannot open");
+  // Read whole (a folder was read as no landmarks, silently; a device without end).
+  std::istringstream in(read_file_bytes(path));
   std::vector<Landmark> out;
   std::string line;
   int line_no = 0;
@@ -122,10 +123,11 @@ std::vector<Landmark> read_landmarks(const std::string& path) {
     if (!(s >> idx >> x >> y >> z) || (s >> extra))
       throw FormatError(path + ":" + std::to_string(line_no) +
                         ": expected \"vertex_index x y z\"");
-    if (idx < 0 || idx > std::numeric_limits<int>::max() || !std::isfinite(x) ||
-        !std::isfinite(y) || !std::isfinite(z))
+    // The coordinates within +-1e9, as the cloud readers' (1e30 put a vertex at 7e29).
+    const auto usable = [](double c) { return std::isfinite(c) && std::abs(c) <= 1e9; };
+    if (idx < 0 || idx > std::numeric_limits<int>::max() || !usable(x) || !usable(y) || !usable(z))
       throw FormatError(path + ":" + std::to_string(line_no) +
-                        ": negative vertex index or non-finite coordinate");
+                        ": negative vertex index, or a coordinate not finite or beyond +-1e9");
     l.vertex = int(idx);
     l.point = Vec3f(float(x), float(y), float(z));
     out.push_back(l);

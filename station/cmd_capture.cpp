@@ -54,6 +54,29 @@ extern "C" void on_sigint(int) {
   [[maybe_unused]] auto n = ::write(2, msg, sizeof msg - 1);
 }
 
+/// A new session goes into a new or an empty folder: in one holding other files the
+/// session's (view_000.ply, its colour image, merged.ply) replaced the user's silently.
+/// (A folder with a session.yaml: Session::create says it holds a session.)
+void check_new_session_folder(const fs::path& dir, const char* command) {
+  std::error_code ec;
+  if (!fs::is_directory(dir, ec)) return;
+  if (fs::symlink_status(dir / kManifestName, ec).type() != fs::file_type::not_found) return;
+  if (!fs::is_empty(dir, ec))
+    throw IoError(dir.string() + ": holds other files and no session; " + command +
+                  " into a new or an empty folder");
+}
+
+/// A session this command created whose first view failed: its manifest (and the
+/// folder, when the command made it and nothing else is in it) goes again, as the
+/// message says nothing was recorded; a stub would make the next try say "already
+/// holds a session".
+void drop_unrecorded_session(const Session& session, bool folder_existed) {
+  if (!session.manifest().views.empty()) return;
+  std::error_code ec;
+  fs::remove(session.dir() / kManifestName, ec);
+  if (!folder_existed) fs::remove(session.dir(), ec);  // only when empty
+}
+
 int run_job(const StationConfig& cfg, const Common& c, const RunArgs& a, bool blocks_over_ranks = false) {
   RunRequest req;
   req.blocks_over_ranks = blocks_over_ranks;
@@ -417,13 +440,22 @@ int cmd_scan(const Common& c, const ScanArgs& a) {
   auto turntable = reg.make_turntable(turntable_uri);
   scanner->open();
   turntable->open();
+  const bool created = !session;
+  const bool existed = fs::exists(dir);
   if (!session) {
+    check_new_session_folder(dir, "scan");
     SessionManifest m;
     m.scanner = scanner_uri;
     m.turntable = turntable_uri;
     session = Session::create(dir, m);
   }
-  const int code = capture_into(*session, *scanner, *turntable, cfg.capture, c, "scan", t0);
+  int code = 0;
+  try {
+    code = capture_into(*session, *scanner, *turntable, cfg.capture, c, "scan", t0);
+  } catch (const Error&) {
+    if (created) drop_unrecorded_session(*session, existed);
+    throw;
+  }
   if (code != 0 || !a.run) return code;
   RunArgs ra;
   ra.in = dir.string();
@@ -457,8 +489,15 @@ int cmd_replay(const Common& c, const std::string& source, const std::string& ou
   m.turntable = "sim:turntable";
   m.units = sm.units;
   m.intrinsics = sm.intrinsics;
+  check_new_session_folder(out, "replay");
+  const bool existed = fs::exists(out);
   Session dst = Session::create(out, m);
-  return capture_into(dst, *scanner, *turntable, params, c, "replay", t0);
+  try {
+    return capture_into(dst, *scanner, *turntable, params, c, "replay", t0);
+  } catch (const Error&) {
+    drop_unrecorded_session(dst, existed);
+    throw;
+  }
 }
 
 // Files whose names end in a number (scan_0.ply, scan_24.ply, ...) given in

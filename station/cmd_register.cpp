@@ -234,7 +234,11 @@ int cmd_register(const Common& c, const RegisterArgs& a) {
 }
 
 int cmd_calibrate_turntable(const Common& c, const std::string& session_dir, const std::string& out) {
-  check_not_a_recording(out);
+  // A profile fragment (YAML went into a .ply as readily); checked before the work.
+  if (!out.empty()) {
+    check_output_name(out, "a profile fragment", {".yaml", ".yml"});
+    check_output_path(out);
+  }
   check_not_an_input({out}, {c.config});
   StationConfig cfg = load_common(c);
   auto threads = limit_threads(cfg.threads);
@@ -307,7 +311,10 @@ int cmd_calibrate_turntable(const Common& c, const std::string& session_dir, con
 
 int cmd_calibrate_camera(const Common& c, const std::vector<std::string>& images, const std::string& board,
                          double square, const std::string& out) {
-  check_not_a_recording(out);
+  if (!out.empty()) {
+    check_output_name(out, "a profile fragment", {".yaml", ".yml"});
+    check_output_path(out);
+  }
   {
     std::vector<std::string> inputs = images;
     inputs.push_back(c.config);

@@ -162,7 +162,7 @@ int cmd_parameterise(const Common& c, const ParameteriseArgs& a) {
   StationConfig cfg = load_common(c);
   auto threads = limit_threads(cfg.threads);
   check_output_name(a.out, "a mesh with UVs", {".obj"});
-  check_not_a_recording(a.mapped);
+  if (!a.mapped.empty()) check_output_name(a.mapped, "a mesh", {".ply", ".obj"});  // (was found after the SDM work)
   check_not_an_input({a.out, a.mapped}, {a.in, c.config});
   check_output_path(a.out);
   if (!a.mapped.empty()) check_output_path(a.mapped);
@@ -515,8 +515,11 @@ void add_surface_commands(CLI::App& app, std::vector<Command>& out) {
                                           {{"template:", s->fit_args.templ}, {"landmark ", s->fit_args.landmarks}});
                  }});
   out.push_back({parc, [s] {
+                   // (A message naming the --mapped output is its own.)
+                   std::vector<std::pair<std::string, std::string>> roles;
+                   if (!s->par_args.mapped.empty()) roles.push_back({s->par_args.mapped, s->par_args.mapped});
                    return naming_the_file(s->par_args.in, s->par_args.out,
-                                          [&] { return cmd_parameterise(s->c_par, s->par_args); });
+                                          [&] { return cmd_parameterise(s->c_par, s->par_args); }, roles);
                  }});
   out.push_back({rec, [s] {
                    return naming_the_file(s->rec_args.in, s->rec_args.out,

@@ -8,6 +8,7 @@
 #include <map>
 
 #include "core/error.h"
+#include "core/io.h"
 #include "core/threads.h"
 #include "core/yaml_keys.h"
 #include "drivers/registry.h"
@@ -335,7 +336,9 @@ StationConfig load_config(const fs::path& path, const std::vector<std::string>& 
   if (!path.empty()) {
     try {
       if (!fs::exists(path)) throw IoError(path.string() + ": cannot open: no such file");
-      root = YAML::LoadFile(path.string());
+      // Read whole first: a folder or a device is named as such (YAML::LoadFile gave
+      // "internal error: basic_filebuf::underflow" for a folder).
+      root = YAML::Load(read_file_bytes(path));
     } catch (const YAML::ParserException& e) {
       throw FormatError(path.string() + ": line " + std::to_string(e.mark.line + 1) + ": " + e.msg);
     } catch (const YAML::BadFile&) {

@@ -12,6 +12,7 @@
 #include <sstream>
 #include <unordered_map>
 
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include "core/error.h"
@@ -737,6 +738,20 @@ TEST(IoFiles, MissingFileIsAnIoError) {
   EXPECT_THROW(read_file_bytes(dir.path()), IoError);
 }
 
+// A device or a FIFO given as an input: refused by name (/dev/zero was read until
+// memory ran out, a FIFO blocked the open for ever).
+TEST(IoFiles, DevicesAndFifosAreRefused) {
+  test::TempDir dir;
+  const fs::path fifo = dir / "pipe.ply";
+  ASSERT_EQ(::mkfifo(fifo.c_str(), 0666), 0);
+  for (const fs::path& p : {fs::path("/dev/zero"), fifo}) {
+    EXPECT_EQ(error_of<IoError>([&] { read_file_bytes(p); }),
+              p.string() + ": cannot read: not a regular file (a device, FIFO or socket)");
+    EXPECT_THROW(read_cloud(p), IoError);
+    EXPECT_THROW(stream_ply_points(p, 1024, [](const Cloud&) {}), IoError);
+  }
+}
+
 TEST(IoFiles, FormatErrorsNameTheFile) {
   test::TempDir dir;
   write_bytes(dir / "empty.ply", "");
@@ -809,6 +824,16 @@ TEST(Texture, TruncatedImagesAreRefusedNamingTheFile) {
   EXPECT_THROW(load_texture(dir / "missing.jpg"), IoError);
   { std::ofstream(dir / "junk.png", std::ios::binary) << "not an image at all"; }
   EXPECT_THROW(load_texture(dir / "junk.png"), FormatError);
+  // 67 bytes whose header claims 100,000 x 100,000 pixels: OpenCV refuses it with an
+  // exception, which came out as "internal error" naming no file.
+  const unsigned char bomb[] = {
+      0x89, 0x50, 0x4e, 0x47, 0x0d, 0x0a, 0x1a, 0x0a, 0x00, 0x00, 0x00, 0x0d, 0x49, 0x48, 0x44, 0x52, 0x00,
+      0x01, 0x86, 0xa0, 0x00, 0x01, 0x86, 0xa0, 0x08, 0x00, 0x00, 0x00, 0x00, 0x8d, 0x39, 0x54, 0x14, 0x00,
+      0x00, 0x00, 0x0a, 0x49, 0x44, 0x41, 0x54, 0x78, 0x9c, 0x63, 0x68, 0x00, 0x00, 0x00, 0x82, 0x00, 0x81,
+      0x77, 0xcd, 0x72, 0xb6, 0x00, 0x00, 0x00, 0x00, 0x49, 0x45, 0x4e, 0x44, 0xae, 0x42, 0x60, 0x82};
+  { std::ofstream(dir / "bomb.png", std::ios::binary).write(reinterpret_cast<const char*>(bomb), sizeof bomb); }
+  const std::string msg = error_of<FormatError>([&] { load_texture(dir / "bomb.png"); });
+  EXPECT_EQ(msg.rfind((dir / "bomb.png").string() + ": not a readable image", 0), 0u) << msg;
 }
 
 }  // namespace

@@ -900,6 +900,75 @@ TEST(Cli, ExistingSessionIsNeverOverwritten) {
   EXPECT_EQ(json_number(resumed.out, "recorded"), 0);
 }
 
+// A folder that holds the user's files and no session is not scanned or replayed into
+// (replay replaced its merged.ply and view_001.png, exit 0); and a replay whose first
+// view fails leaves no stub session behind ("nothing was recorded", but session.yaml
+// with no views stayed and blocked the next try).
+TEST(Cli, ASessionGoesIntoANewOrEmptyFolderAndAFailedStartLeavesNone) {
+  test::TempDir dir;
+  namespace fs = std::filesystem;
+  const std::string src = (dir / "s").string(), user = (dir / "user").string();
+  ASSERT_EQ(run("scan -o " + src + " --views 2 --set width=80 --set height=60").code, 0);
+  fs::create_directory(user);
+  { std::ofstream(user + "/merged.ply") << "the user's"; }
+  for (const std::string& cmd : {"replay " + src + " -o " + user, "scan -o " + user + " --views 2"}) {
+    const CmdResult r = run(cmd);
+    EXPECT_EQ(r.code, 1) << cmd << ": " << r.out;
+    EXPECT_NE(r.out.find(user + ": holds other files and no session"), std::string::npos) << r.out;
+    EXPECT_EQ(read_file_bytes(user + "/merged.ply"), "the user's");
+    EXPECT_FALSE(fs::exists(user + "/session.yaml"));
+  }
+  // An empty folder is fine.
+  fs::create_directory(dir / "empty");
+  EXPECT_EQ(run("replay " + src + " -o " + (dir / "empty").string()).code, 0);
+  // The first view cannot be replayed (its file cut short): nothing is left.
+  const std::string view = src + "/view_000.ply";
+  const std::string whole = read_file_bytes(view);
+  { std::ofstream(view, std::ios::binary) << whole.substr(0, whole.size() / 2); }
+  const std::string again = (dir / "again").string();
+  const CmdResult r = run("replay " + src + " -o " + again);
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_NE(r.out.find("nothing was recorded"), std::string::npos) << r.out;
+  EXPECT_FALSE(fs::exists(again)) << r.out;
+}
+
+// Inputs that are no files to read, and outputs named for another kind, refused by
+// name before any work (a folder as --config was an "internal error", a folder as
+// --landmarks was read as none, a landmark at 1e30 bent the fit, calibrate wrote YAML
+// into a .ply, parameterise found --mapped m.txt after the fit).
+TEST(Cli, OddInputsAndOutputKindsAreRefusedByName) {
+  test::TempDir dir;
+  namespace fs = std::filesystem;
+  const std::string cloud = (dir / "cloud.ply").string();
+  write_ply(cloud, test::fibonacci_sphere(2000, 0.05));
+  const std::string mesh = (dir / "mesh.ply").string();
+  write_ply(mesh, test::icosphere(2, 0.05));
+  fs::create_directory(dir / "folder");
+  const std::string folder = (dir / "folder").string();
+  { std::ofstream(dir / "far.txt") << "0 1e30 0 0\n"; }
+  const std::vector<std::pair<std::string, std::string>> cases = {
+      {"consolidate " + cloud + " -o " + (dir / "c.ply").string() + " --config " + folder,
+       folder + ": cannot read: Is a directory"},
+      {"consolidate /dev/zero -o " + (dir / "c.ply").string(), "/dev/zero: cannot read: not a regular file"},
+      {"fit " + cloud + " -o " + (dir / "f.ply").string() + " --template icosphere:2 --landmarks " + folder,
+       folder + ": cannot read: Is a directory"},
+      {"fit " + cloud + " -o " + (dir / "f.ply").string() + " --template icosphere:2 --landmarks " +
+           (dir / "far.txt").string(),
+       (dir / "far.txt").string() + ":1: negative vertex index, or a coordinate not finite or beyond +-1e9"},
+      {"parameterise " + mesh + " -o " + (dir / "u.obj").string() + " --mapped " + (dir / "m.txt").string(),
+       (dir / "m.txt").string() + ": a mesh is written as .ply or .obj"},
+      {"calibrate turntable " + folder + " -o " + (dir / "axis.ply").string(),
+       (dir / "axis.ply").string() + ": a profile fragment is written as .yaml or .yml"},
+  };
+  for (const auto& [cmd, line] : cases) {
+    const CmdResult r = run(cmd);
+    EXPECT_EQ(r.code, 1) << cmd << ": " << r.out;
+    EXPECT_EQ(r.out.rfind("station: " + line, 0), 0u) << cmd << ": " << r.out;
+    EXPECT_EQ(std::count(r.out.begin(), r.out.end(), '\n'), 1) << cmd << ": " << r.out;
+  }
+  for (const char* f : {"c.ply", "f.ply", "u.obj", "axis.ply"}) EXPECT_FALSE(fs::exists(dir / f)) << f;
+}
+
 // An output named like one of the command's inputs is refused before the work, naming
 // the file, and the input is left as it was (it used to be replaced, exit 0).
 TEST(Cli, OutputThatIsAnInputIsRefused) {
