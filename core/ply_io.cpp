@@ -268,10 +268,17 @@ class AsciiSource {
   void begin(const char* element, std::uint64_t index) {
     element_ = element;
     index_ = index;
+    row_line_ = -1;
   }
   [[noreturn]] void fail(const std::string& what) const {
+    // A value read from a later line than its row began on: the row was short (a
+    // colour missing on some rows read the next row's x as red).
+    const std::string hint = row_line_ >= 0 && tok_.line() != row_line_
+                                 ? " (its row, line " + std::to_string(row_line_) +
+                                       ", holds fewer values than the header's properties?)"
+                                 : std::string();
     format_error(name_, "line " + std::to_string(tok_.line()) + ": " + element_ + " " +
-                            std::to_string(index_) + ": " + what);
+                            std::to_string(index_) + ": " + what + hint);
   }
 
   double scalar(Scalar type) {
@@ -332,6 +339,7 @@ class AsciiSource {
   std::string_view next() {
     std::string_view t;
     if (!tok_.next(t)) fail("unexpected end of file");
+    if (row_line_ < 0) row_line_ = tok_.line();
     return t;
   }
 
@@ -339,6 +347,7 @@ class AsciiSource {
   const std::string& name_;
   const char* element_ = "";
   std::uint64_t index_ = 0;
+  long long row_line_ = -1;  ///< the line the current row's first value is on
 };
 
 /// Smallest encoded size of one instance: bytes (binary) or tokens (ascii).

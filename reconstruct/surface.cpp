@@ -86,6 +86,19 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
   };
   if (input.empty()) throw InvalidInput("reconstruct_surface: empty cloud");
   SurfaceResult out;
+  if (input.has_normals()) {
+    // Normals that are all zero (or not finite) are none: a writer that fills the
+    // fields without estimating them. Estimated as for a cloud without them (MPU
+    // refused the cloud, "0 points with usable normals").
+    const bool any = std::any_of(input.normals.begin(), input.normals.end(), [](const Vec3f& n) {
+      const float len = n.norm();
+      return std::isfinite(len) && len >= 1e-6f;
+    });
+    if (!any) {
+      note("the normals are all zero: estimating them instead");
+      input.normals.clear();
+    }
+  }
   if (!input.has_normals()) {
     // MPU needs oriented normals: estimate them (PCA) and orient them consistently.
     note("no normals; estimating them (PCA, MST orientation)");

@@ -316,6 +316,13 @@ TEST(IoPly, MalformedInputsAreFormatErrors) {
   expect_format_error(ply, with_normals + "0 0 0 0 0 1\n1 0 0 0 nan 1\n", "vertex 1: non-finite normal");
   EXPECT_EQ(parse_ply(with_normals + "0 0 0 0 0 1\n1 0 0 0 1 0\n", "n.ply").normals.size(), 2u);
   expect_format_error(ply, kAsciiHead + "0 0 0\n1 zero 0\n0 1 0\n3 0 1 2\n", "bad number 'zero'");
+  // A row short of a colour reads the next row's x as red: said so.
+  const std::string with_colours =
+      "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n"
+      "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n";
+  expect_format_error(ply, with_colours + "0 0 0\n-0.5 1 0 10 20 30\n",
+                      "line 12: vertex 0: value -0.5 out of range for uchar (0..255) (its row, line 11, holds fewer "
+                      "values than the header's properties?)");
   expect_format_error(ply, kAsciiHead + "0 0 0\n1 0 0\n0 1 0\n200 0 1 2\n", "exceeds");
 }
 

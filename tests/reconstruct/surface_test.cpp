@@ -124,6 +124,20 @@ TEST(SurfaceHole, AutoClosesAnObjectAndKeepsAPatchOpen) {
   EXPECT_EQ(boundary_edges(reconstruct_surface(cap(24000, 0.1, 0.33), p).mesh), 0);
 }
 
+// Normals that are all zero are none: estimated, as for a cloud without them (MPU
+// refused such a cloud: "0 points with usable normals").
+TEST(SurfaceHole, AllZeroNormalsAreEstimated) {
+  SurfaceParams p;
+  p.threads = 2;
+  p.resolution = 48;
+  Cloud zero = fibonacci_sphere(4000, 0.1);
+  for (Vec3f& n : zero.normals) n = Vec3f::Zero();
+  const SurfaceResult r = reconstruct_surface(zero, p);
+  EXPECT_TRUE(r.normals_estimated);
+  EXPECT_EQ(r.hole, HoleMode::kClose);
+  EXPECT_EQ(test::open_edges(r.mesh), 0);
+}
+
 // Issue 32: with holes kept and the scans given, the rims come back to within
 // kScanRimFactor of the scans' sample spacings (the consolidated points are 3 times
 // sparser, and their own trim leaves the rims up to 1.5 of their spacings past the
