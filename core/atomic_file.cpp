@@ -10,6 +10,7 @@
 #include <streambuf>
 #include <string>
 #include <system_error>
+#include <thread>
 #include <vector>
 
 #include "core/error.h"
@@ -103,8 +104,16 @@ int register_path(const char* p, Kind kind) {
   }
   return -1;
 }
+// Set while remove_unfinished_outputs runs: an owner taking its path out of the list
+// waits for the sweep before it frees the string (the handler may run on another
+// thread, and may have read the pointer just before).
+std::atomic<bool> g_sweeping{false};
+static_assert(std::atomic<bool>::is_always_lock_free, "the interrupt handler needs a lock-free flag");
+
 void unregister_path(int slot) {
-  if (slot >= 0) g_paths[slot / kSlots][slot % kSlots].store(nullptr);
+  if (slot < 0) return;
+  g_paths[slot / kSlots][slot % kSlots].store(nullptr);
+  while (g_sweeping.load()) std::this_thread::yield();
 }
 
 /// Removes the temporary on every exit path unless released.
@@ -203,20 +212,25 @@ CreatedOutputs::CreatedOutputs(const fs::path& dir, const std::vector<fs::path>&
   std::error_code ec;
   for (const fs::path& f : files)
     if (!f.empty() && fs::symlink_status(f, ec).type() == fs::file_type::not_found) files_.push_back(f);
-  if (dir.empty()) return;
-  fs::path p = fs::absolute(dir, ec).lexically_normal();
-  if (ec) return;
-  if (p.filename().empty()) p = p.parent_path();
-  while (!p.empty() && fs::symlink_status(p, ec).type() == fs::file_type::not_found) {
-    folders_.push_back(p);
-    if (p == p.parent_path()) break;
-    p = p.parent_path();
+  if (!dir.empty()) {
+    fs::path p = fs::absolute(dir, ec).lexically_normal();
+    if (!ec) {
+      if (p.filename().empty()) p = p.parent_path();
+      while (!p.empty() && fs::symlink_status(p, ec).type() == fs::file_type::not_found) {
+        folders_.push_back(p);
+        if (p == p.parent_path()) break;
+        p = p.parent_path();
+      }
+    }
   }
+  // (files_ and folders_ are not changed again until keep() or the destructor, which
+  // take these pointers out of the list first.)
   for (const fs::path& f : files_) slots_.push_back(register_path(f.c_str(), Kind::kFile));
   for (const fs::path& d : folders_) slots_.push_back(register_path(d.c_str(), Kind::kFolder));
 }
 
 void remove_unfinished_outputs() noexcept {
+  g_sweeping.store(true);
   for (const Kind kind : {Kind::kTemporary, Kind::kFile})
     for (std::atomic<const char*>& slot : g_paths[int(kind)])
       if (const char* p = slot.exchange(nullptr)) ::unlink(p);
@@ -225,6 +239,7 @@ void remove_unfinished_outputs() noexcept {
   for (int pass = 0; pass < 8; ++pass)
     for (std::atomic<const char*>& slot : g_paths[int(Kind::kFolder)])
       if (const char* p = slot.load()) ::rmdir(p);
+  g_sweeping.store(false);
 }
 
 void CreatedOutputs::keep() {

@@ -184,7 +184,11 @@ void put_ply_face(std::string& out, const Face& f) {
 }
 
 std::string read_file_bytes(const fs::path& path) {
-  // O_NONBLOCK: a FIFO would block the open until a writer came; it is refused below.
+  // A device is refused before it is opened (opening a serial port can reset the
+  // board behind it); O_NONBLOCK: a FIFO would block the open until a writer came.
+  struct stat pre {};
+  if (::stat(path.c_str(), &pre) == 0 && !S_ISREG(pre.st_mode) && !S_ISDIR(pre.st_mode))
+    throw IoError(path.string() + ": cannot read: not a regular file (a device, FIFO or socket)");
   const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC | O_NONBLOCK);
   if (fd < 0) io_fail(path, "cannot open", errno);
   struct Closer {

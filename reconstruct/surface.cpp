@@ -86,6 +86,7 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
   };
   if (input.empty()) throw InvalidInput("reconstruct_surface: empty cloud");
   SurfaceResult out;
+  bool zero_normals = false;
   if (input.has_normals()) {
     // Normals that are all zero (or not finite) are none: a writer that fills the
     // fields without estimating them. Estimated as for a cloud without them (MPU
@@ -94,14 +95,13 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
       const float len = n.norm();
       return std::isfinite(len) && len >= 1e-6f;
     });
-    if (!any) {
-      note("the normals are all zero: estimating them instead");
-      input.normals.clear();
-    }
+    if (!any) input.normals.clear();
+    zero_normals = !any;
   }
   if (!input.has_normals()) {
     // MPU needs oriented normals: estimate them (PCA) and orient them consistently.
-    note("no normals; estimating them (PCA, MST orientation)");
+    note(zero_normals ? "the normals are all zero; estimating them (PCA, MST orientation)"
+                      : "no normals; estimating them (PCA, MST orientation)");
     input.normals = estimate_normals(input.points, 12, p.threads);
     orient_normals_mst(input.points, input.normals, 12);
     out.normals_estimated = true;

@@ -31,8 +31,18 @@ extern "C" void on_interrupt(int) {
 }
 
 void default_interrupt_handling() {
-  std::signal(SIGINT, on_interrupt);
-  std::signal(SIGTERM, on_interrupt);
+  // A signal ignored when the program started (a job a script runs in the background,
+  // nohup) stays ignored, as the default action would have left it.
+  static const bool int_ignored = [] {
+    struct sigaction old {};
+    return ::sigaction(SIGINT, nullptr, &old) == 0 && old.sa_handler == SIG_IGN;
+  }();
+  static const bool term_ignored = [] {
+    struct sigaction old {};
+    return ::sigaction(SIGTERM, nullptr, &old) == 0 && old.sa_handler == SIG_IGN;
+  }();
+  std::signal(SIGINT, int_ignored ? SIG_IGN : on_interrupt);
+  std::signal(SIGTERM, term_ignored ? SIG_IGN : on_interrupt);
 }
 
 }  // namespace cli

@@ -66,15 +66,16 @@ void check_new_session_folder(const fs::path& dir, const char* command) {
                   " into a new or an empty folder");
 }
 
-/// A session this command created whose first view failed: its manifest (and the
-/// folder, when the command made it and nothing else is in it) goes again, as the
-/// message says nothing was recorded; a stub would make the next try say "already
-/// holds a session".
+/// A session this command created whose first view failed: what it wrote goes again
+/// (the manifest, a view file written before its colour image or the manifest
+/// failed), as the message says nothing was recorded; a stub would make the next try
+/// say "already holds a session" or "holds other files". The folder was new or empty
+/// (check_new_session_folder), so all in it is the command's; a new one goes too.
 void drop_unrecorded_session(const Session& session, bool folder_existed) {
   if (!session.manifest().views.empty()) return;
   std::error_code ec;
-  fs::remove(session.dir() / kManifestName, ec);
-  if (!folder_existed) fs::remove(session.dir(), ec);  // only when empty
+  for (const fs::directory_entry& e : fs::directory_iterator(session.dir(), ec)) fs::remove_all(e.path(), ec);
+  if (!folder_existed) fs::remove(session.dir(), ec);
 }
 
 int run_job(const StationConfig& cfg, const Common& c, const RunArgs& a, bool blocks_over_ranks = false) {
@@ -279,8 +280,8 @@ std::string batch_name(const std::string& in, std::map<std::string, int>& seen) 
 // summary table (OUT/batch.tsv, printed by rank 0). Exit 3 when any session failed.
 int run_batch(const StationConfig& cfg, const Common& c, const RunArgs& a) {
   const auto t0 = std::chrono::steady_clock::now();
-  std::ifstream list(a.batch);
-  if (!list) throw IoError(a.batch + ": cannot read the batch list");
+  // Read whole: a folder or a device is named as such (a FIFO blocked, /dev/zero ran on).
+  std::istringstream list(read_file_bytes(a.batch));
   std::vector<std::string> sessions, names;
   std::map<std::string, int> seen;
   for (std::string line; std::getline(list, line);) {
@@ -435,6 +436,7 @@ int cmd_scan(const Common& c, const ScanArgs& a) {
       if (!c.json) std::printf("%s: already complete (%zu views)\n", dir.c_str(), m.views.size());
     }
   }
+  if (!session) check_new_session_folder(dir, "scan");  // (before the devices are opened)
   DeviceRegistry reg = make_registry();
   auto scanner = reg.make_scanner(scanner_uri);
   auto turntable = reg.make_turntable(turntable_uri);
@@ -443,7 +445,6 @@ int cmd_scan(const Common& c, const ScanArgs& a) {
   const bool created = !session;
   const bool existed = fs::exists(dir);
   if (!session) {
-    check_new_session_folder(dir, "scan");
     SessionManifest m;
     m.scanner = scanner_uri;
     m.turntable = turntable_uri;
@@ -478,6 +479,7 @@ int cmd_replay(const Common& c, const std::string& source, const std::string& ou
   params.views = std::min<int>(params.views, int(sm.views.size()));
   params.crop = false;  // a recording is replayed as it was recorded
   params.axis = sm.axis;
+  check_new_session_folder(out, "replay");
   DeviceRegistry reg = make_registry();
   const std::string scanner_uri = compose_uri("sim:replay", {{"session", fs::absolute(source).string()}});
   auto scanner = reg.make_scanner(scanner_uri);
@@ -489,7 +491,6 @@ int cmd_replay(const Common& c, const std::string& source, const std::string& ou
   m.turntable = "sim:turntable";
   m.units = sm.units;
   m.intrinsics = sm.intrinsics;
-  check_new_session_folder(out, "replay");
   const bool existed = fs::exists(out);
   Session dst = Session::create(out, m);
   try {
@@ -537,6 +538,13 @@ int cmd_import(const Common& c, const ImportArgs& a) {
     inputs.push_back(a.stanford_conf);
     inputs.push_back(c.config);
     check_not_an_input(files, inputs);
+  }
+  // Nor a file of the user's that happens to have a view's name (add_view replaces
+  // files its manifest does not list). (A session.yaml there: Session::create says so.)
+  for (std::size_t k = 1; k < files.size(); ++k) {
+    std::error_code ec;
+    if (fs::symlink_status(files[k], ec).type() != fs::file_type::not_found)
+      throw IoError(files[k] + ": exists, and an import never replaces a file; import into a new or an empty folder");
   }
   std::map<std::string, Eigen::Matrix4d> poses;
   if (!a.stanford_conf.empty()) {

@@ -332,16 +332,16 @@ int cmd_calibrate_camera(const Common& c, const std::vector<std::string>& images
     const std::regex form("([0-9]{1,4})x([0-9]{1,4})");
     std::smatch m;
     if (!std::regex_match(board, m, form))
-      throw InvalidInput("--board " + board + ": expected COLSxROWS inner corners, e.g. 9x6");
+      throw UsageError("--board " + board + ": expected COLSxROWS inner corners, e.g. 9x6");
     spec.inner_cols = std::stoi(m[1]);
     spec.inner_rows = std::stoi(m[2]);
     if (spec.inner_cols < 3 || spec.inner_rows < 3)
-      throw InvalidInput("--board " + board + ": the chessboard needs at least 3x3 inner corners");
+      throw UsageError("--board " + board + ": the chessboard needs at least 3x3 inner corners");
   }
   if (!(square >= 1e-6 && square <= 100)) {
     char given[32];
     std::snprintf(given, sizeof given, "%g", square);
-    throw InvalidInput(std::string("--square ") + given + ": the square's side in metres, 1e-6 to 100");
+    throw UsageError(std::string("--square ") + given + ": the square's side in metres, 1e-6 to 100");
   }
   std::vector<fs::path> files(images.begin(), images.end());
   if (!c.json) std::fprintf(stderr, "calibrate camera: finding the chessboard in %zu images...\n", files.size());

@@ -113,7 +113,7 @@ int cmd_fit(const Common& c, const FitArgs& a) {
     // One digit and nothing after it ("1e9" was read as 1, "2.5" as 2).
     const std::string l = a.templ.substr(10);
     const int level = l.size() == 1 && l[0] >= '0' && l[0] <= '9' ? l[0] - '0' : -1;
-    if (level < 0 || level > 7) throw InvalidInput("--template " + a.templ + ": expected icosphere:L with L in 0..7");
+    if (level < 0 || level > 7) throw UsageError("--template " + a.templ + ": expected icosphere:L with L in 0..7");
     fit = fit_sdm_icosphere(level, target, sp, landmarks, progress);
   } else {
     fit = fit_sdm(read_mesh(a.templ), target, sp, landmarks, progress);
@@ -305,7 +305,7 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
     // Blocks of one lattice: streamed, never the whole cloud in memory; over the MPI
     // ranks under mpirun (station/blocks_run.h).
     if (rc.blocks == 1 && rc.max_memory_gb == 0)
-      throw InvalidInput("--resume goes with --blocks (auto or a count) or --max-memory");
+      throw UsageError("--resume goes with --blocks (auto or a count) or --max-memory");
     const std::string work = a.out + ".blocks";
     check_blocks_work_folder(work, {a.in, c.config});
     // A PLY is written streamed from the blocks' files (never the whole mesh in memory).
@@ -359,7 +359,12 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
   if (!a.scans.empty()) {
     scans = read_cloud(a.scans);
     if (scans.empty()) throw InvalidInput(a.scans + ": no points");
-    if (!scans.has_normals()) throw InvalidInput(a.scans + ": the scans have no normals (needed to tell a thin part's sides apart)");
+    const bool usable = std::any_of(scans.normals.begin(), scans.normals.end(), [](const Vec3f& n) {
+      return std::isfinite(n.norm()) && n.norm() >= 1e-6f;
+    });
+    if (!scans.has_normals() || !usable)
+      throw InvalidInput(a.scans + ": the scans have no normals" + (scans.has_normals() ? " (all zero)" : "") +
+                         " (needed to tell a thin part's sides apart)");
     sp.scans = &scans;
   }
   const std::size_t points = input.size();

@@ -347,6 +347,11 @@ StationConfig load_config(const fs::path& path, const std::vector<std::string>& 
     if (const std::string dup = duplicate_yaml_key_message(duplicate_yaml_key(root), path.string()); !dup.empty())
       throw FormatError(dup);
   }
+  // A file that is one value or a list is no profile, whatever the overrides (a
+  // --set on it failed inside yaml-cpp: "internal error").
+  if (root.IsDefined() && !root.IsNull() && !root.IsMap())
+    throw FormatError(r.file + ": expected a profile (a mapping of sections such as capture:, register:), got " +
+                      (root.IsSequence() ? "a list" : "a single value"));
   for (const std::string& kv : overrides) {
     apply_override(root, kv);
     r.overridden[kv.substr(0, kv.find('='))] = kv;

@@ -17,6 +17,7 @@
 #include <mutex>
 #include <new>
 #include <optional>
+#include <sstream>
 #include <unistd.h>
 
 #include "capture/capture.h"
@@ -59,8 +60,7 @@ bool is_loopback_address(const std::string& address) {
 }
 
 std::string read_token_file(const fs::path& file) {
-  std::ifstream in(file);
-  if (!in) throw InvalidInput(file.string() + ": cannot read the token file");
+  std::istringstream in(read_file_bytes(file));  // (a folder, a device or a FIFO: named)
   std::string line;
   std::getline(in, line);
   const auto b = line.find_first_not_of(" \t\r\n");

@@ -154,6 +154,13 @@ TEST(AtomicFile, AnInterruptRemovesTheTemporaryAndTheCreatedOutputs) {
     EXPECT_TRUE(fs::exists(out));
   }
   {
+    // Outputs without a folder of their own (register's two files, parameterise's).
+    CreatedOutputs created({}, {dir / "merged.ply", dir / "poses.yaml"});
+    write_file_atomic(dir / "merged.ply", std::string_view("x"));
+    remove_unfinished_outputs();
+    EXPECT_FALSE(fs::exists(dir / "merged.ply"));
+  }
+  {
     // Kept outputs are not the handler's any more.
     CreatedOutputs created(dir / "c", {dir / "c" / "kept.ply"});
     fs::create_directories(dir / "c");

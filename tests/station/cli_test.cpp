@@ -74,7 +74,7 @@ TEST(Cli, FitDeformsATemplateOntoACloud) {
   EXPECT_EQ(read_mesh(dir / "fit.ply").vertices.size(), 642u);
   const CmdResult bad = run("fit " + (dir / "ellipsoid.ply").string() + " -o " + (dir / "x.ply").string() +
                             " --template icosphere:12");
-  EXPECT_EQ(bad.code, 1);
+  EXPECT_EQ(bad.code, 2);  // a bad option value: usage
   EXPECT_NE(bad.out.find("icosphere:L"), std::string::npos);
   // A template with a hole (not genus 0) is refused, naming the problem.
   Mesh open = test::icosphere(2);
@@ -707,7 +707,7 @@ TEST(Cli, OddValuesAreRefusedByName) {
   EXPECT_EQ(r.code, 1) << r.out;
   EXPECT_NE(r.out.find("radius 10 is larger than the cloud itself"), std::string::npos) << r.out;
   r = run("fit " + in + " -o " + out + " --template icosphere:1e9");
-  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_EQ(r.code, 2) << r.out;  // a bad option value: usage
   EXPECT_NE(r.out.find("expected icosphere:L with L in 0..7"), std::string::npos) << r.out;
   const std::string profile = (dir / "p.yaml").string();
   { std::ofstream(profile) << "threads: -1\n"; }
@@ -747,6 +747,12 @@ TEST(Cli, OddValuesAreRefusedByName) {
   EXPECT_EQ(r.code, 1) << r.out;
   EXPECT_NE(r.out.find("none.yaml"), std::string::npos) << r.out;
   EXPECT_FALSE(std::filesystem::exists(cam_out));
+  // Bad option values are usage errors (exit 2; these exited 1, while --square 0 exited 2).
+  for (const std::string opt : {"--board abc", "--board 2x2", "--square 1e300"}) {
+    r = run("calibrate camera" + images + " " + opt + " -o " + cam_out);
+    EXPECT_EQ(r.code, 2) << opt << ": " << r.out;
+    EXPECT_EQ(r.out.rfind("station: " + opt.substr(0, opt.find(' ')) + " ", 0), 0u) << opt << ": " << r.out;
+  }
   // `run` refuses a radius no cloud can have with the profile, before any work (it
   // registered the session first); one larger than the cloud, found so only once the
   // cloud is there (after the merge of a session), names its key, not the cloud.
@@ -918,6 +924,14 @@ TEST(Cli, ASessionGoesIntoANewOrEmptyFolderAndAFailedStartLeavesNone) {
     EXPECT_EQ(read_file_bytes(user + "/merged.ply"), "the user's");
     EXPECT_FALSE(fs::exists(user + "/session.yaml"));
   }
+  // Nor does an import replace a user's file that has a view's name (not an input).
+  { std::ofstream(user + "/view_000.ply") << "the user's view"; }
+  const CmdResult imp = run("import " + src + "/view_001.ply -o " + user);
+  EXPECT_EQ(imp.code, 1) << imp.out;
+  EXPECT_NE(imp.out.find(user + "/view_000.ply: exists, and an import never replaces a file"), std::string::npos)
+      << imp.out;
+  EXPECT_EQ(read_file_bytes(user + "/view_000.ply"), "the user's view");
+  EXPECT_FALSE(fs::exists(user + "/session.yaml"));
   // An empty folder is fine.
   fs::create_directory(dir / "empty");
   EXPECT_EQ(run("replay " + src + " -o " + (dir / "empty").string()).code, 0);
@@ -1123,10 +1137,10 @@ TEST(Cli, AnInterruptedCommandSaysSoAndLeavesNothing) {
   namespace fs = std::filesystem;
   const fs::path view = dir / "view.ply";
   fs::copy_file(repo("data/dragon_stand/dragonStandRight_0.ply"), view);
-  // About 4 s of work here: interrupted after 1 s.
+  // About 7 s of work on one thread here: interrupted after 1 s.
   const CmdResult r = test::run_command("timeout --preserve-status -s INT 1 " + std::string(STATION_BINARY) +
                                         " reconstruct " + view.string() + " -o " +
-                                        (dir / "mesh.ply").string() + " --resolution 1024");
+                                        (dir / "mesh.ply").string() + " --resolution 1024 --threads 1");
   EXPECT_EQ(r.code, 130) << r.out;
   EXPECT_NE(r.out.find("station: interrupted"), std::string::npos) << r.out;
   std::vector<std::string> left;

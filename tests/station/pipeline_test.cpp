@@ -444,6 +444,13 @@ TEST(Profile, AFileThatIsNoMappingIsSaidSo) {
       EXPECT_EQ(std::string(e.what()), profile.string() + ": expected a profile (a mapping of sections such as "
                                                           "capture:, register:), " + got);
     }
+    // The same with an override (a --set on a single value failed inside yaml-cpp).
+    try {
+      load_config(profile, {"reconstruct.resolution=64"});
+      ADD_FAILURE() << text << " was accepted with an override";
+    } catch (const FormatError& e) {
+      EXPECT_NE(std::string(e.what()).find("expected a profile"), std::string::npos) << e.what();
+    }
   }
 }
 
