@@ -981,6 +981,17 @@ TEST(Cli, OddInputsAndOutputKindsAreRefusedByName) {
     EXPECT_EQ(std::count(r.out.begin(), r.out.end(), '\n'), 1) << cmd << ": " << r.out;
   }
   for (const char* f : {"c.ply", "f.ply", "u.obj", "axis.ply"}) EXPECT_FALSE(fs::exists(dir / f)) << f;
+  // A cloud under a micrometre across: wrong units (a sphere 1e-12 across was fitted
+  // with 1,010 flipped faces and reconstructed open, exit 0).
+  const std::string tiny = (dir / "tiny.ply").string();
+  write_ply(tiny, test::fibonacci_sphere(2000, 1e-9));
+  for (const std::string& cmd : {"consolidate " + tiny + " -o " + (dir / "c.ply").string(),
+                                 "reconstruct " + tiny + " -o " + (dir / "m.ply").string(),
+                                 "fit " + tiny + " -o " + (dir / "f.ply").string() + " --template icosphere:2"}) {
+    const CmdResult r = run(cmd);
+    EXPECT_EQ(r.code, 1) << cmd << ": " << r.out;
+    EXPECT_EQ(r.out.rfind("station: " + tiny + ": the cloud spans only ", 0), 0u) << cmd << ": " << r.out;
+  }
 }
 
 // An output named like one of the command's inputs is refused before the work, naming
