@@ -183,13 +183,19 @@ void put_ply_face(std::string& out, const Face& f) {
   put_le(out, idx, 12);
 }
 
+namespace io_detail {
+
+void refuse_special_file(const std::string& name) {
+  struct stat st {};
+  if (::stat(name.c_str(), &st) == 0 && !S_ISREG(st.st_mode) && !S_ISDIR(st.st_mode))
+    throw IoError(name + ": cannot read: not a regular file (a device, FIFO or socket)");
+}
+
+}  // namespace io_detail
+
 std::string read_file_bytes(const fs::path& path) {
-  // A device is refused before it is opened (opening a serial port can reset the
-  // board behind it); O_NONBLOCK: a FIFO would block the open until a writer came.
-  struct stat pre {};
-  if (::stat(path.c_str(), &pre) == 0 && !S_ISREG(pre.st_mode) && !S_ISDIR(pre.st_mode))
-    throw IoError(path.string() + ": cannot read: not a regular file (a device, FIFO or socket)");
-  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC | O_NONBLOCK);
+  io_detail::refuse_special_file(path.string());
+  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
   if (fd < 0) io_fail(path, "cannot open", errno);
   struct Closer {
     int fd;
@@ -198,8 +204,6 @@ std::string read_file_bytes(const fs::path& path) {
   struct stat st {};
   if (::fstat(fd, &st) != 0) io_fail(path, "cannot stat", errno);
   if (S_ISDIR(st.st_mode)) io_fail(path, "cannot read", EISDIR);
-  // A device (/dev/zero: read until memory ran out), FIFO or socket is no file to read.
-  if (!S_ISREG(st.st_mode)) throw IoError(path.string() + ": cannot read: not a regular file (a device, FIFO or socket)");
   std::string out;
   if (S_ISREG(st.st_mode) && st.st_size > 0) out.reserve(static_cast<std::size_t>(st.st_size));
   char buf[1 << 16];

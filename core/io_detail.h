@@ -26,6 +26,11 @@ namespace station::io_detail {
 /// stages (a 1e38 coordinate made h = 1.4e38 and an internal winding-number error).
 inline constexpr double kMaxCoordinate = 1e9;
 
+/// Refuses an input that exists and is neither a regular file nor a folder (a device:
+/// /dev/zero was read until memory ran out, and opening a serial port can reset the
+/// board behind it; a FIFO blocked the open), before it is opened: IoError naming it.
+void refuse_special_file(const std::string& name);
+
 /// Empty when (x, y, z) is a usable coordinate, else the problem in a few words.
 inline std::string coordinate_problem(float x, float y, float z) {
   if (!std::isfinite(x) || !std::isfinite(y) || !std::isfinite(z)) return "non-finite coordinate";

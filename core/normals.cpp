@@ -79,6 +79,13 @@ Vec3d simple_normal(const Vec3d* points, int n, int iterations, Vec3d* pca) {
   return normal;
 }
 
+bool any_usable_normal(const std::vector<Vec3f>& normals) {
+  return std::any_of(normals.begin(), normals.end(), [](const Vec3f& n) {
+    const float len = n.norm();
+    return std::isfinite(len) && len >= 1e-6f;
+  });
+}
+
 std::vector<Vec3f> estimate_normals(const std::vector<Vec3f>& points, int k, int threads) {
   if (k < 3) throw InvalidInput("normals: k must be >= 3");
   if (!all_finite(points)) throw InvalidInput("normals: non-finite coordinates");

@@ -31,6 +31,10 @@ Vec3d pca_normal(const Vec3d* points, int n);
 /// from (pca_normal's, bit for bit) is stored there too.
 Vec3d simple_normal(const Vec3d* points, int n, int iterations = 6, Vec3d* pca = nullptr);
 
+/// True when some normal has a length of at least 1e-6 and is finite (the test MPU
+/// applies to each point's): a cloud whose normals are all zero has none to use.
+bool any_usable_normal(const std::vector<Vec3f>& normals);
+
 /// PCA normals of every point over its k nearest points (itself included; k >= 3).
 /// Unit length, arbitrary sign; zero where the neighbourhood is degenerate.
 /// Parallel over points; the result does not depend on `threads` (0 = all cores).

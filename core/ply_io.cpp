@@ -551,19 +551,13 @@ namespace station {
 void stream_ply_points(const fs::path& path, std::size_t chunk, const std::function<void(const Cloud&)>& fn) {
   if (chunk == 0) chunk = 1;
   const std::string name = path.string();
-  struct stat pre {};  // a device refused before it is opened (a serial port may reset)
-  if (::stat(name.c_str(), &pre) == 0 && !S_ISREG(pre.st_mode) && !S_ISDIR(pre.st_mode))
-    throw IoError(name + ": cannot read: not a regular file (a device, FIFO or socket)");
-  const int fd = ::open(name.c_str(), O_RDONLY | O_CLOEXEC | O_NONBLOCK);  // (a FIFO: refused, not waited on)
+  io_detail::refuse_special_file(name);
+  const int fd = ::open(name.c_str(), O_RDONLY | O_CLOEXEC);
   if (fd < 0) throw IoError(name + ": cannot open: " + std::strerror(errno));
   struct stat st {};
   if (::fstat(fd, &st) == 0 && S_ISDIR(st.st_mode)) {
     ::close(fd);
     throw IoError(name + ": cannot read: " + std::strerror(EISDIR));
-  }
-  if (::fstat(fd, &st) == 0 && !S_ISREG(st.st_mode)) {
-    ::close(fd);
-    throw IoError(name + ": cannot read: not a regular file (a device, FIFO or socket)");
   }
   if (::fstat(fd, &st) != 0 || st.st_size <= 0) {
     ::close(fd);

@@ -91,12 +91,8 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
     // Normals that are all zero (or not finite) are none: a writer that fills the
     // fields without estimating them. Estimated as for a cloud without them (MPU
     // refused the cloud, "0 points with usable normals").
-    const bool any = std::any_of(input.normals.begin(), input.normals.end(), [](const Vec3f& n) {
-      const float len = n.norm();
-      return std::isfinite(len) && len >= 1e-6f;
-    });
-    if (!any) input.normals.clear();
-    zero_normals = !any;
+    zero_normals = !any_usable_normal(input.normals);
+    if (zero_normals) input.normals.clear();
   }
   if (!input.has_normals()) {
     // MPU needs oriented normals: estimate them (PCA) and orient them consistently.

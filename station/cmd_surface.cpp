@@ -25,6 +25,7 @@
 #include "core/error.h"
 #include "station/blocks_run.h"
 #include "core/io.h"
+#include "core/normals.h"
 #include "core/threads.h"
 #include "reconstruct/colour_function.h"
 #include "reconstruct/dmc.h"
@@ -378,10 +379,7 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
   if (!a.scans.empty()) {
     scans = read_cloud(a.scans);
     if (scans.empty()) throw InvalidInput(a.scans + ": no points");
-    const bool usable = std::any_of(scans.normals.begin(), scans.normals.end(), [](const Vec3f& n) {
-      return std::isfinite(n.norm()) && n.norm() >= 1e-6f;
-    });
-    if (!scans.has_normals() || !usable)
+    if (!scans.has_normals() || !any_usable_normal(scans.normals))
       throw InvalidInput(a.scans + ": the scans have no normals" + (scans.has_normals() ? " (all zero)" : "") +
                          " (needed to tell a thin part's sides apart)");
     sp.scans = &scans;

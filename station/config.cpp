@@ -79,11 +79,7 @@ struct Reader {
   }
   void check_keys(const YAML::Node& n, const std::string& where,
                   std::initializer_list<const char*> known) const {
-    if (!n.IsMap()) {
-      // The whole file (where is empty): a scalar or a list is no profile.
-      if (where.empty()) throw FormatError(file + ": expected a profile (a mapping of sections such as capture:, register:), got " + (n.IsSequence() ? "a list" : n.IsScalar() ? "a single value" : "nothing"));
-      fail(where, "expected a mapping");
-    }
+    if (!n.IsMap()) fail(where, "expected a mapping");  // (the whole file: load_config says so first)
     for (const auto& kv : n) {
       const std::string k = kv.first.as<std::string>();
       bool ok = false;
