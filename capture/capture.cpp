@@ -167,7 +167,11 @@ CaptureResult run_capture(Scanner& scanner, Turntable& turntable, Session& sessi
     rec.angle_deg = turntable.angle();  // what the table reports, not what was asked
     rec.reference_pose = frame.reference_pose;
     rec.timestamp = frame.timestamp > 0 ? std::optional<double>(frame.timestamp) : std::nullopt;
-    const bool colour_image = frame.has_colour() && frame.colour_intrinsics.valid();
+    // Recorded whenever its size is known, with or without a calibration for it (a
+    // replayed view's image that is not the size of the session's intrinsics was dropped
+    // without a word).
+    const int cw = frame.colour_intrinsics.width, ch = frame.colour_intrinsics.height;
+    const bool colour_image = frame.has_colour() && cw > 0 && ch > 0;
     session.add_view(cloud, rec, colour_image ? frame.colour : std::vector<std::uint8_t>{},
                      frame.colour_intrinsics.width, frame.colour_intrinsics.height);
     ++result.recorded;

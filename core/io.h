@@ -29,6 +29,10 @@ struct TexturedMesh {
   std::vector<Vec2f> corner_uv;
   /// Absolute path of the diffuse texture (MTL map_Kd), empty when none.
   fs::path texture;
+  /// Set when the file names material libraries (mtllib) of which none could be read
+  /// (missing, unreadable, too large): the mesh is read without their texture. A library
+  /// that is read but names no texture (colours only) is no problem.
+  std::string material_problem;
 };
 
 // ---- parsers over in-memory bytes (used by the file readers and fuzzers) ----

@@ -33,8 +33,10 @@ struct Corner {
   int v, vt, vn;  // 0-based, -1 when absent
 };
 
-/// Texture of the material library at `mtl` (empty when unknown).
-fs::path texture_from_mtl(const fs::path& mtl, const std::vector<std::string>& used) {
+/// Texture of the material library at `mtl` (empty when unknown); `readable` says
+/// whether the library itself could be read.
+fs::path texture_from_mtl(const fs::path& mtl, const std::vector<std::string>& used, bool& readable) {
+  readable = false;
   std::error_code ec;
   if (!fs::is_regular_file(mtl, ec)) return {};
   const auto size = fs::file_size(mtl, ec);
@@ -45,6 +47,7 @@ fs::path texture_from_mtl(const fs::path& mtl, const std::vector<std::string>& u
   } catch (const Error&) {
     return {};
   }
+  readable = true;
   std::vector<std::pair<std::string, std::string>> maps;  // material -> map_Kd
   std::string current;
   io_detail::LineReader lines(text);
@@ -198,6 +201,7 @@ TexturedMesh parse_obj(std::string_view bytes, const std::string& name, const fs
   }
 
   if (!base_dir.empty()) {
+    bool any_library_read = false;
     for (const std::string& lib : libraries) {
       // A library name may hold spaces; if the whole name is not a file, try
       // each word (the statement can list several libraries).
@@ -206,11 +210,16 @@ TexturedMesh parse_obj(std::string_view bytes, const std::string& name, const fs
       for (std::string_view w; t.next(w);)
         if (w.size() != lib.size()) candidates.emplace_back(w);
       for (const std::string& c : candidates) {
-        out.texture = texture_from_mtl(base_dir / c, used);
+        bool readable = false;
+        out.texture = texture_from_mtl(base_dir / c, used, readable);
+        any_library_read = any_library_read || readable;
         if (!out.texture.empty()) break;
       }
       if (!out.texture.empty()) break;
     }
+    if (!libraries.empty() && !any_library_read)
+      out.material_problem = "its material library " + quote(libraries.front()) + " could not be read in " +
+                             base_dir.string() + " (missing?): the mesh is read without its texture";
   }
   return out;
 }

@@ -155,7 +155,14 @@ PcdHeader parse_header(std::string_view bytes, const std::string& name) {
     if (height != 0 && width > std::numeric_limits<std::uint64_t>::max() / height) bad("WIDTH * HEIGHT overflows");
     h.points = width * height;
   }
-  (void)have_height;
+  if (have_points && have_width) {
+    // PCL writes both; a count that disagrees with the organised size is a corrupt or
+    // hand-edited header (PCL's own reader refuses it too), whichever is right.
+    const bool overflows = height != 0 && width > std::numeric_limits<std::uint64_t>::max() / height;
+    if (overflows || width * height != h.points)
+      bad("POINTS " + std::to_string(h.points) + " disagrees with WIDTH x HEIGHT = " + std::to_string(width) + " x " +
+          std::to_string(height) + (have_height ? "" : " (HEIGHT not given: 1)"));
+  }
   return h;
 }
 

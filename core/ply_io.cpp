@@ -137,6 +137,10 @@ Header parse_header(std::string_view bytes, const std::string& name) {
       long long count = 0;
       if (!io_detail::parse_int(tok[2], count) || count < 0)
         bad("bad element count " + quote(tok[2]));
+      for (const Element& earlier : h.elements)
+        if (earlier.name == tok[1] && (tok[1] == "vertex" || tok[1] == "face"))
+          bad("a second 'element " + std::string(tok[1]) + "' (the first is on line " +
+              std::to_string(earlier.header_line) + ")");
       Element e;
       e.name = std::string(tok[1]);
       e.count = static_cast<std::uint64_t>(count);
@@ -157,6 +161,9 @@ Header parse_header(std::string_view bytes, const std::string& name) {
         if (!scalar_from_name(tok[1], p.type)) bad("unknown type " + quote(tok[1]));
         p.name = std::string(tok[2]);
       }
+      for (const Property& earlier : h.elements.back().props)
+        if (earlier.name == p.name)
+          bad("property " + quote(p.name) + " declared twice in element '" + h.elements.back().name + "'");
       h.elements.back().props.push_back(std::move(p));
     } else {
       bad("unknown header keyword " + quote(kw));
@@ -388,6 +395,14 @@ struct VertexLayout {
   bool unit_colour = false;  // floating-point colours in [0, 1]
 };
 
+// Float colours a little outside 0..1 (a writer's rounding) are clamped, not refused.
+constexpr double kUnitColourSlack = 1e-3;
+std::string fmt_colour(double v) {
+  char buf[32];
+  std::snprintf(buf, sizeof buf, "%.6g", v);
+  return buf;
+}
+
 // The vertices into `mesh`; with `chunk` > 0 and `emit`, `emit` is called after every
 // `chunk` vertices (and after the last) and the vertices are cleared in between.
 template <class Source>
@@ -422,6 +437,13 @@ void read_vertices(Source& src, const Element& e, const VertexLayout& L, Mesh& m
       if (!n.allFinite()) src.fail("non-finite normal");
       mesh.normals.push_back(n);
     }
+    if (colours && L.unit_colour)
+      for (const int c : {L.r, L.g, L.b})
+        // Float colours are 0..1; a writer that stored 0..255 as floats came out white
+        // (every channel clamped), NaN black. A rounding's overshoot is clamped.
+        if (!(v[std::size_t(c)] >= -kUnitColourSlack && v[std::size_t(c)] <= 1 + kUnitColourSlack))
+          src.fail("colour '" + e.props[std::size_t(c)].name + "' is " + fmt_colour(v[std::size_t(c)]) +
+                   ", outside 0..1 (float colours are read as 0..1: 0..255 stored as floats?)");
     if (colours)
       mesh.colours.push_back(Rgb{io_detail::to_channel(v[L.r], L.unit_colour),
                                 io_detail::to_channel(v[L.g], L.unit_colour),

@@ -189,6 +189,10 @@ class SyntheticScanner final : public Scanner {
       throw DeviceError(uri_.text + ": mesh " + path.string() + ": no such file");
     try {
       TexturedMesh mesh = read_textured_mesh(path);
+      // Scanned without it, every view would come out uncoloured, said nowhere.
+      if (!mesh.material_problem.empty())
+        throw DeviceError(uri_.text + ": mesh " + path.string() + ": " + mesh.material_problem +
+                          " (restore it, or remove the mtllib line to scan the mesh uncoloured)");
       Texture texture;
       if (!mesh.texture.empty() && !mesh.corner_uv.empty()) texture = load_texture(mesh.texture);
       return std::make_unique<Scene>(std::move(mesh), std::move(texture), params);

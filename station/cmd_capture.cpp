@@ -66,18 +66,6 @@ void check_new_session_folder(const fs::path& dir, const char* command) {
                   " into a new or an empty folder");
 }
 
-/// A session this command created whose first view failed: what it wrote goes again
-/// (the manifest, a view file written before its colour image or the manifest
-/// failed), as the message says nothing was recorded; a stub would make the next try
-/// say "already holds a session" or "holds other files". The folder was new or empty
-/// (check_new_session_folder), so all in it is the command's; a new one goes too.
-void drop_unrecorded_session(const Session& session, bool folder_existed) {
-  if (!session.manifest().views.empty()) return;
-  std::error_code ec;
-  for (const fs::directory_entry& e : fs::directory_iterator(session.dir(), ec)) fs::remove_all(e.path(), ec);
-  if (!folder_existed) fs::remove(session.dir(), ec);
-}
-
 int run_job(const StationConfig& cfg, const Common& c, const RunArgs& a, bool blocks_over_ranks = false) {
   RunRequest req;
   req.blocks_over_ranks = blocks_over_ranks;
@@ -209,6 +197,18 @@ int capture_into(Session& session, Scanner& scanner, Turntable& turntable,
 }
 
 }  // namespace
+
+/// A session this command created whose first view failed: what it wrote goes again
+/// (the manifest, a view file written before its colour image or the manifest
+/// failed), as the message says nothing was recorded; a stub would make the next try
+/// say "already holds a session" or "holds other files". The folder was new or empty
+/// (check_new_session_folder), so all in it is the command's; a new one goes too.
+void drop_unrecorded_session(const Session& session, bool folder_existed) {
+  if (!session.manifest().views.empty()) return;
+  std::error_code ec;
+  for (const fs::directory_entry& e : fs::directory_iterator(session.dir(), ec)) fs::remove_all(e.path(), ec);
+  if (!folder_existed) fs::remove(session.dir(), ec);
+}
 
 int cmd_devices(const Common& c) {
   load_common(c);

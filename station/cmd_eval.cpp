@@ -56,6 +56,8 @@ struct EvalInput {
 
 void read_eval_input(const fs::path& p, EvalInput& in) {
   in.textured = read_textured_mesh(p);
+  if (!in.textured.material_problem.empty())
+    std::fprintf(stderr, "warning: %s: %s\n", p.c_str(), in.textured.material_problem.c_str());
   in.is_mesh = !in.textured.mesh.faces.empty();
   if (in.is_mesh && !in.textured.texture.empty() && !in.textured.corner_uv.empty())
     in.texture = load_texture(in.textured.texture);

@@ -156,6 +156,12 @@ void check_not_an_input(const std::vector<std::string>& outputs, const std::vect
 
 DeviceRegistry make_registry();
 
+/// A session a command (or a served scan job) created whose first view failed: what it
+/// wrote goes again, and the folder too when it was new (`folder_existed` false). The
+/// folder was new or empty, so all in it is the command's. Nothing when a view was
+/// recorded.
+void drop_unrecorded_session(const Session& session, bool folder_existed);
+
 /// Writes the turntable-merged cloud of a session next to it, when it has an axis.
 JsonObject write_merged(const Session& session, const fs::path& out, bool quiet);
 

@@ -337,6 +337,9 @@ std::string JobManager::start_scan(const ScanJobRequest& r) {
           &j.stop);
     } catch (const Error& e) {
       const std::size_t kept = session->manifest().views.size();
+      // A new session whose first view failed leaves nothing (its name was free: the
+      // stub blocked the next try as "exists already").
+      if (!resume) cli::drop_unrecorded_session(*session, false);
       rethrow_as(e, std::string(e.what()) +
                         (kept == 0 ? "; nothing was recorded"
                                    : "; the " + std::to_string(kept) +

@@ -324,6 +324,26 @@ TEST(IoPly, MalformedInputsAreFormatErrors) {
                       "line 12: vertex 0: value -0.5 out of range for uchar (0..255) (its row, line 11, holds fewer "
                       "values than the header's properties?)");
   expect_format_error(ply, kAsciiHead + "0 0 0\n1 0 0\n0 1 0\n200 0 1 2\n", "exceeds");
+  // Float colours are 0..1: 0..255 stored as floats came out white, NaN black, exit 0.
+  const std::string float_colours =
+      "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n"
+      "property float red\nproperty float green\nproperty float blue\nend_header\n";
+  expect_format_error(ply, float_colours + "0 0 0 0.5 0.5 0.5\n1 0 0 0.5 128 0.5\n",
+                      "line 12: vertex 1: colour 'green' is 128, outside 0..1 (float colours are read as 0..1: "
+                      "0..255 stored as floats?)");
+  expect_format_error(ply, float_colours + "0 0 0 nan 0.5 0.5\n1 0 0 0.5 0.5 0.5\n", "vertex 0: colour 'red' is nan");
+  const Mesh rounded = parse_ply(float_colours + "0 0 0 1.0000001 -1e-7 0.5\n1 0 0 0 1 0.25\n", "f.ply");
+  EXPECT_EQ(rounded.colours[0], (Rgb{255, 0, 128}));
+  // A second vertex or face element, or a property twice: which one holds the data?
+  // (The first was read and the rest skipped.)
+  expect_format_error(ply,
+                      "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty "
+                      "float z\nelement vertex 1\nproperty float x\nend_header\n0 0 0\n1\n",
+                      "line 7: a second 'element vertex' (the first is on line 3)");
+  expect_format_error(ply,
+                      "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty "
+                      "float z\nproperty float x\nend_header\n0 0 0 1\n",
+                      "line 7: property 'x' declared twice in element 'vertex'");
 }
 
 TEST(IoPly, BinaryTruncationAndHostileCounts) {
@@ -598,6 +618,15 @@ TEST(IoPcd, MalformedInputsAreFormatErrors) {
   expect_format_error(pcd, counts + "POINTS 1\nDATA ascii\n1 2 3\n", "more than the file holds");
   expect_format_error(pcd, counts + "POINTS 1\nDATA binary\n1 2 3\n", "header declares 1");
   expect_format_error(pcd, "FIELDS x y z\nCOUNT 1 1 16777217\nPOINTS 0\nDATA ascii\n", "COUNT 16777217");
+  // POINTS against WIDTH x HEIGHT (the campaign: a header saying 12 x 1 and POINTS 10
+  // was read as 10 points, the two extra rows ignored).
+  expect_format_error(pcd, "FIELDS x y z\nWIDTH 3\nHEIGHT 1\nPOINTS 2\nDATA ascii\n1 2 3\n4 5 6\n7 8 9\n",
+                      "header: POINTS 2 disagrees with WIDTH x HEIGHT = 3 x 1");
+  expect_format_error(pcd, "FIELDS x y z\nWIDTH 3\nPOINTS 2\nDATA ascii\n1 2 3\n4 5 6\n",
+                      "(HEIGHT not given: 1)");
+  EXPECT_EQ(parse_pcd("FIELDS x y z\nWIDTH 2\nHEIGHT 2\nPOINTS 4\nDATA ascii\n1 2 3\n4 5 6\n7 8 9\n1 1 1\n", "o.pcd").size(),
+            4u);
+  EXPECT_EQ(parse_pcd("FIELDS x y z\nPOINTS 2\nDATA ascii\n1 2 3\n4 5 6\n", "p.pcd").size(), 2u);
 }
 
 // ---- OBJ --------------------------------------------------------------------------
@@ -679,6 +708,15 @@ TEST(IoObj, MissingMaterialLibraryIsNotAnError) {
   const TexturedMesh t = read_textured_mesh(dir / "a.obj");
   EXPECT_EQ(t.mesh.faces.size(), 1u);
   EXPECT_TRUE(t.texture.empty());
+  // ... but it is said (the texture was dropped without a word).
+  EXPECT_EQ(t.material_problem, "its material library 'nowhere.mtl' could not be read in " + dir.path().string() +
+                                    " (missing?): the mesh is read without its texture");
+  // A library that is read and names no texture (colours only) is no problem.
+  write_bytes(dir / "plain.mtl", "newmtl grey\nKd 0.5 0.5 0.5\n");
+  write_bytes(dir / "b.obj", "mtllib plain.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n");
+  EXPECT_TRUE(read_textured_mesh(dir / "b.obj").material_problem.empty());
+  write_bytes(dir / "c.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n");
+  EXPECT_TRUE(read_textured_mesh(dir / "c.obj").material_problem.empty());
 }
 
 TEST(IoObj, MalformedInputsAreFormatErrors) {

@@ -639,6 +639,17 @@ TEST(SyntheticErrors, MissingMeshAndGrabBeforeOpen) {
   } catch (const DeviceError& e) {
     EXPECT_NE(std::string(e.what()).find("junk.ply"), std::string::npos) << e.what();
   }
+  // An OBJ whose material library is missing: every view would come out uncoloured.
+  std::ofstream(dir / "lost.obj") << "mtllib lost.mtl\nv 0 0 0\nv 0.1 0 0\nv 0 0.1 0\nf 1 2 3\n";
+  auto lost = reg.make_scanner("sim:synthetic?mesh=" + (dir / "lost.obj").string());
+  try {
+    lost->open();
+    FAIL() << "open() should throw";
+  } catch (const DeviceError& e) {
+    EXPECT_NE(std::string(e.what()).find("lost.obj: its material library 'lost.mtl' could not be read"),
+              std::string::npos)
+        << e.what();
+  }
 }
 
 TEST_F(SyntheticSphere, ConfigureWhileOpen) {

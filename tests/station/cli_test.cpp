@@ -16,6 +16,7 @@
 
 #include "capture/session.h"
 #include "core/io.h"
+#include "core/texture.h"
 #include "eval/consolidation_metrics.h"
 #include "eval/eval.h"
 #include "test_util.h"
@@ -944,6 +945,30 @@ TEST(Cli, ASessionGoesIntoANewOrEmptyFolderAndAFailedStartLeavesNone) {
   EXPECT_EQ(r.code, 1) << r.out;
   EXPECT_NE(r.out.find("nothing was recorded"), std::string::npos) << r.out;
   EXPECT_FALSE(fs::exists(again)) << r.out;
+}
+
+// A replayed view's colour image is kept when it is not the size of the session's
+// intrinsics (it was dropped without a word: the replayed session had no colour).
+TEST(Cli, AReplayKeepsColourImagesOfAnotherSize) {
+  test::TempDir dir;
+  const std::string src = (dir / "s").string(), out = (dir / "r").string();
+  ASSERT_EQ(run("scan -o " + src + " --views 2 --set width=80 --set height=60").code, 0);
+  SessionManifest m = read_manifest(src);
+  ASSERT_TRUE(m.intrinsics);
+  ASSERT_FALSE(m.views[0].colour_image.empty());
+  m.intrinsics->width *= 2;  // the depth camera's size, say; the images stay 80 x 60
+  m.intrinsics->height *= 2;
+  write_manifest(src, m);
+  const CmdResult r = run("replay " + src + " -o " + out);
+  ASSERT_EQ(r.code, 0) << r.out;
+  const SessionManifest rm = read_manifest(out);
+  ASSERT_EQ(rm.views.size(), 2u);
+  for (const ViewRecord& v : rm.views) {
+    ASSERT_FALSE(v.colour_image.empty()) << r.out;
+    const Texture image = load_texture(out + "/" + v.colour_image);
+    EXPECT_EQ(image.width, 80);
+    EXPECT_EQ(image.height, 60);
+  }
 }
 
 // Inputs that are no files to read, and outputs named for another kind, refused by

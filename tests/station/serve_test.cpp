@@ -8,7 +8,9 @@
 #include <fstream>
 #include <thread>
 
+#include "capture/session.h"
 #include "core/error.h"
+#include "core/io.h"
 #include "station/jobs.h"
 #include "station/serve.h"
 #include "test_util.h"
@@ -236,6 +238,34 @@ TEST_F(ServeTest, SecondJobOnABusyDeviceIsRefused) {
   ASSERT_EQ(third->status, 202) << third->body;
   EXPECT_EQ(wait_job(json(third)["job"])["state"], "finished");
   EXPECT_EQ(json(client_->Get("/api/sessions/b"))["views"], 2);
+}
+
+// A scan job whose first view fails leaves no session (its stub made the next try
+// "exists already").
+TEST_F(ServeTest, AScanWhoseFirstViewFailsLeavesNoSession) {
+  const fs::path src = dir_ / "recorded";
+  {
+    Session rec = Session::create(src, SessionManifest{});
+    Cloud c;
+    for (int i = 0; i < 50; ++i) c.points.push_back(Vec3f(0.01f * float(i), 0, 0.5f));
+    rec.add_view(c, ViewRecord{});
+  }
+  const std::string view = (src / "view_000.ply").string();
+  const std::string whole = read_file_bytes(view);
+  std::ofstream(view, std::ios::binary) << whole.substr(0, whole.size() / 2);
+  fs::create_directories(dir_ / "profiles");
+  write_text(dir_ / "profiles" / "broken.yaml",
+             "scanner:\n  uri: sim:replay\n  options:\n    session: " + src.string() +
+                 "\nturntable:\n  uri: sim:turntable\ncapture:\n  views: 2\n");
+  start();
+  for (int attempt = 0; attempt < 2; ++attempt) {
+    const auto r = post("/api/scan", {{"session", "x"}, {"profile", "broken.yaml"}, {"run", false}});
+    ASSERT_EQ(r->status, 202) << attempt << ": " << r->body;
+    const Json j = wait_job(json(r)["job"]);
+    EXPECT_EQ(j["state"], "failed") << j.dump();
+    EXPECT_NE(j.dump().find("nothing was recorded"), std::string::npos) << j.dump();
+    EXPECT_FALSE(fs::exists(dir_ / "data" / "x")) << attempt;
+  }
 }
 
 TEST_F(ServeTest, StoppedScanResumesToTheSameSession) {
