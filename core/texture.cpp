@@ -1,6 +1,8 @@
 #include "core/texture.h"
 
 #include <algorithm>
+#include <array>
+#include <cstdint>
 #include <cmath>
 #include <string_view>
 #include <opencv2/core.hpp>
@@ -11,6 +13,52 @@
 
 namespace station {
 
+namespace {
+
+// CRC-32 as PNG computes it (ISO 3309, reflected polynomial 0xEDB88320).
+std::uint32_t png_crc(const unsigned char* p, std::size_t n) {
+  static const auto table = [] {
+    std::array<std::uint32_t, 256> t{};
+    for (std::uint32_t i = 0; i < 256; ++i) {
+      std::uint32_t c = i;
+      for (int k = 0; k < 8; ++k) c = (c & 1) ? 0xEDB88320u ^ (c >> 1) : c >> 1;
+      t[i] = c;
+    }
+    return t;
+  }();
+  std::uint32_t c = 0xFFFFFFFFu;
+  for (std::size_t i = 0; i < n; ++i) c = table[(c ^ p[i]) & 0xFF] ^ (c >> 8);
+  return c ^ 0xFFFFFFFFu;
+}
+
+std::uint32_t big_endian_u32(const unsigned char* p) {
+  return (std::uint32_t(p[0]) << 24) | (std::uint32_t(p[1]) << 16) | (std::uint32_t(p[2]) << 8) | p[3];
+}
+
+// Walks a PNG's chunks up to IEND and checks each critical chunk's CRC (IHDR, PLTE,
+// IDAT, IEND: an upper-case first letter), so that a corrupt file is one error naming
+// it; libpng also printed its own line ("libpng error: IDAT: invalid literal/lengths
+// set") before OpenCV gave up. Data after IEND is allowed (some writers pad).
+void check_png_chunks(const std::string& bytes, const fs::path& path) {
+  const auto* data = reinterpret_cast<const unsigned char*>(bytes.data());
+  std::size_t at = 8;
+  for (;;) {
+    if (bytes.size() - at < 12) throw FormatError(path.string() + ": truncated PNG (no IEND chunk)");
+    const std::uint32_t length = big_endian_u32(data + at);
+    if (length > 0x7FFFFFFFu || bytes.size() - at - 12 < length)
+      throw FormatError(path.string() + ": truncated PNG (no IEND chunk)");
+    const std::string type(bytes, at + 4, 4);
+    const bool critical = type[0] >= 'A' && type[0] <= 'Z';
+    if (critical && png_crc(data + at + 4, 4 + std::size_t(length)) != big_endian_u32(data + at + 8 + length))
+      throw FormatError(path.string() + ": corrupt PNG (its " + type + " chunk at byte " + std::to_string(at) +
+                        " fails its CRC check)");
+    if (type == "IEND") return;
+    at += 12 + std::size_t(length);
+  }
+}
+
+}  // namespace
+
 std::string read_image_file(const fs::path& path) {
   std::string bytes = read_file_bytes(path);
   const auto starts = [&](std::string_view magic) { return bytes.compare(0, magic.size(), magic) == 0; };
@@ -20,8 +68,7 @@ std::string read_image_file(const fs::path& path) {
   };
   if (starts("\xFF\xD8") && !ends_with("\xFF\xD9"))
     throw FormatError(path.string() + ": truncated JPEG (no end-of-image marker)");
-  if (starts("\x89PNG\r\n\x1A\n") && !ends_with("IEND"))
-    throw FormatError(path.string() + ": truncated PNG (no IEND chunk)");
+  if (starts("\x89PNG\r\n\x1A\n")) check_png_chunks(bytes, path);
   return bytes;
 }
 

@@ -879,6 +879,19 @@ TEST(Texture, TruncatedImagesAreRefusedNamingTheFile) {
   { std::ofstream(dir / "bomb.png", std::ios::binary).write(reinterpret_cast<const char*>(bomb), sizeof bomb); }
   const std::string msg = error_of<FormatError>([&] { load_texture(dir / "bomb.png"); });
   EXPECT_EQ(msg.rfind((dir / "bomb.png").string() + ": not a readable image (the decoder refused it: ", 0), 0u) << msg;
+  // A byte flipped inside the image data: one error naming the file and the chunk
+  // (libpng also printed "libpng error: IDAT: invalid literal/lengths set").
+  std::string flipped = read_file_bytes(test::source_dir() / "tests/data/kinect_frames/frame0_rgb.png");
+  const std::size_t idat = flipped.find("IDAT");
+  ASSERT_NE(idat, std::string::npos);
+  flipped[idat + 40] = char(flipped[idat + 40] ^ 0xFF);
+  { std::ofstream(dir / "flipped.png", std::ios::binary) << flipped; }
+  EXPECT_EQ(error_of<FormatError>([&] { load_texture(dir / "flipped.png"); }),
+            (dir / "flipped.png").string() + ": corrupt PNG (its IDAT chunk at byte " + std::to_string(idat - 4) +
+                " fails its CRC check)");
+  // Padding after IEND is fine.
+  { std::ofstream(dir / "padded.png", std::ios::binary) << read_file_bytes(test::source_dir() / "tests/data/kinect_frames/frame0_rgb.png") << std::string(100, '\0'); }
+  EXPECT_FALSE(load_texture(dir / "padded.png").empty());
 }
 
 }  // namespace
