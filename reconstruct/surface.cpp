@@ -125,8 +125,9 @@ SurfaceResult reconstruct_surface(Cloud input, const SurfaceParams& p) {
       out.enclosure = -*out.enclosure;
     }
     const std::string encloses = "(hole auto: the cloud encloses " + fmt("%.2f", *out.enclosure);
-    const std::string bound = fmt("%.2g", kEnclosedAbove);
-    if (*out.enclosure >= kEnclosedAbove) {
+    const std::string bound =
+        fmt("%.2g", p.enclosed_above) + (p.enclosed_above != kEnclosedAbove ? " for views all round the object" : "");
+    if (*out.enclosure >= p.enclosed_above) {
       out.hole = HoleMode::kClose;
       note("closing the unseen parts " + encloses + ", at least " + bound + ")");
     } else {

@@ -174,6 +174,7 @@ int capture_into(Session& session, Scanner& scanner, Turntable& turntable,
     return 130;
   }
   bar.finish();
+  if (const std::string w = check_recorded_points(session); !w.empty()) std::fprintf(stderr, "warning: %s\n", w.c_str());
   const double t_capture = seconds_since(t0);
   const auto t1 = std::chrono::steady_clock::now();
   JsonObject merged = write_merged(session, session.dir() / "merged.ply", c.json);
@@ -198,13 +199,33 @@ int capture_into(Session& session, Scanner& scanner, Turntable& turntable,
 
 }  // namespace
 
+std::string check_recorded_points(const Session& session) {
+  const std::vector<ViewRecord>& views = session.manifest().views;
+  std::vector<std::size_t> empty;
+  for (std::size_t i = 0; i < views.size(); ++i)
+    if (views[i].points == 0) empty.push_back(i);
+  if (empty.empty()) return {};
+  const char* why =
+      "is the object inside the working volume (capture.volume), above the table clearance and within the "
+      "scanner's range? (a simulated mesh: check its scale)";
+  if (empty.size() == views.size())
+    throw InvalidInput(session.dir().string() + ": no points in any of the " + std::to_string(views.size()) +
+                       " views: " + why);
+  std::string list;
+  for (std::size_t k = 0; k < empty.size() && k < 8; ++k) list += (k ? ", " : "") + std::to_string(empty[k]);
+  if (empty.size() > 8) list += ", ...";
+  return std::to_string(empty.size()) + " of " + std::to_string(views.size()) + " views have no points (views " +
+         list + "): " + why;
+}
+
 /// A session this command created whose first view failed: what it wrote goes again
 /// (the manifest, a view file written before its colour image or the manifest
 /// failed), as the message says nothing was recorded; a stub would make the next try
 /// say "already holds a session" or "holds other files". The folder was new or empty
 /// (check_new_session_folder), so all in it is the command's; a new one goes too.
 void drop_unrecorded_session(const Session& session, bool folder_existed) {
-  if (!session.manifest().views.empty()) return;
+  const std::vector<ViewRecord>& views = session.manifest().views;
+  if (std::any_of(views.begin(), views.end(), [](const ViewRecord& v) { return v.points > 0; })) return;
   std::error_code ec;
   for (const fs::directory_entry& e : fs::directory_iterator(session.dir(), ec)) fs::remove_all(e.path(), ec);
   if (!folder_existed) fs::remove(session.dir(), ec);
@@ -686,7 +707,7 @@ void add_capture_commands(CLI::App& app, std::vector<Command>& out) {
 
   auto* import = app.add_subcommand("import", "Make a session from view files recorded elsewhere");
   add_common(import, c_import);
-  import->add_option("files", import_args.files, "view files (.ply .pcd), in turntable order")->required();
+  import->add_option("files", import_args.files, "view files (.ply .pcd; a mesh .obj .off gives its vertices), in turntable order")->required();
   import->add_option("-o,--out", import_args.out, "session folder to create")->required();
   import->add_option("--stanford-conf", import_args.stanford_conf, "Stanford .conf with reference poses (bmesh lines)");
   import->add_option("--start", import_args.start, "turntable angle of the first view, degrees")->check(finite_number());

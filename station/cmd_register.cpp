@@ -153,10 +153,14 @@ void print_registration(const RegistrationResult& r) {
     std::printf("turntable prior checked: %s; kept: %s (angle: what became of each view's commanded angle; "
                 "angle err: registered minus commanded, degrees)\n",
                 r.prior_comparison.c_str(), r.prior_kept.c_str());
+  // Relative to the first registered view with a reference pose (it said "view 0"
+  // when view 0 had failed).
+  std::size_t anchor = 0;
+  while (anchor < r.views.size() && !(r.views[anchor].registered && r.views[anchor].rotation_error_deg)) ++anchor;
   if (r.views_with_reference > 0)
-    std::printf("against reference poses (%d views, relative to view 0): rotation max %.3f deg, "
+    std::printf("against reference poses (%d views, relative to view %zu): rotation max %.3f deg, "
                 "median %.3f deg; translation max %.3f mm, median %.3f mm\n",
-                r.views_with_reference, r.max_rotation_error_deg, r.median_rotation_error_deg,
+                r.views_with_reference, anchor, r.max_rotation_error_deg, r.median_rotation_error_deg,
                 r.max_translation_error * r.mm_per_unit, r.median_translation_error * r.mm_per_unit);
   if (r.views_with_reference > 0)
     std::printf("  translation at the object (each view's centroid): max %.3f mm, median %.3f mm\n",

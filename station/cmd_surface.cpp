@@ -25,6 +25,7 @@
 #include "core/error.h"
 #include "station/blocks_run.h"
 #include "core/io.h"
+#include "core/range_image.h"
 #include "core/normals.h"
 #include "core/threads.h"
 #include "reconstruct/colour_function.h"
@@ -266,8 +267,10 @@ int cmd_consolidate(const Common& c, const ConsolidateArgs& a) {
       return 0;
     }
   }
-  const Cloud input = read_cloud(a.in);
+  std::string oriented;
+  const Cloud input = read_cloud_oriented(a.in, cfg.threads, oriented);
   check_cloud_size(input, a.in);
+  if (!oriented.empty() && !c.json) std::fprintf(stderr, "note: %s\n", oriented.c_str());
   const double t_read = seconds_since(t0);
   if (!c.json)
     std::fprintf(stderr, "consolidate: %s, %zu points, %s, %d iterations...\n", a.in.c_str(),
@@ -373,8 +376,10 @@ int cmd_reconstruct(const Common& c, const ReconstructArgs& a) {
     }
     return 0;
   }
-  Cloud input = read_cloud(a.in);
+  std::string oriented;
+  Cloud input = read_cloud_oriented(a.in, cfg.threads, oriented);
   check_cloud_size(input, a.in);
+  if (!oriented.empty() && !c.json) std::fprintf(stderr, "note: %s\n", oriented.c_str());
   Cloud scans;
   if (!a.scans.empty()) {
     scans = read_cloud(a.scans);

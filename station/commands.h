@@ -156,10 +156,16 @@ void check_not_an_input(const std::vector<std::string>& outputs, const std::vect
 
 DeviceRegistry make_registry();
 
-/// A session a command (or a served scan job) created whose first view failed: what it
-/// wrote goes again, and the folder too when it was new (`folder_existed` false). The
-/// folder was new or empty, so all in it is the command's. Nothing when a view was
-/// recorded.
+/// After a capture: views without a point (the object is not where the scanner looks:
+/// a scan of a mesh a metre across, the camera inside it, recorded 10 empty views of 12
+/// and exited 0 without a word). Returns a warning naming them (empty when there are
+/// none); InvalidInput when every view is empty.
+std::string check_recorded_points(const Session& session);
+
+/// A session a command (or a served scan job) created whose first view failed, or
+/// whose views all came out empty: what it wrote goes again, and the folder too when
+/// it was new (`folder_existed` false). The folder was new or empty, so all in it is
+/// the command's. Nothing when a view with points was recorded.
 void drop_unrecorded_session(const Session& session, bool folder_existed);
 
 /// Writes the turntable-merged cloud of a session next to it, when it has an axis.

@@ -363,6 +363,13 @@ std::string JobManager::start_scan(const ScanJobRequest& r) {
       return;
     }
     bar.finish();
+    try {
+      if (const std::string w = cli::check_recorded_points(*session); !w.empty())
+        j.emit({{"type", "line"}, {"text", "warning: " + w}});
+    } catch (const Error&) {
+      if (!resume) cli::drop_unrecorded_session(*session, false);
+      throw;
+    }
     cli::write_merged(*session, dir / "merged.ply", true);
     if (!then_run) return;
     if (!run_session(cfg, dir, false, j.sink(), &j.stop)) j.interrupted = true;

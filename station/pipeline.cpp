@@ -6,6 +6,7 @@
 #include <tbb/global_control.h>
 #include <yaml-cpp/yaml.h>
 
+#include <Eigen/Geometry>
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -21,6 +22,7 @@
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "core/io.h"
+#include "core/range_image.h"
 #include "reconstruct/colour_function.h"
 #include "reconstruct/sdm.h"
 #include "reconstruct/surface.h"
@@ -216,7 +218,8 @@ std::string surface_key(const PipelineConfig& p) {
   if (c.colour && c.colour_method == "mpu") s << ";colour_eq4=quantised";
   // Since issue 32: what decides the unseen parts and the kept rims.
   if (c.hole != "close")
-    s << ";enclosed_above=" << kEnclosedAbove << ";keep_trust=" << kKeepTrustFactor << ";rim_trim=" << kRimTrimFactor;
+    s << ";enclosed_above=" << kEnclosedAbove << ";keep_trust=" << kKeepTrustFactor << ";rim_trim=" << kRimTrimFactor
+      << ";enclosed_surrounded=" << kEnclosedAboveSurrounded;
   if (c.resolution == 0) s << ";auto_cells=" << kAutoResolutionMin << "-" << kAutoResolutionMax;
   if (c.surface == "sdm") s << ";level=" << p.sdm.level;
   return s.str();
@@ -604,6 +607,26 @@ class Runner {
       while (first + 1 < int(reg.views.size()) && !reg.views[first].registered) ++first;
       const Vec3d up = reg.poses[first].topLeftCorner<3, 3>() * reg.axis->direction;
       r.up = up;
+      // The largest gap between the registered views' turns about the axis (the twist
+      // of each view's rotation from the first's): under 120 degrees, the views
+      // surround the object (do_surface).
+      std::vector<double> turns;
+      const Vec3d a = reg.axis->direction.normalized();
+      for (std::size_t i = 0; i < reg.views.size(); ++i) {
+        if (!reg.views[i].registered) continue;
+        const Eigen::Quaterniond q(Eigen::Matrix3d(reg.poses[std::size_t(first)].topLeftCorner<3, 3>().transpose() *
+                                                   reg.poses[i].topLeftCorner<3, 3>()));
+        double t = 2 * std::atan2(q.vec().dot(a), q.w()) * 180 / M_PI;
+        t = std::fmod(t + 720, 360);
+        turns.push_back(t);
+      }
+      std::sort(turns.begin(), turns.end());
+      double gap = 360;
+      if (turns.size() >= 2) {
+        gap = turns.front() + 360 - turns.back();
+        for (std::size_t k = 1; k < turns.size(); ++k) gap = std::max(gap, turns[k] - turns[k - 1]);
+      }
+      r.figures["turn_gap_deg"] = gap;
       r.figures["up_x"] = up.x();
       r.figures["up_y"] = up.y();
       r.figures["up_z"] = up.z();
@@ -671,8 +694,10 @@ class Runner {
         return;
       }
     }
-    const Cloud input = read_cloud(in);
+    std::string oriented;
+    const Cloud input = read_cloud_oriented(in, cfg_.threads, oriented);
     if (input.empty()) throw InvalidInput(in.string() + ": empty cloud");
+    if (!oriented.empty()) say("  note: " + oriented);
     Progress bar(std::string("  consolidate: ") + wlop_label(c.method) + " iterations", c.iterations, req_.quiet, req_.events);
     p.progress = [&](int done, int) { bar.update(done); };
     const WlopResult w = consolidate(input, p);
@@ -687,8 +712,10 @@ class Runner {
     std::error_code ec;
     fs::remove(req_.out_dir / "colour_boundary.bin", ec);  // a report side file of the last surface
     const auto& c = cfg_.pipeline.reconstruct;
-    Cloud input = read_cloud(in);
+    std::string oriented;
+    Cloud input = read_cloud_oriented(in, cfg_.threads, oriented);
     if (input.empty()) throw InvalidInput(in.string() + ": empty cloud");
+    if (!oriented.empty()) say("  note: " + oriented);
     if (c.surface == "sdm") return do_sdm(r, in, input);
     SurfaceParams sp = surface_params(cfg_.pipeline, cfg_.threads);
     // The table plane (docs/run.md): a session's object frame knows its up, and
@@ -696,6 +723,13 @@ class Runner {
     if (c.table_plane)
       for (const StageRecord& s : result_.stages)
         if (s.name == "register" && s.up) sp.table_up = *s.up;
+    // Views all round the object (no gap between their turns about the table's axis
+    // of 120 degrees or more): a solid on the table, closed from a lower enclosure
+    // (kEnclosedAboveSurrounded). Not in blocks (every rank must decide alike).
+    if (!c.in_blocks())
+      for (const StageRecord& s : result_.stages)
+        if (s.name == "register" && s.figures.count("turn_gap_deg") && s.figures.at("turn_gap_deg") < 120)
+          sp.enclosed_above = kEnclosedAboveSurrounded;
     sp.resolution_name =
         "reconstruct.resolution " + (c.resolution > 0 ? std::to_string(c.resolution) : std::string("auto"));
     sp.boundary_flags = true;

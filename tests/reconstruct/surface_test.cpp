@@ -119,6 +119,20 @@ TEST(SurfaceHole, AutoClosesAnObjectAndKeepsAPatchOpen) {
   EXPECT_EQ(turned.hole, HoleMode::kClose);
   EXPECT_EQ(boundary_edges(turned.mesh), 0);
   EXPECT_FALSE(sphere.normals_flipped);
+  // A hemisphere (0.65) stays open by default; where the views surround the object
+  // (station run on a turntable session), the lower bound closes it.
+  const Cloud half = cap(16000, 0.1, 0.0);
+  const SurfaceResult open_half = reconstruct_surface(half, p);
+  EXPECT_EQ(open_half.hole, HoleMode::kKeep);
+  SurfaceParams around = p;
+  around.enclosed_above = kEnclosedAboveSurrounded;
+  const SurfaceResult closed_half = reconstruct_surface(half, around);
+  ASSERT_TRUE(closed_half.enclosure.has_value());
+  EXPECT_GT(*closed_half.enclosure, kEnclosedAboveSurrounded);
+  EXPECT_EQ(closed_half.hole, HoleMode::kClose);
+  EXPECT_EQ(boundary_edges(closed_half.mesh), 0);
+  // ... but not a one-view patch.
+  EXPECT_EQ(reconstruct_surface(cap(24000, 0.1, 0.33), around).hole, HoleMode::kKeep);
   // Closed by force, the same patch becomes a solid: no boundary edges.
   p.hole = HoleMode::kClose;
   EXPECT_EQ(boundary_edges(reconstruct_surface(cap(24000, 0.1, 0.33), p).mesh), 0);

@@ -4,6 +4,7 @@
 #include <sys/stat.h>
 #include <sys/wait.h>
 
+#include <Eigen/Geometry>
 #include <algorithm>
 #include <array>
 #include <cmath>
@@ -969,6 +970,76 @@ TEST(Cli, AReplayKeepsColourImagesOfAnotherSize) {
     EXPECT_EQ(image.width, 80);
     EXPECT_EQ(image.height, 60);
   }
+}
+
+// A scan whose views come out empty (the object is not where the scanner looks):
+// every view empty is an error that keeps no session (12 empty views and their
+// images were kept, "no points in any view", and a later run picked them up); some
+// empty views are a warning naming them (10 of 12 empty exited 0 without a word).
+TEST(Cli, AScanOfNothingSaysSoAndKeepsNoSession) {
+  test::TempDir dir;
+  const std::string tiny = (dir / "tiny").string();
+  // The bottle at a thousandth of its size: below the table clearance.
+  CmdResult r = run("scan -o " + tiny + " --views 3 --set width=80 --set height=60 --set scale=0.001");
+  EXPECT_EQ(r.code, 1) << r.out;
+  EXPECT_NE(r.out.find(tiny + ": no points in any of the 3 views: is the object inside the working volume"),
+            std::string::npos)
+      << r.out;
+  EXPECT_FALSE(std::filesystem::exists(tiny)) << r.out;
+  // The bottle four times too large, the camera inside it from two sides: those two
+  // views are empty, said (exit 0: the others hold the object).
+  const std::string huge = (dir / "huge").string();
+  r = run("scan -o " + huge + " --views 4 --set width=80 --set height=60 --set scale=4");
+  ASSERT_EQ(r.code, 0) << r.out;
+  EXPECT_NE(r.out.find("warning: 2 of 4 views have no points (views 1, 2): is the object inside the working volume"),
+            std::string::npos)
+      << r.out;
+  const SessionManifest m = read_manifest(huge);
+  ASSERT_EQ(m.views.size(), 4u);
+  EXPECT_EQ(m.views[1].points, 0u);
+  EXPECT_GT(m.views[0].points, 0u);
+}
+
+// A single range image without normals (an organised PCD, as PCL writes a Kinect
+// frame): its surface faces the camera. The surface stage's own orientation turned
+// the campaign's RGB-D clouds away from it (16-27 % of the faces faced the sensor).
+TEST(Cli, ARangeImageIsReconstructedFacingItsSensor) {
+  test::TempDir dir;
+  const int w = 40, h = 30;
+  std::string pcd = "# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH " +
+                    std::to_string(w) + "\nHEIGHT " + std::to_string(h) +
+                    "\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS " + std::to_string(w * h) + "\nDATA ascii\n";
+  // A wavy wall a metre in front of the camera (+z), 0.4 x 0.3 m.
+  for (int r = 0; r < h; ++r)
+    for (int c = 0; c < w; ++c) {
+      const double x = 0.01 * (c - w / 2), y = 0.01 * (r - h / 2);
+      const double z = 1 + 0.02 * std::sin(15 * x) * std::cos(12 * y);
+      char line[96];
+      std::snprintf(line, sizeof line, "%.6f %.6f %.6f\n", x, y, z);
+      pcd += line;
+    }
+  const std::string in = (dir / "frame.pcd").string(), out = (dir / "mesh.ply").string();
+  { std::ofstream(in) << pcd; }
+  const CmdResult r = run("reconstruct " + in + " -o " + out + " --threads 2");
+  ASSERT_EQ(r.code, 0) << r.out;
+  EXPECT_NE(r.out.find("no normals; estimated (PCA) facing the sensor at (0, 0, 0): one range image"),
+            std::string::npos)
+      << r.out;
+  const Mesh m = read_mesh(out);
+  ASSERT_GT(m.faces.size(), 100u);
+  std::size_t facing = 0;
+  for (const Face& f : m.faces) {
+    const Vec3f a = m.vertices[std::size_t(f[0])], b = m.vertices[std::size_t(f[1])], c = m.vertices[std::size_t(f[2])];
+    facing += (b - a).cross(c - a).dot(-a) > 0;
+  }
+  EXPECT_GT(double(facing), 0.95 * double(m.faces.size())) << facing << " of " << m.faces.size();
+  // Unorganised (HEIGHT 1): may be a merge of views, so nothing is assumed.
+  std::string flat = pcd;
+  flat.replace(flat.find("WIDTH 40\nHEIGHT 30"), 18, "WIDTH 1200\nHEIGHT 1");
+  { std::ofstream(dir / "merged.pcd") << flat; }
+  const CmdResult u = run("reconstruct " + (dir / "merged.pcd").string() + " -o " + out + " --threads 2");
+  ASSERT_EQ(u.code, 0) << u.out;
+  EXPECT_EQ(u.out.find("facing the sensor"), std::string::npos) << u.out;
 }
 
 // Inputs that are no files to read, and outputs named for another kind, refused by

@@ -100,6 +100,11 @@ TEST_F(PipelineTest, RunsEveryStageAndWritesAColouredMeshAndAReport) {
   ASSERT_TRUE(reg.figures.count("rigid_deviation_deg"));
   EXPECT_LT(reg.figures.at("rigid_deviation_deg"), 0.75);
   ASSERT_TRUE(reg.figures.count("up_x"));
+  // The views surround the bottle (their turns about the axis leave no gap of 120
+  // degrees): the surface stage closes it from the lower enclosure bound.
+  ASSERT_TRUE(reg.figures.count("turn_gap_deg"));
+  EXPECT_GT(reg.figures.at("turn_gap_deg"), 0.0);
+  EXPECT_LT(reg.figures.at("turn_gap_deg"), 120.0);
   const Vec3d up = Vec3d(reg.figures.at("up_x"), reg.figures.at("up_y"), reg.figures.at("up_z")).normalized();
   ASSERT_TRUE(r.stages[2].figures.count("table_height"));
   const double table = r.stages[2].figures.at("table_height");
