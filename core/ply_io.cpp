@@ -161,8 +161,10 @@ Header parse_header(std::string_view bytes, const std::string& name) {
         if (!scalar_from_name(tok[1], p.type)) bad("unknown type " + quote(tok[1]));
         p.name = std::string(tok[2]);
       }
+      // (Only where the reader looks: an element it skips may repeat a name.)
+      const std::string& element = h.elements.back().name;
       for (const Property& earlier : h.elements.back().props)
-        if (earlier.name == p.name)
+        if ((element == "vertex" || element == "face") && earlier.name == p.name)
           bad("property " + quote(p.name) + " declared twice in element '" + h.elements.back().name + "'");
       h.elements.back().props.push_back(std::move(p));
     } else {

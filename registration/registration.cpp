@@ -241,7 +241,9 @@ class Registrar {
     t0 = Clock::now();
     std::size_t warned = res_.warnings.size();
     refine();
+    const double initial_seconds = res_.seconds_initial;
     retry_chain(start, warned);
+    res_.seconds_initial = initial_seconds;  // (the second chain's is in the refinement's)
     // Two runs on the table (the object moved, or was turned over for a second
     // pass): the refinement placed the second run from the angles, which the
     // move made wrong; register it to the first as a whole, then refine again
@@ -1337,7 +1339,7 @@ class Registrar {
       // registrations put it there, pairs it could not refine): its place is measured
       // by nothing either (the dragon's scans given out of turntable order: two of them
       // 169 deg off, exit 0), so it is tried the same way; a turn about any axis.
-      if (g.size() < 2) continue;
+      if (g.size() < 2 || (!by_angles && !chained_)) continue;
       // Where the angles put it the group must overlap the others hardly at all (the
       // moved dragon: 0.015). A group that overlaps them there and still joins no
       // pair is a sparse or near-symmetric session (the pipeline tests' 6-view
@@ -1378,7 +1380,7 @@ class Registrar {
           << "others as a whole: the object moved on the table (" << rotation_angle_deg(*G) << " deg, "
           << res_.mm_per_unit * slide << " mm; overlap " << now << " -> " << then << ")";
       else
-        w << group_name(g) << ", which their features placed where they overlap nothing, were registered to the "
+        w << group_name(g) << ", which their features placed where no pair joins them, were registered to the "
           << "others as a whole (moved " << rotation_angle_deg(*G) << " deg, " << res_.mm_per_unit * slide
           << " mm; overlap " << now << " -> " << then << ")";
       words.push_back(w.str());
@@ -1519,7 +1521,7 @@ class Registrar {
           waiting.push_back(std::move(w));
         }
       }
-      for (bool placed_some = true; placed_some && !waiting.empty();) {
+      for (bool placed_some = confident_chain_; placed_some && !waiting.empty();) {
         placed_some = false;
         std::vector<Waiting> still;
         for (Waiting& w : waiting) {

@@ -174,7 +174,8 @@ int capture_into(Session& session, Scanner& scanner, Turntable& turntable,
     return 130;
   }
   bar.finish();
-  if (const std::string w = check_recorded_points(session); !w.empty()) std::fprintf(stderr, "warning: %s\n", w.c_str());
+  if (const std::string w = check_recorded_points(session, std::size_t(res.resumed_from)); !w.empty())
+    std::fprintf(stderr, "warning: %s\n", w.c_str());
   const double t_capture = seconds_since(t0);
   const auto t1 = std::chrono::steady_clock::now();
   JsonObject merged = write_merged(session, session.dir() / "merged.ply", c.json);
@@ -199,22 +200,24 @@ int capture_into(Session& session, Scanner& scanner, Turntable& turntable,
 
 }  // namespace
 
-std::string check_recorded_points(const Session& session) {
+std::string check_recorded_points(const Session& session, std::size_t first_new) {
   const std::vector<ViewRecord>& views = session.manifest().views;
   std::vector<std::size_t> empty;
-  for (std::size_t i = 0; i < views.size(); ++i)
+  // (A view of an earlier run may not say how many points it holds: 0 is unknown.)
+  for (std::size_t i = first_new; i < views.size(); ++i)
     if (views[i].points == 0) empty.push_back(i);
   if (empty.empty()) return {};
   const char* why =
       "is the object inside the working volume (capture.volume), above the table clearance and within the "
       "scanner's range? (a simulated mesh: check its scale)";
-  if (empty.size() == views.size())
-    throw InvalidInput(session.dir().string() + ": no points in any of the " + std::to_string(views.size()) +
-                       " views: " + why);
+  const std::size_t recorded = views.size() - std::min(first_new, views.size());
+  if (empty.size() == recorded)
+    throw NoPointsRecorded(session.dir().string() + ": no points in any of the " + std::to_string(recorded) +
+                           (first_new > 0 ? " views recorded now: " : " views: ") + why);
   std::string list;
   for (std::size_t k = 0; k < empty.size() && k < 8; ++k) list += (k ? ", " : "") + std::to_string(empty[k]);
   if (empty.size() > 8) list += ", ...";
-  return std::to_string(empty.size()) + " of " + std::to_string(views.size()) + " views have no points (views " +
+  return std::to_string(empty.size()) + " of " + std::to_string(recorded) + " views have no points (views " +
          list + "): " + why;
 }
 
@@ -223,8 +226,9 @@ std::string check_recorded_points(const Session& session) {
 /// failed), as the message says nothing was recorded; a stub would make the next try
 /// say "already holds a session" or "holds other files". The folder was new or empty
 /// (check_new_session_folder), so all in it is the command's; a new one goes too.
-void drop_unrecorded_session(const Session& session, bool folder_existed) {
+void drop_unrecorded_session(const Session& session, bool folder_existed, bool empty_views_too) {
   const std::vector<ViewRecord>& views = session.manifest().views;
+  if (!views.empty() && !empty_views_too) return;
   if (std::any_of(views.begin(), views.end(), [](const ViewRecord& v) { return v.points > 0; })) return;
   std::error_code ec;
   for (const fs::directory_entry& e : fs::directory_iterator(session.dir(), ec)) fs::remove_all(e.path(), ec);
@@ -474,6 +478,10 @@ int cmd_scan(const Common& c, const ScanArgs& a) {
   int code = 0;
   try {
     code = capture_into(*session, *scanner, *turntable, cfg.capture, c, "scan", t0);
+  } catch (const NoPointsRecorded& e) {
+    if (!created) throw;
+    drop_unrecorded_session(*session, existed, true);
+    throw NoPointsRecorded(std::string(e.what()) + "; nothing was kept");
   } catch (const Error&) {
     if (created) drop_unrecorded_session(*session, existed);
     throw;
@@ -516,6 +524,9 @@ int cmd_replay(const Common& c, const std::string& source, const std::string& ou
   Session dst = Session::create(out, m);
   try {
     return capture_into(dst, *scanner, *turntable, params, c, "replay", t0);
+  } catch (const NoPointsRecorded& e) {
+    drop_unrecorded_session(dst, existed, true);
+    throw NoPointsRecorded(std::string(e.what()) + "; nothing was kept");
   } catch (const Error&) {
     drop_unrecorded_session(dst, existed);
     throw;

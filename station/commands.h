@@ -156,17 +156,23 @@ void check_not_an_input(const std::vector<std::string>& outputs, const std::vect
 
 DeviceRegistry make_registry();
 
-/// After a capture: views without a point (the object is not where the scanner looks:
-/// a scan of a mesh a metre across, the camera inside it, recorded 10 empty views of 12
-/// and exited 0 without a word). Returns a warning naming them (empty when there are
-/// none); InvalidInput when every view is empty.
-std::string check_recorded_points(const Session& session);
+/// Every view a capture recorded is empty (check_recorded_points).
+struct NoPointsRecorded : InvalidInput {
+  using InvalidInput::InvalidInput;
+};
 
-/// A session a command (or a served scan job) created whose first view failed, or
-/// whose views all came out empty: what it wrote goes again, and the folder too when
-/// it was new (`folder_existed` false). The folder was new or empty, so all in it is
-/// the command's. Nothing when a view with points was recorded.
-void drop_unrecorded_session(const Session& session, bool folder_existed);
+/// After a capture: the views it recorded (from index `first_new`) without a point (the
+/// object is not where the scanner looks: a scan of a mesh a metre across, the camera
+/// inside it, recorded 10 empty views of 12 and exited 0 without a word). Returns a
+/// warning naming them (empty when there are none); NoPointsRecorded when all are.
+std::string check_recorded_points(const Session& session, std::size_t first_new);
+
+/// A session a command (or a served scan job) created whose first view failed: what it
+/// wrote goes again, and the folder too when it was new (`folder_existed` false). The
+/// folder was new or empty, so all in it is the command's. Nothing when a view was
+/// recorded, unless `empty_views_too` (NoPointsRecorded: every view it recorded is
+/// empty).
+void drop_unrecorded_session(const Session& session, bool folder_existed, bool empty_views_too = false);
 
 /// Writes the turntable-merged cloud of a session next to it, when it has an axis.
 JsonObject write_merged(const Session& session, const fs::path& out, bool quiet);

@@ -364,11 +364,12 @@ std::string JobManager::start_scan(const ScanJobRequest& r) {
     }
     bar.finish();
     try {
-      if (const std::string w = cli::check_recorded_points(*session); !w.empty())
+      if (const std::string w = cli::check_recorded_points(*session, std::size_t(res.resumed_from)); !w.empty())
         j.emit({{"type", "line"}, {"text", "warning: " + w}});
-    } catch (const Error&) {
-      if (!resume) cli::drop_unrecorded_session(*session, false);
-      throw;
+    } catch (const cli::NoPointsRecorded& e) {
+      if (resume) throw;
+      cli::drop_unrecorded_session(*session, false, true);
+      throw cli::NoPointsRecorded(std::string(e.what()) + "; nothing was kept");
     }
     cli::write_merged(*session, dir / "merged.ply", true);
     if (!then_run) return;

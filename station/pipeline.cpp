@@ -186,7 +186,8 @@ std::string register_key(const PipelineConfig& p) {
     << ";prior_check=" << p.reg.prior_check
     << ";fuse=" << p.reg.fuse << ";fuse_distance=" << fmt("%.17g", p.reg.fuse_distance)
     << ";rigid_turntable=" << p.reg.rigid_turntable
-    << ";viewpoint=checked";  // since issue 32: imported views' normals face their estimated sensor
+    << ";viewpoint=checked"  // since issue 32: imported views' normals face their estimated sensor
+    << ";chain=retried;turn_gap=1";  // since 2026-12-07: the second chain; the register stage's turn_gap_deg
   return s.str();
 }
 std::string consolidate_key(const PipelineConfig& p) {
@@ -194,7 +195,8 @@ std::string consolidate_key(const PipelineConfig& p) {
   std::ostringstream s;
   s << "consolidate/method=" << c.method << ";points=" << (c.points_auto ? "auto:" + std::to_string(kAutoPointsMin) + "-" + std::to_string(kAutoPointsMax) : std::to_string(c.points)) << ";ratio=" << fmt("%.17g", c.ratio)
     << ";iterations=" << c.iterations << ";seed=" << c.seed << ";attraction=" << c.attraction << ";fit_radius=" << c.fit_radius << ";repulsion=" << c.repulsion
-    << ";repulsion_weight=" << c.repulsion_weight;
+    << ";repulsion_weight=" << c.repulsion_weight
+    << ";range_image=facing";  // since 2026-12-07: an organised PCD's estimated normals face its sensor
   if (c.radius > 0) s << ";radius=" << fmt("%.17g", c.radius);  // (absent from keys of earlier runs)
   if (c.blocks != 0) s << ";blocks=" << c.blocks;                  // (auto: absent, as before blocks)
   else if (p.reconstruct.max_memory_gb > 0) s << ";max_memory=" << fmt("%.17g", p.reconstruct.max_memory_gb);
@@ -204,7 +206,7 @@ std::string surface_key(const PipelineConfig& p) {
   const auto& c = p.reconstruct;
   std::ostringstream s;
   s << "surface/" << c.surface << ";resolution=" << c.resolution << ";epsilon0=" << fmt("%.17g", c.epsilon0)
-    << ";extractor=" << c.extractor << ";hole=" << c.hole << ";colour=" << c.colour
+    << ";extractor=" << c.extractor << ";hole=" << c.hole << ";range_image=facing" << ";colour=" << c.colour
     << ";colour_method=" << c.colour_method << ";multi=" << c.colour_multi << ";noise=" << c.colour_noise_robust
     << ";colour_edges=" << c.colour_edges
     << ";min_component=" << fmt("%.17g", c.min_component) << ";table_plane=" << c.table_plane
@@ -614,8 +616,13 @@ class Runner {
       const Vec3d a = reg.axis->direction.normalized();
       for (std::size_t i = 0; i < reg.views.size(); ++i) {
         if (!reg.views[i].registered) continue;
-        const Eigen::Quaterniond q(Eigen::Matrix3d(reg.poses[std::size_t(first)].topLeftCorner<3, 3>().transpose() *
-                                                   reg.poses[i].topLeftCorner<3, 3>()));
+        const Eigen::Matrix3d rel =
+            reg.poses[std::size_t(first)].topLeftCorner<3, 3>().transpose() * reg.poses[i].topLeftCorner<3, 3>();
+        // A view not turned about the table's axis (taken off the table: from above, in
+        // the hand) says nothing of the ring: its twist would close a real gap.
+        const Eigen::AngleAxisd turn(rel);
+        if (turn.angle() > 2 * M_PI / 180 && std::abs(turn.axis().dot(a)) < std::cos(10 * M_PI / 180)) continue;
+        const Eigen::Quaterniond q(rel);
         double t = 2 * std::atan2(q.vec().dot(a), q.w()) * 180 / M_PI;
         t = std::fmod(t + 720, 360);
         turns.push_back(t);
@@ -730,6 +737,7 @@ class Runner {
       for (const StageRecord& s : result_.stages)
         if (s.name == "register" && s.figures.count("turn_gap_deg") && s.figures.at("turn_gap_deg") < 120)
           sp.enclosed_above = kEnclosedAboveSurrounded;
+    r.figures["enclosed_above"] = sp.enclosed_above;
     sp.resolution_name =
         "reconstruct.resolution " + (c.resolution > 0 ? std::to_string(c.resolution) : std::string("auto"));
     sp.boundary_flags = true;

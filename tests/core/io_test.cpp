@@ -884,6 +884,8 @@ TEST(Texture, TruncatedImagesAreRefusedNamingTheFile) {
   std::string flipped = read_file_bytes(test::source_dir() / "tests/data/kinect_frames/frame0_rgb.png");
   const std::size_t idat = flipped.find("IDAT");
   ASSERT_NE(idat, std::string::npos);
+  ASSERT_GT((std::uint32_t(std::uint8_t(flipped[idat - 2])) << 8) | std::uint8_t(flipped[idat - 1]), 64u)
+      << "the first IDAT chunk is too short for the flipped byte";
   flipped[idat + 40] = char(flipped[idat + 40] ^ 0xFF);
   { std::ofstream(dir / "flipped.png", std::ios::binary) << flipped; }
   EXPECT_EQ(error_of<FormatError>([&] { load_texture(dir / "flipped.png"); }),

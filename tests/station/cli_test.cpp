@@ -985,6 +985,7 @@ TEST(Cli, AScanOfNothingSaysSoAndKeepsNoSession) {
   EXPECT_NE(r.out.find(tiny + ": no points in any of the 3 views: is the object inside the working volume"),
             std::string::npos)
       << r.out;
+  EXPECT_NE(r.out.find("; nothing was kept"), std::string::npos) << r.out;
   EXPECT_FALSE(std::filesystem::exists(tiny)) << r.out;
   // The bottle four times too large, the camera inside it from two sides: those two
   // views are empty, said (exit 0: the others hold the object).

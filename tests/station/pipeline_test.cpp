@@ -105,6 +105,8 @@ TEST_F(PipelineTest, RunsEveryStageAndWritesAColouredMeshAndAReport) {
   ASSERT_TRUE(reg.figures.count("turn_gap_deg"));
   EXPECT_GT(reg.figures.at("turn_gap_deg"), 0.0);
   EXPECT_LT(reg.figures.at("turn_gap_deg"), 120.0);
+  ASSERT_TRUE(r.stages[2].figures.count("enclosed_above"));
+  EXPECT_EQ(r.stages[2].figures.at("enclosed_above"), kEnclosedAboveSurrounded);
   const Vec3d up = Vec3d(reg.figures.at("up_x"), reg.figures.at("up_y"), reg.figures.at("up_z")).normalized();
   ASSERT_TRUE(r.stages[2].figures.count("table_height"));
   const double table = r.stages[2].figures.at("table_height");
