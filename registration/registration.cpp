@@ -90,6 +90,11 @@ using Clock = std::chrono::steady_clock;
 // kColourOverlapShare of the best overlap and at most kColourBetter times its
 // colour difference, and such a view is not settled (more starts are refined).
 constexpr double kTie = 0.03;
+// A pose near the turn a view's neighbours' angles expect is chosen over the best when
+// the best is turned more than kTwinTurnDeg from it and it overlaps at least this share
+// of the best's (global_align, expected_).
+constexpr double kExpectedShare = 0.5;
+constexpr double kTwinTurnDeg = 120;
 constexpr double kColourDisagrees = 15;
 // ...or, where the model's own views disagree more among themselves (light and
 // shading that change from view to view on a real scanner), this many times
@@ -940,6 +945,34 @@ class Registrar {
           usable[k] = 1;
           best_fit = std::max(best_fit, r[k].fitness);
         }
+      // A table view without an angle between views with angles (expected_): the
+      // best pose half a turn or so from where its neighbours' angles put it, and a
+      // pose near there that overlaps at least kExpectedShare of the best: the near
+      // one. On a near-symmetric object the twin overlaps better, because the right
+      // pose sees a side no posed view saw (the bottle's first four views without
+      // angle, the others with: right poses 0.64-0.76, twins 0.95; they came out
+      // 178-180 deg off without a warning). A view off the table (from above, in the
+      // hand) is far from every table pose but not turned half way from it: left as is.
+      if (expected_) {
+        const auto turn_from_expected = [&](std::size_t k) {
+          return rotation_angle_deg(Eigen::Matrix4d(rigid_inverse(expected_->first) * r[k].transform));
+        };
+        std::size_t best_k = r.size();
+        for (std::size_t k = 0; k < r.size(); ++k)
+          if (usable[k] && (best_k == r.size() || r[k].fitness > r[best_k].fitness)) best_k = k;
+        std::vector<char> near(r.size(), 0);
+        double near_fit = 0;
+        for (std::size_t k = 0; k < r.size(); ++k)
+          if (usable[k] && turn_from_expected(k) <= expected_->second) {
+            near[k] = 1;
+            near_fit = std::max(near_fit, r[k].fitness);
+          }
+        if (best_k < r.size() && turn_from_expected(best_k) > kTwinTurnDeg && near_fit >= p_.global_min_fitness &&
+            near_fit >= kExpectedShare * best_fit) {
+          best_fit = near_fit;
+          for (std::size_t k = 0; k < r.size(); ++k) usable[k] = near[k];
+        }
+      }
       std::vector<double> err(r.size(), std::numeric_limits<double>::infinity());
       double best_score = std::numeric_limits<double>::infinity();
       for (std::size_t k = 0; k < r.size(); ++k) {
@@ -1037,7 +1070,11 @@ class Registrar {
         for (IcpResult& x : spun) r.push_back(std::move(x));
         choose();
       };
-      const std::size_t first = std::min(starts.size(), kSpunRefined);
+      // A table view between views with angles (expected_): ICP also starts where its
+      // neighbours' angles put it (the fandisk's fourth view without angle: every
+      // start converged on the half-turned twin, none near the right pose).
+      if (expected_) starts.insert(starts.begin(), {0.0, expected_->first});
+      const std::size_t first = std::min(starts.size(), kSpunRefined + (expected_ ? 1 : 0));
       refine(0, first);
       const auto settled = [&] {
         // A pose whose colours could not be compared (a view without colours, no
@@ -1450,6 +1487,49 @@ class Registrar {
     return std::nullopt;
   }
 
+  // A view without an angle whose nearest views with angles before and after it in
+  // capture order (round the end: a turntable session is a ring) are less than half a
+  // turn apart, forwards: the pose of the angle interpolated between theirs by its
+  // place between them, and a tolerance of one step between views plus 15 degrees.
+  // None without a turntable axis or such neighbours.
+  std::optional<std::pair<Eigen::Matrix4d, double>> expected_pose(int i) const {
+    const int n = int(m_.views.size());
+    if (!res_.axis || n < 3) return std::nullopt;
+    const auto angled = [&](int j) {
+      return usable_[std::size_t(j)] && has_angle(j) && !res_.views[std::size_t(j)].angle_rejected &&
+             posed(std::size_t(j));
+    };
+    int before = -1, after = -1, steps_before = 0, steps_after = 0;
+    for (int d = 1; d < n && before < 0; ++d)
+      if (angled((i - d + n) % n)) before = (i - d + n) % n, steps_before = d;
+    for (int d = 1; d < n && after < 0; ++d)
+      if (angled((i + d) % n)) after = (i + d) % n, steps_after = d;
+    if (before < 0 || after < 0 || before == after) return std::nullopt;
+    const double a0 = *m_.views[std::size_t(before)].angle_deg, a1 = *m_.views[std::size_t(after)].angle_deg;
+    // The forward span from `before` to `after`, in the direction the angles grow.
+    double span = std::fmod(a1 - a0, 360.0);
+    if (span < 0) span += 360;
+    if (!(span > 0)) return std::nullopt;
+    const double step = span / double(steps_before + steps_after);
+    if (span >= 180) {
+      // Half a turn or more without angles (the first four of eight views): taken
+      // when the views with angles step as evenly (within a quarter of their median
+      // step between neighbours in capture order).
+      std::vector<double> steps;
+      for (int j = 0; j < n; ++j)
+        if (angled(j) && angled((j + 1) % n)) {
+          double d = std::fmod(*m_.views[std::size_t((j + 1) % n)].angle_deg - *m_.views[std::size_t(j)].angle_deg, 360.0);
+          if (d < 0) d += 360;
+          if (d > 0 && d < 180) steps.push_back(d);
+        }
+      if (steps.empty()) return std::nullopt;
+      const double typical = median_of(steps);
+      if (!(std::abs(step - typical) <= 0.25 * typical)) return std::nullopt;
+    }
+    const double angle = a0 + step * steps_before;
+    return std::make_pair(turntable_pose(*res_.axis, angle), step + 15.0);
+  }
+
   // Views without a pose: chained in capture order when nothing is posed,
   // else registered against the model merged from the posed views.
   void global_poses() {
@@ -1505,7 +1585,8 @@ class Registrar {
       };
       int done = 0;
       for (std::size_t k = 1; k < todo.size(); ++k) {
-        Waiting w{todo[k]};
+        Waiting w;
+        w.view = todo[k];
         bool confident = false;
         for (int back = 1; back <= 2 && back <= int(chain.size()) && !confident; ++back) {
           confident = attempt(w, chain[chain.size() - back]);
@@ -1585,7 +1666,9 @@ class Registrar {
     const auto axis = object_axis(have);
     for (std::size_t k = 0; k < todo.size(); ++k) {
       const int i = todo[k];
+      expected_ = expected_pose(i);
       const GlobalAlign a = global_align(i, model, model_feat, colours.get(), axis, free.get());
+      expected_.reset();
       report("global", int(k + 1), int(todo.size()));
       if (!a.ok) {
         fail(i, "no initial pose or angle, and " + a.message + " against the merged model");
@@ -2103,6 +2186,10 @@ class Registrar {
   std::vector<std::vector<std::unique_ptr<FeatureView>>> feats_;  // per view, per feature scale
   std::vector<int> off_table_;  // posed by global registration against the model
   bool confident_chain_ = false;  // global_poses' second chain (see there)
+  // While global_poses aligns a view without an angle that sits between views with
+  // angles in capture order: the pose its angle would give, interpolated from theirs,
+  // and how far (degrees) a pose may turn from it to count as near (expected_pose).
+  std::optional<std::pair<Eigen::Matrix4d, double>> expected_;
   bool chained_ = false;          // global_poses chained the views (nothing was posed)
   bool weak_fit_ = false;         // and took some view at a fit below kConfidentFitness
   std::vector<int> unplaced_;   // views without an angle that global registration could not place
