@@ -166,6 +166,15 @@ void orient_normals_mst(const std::vector<Vec3f>& points, std::vector<Vec3f>& no
   }
 }
 
+void orient_normals_towards(const std::vector<Vec3f>& points, std::vector<Vec3f>& normals, const Vec3f& viewpoint,
+                            bool zero_faces_viewpoint) {
+  for (std::size_t i = 0; i < points.size() && i < normals.size(); ++i) {
+    Vec3f& n = normals[i];
+    if (zero_faces_viewpoint && n.squaredNorm() == 0) n = (viewpoint - points[i]).normalized();
+    if (n.dot(viewpoint - points[i]) < 0) n = -n;
+  }
+}
+
 void orient_normals_to(const std::vector<Vec3f>& points, std::vector<Vec3f>& normals,
                        const std::vector<Vec3f>& reference_points,
                        const std::vector<Vec3f>& reference_normals, int k, int threads) {

@@ -52,6 +52,12 @@ std::vector<Vec3f> estimate_normals(const PointIndex& index, int k, int threads 
 /// through). Ties broken by index: deterministic.
 void orient_normals_mst(const std::vector<Vec3f>& points, std::vector<Vec3f>& normals, int k = 12);
 
+/// Orients each normal towards a sensor at `viewpoint`: flipped when n . (viewpoint - p)
+/// < 0. A zero normal stays zero, or with `zero_faces_viewpoint` becomes the unit
+/// direction to the viewpoint (registration's fallback).
+void orient_normals_towards(const std::vector<Vec3f>& points, std::vector<Vec3f>& normals, const Vec3f& viewpoint,
+                            bool zero_faces_viewpoint = false);
+
 /// Orients each normal to agree with the reference normals near its point: flipped
 /// when n . (sum of the k nearest reference points' normals) < 0; left as is when
 /// that sum is zero. Reference normals are assumed consistently oriented.

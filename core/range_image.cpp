@@ -54,9 +54,4 @@ Cloud read_cloud_oriented(const std::filesystem::path& path, int threads, std::s
   return cloud;
 }
 
-void orient_normals_towards(const std::vector<Vec3f>& points, std::vector<Vec3f>& normals, const Vec3f& sensor) {
-  for (std::size_t i = 0; i < points.size() && i < normals.size(); ++i)
-    if (normals[i].dot(sensor - points[i]) < 0) normals[i] = -normals[i];
-}
-
 }  // namespace station

@@ -9,7 +9,6 @@
 #include <filesystem>
 #include <optional>
 #include <string>
-#include <vector>
 
 #include "core/geometry.h"
 
@@ -25,9 +24,5 @@ std::optional<Vec3f> range_image_sensor(const std::filesystem::path& path);
 /// tree, "up" first) turned a Kinect frame's surface away from the camera: 16-27 % of
 /// the faces faced it.
 Cloud read_cloud_oriented(const std::filesystem::path& path, int threads, std::string& note);
-
-/// Flips each normal that points away from `sensor` (n . (sensor - p) < 0); zero
-/// normals stay zero.
-void orient_normals_towards(const std::vector<Vec3f>& points, std::vector<Vec3f>& normals, const Vec3f& sensor);
 
 }  // namespace station

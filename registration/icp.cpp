@@ -68,14 +68,6 @@ double rotation_angle_deg(const Eigen::Matrix4d& T) {
 
 namespace {
 
-void face_viewpoint(const std::vector<Vec3f>& pts, std::vector<Vec3f>& normals, const Vec3f& viewpoint) {
-  for (std::size_t i = 0; i < pts.size(); ++i) {
-    Vec3f& n = normals[i];
-    if (n.squaredNorm() == 0) n = (viewpoint - pts[i]).normalized();  // fallback: face the sensor
-    if (n.dot(viewpoint - pts[i]) < 0) n = -n;
-  }
-}
-
 std::vector<Vec3f> unoriented_normals(const PointIndex& index, int k) {
   return k >= 3 ? estimate_normals(index, k) : std::vector<Vec3f>(index.points().size(), Vec3f::Zero());
 }
@@ -84,7 +76,7 @@ std::vector<Vec3f> unoriented_normals(const PointIndex& index, int k) {
 
 std::vector<Vec3f> pca_normals(const PointIndex& index, int k, const Vec3f& viewpoint) {
   std::vector<Vec3f> normals = unoriented_normals(index, k);
-  face_viewpoint(index.points(), normals, viewpoint);
+  orient_normals_towards(index.points(), normals, viewpoint, true);
   return normals;
 }
 
@@ -119,7 +111,7 @@ PreparedView prepare_view(const Cloud& cloud, const PrepareParams& params) {
   v.viewpoint = sensor.viewpoint;
   v.viewpoint_at_origin = sensor.at_origin;
   v.grazing_origin = sensor.grazing_origin;
-  face_viewpoint(v.points, v.normals, v.viewpoint);
+  orient_normals_towards(v.points, v.normals, v.viewpoint, true);
   if (params.intensity && v.full.has_colours() && !v.points.empty()) {
     const PointIndex full_index(v.full.points);
     v.intensity = sample_intensity(v.points, full_index, intensities(v.full.colours), 0.5 * params.voxel_size);
