@@ -73,10 +73,16 @@ double FreeSpace::seen_through(const std::vector<Vec3f>& points, const Eigen::Ma
       if (!(r > margin)) continue;
       const double tolerance = 2 * std::max(spacing / r, sight.angle_spacing);
       const auto [j, dist] = sight.directions->nearest_within((d / r).cast<float>(), float(tolerance));
-      if (j >= 0 && double(sight.ranges[std::size_t(j)]) > r + margin) {
-        ++seen;
-        break;
-      }
+      if (j < 0 || !(double(sight.ranges[std::size_t(j)]) > r + margin)) continue;
+      // Every sight point in the window beyond it too: at a silhouette, or on a
+      // face the sight saw at a grazing angle, the nearest direction may hit the
+      // far side while its neighbours in the window hit the point's own surface.
+      const float far = float(r + margin);
+      if (sight.directions->any_in_radius((d / r).cast<float>(), float(tolerance),
+                                          [&](int i, float) { return sight.ranges[std::size_t(i)] <= far; }))
+        continue;
+      ++seen;
+      break;
     }
   }
   return total ? double(seen) / double(total) : 0.0;

@@ -107,6 +107,9 @@ constexpr double kColourMaxGain = 3;
 // Turned starts refined first (all of them when those leave no pose that
 // overlaps enough and agrees in colour).
 constexpr std::size_t kSpunRefined = 4;
+// The final ICP distance is never under this share of the median point spacing
+// (final_distance).
+constexpr double kEndPerSpacing = 2.0 / 3.0;
 // A view still not settled after every start: each distinct converged pose is
 // slid along the translation its ICP system constrains least, in steps of
 // kSlideStep ICP start distances out to kSlideReach of the session size either
@@ -304,6 +307,21 @@ class Registrar {
     if (res_.views[i].message.empty()) res_.views[i].message = view_name(m_, i) + ": " + why;
   }
 
+  // The final ICP max correspondence distance: icp_end_rel of the session size,
+  // but never under two thirds of the registration copies' median point spacing.
+  // A sparse scan of a small object (a Rubik's cube at 320x240: 1.4 mm between
+  // points, 0.5 mm icp_end) finds a neighbour in reach for one point in eight on
+  // the very same surface, so every pair read as no overlap (fitness 0.12 under
+  // 0.15) and the angles were taken unchecked. Dense views are voxelled to about
+  // icp_end already (spacing 1.1-1.5 times it), so the floor leaves them as they were.
+  double final_distance() const {
+    std::vector<double> spacings;
+    for (std::size_t i = 0; i < views_.size(); ++i)
+      if (usable_[i] && views_[i].points.size() >= 2) spacings.push_back(median_spacing(views_[i].points));
+    const double spacing = spacings.empty() ? 0.0 : median_of(spacings);
+    return std::max(p_.icp_end_rel * diag_, kEndPerSpacing * spacing);
+  }
+
   void prepare() {
     const std::size_t n = m_.views.size();
     usable_.assign(n, true);
@@ -343,6 +361,8 @@ class Registrar {
     }
     if (std::none_of(usable_.begin(), usable_.end(), [](bool b) { return b; }))
       throw InvalidInput("registration: no usable view (all empty or non-finite)");
+    icp_end_ = final_distance();
+
     warn_estimated_viewpoints();
     if (pp.intensity) warn_missing_colours();
   }
@@ -508,7 +528,7 @@ class Registrar {
     TurntableAxis best;
     double best_score = -1;
     const double start = p_.axis_search_start_rel * diag_;
-    const double end = p_.icp_end_rel * diag_;
+    const double end = icp_end_;
     for (const Vec3d& d : dirs) {
       TurntableAxis axis;
       axis.direction = d;
@@ -707,7 +727,7 @@ class Registrar {
     tbb::parallel_for(std::size_t(0), diffs.size(), [&](std::size_t k) {
       const std::unique_ptr<ColourModel> next = placed_colours({members[k + 1]}, 20000);
       if (next)
-        diffs[k] = colour_error(views_[members[k]].full, *next, res_.poses[members[k]], p_.icp_end_rel * diag_,
+        diffs[k] = colour_error(views_[members[k]].full, *next, res_.poses[members[k]], icp_end_,
                                 views_[members[k]].viewpoint);
     });
     diffs.erase(std::remove_if(diffs.begin(), diffs.end(), [](double d) { return !std::isfinite(d); }), diffs.end());
@@ -865,8 +885,8 @@ class Registrar {
       return out;
     }
     IcpParams ip = p_.icp;
-    ip.max_distance_start = std::max(2.0 * gp.inlier_distance_voxels * gp.voxel_size, p_.icp_end_rel * diag_);
-    ip.max_distance_end = p_.icp_end_rel * diag_;
+    ip.max_distance_start = std::max(2.0 * gp.inlier_distance_voxels * gp.voxel_size, icp_end_);
+    ip.max_distance_end = icp_end_;
     // Hypotheses ranked by the overlap they give the registration copies (the
     // fraction of source points within the ICP start distance of the target);
     // only the best `global_icp_candidates` are refined by ICP.
@@ -1205,7 +1225,7 @@ class Registrar {
                                              double& now, double& then,
                                              double max_now = std::numeric_limits<double>::infinity()) {
     const PreparedView first = model_of(base), second = model_of(group);
-    const double d = 2 * p_.icp_end_rel * diag_;
+    const double d = 2 * icp_end_;
     now = overlap(second, first, Eigen::Matrix4d::Identity(), d);
     then = now;
     if (now > max_now) return std::nullopt;  // (before the costly global registration)
@@ -1700,7 +1720,7 @@ class Registrar {
       pairs.push_back({a[k], a[(k + 1) % m], k + 1 == m});
       init.push_back(rigid_inverse(res_.poses[a[k]]) * res_.poses[a[(k + 1) % m]]);
     }
-    const auto r = run_pairs(pairs, init, p_.icp_start_rel * diag_, p_.icp_end_rel * diag_);
+    const auto r = run_pairs(pairs, init, p_.icp_start_rel * diag_, icp_end_);
     // good[k]: pair k converged near its prior.
     std::vector<bool> good(m);
     for (int k = 0; k < m; ++k)
@@ -1764,7 +1784,7 @@ class Registrar {
     // simulated sessions' prior-free runs 0.07 -> 0.22 mm at the object.)
     std::vector<int> anywhere = off_table_;
     if (m >= 3 && std::none_of(r.begin(), r.end(), [&](int i) { return has_angle(i); })) {
-      const double d = 2 * p_.icp_end_rel * diag_;
+      const double d = 2 * icp_end_;
       const auto overlaps = [&](int a, int b) {
         return overlap(views_[a], views_[b], rigid_inverse(res_.poses[b]) * res_.poses[a], d) >= 0.2;
       };
@@ -1778,12 +1798,12 @@ class Registrar {
       for (int j : r) {
         if (i == j || seen.count({std::min(i, j), std::max(i, j)})) continue;
         if (overlap(views_[i], views_[j], rigid_inverse(res_.poses[j]) * res_.poses[i],
-                    2 * p_.icp_end_rel * diag_) < 0.2)
+                    2 * icp_end_) < 0.2)
           continue;
         seen.insert({std::min(i, j), std::max(i, j)});
         pairs.push_back({j, i, false});
       }
-    const double end = p_.icp_end_rel * diag_;
+    const double end = icp_end_;
     const double sigma_floor = 0.05 * end;
     std::optional<Vec3d> axis_dir;
     if (res_.axis) axis_dir = res_.axis->direction.normalized();
@@ -2072,7 +2092,7 @@ class Registrar {
   void pair_residuals() {
     if (res_.pairs.empty()) return;
     const int last = res_.pairs.back().round;
-    const double max_distance = p_.icp_end_rel * diag_;
+    const double max_distance = icp_end_;
     const double min_dot = std::cos(p_.icp.max_normal_angle_deg * M_PI / 180.0);
     std::vector<const PairDiagnostics*> pairs;
     for (const PairDiagnostics& pd : res_.pairs)
@@ -2200,6 +2220,7 @@ class Registrar {
   TurntableSplit split_;  // the last solve's split of the table views into two runs (found: a move)
   std::vector<bool> usable_;
   double diag_ = 0;
+  double icp_end_ = 0;  // final ICP max correspondence distance (final_distance)
 };
 
 }  // namespace
