@@ -57,18 +57,7 @@ AnglePriorFit fit_angle_prior(const std::vector<Eigen::Matrix4d>& poses, const s
     measured.push_back(measured.back());
     for (double& a : measured.back()) a = -a;
   }
-  // Scales: degrees, or step indices (all of the session's angles integers below
-  // 64: 360 / (largest + 1) for indices from 0, 360 / largest from 1).
-  std::vector<double> scales = {1.0};
-  std::vector<double> all;
-  for (const ViewRecord& v : manifest.views)
-    if (v.angle_deg && std::isfinite(*v.angle_deg)) all.push_back(*v.angle_deg);
-  const double top = all.empty() ? 0 : *std::max_element(all.begin(), all.end());
-  if (std::all_of(all.begin(), all.end(), [](double c) { return c >= 0 && c == std::floor(c); }) && top >= 2 &&
-      top < 64) {
-    scales.push_back(360.0 / (top + 1));
-    scales.push_back(360.0 / top);
-  }
+  const std::vector<double> scales = angle_scales(manifest);
   const std::vector<double> signs = known ? std::vector<double>{1.0, -1.0} : std::vector<double>{1.0};
   double best_cost = 1e300;
   for (std::size_t mi = 0; mi < measured.size(); ++mi)
@@ -111,10 +100,31 @@ AnglePriorFit fit_angle_prior(const std::vector<Eigen::Matrix4d>& poses, const s
     else best.wrong.push_back(idx[j]);
   }
   best.ok = 2 * best.agreeing >= n && best.agreeing >= 3;
-  if (best.sign < 0 && best.scale != 1) best.convention = "the opposite sign, and steps of " + std::to_string(int(std::lround(best.scale))) + " degrees";
-  else if (best.sign < 0) best.convention = "the opposite sign";
-  else if (best.scale != 1) best.convention = "steps of " + std::to_string(best.scale).substr(0, 5) + " degrees, not degrees";
+  best.convention = convention_name(best.sign, best.scale);
   return best;
+}
+
+std::vector<double> angle_scales(const SessionManifest& manifest) {
+  // Degrees, or step indices (all of the session's angles integers below 64:
+  // 360 / (largest + 1) for indices from 0, 360 / largest from 1).
+  std::vector<double> scales = {1.0};
+  std::vector<double> all;
+  for (const ViewRecord& v : manifest.views)
+    if (v.angle_deg && std::isfinite(*v.angle_deg)) all.push_back(*v.angle_deg);
+  const double top = all.empty() ? 0 : *std::max_element(all.begin(), all.end());
+  if (std::all_of(all.begin(), all.end(), [](double c) { return c >= 0 && c == std::floor(c); }) && top >= 2 &&
+      top < 64) {
+    scales.push_back(360.0 / (top + 1));
+    scales.push_back(360.0 / top);
+  }
+  return scales;
+}
+
+std::string convention_name(double sign, double scale) {
+  if (sign < 0 && scale != 1) return "the opposite sign, and steps of " + std::to_string(int(std::lround(scale))) + " degrees";
+  if (sign < 0) return "the opposite sign";
+  if (scale != 1) return "steps of " + std::to_string(scale).substr(0, 5) + " degrees, not degrees";
+  return "";
 }
 
 TurntableSplit find_turntable_split(const std::vector<Eigen::Matrix4d>& poses, const std::vector<int>& order,

@@ -47,6 +47,15 @@ AnglePriorFit fit_angle_prior(const std::vector<Eigen::Matrix4d>& poses, const s
                               const SessionManifest& manifest, double tolerance_deg,
                               const std::optional<Vec3d>& known_direction = {});
 
+/// The scales fit_angle_prior tries for the manifest's commanded angles: 1 (degrees),
+/// and for angles that look like step indices (all integers, 2 to 63 at most) 360 /
+/// (largest + 1) and 360 / largest.
+std::vector<double> angle_scales(const SessionManifest& manifest);
+
+/// How a convention reads in a warning ("the opposite sign", "steps of 45 degrees,
+/// not degrees"); "" for sign 1, scale 1.
+std::string convention_name(double sign, double scale);
+
 /// Where an object moved on the table: the split of the ordered views `order`
 /// (indices into poses, each with its angle in `angles_deg`) into two runs (or,
 /// where no two fit and `max_runs` allows, three), each at least three views, that each turn about one

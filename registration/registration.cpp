@@ -2556,6 +2556,39 @@ static RegistrationResult register_views_checked(const std::vector<Cloud>& cloud
     }
     return a.mean_pair_rmse <= slack * b.mean_pair_rmse;
   };
+  // Where the run without angles fits the angles nowhere, it may be the wrong one (on
+  // a near-symmetric object without colours its chain lands groups of views on turned
+  // twins: the fandisk's eight views with angles of the wrong sign, five of them 99 deg
+  // off): the conventions a commanded list is mistaken in (the opposite sign, step
+  // indices for degrees) are tried as hypotheses, each a run of its own, the best
+  // kept as the corrected prior if it beats the run as given (below), in turn; the
+  // first that joins every view by pairs ends the search.
+  if (!corrected && !only_unlinked && !fit.ok) {
+    const std::vector<double> signs = manifest.axis ? std::vector<double>{1.0, -1.0} : std::vector<double>{1.0};
+    const int table_views = int(std::count(at_table.begin(), at_table.end(), true));
+    std::string name;
+    for (double sign : signs) {
+      for (double scale : angle_scales(manifest)) {
+        if (sign == 1 && scale == 1) continue;
+        SessionManifest hm = manifest;
+        for (ViewRecord& v : hm.views)
+          if (v.angle_deg) v.angle_deg = sign * scale * *v.angle_deg;
+        RegistrationResult h = Registrar(clouds, hm, params, named("another angle convention")).run();
+        if (!better(h, corrected ? *corrected : with, 0.95, true)) continue;
+        corrected = std::move(h);
+        name = convention_name(sign, scale);
+        for (std::size_t i = 0; i < n; ++i)
+          if (manifest.views[i].angle_deg && !manifest.views[i].initial_pose)
+            corrected->views[i].prior = corrected->views[i].angle_rejected ? PriorUse::kRejected : PriorUse::kCorrected;
+        if (linked_count(*corrected, at_table) == table_views) break;
+      }
+      if (corrected && linked_count(*corrected, at_table) == table_views) break;
+    }
+    if (corrected)
+      corrected->warnings.push_back("the commanded angles fit the scans with " + name + " (" +
+                                    run_summary("corrected", *corrected, at_table) + "; " +
+                                    run_summary("as given", with, at_table) + ")");
+  }
   RegistrationResult* prior_best = &with;
   // The corrected prior replaces the given one when it registers more views, joins
   // more of them by pairs, or fits clearly better (5 %): where both agree, the run as

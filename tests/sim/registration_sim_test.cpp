@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <random>
 #include <set>
+#include <tuple>
 
 #include "capture/capture.h"
 #include "registration/registration.h"
@@ -520,12 +521,17 @@ TEST(SimRegistration, TableViewsWithoutAngleBetweenAngledOnesLandNotHalfTurned) 
 // two views failed, and the run without angles, its views 90-180 deg off on the
 // cube's turned twins, was kept: exit 0, 12 of 12, 180 deg off.
 // `views` views at 320x240 from 0.45 m of the bundled textured object `object`
-// (a folder of data/), the session's manifest in `m`.
-std::vector<Cloud> sparse_scan(const test::TempDir& dir, const std::string& object, int views, SessionManifest& m) {
+// (a folder of data/; or a mesh file of the source tree, with `extra` options),
+// the session's manifest in `m`.
+std::vector<Cloud> sparse_scan(const test::TempDir& dir, const std::string& object, int views, SessionManifest& m,
+                               const std::string& extra = "") {
+  const std::filesystem::path mesh = object.find('.') == std::string::npos
+                                         ? test::source_dir() / "data" / object / "textured.obj"
+                                         : test::source_dir() / object;
   Session session = capture_sim(dir / "scan",
-                                "sim:synthetic?mesh=" + (test::source_dir() / "data" / object / "textured.obj").string() +
+                                "sim:synthetic?mesh=" + mesh.string() +
                                     "&noise=0.0005&dropout=0.01&color_noise=2&width=320&height=240&distance=0.45"
-                                    "&elevation_deg=20&fov_deg=50&center=1&seed=1",
+                                    "&elevation_deg=20&fov_deg=50&center=1&seed=1" + extra,
                                 views);
   std::vector<Cloud> clouds;
   for (std::size_t i = 0; i < session.manifest().views.size(); ++i) clouds.push_back(session.load_view(i));
@@ -602,6 +608,38 @@ TEST(SimRegistration, AWrongSignIsCorrectedWhereTheRunAsGivenHoldsViewsByItsAngl
   EXPECT_LT(r.max_rotation_error_deg, 0.5);
   EXPECT_LT(r.max_object_translation_error, 0.001);
   EXPECT_EQ(r.unlinked_views, 0);
+}
+
+// The fandisk (no colours) in eight views with angles of the wrong sign, and with
+// step indices for degrees: the run as given registered 4 (2) of 8, and the run
+// without angles, which judges the angles, chained five views onto a turned
+// placement 99 deg off (a near-symmetric part seen 45 deg apart), so the angles fit
+// it nowhere and it was kept, exit 0. Now the conventions are tried as hypotheses
+// where that fit fails: the opposite sign (steps of 45 degrees) registers all eight,
+// joined by pairs, and is kept as the corrected prior.
+TEST(SimRegistration, AConventionMistakeIsFoundWhereTheRunWithoutAnglesIsWrongToo) {
+  test::TempDir dir;
+  SessionManifest clean;
+  const std::vector<Cloud> clouds =
+      sparse_scan(dir, "tests/data/consolidation/fandisk.off", 8, clean, "&scale=0.18");
+  ASSERT_EQ(clouds.size(), 8u);
+  SessionManifest flipped = clean, steps = clean;
+  for (ViewRecord& v : flipped.views) v.angle_deg = -*v.angle_deg;
+  for (std::size_t i = 0; i < steps.views.size(); ++i) steps.views[i].angle_deg = double(i);
+  for (const auto& [what, m, convention] :
+       {std::tuple<const char*, const SessionManifest*, const char*>{"the wrong sign", &flipped, "the opposite sign"},
+        {"step indices", &steps, "steps of 45.00 degrees"}}) {
+    const RegistrationResult r = register_views(clouds, *m);
+    print_prior(what, r);
+    EXPECT_EQ(r.prior_kept, "corrected prior") << what;
+    EXPECT_TRUE(r.failed_views.empty()) << what;
+    EXPECT_EQ(r.views_with_reference, 8) << what;
+    EXPECT_LT(r.max_rotation_error_deg, 0.5) << what;
+    EXPECT_LT(r.max_object_translation_error, 0.001) << what;
+    bool said = false;
+    for (const std::string& w : r.warnings) said = said || w.find(convention) != std::string::npos;
+    EXPECT_TRUE(said) << what;
+  }
 }
 
 // A second pass with the object turned over (issue 26, item 2): after view 5
