@@ -109,10 +109,14 @@ constexpr double kColourMaxGain = 3;
 constexpr std::size_t kSpunRefined = 4;
 // A chain's pair (pair_align) whose colours differ by this many times the colour
 // bound (kColourDisagrees: a single view has no views of its own to calibrate it)
-// is refuted by them: not taken at once, and a second chain runs. At the bound
-// alone, right poses of sparse views 90 deg apart (the bottle at 200x150: 41 and 47
-// per channel, where its half-turned twin read 15) would be refuted too.
+// is refuted by them: the second chain runs, takes no such fit at once and prefers
+// any other. At the bound alone, the bottle's half-turned twin at 200x150 (15 per
+// channel) was refuted too, and the second chain, taking none of its four views at
+// once, joined them wrong and won. (Its right poses, 90 deg apart, read 41 and 47,
+// refuted even so: the first chain takes the nearest fit whatever its colours.)
 constexpr double kChainColourRefutes = 2;
+// A chain's target view's colours (own_colours) are thinned to about this many points.
+constexpr std::size_t kOwnColoursPoints = 100000;
 // The final ICP distance is never under this share of the median point spacing
 // (final_distance).
 constexpr double kEndPerSpacing = 2.0 / 3.0;
@@ -325,7 +329,9 @@ class Registrar {
     for (std::size_t i = 0; i < views_.size(); ++i)
       if (usable_[i] && views_[i].points.size() >= 2) spacings.push_back(median_spacing(views_[i].points));
     const double spacing = spacings.empty() ? 0.0 : median_of(spacings);
-    return std::max(p_.icp_end_rel * diag_, kEndPerSpacing * spacing);
+    // (Never beyond the first round's start distance: ICP's distance shrinks.)
+    const double end = p_.icp_end_rel * diag_;
+    return std::max(end, std::min(kEndPerSpacing * spacing, std::max(end, p_.icp_start_rel * diag_)));
   }
 
   void prepare() {
@@ -752,9 +758,16 @@ class Registrar {
     own_colours_.resize(views_.size());
     std::unique_ptr<ColourModel>& cm = own_colours_[std::size_t(j)];
     if (!cm && views_[j].full.has_colours() && !views_[j].full.empty()) {
+      // Thinned as a model is (a 640x480 range image holds 300,000 points).
+      const Cloud& c = views_[j].full;
+      const std::size_t stride = std::max<std::size_t>(1, c.size() / kOwnColoursPoints);
       cm = std::make_unique<ColourModel>();
-      cm->colours = views_[j].full.colours;
-      cm->index = std::make_unique<PointIndex>(views_[j].full.points);
+      std::vector<Vec3f> pts;
+      for (std::size_t k = 0; k < c.size(); k += stride) {
+        pts.push_back(c.points[k]);
+        cm->colours.push_back(c.colours[k]);
+      }
+      cm->index = std::make_unique<PointIndex>(std::move(pts));
     }
     return cm.get();
   }
@@ -836,15 +849,10 @@ class Registrar {
   }
 
   // Feature registration of view `src` onto a target, each hypothesis refined
-  // by ICP; the converged one with the best overlap wins.
-  //
-  // Against a model (the overload taking every feature scale, and regroup():
-  // `multi`) it starts from more places, below. This one: a view onto one
-  // other view (the prior-free chain), one scale, one seed.
-  GlobalAlign global_align(int src, const PreparedView& target, const FeatureView& target_feat) {
-    return global_align(views_[src], {&features_of(src)}, views_[src].full, target, {&target_feat}, nullptr,
-                        std::nullopt);
-  }
+  // by ICP; the converged one with the best overlap wins. Against a model (the
+  // overload taking every feature scale, and regroup(): `multi`) it starts from
+  // more places, below; a view onto one other view (the prior-free chain) is
+  // pair_align.
   // Against a model (every feature scale; see below).
   GlobalAlign global_align(int src, const PreparedView& target, const std::vector<FeatureView>& target_feats,
                            const ColourModel* colour, const std::optional<std::pair<Vec3d, Vec3d>>& axis,
@@ -1594,7 +1602,9 @@ class Registrar {
                                          all_features_of(j), colours, std::nullopt, true, false, nullptr, true);
       if (b.ok && !b.colour_disagrees && b.colour <= kColourBetter * a.colour) a = b;
     }
-    a.colour_refuted = a.ok && colours && a.colour >= kChainColourRefutes * colours->disagrees;
+    // (Infinite where nothing could be compared, a source view without colours: no word.)
+    a.colour_refuted =
+        a.ok && colours && std::isfinite(a.colour) && a.colour >= kChainColourRefutes * colours->disagrees;
     return pair_aligns_.emplace(key, std::move(a)).first->second;
   }
 
@@ -2565,7 +2575,10 @@ static RegistrationResult register_views_checked(const std::vector<Cloud>& cloud
   // first that joins every view by pairs ends the search.
   if (!corrected && !only_unlinked && !fit.ok) {
     const std::vector<double> signs = manifest.axis ? std::vector<double>{1.0, -1.0} : std::vector<double>{1.0};
-    const int table_views = int(std::count(at_table.begin(), at_table.end(), true));
+    // Every view at the table that could register at all joined: nothing to gain.
+    int could = 0;
+    for (std::size_t i = 0; i < n; ++i) could += at_table[i] && with.views[i].registration_points >= 6;
+    const auto all_joined = [&] { return corrected && linked_count(*corrected, at_table) >= could; };
     std::string name;
     for (double sign : signs) {
       for (double scale : angle_scales(manifest)) {
@@ -2573,19 +2586,29 @@ static RegistrationResult register_views_checked(const std::vector<Cloud>& cloud
         SessionManifest hm = manifest;
         for (ViewRecord& v : hm.views)
           if (v.angle_deg) v.angle_deg = sign * scale * *v.angle_deg;
-        RegistrationResult h = Registrar(clouds, hm, params, named("another angle convention")).run();
+        const char* run = sign < 0 && scale != 1 ? "angles of the opposite sign as steps"
+                          : sign < 0             ? "angles of the opposite sign"
+                                                 : "angles as steps";
+        RegistrationResult h = Registrar(clouds, hm, params, named(run)).run();
+        // Taken only where the angles so fit the poses registered with them as
+        // they are (a run that registers more views with angles still wrong is no
+        // convention found).
+        std::vector<bool> h_reg(n);
+        for (std::size_t i = 0; i < n; ++i) h_reg[i] = h.views[i].registered;
+        const AnglePriorFit own = fit_angle_prior(h.poses, h_reg, hm, params.wrong_angle_deg, known);
+        if (!own.ok || !own.convention.empty()) continue;
         if (!better(h, corrected ? *corrected : with, 0.95, true)) continue;
         corrected = std::move(h);
         name = convention_name(sign, scale);
         for (std::size_t i = 0; i < n; ++i)
           if (manifest.views[i].angle_deg && !manifest.views[i].initial_pose)
             corrected->views[i].prior = corrected->views[i].angle_rejected ? PriorUse::kRejected : PriorUse::kCorrected;
-        if (linked_count(*corrected, at_table) == table_views) break;
+        if (all_joined()) break;
       }
-      if (corrected && linked_count(*corrected, at_table) == table_views) break;
+      if (all_joined()) break;
     }
     if (corrected)
-      corrected->warnings.push_back("the commanded angles fit the scans with " + name + " (" +
+      corrected->warnings.push_back("the commanded angles fit the scans with " + name + " (tried as a hypothesis: " +
                                     run_summary("corrected", *corrected, at_table) + "; " +
                                     run_summary("as given", with, at_table) + ")");
   }

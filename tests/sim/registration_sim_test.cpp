@@ -511,15 +511,15 @@ TEST(SimRegistration, TableViewsWithoutAngleBetweenAngledOnesLandNotHalfTurned) 
   EXPECT_LT(r.max_object_translation_error, 0.001);
 }
 
-// A sparse scan of a small near-symmetric object (the bundled Rubik's cube at
-// 320x240 from 0.45 m: 1.4 mm between points, its faces alike but for their
-// stickers) with two angles off by +12 and -18 deg. Before, every ICP pair read
-// as no overlap (the final distance, 0.4 % of the session, was a third of the
-// point spacing: fitness 0.12), so clean angles were taken unchecked; with that
-// fixed, the free-space check refused even the right pose of a view (a third of
-// its points "seen through" at other views' silhouettes and grazing faces), the
-// two views failed, and the run without angles, its views 90-180 deg off on the
-// cube's turned twins, was kept: exit 0, 12 of 12, 180 deg off.
+// Every one of `views` views registered, each within the 0.5 deg / 1 mm
+// (at the object) of the truth.
+void expect_all_within_targets(const RegistrationResult& r, int views, const std::string& what = "") {
+  EXPECT_TRUE(r.failed_views.empty()) << what;
+  EXPECT_EQ(r.views_with_reference, views) << what;
+  EXPECT_LT(r.max_rotation_error_deg, 0.5) << what;
+  EXPECT_LT(r.max_object_translation_error, 0.001) << what;
+}
+
 // `views` views at 320x240 from 0.45 m of the bundled textured object `object`
 // (a folder of data/; or a mesh file of the source tree, with `extra` options),
 // the session's manifest in `m`.
@@ -539,6 +539,15 @@ std::vector<Cloud> sparse_scan(const test::TempDir& dir, const std::string& obje
   return clouds;
 }
 
+// A sparse scan of a small near-symmetric object (the bundled Rubik's cube at
+// 320x240 from 0.45 m: 1.4 mm between points, its faces alike but for their
+// stickers) with two angles off by +12 and -18 deg. Before, every ICP pair read
+// as no overlap (the final distance, 0.4 % of the session, was a third of the
+// point spacing: fitness 0.12), so clean angles were taken unchecked; with that
+// fixed, the free-space check refused even the right pose of a view (a third of
+// its points "seen through" at other views' silhouettes and grazing faces), the
+// two views failed, and the run without angles, its views 90-180 deg off on the
+// cube's turned twins, was kept: exit 0, 12 of 12, 180 deg off.
 TEST(SimRegistration, WrongAnglesOnASparseCubeAreFoundByColour) {
   test::TempDir dir;
   SessionManifest m;
@@ -548,10 +557,7 @@ TEST(SimRegistration, WrongAnglesOnASparseCubeAreFoundByColour) {
   *m.views[8].angle_deg -= 18;
   const RegistrationResult r = register_views(clouds, m);
   print_prior("a sparse cube, two angles off", r);
-  EXPECT_TRUE(r.failed_views.empty());
-  EXPECT_EQ(r.views_with_reference, 12);
-  EXPECT_LT(r.max_rotation_error_deg, 0.5);
-  EXPECT_LT(r.max_object_translation_error, 0.001);
+  expect_all_within_targets(r, 12);
   for (std::size_t i = 0; i < r.views.size(); ++i) {
     ASSERT_TRUE(r.views[i].angle_error_deg.has_value()) << i;
     const double e = std::abs(*r.views[i].angle_error_deg);
@@ -582,10 +588,7 @@ TEST(SimRegistration, ASparseCubeWithoutAnglesIsChainedByColour) {
                                 {"angles of the wrong sign", &flipped}}) {
     const RegistrationResult r = register_views(clouds, *m);
     print_prior(what, r);
-    EXPECT_TRUE(r.failed_views.empty()) << what;
-    EXPECT_EQ(r.views_with_reference, 12) << what;
-    EXPECT_LT(r.max_rotation_error_deg, 0.5) << what;
-    EXPECT_LT(r.max_object_translation_error, 0.001) << what;
+    expect_all_within_targets(r, 12, what);
   }
 }
 
@@ -603,10 +606,7 @@ TEST(SimRegistration, AWrongSignIsCorrectedWhereTheRunAsGivenHoldsViewsByItsAngl
   const RegistrationResult r = register_views(clouds, m);
   print_prior("the bottle, 8 views, angles of the wrong sign", r);
   EXPECT_EQ(r.prior_kept, "corrected prior");
-  EXPECT_TRUE(r.failed_views.empty());
-  EXPECT_EQ(r.views_with_reference, 8);
-  EXPECT_LT(r.max_rotation_error_deg, 0.5);
-  EXPECT_LT(r.max_object_translation_error, 0.001);
+  expect_all_within_targets(r, 8);
   EXPECT_EQ(r.unlinked_views, 0);
 }
 
@@ -632,13 +632,12 @@ TEST(SimRegistration, AConventionMistakeIsFoundWhereTheRunWithoutAnglesIsWrongTo
     const RegistrationResult r = register_views(clouds, *m);
     print_prior(what, r);
     EXPECT_EQ(r.prior_kept, "corrected prior") << what;
-    EXPECT_TRUE(r.failed_views.empty()) << what;
-    EXPECT_EQ(r.views_with_reference, 8) << what;
-    EXPECT_LT(r.max_rotation_error_deg, 0.5) << what;
-    EXPECT_LT(r.max_object_translation_error, 0.001) << what;
+    expect_all_within_targets(r, 8, what);
     bool said = false;
-    for (const std::string& w : r.warnings) said = said || w.find(convention) != std::string::npos;
+    for (const std::string& w : r.warnings)
+      said = said || (w.find(convention) != std::string::npos && w.find("tried as a hypothesis") != std::string::npos);
     EXPECT_TRUE(said) << what;
+    for (std::size_t i = 0; i < r.views.size(); ++i) EXPECT_EQ(r.views[i].prior, PriorUse::kCorrected) << what << i;
   }
 }
 
