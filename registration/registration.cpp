@@ -243,6 +243,13 @@ class Registrar {
             const RegistrationCallback& cb, int moved_from = -1)
       : clouds_(clouds), m_(m), p_(p), cb_(cb), moved_from_(moved_from) {}
 
+  /// A run with the angles corrected (a convention, a move): `given` is the manifest
+  /// as the user gave it, whose angles the warnings quote as commanded.
+  Registrar& as_given(const SessionManifest& given) {
+    given_ = &given;
+    return *this;
+  }
+
   RegistrationResult run() {
     const auto t_total = Clock::now();
     const std::size_t n = m_.views.size();
@@ -1805,8 +1812,13 @@ class Registrar {
       if (off < p_.wrong_angle_deg) continue;
       std::ostringstream w;
       w.precision(3);
-      w << view_name(m_, i) << ": commanded angle " << *m_.views[i].angle_deg
-        << " deg looks wrong: global registration puts the view " << off
+      w << view_name(m_, i) << ": commanded angle ";
+      const std::optional<double> as_given = given_ ? given_->views[std::size_t(i)].angle_deg : m_.views[i].angle_deg;
+      if (as_given && *as_given != *m_.views[i].angle_deg)
+        w << *as_given << " deg (" << *m_.views[i].angle_deg << " corrected)";
+      else
+        w << *m_.views[i].angle_deg << " deg";
+      w << " looks wrong: global registration puts the view " << off
         << " deg from it; the registered pose is used and its angle ignored";
       res_.warnings.push_back(w.str());
       res_.views[i].message = w.str();
@@ -2259,6 +2271,7 @@ class Registrar {
 
   const std::vector<Cloud>& clouds_;
   const SessionManifest& m_;
+  const SessionManifest* given_ = nullptr;  // as_given
   const RegistrationParams& p_;
   const RegistrationCallback& cb_;
   RegistrationResult res_;
@@ -2534,7 +2547,9 @@ static RegistrationResult register_views_checked(const std::vector<Cloud>& cloud
       else v.angle_deg = fit.sign * fit.scale * *v.angle_deg;
     }
     const RegistrationCallback corrected_progress = named("corrected angles");
-    corrected = Registrar(clouds, m, params, corrected_progress, moved.views.empty() ? -1 : moved.views.front()).run();
+    corrected = Registrar(clouds, m, params, corrected_progress, moved.views.empty() ? -1 : moved.views.front())
+                    .as_given(manifest)
+                    .run();
     if (!moved.views.empty()) {
       std::ostringstream w;
       w.precision(3);
@@ -2589,7 +2604,7 @@ static RegistrationResult register_views_checked(const std::vector<Cloud>& cloud
         const char* run = sign < 0 && scale != 1 ? "angles of the opposite sign as steps"
                           : sign < 0             ? "angles of the opposite sign"
                                                  : "angles as steps";
-        RegistrationResult h = Registrar(clouds, hm, params, named(run)).run();
+        RegistrationResult h = Registrar(clouds, hm, params, named(run)).as_given(manifest).run();
         // Taken only where the angles so fit the poses registered with them as
         // they are (a run that registers more views with angles still wrong is no
         // convention found).

@@ -639,6 +639,21 @@ TEST(SimRegistration, AConventionMistakeIsFoundWhereTheRunWithoutAnglesIsWrongTo
     EXPECT_TRUE(said) << what;
     for (std::size_t i = 0; i < r.views.size(); ++i) EXPECT_EQ(r.views[i].prior, PriorUse::kCorrected) << what << i;
   }
+  // The wrong sign and one angle 20 deg off besides: that view registers without its
+  // angle, and its warning quotes the angle the user gave (before, the corrected
+  // run's "commanded angle 245 deg" where the user wrote -245).
+  SessionManifest also = flipped;
+  *also.views[5].angle_deg -= 20;
+  const RegistrationResult r = register_views(clouds, also);
+  print_prior("the wrong sign and one angle off", r);
+  EXPECT_EQ(r.prior_kept, "corrected prior");
+  expect_all_within_targets(r, 8);
+  for (std::size_t i = 0; i < r.views.size(); ++i)
+    EXPECT_EQ(r.views[i].prior, i == 5 ? PriorUse::kRejected : PriorUse::kCorrected) << i;
+  bool quoted = false;
+  for (const std::string& w : r.warnings)
+    quoted = quoted || w.find("commanded angle -245 deg (245 corrected) looks wrong") != std::string::npos;
+  EXPECT_TRUE(quoted);
 }
 
 // A second pass with the object turned over (issue 26, item 2): after view 5
