@@ -719,7 +719,9 @@ class Registrar {
   };
   // The members' coloured points placed by their poses, thinned to about
   // `max_points`; null when a member has no colours or nothing is left.
-  std::unique_ptr<ColourModel> placed_colours(const std::vector<int>& members, std::size_t max_points) const {
+  // `own_frame`: the members' points as they are (a chain's pair target, own_colours).
+  std::unique_ptr<ColourModel> placed_colours(const std::vector<int>& members, std::size_t max_points,
+                                              bool own_frame = false) const {
     std::size_t total = 0;
     for (int j : members) {
       if (!views_[j].full.has_colours()) return nullptr;
@@ -729,7 +731,7 @@ class Registrar {
     auto cm = std::make_unique<ColourModel>();
     std::vector<Vec3f> pts;
     for (int j : members) {
-      const Eigen::Matrix4f X = res_.poses[j].cast<float>();
+      const Eigen::Matrix4f X = own_frame ? Eigen::Matrix4f::Identity() : Eigen::Matrix4f(res_.poses[j].cast<float>());
       const Cloud& c = views_[j].full;
       for (std::size_t k = 0; k < c.size(); k += stride) {
         pts.push_back(X.block<3, 3>(0, 0) * c.points[k] + X.block<3, 1>(0, 3));
@@ -764,18 +766,8 @@ class Registrar {
   const ColourModel* own_colours(int j) {
     own_colours_.resize(views_.size());
     std::unique_ptr<ColourModel>& cm = own_colours_[std::size_t(j)];
-    if (!cm && views_[j].full.has_colours() && !views_[j].full.empty()) {
-      // Thinned as a model is (a 640x480 range image holds 300,000 points).
-      const Cloud& c = views_[j].full;
-      const std::size_t stride = std::max<std::size_t>(1, c.size() / kOwnColoursPoints);
-      cm = std::make_unique<ColourModel>();
-      std::vector<Vec3f> pts;
-      for (std::size_t k = 0; k < c.size(); k += stride) {
-        pts.push_back(c.points[k]);
-        cm->colours.push_back(c.colours[k]);
-      }
-      cm->index = std::make_unique<PointIndex>(std::move(pts));
-    }
+    // (Thinned as a model is: a 640x480 range image holds 300,000 points.)
+    if (!cm) cm = placed_colours({j}, kOwnColoursPoints, true);
     return cm.get();
   }
   // Mean colour difference (0-255, per channel) between the points of `c` moved

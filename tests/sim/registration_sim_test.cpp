@@ -460,6 +460,22 @@ TEST(SimRegistration, AnObjectKnockedTwiceIsRegisteredAsThreeTurntableRuns) {
   EXPECT_TRUE(named);
 }
 
+// Every one of `views` views registered, each within the 0.5 deg / 1 mm
+// (at the object) of the truth.
+void expect_all_within_targets(const RegistrationResult& r, int views, const std::string& what = "") {
+  EXPECT_TRUE(r.failed_views.empty()) << what;
+  EXPECT_EQ(r.views_with_reference, views) << what;
+  EXPECT_LT(r.max_rotation_error_deg, 0.5) << what;
+  EXPECT_LT(r.max_object_translation_error, 0.001) << what;
+}
+
+// The views of `session` as recorded.
+std::vector<Cloud> views_of(const Session& session) {
+  std::vector<Cloud> clouds;
+  for (std::size_t i = 0; i < session.manifest().views.size(); ++i) clouds.push_back(session.load_view(i));
+  return clouds;
+}
+
 // A sparse session: four views 90 degrees apart of the bottle at 200x150 (as `station scan --views 4 --set width=200 --set height=150` makes):
 // neighbouring views overlap too little for ICP, so no pair converges. Each view
 // is held where the calibrated turntable puts it (said), not failed. Before, every
@@ -471,15 +487,11 @@ TEST(SimRegistration, ASparseSessionIsHeldByTheTurntable) {
                                 "sim:synthetic?mesh=" + (test::source_dir() / "data/mustard_bottle/textured.obj").string() +
                                     "&noise=0.0005&width=200&height=150&seed=1",
                                 4);
-  std::vector<Cloud> clouds;
-  for (std::size_t i = 0; i < session.manifest().views.size(); ++i) clouds.push_back(session.load_view(i));
+  const std::vector<Cloud> clouds = views_of(session);
   ASSERT_EQ(clouds.size(), 4u);
   const RegistrationResult r = register_views(clouds, session.manifest());
   print_prior("four views 90 degrees apart", r);
-  EXPECT_TRUE(r.failed_views.empty());
-  EXPECT_EQ(r.views_with_reference, 4);
-  EXPECT_LT(r.max_rotation_error_deg, 0.5);
-  EXPECT_LT(r.max_object_translation_error, 0.001);
+  expect_all_within_targets(r, 4);
   int held = 0;
   for (const std::string& w : r.warnings) held += w.find("held to them by the turntable angles alone") != std::string::npos;
   EXPECT_GE(held, 1);
@@ -498,26 +510,13 @@ TEST(SimRegistration, TableViewsWithoutAngleBetweenAngledOnesLandNotHalfTurned) 
                                 "sim:synthetic?mesh=" + (test::source_dir() / "data/mustard_bottle/textured.obj").string() +
                                     "&noise=0.0005&dropout=0.01&color_noise=2&width=320&height=240&seed=1",
                                 12);
-  std::vector<Cloud> clouds;
-  for (std::size_t i = 0; i < session.manifest().views.size(); ++i) clouds.push_back(session.load_view(i));
+  const std::vector<Cloud> clouds = views_of(session);
   ASSERT_EQ(clouds.size(), 12u);
   SessionManifest m = session.manifest();
   for (int i : {0, 1, 2, 3}) m.views[std::size_t(i)].angle_deg.reset();
   const RegistrationResult r = register_views(clouds, m);
   print_prior("views 0-3 without angle", r);
-  EXPECT_TRUE(r.failed_views.empty());
-  EXPECT_EQ(r.views_with_reference, 12);
-  EXPECT_LT(r.max_rotation_error_deg, 0.5);
-  EXPECT_LT(r.max_object_translation_error, 0.001);
-}
-
-// Every one of `views` views registered, each within the 0.5 deg / 1 mm
-// (at the object) of the truth.
-void expect_all_within_targets(const RegistrationResult& r, int views, const std::string& what = "") {
-  EXPECT_TRUE(r.failed_views.empty()) << what;
-  EXPECT_EQ(r.views_with_reference, views) << what;
-  EXPECT_LT(r.max_rotation_error_deg, 0.5) << what;
-  EXPECT_LT(r.max_object_translation_error, 0.001) << what;
+  expect_all_within_targets(r, 12);
 }
 
 // `views` views at 320x240 from 0.45 m of the bundled textured object `object`
@@ -533,10 +532,8 @@ std::vector<Cloud> sparse_scan(const test::TempDir& dir, const std::string& obje
                                     "&noise=0.0005&dropout=0.01&color_noise=2&width=320&height=240&distance=0.45"
                                     "&elevation_deg=20&fov_deg=50&center=1&seed=1" + extra,
                                 views);
-  std::vector<Cloud> clouds;
-  for (std::size_t i = 0; i < session.manifest().views.size(); ++i) clouds.push_back(session.load_view(i));
   m = session.manifest();
-  return clouds;
+  return views_of(session);
 }
 
 // A sparse scan of a small near-symmetric object (the bundled Rubik's cube at
