@@ -22,6 +22,7 @@
 #include "core/camera.h"
 #include "core/threads.h"
 #include "registration/axis_calibration.h"
+#include "registration/axis_consensus.h"
 #include "registration/free_space.h"
 #include "registration/pose_graph.h"
 #include "registration/prior_check.h"
@@ -90,6 +91,14 @@ using Clock = std::chrono::steady_clock;
 // kColourOverlapShare of the best overlap and at most kColourBetter times its
 // colour difference, and such a view is not settled (more starts are refined).
 constexpr double kTie = 0.03;
+// place_on_table_axis: a view keeps to the turntable line most views share when
+// within kAxisSlack times the rigid turntable's bounds (rigid_max_deviation_*);
+// a view off it is swept about the line in kAxisSweepDeg steps, ICP from the
+// kAxisStarts best turns.
+constexpr double kAxisSlack = 0.4;
+constexpr double kAxisSweepDeg = 5;
+constexpr std::size_t kAxisStarts = 4;
+constexpr double kAxisSameTurnDeg = 5;
 // A pose near the turn a view's neighbours' angles expect is chosen over the best when
 // the best is turned more than kTwinTurnDeg from it and it overlaps at least this share
 // of the best's (global_align, expected_).
@@ -268,6 +277,7 @@ class Registrar {
     refine();
     const double initial_seconds = res_.seconds_initial;
     retry_chain(start, warned);
+    if (!split_.found) place_on_table_axis(warned);
     res_.seconds_initial = initial_seconds;  // (the second chain's is in the refinement's)
     // Two runs on the table (the object moved, or was turned over for a second
     // pass): the refinement placed the second run from the angles, which the
@@ -468,10 +478,15 @@ class Registrar {
     return out;
   }
 
+  // The usable views in turntable order: capture order, or the order of their
+  // turns where place_on_table_axis found them (ring_order_; views not in it after).
   std::vector<int> ring() const {
     std::vector<int> r;
+    for (int i : ring_order_)
+      if (usable_[std::size_t(i)]) r.push_back(i);
     for (std::size_t i = 0; i < usable_.size(); ++i)
-      if (usable_[i]) r.push_back(int(i));
+      if (usable_[i] && std::find(ring_order_.begin(), ring_order_.end(), int(i)) == ring_order_.end())
+        r.push_back(int(i));
     return r;
   }
 
@@ -1321,9 +1336,10 @@ class Registrar {
     bool rigid_rejected = false, rigid_used = false;
     std::vector<int> off_table, unplaced;
     std::vector<double> angle_shift;
+    std::vector<int> ring_order, chain_missed;
   };
   State state() const {
-    return {res_, usable_, split_, rigid_rejected_, rigid_used_, off_table_, unplaced_, angle_shift_};
+    return {res_, usable_, split_, rigid_rejected_, rigid_used_, off_table_, unplaced_, angle_shift_, ring_order_, chain_missed_};
   }
   void restore(State&& s) {
     res_ = std::move(s.res);
@@ -1334,6 +1350,8 @@ class Registrar {
     off_table_ = std::move(s.off_table);
     unplaced_ = std::move(s.unplaced);
     angle_shift_ = std::move(s.angle_shift);
+    ring_order_ = std::move(s.ring_order);
+    chain_missed_ = std::move(s.chain_missed);
   }
   // Views the converged pairs join into the largest group, views registered, and
   // the last round's converged pairs: a result is better than another when these
@@ -1376,6 +1394,182 @@ class Registrar {
     confident_chain_ = false;
   }
 
+
+  // A run without angles (the chain) whose table views refuse one rigid turntable,
+  // no move between runs of them found: where most views keep to one turntable
+  // line (axis_consensus.h) and some do not, those were placed on a turned twin
+  // (a near-symmetric object given out of turntable order: the chain paired views
+  // far round it, and the bottle's four front views came out on its back). Each
+  // is placed again where a view of that turntable can be: the reference view's
+  // pose turned about the line, swept in kAxisSweepDeg steps against the model of
+  // the views kept, ICP from the kAxisStarts best-overlapping turns (place_on_line);
+  // then all refined in the order of their turns, and kept when the views now fit
+  // one rigid turntable, with no fewer registered and joined by converged pairs.
+  void place_on_table_axis(std::size_t& warned) {
+    if (!chained_ || !rigid_rejected_ || p_.rigid_turntable != RigidTurntable::kAuto) return;
+    std::vector<int> table;
+    for (int i : ring())
+      if (!res_.views[i].angle_rejected && std::find(off_table_.begin(), off_table_.end(), i) == off_table_.end())
+        table.push_back(i);
+    if (table.size() < 4) return;
+    std::vector<Eigen::Matrix4d> poses;
+    std::vector<Vec3d> centres;
+    for (int i : table) {
+      poses.push_back(res_.poses[i]);
+      centres.push_back(centroid(views_[i].points));
+    }
+    const AxisConsensus c =
+        turntable_consensus(poses, centres, kAxisSlack * p_.rigid_max_deviation_deg,
+                            kAxisSlack * p_.rigid_max_deviation_rel * diag_);
+    if (!c.found || c.inliers.size() == table.size()) return;
+    std::vector<int> kept, pending;
+    for (std::size_t k = 0; k < table.size(); ++k)
+      (std::binary_search(c.inliers.begin(), c.inliers.end(), int(k)) ? kept : pending).push_back(table[k]);
+    // The views the chain failed (their best fits were against views on a twin) too.
+    pending.insert(pending.end(), chain_missed_.begin(), chain_missed_.end());
+    const Eigen::Matrix4d ref = res_.poses[table[std::size_t(c.reference)]];
+    std::vector<double> turns;  // the kept views' turns from the reference's (degrees)
+    for (int k : c.inliers) turns.push_back(c.turn[std::size_t(k)] * 180.0 / M_PI);
+    State before = state();
+    const std::array<std::size_t, 3> before_score = chain_score();
+    std::vector<int> moved;
+    for (bool placed_some = true; placed_some && !pending.empty();) {
+      placed_some = false;
+      const PreparedView model = model_of(kept);
+      const std::unique_ptr<ColourModel> colours = colour_model_of(kept);
+      const std::unique_ptr<FreeSpace> free = free_space_of(kept);
+      std::vector<int> still;
+      std::vector<std::pair<int, Eigen::Matrix4d>> placed;
+      for (int v : pending) {
+        const std::optional<Eigen::Matrix4d> X = place_on_line(v, model, colours.get(), free.get(), c, ref, turns);
+        if (X) placed.push_back({v, *X});
+        else still.push_back(v);
+      }
+      for (const auto& [v, X] : placed) {
+        res_.poses[v] = X;
+        if (!usable_[std::size_t(v)]) {  // (a view the chain failed)
+          usable_[std::size_t(v)] = true;
+          res_.views[std::size_t(v)].message.clear();
+          res_.views[std::size_t(v)].initial = InitialPoseSource::kGlobal;
+          table.push_back(v);
+        }
+        turns.push_back(turn_about_axis((X * rigid_inverse(ref)).block<3, 3>(0, 0), c.direction) * 180.0 / M_PI);
+        kept.push_back(v);
+        moved.push_back(v);
+        placed_some = true;
+      }
+      pending = std::move(still);
+    }
+    if (moved.empty()) return;
+    // The ring in the order of the turns (the refinement pairs each view with its
+    // neighbours in it): capture order was no turntable order.
+    std::vector<std::pair<double, int>> by_turn;
+    for (int i : table) {
+      double t = turn_about_axis((res_.poses[i] * rigid_inverse(ref)).block<3, 3>(0, 0), c.direction);
+      if (t < 0) t += 2 * M_PI;
+      by_turn.push_back({t, i});
+    }
+    std::sort(by_turn.begin(), by_turn.end());
+    ring_order_.clear();
+    for (const auto& [t, i] : by_turn) ring_order_.push_back(i);
+    res_.warnings.resize(warned);
+    res_.pairs.clear();
+    refine();
+    // (Not on the converged pairs: views on a twin, where others already are, overlap
+    // more of them than views spread round the table.)
+    const std::array<std::size_t, 3> score = chain_score();
+    if (rigid_rejected_ || score[0] < before_score[0] || score[1] < before_score[1]) {
+      restore(std::move(before));
+      return;
+    }
+    std::sort(moved.begin(), moved.end());
+    std::ostringstream w;
+    w << "placed again about the turntable axis the other views share (the run without angles had put them "
+         "off it, on a near-symmetric shape's turned twin, or failed them):";
+    for (int v : moved) w << " " << view_name(m_, std::size_t(v));
+    res_.notes.push_back(w.str());
+  }
+
+  // View v posed as a view of the turntable `c` can be (its reference view's pose
+  // `ref` turned about the line), the turn found by a sweep of the overlap with
+  // `model`, then ICP from the best turns; the converged pose with the best overlap
+  // that the model's views do not see through, near ties by colour. None when no
+  // pose overlaps by the global registration's minimum.
+  std::optional<Eigen::Matrix4d> place_on_line(int v, const PreparedView& model, const ColourModel* colours,
+                                               const FreeSpace* free, const AxisConsensus& c,
+                                               const Eigen::Matrix4d& ref, const std::vector<double>& turns) const {
+    const GlobalRegistrationParams gp = global_params();
+    IcpParams ip = p_.icp;
+    ip.max_distance_start = std::max(2.0 * gp.inlier_distance_voxels * gp.voxel_size, icp_end_);
+    ip.max_distance_end = icp_end_;
+    const int steps = int(std::lround(360.0 / kAxisSweepDeg));
+    std::vector<Eigen::Matrix4d> start(static_cast<std::size_t>(steps));
+    std::vector<double> ov(static_cast<std::size_t>(steps));
+    tbb::parallel_for(0, steps, [&](int s) {
+      start[std::size_t(s)] = turn_about_line(c.point, c.direction, 2 * M_PI * s / steps) * ref;
+      ov[std::size_t(s)] = overlap(views_[v], model, start[std::size_t(s)], ip.max_distance_start);
+    });
+    // The sweep's peaks (round the circle), best first.
+    std::vector<int> peaks;
+    for (int s = 0; s < steps; ++s) {
+      const double o = ov[std::size_t(s)];
+      if (o > 0 && o >= ov[std::size_t((s + steps - 1) % steps)] && o > ov[std::size_t((s + 1) % steps)])
+        peaks.push_back(s);
+    }
+    std::stable_sort(peaks.begin(), peaks.end(),
+                     [&](int a, int b) { return ov[std::size_t(a)] > ov[std::size_t(b)]; });
+    peaks.resize(std::min(peaks.size(), kAxisStarts));
+    std::vector<IcpResult> r(peaks.size());
+    tbb::parallel_for(std::size_t(0), peaks.size(), [&](std::size_t k) {
+      r[k] = icp_point_to_plane(views_[v], model, start[std::size_t(peaks[k])], ip);
+      // ICP that ran out of iterations while still sliding goes on at the final distance.
+      if (!r[k].converged && r[k].fitness >= p_.global_min_fitness) {
+        IcpParams more = ip;
+        more.max_distance_start = ip.max_distance_end;
+        more.max_iterations = 2 * ip.max_iterations;
+        r[k] = icp_point_to_plane(views_[v], model, r[k].transform, more);
+      }
+    });
+    std::vector<double> rms;
+    for (const IcpResult& x : r)
+      if (x.converged) rms.push_back(x.plane_rmse);
+    const double noise_rms = rms.empty() ? 0.0 : median_of(rms);
+    const double voxel = std::max(p_.voxel_rel, 1e-4) * diag_;
+    std::vector<char> usable(r.size(), 0), twin(r.size(), 0);
+    for (std::size_t k = 0; k < r.size(); ++k) {
+      if (!r[k].converged || r[k].fitness < p_.global_min_fitness) continue;
+      if (free && free->seen_through(views_[v].points, r[k].transform,
+                                     std::max(kSeenMargin * voxel, kSeenNoise * noise_rms), voxel,
+                                     kSeenGrow * diag_) > kSeenThrough)
+        continue;
+      usable[k] = 1;
+      // At a kept view's own turn: where that view's twin fits (it sees what that view saw).
+      const double t = turn_about_axis((r[k].transform * rigid_inverse(ref)).block<3, 3>(0, 0), c.direction) * 180.0 / M_PI;
+      for (double u : turns) {
+        const double d = std::abs(std::remainder(t - u, 360.0));
+        if (d < kAxisSameTurnDeg) twin[k] = 1;
+      }
+    }
+    // Never at a kept view's turn (the view waits for the model to grow, or stays).
+    for (std::size_t k = 0; k < r.size(); ++k) usable[k] = usable[k] && !twin[k];
+    double best_fit = 0;
+    for (std::size_t k = 0; k < r.size(); ++k)
+      if (usable[k]) best_fit = std::max(best_fit, r[k].fitness);
+    std::vector<double> err(r.size(), std::numeric_limits<double>::infinity());
+    if (colours)
+      for (std::size_t k = 0; k < r.size(); ++k)
+        if (usable[k])
+          err[k] = colour_error(views_[v].full, *colours, r[k].transform, ip.max_distance_end, views_[v].viewpoint);
+    int best = -1;
+    for (std::size_t k = 0; k < r.size(); ++k) {
+      if (!usable[k] || r[k].fitness < best_fit - kTie) continue;
+      if (best < 0 || err[k] < err[std::size_t(best)] ||
+          (err[k] == err[std::size_t(best)] && r[k].fitness > r[std::size_t(best)].fitness))
+        best = int(k);
+    }
+    if (best < 0) return std::nullopt;
+    return r[std::size_t(best)].transform;
+  }
 
   // The groups of usable views that the last round's converged pairs join (in the
   // order of their union-find roots), and which of them is the largest (ties: the
@@ -1733,7 +1927,10 @@ class Registrar {
         }
         missed = std::move(still);
       }
-      for (const auto& [i, why] : missed) fail(i, why + against_model[i]);
+      for (const auto& [i, why] : missed) {
+        fail(i, why + against_model[i]);
+        chain_missed_.push_back(i);
+      }
       return;
     }
     // Off-turntable views: against the model of the posed ones.
@@ -2280,6 +2477,8 @@ class Registrar {
   std::vector<int> unplaced_;   // views without an angle that global registration could not place
   int moved_from_ = -1;
   std::vector<double> angle_shift_;  // per view, degrees (angle_of): empty until a run is moved
+  std::vector<int> ring_order_;      // ring()'s order where not the capture order (place_on_table_axis)
+  std::vector<int> chain_missed_;    // views the prior-free chain failed (global_poses)
   bool rigid_rejected_ = false;  // kAuto kept the free poses in the last solve
   bool rigid_used_ = false;      // the last solve's poses are the rigid ones
   TurntableSplit split_;  // the last solve's split of the table views into two runs (found: a move)
