@@ -49,7 +49,7 @@ Eigen::Matrix4d turn_about_line(const Vec3d& point, const Vec3d& direction, doub
 }
 
 AxisConsensus turntable_consensus(const std::vector<Eigen::Matrix4d>& poses, const std::vector<Vec3d>& centres,
-                                  double max_deg, double max_shift, double min_turn_deg) {
+                                  double max_deg, double max_shift, double min_turn_deg, double same_turn_deg) {
   const int n = int(poses.size());
   AxisConsensus best;
   best.deviation_deg.assign(std::size_t(n), std::numeric_limits<double>::infinity());
@@ -86,6 +86,17 @@ AxisConsensus turntable_consensus(const std::vector<Eigen::Matrix4d>& poses, con
       }
     }
   };
+  // The inliers' turns that differ from every other counted one by same_turn_deg.
+  const auto distinct = [&](const AxisConsensus& c) {
+    std::vector<double> seen;
+    for (int k : c.inliers) {
+      const double t = c.turn[std::size_t(k)] * 180.0 / M_PI;
+      if (std::none_of(seen.begin(), seen.end(),
+                       [&](double u) { return std::abs(std::remainder(t - u, 360.0)) < same_turn_deg; }))
+        seen.push_back(t);
+    }
+    return int(seen.size());
+  };
   for (int i = 0; i < n; ++i)
     for (int j = 0; j < n; ++j) {
       if (i == j || !finite[std::size_t(i)] || !finite[std::size_t(j)]) continue;
@@ -118,12 +129,15 @@ AxisConsensus turntable_consensus(const std::vector<Eigen::Matrix4d>& poses, con
         c = std::move(r);
         sum = rsum;
       }
-      if (c.inliers.size() > best.inliers.size() || (c.inliers.size() == best.inliers.size() && sum < best_sum)) {
+      c.distinct_turns = distinct(c);
+      if (c.distinct_turns > best.distinct_turns ||
+          (c.distinct_turns == best.distinct_turns &&
+           (c.inliers.size() > best.inliers.size() || (c.inliers.size() == best.inliers.size() && sum < best_sum)))) {
         best = std::move(c);
         best_sum = sum;
       }
     }
-  best.found = best.inliers.size() >= 3;
+  best.found = best.distinct_turns >= 3;
   return best;
 }
 

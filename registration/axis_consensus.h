@@ -28,14 +28,21 @@ struct AxisConsensus {
   std::vector<double> deviation_deg, deviation;
   /// Per view: the turn about the line from the reference's pose (radians).
   std::vector<double> turn;
+  /// The inliers' distinct turns: a turntable takes each view at its own angle, so
+  /// inliers within `same_turn_deg` of one another count once (views stacked on one
+  /// turn are twins of each other, not a ring).
+  int distinct_turns = 0;
 };
 
 /// `poses[k]`: object <- scanner of each view (non-finite ones are left out);
 /// `centres[k]`: each view's centre in its own (scanner) frame. A view is an
 /// inlier when its deviation is within `max_deg` and `max_shift`. Pairs whose
-/// motion turns less than `min_turn_deg` give no line (their axis is noise).
+/// motion turns less than `min_turn_deg` give no line (their axis is noise). The
+/// line with the most distinct turns wins, then the most inliers, then the
+/// smallest summed deviation.
 AxisConsensus turntable_consensus(const std::vector<Eigen::Matrix4d>& poses, const std::vector<Vec3d>& centres,
-                                  double max_deg, double max_shift, double min_turn_deg = 10.0);
+                                  double max_deg, double max_shift, double min_turn_deg = 10.0,
+                                  double same_turn_deg = 5.0);
 
 /// The signed turn (radians) about unit `direction` of the rotation about it
 /// nearest R (the one maximising trace(Rot(turn)^T R)).

@@ -70,6 +70,29 @@ TEST(AxisConsensus, TwinsOffTheLineAreToldFromTheViewsOnIt) {
   }
 }
 
+// Views stacked on a few turns of another line (a cube's chain collapsing its views
+// onto two of its faces) outnumber the ring's spread views, but a turntable takes
+// each view at its own angle: the line with more distinct turns wins.
+TEST(AxisConsensus, ViewsStackedOnFewTurnsLoseToASpreadRing) {
+  Ring r = ring(6, 60, 3);
+  const Ring other = ring(1, 0, 4);
+  const Vec3d level = r.direction.unitOrthogonal();
+  for (int k = 0; k < 7; ++k) {
+    const double turn = (k < 4 ? 0.0 : 90.0) * kDeg;
+    // Half a turn about a level line first (upside down), then turned about it.
+    r.poses.push_back(turn_about_line(r.point, level, turn) *
+                      turn_about_line(r.point + Vec3d(0.01, 0, 0), r.direction, M_PI / 2) * other.poses[0]);
+    // (The stacked views differ by pose noise only.)
+    r.poses.back().block<3, 1>(0, 3) += 2e-5 * Vec3d(k, -k, 0.5 * k);
+    r.centres.push_back(other.centres[0]);
+  }
+  const AxisConsensus c = turntable_consensus(r.poses, r.centres, 0.3, 0.0008);
+  ASSERT_TRUE(c.found);
+  EXPECT_EQ(c.distinct_turns, 6);
+  EXPECT_EQ(c.inliers, (std::vector<int>{0, 1, 2, 3, 4, 5}));
+  EXPECT_LT(std::acos(std::min(1.0, std::abs(c.direction.dot(r.direction)))) / kDeg, 0.1);
+}
+
 TEST(AxisConsensus, ARingWithoutTwinsKeepsEveryView) {
   const Ring r = ring(8, 45, 2);
   const AxisConsensus c = turntable_consensus(r.poses, r.centres, 0.3, 0.0008);
