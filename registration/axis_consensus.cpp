@@ -40,6 +40,11 @@ double turn_about_axis(const Eigen::Matrix3d& R, const Vec3d& d) {
   return std::atan2(d.dot(v), R.trace() - d.dot(R * d));
 }
 
+bool near_a_turn(double t_deg, const std::vector<double>& turns_deg, double tolerance_deg) {
+  return std::any_of(turns_deg.begin(), turns_deg.end(),
+                     [&](double u) { return std::abs(std::remainder(t_deg - u, 360.0)) < tolerance_deg; });
+}
+
 Eigen::Matrix4d turn_about_line(const Vec3d& point, const Vec3d& direction, double angle) {
   Eigen::Matrix4d T = Eigen::Matrix4d::Identity();
   const Eigen::Matrix3d R = Eigen::AngleAxisd(angle, direction.normalized()).toRotationMatrix();
@@ -91,9 +96,7 @@ AxisConsensus turntable_consensus(const std::vector<Eigen::Matrix4d>& poses, con
     std::vector<double> seen;
     for (int k : c.inliers) {
       const double t = c.turn[std::size_t(k)] * 180.0 / M_PI;
-      if (std::none_of(seen.begin(), seen.end(),
-                       [&](double u) { return std::abs(std::remainder(t - u, 360.0)) < same_turn_deg; }))
-        seen.push_back(t);
+      if (!near_a_turn(t, seen, same_turn_deg)) seen.push_back(t);
     }
     return int(seen.size());
   };

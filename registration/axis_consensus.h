@@ -8,7 +8,7 @@
 // overlap with its neighbours but leaves that line. The consensus is found by
 // RANSAC over the pairs of views: each pair's relative motion is a screw whose
 // axis is a candidate line; the line the most views keep to (within a rotation
-// and a shift) wins, refitted over them.
+// and a shift) at distinct turns wins, refitted over them.
 #include <vector>
 
 #include <Eigen/Core>
@@ -47,6 +47,10 @@ AxisConsensus turntable_consensus(const std::vector<Eigen::Matrix4d>& poses, con
 /// The signed turn (radians) about unit `direction` of the rotation about it
 /// nearest R (the one maximising trace(Rot(turn)^T R)).
 double turn_about_axis(const Eigen::Matrix3d& R, const Vec3d& direction);
+
+/// Whether turn `t_deg` lies within `tolerance_deg` of one of `turns_deg` (round
+/// the circle).
+bool near_a_turn(double t_deg, const std::vector<double>& turns_deg, double tolerance_deg);
 
 /// The rigid motion turning by `angle` (radians, right-handed about `direction`)
 /// about the line through `point`.

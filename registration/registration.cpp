@@ -712,8 +712,8 @@ class Registrar {
     std::size_t total = 0;
     for (std::size_t q = 0; q < sp.size(); q += stride, ++total) {
       const Vec3f y = Xf.block<3, 3>(0, 0) * sp[q] + Xf.block<3, 1>(0, 3);
-      const double d = target.index->nearest(y).second;
-      if (d < dist) sum += 1 - d / dist;
+      const auto [j, d] = target.index->nearest_within(y, float(dist));
+      if (j >= 0 && d < dist) sum += 1 - d / dist;
     }
     return sum / double(std::max<std::size_t>(total, 1));
   }
@@ -1425,10 +1425,10 @@ class Registrar {
   // far round it, and the bottle's four front views came out on its back). Each
   // is placed again where a view of that turntable can be: the reference view's
   // pose turned about the line, swept in kAxisSweepDeg steps against the model of
-  // the views kept, ICP from the kAxisStarts best-overlapping turns (place_on_line);
+  // the views kept, ICP from the kAxisStarts best peaks of closeness (place_on_line);
   // then all refined in the order of their turns, and kept when the views now fit
   // one rigid turntable, with no fewer registered and joined by converged pairs.
-  void place_on_table_axis(std::size_t& warned) {
+  void place_on_table_axis(std::size_t warned) {
     if (!chained_ || !rigid_rejected_ || p_.rigid_turntable != RigidTurntable::kAuto) return;
     std::vector<int> table;
     for (int i : ring())
@@ -1443,7 +1443,7 @@ class Registrar {
     }
     const AxisConsensus c =
         turntable_consensus(poses, centres, kAxisSlack * p_.rigid_max_deviation_deg,
-                            kAxisSlack * p_.rigid_max_deviation_rel * diag_);
+                            kAxisSlack * p_.rigid_max_deviation_rel * diag_, 10.0, kAxisSameTurnDeg);
     if (!c.found) return;
     // Kept: the inliers, one per turn (the reference first, then the nearest the
     // line); views stacked on a kept view's turn are twins of it, and wait with the
@@ -1457,9 +1457,7 @@ class Registrar {
     std::vector<double> turns;  // the kept views' turns from the reference's (degrees)
     for (int k : order) {
       const double t = c.turn[std::size_t(k)] * 180.0 / M_PI;
-      if (std::any_of(turns.begin(), turns.end(),
-                      [&](double u) { return std::abs(std::remainder(t - u, 360.0)) < kAxisSameTurnDeg; }))
-        continue;
+      if (near_a_turn(t, turns, kAxisSameTurnDeg)) continue;
       turns.push_back(t);
       kept.push_back(table[std::size_t(k)]);
     }
@@ -1480,13 +1478,22 @@ class Registrar {
       const std::unique_ptr<ColourModel> colours = colour_model_of(kept);
       const std::unique_ptr<FreeSpace> free = free_space_of(kept);
       std::vector<int> still;
-      std::vector<std::pair<int, Eigen::Matrix4d>> placed;
+      std::vector<std::tuple<double, int, Eigen::Matrix4d>> placed;  // (-fitness, view, pose)
       for (int v : pending) {
-        const std::optional<Eigen::Matrix4d> X = place_on_line(v, model, colours.get(), free.get(), c, ref, turns);
-        if (X) placed.push_back({v, *X});
+        const auto X = place_on_line(v, model, colours.get(), free.get(), c, ref, turns);
+        if (X) placed.push_back({-X->second, v, X->first});
         else still.push_back(v);
       }
-      for (const auto& [v, X] : placed) {
+      // The best fits first; a view placed on the turn another took in this round waits.
+      std::sort(placed.begin(), placed.end(),
+                [](const auto& a, const auto& b) { return std::get<0>(a) < std::get<0>(b); });
+      for (const auto& [fit, v, X] : placed) {
+        const double t = turn_about_axis((X * rigid_inverse(ref)).block<3, 3>(0, 0), c.direction) * 180.0 / M_PI;
+        if (near_a_turn(t, turns, kAxisSameTurnDeg)) {
+          still.push_back(v);
+          continue;
+        }
+        turns.push_back(t);
         res_.poses[v] = X;
         if (!usable_[std::size_t(v)]) {  // (a view failed before)
           usable_[std::size_t(v)] = true;
@@ -1494,7 +1501,8 @@ class Registrar {
           res_.views[std::size_t(v)].initial = InitialPoseSource::kGlobal;
           table.push_back(v);
         }
-        turns.push_back(turn_about_axis((X * rigid_inverse(ref)).block<3, 3>(0, 0), c.direction) * 180.0 / M_PI);
+        // Now a table view (the chain may have placed it against the model).
+        off_table_.erase(std::remove(off_table_.begin(), off_table_.end(), v), off_table_.end());
         kept.push_back(v);
         moved.push_back(v);
         placed_some = true;
@@ -1507,6 +1515,7 @@ class Registrar {
     std::vector<std::pair<double, int>> by_turn;
     for (int i : table) {
       double t = turn_about_axis((res_.poses[i] * rigid_inverse(ref)).block<3, 3>(0, 0), c.direction);
+      if (!std::isfinite(t)) continue;  // (ring() puts it after the others)
       if (t < 0) t += 2 * M_PI;
       by_turn.push_back({t, i});
     }
@@ -1532,11 +1541,12 @@ class Registrar {
   }
 
   // View v posed as a view of the turntable `c` can be (its reference view's pose
-  // `ref` turned about the line), the turn found by a sweep of the overlap with
-  // `model`, then ICP from the best turns; the converged pose with the best overlap
-  // that the model's views do not see through, near ties by colour. None when no
-  // pose overlaps by the global registration's minimum.
-  std::optional<Eigen::Matrix4d> place_on_line(int v, const PreparedView& model, const ColourModel* colours,
+  // `ref` turned about the line), the turn found by a sweep of the closeness to
+  // `model` away from the kept views' `turns`, then ICP from the best peaks; the
+  // converged pose with the best overlap (ICP fitness) that the model's views do
+  // not see through and that is not at a kept view's turn, near ties by colour; with
+  // its fitness. None when no such pose overlaps by the global registration's minimum.
+  std::optional<std::pair<Eigen::Matrix4d, double>> place_on_line(int v, const PreparedView& model, const ColourModel* colours,
                                                const FreeSpace* free, const AxisConsensus& c,
                                                const Eigen::Matrix4d& ref, const std::vector<double>& turns) const {
     const GlobalRegistrationParams gp = global_params();
@@ -1548,10 +1558,7 @@ class Registrar {
     std::vector<double> ov(static_cast<std::size_t>(steps));
     // At a kept view's own turn (within kAxisSameTurnDeg): where that view's twin
     // fits, for it sees what that view saw.
-    const auto at_kept_turn = [&](double t) {
-      return std::any_of(turns.begin(), turns.end(),
-                         [&](double u) { return std::abs(std::remainder(t - u, 360.0)) < kAxisSameTurnDeg; });
-    };
+    const auto at_kept_turn = [&](double t) { return near_a_turn(t, turns, kAxisSameTurnDeg); };
     tbb::parallel_for(0, steps, [&](int s) {
       start[std::size_t(s)] = turn_about_line(c.point, c.direction, 2 * M_PI * s / steps) * ref;
       ov[std::size_t(s)] = closeness(views_[v], model, start[std::size_t(s)], ip.max_distance_start);
@@ -1612,7 +1619,7 @@ class Registrar {
         best = int(k);
     }
     if (best < 0) return std::nullopt;
-    return r[std::size_t(best)].transform;
+    return std::make_pair(r[std::size_t(best)].transform, r[std::size_t(best)].fitness);
   }
 
   // The groups of usable views that the last round's converged pairs join (in the
@@ -1782,8 +1789,8 @@ class Registrar {
   // capture order (round the end: a turntable session is a ring) are less than half a
   // turn apart, forwards: the pose of the angle interpolated between theirs by its
   // place between them, and a tolerance of one step between views plus 15 degrees.
-  // None without a turntable axis or such neighbours.
-  std::optional<std::pair<Eigen::Matrix4d, double>> expected_pose(int i) const {
+  // None without a turntable axis or such neighbours. `angle`: that angle.
+  std::optional<std::pair<Eigen::Matrix4d, double>> expected_pose(int i, double* angle_out = nullptr) const {
     const int n = int(m_.views.size());
     if (!res_.axis || n < 3) return std::nullopt;
     const auto angled = [&](int j) {
@@ -1818,6 +1825,7 @@ class Registrar {
       if (!(std::abs(step - typical) <= 0.25 * typical)) return std::nullopt;
     }
     const double angle = a0 + step * steps_before;
+    if (angle_out) *angle_out = angle;
     return std::make_pair(turntable_pose(*res_.axis, angle), step + 15.0);
   }
 
@@ -1977,17 +1985,65 @@ class Registrar {
       }
       return;
     }
-    // Off-turntable views: against the model of the posed ones.
-    const PreparedView model = model_of(have);
+    // Off-turntable views: against the model of the posed ones. Table views without
+    // an angle between views with angles (expected_pose) go first, the one whose
+    // expected turn is nearest a posed view's first, and each placed near its expected
+    // pose joins the model for the next: a view far from every posed view overlaps
+    // them little (the fandisk's eight views with the first four without angle: the
+    // third, 90 deg from the nearest posed view, fitted its half-turned twin better and
+    // came out 178 deg off, exit 0, no warning).
+    const PreparedView given_model = model_of(have);
     report("global", 0, int(todo.size()));
-    const std::vector<FeatureView> model_feat = model_features(model);
-    const std::unique_ptr<ColourModel> colours = colour_model_of(have);
-    const std::unique_ptr<FreeSpace> free = free_space_of(have);
+    const std::vector<FeatureView> given_feat = model_features(given_model);
+    const std::unique_ptr<ColourModel> given_colours = colour_model_of(have);
+    const std::unique_ptr<FreeSpace> given_free = free_space_of(have);
     const auto axis = object_axis(have);
+    std::vector<double> posed_angles;
+    for (int j : have)
+      // (As given, as expected_pose interpolates them.)
+      if (has_angle(j) && !res_.views[std::size_t(j)].angle_rejected) posed_angles.push_back(*m_.views[std::size_t(j)].angle_deg);
+    std::map<int, double> expected_angle;
+    for (int i : todo) {
+      double a = 0;
+      if (expected_pose(i, &a)) expected_angle[i] = a;
+    }
+    const auto gap = [&](int i) {
+      double g = 360;
+      for (double a : posed_angles) g = std::min(g, std::abs(std::remainder(expected_angle.at(i) - a, 360.0)));
+      return g;
+    };
+    std::vector<int> order;
+    for (int i : todo)
+      if (!expected_angle.count(i)) order.push_back(i);
+    std::vector<int> table_todo;
+    for (int i : todo)
+      if (expected_angle.count(i)) table_todo.push_back(i);
+    std::vector<int> members = have;  // the grown model's views
+    std::optional<PreparedView> grown;
+    std::vector<FeatureView> grown_feat;
+    std::unique_ptr<ColourModel> grown_colours;
+    std::unique_ptr<FreeSpace> grown_free;
+    std::size_t next_other = 0;  // the next of `order` (after every table view)
     for (std::size_t k = 0; k < todo.size(); ++k) {
-      const int i = todo[k];
+      int i;
+      const bool table = !table_todo.empty();
+      if (table) {
+        const auto next = std::min_element(table_todo.begin(), table_todo.end(),
+                                           [&](int a, int b) { return gap(a) < gap(b); });
+        i = *next;
+        table_todo.erase(next);
+      } else {
+        i = order[next_other++];
+      }
+      const PreparedView& model = table && grown ? *grown : given_model;
       expected_ = expected_pose(i);
-      const GlobalAlign a = global_align(i, model, model_feat, colours.get(), axis, free.get());
+      const GlobalAlign a =
+          global_align(i, model, table && grown ? grown_feat : given_feat,
+                       table && grown ? grown_colours.get() : given_colours.get(), axis,
+                       table && grown ? grown_free.get() : given_free.get());
+      const bool near_expected =
+          expected_ && a.ok && rotation_angle_deg(Eigen::Matrix4d(rigid_inverse(expected_->first) * a.transform)) <=
+                                   expected_->second;
       expected_.reset();
       report("global", int(k + 1), int(todo.size()));
       if (!a.ok) {
@@ -1998,6 +2054,14 @@ class Registrar {
       res_.poses[i] = a.transform;
       res_.views[i].initial = InitialPoseSource::kGlobal;
       off_table_.push_back(i);
+      if (table && near_expected && !table_todo.empty()) {
+        posed_angles.push_back(expected_angle.at(i));
+        members.push_back(i);
+        grown = model_of(members);
+        grown_feat = model_features(*grown);
+        grown_colours = colour_model_of(members);
+        grown_free = free_space_of(members);
+      }
     }
   }
 
@@ -2271,15 +2335,18 @@ class Registrar {
       // times their sigma, between views that converged pairs hold (an angle a few
       // degrees off, under the wrong-angle check: 6 deg pulled the bottle's eight
       // views 0.49 deg off).
-      std::vector<char> held(m_.views.size(), 0);
+      // (Held: joined by consistent, non-degenerate converged pairs, so that the
+      // prior was no group's only link to the others, nor what fixed a slide.)
+      UnionFind pair_held(m_.views.size());
       for (std::size_t e = 0; e < edges.size(); ++e)
-        if (edge_pair[e] >= 0 && g.edge_rotation_deg[e] <= 2.0 && g.edge_translation[e] <= 3 * end)
-          held[std::size_t(edges[e].from)] = held[std::size_t(edges[e].to)] = 1;
+        if (edge_pair[e] >= 0 && g.edge_rotation_deg[e] <= 2.0 && g.edge_translation[e] <= 3 * end &&
+            !res_.pairs[first_diag + std::size_t(edge_pair[e])].degenerate)
+          pair_held.unite(edges[e].from, edges[e].to);
       std::vector<PoseGraphEdge> kept;
       std::vector<int> kept_pair;
       for (std::size_t e = 0; e < edges.size(); ++e) {
         if (edge_pair[e] < 0 && g.edge_rotation_deg[e] > kPriorOutlierSigmas * p_.prior_angle_sigma_deg &&
-            held[std::size_t(edges[e].from)] && held[std::size_t(edges[e].to)])
+            pair_held.find(edges[e].from) == pair_held.find(edges[e].to))
           continue;
         const bool bad = edge_pair[e] >= 0 &&
                          (g.edge_rotation_deg[e] > 2.0 || g.edge_translation[e] > 3 * end);

@@ -79,7 +79,8 @@ TEST(AxisConsensus, ViewsStackedOnFewTurnsLoseToASpreadRing) {
   const Vec3d level = r.direction.unitOrthogonal();
   for (int k = 0; k < 7; ++k) {
     const double turn = (k < 4 ? 0.0 : 90.0) * kDeg;
-    // Half a turn about a level line first (upside down), then turned about it.
+    // A quarter turn about a line parallel to the table's, then 0 or 90 deg about a
+    // level line: off the ring's line, on two turns of another.
     r.poses.push_back(turn_about_line(r.point, level, turn) *
                       turn_about_line(r.point + Vec3d(0.01, 0, 0), r.direction, M_PI / 2) * other.poses[0]);
     // (The stacked views differ by pose noise only.)
