@@ -1359,10 +1359,10 @@ class Registrar {
     bool rigid_rejected = false, rigid_used = false;
     std::vector<int> off_table, unplaced;
     std::vector<double> angle_shift;
-    std::vector<int> ring_order, chain_missed;
+    std::vector<int> ring_order, chain_missed, table_free;
   };
   State state() const {
-    return {res_, usable_, split_, rigid_rejected_, rigid_used_, off_table_, unplaced_, angle_shift_, ring_order_, chain_missed_};
+    return {res_, usable_, split_, rigid_rejected_, rigid_used_, off_table_, unplaced_, angle_shift_, ring_order_, chain_missed_, table_free_};
   }
   void restore(State&& s) {
     res_ = std::move(s.res);
@@ -1375,6 +1375,7 @@ class Registrar {
     angle_shift_ = std::move(s.angle_shift);
     ring_order_ = std::move(s.ring_order);
     chain_missed_ = std::move(s.chain_missed);
+    table_free_ = std::move(s.table_free);
   }
   // Views the converged pairs join into the largest group, views registered, and
   // the last round's converged pairs: a result is better than another when these
@@ -2044,6 +2045,19 @@ class Registrar {
       const bool near_expected =
           expected_ && a.ok && rotation_angle_deg(Eigen::Matrix4d(rigid_inverse(expected_->first) * a.transform)) <=
                                    expected_->second;
+      // ...and on the table's line (a turn of the expected pose about it, within the
+      // rigid turntable's bounds): a table view, held on the line by the rigid solve
+      // with its own free angle (refine), so that it cannot slide where its pairs
+      // barely hold it (the fandisk's view between two posed ones 90 deg apart: 1.07 mm).
+      if (near_expected && axis) {
+        const Eigen::Matrix4d M = a.transform * rigid_inverse(expected_->first);
+        const Eigen::Matrix4d on_line =
+            turn_about_line(axis->first, axis->second, turn_about_axis(M.block<3, 3>(0, 0), axis->second));
+        const Vec3d at = (expected_->first * centroid(views_[std::size_t(i)].points).homogeneous()).head<3>();
+        if (rotation_angle_deg(Eigen::Matrix4d(rigid_inverse(on_line) * M)) <= p_.rigid_max_deviation_deg &&
+            ((M - on_line) * at.homogeneous()).head<3>().norm() <= p_.rigid_max_deviation_rel * diag_)
+          if (std::find(table_free_.begin(), table_free_.end(), i) == table_free_.end()) table_free_.push_back(i);
+      }
       expected_.reset();
       report("global", int(k + 1), int(todo.size()));
       if (!a.ok) {
@@ -2279,13 +2293,17 @@ class Registrar {
         const AxisFitResult fit = calibrate_axis(table_poses, table_angles);
         std::optional<TurntableAxis> start = fit.ok ? std::optional<TurntableAxis>(fit.axis) : res_.axis;
         if (!start) return free_graph;
-        PoseGraphResult rigid =
-            optimize_turntable_graph(free_graph.poses, es, on_table, start->point, start->direction, gp);
-        // How far a constrained solution moves the table views from the free one.
-        const auto deviation = [&](const PoseGraphResult& c) {
+        // The table views without angle on the line (table_free_) held on it too,
+        // each with its own angle; where that does not fit, the angled ones alone.
+        std::vector<bool> held = on_table;
+        bool with_free = false;
+        for (int i : table_free_)
+          if (usable_[std::size_t(i)] && !held[std::size_t(i)]) held[std::size_t(i)] = with_free = true;
+        // How far a constrained solution moves the `on` views from the free one.
+        const auto deviation = [&](const PoseGraphResult& c, const std::vector<bool>& on) {
           double dev_deg = 0, dev = 0;
           for (int i : r) {
-            if (!on_table[i]) continue;
+            if (!on[i]) continue;
             const Eigen::Matrix4d a = rigid_inverse(free_graph.poses[gp.fixed_node]) * free_graph.poses[i];
             const Eigen::Matrix4d b = rigid_inverse(c.poses[gp.fixed_node]) * c.poses[i];
             dev_deg = std::max(dev_deg, rotation_angle_deg(rigid_inverse(a) * b));
@@ -2296,7 +2314,13 @@ class Registrar {
         const auto fits = [&](const std::pair<double, double>& d) {
           return d.first <= p_.rigid_max_deviation_deg && d.second <= p_.rigid_max_deviation_rel * diag_;
         };
-        const auto dev = deviation(rigid);
+        PoseGraphResult rigid =
+            optimize_turntable_graph(free_graph.poses, es, held, start->point, start->direction, gp);
+        auto dev = deviation(rigid, held);
+        if (with_free && !fits(dev)) {
+          rigid = optimize_turntable_graph(free_graph.poses, es, on_table, start->point, start->direction, gp);
+          dev = deviation(rigid, on_table);
+        }
         res_.rigid_deviation_deg = dev.first;
         res_.rigid_deviation = dev.second;
         rigid_rejected_ = p_.rigid_turntable == RigidTurntable::kAuto && !fits(dev);
@@ -2322,7 +2346,7 @@ class Registrar {
         }
         PoseGraphResult runs = optimize_turntable_graph(free_graph.poses, es, on_table, start->point,
                                                         start->direction, gp, nullptr, group);
-        if (!fits(deviation(runs))) return free_graph;
+        if (!fits(deviation(runs, on_table))) return free_graph;
         res_.turntable_groups = run + 1;
         res_.moved_after_view = split_.first_after;
         res_.run_starts = split_.run_starts;
@@ -2601,6 +2625,7 @@ class Registrar {
   std::vector<double> angle_shift_;  // per view, degrees (angle_of): empty until a run is moved
   std::vector<int> ring_order_;      // ring()'s order where not the capture order (place_on_table_axis)
   std::vector<int> chain_missed_;    // views the prior-free chain failed (global_poses)
+  std::vector<int> table_free_;      // table views without angle on the table's line (global_poses)
   bool rigid_rejected_ = false;  // kAuto kept the free poses in the last solve
   bool rigid_used_ = false;      // the last solve's poses are the rigid ones
   TurntableSplit split_;  // the last solve's split of the table views into two runs (found: a move)

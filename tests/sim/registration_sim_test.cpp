@@ -742,15 +742,25 @@ TEST(SimRegistration, AnglesAFewDegreesOffDoNotPullASparseRing) {
 // too little where it belongs and fitted its half-turned twin: 178 deg off, exit 0,
 // no warning. The table views without angle now go nearest a posed view first, each
 // placed near its expected turn joining the model for the next.
-TEST(SimRegistration, HalfATurnWithoutAnglesIsPlacedFromTheNearestPosedViewOn) {
+TEST(SimRegistration, TableViewsWithoutAngleArePlacedFromTheNearestPosedViewOnAndHeldOnTheLine) {
   test::TempDir dir;
   SessionManifest m;
   const std::vector<Cloud> clouds = sparse_scan(dir, "tests/data/consolidation/fandisk.off", 8, m, "&scale=0.18");
   ASSERT_EQ(clouds.size(), 8u);
+  SessionManifest scattered = m;
   for (int i : {0, 1, 2, 3}) m.views[std::size_t(i)].angle_deg.reset();
   const RegistrationResult r = register_views(clouds, m);
   print_prior("the fandisk, views 0-3 without angle", r);
   expect_all_within_targets(r, 8);
+  // Views 1, 3 and 6 without angle: view 6, between posed views 90 deg apart, slid
+  // 1.07 mm where its two pairs barely hold it. A table view without angle placed
+  // near its expected pose and on the table's line is now held on the line by the
+  // rigid solve, with an angle of its own.
+  for (int i : {1, 3, 6}) scattered.views[std::size_t(i)].angle_deg.reset();
+  const RegistrationResult s = register_views(clouds, scattered);
+  print_prior("the fandisk, views 1, 3, 6 without angle", s);
+  expect_all_within_targets(s, 8);
+  EXPECT_TRUE(s.rigid_turntable);
 }
 
 // A second pass with the object turned over (issue 26, item 2): after view 5
