@@ -357,6 +357,10 @@ void run_session_cases(const Options& options, Report& report) {
               "prepare + axis + 3 rounds of ICP and pose graph + merge, all timed), Open3D starts from the rotation "
               "about y through the scanner origin (the true axis to about 1 mm) on the same " +
               format_fixed(voxel * 1000, 2) + " mm voxels, neighbours and skip-one neighbours, loop closed");
+  report.note("dragon session, ours by phase (last timed run): prepare " + format_fixed(ours.seconds_prepare, 2) +
+              " s, initial poses " + format_fixed(ours.seconds_initial, 2) + " s, refine " +
+              format_fixed(ours.seconds_refine, 2) + " s, merge " + format_fixed(ours.seconds_merge, 2) + " s, total " +
+              format_fixed(ours.seconds_total, 2) + " s");
   report.note("dragon errors vs Stanford's poses (relative to view 0): ours max " +
               format_fixed(ours.max_rotation_error_deg, 3) + " deg / " +
               format_fixed(ours.max_translation_error * 1000, 3) + " mm, median " +

@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <limits>
 #include <unordered_map>
 #include <utility>
 
@@ -45,8 +46,8 @@ std::vector<Vec3f> voxel_downsample(const std::vector<Vec3f>& points, double vox
   return result;
 }
 
-std::vector<std::size_t> statistical_inliers(const std::vector<Vec3f>& points, int k,
-                                             double std_ratio) {
+std::vector<std::size_t> statistical_inliers(const std::vector<Vec3f>& points, int k, double std_ratio,
+                                             std::vector<std::uint32_t>* neighbours) {
   std::vector<std::size_t> keep;
   if (k <= 0 || points.size() <= std::size_t(k) + 1) {
     keep.resize(points.size());
@@ -55,13 +56,21 @@ std::vector<std::size_t> statistical_inliers(const std::vector<Vec3f>& points, i
   }
   const PointIndex index(points);
   std::vector<double> mean_dist(points.size());
+  const std::size_t row = std::size_t(k) + 1;
+  if (neighbours) neighbours->assign(points.size() * row, std::numeric_limits<std::uint32_t>::max());
   tbb::parallel_for(tbb::blocked_range<std::size_t>(0, points.size(), 512),
                     [&](const tbb::blocked_range<std::size_t>& r) {
+                      // One buffer per range, not three allocations per point (the
+                      // registration's prepare runs this over every scanned point).
+                      std::vector<std::uint32_t> own(neighbours ? 0 : row);
+                      std::vector<float> dist_sq(row);
                       for (std::size_t i = r.begin(); i != r.end(); ++i) {
-                        const auto nn = index.knn(points[i], k + 1);  // includes the point itself
+                        std::uint32_t* idx = neighbours ? neighbours->data() + i * row : own.data();
+                        // Sorted, closest first: the point itself, then its k neighbours.
+                        const int found = index.knn_into(points[i], k + 1, idx, dist_sq.data());
                         double s = 0;
-                        for (std::size_t j = 1; j < nn.size(); ++j) s += nn[j].second;
-                        mean_dist[i] = nn.size() > 1 ? s / double(nn.size() - 1) : 0.0;
+                        for (int j = 1; j < found; ++j) s += std::sqrt(dist_sq[std::size_t(j)]);
+                        mean_dist[i] = found > 1 ? s / double(found - 1) : 0.0;
                       }
                     });
   double mean = 0, sq = 0;

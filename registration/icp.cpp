@@ -72,6 +72,52 @@ std::vector<Vec3f> unoriented_normals(const PointIndex& index, int k) {
   return k >= 3 ? estimate_normals(index, k) : std::vector<Vec3f>(index.points().size(), Vec3f::Zero());
 }
 
+// The PCA normals of the kept points `kept_points` (finite's `keep`), unoriented,
+// as estimate_normals(PointIndex(kept_points), k) gives them: each point's k nearest
+// kept points are the first k kept ones of its nearest among all the finite points
+// (`near`: statistical_inliers' rows, closest first), where that row holds k of
+// them; the other points (and every point without rows) are searched again.
+std::vector<Vec3f> kept_normals(std::size_t finite_count, const std::vector<std::size_t>& keep,
+                                const std::vector<std::uint32_t>& near, const std::vector<Vec3f>& kept_points,
+                                const PrepareParams& params) {
+  const int k = params.full_normal_neighbors;
+  const std::size_t row = std::size_t(params.outlier_neighbors) + 1;
+  if (near.size() != finite_count * row || kept_points.size() <= std::size_t(k))
+    return kept_points.empty() ? std::vector<Vec3f>() : estimate_normals(PointIndex(kept_points), k);
+  std::vector<std::int32_t> at(finite_count, -1);  // finite index -> kept index
+  for (std::size_t m = 0; m < keep.size(); ++m) at[keep[m]] = std::int32_t(m);
+  std::vector<Vec3f> normals(kept_points.size(), Vec3f::Zero());
+  std::vector<char> searched(kept_points.size(), 0);
+  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, keep.size(), 256), [&](const tbb::blocked_range<std::size_t>& r) {
+    std::vector<Vec3d> nb(static_cast<std::size_t>(k));
+    for (std::size_t m = r.begin(); m != r.end(); ++m) {
+      const std::uint32_t* row_of = near.data() + keep[m] * row;
+      int found = 0;
+      for (std::size_t t = 0; t < row && found < k; ++t) {
+        if (row_of[t] == std::numeric_limits<std::uint32_t>::max()) break;
+        const std::int32_t j = at[row_of[t]];
+        if (j >= 0) nb[std::size_t(found++)] = kept_points[std::size_t(j)].cast<double>();
+      }
+      if (found < k) searched[m] = 1;
+      else normals[m] = pca_normal(nb.data(), found).cast<float>();
+    }
+  });
+  if (std::find(searched.begin(), searched.end(), 1) == searched.end()) return normals;
+  const PointIndex index(kept_points);
+  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, keep.size(), 256), [&](const tbb::blocked_range<std::size_t>& r) {
+    std::vector<std::uint32_t> idx(static_cast<std::size_t>(k));
+    std::vector<float> dsq(idx.size());
+    std::vector<Vec3d> nb(idx.size());
+    for (std::size_t m = r.begin(); m != r.end(); ++m) {
+      if (!searched[m]) continue;
+      const int found = index.knn_into(kept_points[m], k, idx.data(), dsq.data());
+      for (int t = 0; t < found; ++t) nb[std::size_t(t)] = kept_points[idx[std::size_t(t)]].cast<double>();
+      normals[m] = pca_normal(nb.data(), found).cast<float>();
+    }
+  });
+  return normals;
+}
+
 }  // namespace
 
 std::vector<Vec3f> pca_normals(const PointIndex& index, int k, const Vec3f& viewpoint) {
@@ -96,14 +142,18 @@ PreparedView prepare_view(const Cloud& cloud, const PrepareParams& params) {
   if (finite.colours.size() != finite.size()) finite.colours.clear();
   v.dropped_nonfinite = cloud.size() - finite.size();
 
-  const std::vector<std::size_t> keep =
-      statistical_inliers(finite.points, params.outlier_neighbors, params.outlier_std_ratio);
+  const bool full_normals = params.full_normal_neighbors >= 3 && !finite.has_normals();
+  std::vector<std::uint32_t> near;  // the outlier search's neighbours, reused for the normals
+  const std::vector<std::size_t> keep = statistical_inliers(
+      finite.points, params.outlier_neighbors, params.outlier_std_ratio,
+      full_normals && params.outlier_neighbors + 1 >= params.full_normal_neighbors ? &near : nullptr);
   v.dropped_outliers = finite.size() - keep.size();
   for (std::size_t i : keep) {
     v.full.points.push_back(finite.points[i]);
     if (finite.has_normals()) v.full.normals.push_back(finite.normals[i]);
     if (finite.has_colours()) v.full.colours.push_back(finite.colours[i]);
   }
+  if (full_normals) v.full_normals = kept_normals(finite.size(), keep, near, v.full.points, params);
   v.points = voxel_downsample(v.full.points, params.voxel_size);
   v.index = std::make_shared<PointIndex>(v.points);
   v.normals = unoriented_normals(*v.index, params.normal_neighbors);

@@ -48,6 +48,11 @@ struct PrepareParams {
   /// Intensity and its gradient per registration point, for coloured ICP
   /// (only when the cloud has colours).
   bool intensity = false;
+  /// PCA normals (unoriented) of the full cloud's points over this many neighbours
+  /// (the point itself included, as estimate_normals), for a merge: 0 none. Only for
+  /// clouds without normals; the outlier removal's own search gives the neighbours
+  /// where it found enough.
+  int full_normal_neighbors = 0;
 };
 
 /// A view ready for registration. Scanner frame throughout.
@@ -68,6 +73,9 @@ struct PreparedView {
   std::vector<Vec3f> intensity_gradient;
   std::size_t dropped_nonfinite = 0;
   std::size_t dropped_outliers = 0;
+  /// With PrepareParams::full_normal_neighbors: `full`'s points' PCA normals,
+  /// unoriented (estimate_normals' over `full` alone); empty otherwise.
+  std::vector<Vec3f> full_normals;
 };
 
 /// PCA normals (smallest eigenvector of the k-neighbour covariance), oriented

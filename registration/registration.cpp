@@ -11,6 +11,7 @@
 #include <limits>
 #include <map>
 #include <memory>
+#include <mutex>
 #include <optional>
 #include <cmath>
 #include <set>
@@ -29,6 +30,7 @@
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "core/kdtree.h"
+#include "core/normals.h"
 #include "core/union_find.h"
 
 namespace station {
@@ -373,12 +375,23 @@ class Registrar {
     pp.outlier_neighbors = p_.outlier_neighbors;
     pp.outlier_std_ratio = p_.outlier_std_ratio;
     pp.normal_neighbors = p_.normal_neighbors;
+    // The merge's normals, from the outlier removal's search (no second one over every point).
+    pp.full_normal_neighbors = p_.merge_normals ? p_.normal_neighbors : 0;
     pp.intensity = p_.icp.objective == IcpObjective::kColoured || p_.final_objective == IcpObjective::kColoured;
     views_.resize(n);
     feats_.resize(n);
     report("prepare", 0, int(n));
+    {
+      // The views side by side: each one's index builds and copies are serial.
+      std::mutex progress;
+      int done = 0;
+      tbb::parallel_for(std::size_t(0), n, [&](std::size_t i) {
+        views_[i] = prepare_view(clouds_[i], pp);
+        const std::lock_guard<std::mutex> lock(progress);
+        report("prepare", ++done, int(n));
+      });
+    }
     for (std::size_t i = 0; i < n; ++i) {
-      views_[i] = prepare_view(clouds_[i], pp);
       ViewDiagnostics& d = res_.views[i];
       d.input_points = clouds_[i].size();
       d.points = views_[i].full.size();
@@ -389,7 +402,6 @@ class Registrar {
       else if (views_[i].full.empty()) fail(i, "no finite points");
       else if (views_[i].points.size() < std::size_t(std::max(p_.icp.min_correspondences, 6)))
         fail(i, "too few points (" + std::to_string(views_[i].points.size()) + ")");
-      report("prepare", int(i + 1), int(n));
     }
     if (std::none_of(usable_.begin(), usable_.end(), [](bool b) { return b; }))
       throw InvalidInput("registration: no usable view (all empty or non-finite)");
@@ -2578,16 +2590,26 @@ class Registrar {
     bool colours = true;
     for (std::size_t i = 0; i < n; ++i)
       if (usable_[i] && !views_[i].full.has_colours()) colours = false;
-    std::vector<Cloud> moved;
-    std::vector<double> spacings;
-    for (std::size_t i = 0; i < n; ++i) {
-      if (!usable_[i]) continue;
+    std::vector<std::size_t> merging;
+    for (std::size_t i = 0; i < n; ++i)
+      if (usable_[i]) merging.push_back(i);
+    std::vector<Cloud> moved(merging.size());
+    std::vector<double> spacings(p_.fuse && !(p_.fuse_distance > 0) ? merging.size() : 0);
+    std::mutex progress;
+    // The views side by side (each one's index build is serial), in their order in `moved`.
+    tbb::parallel_for(std::size_t(0), merging.size(), [&](std::size_t m) {
+      const std::size_t i = merging[m];
       Cloud c = std::move(views_[i].full);  // not needed after the merge: no second copy of every view
-      if (p_.fuse && !(p_.fuse_distance > 0)) spacings.push_back(median_spacing(c.points));
+      if (!spacings.empty()) spacings[m] = median_spacing(c.points);
       if (!colours) c.colours.clear();
       if (!c.has_normals() && p_.merge_normals) {
-        const PointIndex index(c.points);
-        c.normals = pca_normals(index, p_.normal_neighbors, views_[i].viewpoint);
+        if (views_[i].full_normals.size() == c.size() && !c.empty()) {
+          c.normals = std::move(views_[i].full_normals);
+          orient_normals_towards(c.points, c.normals, views_[i].viewpoint, true);
+        } else {
+          const PointIndex index(c.points);
+          c.normals = pca_normals(index, p_.normal_neighbors, views_[i].viewpoint);
+        }
       } else if (c.has_normals()) {
         // The view's own normals, turned to face the sensor (outwards for a single view).
         const Vec3f& eye = views_[i].viewpoint;
@@ -2595,9 +2617,10 @@ class Registrar {
           if (c.normals[k].dot(eye - c.points[k]) < 0) c.normals[k] = -c.normals[k];
       }
       transform_cloud(c, res_.poses[i]);
-      moved.push_back(std::move(c));
+      moved[m] = std::move(c);
+      const std::lock_guard<std::mutex> lock(progress);
       report("merge", ++merged, to_merge);
-    }
+    });
     // Concatenation, or fusion of the overlaps; either way attributes are kept
     // only when every view has them.
     if (p_.fuse) res_.fuse_distance = p_.fuse_distance > 0 ? p_.fuse_distance : median_of(spacings);
