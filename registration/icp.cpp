@@ -10,6 +10,7 @@
 #include <cstdint>
 #include <cmath>
 #include <limits>
+#include <tuple>
 #include <unordered_map>
 
 #include "registration/coloured_icp.h"
@@ -120,6 +121,32 @@ std::vector<Vec3f> kept_normals(std::size_t finite_count, const std::vector<std:
 
 }  // namespace
 
+NeighbourGraph neighbour_graph(const PointIndex& index) {
+  constexpr int K = NeighbourGraph::kNeighbours;
+  const std::vector<Vec3f>& points = index.points();
+  NeighbourGraph g;
+  g.neighbours.assign(points.size() * K, std::numeric_limits<std::uint32_t>::max());
+  g.reach.assign(points.size(), std::numeric_limits<float>::infinity());
+  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, points.size(), 512), [&](const tbb::blocked_range<std::size_t>& r) {
+    std::uint32_t idx[K + 2];
+    float dsq[K + 2];
+    for (std::size_t i = r.begin(); i != r.end(); ++i) {
+      const int found = index.knn_into(points[i], K + 2, idx, dsq);
+      int others = 0;
+      for (int t = 0; t < found; ++t) {
+        if (idx[t] == i) continue;  // (first, or after a duplicate of it)
+        if (others < K) g.neighbours[i * K + std::size_t(others)] = idx[t];
+        else if (others == K) g.reach[i] = std::sqrt(dsq[t]);
+        ++others;
+      }
+      // K + 2 found without the point itself among them: the last one may not be the
+      // (K+1)-th other point's nearest rival; no proof from this point then.
+      if (found == K + 2 && others > K + 1) g.reach[i] = 0;
+    }
+  });
+  return g;
+}
+
 std::vector<Vec3f> pca_normals(const PointIndex& index, int k, const Vec3f& viewpoint) {
   std::vector<Vec3f> normals = unoriented_normals(index, k);
   orient_normals_towards(index.points(), normals, viewpoint, true);
@@ -156,6 +183,7 @@ PreparedView prepare_view(const Cloud& cloud, const PrepareParams& params) {
   if (full_normals) v.full_normals = kept_normals(finite.size(), keep, near, v.full.points, params);
   v.points = voxel_downsample(v.full.points, params.voxel_size);
   v.index = std::make_shared<PointIndex>(v.points);
+  v.graph = neighbour_graph(*v.index);
   v.normals = unoriented_normals(*v.index, params.normal_neighbors);
   const ViewpointEstimate sensor = estimate_viewpoint(v.points, v.normals);
   v.viewpoint = sensor.viewpoint;
@@ -211,6 +239,18 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
   // the nearest-neighbour search (the nearest point is at most that far), which
   // prunes most of the k-d tree; the correspondences are the same.
   std::vector<std::int32_t> last(source.points.size(), -1);
+  const bool walk = target.graph.reach.size() == tp.size();
+  // |x - q|^2 as the index computes it (nanoflann's squared sum in float, x then y
+  // then z), so a nearest found by the graph has the same distance, bit for bit.
+  const auto dist_sq = [&](const Vec3f& x, std::uint32_t j) {
+    const Vec3f& q = tp[j];
+    const float dx = x.x() - q.x(), dy = x.y() - q.y(), dz = x.z() - q.z();
+    float d2 = dx * dx;
+    d2 += dy * dy;
+    d2 += dz * dz;
+    return d2;
+  };
+  constexpr int kWalkSteps = 4;
 
   // One pass of correspondences + normal equations at the current T and d_max.
   const auto linearise = [&](const Eigen::Matrix4d& Tc, double dmax, std::size_t stride) {
@@ -226,11 +266,46 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
           for (std::size_t k = r.begin(); k != r.end(); ++k) {
             const std::size_t i = k * stride;
             const Vec3f p = R * source.points[i] + t;
-            float bound = float(dmax);
-            // (A relative margin over float rounding keeps the last point itself inside.)
-            if (last[i] >= 0) bound = std::min(bound, (p - tp[std::size_t(last[i])]).norm() * (1 + 1e-5f));
-            const auto [j, dist] = target.index->nearest_within(p, bound);
-            if (j >= 0) last[i] = j;
+            int j = -1;
+            float dist = 0;
+            if (walk && last[i] >= 0) {
+              // From the last correspondence down the neighbour graph to a point nearer
+              // than all its neighbours, taken where the graph proves it the nearest of all
+              // (NeighbourGraph); else the search below.
+              std::uint32_t c = std::uint32_t(last[i]);
+              float dc = dist_sq(p, c);
+              for (int step = 0; step < kWalkSteps; ++step) {
+                std::uint32_t best = c;
+                float db = dc;
+                const std::uint32_t* nb = target.graph.neighbours.data() + std::size_t(c) * NeighbourGraph::kNeighbours;
+                for (int t = 0; t < NeighbourGraph::kNeighbours && nb[t] != std::numeric_limits<std::uint32_t>::max(); ++t) {
+                  const float dn = dist_sq(p, nb[t]);
+                  if (dn < db) {
+                    best = nb[t];
+                    db = dn;
+                  }
+                }
+                if (best != c) {
+                  c = best;
+                  dc = db;
+                  continue;
+                }
+                const float d = std::sqrt(dc);
+                if (2 * d < target.graph.reach[c] * (1 - 1e-4f)) {
+                  if (d <= float(dmax)) last[i] = std::int32_t(c);
+                  j = int(c);
+                  dist = d;
+                }
+                break;
+              }
+            }
+            if (j < 0) {
+              float bound = float(dmax);
+              // (A relative margin over float rounding keeps the last point itself inside.)
+              if (last[i] >= 0) bound = std::min(bound, (p - tp[std::size_t(last[i])]).norm() * (1 + 1e-5f));
+              std::tie(j, dist) = target.index->nearest_within(p, bound);
+              if (j >= 0) last[i] = j;
+            }
             if (j < 0 || dist > dmax) continue;
             const Vec3f& n = tn[j];
             Vec3f ns = Vec3f::Zero();

@@ -20,6 +20,7 @@
 // failure (`converged = false`, `message` says why), never as a pose that only
 // looks converged.
 #include <Eigen/Core>
+#include <cstdint>
 #include <memory>
 #include <string>
 #include <vector>
@@ -55,6 +56,19 @@ struct PrepareParams {
   int full_normal_neighbors = 0;
 };
 
+/// Each point's kNeighbours nearest other points (UINT32_MAX past the last) and
+/// `reach`, how near any other point can be (the next one's distance; infinity when
+/// the list holds all the others). A query x whose nearest among a point q and q's
+/// list is q itself, at d with 2 d < reach(q), has q for its nearest point of all:
+/// any point q' off the list has |x - q'| >= |q - q'| - d >= reach - d > d.
+struct NeighbourGraph {
+  static constexpr int kNeighbours = 8;
+  std::vector<std::uint32_t> neighbours;  ///< kNeighbours per point
+  std::vector<float> reach;
+  bool empty() const { return reach.empty(); }
+};
+NeighbourGraph neighbour_graph(const PointIndex& index);
+
 /// A view ready for registration. Scanner frame throughout.
 struct PreparedView {
   Cloud full;                        ///< outliers and non-finite points removed (attributes kept)
@@ -66,6 +80,10 @@ struct PreparedView {
   bool viewpoint_at_origin = true;
   double grazing_origin = 0;  ///< share of points seen beyond 80 degrees from the origin
   std::shared_ptr<PointIndex> index; ///< over `points`
+  /// The registration points' neighbour graph (neighbour_graph; empty: not computed):
+  /// ICP finds a point's nearest from its last correspondence without a search where
+  /// the graph proves it.
+  NeighbourGraph graph;
   /// Only with PrepareParams::intensity and a cloud with colours (else empty): intensity in [0, 1] of each
   /// registration point (mean over its voxel's neighbourhood) and its
   /// tangent-plane gradient (capture/coloured_icp.h), for IcpObjective::kColored.
@@ -82,6 +100,7 @@ struct PreparedView {
 /// towards `viewpoint` (the sensor; the scanner-frame origin for raw views): core/normals.h's
 /// estimate_normals, with the direction to the viewpoint where a neighbourhood is degenerate.
 std::vector<Vec3f> pca_normals(const PointIndex& index, int k, const Vec3f& viewpoint);
+
 
 /// Runs the preparation above. Never throws on empty input: an empty view gives
 /// an empty PreparedView (the caller reports it).

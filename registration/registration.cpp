@@ -691,6 +691,7 @@ class Registrar {
       }
     }
     mv.index = std::make_shared<PointIndex>(mv.points);
+    mv.graph = neighbour_graph(*mv.index);
     return mv;
   }
 
