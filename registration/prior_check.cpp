@@ -3,6 +3,7 @@
 #include <Eigen/Eigenvalues>
 #include <Eigen/Geometry>
 #include <algorithm>
+#include <cstdio>
 #include <cmath>
 #include <limits>
 
@@ -121,9 +122,14 @@ std::vector<double> angle_scales(const SessionManifest& manifest) {
 }
 
 std::string convention_name(double sign, double scale) {
-  if (sign < 0 && scale != 1) return "the opposite sign, and steps of " + std::to_string(int(std::lround(scale))) + " degrees";
+  // The step as a person writes it: 45, 51.43 (360 / 7), 22.5.
+  char step[32];
+  std::snprintf(step, sizeof step, "%.2f", scale);
+  std::string text = step;
+  while (text.find('.') != std::string::npos && (text.back() == '0' || text.back() == '.')) text.pop_back();
+  if (sign < 0 && scale != 1) return "the opposite sign, and steps of " + text + " degrees";
   if (sign < 0) return "the opposite sign";
-  if (scale != 1) return "steps of " + std::to_string(scale).substr(0, 5) + " degrees, not degrees";
+  if (scale != 1) return "steps of " + text + " degrees, not degrees";
   return "";
 }
 

@@ -4,10 +4,12 @@
 #include <gtest/gtest.h>
 
 #include <Eigen/Geometry>
+#include <algorithm>
 #include <cmath>
 #include <random>
 
 #include "core/kdtree.h"
+#include "core/normals.h"
 
 namespace station {
 namespace {
@@ -114,6 +116,99 @@ TEST(Icp, RecoversKnownTransformFromFiveDegreesAndTwoPercentOff) {
     EXPECT_LT(rotation_angle_deg(rigid_inverse(truth) * v.transform),
               o == IcpObjective::kSymmetric ? 0.05 : 0.6) << int(o) << " it " << v.iterations;
   }
+}
+
+// The neighbour graph's promise (icp.h): every point off a point's list lies at
+// least `reach` from it. Checked against all pairs, duplicates included.
+TEST(NeighbourGraphTest, EveryPointOffTheListIsAtLeastReachAway) {
+  std::vector<Vec3f> pts = bumpy_front(1500, 11, 0.0005);
+  pts.push_back(pts[7]);  // a duplicate
+  pts.push_back(pts[7]);
+  const PointIndex index(pts);
+  const NeighbourGraph g = neighbour_graph(index);
+  constexpr int K = NeighbourGraph::kNeighbours;
+  ASSERT_EQ(g.reach.size(), pts.size());
+  std::size_t finite_reach = 0;
+  for (std::size_t i = 0; i < pts.size(); ++i) {
+    const std::uint32_t* nb = g.neighbours.data() + i * K;
+    finite_reach += std::isfinite(g.reach[i]);
+    for (std::size_t j = 0; j < pts.size(); ++j) {
+      if (j == i || std::find(nb, nb + K, std::uint32_t(j)) != nb + K) continue;
+      ASSERT_GE((pts[j] - pts[i]).norm(), g.reach[i] * (1 - 1e-6f)) << i << " " << j;
+    }
+  }
+  EXPECT_EQ(finite_reach, pts.size());
+  // A set of K + 1 points or fewer: every other point listed, nothing beyond.
+  const std::vector<Vec3f> few(pts.begin(), pts.begin() + K);
+  const NeighbourGraph small = neighbour_graph(PointIndex(few));
+  for (float r : small.reach) EXPECT_TRUE(std::isinf(r));
+}
+
+// ICP with the neighbour graph finds the very correspondences the k-d tree does:
+// the same iterations, transform and diagnostics, bit for bit, from near and far
+// starts and with the coarse stride.
+TEST(Icp, TheNeighbourGraphGivesTheTreesCorrespondences) {
+  std::vector<Vec3f> target_pts, source_world;
+  for (const Vec3f& p : bumpy_front(30000, 12, 0.0003)) if (p.x() < 0.05f) target_pts.push_back(p);
+  for (const Vec3f& p : bumpy_front(30000, 13, 0.0003)) if (p.x() > -0.03f) source_world.push_back(p);
+  const Eigen::Matrix4d truth = transform_of(20, Vec3d(0.1, 1, 0.2), Vec3d(0.01, -0.02, 0.015));
+  const PreparedView target = prepared(target_pts);
+  PreparedView bare = prepared(target_pts);
+  ASSERT_FALSE(bare.graph.empty());
+  bare.graph = NeighbourGraph{};
+  const PreparedView source = prepared(moved(source_world, rigid_inverse(truth)));
+  const Vec3d c(0.01, 0, 0.5);
+  for (double deg : {1.0, 6.0}) {
+    const Eigen::Matrix4d off = transform_of(0, Vec3d::UnitZ(), c + Vec3d(0.002 * deg, 0, 0)) *
+                                transform_of(deg, Vec3d(1, -0.5, 0.3), Vec3d::Zero()) *
+                                transform_of(0, Vec3d::UnitZ(), -c);
+    for (int stride : {1, 4}) {
+      IcpParams ip;
+      ip.max_distance_start = 0.02;
+      ip.max_distance_end = 0.002;
+      ip.coarse_stride = stride;
+      const IcpResult a = icp_point_to_plane(source, target, off * truth, ip);
+      const IcpResult b = icp_point_to_plane(source, bare, off * truth, ip);
+      ASSERT_TRUE(a.converged) << a.message;
+      EXPECT_EQ(a.iterations, b.iterations) << deg << " " << stride;
+      EXPECT_EQ(a.transform, b.transform) << deg << " " << stride;
+      EXPECT_EQ(a.correspondences, b.correspondences);
+      EXPECT_EQ(a.inlier_rmse, b.inlier_rmse);
+      EXPECT_EQ(a.plane_rmse, b.plane_rmse);
+      EXPECT_EQ(a.hessian, b.hessian);
+    }
+  }
+}
+
+// The full cloud's normals from the outlier removal's search are the ones a search
+// over the kept points gives, also where removed outliers crowd a point's list.
+TEST(Prepare, FullNormalsFromTheOutlierSearchAreTheKeptPointsOwn) {
+  std::vector<Vec3f> pts = bumpy_front(8000, 14, 0.0002);
+  std::mt19937 rng(15);
+  std::normal_distribution<float> g(0, 0.004f);
+  // Strays a few millimetres off the surface: removed, and in kept points' rows.
+  for (int k = 0; k < 200; ++k) pts.push_back(pts[std::size_t(k) * 37] + Vec3f(g(rng), g(rng), g(rng)) * 0.75f);
+  Cloud c;
+  c.points = pts;
+  PrepareParams p;
+  p.voxel_size = 0.001;
+  // Rows of 10 (the point and 9 neighbours) for 10 normal neighbours: a point with
+  // one removed neighbour in its row is searched again, the others are not.
+  p.outlier_neighbors = 9;
+  p.full_normal_neighbors = 10;
+  const PreparedView v = prepare_view(c, p);
+  ASSERT_GT(v.dropped_outliers, 0u);
+  ASSERT_EQ(v.full_normals.size(), v.full.size());
+  const std::vector<Vec3f> direct = estimate_normals(PointIndex(v.full.points), 10);
+  std::size_t same = 0;
+  for (std::size_t i = 0; i < direct.size(); ++i) {
+    EXPECT_GT(std::abs(direct[i].dot(v.full_normals[i])), 0.9999f) << i;
+    same += direct[i] == v.full_normals[i];
+  }
+  // (Bit for bit but where equal distances order two neighbours differently.)
+  EXPECT_GE(same, direct.size() - 2);
+  p.full_normal_neighbors = 0;
+  EXPECT_TRUE(prepare_view(c, p).full_normals.empty());
 }
 
 TEST(Icp, ReportsFailureOnNonOverlappingAndEmptyViews) {

@@ -625,7 +625,7 @@ TEST(SimRegistration, AConventionMistakeIsFoundWhereTheRunWithoutAnglesIsWrongTo
   for (std::size_t i = 0; i < steps.views.size(); ++i) steps.views[i].angle_deg = double(i);
   for (const auto& [what, m, convention] :
        {std::tuple<const char*, const SessionManifest*, const char*>{"the wrong sign", &flipped, "the opposite sign"},
-        {"step indices", &steps, "steps of 45.00 degrees"}}) {
+        {"step indices", &steps, "steps of 45 degrees"}}) {
     const RegistrationResult r = register_views(clouds, *m);
     print_prior(what, r);
     EXPECT_EQ(r.prior_kept, "corrected prior") << what;
