@@ -1,15 +1,20 @@
 #include "registration/features.h"
 
+#include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 
 #include <Eigen/Geometry>
 
+#include <algorithm>
 #include <cmath>
+#include <cstdint>
 #include <limits>
 #include <string>
 
 #include "core/error.h"
 #include "core/kdtree.h"
+
+#include <nanoflann.hpp>
 
 namespace station {
 
@@ -109,27 +114,79 @@ std::vector<FpfhDescriptor> compute_fpfh(const PointIndex& index, const std::vec
   return out;
 }
 
+namespace {
+
+// The descriptors for nanoflann (borrowed).
+struct DescriptorsAdaptor {
+  const std::vector<FpfhDescriptor>* d;
+  std::size_t kdtree_get_point_count() const { return d->size(); }
+  float kdtree_get_pt(std::size_t i, std::size_t dim) const { return (*d)[i][dim]; }
+  template <class Bbox>
+  bool kdtree_get_bbox(Bbox&) const {
+    return false;
+  }
+};
+using DescriptorTree = nanoflann::KDTreeSingleIndexAdaptor<nanoflann::L2_Simple_Adaptor<float, DescriptorsAdaptor>,
+                                                          DescriptorsAdaptor, kFpfhBins, std::uint32_t>;
+
+// The scan in index order: the first reference descriptor at the least squared
+// distance (summed bin by bin in float, as nanoflann's L2_Simple_Adaptor sums it).
+int nearest_by_scan(const FpfhDescriptor& q, const std::vector<FpfhDescriptor>& reference) {
+  float best = std::numeric_limits<float>::infinity();
+  int bi = -1;
+  for (std::size_t j = 0; j < reference.size(); ++j) {
+    const FpfhDescriptor& r = reference[j];
+    float d = 0;
+    for (int b = 0; b < kFpfhBins && d < best; ++b) {
+      const float e = q[std::size_t(b)] - r[std::size_t(b)];
+      d += e * e;
+    }
+    if (d < best) {
+      best = d;
+      bi = int(j);
+    }
+  }
+  return bi;
+}
+
+// Below this many reference descriptors the scan is as quick as a tree.
+constexpr std::size_t kScanBelow = 256;
+
+}  // namespace
+
 std::vector<int> nearest_descriptors(const std::vector<FpfhDescriptor>& query,
                                      const std::vector<FpfhDescriptor>& reference) {
   std::vector<int> out(query.size(), -1);
   if (reference.empty()) return out;
-  tbb::parallel_for(std::size_t(0), query.size(), [&](std::size_t i) {
-    const FpfhDescriptor& q = query[i];
-    float best = std::numeric_limits<float>::infinity();
-    int bi = -1;
-    for (std::size_t j = 0; j < reference.size(); ++j) {
-      const FpfhDescriptor& r = reference[j];
-      float d = 0;
-      for (int b = 0; b < kFpfhBins && d < best; ++b) {
-        const float e = q[b] - r[b];
-        d += e * e;
+  if (reference.size() < kScanBelow) {
+    tbb::parallel_for(std::size_t(0), query.size(),
+                      [&](std::size_t i) { out[i] = nearest_by_scan(query[i], reference); });
+    return out;
+  }
+  // An exact k-d tree over the reference (FPFH lies near a low-dimensional set of
+  // the 33 bins, so the tree prunes most of it): the same answer as the scan, the
+  // lowest index among descriptors at exactly the least distance (the two nearest
+  // tell whether there is a tie; then every one at that distance is looked at).
+  const DescriptorsAdaptor adaptor{&reference};
+  const DescriptorTree tree(kFpfhBins, adaptor, nanoflann::KDTreeSingleIndexAdaptorParams(16));
+  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, query.size(), 64), [&](const tbb::blocked_range<std::size_t>& r) {
+    std::vector<std::pair<std::uint32_t, float>> ties;
+    for (std::size_t i = r.begin(); i != r.end(); ++i) {
+      std::uint32_t idx[2];
+      float dsq[2];
+      const std::size_t found = tree.knnSearch(query[i].data(), 2, idx, dsq);
+      if (found == 0) continue;
+      if (found == 1 || dsq[1] > dsq[0]) {
+        out[i] = int(idx[0]);
+        continue;
       }
-      if (d < best) {
-        best = d;
-        bi = int(j);
-      }
+      tree.radiusSearch(query[i].data(), std::nextafter(dsq[0], std::numeric_limits<float>::infinity()), ties,
+                        nanoflann::SearchParams(32, 0.f, false));
+      std::uint32_t lowest = idx[0];
+      for (const auto& [j, d] : ties)
+        if (d == dsq[0]) lowest = std::min(lowest, j);
+      out[i] = int(lowest);
     }
-    out[i] = bi;
   });
   return out;
 }

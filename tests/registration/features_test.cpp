@@ -4,6 +4,10 @@
 
 #include <gtest/gtest.h>
 
+#include <limits>
+
+#include <random>
+
 #include <Eigen/Geometry>
 #include <numeric>
 
@@ -100,6 +104,44 @@ TEST(Fpfh, SpherePointsLookAlikeAndNearestMatchesItself) {
   const std::vector<int> nn = nearest_descriptors(q, f);
   for (int i = 0; i < 10; ++i) EXPECT_FLOAT_EQ(distance(f[nn[i]], q[i]), 0.0f);
   EXPECT_EQ(nearest_descriptors(q, {}), std::vector<int>(10, -1));
+}
+
+// The k-d tree over many descriptors answers as the scan in index order does: the
+// least distance, the lowest index among exact ties (duplicated descriptors, zero
+// ones of isolated points).
+TEST(Fpfh, NearestDescriptorsOverATreeAreTheScansAnswer) {
+  std::mt19937 rng(21);
+  std::gamma_distribution<float> g(0.6f, 8.f);
+  std::vector<FpfhDescriptor> ref(3000);
+  for (FpfhDescriptor& d : ref)
+    for (float& b : d) b = g(rng);
+  for (int k = 0; k < 40; ++k) ref[std::size_t(2900 - 37 * k)] = ref[std::size_t(k * 53)];  // duplicates
+  for (int k = 0; k < 5; ++k) ref[std::size_t(100 + 400 * k)].fill(0.f);
+  std::vector<FpfhDescriptor> q(600);
+  for (std::size_t i = 0; i < q.size(); ++i) {
+    q[i] = ref[(i * 7919) % ref.size()];
+    if (i % 3 == 1)
+      for (float& b : q[i]) b += std::normal_distribution<float>(0.f, 2.f)(rng);
+    if (i % 50 == 0) q[i].fill(0.f);
+  }
+  const std::vector<int> nn = nearest_descriptors(q, ref);
+  ASSERT_EQ(nn.size(), q.size());
+  std::size_t tied = 0;
+  for (std::size_t i = 0; i < q.size(); ++i) {
+    float best = std::numeric_limits<float>::infinity();
+    int bi = -1;
+    for (std::size_t j = 0; j < ref.size(); ++j) {
+      float d = 0;
+      for (int b = 0; b < kFpfhBins; ++b) {
+        const float e = q[i][std::size_t(b)] - ref[j][std::size_t(b)];
+        d += e * e;
+      }
+      if (d < best) best = d, bi = int(j);
+      else if (d == best) ++tied;
+    }
+    EXPECT_EQ(nn[i], bi) << i;
+  }
+  EXPECT_GT(tied, 10u);  // the ties were there to be broken
 }
 
 TEST(Fpfh, BadInputIsRejected) {
