@@ -165,8 +165,7 @@ std::vector<int> nearest_descriptors(const std::vector<FpfhDescriptor>& query,
   }
   // An exact k-d tree over the reference (FPFH lies near a low-dimensional set of
   // the 33 bins, so the tree prunes most of it): the same answer as the scan, the
-  // lowest index among descriptors at exactly the least distance (the two nearest
-  // tell whether there is a tie; then every one at that distance is looked at).
+  // lowest index among descriptors at exactly the least distance.
   const DescriptorsAdaptor adaptor{&reference};
   const DescriptorTree tree(kFpfhBins, adaptor, nanoflann::KDTreeSingleIndexAdaptorParams(16));
   tbb::parallel_for(tbb::blocked_range<std::size_t>(0, query.size(), 64), [&](const tbb::blocked_range<std::size_t>& r) {
@@ -176,16 +175,19 @@ std::vector<int> nearest_descriptors(const std::vector<FpfhDescriptor>& query,
       float dsq[2];
       const std::size_t found = tree.knnSearch(query[i].data(), 2, idx, dsq);
       if (found == 0) continue;
-      if (found == 1 || dsq[1] > dsq[0]) {
+      // The tree's running bound on a branch is summed in float, and may round a few
+      // ulps high: where the second nearest is not clearly farther, every descriptor
+      // within a relative 1e-4 of the nearest is looked at, and the least distance,
+      // then the lowest index, taken (the scan's answer).
+      if (found == 1 || dsq[1] > dsq[0] * (1 + 1e-4f)) {
         out[i] = int(idx[0]);
         continue;
       }
-      tree.radiusSearch(query[i].data(), std::nextafter(dsq[0], std::numeric_limits<float>::infinity()), ties,
-                        nanoflann::SearchParams(32, 0.f, false));
-      std::uint32_t lowest = idx[0];
-      for (const auto& [j, d] : ties)
-        if (d == dsq[0]) lowest = std::min(lowest, j);
-      out[i] = int(lowest);
+      tree.radiusSearch(query[i].data(), std::nextafter(dsq[0] * (1 + 1e-4f), std::numeric_limits<float>::infinity()),
+                        ties, nanoflann::SearchParams(32, 0.f, false));
+      std::pair<float, std::uint32_t> best{dsq[0], idx[0]};
+      for (const auto& [j, d] : ties) best = std::min(best, std::make_pair(d, j));
+      out[i] = int(best.second);
     }
   });
   return out;

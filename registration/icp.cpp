@@ -31,12 +31,15 @@ struct Normal6 {
   Vector6d b = Vector6d::Zero();
   double sq_euclid = 0, sq_plane = 0;
   std::size_t n = 0;
+  std::size_t queries = 0, graph_answers = 0;  // nearest-point queries, and those the graph answered
   void add(const Normal6& o) {
     A += o.A;
     b += o.b;
     sq_euclid += o.sq_euclid;
     sq_plane += o.sq_plane;
     n += o.n;
+    queries += o.queries;
+    graph_answers += o.graph_answers;
   }
 };
 
@@ -268,6 +271,10 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
             const Vec3f p = R * source.points[i] + t;
             int j = -1;
             float dist = 0;
+            float bound = float(dmax);
+            // (A relative margin over float rounding keeps the last point itself inside.)
+            if (last[i] >= 0) bound = std::min(bound, (p - tp[std::size_t(last[i])]).norm() * (1 + 1e-5f));
+            bool settled = false;  // the nearest point is known, and whether it lies within bound
             if (walk && last[i] >= 0) {
               // From the last correspondence down the neighbour graph to a point nearer
               // than all its neighbours, taken where the graph proves it the nearest of all
@@ -277,9 +284,11 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
               for (int step = 0; step < kWalkSteps; ++step) {
                 std::uint32_t best = c;
                 float db = dc;
+                bool tied = false;  // a neighbour exactly as near as c: which one the tree returns is its own affair
                 const std::uint32_t* nb = target.graph.neighbours.data() + std::size_t(c) * NeighbourGraph::kNeighbours;
                 for (int t = 0; t < NeighbourGraph::kNeighbours && nb[t] != std::numeric_limits<std::uint32_t>::max(); ++t) {
                   const float dn = dist_sq(p, nb[t]);
+                  tied = tied || dn == dc;
                   if (dn < db) {
                     best = nb[t];
                     db = dn;
@@ -290,19 +299,22 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
                   dc = db;
                   continue;
                 }
-                const float d = std::sqrt(dc);
-                if (2 * d < target.graph.reach[c] * (1 - 1e-4f)) {
-                  if (d <= float(dmax)) last[i] = std::int32_t(c);
-                  j = int(c);
-                  dist = d;
+                if (!tied && 2 * std::sqrt(dc) < target.graph.reach[c] * (1 - 1e-4f)) {
+                  settled = true;
+                  // Within the bound as the search bounds it (its squared bound, the next
+                  // float up), or nothing found, as the search would: last unchanged.
+                  if (dc < std::nextafter(bound * bound, std::numeric_limits<float>::infinity())) {
+                    j = int(c);
+                    dist = std::sqrt(dc);
+                    last[i] = j;
+                  }
                 }
                 break;
               }
             }
-            if (j < 0) {
-              float bound = float(dmax);
-              // (A relative margin over float rounding keeps the last point itself inside.)
-              if (last[i] >= 0) bound = std::min(bound, (p - tp[std::size_t(last[i])]).norm() * (1 + 1e-5f));
+            ++acc.queries;
+            if (settled) ++acc.graph_answers;
+            else {
               std::tie(j, dist) = target.index->nearest_within(p, bound);
               if (j >= 0) last[i] = j;
             }
@@ -400,6 +412,8 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
     const bool at_end = d_max <= d_end * (1 + 1e-9);  // d_max changes only at the bottom
     const Normal6 sys = linearise(T, d_max, at_end ? 1 : coarse_stride);
     res.iterations = it + 1;
+    res.queries += sys.queries;
+    res.graph_answers += sys.graph_answers;
     if (sys.n < std::size_t(std::max(params.min_correspondences, 6))) {
       res.message = "too few correspondences (" + std::to_string(sys.n) + " within " +
                     std::to_string(1000 * d_max / params.units_per_metre) + " mm)";
@@ -443,6 +457,8 @@ IcpResult icp_point_to_plane(const PreparedView& source, const PreparedView& tar
   res.transform = T;
   // Final diagnostics at the fine distance.
   const Normal6 fin = linearise(T, d_end, 1);
+  res.queries += fin.queries;
+  res.graph_answers += fin.graph_answers;
   res.correspondences = fin.n;
   res.fitness = double(fin.n) / double(source.points.size());
   res.inlier_rmse = fin.n ? std::sqrt(fin.sq_euclid / double(fin.n)) : 0.0;

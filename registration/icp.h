@@ -186,6 +186,9 @@ struct IcpResult {
   /// part weighted (1 - lambda) / lambda).
   Matrix6d hessian = Matrix6d::Zero();
   std::string message;          ///< why it failed (empty when converged)
+  /// Nearest-point queries over all passes, and how many of them the target's
+  /// neighbour graph answered without a tree search.
+  std::size_t queries = 0, graph_answers = 0;
 };
 
 /// Point-to-plane ICP of `source` (points + normals) onto `target` (points,

@@ -317,6 +317,10 @@ struct RegistrationResult {
          seconds_total = 0;
 };
 
+/// Progress. Called one call at a time, but not always on the caller's thread: the
+/// views are prepared and merged in parallel, and those steps report from the worker
+/// that finished a view (under a lock; the callback must not wait on the registration's
+/// own parallel work).
 using RegistrationCallback = std::function<void(const RegistrationProgress&)>;
 
 /// Registers every view of `session` (see the file comment). Views that cannot

@@ -138,10 +138,26 @@ TEST(NeighbourGraphTest, EveryPointOffTheListIsAtLeastReachAway) {
     }
   }
   EXPECT_EQ(finite_reach, pts.size());
-  // A set of K + 1 points or fewer: every other point listed, nothing beyond.
-  const std::vector<Vec3f> few(pts.begin(), pts.begin() + K);
-  const NeighbourGraph small = neighbour_graph(PointIndex(few));
-  for (float r : small.reach) EXPECT_TRUE(std::isinf(r));
+  // K + 1 points or fewer: every other point listed, nothing beyond; K + 2: one beyond.
+  for (int size : {K, K + 1, K + 2}) {
+    const std::vector<Vec3f> few(pts.begin(), pts.begin() + size);
+    const NeighbourGraph small = neighbour_graph(PointIndex(few));
+    for (std::size_t i = 0; i < few.size(); ++i) {
+      EXPECT_EQ(std::isinf(small.reach[i]), size <= K + 1) << size;
+      if (size == K + 2) {
+        const std::uint32_t* nb = small.neighbours.data() + i * K;
+        for (std::size_t j = 0; j < few.size(); ++j)
+          if (j != i && std::find(nb, nb + K, std::uint32_t(j)) == nb + K)
+            EXPECT_FLOAT_EQ((few[j] - few[i]).norm(), small.reach[i]);
+      }
+    }
+  }
+  // A point with more than K + 1 copies of itself: no promise from it (reach 0 or
+  // the copies' distance 0), never a wrong one.
+  std::vector<Vec3f> copies(20, pts[3]);
+  copies.insert(copies.end(), pts.begin() + 10, pts.begin() + 60);
+  const NeighbourGraph cg = neighbour_graph(PointIndex(copies));
+  for (std::size_t i = 0; i < 20; ++i) EXPECT_EQ(cg.reach[i], 0.f) << i;
 }
 
 // ICP with the neighbour graph finds the very correspondences the k-d tree does:
@@ -170,6 +186,10 @@ TEST(Icp, TheNeighbourGraphGivesTheTreesCorrespondences) {
       const IcpResult a = icp_point_to_plane(source, target, off * truth, ip);
       const IcpResult b = icp_point_to_plane(source, bare, off * truth, ip);
       ASSERT_TRUE(a.converged) << a.message;
+      // The graph answered most queries (else this compares the tree with itself).
+      EXPECT_GT(a.graph_answers, a.queries / 3) << deg << " " << stride;
+      EXPECT_EQ(b.graph_answers, 0u);
+      EXPECT_EQ(a.queries, b.queries);
       EXPECT_EQ(a.iterations, b.iterations) << deg << " " << stride;
       EXPECT_EQ(a.transform, b.transform) << deg << " " << stride;
       EXPECT_EQ(a.correspondences, b.correspondences);
@@ -178,6 +198,23 @@ TEST(Icp, TheNeighbourGraphGivesTheTreesCorrespondences) {
       EXPECT_EQ(a.hessian, b.hessian);
     }
   }
+  // Every target point twice (a merged model where two views' points coincide):
+  // each nearest is tied, the graph gives way to the tree, and the result is the tree's.
+  PreparedView twice = bare;
+  twice.points.insert(twice.points.end(), bare.points.begin(), bare.points.end());
+  twice.normals.insert(twice.normals.end(), bare.normals.begin(), bare.normals.end());
+  twice.index = std::make_shared<PointIndex>(twice.points);
+  PreparedView twice_bare = twice;
+  twice.graph = neighbour_graph(*twice.index);
+  IcpParams ip;
+  ip.max_distance_start = 0.02;
+  ip.max_distance_end = 0.002;
+  const IcpResult a = icp_point_to_plane(source, twice, truth, ip);
+  const IcpResult b = icp_point_to_plane(source, twice_bare, truth, ip);
+  ASSERT_TRUE(a.converged) << a.message;
+  EXPECT_EQ(a.graph_answers, 0u);
+  EXPECT_EQ(a.transform, b.transform);
+  EXPECT_EQ(a.hessian, b.hessian);
 }
 
 // The full cloud's normals from the outlier removal's search are the ones a search
