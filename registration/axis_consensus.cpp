@@ -53,6 +53,27 @@ Eigen::Matrix4d turn_about_line(const Vec3d& point, const Vec3d& direction, doub
   return T;
 }
 
+AxisConsensus calibrated_consensus(const Vec3d& axis_point, const Vec3d& axis_direction,
+                                   const std::vector<Eigen::Matrix4d>& poses, int reference) {
+  AxisConsensus c;
+  const std::size_t n = poses.size();
+  c.deviation_deg.assign(n, std::numeric_limits<double>::infinity());
+  c.deviation.assign(n, std::numeric_limits<double>::infinity());
+  c.turn.assign(n, 0.0);
+  if (reference < 0 || std::size_t(reference) >= n || !poses[std::size_t(reference)].allFinite() ||
+      !axis_point.allFinite() || !(axis_direction.norm() > 0))
+    return c;
+  const Eigen::Matrix4d& P = poses[std::size_t(reference)];
+  c.direction = (P.block<3, 3>(0, 0) * axis_direction).normalized();
+  c.point = (P * axis_point.homogeneous()).head<3>();
+  c.reference = reference;
+  c.inliers = {reference};
+  c.deviation_deg[std::size_t(reference)] = c.deviation[std::size_t(reference)] = 0;
+  c.distinct_turns = 1;
+  c.found = true;
+  return c;
+}
+
 AxisConsensus turntable_consensus(const std::vector<Eigen::Matrix4d>& poses, const std::vector<Vec3d>& centres,
                                   double max_deg, double max_shift, double min_turn_deg, double same_turn_deg) {
   const int n = int(poses.size());

@@ -44,6 +44,15 @@ AxisConsensus turntable_consensus(const std::vector<Eigen::Matrix4d>& poses, con
                                   double max_deg, double max_shift, double min_turn_deg = 10.0,
                                   double same_turn_deg = 5.0);
 
+/// The consensus a calibrated turntable gives without any fit: the axis (the
+/// scanner frame's line, `TurntableAxis`: a point, a direction) as view `reference`'s
+/// pose (`poses[reference]`, object <- scanner) puts it into the poses' frame, that
+/// view its one inlier at turn 0 (found, one distinct turn; the other views'
+/// deviations infinite: not measured). Not found for a reference out of range or a
+/// non-finite pose.
+AxisConsensus calibrated_consensus(const Vec3d& axis_point, const Vec3d& axis_direction,
+                                   const std::vector<Eigen::Matrix4d>& poses, int reference);
+
 /// The signed turn (radians) about unit `direction` of the rotation about it
 /// nearest R (the one maximising trace(Rot(turn)^T R)).
 double turn_about_axis(const Eigen::Matrix3d& R, const Vec3d& direction);

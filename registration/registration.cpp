@@ -264,6 +264,14 @@ class Registrar {
     return *this;
   }
 
+  /// A run without the session's axis (the run without angles): the calibrated axis
+  /// it was given, for place_on_table_axis alone (a line the views' poses can be
+  /// checked against, not a prior).
+  Registrar& with_calibrated_axis(const std::optional<TurntableAxis>& axis) {
+    calibrated_ = axis;
+    return *this;
+  }
+
   RegistrationResult run() {
     const auto t_total = Clock::now();
     const std::size_t n = m_.views.size();
@@ -1455,9 +1463,16 @@ class Registrar {
       poses.push_back(res_.poses[i]);
       centres.push_back(centroid(views_[i].points));
     }
-    const AxisConsensus c =
+    AxisConsensus c =
         turntable_consensus(poses, centres, kAxisSlack * p_.rigid_max_deviation_deg,
                             kAxisSlack * p_.rigid_max_deviation_rel * diag_, 10.0, kAxisSameTurnDeg);
+    // No line three views share at distinct turns (a cube's views stacked by the chain
+    // on two turns of a line far off the table's): where the session's turntable is
+    // calibrated, the line is known all the same, and every view but the first is
+    // placed about it, where its colours agree with the views placed before it.
+    const std::optional<TurntableAxis>& calibrated = m_.axis ? m_.axis : calibrated_;
+    const bool from_calibrated = !c.found && calibrated;
+    if (from_calibrated) c = calibrated_consensus(calibrated->point, calibrated->direction, poses, 0);
     if (!c.found) return;
     // Kept: the inliers, one per turn (the reference first, then the nearest the
     // line); views stacked on a kept view's turn are twins of it, and wait with the
@@ -1482,6 +1497,11 @@ class Registrar {
       if (!usable_[i] && (res_.views[i].initial == InitialPoseSource::kGlobal ||
                           std::find(chain_missed_.begin(), chain_missed_.end(), int(i)) != chain_missed_.end()))
         pending.push_back(int(i));
+    // (About the calibrated line, the views the chain put against the model too: a run
+    // without angles knows no view off the table but by how the chain placed it.)
+    if (from_calibrated)
+      for (int i : off_table_)
+        if (usable_[std::size_t(i)] && std::find(pending.begin(), pending.end(), i) == pending.end()) pending.push_back(i);
     const Eigen::Matrix4d ref = res_.poses[table[std::size_t(c.reference)]];
     State before = state();
     const std::array<std::size_t, 3> before_score = chain_score();
@@ -1494,7 +1514,7 @@ class Registrar {
       std::vector<int> still;
       std::vector<std::tuple<double, int, Eigen::Matrix4d>> placed;  // (-fitness, view, pose)
       for (int v : pending) {
-        const auto X = place_on_line(v, model, colours.get(), free.get(), c, ref, turns);
+        const auto X = place_on_line(v, model, colours.get(), free.get(), c, ref, turns, from_calibrated);
         if (X) placed.push_back({-X->second, v, X->first});
         else still.push_back(v);
       }
@@ -1548,8 +1568,9 @@ class Registrar {
     }
     std::sort(moved.begin(), moved.end());
     std::ostringstream w;
-    w << "placed again about the turntable axis the other views share (the run without angles had put them "
-         "off it, on a near-symmetric shape's turned twin, or failed them):";
+    w << (from_calibrated ? "placed again about the session's calibrated turntable axis" :
+                            "placed again about the turntable axis the other views share")
+      << " (the run without angles had put them off it, on a near-symmetric shape's turned twin, or failed them):";
     for (int v : moved) w << " " << view_name(m_, std::size_t(v));
     res_.notes.push_back(w.str());
   }
@@ -1558,11 +1579,13 @@ class Registrar {
   // `ref` turned about the line), the turn found by a sweep of the closeness to
   // `model` away from the kept views' `turns`, then ICP from the best peaks; the
   // converged pose with the best overlap (ICP fitness) that the model's views do
-  // not see through and that is not at a kept view's turn, near ties by colour; with
+  // not see through and that is not at a kept view's turn, near ties by colour (and,
+  // with `colour_must_agree`, none whose colours disagree with the model's); with
   // its fitness. None when no such pose overlaps by the global registration's minimum.
   std::optional<std::pair<Eigen::Matrix4d, double>> place_on_line(int v, const PreparedView& model, const ColourModel* colours,
                                                const FreeSpace* free, const AxisConsensus& c,
-                                               const Eigen::Matrix4d& ref, const std::vector<double>& turns) const {
+                                               const Eigen::Matrix4d& ref, const std::vector<double>& turns,
+                                               bool colour_must_agree) const {
     const GlobalRegistrationParams gp = global_params();
     IcpParams ip = p_.icp;
     ip.max_distance_start = std::max(2.0 * gp.inlier_distance_voxels * gp.voxel_size, icp_end_);
@@ -1617,14 +1640,20 @@ class Registrar {
     }
     // Never at a kept view's turn (the view waits for the model to grow, or stays).
     for (std::size_t k = 0; k < r.size(); ++k) usable[k] = usable[k] && !twin[k];
-    double best_fit = 0;
-    for (std::size_t k = 0; k < r.size(); ++k)
-      if (usable[k]) best_fit = std::max(best_fit, r[k].fitness);
     std::vector<double> err(r.size(), std::numeric_limits<double>::infinity());
     if (colours)
       for (std::size_t k = 0; k < r.size(); ++k)
         if (usable[k])
           err[k] = colour_error(views_[v].full, *colours, r[k].transform, ip.max_distance_end, views_[v].viewpoint);
+    // `colour_must_agree`: not where the colours disagree with the model's (a cube's
+    // quarter-turned twin, which the shape alone cannot tell: 33-137 per channel where
+    // a right pose reads 4-6); the view waits for the model to grow.
+    if (colours && colour_must_agree)
+      for (std::size_t k = 0; k < r.size(); ++k)
+        if (std::isfinite(err[k]) && err[k] >= colours->disagrees) usable[k] = 0;
+    double best_fit = 0;
+    for (std::size_t k = 0; k < r.size(); ++k)
+      if (usable[k]) best_fit = std::max(best_fit, r[k].fitness);
     int best = -1;
     for (std::size_t k = 0; k < r.size(); ++k) {
       if (!usable[k] || r[k].fitness < best_fit - kTie) continue;
@@ -2631,6 +2660,7 @@ class Registrar {
   const std::vector<Cloud>& clouds_;
   const SessionManifest& m_;
   const SessionManifest* given_ = nullptr;  // as_given
+  std::optional<TurntableAxis> calibrated_;  // with_calibrated_axis
   const RegistrationParams& p_;
   const RegistrationCallback& cb_;
   RegistrationResult res_;
@@ -2882,7 +2912,7 @@ static RegistrationResult register_views_checked(const std::vector<Cloud>& cloud
     };
   };
   const RegistrationCallback free_progress = named("without angles");
-  RegistrationResult free = Registrar(clouds, bare, params, free_progress).run();
+  RegistrationResult free = Registrar(clouds, bare, params, free_progress).with_calibrated_axis(manifest.axis).run();
   std::vector<bool> reg(n);
   for (std::size_t i = 0; i < n; ++i) reg[i] = free.views[i].registered;
   const std::optional<Vec3d> known =

@@ -114,3 +114,38 @@ TEST(AxisConsensus, TooFewViewsOrNonFinitePosesFindNone) {
 
 }  // namespace
 }  // namespace station
+
+namespace station {
+namespace {
+
+// A calibrated turntable's line (scanner frame) put into the poses' frame by one
+// view's pose: every view of the ring turns about it from that view.
+TEST(AxisConsensus, ACalibratedAxisIsTheLineEveryViewTurnsAbout) {
+  // Poses object <- scanner of views turned about the scanner-frame line (p, d):
+  // P_k = P_0 Rot_scanner(-phi_k) about (p, d).
+  const Vec3d p(0.01, 0.03, 0.45), d = Vec3d(0.02, -0.94, -0.34).normalized();
+  Eigen::Matrix4d P0 = Eigen::Matrix4d::Identity();
+  P0.block<3, 3>(0, 0) = Eigen::AngleAxisd(0.4, Vec3d(0.3, 1, -0.2).normalized()).toRotationMatrix();
+  P0.block<3, 1>(0, 3) = Vec3d(0.1, -0.2, 0.05);
+  std::vector<Eigen::Matrix4d> poses;
+  for (int k = 0; k < 6; ++k) poses.push_back(P0 * turn_about_line(p, d, -k * 60 * kDeg));
+  const AxisConsensus c = calibrated_consensus(p, d, poses, 2);
+  ASSERT_TRUE(c.found);
+  EXPECT_EQ(c.reference, 2);
+  EXPECT_EQ(c.inliers, std::vector<int>{2});
+  EXPECT_EQ(c.distinct_turns, 1);
+  // Each view is the reference turned about the line: P_k = Rot_line(phi) P_2.
+  for (int k = 0; k < 6; ++k) {
+    const Eigen::Matrix4d M = poses[std::size_t(k)] * rigid_inverse(poses[2]);
+    const double phi = turn_about_axis(M.block<3, 3>(0, 0), c.direction);
+    EXPECT_LT((turn_about_line(c.point, c.direction, phi) - M).norm(), 1e-9) << k;
+    EXPECT_NEAR(std::abs(std::remainder(phi / kDeg, 360.0)), std::abs(std::remainder((k - 2) * 60.0, 360.0)), 1e-6) << k;
+  }
+  EXPECT_FALSE(calibrated_consensus(p, d, poses, 6).found);
+  EXPECT_FALSE(calibrated_consensus(p, Vec3d::Zero(), poses, 0).found);
+  poses[1](0, 0) = std::nan("");
+  EXPECT_FALSE(calibrated_consensus(p, d, poses, 1).found);
+}
+
+}  // namespace
+}  // namespace station
