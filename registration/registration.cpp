@@ -1533,9 +1533,10 @@ class Registrar {
           usable_[std::size_t(v)] = true;
           res_.views[std::size_t(v)].message.clear();
           res_.views[std::size_t(v)].initial = InitialPoseSource::kGlobal;
-          table.push_back(v);
         }
-        // Now a table view (the chain may have placed it against the model).
+        // Now a table view (the chain may have placed it against the model), in the
+        // order of the turns below.
+        if (std::find(table.begin(), table.end(), v) == table.end()) table.push_back(v);
         off_table_.erase(std::remove(off_table_.begin(), off_table_.end(), v), off_table_.end());
         kept.push_back(v);
         moved.push_back(v);
@@ -3051,14 +3052,20 @@ static RegistrationResult register_views_checked(const std::vector<Cloud>& cloud
   // (Two views joined by one pair are no measure against the turntable: on a sparse
   // session of a near-symmetric object that pair converges half a turn off.)
   // (Nor where the run without angles confirms every commanded angle, as given: it
-  // joined the views where the angles had put them, no object moved, and the run as
-  // given stands. The bottle's four views 90 deg apart, placed about the calibrated
+  // joined the views where the angles had put them, and the run as given stands. The bottle's four views 90 deg apart, placed about the calibrated
   // axis without their angles: within 0.14 deg of them, and the run as given, held by
   // the angles where no pair converged, is the more accurate.)
-  int angled = 0;
-  for (std::size_t i = 0; i < n; ++i) angled += manifest.views[i].angle_deg && !manifest.views[i].initial_pose;
-  const bool angles_confirmed = fit.ok && fit.convention.empty() && fit.wrong.empty() && fit.views == angled &&
-                                fit.agreeing == fit.views;
+  // (Each view with an angle fitted within the tolerance, and the run with the angles
+  // placing the views the run without them joined where that one does: a slide on the
+  // table fits every angle, and shows there.)
+  bool angles_confirmed = fit.ok && fit.convention.empty() && fit.wrong.empty();
+  for (std::size_t i = 0; i < n && angles_confirmed; ++i) {
+    const ViewRecord& v = manifest.views[i];
+    if (!v.angle_deg || !std::isfinite(*v.angle_deg) || v.initial_pose) continue;
+    angles_confirmed = i < fit.residual_deg.size() && fit.residual_deg[i] &&
+                       std::abs(*fit.residual_deg[i]) <= params.wrong_angle_deg;
+  }
+  angles_confirmed = angles_confirmed && runs_agree(*prior_best, free, free_linked, centres);
   const bool free_links_more = free_linked.size() > prior_linked.size() && free_linked.size() >= 3 && holds &&
                                runs_agree(*prior_best, free, prior_linked, centres) && !angles_confirmed;
   // Views with an angle that the run without angles could not place (too little

@@ -653,15 +653,6 @@ TEST(SimRegistration, AConventionMistakeIsFoundWhereTheRunWithoutAnglesIsWrongTo
   EXPECT_TRUE(quoted);
 }
 
-// Views given out of turntable order (a shell glob, files renamed): the bottle's
-// twelve views shuffled, their angles 0, 30, ... in the new order, and the
-// fandisk's twelve shuffled without any angle. The run without angles chained each
-// view to the one before it in the list, often far round the object, and joined
-// four of the bottle's front views onto its back (the half-turned twin, 179 deg
-// off, exit 0); the fandisk's chain put views on twins and failed two. Most views
-// keep to one turntable line (registration/axis_consensus.h); the others are now
-// placed again about it, never where a kept view already is, and the ring refined
-// in the order of the turns.
 // The views of `clean` / `clouds` in the list order `order` (a session given out of
 // turntable order), with the angles 0, 30, 60, ... in that list order, or none.
 void in_list_order(const SessionManifest& clean, const std::vector<Cloud>& clouds,
@@ -678,6 +669,15 @@ void in_list_order(const SessionManifest& clean, const std::vector<Cloud>& cloud
   }
 }
 
+// Views given out of turntable order (a shell glob, files renamed): the bottle's
+// twelve views shuffled, their angles 0, 30, ... in the new order, and the
+// fandisk's twelve shuffled without any angle. The run without angles chained each
+// view to the one before it in the list, often far round the object, and joined
+// four of the bottle's front views onto its back (the half-turned twin, 179 deg
+// off, exit 0); the fandisk's chain put views on twins and failed two. Most views
+// keep to one turntable line (registration/axis_consensus.h); the others are now
+// placed again about it, never where a kept view already is, and the ring refined
+// in the order of the turns.
 TEST(SimRegistration, ViewsOutOfTurntableOrderArePlacedAboutTheAxisMostViewsShare) {
   const std::vector<std::size_t> order = {7, 11, 3, 10, 8, 4, 9, 1, 0, 6, 2, 5};
   for (const bool bottle : {true, false}) {
