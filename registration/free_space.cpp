@@ -27,7 +27,7 @@ FreeSpace& FreeSpace::operator=(FreeSpace&&) noexcept = default;
 
 bool FreeSpace::empty() const { return sights_.empty(); }
 
-void FreeSpace::add(const std::vector<Vec3f>& points, const Eigen::Matrix4d& pose) {
+int FreeSpace::add(const std::vector<Vec3f>& points, const Eigen::Matrix4d& pose) {
   Sight sight;
   sight.origin = pose.block<3, 1>(0, 3);
   std::vector<Vec3f> us;
@@ -40,7 +40,7 @@ void FreeSpace::add(const std::vector<Vec3f>& points, const Eigen::Matrix4d& pos
     lo_ = lo_.cwiseMin(sight.origin + d);
     hi_ = hi_.cwiseMax(sight.origin + d);
   }
-  if (us.size() < 2) return;
+  if (us.size() < 2) return -1;
   // The median angle from a point to its nearest neighbour, over up to 256 of them.
   std::vector<Vec3f> sample;
   for (std::size_t k = 0, stride = std::max<std::size_t>(1, us.size() / 256); k < us.size(); k += stride)
@@ -56,10 +56,11 @@ void FreeSpace::add(const std::vector<Vec3f>& points, const Eigen::Matrix4d& pos
     sight.angle_spacing = gaps[gaps.size() / 2];
   }
   sights_.push_back(std::move(sight));
+  return int(sights_.size()) - 1;
 }
 
 double FreeSpace::seen_through(const std::vector<Vec3f>& points, const Eigen::Matrix4d& X, double margin,
-                               double spacing, double grow) const {
+                               double spacing, double grow, int skip) const {
   const std::size_t stride = std::max<std::size_t>(1, points.size() / 1000);
   const Vec3d lo = lo_ - Vec3d::Constant(grow), hi = hi_ + Vec3d::Constant(grow);
   std::size_t total = 0, seen = 0;
@@ -67,7 +68,9 @@ double FreeSpace::seen_through(const std::vector<Vec3f>& points, const Eigen::Ma
     const Vec3d x = (X * points[k].cast<double>().homogeneous()).head<3>();
     if (!x.allFinite() || (x.array() < lo.array()).any() || (x.array() > hi.array()).any()) continue;
     ++total;
-    for (const Sight& sight : sights_) {
+    for (std::size_t si = 0; si < sights_.size(); ++si) {
+      if (int(si) == skip) continue;
+      const Sight& sight = sights_[si];
       const Vec3d d = x - sight.origin;
       const double r = d.norm();
       if (!(r > margin)) continue;

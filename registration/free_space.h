@@ -21,8 +21,9 @@ class FreeSpace {
   FreeSpace& operator=(FreeSpace&&) noexcept;
 
   /// Adds a view's sight: its points (scanner frame, the sensor at the origin)
-  /// placed by `pose`. Points at the sensor or not finite are skipped.
-  void add(const std::vector<Vec3f>& points, const Eigen::Matrix4d& pose);
+  /// placed by `pose`. Points at the sensor or not finite are skipped. Returns
+  /// the sight's index, or -1 where fewer than two points were left (no sight).
+  int add(const std::vector<Vec3f>& points, const Eigen::Matrix4d& pose);
   bool empty() const;
 
   /// Share of (up to ~1000 of) `points`, moved by X, that lie in front of what
@@ -31,9 +32,10 @@ class FreeSpace {
   /// and the sight's own angular spacing (its points' median angle to their
   /// nearest neighbour: the pixels, where they are coarser than `spacing`).
   /// Only points within `grow` of the sights' bounding box count (a hand or a
-  /// stand in a hand-held view is not the object).
+  /// stand in a hand-held view is not the object). `skip`: a sight (add's
+  /// index) left out, the view's own.
   double seen_through(const std::vector<Vec3f>& points, const Eigen::Matrix4d& X, double margin, double spacing,
-                      double grow) const;
+                      double grow, int skip = -1) const;
 
  private:
   struct Sight;

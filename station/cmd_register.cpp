@@ -105,6 +105,7 @@ JsonObject registration_json(const RegistrationResult& r) {
     if (v.rotation_error_deg) o.add("rotation_error_deg", *v.rotation_error_deg);
     if (v.translation_error) o.add("translation_error_m", m * *v.translation_error);
     if (v.object_translation_error) o.add("object_translation_error_m", m * *v.object_translation_error);
+    if (v.seen_through) o.add("seen_through", *v.seen_through);
     if (!v.message.empty()) o.add("message", v.message);
     per_view.add(std::to_string(i), o);
   }
