@@ -149,8 +149,13 @@ constexpr std::size_t kSlideRefined = 2;
 // shape fitted turned puts part of the view outside the object)...
 constexpr double kSeenThrough = 0.2;
 // A run whose every view puts at most this share there (right poses: 0-6 %) is
-// clear of what the views saw; one above kSeenThrough is not (register_views_checked).
+// clear of what the views saw; one with a view above kRunSeenThrough is not
+// (register_views_checked). Lower than kSeenThrough: in a run, a wrong view's own
+// sight also sees through the right views it contradicts, so the shares spread
+// (the run without angles of the session turned -30 deg: the wrong view
+// 10 %, right ones up to 16 %; right runs 0-6 %).
 constexpr double kSeenClear = 0.1;
+constexpr double kRunSeenThrough = 0.15;
 // ...by more than kSeenMargin registration voxels or kSeenNoise times the
 // median ICP point-to-plane RMS of the view's converged poses, whichever is
 // larger: a real depth camera's noise (test
@@ -3012,7 +3017,7 @@ static RegistrationResult register_views_checked(const std::vector<Cloud>& cloud
   // together agrees with itself). Only the run without angles tells which; such
   // a run alone is compared by the rule below (joined views), nothing else.
   // (So is a run that puts a view where the others saw through.)
-  const bool suspect = prior_suspect(with, params, at_table) || most_seen_through(with) > kSeenThrough;
+  const bool suspect = prior_suspect(with, params, at_table) || most_seen_through(with) > kRunSeenThrough;
   const bool only_unlinked = !suspect && with.unlinked_views > 0;
   if (!suspect && !only_unlinked) return with;
 
@@ -3153,13 +3158,13 @@ static RegistrationResult register_views_checked(const std::vector<Cloud>& cloud
   // off and refused one rigid turntable, 0.395 mm; the corrected run 0.397 mm.)
   const bool convention = fit.ok && !fit.convention.empty();
   // What the views saw comes first: a run that puts a view where the others saw
-  // through (ViewDiagnostics::seen_through over kSeenThrough) loses to one that
+  // through (ViewDiagnostics::seen_through over kRunSeenThrough) loses to one that
   // puts none of them near it (kSeenClear), whatever it registers or joins.
   // (The issue's own session with the object turned on the table and scanned
   // again: runs that join every view by pairs, two views half turned on the
   // fandisk's near twin, against a run whose views all agree with each other.)
   const auto overrules = [&](const RegistrationResult& a, const RegistrationResult& b) {
-    return most_seen_through(a) <= kSeenClear && most_seen_through(b) > kSeenThrough;
+    return most_seen_through(a) <= kSeenClear && most_seen_through(b) > kRunSeenThrough;
   };
   if (corrected && (overrules(*corrected, with) ||
                     (!overrules(with, *corrected) &&

@@ -892,7 +892,10 @@ TEST(SimRegistration, TheIssuesSessionNominalAnglesAMoveAndViewsWithoutAngle) {
 // whose views agree with what all the others saw (at most 10 %) is kept instead.
 // With 45 deg no run places every view right: the one kept registers seven, right,
 // and names the three it could not place (the run without angles placed all ten,
-// five of them half turned, 58 % of a view seen through).
+// five of them half turned, 58 % of a view seen through). With -30 deg the run
+// without angles placed one view 63 deg off, 10 % of it seen through but up to
+// 16 % of the right views it contradicts (kRunSeenThrough, 15 %): the run with the
+// corrected angles is kept, six views right and four named.
 TEST(SimRegistration, TheIssuesSessionWithTheObjectTurnedAndScannedAgain) {
   struct Move {
     double deg;
@@ -900,7 +903,7 @@ TEST(SimRegistration, TheIssuesSessionWithTheObjectTurnedAndScannedAgain) {
     std::size_t failed;
   };
   for (const Move& mv : {Move{10, Vec3d(0.04, 0.03, 0), 0}, Move{135, Vec3d(0, 0.05, 0), 0},
-                         Move{45, Vec3d(0.03, 0.02, 0), 3}}) {
+                         Move{45, Vec3d(0.03, 0.02, 0), 3}, Move{-30, Vec3d(0.02, 0.04, 0), 4}}) {
     PriorCase c;
     ASSERT_EQ(c.clouds.size(), 12u);
     c.rescan_moved(table_move(mv.deg, mv.shift), 5, 11);  // moved after view 4
@@ -1248,4 +1251,3 @@ TEST(SimRegistration, HandHeldViewsUnderALampRegisterOrFailByName) {
 
 }  // namespace
 }  // namespace station
-
