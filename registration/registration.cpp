@@ -3254,6 +3254,91 @@ static RegistrationResult register_views_checked(const std::vector<Cloud>& cloud
   const std::string comparison = run_summary("with the angles", with, at_table) + "; " +
                                  (corrected ? run_summary("corrected angles", *corrected, at_table) + "; " : std::string()) +
                                  free_summary;
+  // Views the kept run could not place, where its views all agree with what the
+  // others saw: another run that placed one of them, there clear of what its own
+  // views saw too, gives it a start (its pose relative to a view both runs placed,
+  // a converged pair's partner where it has one), and the session is made again
+  // from the kept poses and those (no angles: every view posed). Taken when that
+  // registers more views, its views still agree with what the others saw, and it
+  // places the kept run's views as that did. (The session with the object
+  // turned 45 deg on the table and scanned again: the run kept placed seven views,
+  // the run without angles all ten, five of them half turned.)
+  std::vector<int> brought;
+  RegistrationResult& chosen = keep_free ? free : *prior_best;
+  if (!chosen.failed_views.empty() && most_seen_through(chosen) <= kSeenClear) {
+    const std::vector<int> chosen_placed = [&] {
+      std::vector<int> v;
+      for (std::size_t i = 0; i < n; ++i)
+        if (chosen.views[i].registered) v.push_back(int(i));
+      return v;
+    }();
+    SessionManifest fm = bare;
+    for (int i : chosen_placed) fm.views[std::size_t(i)].initial_pose = chosen.poses[std::size_t(i)];
+    std::vector<const RegistrationResult*> sources = {&free, &with};
+    if (corrected) sources.push_back(&*corrected);
+    for (int v : chosen.failed_views) {
+      for (const RegistrationResult* src : sources) {
+        if (src == &chosen || !src->views[std::size_t(v)].registered ||
+            !(src->views[std::size_t(v)].seen_through.value_or(1.0) <= kSeenClear))
+          continue;
+        int anchor = -1;
+        if (!src->pairs.empty())
+          for (const PairDiagnostics& pd : src->pairs) {
+            if (pd.round != src->pairs.back().round || !pd.converged || (pd.from != v && pd.to != v)) continue;
+            const int other = pd.from == v ? pd.to : pd.from;
+            if (chosen.views[std::size_t(other)].registered && src->views[std::size_t(other)].registered) {
+              anchor = other;
+              break;
+            }
+          }
+        for (std::size_t a = 0; a < n && anchor < 0; ++a)
+          if (chosen.views[a].registered && src->views[a].registered) anchor = int(a);
+        if (anchor < 0) continue;
+        fm.views[std::size_t(v)].initial_pose = chosen.poses[std::size_t(anchor)] *
+                                                rigid_inverse(src->poses[std::size_t(anchor)]) *
+                                                src->poses[std::size_t(v)];
+        brought.push_back(v);
+        break;
+      }
+    }
+    RegistrationResult again;
+    const bool made = !brought.empty() &&
+                      [&] {
+                        again = Registrar(clouds, fm, params, named("the failed views from another run")).run();
+                        return registered_count(again, at_table) > registered_count(chosen, at_table) &&
+                               most_seen_through(again) <= kSeenClear &&
+                               runs_agree(chosen, again, chosen_placed, centres);
+                      }();
+    if (!made) {
+      brought.clear();
+    } else {
+      brought.erase(std::remove_if(brought.begin(), brought.end(),
+                                   [&](int i) { return !again.views[std::size_t(i)].registered; }),
+                    brought.end());
+      // What the kept run said and found stays (its angles' use, the moves it
+      // found, its warnings); the poses, the pairs and the merged cloud are the new run's.
+      for (std::size_t i = 0; i < n; ++i) {
+        again.views[i].prior = chosen.views[i].prior;
+        again.views[i].angle_rejected = chosen.views[i].angle_rejected;
+        if (chosen.views[i].registered) again.views[i].initial = chosen.views[i].initial;
+      }
+      again.warnings.swap(chosen.warnings);
+      std::ostringstream w;
+      for (std::size_t k = 0; k < brought.size(); ++k)
+        w << (k ? ", " : "") << view_name(manifest, std::size_t(brought[k]));
+      again.warnings.push_back(w.str() + (brought.size() > 1 ? ", which this run could not place, were" :
+                                                               ", which this run could not place, was") +
+                               " placed from another run's pose and registered with the others");
+      again.axis = chosen.axis;
+      again.axis_fit = chosen.axis_fit;
+      again.turntable_groups = chosen.turntable_groups;
+      again.moved_after_view = chosen.moved_after_view;
+      again.run_starts = chosen.run_starts;
+      again.regrouped_from = chosen.regrouped_from;
+      again.moved_with_object = chosen.moved_with_object;
+      chosen = std::move(again);
+    }
+  }
   const bool kept_given = !keep_free && prior_best == &with;
   std::vector<bool> rejected_before(n);
   for (std::size_t i = 0; i < n; ++i) rejected_before[i] = with.views[i].angle_rejected;
