@@ -1822,7 +1822,7 @@ class Registrar {
           restore(std::move(placed_state));
       }
     }
-    replace_feature_placed(moved, all_joined, words);
+    replace_feature_placed(moved, all_joined, words, kept_words);
     res_.warnings.insert(res_.warnings.end(), words.begin(), words.end());
     for (const std::vector<int>& g : moved) res_.moved_with_object.insert(res_.moved_with_object.end(), g.begin(), g.end());
     return true;
@@ -1842,7 +1842,7 @@ class Registrar {
   // saw through; placed again, within 0.04 deg and 3 %.)
   template <class Joined>
   void replace_feature_placed(const std::vector<std::vector<int>>& moved, const Joined& joined,
-                              std::vector<std::string>& words) {
+                              std::vector<std::string>& words, std::size_t kept_words) {
     if (chained_) return;
     const std::size_t n = m_.views.size();
     const double seen_before = most_seen_now();
@@ -1883,17 +1883,16 @@ class Registrar {
       said.push_back(w.str());
     }
     if (said.empty()) return;
-    const std::size_t kept_words = res_.warnings.size();
+    // (The refinement's warnings replace those of the one before, from `kept_words`.)
+    res_.warnings.resize(std::min(kept_words, res_.warnings.size()));
     res_.pairs.clear();
     refine();
     const double seen_after = most_seen_now();
     if (!joined() || std::size_t(std::count(usable_.begin(), usable_.end(), true)) < usable_before ||
         !(seen_after < seen_before)) {
       restore(std::move(before));
-      most_seen_now();
       return;
     }
-    res_.warnings.resize(std::min(kept_words, res_.warnings.size()));
     words.insert(words.end(), said.begin(), said.end());
   }
 
@@ -3163,8 +3162,11 @@ static RegistrationResult register_views_checked(const std::vector<Cloud>& cloud
   // (The issue's own session with the object turned on the table and scanned
   // again: runs that join every view by pairs, two views half turned on the
   // fandisk's near twin, against a run whose views all agree with each other.)
+  // (A run that registers fewer than half the other's views is no measure: with few
+  // views there is little to contradict.)
   const auto overrules = [&](const RegistrationResult& a, const RegistrationResult& b) {
-    return most_seen_through(a) <= kSeenClear && most_seen_through(b) > kRunSeenThrough;
+    return most_seen_through(a) <= kSeenClear && most_seen_through(b) > kRunSeenThrough &&
+           2 * registered_count(a, at_table) >= registered_count(b, at_table);
   };
   if (corrected && (overrules(*corrected, with) ||
                     (!overrules(with, *corrected) &&
@@ -3242,11 +3244,28 @@ static RegistrationResult register_views_checked(const std::vector<Cloud>& cloud
     }
   }
   // Never fewer registered views than the prior's run for joining more.
-  const bool keep_free =
+  bool keep_free =
       overrules(free, *prior_best) ||
       (!overrules(*prior_best, free) &&
        ((free_links_more && registered_count(free, at_table) >= registered_count(*prior_best, at_table)) ||
         (!only_unlinked && !better(*prior_best, free, 1.05))));
+  // The rules above compare two runs at a time: where the run they keep has a view
+  // over kRunSeenThrough, a clear run that another comparison passed over (the run
+  // with the angles clear, the corrected one at 12 % kept against it, the one
+  // without angles at 18 %) is taken instead, the one registering the most views.
+  if (most_seen_through(keep_free ? free : *prior_best) > kRunSeenThrough) {
+    RegistrationResult* clear = nullptr;
+    for (RegistrationResult* r : {&with, corrected ? &*corrected : nullptr, &free})
+      if (r && overrules(*r, keep_free ? free : *prior_best) &&
+          (!clear || registered_count(*r, at_table) > registered_count(*clear, at_table)))
+        clear = r;
+    if (clear == &free) {
+      keep_free = true;
+    } else if (clear) {
+      keep_free = false;
+      prior_best = clear;
+    }
+  }
   if (!keep_free) filled.clear();
   // A session suspect only for its unlinked views, where the run without angles
   // joins no more of them: a gap in the coverage; the run as given stands as it was.
@@ -3254,6 +3273,87 @@ static RegistrationResult register_views_checked(const std::vector<Cloud>& cloud
   const std::string comparison = run_summary("with the angles", with, at_table) + "; " +
                                  (corrected ? run_summary("corrected angles", *corrected, at_table) + "; " : std::string()) +
                                  free_summary;
+  RegistrationResult& chosen = keep_free ? free : *prior_best;
+  // A run made again from the kept run's poses (below) keeps what that run said
+  // and found: its angles' use and the views' initial sources, its warnings, its
+  // axis and the moves it found; the poses, the pairs and the merged cloud are its
+  // own. `as_was`: views whose diagnostics are taken whole (taken out, not back).
+  const auto carry_over = [&](RegistrationResult& again, RegistrationResult& from, const std::vector<bool>& as_was) {
+    for (std::size_t i = 0; i < n; ++i) {
+      if (as_was[i]) {
+        again.views[i] = from.views[i];
+        continue;
+      }
+      again.views[i].prior = from.views[i].prior;
+      again.views[i].angle_rejected = from.views[i].angle_rejected;
+      if (from.views[i].registered) again.views[i].initial = from.views[i].initial;
+    }
+    again.warnings.swap(from.warnings);
+    again.axis = from.axis;
+    again.axis_fit = from.axis_fit;
+    again.turntable_groups = from.turntable_groups;
+    again.moved_after_view = from.moved_after_view;
+    again.run_starts = from.run_starts;
+    again.regrouped_from = from.regrouped_from;
+    again.moved_with_object = from.moved_with_object;
+  };
+  // Where no run is clear of what the views saw, the kept run's views over
+  // kRunSeenThrough (and their converged pairs' partners over kSeenClear: two
+  // views on a near twin hold each other there) are taken out, and the session is
+  // made again from the other views' poses; taken when that is clear and places
+  // them as the kept run did. The views taken out fail by name (a partial result,
+  // never a view silently half turned). (The session turned 90 deg: every
+  // run had two views 170 deg off, 15-18 % of them seen through, the others 0-1 %.)
+  std::vector<int> dropped;
+  std::vector<Cloud> kept_clouds;  // the clouds without the views taken out
+  if (most_seen_through(chosen) > kRunSeenThrough) {
+    std::vector<bool> out_of(n, false);
+    for (std::size_t i = 0; i < n; ++i)
+      out_of[i] = chosen.views[i].registered && chosen.views[i].seen_through.value_or(0) > kRunSeenThrough;
+    std::vector<bool> partner(n, false);
+    if (!chosen.pairs.empty())
+      for (const PairDiagnostics& pd : chosen.pairs) {
+        if (pd.round != chosen.pairs.back().round || !pd.converged) continue;
+        for (const auto& [a, b] : {std::make_pair(pd.from, pd.to), std::make_pair(pd.to, pd.from)})
+          if (out_of[std::size_t(a)] && chosen.views[std::size_t(b)].seen_through.value_or(0) > kSeenClear)
+            partner[std::size_t(b)] = true;
+      }
+    SessionManifest fm = bare;
+    std::vector<int> rest;
+    for (std::size_t i = 0; i < n; ++i) {
+      if (out_of[i] || partner[i]) dropped.push_back(int(i));
+      else if (chosen.views[i].registered) rest.push_back(int(i)), fm.views[i].initial_pose = chosen.poses[i];
+    }
+    if (rest.size() >= 2) {
+      kept_clouds = clouds;
+      for (int i : dropped) kept_clouds[std::size_t(i)] = Cloud();
+      RegistrationResult again =
+          Registrar(kept_clouds, fm, params, named("without the views the others saw through")).run();
+      if (runs_agree(chosen, again, rest, centres) && most_seen_through(again) <= kSeenClear) {
+        std::vector<bool> as_was(n, false);
+        for (int i : dropped) as_was[std::size_t(i)] = true;
+        carry_over(again, chosen, as_was);
+        for (int d : dropped) {
+          // The view as it was (its points, its angle's use), not registered.
+          const std::size_t i = std::size_t(d);
+          const double seen = again.views[i].seen_through.value_or(0);
+          again.views[i].registered = false;
+          again.views[i].rotation_error_deg.reset();
+          again.views[i].translation_error.reset();
+          again.views[i].object_translation_error.reset();
+          again.views[i].message = view_name(manifest, i) + ": its pose put " + std::to_string(std::lround(100 * seen)) +
+                                   " % of it where the other views saw through, and no run was clear of that (a "
+                                   "near twin of its place?)";
+        }
+        chosen = std::move(again);
+      } else {
+        dropped.clear();
+      }
+    } else {
+      dropped.clear();
+    }
+  }
+  const std::vector<Cloud>& clouds_now = dropped.empty() ? clouds : kept_clouds;
   // Views the kept run could not place, where its views all agree with what the
   // others saw: another run that placed one of them, there clear of what its own
   // views saw too, gives it a start (its pose relative to a view both runs placed,
@@ -3264,7 +3364,6 @@ static RegistrationResult register_views_checked(const std::vector<Cloud>& cloud
   // turned 45 deg on the table and scanned again: the run kept placed seven views,
   // the run without angles all ten, five of them half turned.)
   std::vector<int> brought;
-  RegistrationResult& chosen = keep_free ? free : *prior_best;
   if (!chosen.failed_views.empty() && most_seen_through(chosen) <= kSeenClear) {
     const std::vector<int> chosen_placed = [&] {
       std::vector<int> v;
@@ -3304,10 +3403,22 @@ static RegistrationResult register_views_checked(const std::vector<Cloud>& cloud
     RegistrationResult again;
     const bool made = !brought.empty() &&
                       [&] {
-                        again = Registrar(clouds, fm, params, named("the failed views from another run")).run();
+                        // (A view taken out above comes back where another run placed it clear.)
+                        std::vector<Cloud> back;
+                        for (int v : brought)
+                          if (std::find(dropped.begin(), dropped.end(), v) != dropped.end()) {
+                            if (back.empty()) back = clouds_now;
+                            back[std::size_t(v)] = clouds[std::size_t(v)];
+                          }
+                        again = Registrar(back.empty() ? clouds_now : back, fm, params,
+                                          named("the failed views from another run"))
+                                    .run();
                         return registered_count(again, at_table) > registered_count(chosen, at_table) &&
                                most_seen_through(again) <= kSeenClear &&
-                               runs_agree(chosen, again, chosen_placed, centres);
+                               runs_agree(chosen, again, chosen_placed, centres) &&
+                               std::any_of(brought.begin(), brought.end(), [&](int i) {
+                                 return again.views[std::size_t(i)].registered;
+                               });
                       }();
     if (!made) {
       brought.clear();
@@ -3315,29 +3426,39 @@ static RegistrationResult register_views_checked(const std::vector<Cloud>& cloud
       brought.erase(std::remove_if(brought.begin(), brought.end(),
                                    [&](int i) { return !again.views[std::size_t(i)].registered; }),
                     brought.end());
-      // What the kept run said and found stays (its angles' use, the moves it
-      // found, its warnings); the poses, the pairs and the merged cloud are the new run's.
-      for (std::size_t i = 0; i < n; ++i) {
-        again.views[i].prior = chosen.views[i].prior;
-        again.views[i].angle_rejected = chosen.views[i].angle_rejected;
-        if (chosen.views[i].registered) again.views[i].initial = chosen.views[i].initial;
-      }
-      again.warnings.swap(chosen.warnings);
+      std::vector<bool> as_was(n, false);  // taken out above and not back: its message stays
+      for (int i : dropped) as_was[std::size_t(i)] = !again.views[std::size_t(i)].registered;
+      carry_over(again, chosen, as_was);
       std::ostringstream w;
       for (std::size_t k = 0; k < brought.size(); ++k)
         w << (k ? ", " : "") << view_name(manifest, std::size_t(brought[k]));
       again.warnings.push_back(w.str() + (brought.size() > 1 ? ", which this run could not place, were" :
                                                                ", which this run could not place, was") +
                                " placed from another run's pose and registered with the others");
-      again.axis = chosen.axis;
-      again.axis_fit = chosen.axis_fit;
-      again.turntable_groups = chosen.turntable_groups;
-      again.moved_after_view = chosen.moved_after_view;
-      again.run_starts = chosen.run_starts;
-      again.regrouped_from = chosen.regrouped_from;
-      again.moved_with_object = chosen.moved_with_object;
       chosen = std::move(again);
     }
+  }
+  // Where no run was clear and none could be made so: the views over
+  // kRunSeenThrough, named (registered as they are).
+  if (dropped.empty() && most_seen_through(chosen) > kRunSeenThrough) {
+    std::string names;
+    for (std::size_t i = 0; i < n; ++i)
+      if (chosen.views[i].registered && chosen.views[i].seen_through.value_or(0) > kRunSeenThrough)
+        names += (names.empty() ? "" : ", ") + view_name(manifest, i) + " (" +
+                 std::to_string(std::lround(100 * *chosen.views[i].seen_through)) + " %)";
+    chosen.warnings.push_back(names + ": placed where the other views saw through, in every run tried; their poses "
+                                      "may be wrong (a near twin of their place?)");
+  }
+  // The views taken out that no other run brought back.
+  std::vector<int> left_out;
+  for (int i : dropped)
+    if (!chosen.views[std::size_t(i)].registered) left_out.push_back(i);
+  if (!left_out.empty()) {
+    std::string names;
+    for (std::size_t k = 0; k < left_out.size(); ++k)
+      names += (k ? ", " : "") + view_name(manifest, std::size_t(left_out[k]));
+    chosen.warnings.push_back(names + (left_out.size() > 1 ? " were" : " was") +
+                              " placed where the other views saw through, in every run tried: not registered");
   }
   const bool kept_given = !keep_free && prior_best == &with;
   std::vector<bool> rejected_before(n);

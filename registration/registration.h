@@ -239,8 +239,10 @@ struct ViewDiagnostics {
   /// Share of the view's registration points (up to about 1,000) that its pose
   /// puts where the other registered views saw through (registration/free_space.h:
   /// in front of what they saw, by more than the noise), under the poses kept.
-  /// Right poses put 0-6 % there, a near-symmetric view turned wrong 40 % or
-  /// more. None for a view whose sensor is not known (or not registered).
+  /// Right poses put 0-6 % there; views on a near-symmetric object's turned twin
+  /// 10-58 % in the runs measured (docs/registration.md). None for a view whose
+  /// sensor is not known or that was not registered, except a view taken out for
+  /// it (registration failed by name): its share where it was.
   std::optional<double> seen_through;
 };
 
