@@ -2850,6 +2850,20 @@ double most_seen_through(const RegistrationResult& r) {
   return most;
 }
 
+// A warning naming the registered views over kRunSeenThrough with their shares,
+// where there are any: their poses may be on a near twin of their place. `when`:
+// which runs said so.
+void name_seen_through(RegistrationResult& r, const SessionManifest& m, const char* when) {
+  std::string names;
+  for (std::size_t i = 0; i < r.views.size(); ++i)
+    if (r.views[i].registered && r.views[i].seen_through.value_or(0) > kRunSeenThrough)
+      names += (names.empty() ? "" : ", ") + view_name(m, i) + " (" +
+               std::to_string(std::lround(100 * *r.views[i].seen_through)) + " %)";
+  if (!names.empty())
+    r.warnings.push_back(names + ": placed where the other views saw through, " + when +
+                         "; their poses may be wrong (a near twin of their place?)");
+}
+
 bool runs_agree(const RegistrationResult& a, const RegistrationResult& b, const std::vector<int>& group,
                 const std::vector<Vec3d>& centres) {
   if (group.empty()) return true;
@@ -3008,7 +3022,10 @@ static RegistrationResult register_views_checked(const std::vector<Cloud>& cloud
       with.views[i].prior = with.views[i].angle_rejected ? PriorUse::kRejected : PriorUse::kUsed;
   const int with_angles = int(std::count_if(manifest.views.begin(), manifest.views.end(),
                                             [](const ViewRecord& v) { return v.angle_deg.has_value(); }));
-  if (!params.prior_check || with_angles < 2 || !params.global_registration) return with;
+  if (!params.prior_check || with_angles < 2 || !params.global_registration) {
+    name_seen_through(with, manifest, "with no other run to compare");
+    return with;
+  }
   const std::vector<Vec3d> centres = view_centres(clouds);
   const std::vector<bool> at_table = views_at_table(centres, with.diagonal);
   // Views held to the rest by the angles alone: a gap in the coverage, or the
@@ -3440,15 +3457,7 @@ static RegistrationResult register_views_checked(const std::vector<Cloud>& cloud
   }
   // Where no run was clear and none could be made so: the views over
   // kRunSeenThrough, named (registered as they are).
-  if (dropped.empty() && most_seen_through(chosen) > kRunSeenThrough) {
-    std::string names;
-    for (std::size_t i = 0; i < n; ++i)
-      if (chosen.views[i].registered && chosen.views[i].seen_through.value_or(0) > kRunSeenThrough)
-        names += (names.empty() ? "" : ", ") + view_name(manifest, i) + " (" +
-                 std::to_string(std::lround(100 * *chosen.views[i].seen_through)) + " %)";
-    chosen.warnings.push_back(names + ": placed where the other views saw through, in every run tried; their poses "
-                                      "may be wrong (a near twin of their place?)");
-  }
+  if (dropped.empty()) name_seen_through(chosen, manifest, "in every run tried");
   // The views taken out that no other run brought back.
   std::vector<int> left_out;
   for (int i : dropped)
