@@ -1044,10 +1044,7 @@ class Registrar {
             if (x.converged) rms.push_back(x.plane_rmse);
           noise_rms = median_of(rms);
         }
-        const double voxel = std::max(p_.voxel_rel, 1e-4) * diag_;
-        seen_of[k] = free->seen_through(source.points, r[k].transform,
-                                        std::max(kSeenMargin * voxel, kSeenNoise * noise_rms), voxel,
-                                        kSeenGrow * diag_);
+        seen_of[k] = seen_share(*free, source.points, r[k].transform, noise_rms);
       }
       if (*seen_of[k] <= kSeenThrough) return true;
       if (r[k].fitness > refused_fit) refused_fit = r[k].fitness, refused_seen = *seen_of[k];
@@ -1638,14 +1635,10 @@ class Registrar {
     for (const IcpResult& x : r)
       if (x.converged) rms.push_back(x.plane_rmse);
     const double noise_rms = rms.empty() ? 0.0 : median_of(rms);
-    const double voxel = std::max(p_.voxel_rel, 1e-4) * diag_;
     std::vector<char> usable(r.size(), 0), twin(r.size(), 0);
     for (std::size_t k = 0; k < r.size(); ++k) {
       if (!r[k].converged || r[k].fitness < p_.global_min_fitness) continue;
-      if (free && free->seen_through(views_[v].points, r[k].transform,
-                                     std::max(kSeenMargin * voxel, kSeenNoise * noise_rms), voxel,
-                                     kSeenGrow * diag_) > kSeenThrough)
-        continue;
+      if (free && seen_share(*free, views_[v].points, r[k].transform, noise_rms) > kSeenThrough) continue;
       usable[k] = 1;
       twin[k] = at_kept_turn(turn_about_axis((r[k].transform * rigid_inverse(ref)).block<3, 3>(0, 0), c.direction) *
                              180.0 / M_PI);
@@ -2654,6 +2647,16 @@ class Registrar {
     if (all_reference) res_.mean_reference_pair_rmse = reference / n;
   }
 
+  // The share of `points`, moved by X, where `free`'s sights saw through, beyond the
+  // margin for `noise_rms` (kSeenMargin registration voxels or kSeenNoise times the
+  // noise, whichever is larger); `skip`: a sight left out (FreeSpace::seen_through).
+  double seen_share(const FreeSpace& free, const std::vector<Vec3f>& points, const Eigen::Matrix4d& X,
+                    double noise_rms, int skip = -1) const {
+    const double voxel = std::max(p_.voxel_rel, 1e-4) * diag_;
+    return free.seen_through(points, X, std::max(kSeenMargin * voxel, kSeenNoise * noise_rms), voxel,
+                             kSeenGrow * diag_, skip);
+  }
+
   // Each registered view (sensor known) against the free space of the other
   // registered views under the current poses: ViewDiagnostics::seen_through.
   // Returns the largest (0 where none is known).
@@ -2668,15 +2671,13 @@ class Registrar {
     std::vector<double> rms;
     for (const PairDiagnostics& pd : res_.pairs)
       if (pd.converged && pd.round == res_.pairs.back().round) rms.push_back(pd.inlier_rmse);
-    const double voxel = std::max(p_.voxel_rel, 1e-4) * diag_;
-    const double margin = std::max(kSeenMargin * voxel, kSeenNoise * (rms.empty() ? 0.0 : median_of(rms)));
+    const double noise_rms = rms.empty() ? 0.0 : median_of(rms);
     std::vector<std::size_t> todo;
     for (std::size_t i = 0; i < n; ++i)
       if (sight[i] >= 0) todo.push_back(i);
     tbb::parallel_for(std::size_t(0), todo.size(), [&](std::size_t k) {
       const std::size_t i = todo[k];
-      res_.views[i].seen_through =
-          free.seen_through(views_[i].points, res_.poses[i], margin, voxel, kSeenGrow * diag_, sight[i]);
+      res_.views[i].seen_through = seen_share(free, views_[i].points, res_.poses[i], noise_rms, sight[i]);
     });
     double most = 0;
     for (std::size_t i : todo) most = std::max(most, *res_.views[i].seen_through);
@@ -2848,6 +2849,13 @@ double most_seen_through(const RegistrationResult& r) {
   for (const ViewDiagnostics& v : r.views)
     if (v.registered && v.seen_through) most = std::max(most, *v.seen_through);
   return most;
+}
+
+// "views[1] (a.ply), views[4] (b.ply)": the views named, in the given order.
+std::string view_list(const SessionManifest& m, const std::vector<int>& views) {
+  std::string out;
+  for (std::size_t k = 0; k < views.size(); ++k) out += (k ? ", " : "") + view_name(m, std::size_t(views[k]));
+  return out;
 }
 
 // A warning naming the registered views over kRunSeenThrough with their shares,
@@ -3336,38 +3344,37 @@ static RegistrationResult register_views_checked(const std::vector<Cloud>& cloud
             partner[std::size_t(b)] = true;
       }
     SessionManifest fm = bare;
-    std::vector<int> rest;
+    std::vector<int> out, rest;
+    std::vector<bool> as_was(n, false);
     for (std::size_t i = 0; i < n; ++i) {
-      if (out_of[i] || partner[i]) dropped.push_back(int(i));
+      as_was[i] = out_of[i] || partner[i];
+      if (as_was[i]) out.push_back(int(i));
       else if (chosen.views[i].registered) rest.push_back(int(i)), fm.views[i].initial_pose = chosen.poses[i];
     }
+    std::vector<Cloud> without;
+    RegistrationResult again;
     if (rest.size() >= 2) {
-      kept_clouds = clouds;
-      for (int i : dropped) kept_clouds[std::size_t(i)] = Cloud();
-      RegistrationResult again =
-          Registrar(kept_clouds, fm, params, named("without the views the others saw through")).run();
-      if (runs_agree(chosen, again, rest, centres) && most_seen_through(again) <= kSeenClear) {
-        std::vector<bool> as_was(n, false);
-        for (int i : dropped) as_was[std::size_t(i)] = true;
-        carry_over(again, chosen, as_was);
-        for (int d : dropped) {
-          // The view as it was (its points, its angle's use), not registered.
-          const std::size_t i = std::size_t(d);
-          const double seen = again.views[i].seen_through.value_or(0);
-          again.views[i].registered = false;
-          again.views[i].rotation_error_deg.reset();
-          again.views[i].translation_error.reset();
-          again.views[i].object_translation_error.reset();
-          again.views[i].message = view_name(manifest, i) + ": its pose put " + std::to_string(std::lround(100 * seen)) +
-                                   " % of it where the other views saw through, and no run was clear of that (a "
-                                   "near twin of its place?)";
-        }
-        chosen = std::move(again);
-      } else {
-        dropped.clear();
+      without = clouds;
+      for (int i : out) without[std::size_t(i)] = Cloud();
+      again = Registrar(without, fm, params, named("without the views the others saw through")).run();
+    }
+    if (rest.size() >= 2 && runs_agree(chosen, again, rest, centres) && most_seen_through(again) <= kSeenClear) {
+      dropped = std::move(out);
+      kept_clouds = std::move(without);
+      carry_over(again, chosen, as_was);
+      for (int d : dropped) {
+        // The view as it was (its points, its angle's use), not registered.
+        const std::size_t i = std::size_t(d);
+        const double seen = again.views[i].seen_through.value_or(0);
+        again.views[i].registered = false;
+        again.views[i].rotation_error_deg.reset();
+        again.views[i].translation_error.reset();
+        again.views[i].object_translation_error.reset();
+        again.views[i].message = view_name(manifest, i) + ": its pose put " + std::to_string(std::lround(100 * seen)) +
+                                 " % of it where the other views saw through, and no run was clear of that (a "
+                                 "near twin of its place?)";
       }
-    } else {
-      dropped.clear();
+      chosen = std::move(again);
     }
   }
   const std::vector<Cloud>& clouds_now = dropped.empty() ? clouds : kept_clouds;
@@ -3418,25 +3425,20 @@ static RegistrationResult register_views_checked(const std::vector<Cloud>& cloud
       }
     }
     RegistrationResult again;
-    const bool made = !brought.empty() &&
-                      [&] {
-                        // (A view taken out above comes back where another run placed it clear.)
-                        std::vector<Cloud> back;
-                        for (int v : brought)
-                          if (std::find(dropped.begin(), dropped.end(), v) != dropped.end()) {
-                            if (back.empty()) back = clouds_now;
-                            back[std::size_t(v)] = clouds[std::size_t(v)];
-                          }
-                        again = Registrar(back.empty() ? clouds_now : back, fm, params,
-                                          named("the failed views from another run"))
-                                    .run();
-                        return registered_count(again, at_table) > registered_count(chosen, at_table) &&
-                               most_seen_through(again) <= kSeenClear &&
-                               runs_agree(chosen, again, chosen_placed, centres) &&
-                               std::any_of(brought.begin(), brought.end(), [&](int i) {
-                                 return again.views[std::size_t(i)].registered;
-                               });
-                      }();
+    if (!brought.empty()) {
+      // (A view taken out above comes back where another run placed it clear.)
+      std::vector<Cloud> back;
+      for (int v : brought)
+        if (std::find(dropped.begin(), dropped.end(), v) != dropped.end()) {
+          if (back.empty()) back = clouds_now;
+          back[std::size_t(v)] = clouds[std::size_t(v)];
+        }
+      again = Registrar(back.empty() ? clouds_now : back, fm, params, named("the failed views from another run")).run();
+    }
+    const bool made = !brought.empty() && registered_count(again, at_table) > registered_count(chosen, at_table) &&
+                      most_seen_through(again) <= kSeenClear && runs_agree(chosen, again, chosen_placed, centres) &&
+                      std::any_of(brought.begin(), brought.end(),
+                                  [&](int i) { return again.views[std::size_t(i)].registered; });
     if (!made) {
       brought.clear();
     } else {
@@ -3446,11 +3448,9 @@ static RegistrationResult register_views_checked(const std::vector<Cloud>& cloud
       std::vector<bool> as_was(n, false);  // taken out above and not back: its message stays
       for (int i : dropped) as_was[std::size_t(i)] = !again.views[std::size_t(i)].registered;
       carry_over(again, chosen, as_was);
-      std::ostringstream w;
-      for (std::size_t k = 0; k < brought.size(); ++k)
-        w << (k ? ", " : "") << view_name(manifest, std::size_t(brought[k]));
-      again.warnings.push_back(w.str() + (brought.size() > 1 ? ", which this run could not place, were" :
-                                                               ", which this run could not place, was") +
+      again.warnings.push_back(view_list(manifest, brought) +
+                               (brought.size() > 1 ? ", which this run could not place, were" :
+                                                     ", which this run could not place, was") +
                                " placed from another run's pose and registered with the others");
       chosen = std::move(again);
     }
@@ -3462,13 +3462,9 @@ static RegistrationResult register_views_checked(const std::vector<Cloud>& cloud
   std::vector<int> left_out;
   for (int i : dropped)
     if (!chosen.views[std::size_t(i)].registered) left_out.push_back(i);
-  if (!left_out.empty()) {
-    std::string names;
-    for (std::size_t k = 0; k < left_out.size(); ++k)
-      names += (k ? ", " : "") + view_name(manifest, std::size_t(left_out[k]));
-    chosen.warnings.push_back(names + (left_out.size() > 1 ? " were" : " was") +
+  if (!left_out.empty())
+    chosen.warnings.push_back(view_list(manifest, left_out) + (left_out.size() > 1 ? " were" : " was") +
                               " placed where the other views saw through, in every run tried: not registered");
-  }
   const bool kept_given = !keep_free && prior_best == &with;
   std::vector<bool> rejected_before(n);
   for (std::size_t i = 0; i < n; ++i) rejected_before[i] = with.views[i].angle_rejected;
