@@ -13,6 +13,12 @@
 
 namespace station {
 
+namespace {
+// How many more views a convention (the opposite sign, step indices) must fit than
+// the angles as given (fit_angle_prior).
+constexpr int kConventionMargin = 2;
+}  // namespace
+
 std::vector<double> angles_about_common_axis(const std::vector<Eigen::Matrix4d>& poses,
                                              const std::optional<Vec3d>& direction) {
   std::vector<Vec3d> w;
@@ -60,11 +66,14 @@ AnglePriorFit fit_angle_prior(const std::vector<Eigen::Matrix4d>& poses, const s
   }
   const std::vector<double> scales = angle_scales(manifest);
   const std::vector<double> signs = known ? std::vector<double>{1.0, -1.0} : std::vector<double>{1.0};
-  double best_cost = 1e300;
+  // The best hypothesis, and the best with the angles as given (sign +1, degrees).
+  AnglePriorFit given = best;
+  double best_cost = 1e300, given_cost = 1e300;
   for (std::size_t mi = 0; mi < measured.size(); ++mi)
     for (double scale : scales)
       for (double sign : signs) {
         const std::vector<double>& meas = measured[mi];
+        const bool as_given = sign == 1 && scale == 1;
         // One-point consensus: each view's offset tried; the most agreeing wins
         // (ties: the smaller sum of residuals). The degree-exact hypotheses
         // (sign +1, scale 1) are listed first and win ties.
@@ -81,27 +90,40 @@ AnglePriorFit fit_angle_prior(const std::vector<Eigen::Matrix4d>& poses, const s
             sum += std::min(std::abs(r), 3 * tolerance_deg);
           }
           const double cost = -1e6 * agree + sum;
-          if (cost < best_cost - 1e-9) {
-            best_cost = cost;
-            best.sign = sign;
-            best.scale = scale;
-            best.offset_deg = wrap_angle_deg(b + mean / std::max(agree, 1));
-            best.agreeing = agree;
+          const auto take = [&](AnglePriorFit& f, double& f_cost) {
+            if (!(cost < f_cost - 1e-9)) return;
+            f_cost = cost;
+            f.sign = sign;
+            f.scale = scale;
+            f.offset_deg = wrap_angle_deg(b + mean / std::max(agree, 1));
             for (int j = 0; j < n; ++j)
-              best.residual_deg[idx[j]] = wrap_angle_deg(meas[j] - sign * scale * cmd[j] - best.offset_deg);
-          }
+              f.residual_deg[idx[j]] = wrap_angle_deg(meas[j] - sign * scale * cmd[j] - f.offset_deg);
+          };
+          take(best, best_cost);
+          if (as_given) take(given, given_cost);
         }
       }
   // Agreement and wrong views from the final residuals (the offset refined above).
-  best.agreeing = 0;
-  best.wrong.clear();
-  for (int j = 0; j < n; ++j) {
-    const std::optional<double>& r = best.residual_deg[idx[j]];
-    if (r && std::abs(*r) <= tolerance_deg) ++best.agreeing;
-    else best.wrong.push_back(idx[j]);
-  }
-  best.ok = 2 * best.agreeing >= n && best.agreeing >= 3;
-  best.convention = convention_name(best.sign, best.scale);
+  const auto finish = [&](AnglePriorFit& f) {
+    f.agreeing = 0;
+    f.wrong.clear();
+    for (int j = 0; j < n; ++j) {
+      const std::optional<double>& r = f.residual_deg[idx[j]];
+      if (r && std::abs(*r) <= tolerance_deg) ++f.agreeing;
+      else f.wrong.push_back(idx[j]);
+    }
+    f.ok = 2 * f.agreeing >= n && f.agreeing >= 3;
+    f.convention = convention_name(f.sign, f.scale);
+  };
+  finish(best);
+  finish(given);
+  // A convention (every angle as given wrong) must fit most views, and clearly more
+  // than the angles as given: poses that are themselves wrong (a near-symmetric object
+  // registered without angles, views on turned twins) fit some convention by chance
+  // (the coloured Rubik's cube, the session: the opposite sign fitted 3 of 6
+  // angles, and the run with it, kept, put four views 180 deg off).
+  if (!best.convention.empty() && !(2 * best.agreeing > n && best.agreeing >= given.agreeing + kConventionMargin))
+    return given;
   return best;
 }
 

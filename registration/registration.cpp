@@ -109,6 +109,10 @@ constexpr double kPriorOutlierSigmas = 2;
 // of the best's (global_align, expected_).
 constexpr double kExpectedShare = 0.5;
 constexpr double kTwinTurnDeg = 120;
+// A view whose commanded angle looks wrong (check_angles) is expected within this many
+// degrees of it by the same rule: an angle a little off (the 11 degrees) must not
+// hand the view to the half-turned twin of a near-symmetric shape.
+constexpr double kSuspectNearDeg = 45;
 constexpr double kColourDisagrees = 15;
 // ...or, where the model's own views disagree more among themselves (light and
 // shading that change from view to view on a real scanner), this many times
@@ -1189,8 +1193,11 @@ class Registrar {
       // A table view between views with angles (expected_): ICP also starts where its
       // neighbours' angles put it (the fandisk's fourth view without angle: every
       // start converged on the half-turned twin, none near the right pose).
-      if (expected_) starts.insert(starts.begin(), {0.0, expected_->first});
-      const std::size_t first = std::min(starts.size(), kSpunRefined + (expected_ ? 1 : 0));
+      // (Not for a view whose angle is suspect: its pairs did not converge near its
+      // angle's pose, and ICP from there slid the dragon's view 12 degrees off to 18.)
+      const bool start_expected = expected_ && !expected_suspect_;
+      if (start_expected) starts.insert(starts.begin(), {0.0, expected_->first});
+      const std::size_t first = std::min(starts.size(), kSpunRefined + (start_expected ? 1 : 0));
       refine(0, first);
       const auto settled = [&] {
         // A pose whose colours could not be compared (a view without colours, no
@@ -1903,8 +1910,9 @@ class Registrar {
   }
 
   // A view without an angle whose nearest views with angles before and after it in
-  // capture order (round the end: a turntable session is a ring) are less than half a
-  // turn apart, forwards: the pose of the angle interpolated between theirs by its
+  // capture order (round the end: a turntable session is a ring; a view whose angle
+  // was found wrong counts with the turn global registration gave it) are less than
+  // half a turn apart, forwards: the pose of the angle interpolated between theirs by its
   // place between them, and a tolerance of one step between views plus 15 degrees.
   // None without a turntable axis or such neighbours. `angle`: that angle.
   std::optional<std::pair<Eigen::Matrix4d, double>> expected_pose(int i, double* angle_out = nullptr) const {
@@ -1914,13 +1922,31 @@ class Registrar {
       return usable_[std::size_t(j)] && has_angle(j) && !res_.views[std::size_t(j)].angle_rejected &&
              posed(std::size_t(j));
     };
+    // A neighbour's turn: its angle, or where its angle was found wrong and global
+    // registration placed it on the table (check_angles), the turn of that pose (the
+    // issue's view 11 degrees off, then the view without angle after it: its
+    // neighbours with angles 180 degrees apart over four steps expected nothing, and
+    // the near-symmetric bottle's view came out 179 degrees off).
+    const Eigen::Matrix4d table = table_from_scanner(*res_.axis);
+    const auto turn_of = [&](int j) -> std::optional<double> {
+      if (angled(j)) return *m_.views[std::size_t(j)].angle_deg;
+      const ViewDiagnostics& d = res_.views[std::size_t(j)];
+      if (!usable_[std::size_t(j)] || !has_angle(j) || !d.angle_rejected || d.initial != InitialPoseSource::kGlobal)
+        return std::nullopt;
+      const Eigen::Matrix3d R = (res_.poses[std::size_t(j)] * rigid_inverse(table)).block<3, 3>(0, 0);
+      const double t = turn_about_axis(R, Vec3d::UnitZ());
+      // On the table: a turn about its axis, hardly tilted.
+      const Eigen::Matrix3d rest = Eigen::AngleAxisd(t, Vec3d::UnitZ()).toRotationMatrix().transpose() * R;
+      if (Eigen::AngleAxisd(rest).angle() > 10 * M_PI / 180) return std::nullopt;
+      return -t * 180 / M_PI;
+    };
     int before = -1, after = -1, steps_before = 0, steps_after = 0;
     for (int d = 1; d < n && before < 0; ++d)
-      if (angled((i - d + n) % n)) before = (i - d + n) % n, steps_before = d;
+      if (turn_of((i - d + n) % n)) before = (i - d + n) % n, steps_before = d;
     for (int d = 1; d < n && after < 0; ++d)
-      if (angled((i + d) % n)) after = (i + d) % n, steps_after = d;
+      if (turn_of((i + d) % n)) after = (i + d) % n, steps_after = d;
     if (before < 0 || after < 0 || before == after) return std::nullopt;
-    const double a0 = *m_.views[std::size_t(before)].angle_deg, a1 = *m_.views[std::size_t(after)].angle_deg;
+    const double a0 = *turn_of(before), a1 = *turn_of(after);
     // The forward span from `before` to `after`, in the direction the angles grow.
     double span = std::fmod(a1 - a0, 360.0);
     if (span < 0) span += 360;
@@ -2233,7 +2259,11 @@ class Registrar {
     const std::unique_ptr<FreeSpace> free = free_space_of(others);
     const auto axis = object_axis(others);
     for (int i : suspects) {
+      expected_ = std::make_pair(res_.poses[i], kSuspectNearDeg);
+      expected_suspect_ = true;
       const GlobalAlign g = global_align(i, model, model_feat, colours.get(), axis, free.get());
+      expected_.reset();
+      expected_suspect_ = false;
       if (!g.ok) continue;  // the refinement decides (and fails it if nothing overlaps)
       const double off = rotation_angle_deg(rigid_inverse(res_.poses[i]) * g.transform);
       if (off < p_.wrong_angle_deg) continue;
@@ -2783,7 +2813,10 @@ class Registrar {
   // While global_poses aligns a view without an angle that sits between views with
   // angles in capture order: the pose its angle would give, interpolated from theirs,
   // and how far (degrees) a pose may turn from it to count as near (expected_pose).
+  // While check_angles aligns a view whose angle looks wrong: its angle's pose, and
+  // kSuspectNearDeg.
   std::optional<std::pair<Eigen::Matrix4d, double>> expected_;
+  bool expected_suspect_ = false;  // expected_ is a suspect angle's pose (check_angles)
   bool chained_ = false;          // global_poses chained the views (nothing was posed)
   bool weak_fit_ = false;         // and took some view at a fit below kConfidentFitness
   std::vector<int> unplaced_;   // views without an angle that global registration could not place

@@ -3,6 +3,9 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <fstream>
+#include <iomanip>
+#include <sstream>
 #include <random>
 #include <set>
 #include <tuple>
@@ -905,8 +908,9 @@ TEST(SimRegistration, TheIssuesSessionNominalAnglesAMoveAndViewsWithoutAngle) {
 // clear of what its views saw, and all ten are registered right. With -30 deg the
 // run without angles placed one view 63 deg off, 10 % of it seen through but up to
 // 16 % of the right views it contradicts (kRunSeenThrough, 15 %): the run with the
-// corrected angles is kept, six views right and four named (bringing the others'
-// poses over takes the wrong one too, and is refused). With 90 deg every run had
+// corrected angles was kept, six views right and four named; since a view whose angle
+// looks wrong is kept off the half-turned twin near its angle (check_angles'
+// kSuspectNearDeg), the run with the angles places all ten right. With 90 deg every run had
 // the same two views 170 deg off (15-18 % seen through, the others 0-1 %): they are
 // taken out and named, the other eight registered right.
 TEST(SimRegistration, TheIssuesSessionWithTheObjectTurnedAndScannedAgain) {
@@ -916,7 +920,7 @@ TEST(SimRegistration, TheIssuesSessionWithTheObjectTurnedAndScannedAgain) {
     std::size_t failed;
   };
   for (const Move& mv : {Move{10, Vec3d(0.04, 0.03, 0), 0}, Move{135, Vec3d(0, 0.05, 0), 0},
-                         Move{45, Vec3d(0.03, 0.02, 0), 0}, Move{-30, Vec3d(0.02, 0.04, 0), 4},
+                         Move{45, Vec3d(0.03, 0.02, 0), 0}, Move{-30, Vec3d(0.02, 0.04, 0), 0},
                          Move{90, Vec3d(0.05, 0, 0), 2}}) {
     PriorCase c;
     ASSERT_EQ(c.clouds.size(), 12u);
@@ -928,16 +932,16 @@ TEST(SimRegistration, TheIssuesSessionWithTheObjectTurnedAndScannedAgain) {
     const std::string what = "turned " + std::to_string(int(mv.deg)) + " deg";
     print_prior(what.c_str(), r);
     EXPECT_EQ(r.failed_views.size(), mv.failed) << what;
-    if (mv.deg == -30) EXPECT_EQ(r.prior_kept, "corrected prior");
     EXPECT_EQ(r.views_with_reference, int(10 - mv.failed)) << what;
     EXPECT_LT(r.max_rotation_error_deg, 0.5) << what;
     EXPECT_LT(r.max_object_translation_error, 0.001) << what;
     for (std::size_t i = 0; i < r.views.size(); ++i) {
       if (!r.views[i].registered) {
         EXPECT_FALSE(r.views[i].message.empty()) << what << ": view " << i;
-        if (mv.deg == 90)
+        if (mv.deg == 90) {
           EXPECT_NE(r.views[i].message.find("where the other views saw through"), std::string::npos)
               << r.views[i].message;
+        }
         continue;
       }
       ASSERT_TRUE(r.views[i].seen_through.has_value()) << what << ": view " << i;
@@ -946,6 +950,115 @@ TEST(SimRegistration, TheIssuesSessionWithTheObjectTurnedAndScannedAgain) {
   }
 }
 
+
+// The issue's session (the views and nominal angles of as_the_issues_session: one
+// angle 11 degrees off, four views without angle) of an everyday near-symmetric
+// object from data/ (a textured model: the mustard bottle looks alike from its front
+// and back, the Rubik's cube from each side), scanned with or without colours. With
+// `deg` or `shift`, the object turned by `deg` about its up and slid by `shift`
+// (metres) after view 4, and views 5-11 scanned again with it there; the truth in the
+// frame of the object before the move.
+struct EverydaySession {
+  std::vector<Cloud> clouds;
+  SessionManifest m;
+};
+EverydaySession everyday_issue_session(const test::TempDir& dir, const std::string& model, bool colour,
+                                       double deg = 0, const Vec3d& shift = Vec3d::Zero()) {
+  const std::filesystem::path obj = test::source_dir() / "data" / model / "textured.obj";
+  const std::string options = "&noise=0.0005&seed=1&dropout=0.01&width=320&height=240" +
+                              std::string(colour ? "&color_noise=2" : "&color=0");
+  Session before = capture_sim(dir / "before", "sim:synthetic?mesh=" + obj.string() + options, 12);
+  SessionManifest m = before.manifest();
+  std::vector<Cloud> all;
+  for (std::size_t i = 0; i < m.views.size(); ++i) all.push_back(before.load_view(i));
+  if (deg != 0 || shift != Vec3d::Zero()) {
+    // The model turned and slid where the simulator placed it (its box centred on the
+    // table's axis, standing on the table: `off`), written out as is (center=0). The
+    // poses' object frame is the model's own, so a moved view's truth is M = T(-off)
+    // R^-1 T(-shift) times its pose.
+    std::ifstream in(obj);
+    std::vector<std::string> lines;
+    Aabb box;
+    for (std::string line; std::getline(in, line);) {
+      lines.push_back(line);
+      if (line.rfind("v ", 0) == 0) {
+        std::istringstream v(line.substr(2));
+        Vec3f p;
+        v >> p.x() >> p.y() >> p.z();
+        box.extend(p);
+      }
+    }
+    const Vec3d off(-0.5 * (box.min.x() + box.max.x()), -0.5 * (box.min.y() + box.max.y()), -box.min.z());
+    const Eigen::Matrix3d R = Eigen::AngleAxisd(deg * M_PI / 180, Vec3d::UnitZ()).toRotationMatrix();
+    std::ofstream out(dir / "moved.obj");
+    for (const std::string& line : lines) {
+      if (line.rfind("v ", 0) == 0) {
+        std::istringstream v(line.substr(2));
+        Vec3d p;
+        v >> p.x() >> p.y() >> p.z();
+        const Vec3d q = R * (p + off) + shift;
+        out << "v " << std::setprecision(9) << q.x() << ' ' << q.y() << ' ' << q.z() << '\n';
+      } else if (line.rfind("mtllib ", 0) == 0) {
+        out << "mtllib " << (obj.parent_path() / line.substr(7)).string() << '\n';
+      } else {
+        out << line << '\n';
+      }
+    }
+    out.close();
+    Session after = capture_sim(dir / "after", "sim:synthetic?mesh=" + (dir / "moved.obj").string() + options + "&center=0", 12);
+    Eigen::Matrix4d M = Eigen::Matrix4d::Identity();
+    M.block<3, 3>(0, 0) = R.transpose();
+    M.block<3, 1>(0, 3) = -R.transpose() * shift - off;
+    for (std::size_t i = 5; i < m.views.size(); ++i) {
+      all[i] = after.load_view(i);
+      m.views[i].reference_pose = M * *after.manifest().views[i].reference_pose;
+    }
+  }
+  EverydaySession out;
+  out.m = m;
+  out.m.views.clear();
+  const std::vector<std::pair<int, double>> keep = {
+      {0, 0}, {1, -1}, {2, 60}, {3, 90}, {4, -1}, {6, 191}, {7, -1}, {9, 270}, {10, 300}, {11, -1}};
+  for (const auto& [i, nominal] : keep) {
+    ViewRecord v = m.views[std::size_t(i)];
+    if (nominal < 0) v.angle_deg.reset();
+    else v.angle_deg = nominal;
+    out.m.views.push_back(v);
+    out.clouds.push_back(all[std::size_t(i)]);
+  }
+  return out;
+}
+
+// Before: the bottle without colours had the view 11 degrees off and the view without
+// angle after it 179 degrees off (the angle found wrong, global registration took the
+// half-turned twin, and the view after it, its neighbours with angles 180 degrees
+// apart over four steps, expected nowhere, followed); with colours too. The coloured
+// Rubik's cube had four views 180 degrees off: the run without angles placed views on
+// twins, the opposite sign fitted 3 of its 6 angles, and the run with the opposite
+// sign was kept. All within 0.5 deg / 1 mm of the truth now. (Knocked on the table
+// and scanned again, these objects still come out with views on twins:
+// docs/registration.md, "Near-symmetric everyday objects".)
+TEST(SimRegistration, TheIssuesSessionOfEverydayNearSymmetricObjects) {
+  struct Case {
+    const char* model;
+    bool colour;
+    double deg;
+    Vec3d shift;
+  };
+  for (const Case& c : {Case{"mustard_bottle", false, 0, Vec3d::Zero()}, Case{"mustard_bottle", true, 0, Vec3d::Zero()},
+                        Case{"rubiks_cube", true, 0, Vec3d::Zero()}}) {
+    test::TempDir dir;
+    const EverydaySession s = everyday_issue_session(dir, c.model, c.colour, c.deg, c.shift);
+    const RegistrationResult r = register_views(s.clouds, s.m);
+    const std::string what = std::string(c.model) + (c.colour ? ", colours" : ", no colours") +
+                             (c.deg != 0 ? ", knocked " + std::to_string(int(c.deg)) + " deg" : "");
+    print_prior(what.c_str(), r);
+    EXPECT_TRUE(r.failed_views.empty()) << what;
+    EXPECT_EQ(r.views_with_reference, 10) << what;
+    EXPECT_LT(r.max_rotation_error_deg, 0.5) << what;
+    EXPECT_LT(r.max_object_translation_error, 0.001) << what;
+  }
+}
 
 // Two runs of views with a gap of 120 degrees between them on both sides
 // (views 0-2 and 6-8 of the fandisk session): no pair joins the runs, so their
