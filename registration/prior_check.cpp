@@ -122,7 +122,10 @@ AnglePriorFit fit_angle_prior(const std::vector<Eigen::Matrix4d>& poses, const s
   // registered without angles, views on turned twins) fit some convention by chance
   // (the coloured Rubik's cube, the session: the opposite sign fitted 3 of 6
   // angles, and the run with it, kept, put four views 180 deg off).
-  if (!best.convention.empty() && !(2 * best.agreeing > n && best.agreeing >= given.agreeing + kConventionMargin))
+  // (Every view fitting the convention is taken whatever the margin: with three views
+  // at 0, 90 and 180 degrees of the opposite sign, two fit as given too.)
+  if (!best.convention.empty() && !(2 * best.agreeing > n && (best.agreeing == n ||
+                                                             best.agreeing >= given.agreeing + kConventionMargin)))
     return given;
   return best;
 }

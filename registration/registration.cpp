@@ -113,6 +113,11 @@ constexpr double kTwinTurnDeg = 120;
 // degrees of it by the same rule: an angle a little off (the 11 degrees) must not
 // hand the view to the half-turned twin of a near-symmetric shape.
 constexpr double kSuspectNearDeg = 45;
+// A group registered as a whole (place_unlinked_groups) whose pose turned by half a
+// turn overlaps the others at least this share of its own is named as ambiguous (a
+// near-symmetric object's right place overlaps less than its twin's, which sees only
+// what other views saw: the bottle knocked 90 deg, 0.53 against 0.97).
+constexpr double kTwinOverlapShare = 0.5;
 constexpr double kColourDisagrees = 15;
 // ...or, where the model's own views disagree more among themselves (light and
 // shading that change from view to view on a real scanner), this many times
@@ -1064,7 +1069,8 @@ class Registrar {
           usable[k] = 1;
           best_fit = std::max(best_fit, r[k].fitness);
         }
-      // A table view without an angle between views with angles (expected_): the
+      // A table view without an angle between views with angles, or one whose angle
+      // looks wrong (expected_: check_angles): the
       // best pose half a turn or so from where its neighbours' angles put it, and a
       // pose near there that overlaps at least kExpectedShare of the best: the near
       // one. On a near-symmetric object the twin overlaps better, because the right
@@ -1325,6 +1331,43 @@ class Registrar {
   // refinement then took five of its views 93.6 deg off). The motion that moves the
   // group (object frame) when it overlaps `base` by at least 0.05 more than where
   // it is; `now` and `then` are those overlaps.
+  // The overlap `group`, placed by G onto `base`, gives turned by half a turn about the
+  // table's axis through the base's centre (the object's, where its views see it round;
+  // the group sees one side of it) and refined by ICP; -1 where that does not converge
+  // nearly half a turn away, or where the colours clearly favour G's place. A
+  // near-symmetric object (a bottle's front and back) fits both; its right place can
+  // overlap less than the turned one, which sees only what the other views saw.
+  double twin_overlap(const std::vector<int>& base, const std::vector<int>& group, const Eigen::Matrix4d& G,
+                      const std::pair<Vec3d, Vec3d>& axis) {
+    const PreparedView first = model_of(base), second = model_of(group);
+    Vec3d c = Vec3d::Zero();
+    for (const Vec3f& q : first.points) c += q.cast<double>();
+    c /= double(std::max<std::size_t>(1, first.points.size()));
+    const GlobalRegistrationParams gp = global_params();
+    IcpParams ip = p_.icp;
+    ip.max_distance_start = std::max(2.0 * gp.inlier_distance_voxels * gp.voxel_size, icp_end_);
+    ip.max_distance_end = icp_end_;
+    const IcpResult x = icp_point_to_plane(second, first, turn_about_line(c, axis.second, M_PI) * G, ip);
+    if (!x.converged || rotation_angle_deg(Eigen::Matrix4d(rigid_inverse(G) * x.transform)) < 90) return -1;
+    if (const std::unique_ptr<ColourModel> colours = colour_model_of(base)) {
+      Cloud coloured;
+      for (int j : group) {
+        const Eigen::Matrix4f X = (G * res_.poses[std::size_t(j)]).cast<float>();
+        const Cloud& v = views_[std::size_t(j)].full;
+        const std::size_t stride = std::max<std::size_t>(1, v.size() / 1000);
+        for (std::size_t k = 0; k < v.size() && v.has_colours(); k += stride) {
+          coloured.points.push_back(X.block<3, 3>(0, 0) * v.points[k] + X.block<3, 1>(0, 3));
+          coloured.colours.push_back(v.colours[k]);
+        }
+      }
+      const Eigen::Matrix4d turned = x.transform * rigid_inverse(G);  // from G's place
+      const double here = colour_error(coloured, *colours, Eigen::Matrix4d::Identity(), icp_end_);
+      const double there = colour_error(coloured, *colours, turned, icp_end_);
+      if (std::isfinite(here) && std::isfinite(there) && here <= kColourBetter * there) return -1;
+    }
+    return overlap(second, first, x.transform, 2 * icp_end_);
+  }
+
   std::optional<Eigen::Matrix4d> place_group(const std::vector<int>& base, const std::vector<int>& group,
                                              double& now, double& then,
                                              double max_now = std::numeric_limits<double>::infinity(),
@@ -1745,6 +1788,7 @@ class Registrar {
       if (by_angles && axis && turn.angle() > 2 * kDegree &&
           std::abs(turn.axis().dot(axis->second)) < std::cos(10 * kDegree))
         continue;
+      const double twin = axis ? twin_overlap(base, g, *G, *axis) : -1;
       for (int j : g) res_.poses[j] = *G * res_.poses[j];
       if (by_angles) {
         int anchor = -1;
@@ -1774,6 +1818,16 @@ class Registrar {
           << "others as a whole (moved " << rotation_angle_deg(*G) << " deg, " << res_.mm_per_unit * slide
           << " mm; overlap " << now << " -> " << then << ")";
       words.push_back(w.str());
+      if (twin >= kTwinOverlapShare * then) {
+        // Said, not decided: with the move's size unknown, nothing in the scans tells the
+        // two places apart (a near-symmetric object knocked on the table).
+        w.str("");
+        w << group_name(g) << " also fit the others turned by half a turn on the table (overlap " << twin
+          << " against " << then << ", and the colours do not favour this place): the object looks alike from both "
+          << "sides, so their place may be the turned one; check the merged cloud, or scan with colours or a "
+          << "marker on the object";
+        words.push_back(w.str());
+      }
     }
     if (moved.empty()) return false;
     // Refined again from the moved poses; kept when every moved group is joined.

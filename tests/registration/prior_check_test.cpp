@@ -185,6 +185,23 @@ TEST(AnglePriorFit, TheOppositeSignIsFoundWhereMostViewsTurnThatWay) {
   EXPECT_EQ(fit.convention, "the opposite sign");
 }
 
+TEST(AnglePriorFit, EveryViewOfAFewFittingTheOppositeSignIsTaken) {
+  // 0, 90 and 180 degrees turned the other way: 0 and 180 fit as given too.
+  SessionManifest m;
+  for (double a : {0.0, 90.0, 180.0}) {
+    ViewRecord v;
+    v.file = "view_" + std::to_string(int(a)) + ".ply";
+    v.angle_deg = a;
+    m.views.push_back(v);
+  }
+  std::vector<Eigen::Matrix4d> poses;
+  for (const ViewRecord& v : m.views) poses.push_back(table_pose(-*v.angle_deg));
+  const AnglePriorFit fit = fit_angle_prior(poses, std::vector<bool>(3, true), m, 8.0, Vec3d::UnitZ());
+  EXPECT_TRUE(fit.ok);
+  EXPECT_EQ(fit.agreeing, 3);
+  EXPECT_EQ(fit.convention, "the opposite sign");
+}
+
 TEST(AnglePriorFit, AConventionThatFitsHalfTheViewsByChanceIsNotTaken) {
   const SessionManifest m = issue_angles();
   // Views 0-2 where the opposite sign (and a 40 degree offset) puts them, 3-4 where

@@ -967,15 +967,16 @@ EverydaySession everyday_issue_session(const test::TempDir& dir, const std::stri
   const std::filesystem::path obj = test::source_dir() / "data" / model / "textured.obj";
   const std::string options = "&noise=0.0005&seed=1&dropout=0.01&width=320&height=240" +
                               std::string(colour ? "&color_noise=2" : "&color=0");
-  Session before = capture_sim(dir / "before", "sim:synthetic?mesh=" + obj.string() + options, 12);
+  Session before = capture_sim(dir / "before", "sim:synthetic?mesh=" + obj.string() + options + "&center=1", 12);
   SessionManifest m = before.manifest();
   std::vector<Cloud> all;
   for (std::size_t i = 0; i < m.views.size(); ++i) all.push_back(before.load_view(i));
   if (deg != 0 || shift != Vec3d::Zero()) {
-    // The model turned and slid where the simulator placed it (its box centred on the
-    // table's axis, standing on the table: `off`), written out as is (center=0). The
-    // poses' object frame is the model's own, so a moved view's truth is M = T(-off)
-    // R^-1 T(-shift) times its pose.
+    // The model turned and slid where the simulator placed it (center=1: its box
+    // centred on the table's axis, standing on the table: `off`), written out as is
+    // (center=0). The poses' object frame is the model's own, so a moved view's truth
+    // is M = T(-off) R^-1 T(-shift) times its pose. (Vertex normals are left as they
+    // are: the simulator does not read them.)
     std::ifstream in(obj);
     std::vector<std::string> lines;
     Aabb box;
@@ -1042,22 +1043,47 @@ TEST(SimRegistration, TheIssuesSessionOfEverydayNearSymmetricObjects) {
   struct Case {
     const char* model;
     bool colour;
-    double deg;
-    Vec3d shift;
   };
-  for (const Case& c : {Case{"mustard_bottle", false, 0, Vec3d::Zero()}, Case{"mustard_bottle", true, 0, Vec3d::Zero()},
-                        Case{"rubiks_cube", true, 0, Vec3d::Zero()}}) {
+  for (const Case& c : {Case{"mustard_bottle", false}, Case{"mustard_bottle", true}, Case{"rubiks_cube", true}}) {
     test::TempDir dir;
-    const EverydaySession s = everyday_issue_session(dir, c.model, c.colour, c.deg, c.shift);
+    const EverydaySession s = everyday_issue_session(dir, c.model, c.colour);
     const RegistrationResult r = register_views(s.clouds, s.m);
-    const std::string what = std::string(c.model) + (c.colour ? ", colours" : ", no colours") +
-                             (c.deg != 0 ? ", knocked " + std::to_string(int(c.deg)) + " deg" : "");
+    const std::string what = std::string(c.model) + (c.colour ? ", colours" : ", no colours");
     print_prior(what.c_str(), r);
     EXPECT_TRUE(r.failed_views.empty()) << what;
     EXPECT_EQ(r.views_with_reference, 10) << what;
     EXPECT_LT(r.max_rotation_error_deg, 0.5) << what;
     EXPECT_LT(r.max_object_translation_error, 0.001) << what;
   }
+}
+
+// The bottle without colours knocked on the table after view 4 and scanned again: the
+// views after the knock, registered to the others as a whole, fit them turned by half
+// a turn too, and nothing in the scans tells the two places apart (the knock's size
+// is unknown). Where they land on the turned one (before: 179.6 and 179.7 deg off,
+// exit 0, no word of it), a warning must say their place may be the turned one.
+// (Knocked 90 deg, the run kept is the one with the angles corrected by the moved
+// views' shared error, which no placement as a whole checks: 179.9 deg off and not
+// named; docs/registration.md.)
+TEST(SimRegistration, AKnockedNearSymmetricBottleIsNeverPlacedTurnedWithoutAWord) {
+  int turned = 0;
+  for (const double deg : {-30.0, 45.0}) {
+    test::TempDir dir;
+    const EverydaySession s = everyday_issue_session(dir, "mustard_bottle", false, deg, Vec3d(0.03, 0.02, 0));
+    const RegistrationResult r = register_views(s.clouds, s.m);
+    const std::string what = "bottle knocked " + std::to_string(int(deg)) + " deg";
+    print_prior(what.c_str(), r);
+    bool warned = false;
+    for (const std::string& w : r.warnings)
+      warned = warned || w.find("also fit the others turned by half a turn on the table") != std::string::npos;
+    // The registered views (views failed by name are no silent error).
+    const bool off = r.max_rotation_error_deg >= 0.5 || r.max_object_translation_error >= 0.001;
+    turned += r.max_rotation_error_deg > 90 ? 1 : 0;
+    EXPECT_TRUE(!off || warned) << what << ": " << r.max_rotation_error_deg << " deg off, no warning";
+  }
+  // The case the warning is for does occur here (views placed turned: a session where
+  // every knock lands right would not test it).
+  EXPECT_GT(turned, 0);
 }
 
 // Two runs of views with a gap of 120 degrees between them on both sides
