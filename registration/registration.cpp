@@ -677,6 +677,15 @@ class Registrar {
     return gp;
   }
   std::size_t feature_scales() const { return 1 + p_.global_extra_radii.size(); }
+  // ICP from a global registration's pose: from twice its inlier distance (at least the
+  // refinement's final distance) down to that final distance.
+  IcpParams refine_params() const {
+    const GlobalRegistrationParams gp = global_params();
+    IcpParams ip = p_.icp;
+    ip.max_distance_start = std::max(2.0 * gp.inlier_distance_voxels * gp.voxel_size, icp_end_);
+    ip.max_distance_end = icp_end_;
+    return ip;
+  }
 
   const FeatureView& features_of(int i, std::size_t scale = 0) {
     std::vector<std::unique_ptr<FeatureView>>& f = feats_[i];
@@ -991,9 +1000,7 @@ class Registrar {
       out.message = "global registration failed: " + why;
       return out;
     }
-    IcpParams ip = p_.icp;
-    ip.max_distance_start = std::max(2.0 * gp.inlier_distance_voxels * gp.voxel_size, icp_end_);
-    ip.max_distance_end = icp_end_;
+    const IcpParams ip = refine_params();
     // Hypotheses ranked by the overlap they give the registration copies (the
     // fraction of source points within the ICP start distance of the target);
     // only the best `global_icp_candidates` are refined by ICP.
@@ -1337,29 +1344,31 @@ class Registrar {
   // nearly half a turn away, or where the colours clearly favour G's place. A
   // near-symmetric object (a bottle's front and back) fits both; its right place can
   // overlap less than the turned one, which sees only what the other views saw.
+  // About 1,000 coloured points of each of `group`'s views (views without colours left
+  // out), placed by X times the view's pose: a group's colours against a model's.
+  Cloud coloured_sample(const std::vector<int>& group, const Eigen::Matrix4d& X = Eigen::Matrix4d::Identity()) const {
+    Cloud out;
+    for (int j : group) {
+      const Eigen::Matrix4f P = (X * res_.poses[std::size_t(j)]).cast<float>();
+      const Cloud& v = views_[std::size_t(j)].full;
+      if (!v.has_colours()) continue;
+      const std::size_t stride = std::max<std::size_t>(1, v.size() / 1000);
+      for (std::size_t k = 0; k < v.size(); k += stride) {
+        out.points.push_back(P.block<3, 3>(0, 0) * v.points[k] + P.block<3, 1>(0, 3));
+        out.colours.push_back(v.colours[k]);
+      }
+    }
+    return out;
+  }
+
   double twin_overlap(const std::vector<int>& base, const std::vector<int>& group, const Eigen::Matrix4d& G,
                       const std::pair<Vec3d, Vec3d>& axis) {
     const PreparedView first = model_of(base), second = model_of(group);
-    Vec3d c = Vec3d::Zero();
-    for (const Vec3f& q : first.points) c += q.cast<double>();
-    c /= double(std::max<std::size_t>(1, first.points.size()));
-    const GlobalRegistrationParams gp = global_params();
-    IcpParams ip = p_.icp;
-    ip.max_distance_start = std::max(2.0 * gp.inlier_distance_voxels * gp.voxel_size, icp_end_);
-    ip.max_distance_end = icp_end_;
-    const IcpResult x = icp_point_to_plane(second, first, turn_about_line(c, axis.second, M_PI) * G, ip);
+    const IcpResult x =
+        icp_point_to_plane(second, first, turn_about_line(centroid(first.points), axis.second, M_PI) * G, refine_params());
     if (!x.converged || rotation_angle_deg(Eigen::Matrix4d(rigid_inverse(G) * x.transform)) < 90) return -1;
     if (const std::unique_ptr<ColourModel> colours = colour_model_of(base)) {
-      Cloud coloured;
-      for (int j : group) {
-        const Eigen::Matrix4f X = (G * res_.poses[std::size_t(j)]).cast<float>();
-        const Cloud& v = views_[std::size_t(j)].full;
-        const std::size_t stride = std::max<std::size_t>(1, v.size() / 1000);
-        for (std::size_t k = 0; k < v.size() && v.has_colours(); k += stride) {
-          coloured.points.push_back(X.block<3, 3>(0, 0) * v.points[k] + X.block<3, 1>(0, 3));
-          coloured.colours.push_back(v.colours[k]);
-        }
-      }
+      const Cloud coloured = coloured_sample(group, G);
       const Eigen::Matrix4d turned = x.transform * rigid_inverse(G);  // from G's place
       const double here = colour_error(coloured, *colours, Eigen::Matrix4d::Identity(), icp_end_);
       const double there = colour_error(coloured, *colours, turned, icp_end_);
@@ -1380,17 +1389,7 @@ class Registrar {
     const std::vector<FeatureView> first_feat = {make_feature_view(first.points, first.normals, global_params())};
     const std::vector<FeatureView> second_feat = {make_feature_view(second.points, second.normals, global_params())};
     const std::unique_ptr<ColourModel> colours = colour_model_of(base);
-    Cloud coloured;
-    if (colours)
-      for (int j : group) {
-        const Eigen::Matrix4f X = res_.poses[j].cast<float>();
-        const Cloud& c = views_[j].full;
-        const std::size_t stride = std::max<std::size_t>(1, c.size() / 1000);
-        for (std::size_t k = 0; k < c.size(); k += stride) {
-          coloured.points.push_back(X.block<3, 3>(0, 0) * c.points[k] + X.block<3, 1>(0, 3));
-          coloured.colours.push_back(c.colours[k]);
-        }
-      }
+    const Cloud coloured = colours ? coloured_sample(group) : Cloud();
     // (`free_space`: no pose the base's views see through, as for a single view.)
     const std::unique_ptr<FreeSpace> free = free_space ? free_space_of(base) : nullptr;
     const GlobalAlign g = global_align(second, pointers(second_feat), coloured, first, pointers(first_feat),
@@ -1645,10 +1644,7 @@ class Registrar {
                                                const FreeSpace* free, const AxisConsensus& c,
                                                const Eigen::Matrix4d& ref, const std::vector<double>& turns,
                                                bool colour_must_agree) const {
-    const GlobalRegistrationParams gp = global_params();
-    IcpParams ip = p_.icp;
-    ip.max_distance_start = std::max(2.0 * gp.inlier_distance_voxels * gp.voxel_size, icp_end_);
-    ip.max_distance_end = icp_end_;
+    const IcpParams ip = refine_params();
     const int steps = int(std::lround(360.0 / kAxisSweepDeg));
     std::vector<Eigen::Matrix4d> start(static_cast<std::size_t>(steps));
     std::vector<double> ov(static_cast<std::size_t>(steps));
