@@ -1065,13 +1065,13 @@ TEST(SimRegistration, TheIssuesSessionOfEverydayNearSymmetricObjects) {
 // Knocked 90 deg, the run kept is the one with the angles corrected by the moved
 // views' shared error, which no placement as a whole checked: the first view after the
 // knock (its angle found wrong) and the view without angle before it 179.9 deg off,
-// not named before the twenty-fifth session; now the view is named
-// (settle_view_twins).
+// not named before the twenty-fifth session; now the view without angle is named
+// (settle_view_twins; two views in their right places with it).
 //
-// The coloured bottle knocked 45 deg: the run with the angles put the views after the
-// knock where the colours say and joined one view fewer than the run without angles,
-// which was kept, on the twin (179.4 deg off), not named before; the runs' disagreement
-// is named now.
+// The coloured bottle knocked 45 deg: the run with the angles now puts the views after
+// the knock where the colours say and joins one view fewer than the run without
+// angles, which is kept, on the twin (179.4 deg off); the runs' disagreement is named.
+// (Before this session the run with the angles was kept, its group on the twin, named.)
 TEST(SimRegistration, AKnockedNearSymmetricBottleIsNeverPlacedTurnedWithoutAWord) {
   int turned = 0;
   for (const auto& [deg, colour] : {std::pair{-30.0, false}, {45.0, false}, {90.0, false}, {45.0, true}}) {
@@ -1099,7 +1099,8 @@ TEST(SimRegistration, AKnockedNearSymmetricBottleIsNeverPlacedTurnedWithoutAWord
 // whole on the half-turned twin (the colours favouring the turned place 7.5 against
 // 25.8); knocked 10 deg, the first view after the knock (its angle found wrong) and the
 // view without angle after it were placed on their twins by global registration (the
-// shapes: overlap 1.0 there against 0.70 in the right place; colours 16.4 against 8.7).
+// shapes: overlap 1.0 there against 0.70 in the right place; colours 8.7 at the
+// turned place against 16.4).
 // Before: 179.7 and 179.8 deg off. Now each view within 0.5 deg / 1 mm, and said.
 TEST(SimRegistration, AKnockedColouredBottleIsPlacedWhereItsColoursSay) {
   for (const double deg : {-30.0, 10.0}) {
