@@ -366,7 +366,10 @@ class Registrar {
       }
     }
     if (p_.place_unlinked && p_.global_registration) place_unlinked_groups(last_refine_words);
-    if (p_.global_registration) settle_view_twins();
+    if (p_.global_registration) {
+      settle_view_twins();
+      settle_runs_twin();
+    }
     res_.seconds_refine = seconds_since(t0);
     t0 = Clock::now();
     finish();
@@ -1420,15 +1423,20 @@ class Registrar {
     Eigen::Matrix4d transform = Eigen::Matrix4d::Identity();  // the turned place (object frame)
     int colours = 0;  // +1: they clearly favour G's place, -1: the turned one, 0: neither (or none)
   };
+  // (`base_model`, `base_colours`: the base's models where the caller has built them.)
   Twin twin_overlap(const std::vector<int>& base, const std::vector<int>& group, const Eigen::Matrix4d& G,
-                    const std::pair<Vec3d, Vec3d>& axis, double better = kColourBetter) {
+                    const std::pair<Vec3d, Vec3d>& axis, double better = kColourBetter,
+                    const PreparedView* base_model = nullptr, const ColourModel* base_colours = nullptr) {
     Twin t;
-    const PreparedView first = model_of(base), second = model_of(group);
+    const PreparedView built = base_model ? PreparedView() : model_of(base);
+    const PreparedView& first = base_model ? *base_model : built;
+    const PreparedView second = model_of(group);
     const IcpResult x =
         icp_point_to_plane(second, first, turn_about_line(centroid(first.points), axis.second, M_PI) * G, refine_params());
     if (!x.converged || rotation_angle_deg(Eigen::Matrix4d(rigid_inverse(G) * x.transform)) < 90) return t;
     t.transform = x.transform;
-    if (const std::unique_ptr<ColourModel> colours = colour_model_of(base)) {
+    const std::unique_ptr<ColourModel> own = base_colours ? nullptr : colour_model_of(base);
+    if (const ColourModel* colours = base_colours ? base_colours : own.get()) {
       const Cloud coloured = coloured_sample(group, G);
       const Eigen::Matrix4d turned = x.transform * rigid_inverse(G);  // from G's place
       const double here = colour_error(coloured, *colours, Eigen::Matrix4d::Identity(), icp_end_);
@@ -1457,25 +1465,27 @@ class Registrar {
       const int v = int(i);
       const bool by_angle = has_angle(v) && !res_.views[i].angle_rejected &&
                             std::find(off_table_.begin(), off_table_.end(), v) == off_table_.end();
-      (by_angle ? base : check).push_back(v);
+      if (by_angle) base.push_back(v);
+      else if (res_.views[i].initial != InitialPoseSource::kInitialPose) check.push_back(v);  // (a pose given stays)
     }
     if (base.size() < 2 || check.empty()) return false;
     const std::optional<std::pair<Vec3d, Vec3d>> axis = object_axis(base);
     if (!axis) return false;
     const PreparedView first = model_of(base);
+    const std::unique_ptr<ColourModel> base_colours = colour_model_of(base);
     State before = state();
     std::vector<int> moved;
     std::vector<std::string> words, doubts;
     for (int v : check) {
       const double now = overlap(model_of({v}), first, Eigen::Matrix4d::Identity(), 2 * icp_end_);
-      const Twin t = twin_overlap(base, {v}, Eigen::Matrix4d::Identity(), *axis, kColourTwinView);
-      if (!(now >= kTwinMinOverlap) || !(t.overlap >= std::max(kTwinOverlapShare * now, kTwinMinOverlap)) ||
-          t.colours > 0)
-        continue;
+      // (Its angle, or its neighbours' expected turn, holds it: left, whatever the colours.)
+      if (!(now >= kTwinMinOverlap) || held_where_it_is(v)) continue;
+      const Twin t = twin_overlap(base, {v}, Eigen::Matrix4d::Identity(), *axis, kColourTwinView, &first,
+                                  base_colours.get());
+      if (!(t.overlap >= std::max(kTwinOverlapShare * now, kTwinMinOverlap)) || t.colours > 0) continue;
       std::ostringstream w;
       w.precision(3);
       if (t.colours == 0) {
-        if (held_where_it_is(v)) continue;
         w << view_name(m_, std::size_t(v)) << " also fits the views the angles placed " << kHalfTurn << " on the "
           << "table (overlap " << t.overlap << " against " << now << "), and neither its angle nor its colours "
           << "tell the two apart: its place may be the turned one; check the merged cloud";
@@ -1487,6 +1497,10 @@ class Registrar {
       w << view_name(m_, std::size_t(v)) << " fit the views the angles placed " << kHalfTurn << " too (overlap "
         << t.overlap << " against " << now << "), and " << kColoursFavour << ": moved there ("
         << rotation_angle_deg(t.transform) << " deg)";
+      if (has_angle(v))
+        w << "; it is now " << rotation_angle_deg(Eigen::Matrix4d(rigid_inverse(turntable_pose(*res_.axis, angle_of(v))) *
+                                                                res_.poses[std::size_t(v)]))
+          << " deg from its commanded angle (a word above about its angle is from before the move)";
       words.push_back(w.str());
     }
     if (moved.empty()) {
@@ -1524,6 +1538,66 @@ class Registrar {
     res_.warnings.insert(res_.warnings.end(), doubts.begin(), doubts.end());
     return true;
   }
+  // Without any angle (the run without angles, or a session of clouds only), where the
+  // refinement found the object moved on the table (split_: two runs, each on the one
+  // axis): the run after the move, where it is, against its half-turned twin about the
+  // table's axis (the axis the first run's poses turn about), as `settle_twin` does for
+  // a group (issue 26: every knocked coloured cube kept this run on the twin, unnamed).
+  // Where the colours choose the turned place, the run goes there and the session is
+  // refined again, kept where it holds as well; where they do not decide, named.
+  bool settle_runs_twin() {
+    if (!split_.found || split_.run_starts.size() != 1) return false;
+    for (std::size_t i = 0; i < m_.views.size(); ++i)
+      if (has_angle(int(i))) return false;
+    std::vector<int> before, after;
+    bool moved = false;
+    for (int i : ring()) {
+      if (!usable_[std::size_t(i)] || std::find(off_table_.begin(), off_table_.end(), i) != off_table_.end()) continue;
+      moved = moved || i == split_.first_after;
+      (moved ? after : before).push_back(i);
+    }
+    if (before.size() < 3 || after.size() < 2) return false;
+    std::vector<Eigen::Matrix4d> poses;
+    for (int i : before) poses.push_back(res_.poses[std::size_t(i)]);
+    const AxisFitResult fit = calibrate_axis(poses, angles_about_common_axis(poses));
+    if (!fit.ok) return false;
+    const Eigen::Matrix4d& X = res_.poses[std::size_t(before.front())];
+    const std::optional<std::pair<Vec3d, Vec3d>> axis = std::make_pair(
+        Vec3d((X * fit.axis.point.homogeneous()).head<3>()), Vec3d((X.block<3, 3>(0, 0) * fit.axis.direction).normalized()));
+    const double now = overlap(model_of(after), model_of(before), Eigen::Matrix4d::Identity(), 2 * icp_end_);
+    double then = now, twin = -1;
+    Eigen::Matrix4d G = Eigen::Matrix4d::Identity();
+    const int settled = settle_twin(before, after, G, then, axis, twin);
+    if (settled < 0) res_.warnings.push_back(twin_words(after, twin, then));
+    if (settled <= 0) return false;
+    State was = state();
+    const std::array<std::size_t, 3> score = chain_score();
+    for (int j : after) res_.poses[std::size_t(j)] = G * res_.poses[std::size_t(j)];
+    const std::size_t from = std::min(refine_words_.first, res_.warnings.size());
+    const std::size_t to = std::max(from, std::min(refine_words_.second, res_.warnings.size()));
+    res_.warnings.erase(res_.warnings.begin() + std::ptrdiff_t(from), res_.warnings.begin() + std::ptrdiff_t(to));
+    res_.pairs.clear();
+    refine();
+    const std::array<std::size_t, 3> now_score = chain_score();
+    if (now_score[0] < score[0] || now_score[1] < score[1]) {
+      restore(std::move(was));
+      std::ostringstream w;
+      w.precision(3);
+      w << group_name(after) << " (after the object moved on the table) also fit the others " << kHalfTurn
+        << " on the table, where their colours fit better, but the session did not hold together with them "
+        << "there: their place may be the turned one; check the merged cloud";
+      res_.warnings.push_back(w.str());
+      return false;
+    }
+    std::ostringstream w;
+    w.precision(3);
+    w << group_name(after) << " (after the object moved on the table) were " << kHalfTurn
+      << " about the table's axis (" << rotation_angle_deg(G) << " deg): the shapes fit both places, and "
+      << kColoursChose;
+    res_.warnings.push_back(w.str());
+    return true;
+  }
+
   // Whether something besides its overlap holds view v where it is: its commanded angle
   // (shifted with its run) within kSuspectNearDeg, or, without angle, the pose its
   // neighbours in capture order expect, within that pose's tolerance.
