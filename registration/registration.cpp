@@ -1497,7 +1497,7 @@ class Registrar {
       w << view_name(m_, std::size_t(v)) << " fit the views the angles placed " << kHalfTurn << " too (overlap "
         << t.overlap << " against " << now << "), and " << kColoursFavour << ": moved there ("
         << rotation_angle_deg(t.transform) << " deg)";
-      if (has_angle(v))
+      if (has_angle(v) && std::find(off_table_.begin(), off_table_.end(), v) == off_table_.end())
         w << "; it is now " << rotation_angle_deg(Eigen::Matrix4d(rigid_inverse(turntable_pose(*res_.axis, angle_of(v))) *
                                                                 res_.poses[std::size_t(v)]))
           << " deg from its commanded angle (a word above about its angle is from before the move)";
@@ -1546,7 +1546,8 @@ class Registrar {
   // Where the colours choose the turned place, the run goes there and the session is
   // refined again, kept where it holds as well; where they do not decide, named.
   bool settle_runs_twin() {
-    if (!split_.found || split_.run_starts.size() != 1) return false;
+    // (Two runs that each fit the one axis: the refinement held them so.)
+    if (!split_.found || split_.run_starts.size() != 1 || res_.turntable_groups < 2) return false;
     for (std::size_t i = 0; i < m_.views.size(); ++i)
       if (has_angle(int(i))) return false;
     std::vector<int> before, after;
@@ -1557,6 +1558,10 @@ class Registrar {
       (moved ? after : before).push_back(i);
     }
     if (before.size() < 3 || after.size() < 2) return false;
+    if (std::any_of(after.begin(), after.end(), [&](int j) {
+          return res_.views[std::size_t(j)].initial == InitialPoseSource::kInitialPose;  // (a pose given stays)
+        }))
+      return false;
     std::vector<Eigen::Matrix4d> poses;
     for (int i : before) poses.push_back(res_.poses[std::size_t(i)]);
     const AxisFitResult fit = calibrate_axis(poses, angles_about_common_axis(poses));
@@ -1578,8 +1583,15 @@ class Registrar {
     res_.warnings.erase(res_.warnings.begin() + std::ptrdiff_t(from), res_.warnings.begin() + std::ptrdiff_t(to));
     res_.pairs.clear();
     refine();
+    // Kept where the two runs still each fit the axis, the run moved is joined to the
+    // others by converged pairs, and no fewer views are joined or registered.
     const std::array<std::size_t, 3> now_score = chain_score();
-    if (now_score[0] < score[0] || now_score[1] < score[1]) {
+    std::size_t main_group = 0;
+    const std::vector<std::vector<int>> groups = linked_groups(&main_group);
+    const bool joined = !groups.empty() && std::any_of(after.begin(), after.end(), [&](int j) {
+      return std::find(groups[main_group].begin(), groups[main_group].end(), j) != groups[main_group].end();
+    });
+    if (!joined || res_.turntable_groups < 2 || now_score[0] < score[0] || now_score[1] < score[1]) {
       restore(std::move(was));
       std::ostringstream w;
       w.precision(3);
