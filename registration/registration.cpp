@@ -335,10 +335,7 @@ class Registrar {
     // across it fail, so the refinement alone does not see it.
     if (!split_.found && moved_from_ > 0) {
       // The first view of the run that regroup() takes (usable, its angle kept).
-      const auto takes = [&](int j) {
-        return usable_[std::size_t(j)] && has_angle(j) && !res_.views[std::size_t(j)].angle_rejected &&
-               std::find(off_table_.begin(), off_table_.end(), j) == off_table_.end();
-      };
+      const auto takes = [&](int j) { return usable_[std::size_t(j)] && placed_by_angle(j); };
       int first = moved_from_;
       while (first < int(n) && !takes(first)) ++first;
       for (int j = std::min(first, int(n)) - 1; first < int(n) && j >= 0; --j)
@@ -1463,9 +1460,7 @@ class Registrar {
     for (std::size_t i = 0; i < m_.views.size(); ++i) {
       if (!usable_[i]) continue;
       const int v = int(i);
-      const bool by_angle = has_angle(v) && !res_.views[i].angle_rejected &&
-                            std::find(off_table_.begin(), off_table_.end(), v) == off_table_.end();
-      if (by_angle) base.push_back(v);
+      if (placed_by_angle(v)) base.push_back(v);
       else if (res_.views[i].initial != InitialPoseSource::kInitialPose) check.push_back(v);  // (a pose given stays)
     }
     if (base.size() < 2 || check.empty()) return false;
@@ -1507,18 +1502,9 @@ class Registrar {
       res_.warnings.insert(res_.warnings.end(), doubts.begin(), doubts.end());
       return false;
     }
-    // The last refinement's words give way to the new one's.
     const std::array<std::size_t, 3> score = chain_score();
-    const std::size_t from = std::min(refine_words_.first, res_.warnings.size());
-    const std::size_t to = std::max(from, std::min(refine_words_.second, res_.warnings.size()));
-    res_.warnings.erase(res_.warnings.begin() + std::ptrdiff_t(from), res_.warnings.begin() + std::ptrdiff_t(to));
-    res_.pairs.clear();
-    refine();
-    std::size_t main_group = 0;
-    const std::vector<std::vector<int>> groups = linked_groups(&main_group);
-    const bool joined = !groups.empty() && std::all_of(moved.begin(), moved.end(), [&](int v) {
-      return std::find(groups[main_group].begin(), groups[main_group].end(), v) != groups[main_group].end();
-    });
+    refine_again();
+    const bool joined = in_main_group(moved, true);
     // Kept when the moved views are joined and the session holds as well (on a
     // near-symmetric object pairs converge on a twin too, so joined alone proves little).
     const std::array<std::size_t, 3> now_score = chain_score();
@@ -1578,19 +1564,11 @@ class Registrar {
     State was = state();
     const std::array<std::size_t, 3> score = chain_score();
     for (int j : after) res_.poses[std::size_t(j)] = G * res_.poses[std::size_t(j)];
-    const std::size_t from = std::min(refine_words_.first, res_.warnings.size());
-    const std::size_t to = std::max(from, std::min(refine_words_.second, res_.warnings.size()));
-    res_.warnings.erase(res_.warnings.begin() + std::ptrdiff_t(from), res_.warnings.begin() + std::ptrdiff_t(to));
-    res_.pairs.clear();
-    refine();
+    refine_again();
     // Kept where the two runs still each fit the axis, the run moved is joined to the
     // others by converged pairs, and no fewer views are joined or registered.
     const std::array<std::size_t, 3> now_score = chain_score();
-    std::size_t main_group = 0;
-    const std::vector<std::vector<int>> groups = linked_groups(&main_group);
-    const bool joined = !groups.empty() && std::any_of(after.begin(), after.end(), [&](int j) {
-      return std::find(groups[main_group].begin(), groups[main_group].end(), j) != groups[main_group].end();
-    });
+    const bool joined = in_main_group(after, false);
     if (!joined || res_.turntable_groups < 2 || now_score[0] < score[0] || now_score[1] < score[1]) {
       restore(std::move(was));
       std::ostringstream w;
@@ -1610,6 +1588,30 @@ class Registrar {
     return true;
   }
 
+  // Placed by its commanded angle: it has one, not found wrong, on the table.
+  bool placed_by_angle(int i) const {
+    return has_angle(i) && !res_.views[std::size_t(i)].angle_rejected &&
+           std::find(off_table_.begin(), off_table_.end(), i) == off_table_.end();
+  }
+  // The session refined again from the poses as they are, the last refinement's words
+  // giving way to the new one's.
+  void refine_again() {
+    const std::size_t from = std::min(refine_words_.first, res_.warnings.size());
+    const std::size_t to = std::max(from, std::min(refine_words_.second, res_.warnings.size()));
+    res_.warnings.erase(res_.warnings.begin() + std::ptrdiff_t(from), res_.warnings.begin() + std::ptrdiff_t(to));
+    res_.pairs.clear();
+    refine();
+  }
+  // Whether `views` (every one, or any one) are in the largest group converged pairs join.
+  bool in_main_group(const std::vector<int>& views, bool every) const {
+    std::size_t main_group = 0;
+    const std::vector<std::vector<int>> groups = linked_groups(&main_group);
+    if (groups.empty()) return false;
+    const auto in = [&](int v) {
+      return std::find(groups[main_group].begin(), groups[main_group].end(), v) != groups[main_group].end();
+    };
+    return every ? std::all_of(views.begin(), views.end(), in) : std::any_of(views.begin(), views.end(), in);
+  }
   // Whether something besides its overlap holds view v where it is: its commanded angle
   // (shifted with its run) within kSuspectNearDeg, or, without angle, the pose its
   // neighbours in capture order expect, within that pose's tolerance.
@@ -2025,10 +2027,7 @@ class Registrar {
     for (std::size_t k = 0; k < groups.size(); ++k) {
       if (k == largest) continue;
       const std::vector<int>& g = groups[k];
-      const bool by_angles = std::any_of(g.begin(), g.end(), [&](int i) {
-        return has_angle(i) && !res_.views[std::size_t(i)].angle_rejected &&
-               std::find(off_table_.begin(), off_table_.end(), i) == off_table_.end();
-      });
+      const bool by_angles = std::any_of(g.begin(), g.end(), [&](int i) { return placed_by_angle(i); });
       // A group that no angle placed (the run without angles: the chain's global
       // registrations put it there, pairs it could not refine): its place is measured
       // by nothing either (the dragon's scans given out of turntable order: two of them
