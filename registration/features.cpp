@@ -193,4 +193,50 @@ std::vector<int> nearest_descriptors(const std::vector<FpfhDescriptor>& query,
   return out;
 }
 
+std::vector<int> nearest_descriptors_gated(const std::vector<FpfhDescriptor>& query, const std::vector<Vec3f>& query_chroma,
+                                           const std::vector<FpfhDescriptor>& reference,
+                                           const std::vector<Vec3f>& reference_chroma, double gate, int candidates) {
+  if (query_chroma.size() != query.size() || reference_chroma.size() != reference.size() || !(gate >= 0) ||
+      candidates < 1)
+    throw InvalidInput("colour-gated descriptor matches: one chromaticity per descriptor, gate >= 0, candidates >= 1");
+  std::vector<int> out(query.size(), -1);
+  if (reference.empty()) return out;
+  const float g2 = float(gate * gate);
+  const auto agrees = [&](std::size_t i, std::size_t j) {
+    return (query_chroma[i] - reference_chroma[j]).squaredNorm() <= g2;
+  };
+  if (reference.size() < kScanBelow) {
+    tbb::parallel_for(std::size_t(0), query.size(), [&](std::size_t i) {
+      float best = std::numeric_limits<float>::infinity();
+      for (std::size_t j = 0; j < reference.size(); ++j) {
+        if (!agrees(i, j)) continue;
+        float d = 0;
+        for (int b = 0; b < kFpfhBins && d < best; ++b) {
+          const float e = query[i][std::size_t(b)] - reference[j][std::size_t(b)];
+          d += e * e;
+        }
+        if (d < best) best = d, out[i] = int(j);
+      }
+    });
+    return out;
+  }
+  // The nearest `candidates` descriptors by the tree, the first of them (the least
+  // distance, then the lowest index) whose colour agrees.
+  const DescriptorsAdaptor adaptor{&reference};
+  const DescriptorTree tree(kFpfhBins, adaptor, nanoflann::KDTreeSingleIndexAdaptorParams(16));
+  const std::size_t k = std::min<std::size_t>(std::size_t(candidates), reference.size());
+  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, query.size(), 64), [&](const tbb::blocked_range<std::size_t>& r) {
+    std::vector<std::uint32_t> idx(k);
+    std::vector<float> dsq(k);
+    for (std::size_t i = r.begin(); i != r.end(); ++i) {
+      const std::size_t found = tree.knnSearch(query[i].data(), k, idx.data(), dsq.data());
+      std::pair<float, std::uint32_t> best{std::numeric_limits<float>::infinity(), 0};
+      for (std::size_t c = 0; c < found; ++c)
+        if (agrees(i, idx[c])) best = std::min(best, std::make_pair(dsq[c], idx[c]));
+      if (std::isfinite(best.first)) out[i] = int(best.second);
+    }
+  });
+  return out;
+}
+
 }  // namespace station

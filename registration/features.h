@@ -38,5 +38,13 @@ std::vector<FpfhDescriptor> compute_fpfh(const PointIndex& index, const std::vec
 /// (Euclidean over the 33 bins; brute force, parallel); -1 when `reference` is empty.
 std::vector<int> nearest_descriptors(const std::vector<FpfhDescriptor>& query,
                                      const std::vector<FpfhDescriptor>& reference);
+/// The same where each descriptor has a colour (a chromaticity, one per descriptor):
+/// the nearest reference descriptor among those whose colour is within `gate`
+/// (Euclidean) of the query's, looked for among the `candidates` nearest (least
+/// distance, then lowest index); -1 where none of them agrees. Below 256 reference
+/// descriptors every one is looked at. InvalidInput on a size mismatch.
+std::vector<int> nearest_descriptors_gated(const std::vector<FpfhDescriptor>& query, const std::vector<Vec3f>& query_chroma,
+                                           const std::vector<FpfhDescriptor>& reference,
+                                           const std::vector<Vec3f>& reference_chroma, double gate, int candidates);
 
 }  // namespace station

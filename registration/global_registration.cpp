@@ -77,6 +77,20 @@ FeatureView make_feature_view(const std::vector<Vec3f>& points, const std::vecto
   return finish_view(std::move(pts), std::move(ns), params);
 }
 
+FeatureView with_colours(FeatureView view, const Cloud& coloured) {
+  if (!coloured.has_colours() || coloured.empty()) return view;
+  const PointIndex index(coloured.points);
+  view.chroma.resize(view.points.size());
+  for (std::size_t i = 0; i < view.points.size(); ++i) {
+    const auto [j, d] = index.nearest(view.points[i]);
+    const Rgb& c = coloured.colours[std::size_t(j)];
+    const Vec3f rgb(float(c.r), float(c.g), float(c.b));
+    view.chroma[i] = rgb / std::max(rgb.sum(), kChromaDark);
+  }
+  return view;
+}
+
+
 GlobalRegistrationResult register_global(const FeatureView& source, const FeatureView& target,
                                          const GlobalRegistrationParams& p) {
   check_params(p);
@@ -88,8 +102,16 @@ GlobalRegistrationResult register_global(const FeatureView& source, const Featur
   }
   // Matches: nearest descriptor in both directions (union, deduplicated).
   std::set<std::pair<int, int>> match_set;
-  const std::vector<int> st = nearest_descriptors(source.features, target.features);
-  const std::vector<int> ts = nearest_descriptors(target.features, source.features);
+  const bool gated = p.colour_gate > 0 && source.chroma.size() == source.points.size() &&
+                     target.chroma.size() == target.points.size();
+  const std::vector<int> st =
+      gated ? nearest_descriptors_gated(source.features, source.chroma, target.features, target.chroma, p.colour_gate,
+                                        p.colour_candidates)
+            : nearest_descriptors(source.features, target.features);
+  const std::vector<int> ts =
+      gated ? nearest_descriptors_gated(target.features, target.chroma, source.features, source.chroma, p.colour_gate,
+                                        p.colour_candidates)
+            : nearest_descriptors(target.features, source.features);
   for (std::size_t i = 0; i < st.size(); ++i)
     if (st[i] >= 0) match_set.insert({int(i), st[i]});
   for (std::size_t j = 0; j < ts.size(); ++j)

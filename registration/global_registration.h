@@ -29,6 +29,10 @@ struct FeatureView {
   std::vector<Vec3f> normals;  ///< unit, consistently oriented
   std::vector<FpfhDescriptor> features;
   std::shared_ptr<PointIndex> index;  ///< over points
+  /// Optional, one per point (with_colours): the point's chromaticity, rgb / max(r + g + b,
+  /// kChromaDark), so hues compare whatever the exposure and dark points stay near zero.
+  /// Where both views carry them, a feature match must agree in it (colour_gate).
+  std::vector<Vec3f> chroma;
 };
 
 struct GlobalRegistrationParams {
@@ -55,6 +59,13 @@ struct GlobalRegistrationParams {
   /// Fewer inlier matches than this is a failure.
   int min_inliers = 8;
   std::uint64_t seed = 42;
+  /// Where both views carry chromaticities (FeatureView::chroma), a descriptor match is
+  /// only made between points whose chromaticities are within this distance: on a
+  /// shape that looks alike turned (a cube's faces), the shape's features alone match
+  /// every face to every other, and RANSAC's best pose lands on a turned twin.
+  double colour_gate = 0.08;
+  /// ...looked for among this many nearest descriptors (nearest_descriptors_gated).
+  int colour_candidates = 32;
 };
 
 struct GlobalHypothesis {
@@ -81,6 +92,12 @@ FeatureView make_feature_view(const std::vector<Vec3f>& points, const Vec3f& vie
 /// model): downsampled, each kept point takes the normal of its nearest input point.
 FeatureView make_feature_view(const std::vector<Vec3f>& points, const std::vector<Vec3f>& normals,
                               const GlobalRegistrationParams& params);
+
+/// Chromaticities are rgb / max(r + g + b, this): darker points tend to zero.
+inline constexpr float kChromaDark = 90;
+/// `view` with chroma from `coloured`'s colours (each feature point takes its nearest
+/// point's; the same frame). `view` unchanged where `coloured` has no colours.
+FeatureView with_colours(FeatureView view, const Cloud& coloured);
 
 /// Aligns `source` onto `target` without an initial pose. InvalidInput on
 /// non-positive voxel size or edge_similarity outside (0, 1].

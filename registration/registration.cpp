@@ -716,6 +716,14 @@ class Registrar {
                         make_feature_view(views_[i].full.points, views_[i].viewpoint, global_params(scale)));
     return *f[scale];
   }
+  // A view's features at the first scale with its colours' chromaticities (colour-gated
+  // matches: FeatureView::chroma), made once.
+  const FeatureView& colour_features_of(int i) {
+    colour_feats_.resize(views_.size());
+    std::unique_ptr<FeatureView>& f = colour_feats_[std::size_t(i)];
+    if (!f) f = std::make_unique<FeatureView>(with_colours(features_of(i), views_[i].full));
+    return *f;
+  }
   // A view's features at every scale (the multi-start path).
   std::vector<const FeatureView*> all_features_of(int i) {
     std::vector<const FeatureView*> out;
@@ -798,6 +806,7 @@ class Registrar {
     bool colour_disagrees = false;  // the pose's colours disagree with the target's (colour given)
     double colour = std::numeric_limits<double>::infinity();  // its colour_error (colour given)
     bool colour_refuted = false;  // a chain's pair (pair_align): colour >= kChainColourRefutes bounds
+    bool by_colour = false;       // a chain's pair: found by features matched where colours agree
   };
 
   // Free space as the model's views saw it (registration/free_space.h): the
@@ -1744,6 +1753,23 @@ class Registrar {
   // joined all 15 views with four of them 103 deg off, by 0.175 and 0.236 fits; the
   // second placed all within 0.36 deg.) `start`: the state before initial_poses;
   // `warned`: where the refinement's warnings start.
+  // The last round's converged pairs whose views' colours, under the poses kept, differ
+  // by kChainColourRefutes times the colour bound or more (as a chain's pair is refuted:
+  // own_colours). 0 without colours.
+  std::size_t colour_refuted_pairs() {
+    if (res_.pairs.empty()) return 0;
+    const int round = res_.pairs.back().round;
+    std::size_t refuted = 0;
+    for (const PairDiagnostics& pd : res_.pairs) {
+      if (pd.round != round || !pd.converged || !usable_[std::size_t(pd.from)] || !usable_[std::size_t(pd.to)]) continue;
+      const ColourModel* colours = own_colours(pd.to);
+      if (!colours) continue;
+      const double e = colour_error(views_[pd.from].full, *colours, rigid_inverse(res_.poses[pd.to]) * res_.poses[pd.from],
+                                    icp_end_, views_[pd.from].viewpoint);
+      refuted += std::isfinite(e) && e >= kChainColourRefutes * colours->disagrees;
+    }
+    return refuted;
+  }
   void retry_chain(const State& start, std::size_t& warned) {
     if (!chained_ || confident_chain_) return;
     const std::array<std::size_t, 3> first_score = chain_score();
@@ -1751,12 +1777,28 @@ class Registrar {
     if (!weak_fit_ && first_score[0] == first_score[1] && first_score[1] == usable_at_start) return;
     State first = state();
     const std::size_t first_warned = warned;
+    const std::size_t first_refuted = colour_refuted_pairs();
     restore(State(start));
     confident_chain_ = true;
     initial_poses();
     warned = res_.warnings.size();
     refine();
-    if (chain_score() > first_score) return;
+    // Converged pairs whose colours refute them count against a chain (a cube's
+    // quarter-turned twins fit the shapes as well as the right poses do).
+    const auto colour_checked = [](std::array<std::size_t, 3> score, std::size_t refuted) {
+      score[2] -= std::min(score[2], refuted);
+      return score;
+    };
+    const std::array<std::size_t, 3> second_score = chain_score();
+    const std::size_t second_refuted = colour_refuted_pairs();
+    if (colour_checked(second_score, second_refuted) > colour_checked(first_score, first_refuted)) {
+      if (!(second_score > first_score))
+        res_.notes.push_back("two chains of the views without angles fit the shapes alike (a near-symmetric "
+                             "object), one with " + std::to_string(first_refuted) + " and one with " +
+                             std::to_string(second_refuted) + " pairs whose colours differ: the colours chose "
+                             "between the two");
+      return;
+    }
     restore(std::move(first));
     warned = first_warned;
     confident_chain_ = false;
@@ -2301,6 +2343,18 @@ class Registrar {
                                          all_features_of(j), colours, std::nullopt, true, false, nullptr, true);
       if (b.ok && !b.colour_disagrees && b.colour <= kColourBetter * a.colour) a = b;
     }
+    // Still different colours brought together, or no fit at all: the features matched
+    // only where their colours agree (FeatureView::chroma), from many starts. A cube's
+    // faces are alike but for their stickers, so every face's features match every
+    // other's and RANSAC's poses land on quarter-turned twins; the right pose of two
+    // views 30 deg apart converged with a better overlap (0.60 against 0.47) but was
+    // never proposed.
+    if (colours && p_.global.colour_gate > 0 && (!a.ok || a.colour_disagrees)) {
+      GlobalAlign c = global_align(views_[src], {&colour_features_of(src)}, views_[src].full, views_[j],
+                                   {&colour_features_of(j)}, colours, std::nullopt, true, false, nullptr, true);
+      c.by_colour = a.ok;  // (a pose where the shapes alone found none is no choice between two)
+      if (c.ok && !c.colour_disagrees && (!a.ok || c.colour <= kColourBetter * a.colour)) a = c;
+    }
     // (Infinite where nothing could be compared, a source view without colours: no word.)
     a.colour_refuted =
         a.ok && colours && std::isfinite(a.colour) && a.colour >= kChainColourRefutes * colours->disagrees;
@@ -2356,7 +2410,9 @@ class Registrar {
         if (!a.ok && w.why.empty()) w.why = view_name(m_, j) + ": " + a.message;
         return a.ok && !a.colour_refuted && a.fitness >= kConfidentFitness;
       };
+      std::vector<int> by_colour;  // placed by a pose the colours chose (pair_align)
       const auto place = [&](const Waiting& w) {
+        if (w.best.by_colour) by_colour.push_back(w.view);
         weak_fit_ = weak_fit_ || w.best.fitness < kConfidentFitness || w.best.colour_refuted;
         res_.poses[w.view] = res_.poses[w.best_to] * w.best.transform;
         res_.views[w.view].initial = InitialPoseSource::kGlobal;
@@ -2436,6 +2492,12 @@ class Registrar {
       for (const auto& [i, why] : missed) {
         fail(i, why + against_model[i]);
         chain_missed_.push_back(i);
+      }
+      if (!by_colour.empty()) {
+        std::sort(by_colour.begin(), by_colour.end());
+        res_.notes.push_back(group_name(by_colour) + ": the shapes fit the views before them in other places too "
+                             "(a near-symmetric object, turned), where the colours differ; " + kColoursChose +
+                             " places");
       }
       return;
     }
@@ -3125,6 +3187,7 @@ class Registrar {
   std::vector<PreparedView> views_;
   std::vector<std::vector<std::unique_ptr<FeatureView>>> feats_;  // per view, per feature scale
   std::vector<int> off_table_;  // posed by global registration against the model
+  std::vector<std::unique_ptr<FeatureView>> colour_feats_;  // colour_features_of
   bool confident_chain_ = false;  // global_poses' second chain (see there)
   // While global_poses aligns a view without an angle that sits between views with
   // angles in capture order: the pose its angle would give, interpolated from theirs,

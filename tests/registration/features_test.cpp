@@ -144,6 +144,60 @@ TEST(Fpfh, NearestDescriptorsOverATreeAreTheScansAnswer) {
   EXPECT_GT(tied, 10u);  // the ties were there to be broken
 }
 
+// Colour-gated matches (a cube's faces: alike in shape, told apart by their stickers):
+// the nearest descriptor whose colour agrees, not the nearest one; none where no
+// candidate agrees. Over the tree (many descriptors) and the scan (few) alike.
+TEST(Fpfh, GatedMatchesTakeTheNearestDescriptorOfTheSameColour) {
+  std::mt19937 rng(5);
+  std::gamma_distribution<float> g(0.6f, 8.f);
+  for (const std::size_t n : {std::size_t(100), std::size_t(2000)}) {
+    std::vector<FpfhDescriptor> ref(n);
+    std::vector<Vec3f> ref_colour(n);
+    const Vec3f red(0.8f, 0.1f, 0.1f), blue(0.1f, 0.1f, 0.8f);
+    for (std::size_t j = 0; j < n; ++j) {
+      for (float& b : ref[j]) b = g(rng);
+      ref_colour[j] = j % 2 ? blue : red;
+    }
+    // Each query: an odd (blue) reference descriptor, a little off, asked for in red.
+    // Its nearest is that blue one; the gated answer must be a red one, and the
+    // nearest red one by the scan.
+    std::vector<FpfhDescriptor> q;
+    std::vector<Vec3f> q_colour;
+    for (std::size_t j = 1; j < n; j += 20) {
+      FpfhDescriptor d = ref[j];
+      d[0] += 0.5f;
+      q.push_back(d);
+      q_colour.push_back(red);
+    }
+    const std::vector<int> plain = nearest_descriptors(q, ref);
+    const std::vector<int> gated = nearest_descriptors_gated(q, q_colour, ref, ref_colour, 0.08, int(n));
+    ASSERT_EQ(gated.size(), q.size());
+    for (std::size_t i = 0; i < q.size(); ++i) {
+      EXPECT_EQ(plain[i] % 2, 1) << n << " " << i;
+      ASSERT_GE(gated[i], 0) << n << " " << i;
+      EXPECT_EQ(gated[i] % 2, 0) << n << " " << i;
+      float best = std::numeric_limits<float>::infinity();
+      int bi = -1;
+      for (std::size_t j = 0; j < n; j += 2) {
+        float d = 0;
+        for (int b = 0; b < kFpfhBins; ++b) d += (q[i][std::size_t(b)] - ref[j][std::size_t(b)]) * (q[i][std::size_t(b)] - ref[j][std::size_t(b)]);
+        if (d < best) best = d, bi = int(j);
+      }
+      EXPECT_EQ(gated[i], bi) << n << " " << i;
+    }
+    // Only the nearest candidate looked at: over the tree it is the blue one, so no
+    // match; the scan looks at every descriptor.
+    const std::vector<int> first_only = nearest_descriptors_gated(q, q_colour, ref, ref_colour, 0.08, 1);
+    EXPECT_EQ(first_only, n < 256 ? gated : std::vector<int>(q.size(), -1)) << n;
+    // A colour no reference descriptor has: no match.
+    const std::vector<Vec3f> green(q.size(), Vec3f(0.1f, 0.8f, 0.1f));
+    EXPECT_EQ(nearest_descriptors_gated(q, green, ref, ref_colour, 0.08, int(n)), std::vector<int>(q.size(), -1));
+  }
+  const std::vector<FpfhDescriptor> one(1);
+  EXPECT_THROW(nearest_descriptors_gated(one, {}, one, {Vec3f::Zero()}, 0.1, 8), InvalidInput);
+  EXPECT_THROW(nearest_descriptors_gated(one, {Vec3f::Zero()}, one, {Vec3f::Zero()}, 0.1, 0), InvalidInput);
+}
+
 TEST(Fpfh, BadInputIsRejected) {
   const Cloud s = test::icosphere(2, 0.1).as_cloud();
   const PointIndex index(s.points);
