@@ -37,6 +37,8 @@ void check_params(const GlobalRegistrationParams& p) {
     throw InvalidInput("global registration: edge_similarity must be in (0, 1]");
   if (!(p.feature_radius_voxels > 0) || !(p.inlier_distance_voxels > 0))
     throw InvalidInput("global registration: feature radius and inlier distance must be positive");
+  if (!(p.colour_gate >= 0) || p.colour_candidates < 1)
+    throw InvalidInput("global registration: colour_gate must be >= 0 and colour_candidates >= 1");
 }
 
 }  // namespace

@@ -1746,18 +1746,11 @@ class Registrar {
     return {joined, std::size_t(std::count(usable_.begin(), usable_.end(), true)), converged};
   }
 
-  // When the views were chained (nothing posed) and the chain took a weak fit, or left
-  // some views failed or not joined to the others by converged pairs: the second chain
-  // (confident fits first, global_poses) from the same start, refined; kept when its
-  // chain_score is higher. (The dragon's scans out of turntable order: the first chain
-  // joined all 15 views with four of them 103 deg off, by 0.175 and 0.236 fits; the
-  // second placed all within 0.36 deg.) `start`: the state before initial_poses;
-  // `warned`: where the refinement's warnings start.
   // The last round's converged pairs whose views' colours, under the poses kept, differ
   // by kChainColourRefutes times the colour bound or more (as a chain's pair is refuted:
-  // own_colours). 0 without colours.
+  // own_colours). 0 without colours, or with the colour gate off (colour_gate 0).
   std::size_t colour_refuted_pairs() {
-    if (res_.pairs.empty()) return 0;
+    if (res_.pairs.empty() || !(p_.global.colour_gate > 0)) return 0;
     const int round = res_.pairs.back().round;
     std::size_t refuted = 0;
     for (const PairDiagnostics& pd : res_.pairs) {
@@ -1770,6 +1763,13 @@ class Registrar {
     }
     return refuted;
   }
+  // When the views were chained (nothing posed) and the chain took a weak fit, or left
+  // some views failed or not joined to the others by converged pairs: the second chain
+  // (confident fits first, global_poses) from the same start, refined; kept when its
+  // chain_score is higher. (The dragon's scans out of turntable order: the first chain
+  // joined all 15 views with four of them 103 deg off, by 0.175 and 0.236 fits; the
+  // second placed all within 0.36 deg.) `start`: the state before initial_poses;
+  // `warned`: where the refinement's warnings start.
   void retry_chain(const State& start, std::size_t& warned) {
     if (!chained_ || confident_chain_) return;
     const std::array<std::size_t, 3> first_score = chain_score();
@@ -1791,15 +1791,19 @@ class Registrar {
     };
     const std::array<std::size_t, 3> second_score = chain_score();
     const std::size_t second_refuted = colour_refuted_pairs();
-    if (colour_checked(second_score, second_refuted) > colour_checked(first_score, first_refuted)) {
-      if (!(second_score > first_score))
-        res_.notes.push_back("two chains of the views without angles fit the shapes alike (a near-symmetric "
-                             "object), one with " + std::to_string(first_refuted) + " and one with " +
-                             std::to_string(second_refuted) + " pairs whose colours differ: the colours chose "
-                             "between the two");
+    const bool second_kept = colour_checked(second_score, second_refuted) > colour_checked(first_score, first_refuted);
+    // Where the colours changed which is kept, a note.
+    const auto chose = [&](std::size_t kept, std::size_t other) {
+      return "the views without angles were placed in two ways that fit the shapes alike (a near-symmetric "
+             "object): " + std::string(kColoursChose) + ", the one with " + std::to_string(kept) +
+             " overlapping pairs whose colours differ (the other " + std::to_string(other) + ")";
+    };
+    if (second_kept) {
+      if (!(second_score > first_score)) res_.notes.push_back(chose(second_refuted, first_refuted));
       return;
     }
     restore(std::move(first));
+    if (second_score > first_score) res_.notes.push_back(chose(first_refuted, second_refuted));
     warned = first_warned;
     confident_chain_ = false;
   }
@@ -2349,7 +2353,7 @@ class Registrar {
     // other's and RANSAC's poses land on quarter-turned twins; the right pose of two
     // views 30 deg apart converged with a better overlap (0.60 against 0.47) but was
     // never proposed.
-    if (colours && p_.global.colour_gate > 0 && (!a.ok || a.colour_disagrees)) {
+    if (colours && views_[src].full.has_colours() && p_.global.colour_gate > 0 && (!a.ok || a.colour_disagrees)) {
       GlobalAlign c = global_align(views_[src], {&colour_features_of(src)}, views_[src].full, views_[j],
                                    {&colour_features_of(j)}, colours, std::nullopt, true, false, nullptr, true);
       c.by_colour = a.ok;  // (a pose where the shapes alone found none is no choice between two)
@@ -3919,9 +3923,12 @@ static RegistrationResult register_views_checked(const std::vector<Cloud>& cloud
     const RegistrationResult& kept = keep_free ? free : *prior_best;
     // (Not where the kept run's own colours chose a place: the bottle with colours
     // knocked -30 deg, right, and a run passed over with a view on its twin.)
-    const bool kept_by_colours = std::any_of(kept.warnings.begin(), kept.warnings.end(), [](const std::string& w) {
-      return w.find(kColoursChose) != std::string::npos || w.find(kColoursFavour) != std::string::npos;
-    });
+    const auto colours_chose = [](const std::vector<std::string>& words) {
+      return std::any_of(words.begin(), words.end(), [](const std::string& w) {
+        return w.find(kColoursChose) != std::string::npos || w.find(kColoursFavour) != std::string::npos;
+      });
+    };
+    const bool kept_by_colours = colours_chose(kept.warnings) || colours_chose(kept.notes);
     for (const RegistrationResult* r : {&with, corrected ? &*corrected : nullptr, &free}) {
       if (kept_by_colours) break;
       if (!r || r == &kept) continue;
