@@ -131,10 +131,14 @@ using DescriptorTree = nanoflann::KDTreeSingleIndexAdaptor<nanoflann::L2_Simple_
 
 // The scan in index order: the first reference descriptor at the least squared
 // distance (summed bin by bin in float, as nanoflann's L2_Simple_Adaptor sums it).
-int nearest_by_scan(const FpfhDescriptor& q, const std::vector<FpfhDescriptor>& reference) {
+// Only the descriptors `take` accepts (every one by default).
+template <class Take = bool (*)(std::size_t)>
+int nearest_by_scan(const FpfhDescriptor& q, const std::vector<FpfhDescriptor>& reference,
+                    Take take = [](std::size_t) { return true; }) {
   float best = std::numeric_limits<float>::infinity();
   int bi = -1;
   for (std::size_t j = 0; j < reference.size(); ++j) {
+    if (!take(j)) continue;
     const FpfhDescriptor& r = reference[j];
     float d = 0;
     for (int b = 0; b < kFpfhBins && d < best; ++b) {
@@ -207,16 +211,7 @@ std::vector<int> nearest_descriptors_gated(const std::vector<FpfhDescriptor>& qu
   };
   if (reference.size() < kScanBelow) {
     tbb::parallel_for(std::size_t(0), query.size(), [&](std::size_t i) {
-      float best = std::numeric_limits<float>::infinity();
-      for (std::size_t j = 0; j < reference.size(); ++j) {
-        if (!agrees(i, j)) continue;
-        float d = 0;
-        for (int b = 0; b < kFpfhBins && d < best; ++b) {
-          const float e = query[i][std::size_t(b)] - reference[j][std::size_t(b)];
-          d += e * e;
-        }
-        if (d < best) best = d, out[i] = int(j);
-      }
+      out[i] = nearest_by_scan(query[i], reference, [&](std::size_t j) { return agrees(i, j); });
     });
     return out;
   }

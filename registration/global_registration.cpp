@@ -92,7 +92,6 @@ FeatureView with_colours(FeatureView view, const Cloud& coloured) {
   return view;
 }
 
-
 GlobalRegistrationResult register_global(const FeatureView& source, const FeatureView& target,
                                          const GlobalRegistrationParams& p) {
   check_params(p);
